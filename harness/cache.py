@@ -1,0 +1,158 @@
+"""Atomic outputs and content-keyed stage caches.
+
+Every stage writes into a temporary sibling and renames it into place, so a crash leaves either
+the previous result or the new one, never a half-written file. A stage directory is complete
+when its ``manifest.json`` exists; the manifest is written last.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+log = logging.getLogger(__name__)
+
+#: Bump when a stage's output format or semantics change, so old caches are not reused.
+CODE_VERSION = "1"
+
+
+def _jsonable(obj: Any) -> Any:
+    if is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(asdict(obj))
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def stable_hash(*parts: Any, length: int = 16) -> str:
+    """A short sha256 of JSON-serialisable parts (dataclasses, dicts, paths, scalars)."""
+    text = json.dumps([_jsonable(p) for p in parts], sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def file_fingerprint(path: Path) -> dict[str, Any]:
+    """Cheap identity of a file or directory tree: relative names, sizes and mtimes."""
+    path = Path(path)
+    if path.is_file():
+        st = path.stat()
+        return {"path": str(path.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    entries = []
+    for p in sorted(path.rglob("*")):
+        if p.is_file():
+            st = p.stat()
+            entries.append((str(p.relative_to(path)), st.st_size, st.st_mtime_ns))
+    return {"path": str(path.resolve()), "digest": stable_hash(entries)}
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+@contextlib.contextmanager
+def atomic_dir(path: Path) -> Iterator[Path]:
+    """Yield a temporary directory; on success it replaces ``path`` (an older ``path`` is kept on failure)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        yield tmp
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Write JSON atomically, keys sorted, so equal content gives equal bytes."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(_jsonable(obj), indent=2, sort_keys=True, default=str) + "\n")
+
+
+def write_parquet(path: Path, df: pd.DataFrame | pa.Table, schema: pa.Schema | None = None) -> None:
+    """Write a parquet table atomically (no pandas index, deterministic bytes for equal data)."""
+    table = df if isinstance(df, pa.Table) else pa.Table.from_pandas(df, schema=schema, preserve_index=False)
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp, compression="zstd")
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write a text file atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+class StageCache:
+    """A directory of completed stage outputs, one subdirectory per (stage, key).
+
+    ``run(name, key_parts, build)`` returns the stage directory, calling ``build(tmp_dir)`` only
+    when no complete directory for that key exists. ``build`` fills ``tmp_dir`` and may return a
+    dict stored in the manifest (counts, timings).
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+
+    def key(self, name: str, *key_parts: Any) -> str:
+        return stable_hash(name, CODE_VERSION, *key_parts)
+
+    def path(self, name: str, key: str) -> Path:
+        return self.root / name / key
+
+    def is_done(self, name: str, key: str) -> bool:
+        return (self.path(name, key) / "manifest.json").exists()
+
+    def manifest(self, name: str, key: str) -> dict[str, Any]:
+        return json.loads((self.path(name, key) / "manifest.json").read_text())
+
+    def run(
+        self,
+        name: str,
+        key_parts: tuple[Any, ...],
+        build: Callable[[Path], dict[str, Any] | None],
+    ) -> tuple[Path, bool]:
+        """Return (stage dir, ran) where ``ran`` says whether ``build`` was called."""
+        key = self.key(name, *key_parts)
+        final = self.path(name, key)
+        if self.is_done(name, key):
+            log.info("%s: cached (%s), skipping", name, final)
+            return final, False
+        with atomic_dir(final) as tmp:
+            info = build(tmp) or {}
+            write_json(tmp / "manifest.json", {"stage": name, "key": key, "info": info})
+        log.info("%s: wrote %s", name, final)
+        return final, True

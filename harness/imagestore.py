@@ -1,0 +1,81 @@
+"""Reading frame images by URI.
+
+A frame's ``image`` is a path (absolute, or relative to the directory of the frame table that
+holds it) with an optional fragment that says how to turn the stored image upright:
+``#rot=cw``, ``#rot=ccw`` or ``#rot=180``. NCLT's rotated TIFFs are referenced in place this way;
+images from logs live in the ingest output's image store (PNG for raw images, the original JPEG
+or PNG bytes for compressed ones).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from .errors import IngestError
+
+_ROT = {"cw": cv2.ROTATE_90_CLOCKWISE, "ccw": cv2.ROTATE_90_COUNTERCLOCKWISE, "180": cv2.ROTATE_180}
+
+
+def make_uri(path: str | Path, rotation: str = "none") -> str:
+    """Build an image URI from a path and a turn-upright rotation (``none``, ``cw``, ``ccw``, ``180``)."""
+    return str(path) if rotation in ("none", "", None) else f"{path}#rot={rotation}"
+
+
+def split_uri(uri: str) -> tuple[str, str]:
+    """(path, rotation) of a URI."""
+    path, _, frag = uri.partition("#")
+    rot = frag[4:] if frag.startswith("rot=") else "none"
+    return path, rot
+
+
+def resolve(uri: str, base: Path) -> str:
+    """Make a relative URI absolute against ``base`` (the frame table's directory)."""
+    path, rot = split_uri(uri)
+    p = Path(path)
+    if not p.is_absolute():
+        p = (base / p).resolve()
+    return make_uri(p, rot)
+
+
+def upright_size(stored_w: int, stored_h: int, rotation: str) -> tuple[int, int]:
+    return (stored_h, stored_w) if rotation in ("cw", "ccw") else (stored_w, stored_h)
+
+
+def stored_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image file, reading only its header."""
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, ValueError) as err:
+        raise IngestError(f"{path}: cannot read image header: {err}") from None
+
+
+def to_rgb8(img: np.ndarray) -> np.ndarray:
+    """Any decoded OpenCV image (gray, BGR, BGRA; 8 or 16 bit) to RGB uint8."""
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_image(uri: str) -> np.ndarray:
+    """Decode an image URI to an upright RGB uint8 array ``(H, W, 3)``.
+
+    Raises:
+        IngestError: The file is missing or cannot be decoded.
+    """
+    path, rot = split_uri(uri)
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise IngestError(f"{path}: missing or not a decodable image")
+    rgb = to_rgb8(img)
+    if rot in _ROT:
+        rgb = cv2.rotate(rgb, _ROT[rot])
+    return np.ascontiguousarray(rgb)

@@ -1,0 +1,91 @@
+"""Turning ``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` messages into image-store files."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image as PILImage
+
+from ..errors import IngestError
+
+#: ROS bayer encodings -> OpenCV conversion (OpenCV names the pattern by the second row; as cv_bridge does).
+BAYER = {
+    "bayer_rggb8": cv2.COLOR_BayerBG2BGR,
+    "bayer_bggr8": cv2.COLOR_BayerRG2BGR,
+    "bayer_gbrg8": cv2.COLOR_BayerGR2BGR,
+    "bayer_grbg8": cv2.COLOR_BayerGB2BGR,
+    "bayer_rggb16": cv2.COLOR_BayerBG2BGR,
+    "bayer_bggr16": cv2.COLOR_BayerRG2BGR,
+    "bayer_gbrg16": cv2.COLOR_BayerGR2BGR,
+    "bayer_grbg16": cv2.COLOR_BayerGB2BGR,
+}
+ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "mono16", *BAYER)
+
+
+def raw_to_array(msg: object, where: str) -> np.ndarray:
+    """Decode a ``sensor_msgs/Image`` into an OpenCV-layout array (BGR, BGRA or gray; uint8 or uint16).
+
+    Bayer images are demosaiced. Row padding (``step``) and big-endian 16-bit data are handled.
+
+    Raises:
+        IngestError: Unknown encoding or a data size that does not match width, height and step.
+    """
+    enc = str(msg.encoding).lower()  # type: ignore[attr-defined]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)  # type: ignore[attr-defined]
+    data = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    if enc not in ENCODINGS:
+        raise IngestError(f"{where}: unsupported image encoding {msg.encoding!r}; supported: {', '.join(ENCODINGS)}")  # type: ignore[attr-defined]
+    if h <= 0 or w <= 0:
+        raise IngestError(f"{where}: image has zero size ({w}x{h})")
+    if data.size < h * step:
+        raise IngestError(f"{where}: image data has {data.size} bytes, expected height*step = {h}*{step}")
+    chans = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 1}.get(enc, 1)
+    bpc = 2 if enc.endswith("16") else 1
+    if step < w * chans * bpc:
+        raise IngestError(f"{where}: step {step} is smaller than width*channels*bytes = {w * chans * bpc}")
+    rows = data[: h * step].reshape(h, step)[:, : w * chans * bpc]
+    if bpc == 2:
+        dt = ">u2" if int(msg.is_bigendian) else "<u2"  # type: ignore[attr-defined]
+        arr = np.ascontiguousarray(rows).view(dt).astype(np.uint16).reshape(h, w, chans)
+    else:
+        arr = np.ascontiguousarray(rows).reshape(h, w, chans)
+    if enc == "rgb8":
+        return cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
+    if enc == "rgba8":
+        return cv2.cvtColor(arr, cv2.COLOR_RGBA2BGRA)
+    if enc in ("bgr8", "bgra8"):
+        return arr
+    if enc in BAYER:
+        return cv2.cvtColor(arr[..., 0], BAYER[enc])
+    return arr[..., 0]
+
+
+def compressed_kind(msg: object, where: str) -> str:
+    """``jpg`` or ``png`` from a CompressedImage's ``format`` string (checked against the bytes)."""
+    fmt = str(msg.format).lower()  # type: ignore[attr-defined]
+    data = bytes(np.asarray(msg.data, dtype=np.uint8)[:8])  # type: ignore[attr-defined]
+    if data.startswith(b"\xff\xd8"):
+        kind = "jpg"
+    elif data.startswith(b"\x89PNG"):
+        kind = "png"
+    else:
+        raise IngestError(f"{where}: compressed image format {fmt!r} is neither JPEG nor PNG (first bytes {data!r})")
+    return kind
+
+
+def compressed_size(data: bytes, where: str) -> tuple[int, int]:
+    """(width, height) from a JPEG or PNG header, without decoding the pixels."""
+    try:
+        with PILImage.open(io.BytesIO(data)) as im:
+            return im.size
+    except (OSError, ValueError) as err:
+        raise IngestError(f"{where}: cannot read compressed image header: {err}") from None
+
+
+def write_raw(path: Path, arr: np.ndarray) -> None:
+    """Write a decoded raw image losslessly as PNG (16-bit gray stays 16-bit)."""
+    if not cv2.imwrite(str(path), arr, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise IngestError(f"{path}: could not write image")

@@ -1,0 +1,215 @@
+"""Streaming message access to ROS1 bags, ROS2 bags (sqlite3 or mcap storage) and plain MCAP files.
+
+Messages are read one at a time through rosbags' ``AnyReader``; memory stays bounded whatever
+the log's size. A truncated MCAP whose summary is missing is read record by record with the
+mcap library's stream reader, so the messages before the damage can still be kept.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from ..errors import CorruptLogError, IngestError, TopicError
+from .poses import POSE_TYPES
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+_READ_ERRORS: tuple[type[BaseException], ...] = (
+    AnyReaderError,
+    struct.error,
+    sqlite3.DatabaseError,
+    EOFError,
+    ValueError,
+    KeyError,
+    IndexError,
+    OSError,
+)
+try:  # reader errors of the subpackages
+    from rosbags.rosbag1 import ReaderError as _R1
+    from rosbags.rosbag2 import ReaderError as _R2
+
+    _READ_ERRORS = (*_READ_ERRORS, _R1, _R2)
+except ImportError:  # pragma: no cover
+    pass
+try:
+    from mcap.exceptions import McapError
+
+    _READ_ERRORS = (*_READ_ERRORS, McapError)
+except ImportError:  # pragma: no cover
+    pass
+
+
+def detect_format(path: Path) -> str:
+    """``nclt``, ``ros1``, ``ros2`` or ``mcap`` from what is at ``path``.
+
+    Raises:
+        IngestError: The path does not exist or is of no known format.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise IngestError(f"{path}: no such file or directory")
+    if path.is_dir():
+        if (path / "metadata.yaml").exists():
+            return "ros2"
+        if (path / "images").is_dir() or (path / "ground_truth").is_dir():
+            return "nclt"
+        raise IngestError(
+            f"{path}: directory is neither a ROS2 bag (no metadata.yaml) nor an NCLT root (no images/ or ground_truth/)"
+        )
+    if path.suffix == ".bag":
+        return "ros1"
+    if path.suffix == ".mcap":
+        return "mcap"
+    if path.suffix == ".db3":
+        raise IngestError(f"{path}: a bare .db3 file; pass the ROS2 bag directory that holds it and metadata.yaml")
+    raise IngestError(f"{path}: unknown log format (expected an NCLT root, a .bag, a ROS2 bag directory or an .mcap)")
+
+
+@dataclass(frozen=True)
+class Message:
+    topic: str
+    msgtype: str
+    log_ns: int
+    msg: object
+
+
+def _default_typestore(fmt: str):  # noqa: ANN202
+    return get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
+
+
+def list_topics(path: Path, fmt: str) -> dict[str, tuple[str, int]]:
+    """Topic -> (message type, message count) of a log."""
+    try:
+        with AnyReader([Path(path)], default_typestore=_default_typestore(fmt)) as reader:
+            return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+    except _READ_ERRORS as err:
+        if fmt == "mcap":
+            return _mcap_stream_topics(Path(path))
+        raise CorruptLogError(path, 0, f"cannot open: {err}") from None
+
+
+def choose_topics(
+    topics: dict[str, tuple[str, int]], image_topic: str | None, pose_topic: str | None, where: str
+) -> tuple[str, str]:
+    """Pick the image and the pose topic: given ones are checked, else the only candidate is taken.
+
+    Raises:
+        TopicError: A named topic is missing or of the wrong type, or none or several candidates exist.
+    """
+
+    def pick(name: str | None, types: tuple[str, ...], what: str, flag: str) -> str:
+        cands = sorted(t for t, (typ, _) in topics.items() if typ in types)
+        listing = ", ".join(f"{t} ({topics[t][0]})" for t in sorted(topics)) or "none"
+        if name is not None:
+            if name not in topics:
+                raise TopicError(f"{where}: {what} topic {name!r} is not in the log; topics: {listing}")
+            if topics[name][0] not in types:
+                raise TopicError(f"{where}: topic {name!r} has type {topics[name][0]}, not an {what} type {list(types)}")
+            return name
+        if not cands:
+            raise TopicError(f"{where}: no {what} topic (types {list(types)}); topics: {listing}")
+        if len(cands) > 1:
+            raise TopicError(f"{where}: several {what} topics {cands}; choose one with {flag}")
+        return cands[0]
+
+    if not topics:
+        raise IngestError(f"{where}: the log is empty (no topics)")
+    return (
+        pick(image_topic, IMAGE_TYPES, "image", "--image-topic"),
+        pick(pose_topic, POSE_TYPES, "pose", "--pose-topic"),
+    )
+
+
+def stream(path: Path, fmt: str, topics: tuple[str, ...]) -> Iterator[Message]:
+    """Yield the messages of ``topics`` in log order, deserialized.
+
+    Raises:
+        CorruptLogError: The log is damaged; ``messages_read`` says how many were yielded before.
+    """
+    n = 0
+    try:
+        reader = AnyReader([Path(path)], default_typestore=_default_typestore(fmt))
+        reader.open()
+    except _READ_ERRORS as err:
+        if fmt == "mcap":
+            yield from _mcap_stream(Path(path), topics)
+            return
+        raise CorruptLogError(path, 0, f"cannot open: {err}") from None
+    try:
+        conns = [c for c in reader.connections if c.topic in topics]
+        it = reader.messages(connections=conns)
+        while True:
+            try:
+                conn, t, raw = next(it)
+                msg = reader.deserialize(raw, conn.msgtype)
+            except StopIteration:
+                break
+            except _READ_ERRORS as err:
+                raise CorruptLogError(path, n, f"{type(err).__name__}: {err}") from None
+            n += 1
+            yield Message(conn.topic, conn.msgtype, int(t), msg)
+    finally:
+        try:
+            reader.close()
+        except _READ_ERRORS:  # pragma: no cover - closing a damaged file
+            pass
+
+
+def _mcap_records(path: Path) -> Iterator[object]:
+    from mcap.stream_reader import StreamReader
+
+    with open(path, "rb") as fh:
+        yield from StreamReader(fh, skip_magic=False).records
+
+
+def _mcap_stream_topics(path: Path) -> dict[str, tuple[str, int]]:
+    from mcap.records import Channel, Message as McapMessage, Schema
+
+    schemas: dict[int, str] = {}
+    chans: dict[int, tuple[str, str]] = {}
+    counts: dict[str, int] = {}
+    try:
+        for rec in _mcap_records(path):
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec.name
+            elif isinstance(rec, Channel):
+                chans[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
+            elif isinstance(rec, McapMessage) and rec.channel_id in chans:
+                counts[chans[rec.channel_id][0]] = counts.get(chans[rec.channel_id][0], 0) + 1
+    except _READ_ERRORS:
+        pass
+    return {t: (typ, counts.get(t, 0)) for t, typ in chans.values()}
+
+
+def _mcap_stream(path: Path, topics: tuple[str, ...]) -> Iterator[Message]:
+    """Sequential record-by-record read of an MCAP file whose index or summary is unusable."""
+    from mcap.records import Channel, Message as McapMessage, Schema
+
+    store = get_typestore(Stores.EMPTY)
+    schemas: dict[int, Schema] = {}
+    chans: dict[int, tuple[str, str]] = {}
+    n = 0
+    try:
+        for rec in _mcap_records(path):
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+                if rec.encoding == "ros2msg" and rec.name not in store.fielddefs:
+                    store.register(get_types_from_msg(rec.data.decode(), rec.name))
+            elif isinstance(rec, Channel):
+                chans[rec.id] = (rec.topic, schemas[rec.schema_id].name if rec.schema_id in schemas else "")
+            elif isinstance(rec, McapMessage):
+                topic, typ = chans.get(rec.channel_id, ("", ""))
+                if topic in topics:
+                    msg = store.deserialize_cdr(rec.data, typ)
+                    n += 1
+                    yield Message(topic, typ, int(rec.log_time), msg)
+    except _READ_ERRORS as err:
+        raise CorruptLogError(path, n, f"{type(err).__name__}: {err}") from None
+    if n == 0:
+        raise CorruptLogError(path, 0, "no readable message")

@@ -1,0 +1,83 @@
+"""Typed records and table schemas shared by all stages (SPEC section 2).
+
+Time is ``utime``: integer microseconds since the Unix epoch. Positions are metres in one map
+frame, angles radians. Images are handled upright.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pyarrow as pa
+
+#: The paper's four NCLT sessions and their seasons.
+NCLT_SEASONS: dict[str, str] = {
+    "2012-01-22": "WI",
+    "2012-03-31": "SP",
+    "2012-08-04": "SU",
+    "2012-11-17": "AU",
+}
+
+FRAME_KEY = ["session", "camera", "utime"]
+FRAME_COLUMNS = ["session", "camera", "utime", "x", "y", "z", "roll", "pitch", "yaw", "image", "width", "height"]
+
+FRAME_SCHEMA = pa.schema(
+    [
+        ("session", pa.string()),
+        ("camera", pa.string()),
+        ("utime", pa.int64()),
+        ("x", pa.float64()),
+        ("y", pa.float64()),
+        ("z", pa.float64()),
+        ("roll", pa.float64()),
+        ("pitch", pa.float64()),
+        ("yaw", pa.float64()),
+        ("image", pa.string()),
+        ("width", pa.int32()),
+        ("height", pa.int32()),
+    ]
+)
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A 6-DoF pose at one instant.
+
+    Attributes:
+        utime: Microseconds since the epoch.
+        x, y, z: Position in metres, map frame.
+        roll, pitch, yaw: Orientation in radians (ZYX Euler, yaw about the map's z axis).
+    """
+
+    utime: int
+    x: float
+    y: float
+    z: float
+    roll: float
+    pitch: float
+    yaw: float
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One pose-tagged camera frame (a row of ``frames.parquet``)."""
+
+    session: str
+    camera: str
+    utime: int
+    x: float
+    y: float
+    z: float
+    roll: float
+    pitch: float
+    yaw: float
+    image: str
+    width: int
+    height: int
+
+
+def season_of(session: str, seasons: dict[str, str] | None = None) -> str:
+    """The season code of a session (config mapping first, then the NCLT table, else the name)."""
+    if seasons and session in seasons:
+        return seasons[session]
+    return NCLT_SEASONS.get(session, session)
