@@ -78,8 +78,19 @@ class MserConfig:
 
 
 @dataclass(frozen=True)
+class EdgesConfig:
+    max_boxes: int = 12
+    min_area_frac: float = 0.005
+    max_area_frac: float = 0.4
+    nms_iou: float = 0.5
+    work_width: int = 480
+    dilations: tuple[int, ...] = (3, 5, 9)
+
+
+@dataclass(frozen=True)
 class ProposalsConfig:
-    methods: tuple[str, ...] = ("grid5", "mser")
+    methods: tuple[str, ...] = ("grid5", "edges")
+    edges: EdgesConfig = field(default_factory=EdgesConfig)
     yolo: YoloConfig = field(default_factory=YoloConfig)
     mser: MserConfig = field(default_factory=MserConfig)
     file: str | None = None
@@ -89,6 +100,7 @@ class ProposalsConfig:
 class DescriptorConfig:
     name: str = "autoencoder"
     input_size: int = 256
+    channels: tuple[int, int, int] = (32, 32, 16)
     epochs: int = 4
     batch_size: int = 32
     lr: float = 1e-3
@@ -141,7 +153,7 @@ class FixtureConfig:
     frames: int = 48
     width: int = 120
     height: int = 160
-    objects: int = 5
+    objects: int = 6
 
 
 @dataclass(frozen=True)
@@ -195,6 +207,7 @@ def _build(cls: type[T], data: Any, where: str) -> T:
 _NESTED: dict[tuple[str, str], type] = {
     ("ProposalsConfig", "yolo"): YoloConfig,
     ("ProposalsConfig", "mser"): MserConfig,
+    ("ProposalsConfig", "edges"): EdgesConfig,
 }
 
 _SECTIONS: dict[str, type] = {

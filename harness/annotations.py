@@ -1,0 +1,225 @@
+"""Annotation tables (SPEC section 2): loading, validation, importers and a labelling exporter.
+
+The canonical table is a CSV with columns ``session, camera, utime, status, x1, y1, x2, y2, label``:
+one row per change box, and one row with empty box fields for a ``no-change`` frame.
+
+Labelling tools know images by file name. The exporter names each image
+``<session>__<camera>__<utime>.png``; the importers map names of that form back to frame keys.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from .cache import atomic_dir, write_json
+from .errors import AnnotationError
+from .imagestore import read_image
+
+COLUMNS = ["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
+STATUSES = ("change", "no-change")
+_NAME = re.compile(r"^(?P<session>.+?)__(?P<camera>.+?)__(?P<utime>-?\d+)(\.[A-Za-z0-9]+)?$")
+
+
+def image_name(session: str, camera: str, utime: int, ext: str = ".png") -> str:
+    return f"{session}__{camera}__{int(utime)}{ext}"
+
+
+def parse_image_name(name: str, where: str) -> tuple[str, str, int]:
+    m = _NAME.match(Path(name).name)
+    if not m:
+        raise AnnotationError(f"{where}: image name {name!r} is not of the form <session>__<camera>__<utime>.<ext>")
+    return m["session"], m["camera"], int(m["utime"])
+
+
+def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.DataFrame:
+    """Check an annotation table; return it normalised (types, sorted).
+
+    Raises:
+        AnnotationError: naming the row (CSV line) and what is wrong: missing columns, unknown
+            status, a change box that is missing, of zero area or outside the image, an unknown
+            frame, a frame both change and no-change, duplicate rows.
+    """
+    missing = [c for c in COLUMNS[:8] if c not in df.columns]
+    if missing:
+        raise AnnotationError(f"{where}: missing column(s) {missing}; expected {COLUMNS}")
+    df = df.copy()
+    if "label" not in df.columns:
+        df["label"] = ""
+    df["label"] = df["label"].fillna("").astype(str)
+    line = df.index.to_numpy() + 2  # header is line 1
+
+    def fail(mask: np.ndarray, what: str) -> None:
+        if mask.any():
+            i = int(np.nonzero(mask)[0][0])
+            raise AnnotationError(f"{where}: line {line[i]}: {what} ({int(mask.sum())} row(s) in all)")
+
+    try:
+        df["utime"] = pd.to_numeric(df["utime"], errors="raise").astype(np.int64)
+    except (ValueError, TypeError):
+        bad = pd.to_numeric(df["utime"], errors="coerce").isna().to_numpy()
+        fail(bad, "utime is not an integer")
+    df["session"] = df["session"].astype(str)
+    df["camera"] = df["camera"].astype(str)
+    fail(~df["status"].isin(STATUSES).to_numpy(), f"status must be one of {STATUSES}")
+    for c in ("x1", "y1", "x2", "y2"):
+        df[c] = pd.to_numeric(df[c], errors="coerce")
+    box = df[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    chg = (df["status"] == "change").to_numpy()
+    fail(chg & ~np.isfinite(box).all(axis=1), "a change row needs a numeric box x1, y1, x2, y2")
+    fail(~chg & np.isfinite(box).any(axis=1), "a no-change row must leave the box empty")
+    with np.errstate(invalid="ignore"):
+        fail(chg & ((box[:, 2] <= box[:, 0]) | (box[:, 3] <= box[:, 1])), "box has zero or negative area")
+        fail(chg & ((box[:, 0] < 0) | (box[:, 1] < 0)), "box starts outside the image")
+    keys = ["session", "camera", "utime"]
+    if frames is not None:
+        fk = frames[keys + ["width", "height"]].drop_duplicates(keys)
+        m = df.merge(fk, on=keys, how="left", indicator=True)
+        fail((m["_merge"] == "left_only").to_numpy(), "unknown frame (not in the frame table)")
+        with np.errstate(invalid="ignore"):
+            fail(chg & ((box[:, 2] > m["width"].to_numpy()) | (box[:, 3] > m["height"].to_numpy())), "box ends outside the image")
+    both = df.groupby(keys)["status"].transform("nunique").to_numpy() > 1
+    fail(both, "frame is annotated both change and no-change")
+    fail(df.duplicated(keep="first").to_numpy(), "duplicate row")
+    fail((~chg) & df.duplicated(keys, keep="first").to_numpy(), "duplicate no-change row for a frame")
+    return df[COLUMNS].sort_values(keys + ["x1", "y1"], na_position="first").reset_index(drop=True)
+
+
+def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Read and validate a canonical annotation CSV."""
+    path = Path(path)
+    if not path.exists():
+        raise AnnotationError(f"{path}: annotation file not found")
+    try:
+        df = pd.read_csv(path, dtype={"session": str, "camera": str, "label": str}, keep_default_na=True)
+    except (pd.errors.ParserError, UnicodeDecodeError) as err:
+        raise AnnotationError(f"{path}: not a readable CSV: {err}") from None
+    return validate(df, frames, str(path))
+
+
+def change_boxes(ann: pd.DataFrame) -> dict[tuple[str, str, int], np.ndarray]:
+    """Frame key -> (c, 4) change boxes (c = 0 for no-change frames), for every annotated frame."""
+    out: dict[tuple[str, str, int], np.ndarray] = {}
+    for key, g in ann.groupby(["session", "camera", "utime"], sort=True):
+        b = g.loc[g["status"] == "change", ["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        out[(str(key[0]), str(key[1]), int(key[2]))] = b.reshape(-1, 4)
+    return out
+
+
+# ---------------------------------------------------------------- importers
+
+
+def _rows_for_image(name: str, boxes: list[tuple[float, float, float, float, str]], where: str) -> list[dict]:
+    s, c, t = parse_image_name(name, where)
+    if not boxes:
+        return [dict(session=s, camera=c, utime=t, status="no-change", x1=np.nan, y1=np.nan, x2=np.nan, y2=np.nan, label="")]
+    return [dict(session=s, camera=c, utime=t, status="change", x1=x1, y1=y1, x2=x2, y2=y2, label=lab) for x1, y1, x2, y2, lab in boxes]
+
+
+def import_coco(path: Path) -> pd.DataFrame:
+    """COCO JSON: ``bbox`` is ``[x, y, w, h]``; an image without annotations is no-change."""
+    try:
+        doc = json.loads(Path(path).read_text())
+        images = {im["id"]: im["file_name"] for im in doc["images"]}
+        cats = {c["id"]: c["name"] for c in doc.get("categories", [])}
+        per: dict[int, list] = {i: [] for i in images}
+        for a in doc.get("annotations", []):
+            x, y, w, h = (float(v) for v in a["bbox"])
+            if a["image_id"] not in per:
+                raise AnnotationError(f"{path}: annotation {a.get('id')} refers to unknown image_id {a['image_id']}")
+            per[a["image_id"]].append((x, y, x + w, y + h, cats.get(a.get("category_id"), "")))
+    except (KeyError, TypeError, ValueError) as err:
+        raise AnnotationError(f"{path}: not a COCO annotation file: {type(err).__name__}: {err}") from None
+    rows = [r for i, name in sorted(images.items()) for r in _rows_for_image(name, per[i], f"{path}: image {i}")]
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def import_voc(folder: Path) -> pd.DataFrame:
+    """Pascal VOC: one XML per image in ``folder``; an image without objects is no-change."""
+    rows: list[dict] = []
+    files = sorted(Path(folder).glob("*.xml"))
+    if not files:
+        raise AnnotationError(f"{folder}: no VOC .xml files")
+    for f in files:
+        try:
+            root = ET.parse(f).getroot()
+            name = root.findtext("filename") or f.stem
+            boxes = []
+            for obj in root.findall("object"):
+                bb = obj.find("bndbox")
+                if bb is None:
+                    raise AnnotationError(f"{f}: object without bndbox")
+                boxes.append((float(bb.findtext("xmin")), float(bb.findtext("ymin")), float(bb.findtext("xmax")),  # type: ignore[arg-type]
+                              float(bb.findtext("ymax")), obj.findtext("name") or ""))  # type: ignore[arg-type]
+        except (ET.ParseError, TypeError, ValueError) as err:
+            raise AnnotationError(f"{f}: not a VOC annotation: {err}") from None
+        rows += _rows_for_image(name, boxes, str(f))
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def import_cvat(path: Path) -> pd.DataFrame:
+    """CVAT for images 1.1 XML: ``<image name=...><box label xtl ytl xbr ybr/></image>``."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as err:
+        raise AnnotationError(f"{path}: not valid XML: {err}") from None
+    rows: list[dict] = []
+    images = root.findall("image")
+    if not images:
+        raise AnnotationError(f"{path}: no <image> elements (is this a CVAT for images 1.1 export?)")
+    for im in images:
+        try:
+            boxes = [(float(b.get("xtl")), float(b.get("ytl")), float(b.get("xbr")), float(b.get("ybr")), b.get("label", ""))  # type: ignore[arg-type]
+                     for b in im.findall("box")]
+        except (TypeError, ValueError) as err:
+            raise AnnotationError(f"{path}: image {im.get('name')}: bad box attribute: {err}") from None
+        rows += _rows_for_image(im.get("name", ""), boxes, f"{path}: image {im.get('id')}")
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+IMPORTERS = {"coco": import_coco, "voc": import_voc, "cvat": import_cvat}
+
+
+def import_annotations(fmt: str, src: Path, frames: pd.DataFrame | None, out: Path) -> pd.DataFrame:
+    """Import, validate and write the canonical CSV (atomically)."""
+    if fmt not in IMPORTERS:
+        raise AnnotationError(f"unknown annotation format {fmt!r}; known: {sorted(IMPORTERS)}")
+    df = validate(IMPORTERS[fmt](Path(src)).reset_index(drop=True), frames, str(src))
+    from .cache import atomic_path
+
+    with atomic_path(Path(out)) as tmp:
+        df.to_csv(tmp, index=False, float_format="%.2f")
+    return df
+
+
+def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, limit: int | None = None) -> Path:
+    """Write chosen query frames beside their references for a labelling tool.
+
+    Each image is ``query | reference`` side by side with the query on the left, so a box drawn
+    on the query keeps the query's pixel coordinates (the importers reject boxes beyond the
+    query's width). A COCO task file (``task.json``, images only, one category ``change``)
+    lists them; CVAT, Label Studio and most tools import it.
+    """
+    keyed = frames.set_index(["session", "camera", "utime"])
+    q = pairs.drop_duplicates(["q_session", "q_camera", "q_utime"]).head(limit) if limit else pairs.drop_duplicates(["q_session", "q_camera", "q_utime"])
+    images = []
+    with atomic_dir(Path(out)) as tmp:
+        (tmp / "images").mkdir()
+        for i, row in enumerate(q.itertuples(index=False), 1):
+            qf = keyed.loc[(row.q_session, row.q_camera, row.q_utime)]
+            rf = keyed.loc[(row.r_session, row.r_camera, row.r_utime)]
+            qi, ri = read_image(qf["image"]), read_image(rf["image"])
+            if ri.shape[0] != qi.shape[0]:
+                ri = cv2.resize(ri, (int(ri.shape[1] * qi.shape[0] / ri.shape[0]), qi.shape[0]))
+            name = image_name(row.q_session, row.q_camera, row.q_utime)
+            cv2.imwrite(str(tmp / "images" / name), cv2.cvtColor(np.hstack([qi, ri]), cv2.COLOR_RGB2BGR))
+            images.append({"id": i, "file_name": name, "width": int(qi.shape[1] + ri.shape[1]), "height": int(qi.shape[0]),
+                           "query_width": int(qi.shape[1]), "reference": image_name(row.r_session, row.r_camera, row.r_utime)})
+        write_json(tmp / "task.json", {"images": images, "annotations": [], "categories": [{"id": 1, "name": "change"}]})
+    return Path(out)

@@ -1,0 +1,15 @@
+"""Subimage descriptors: a registry of encoders from uint8 crops to L2-normalised vectors.
+
+``autoencoder`` (the paper's, trained without labels) is the default; ``hog`` and ``thumb``
+need no training. A user's own descriptor is a small class: subclass :class:`Descriptor`,
+implement ``encode`` (and ``fit`` if it learns), and add it to ``REGISTRY``.
+"""
+
+from __future__ import annotations
+
+from .base import REGISTRY, Descriptor, HogDescriptor, ThumbDescriptor, make_descriptor, normalize
+from .autoencoder_descriptor import AutoencoderDescriptor
+
+REGISTRY["autoencoder"] = AutoencoderDescriptor
+
+__all__ = ["REGISTRY", "AutoencoderDescriptor", "Descriptor", "HogDescriptor", "ThumbDescriptor", "make_descriptor", "normalize"]

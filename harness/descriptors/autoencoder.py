@@ -1,0 +1,128 @@
+"""The paper's convolutional autoencoder (SPEC section 6).
+
+Encoder: three blocks of conv 3x3 + batch-norm + ReLU + max-pool 2x2; a 256x256 RGB input gives a
+16 x 32 x 32 = 16,384-dim bottleneck, the descriptor. The decoder mirrors the encoder. Trained
+without labels (reconstruction loss) on reference-session subimages.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..cache import atomic_path
+
+log = logging.getLogger(__name__)
+
+
+def _enc_block(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True), nn.MaxPool2d(2))
+
+
+def _dec_block(cin: int, cout: int, last: bool) -> nn.Sequential:
+    layers: list[nn.Module] = [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(cin, cout, 3, padding=1, bias=last)]
+    layers += [nn.Sigmoid()] if last else [nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
+
+
+class ConvAutoencoder(nn.Module):
+    """Three conv blocks down, three mirrored blocks up. ``channels`` are the encoder's widths."""
+
+    def __init__(self, channels: tuple[int, int, int] = (32, 32, 16)) -> None:
+        super().__init__()
+        c1, c2, c3 = channels
+        self.encoder = nn.Sequential(_enc_block(3, c1), _enc_block(c1, c2), _enc_block(c2, c3))
+        self.decoder = nn.Sequential(_dec_block(c3, c2, False), _dec_block(c2, c1, False), _dec_block(c1, 3, True))
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        return self.encoder(x).flatten(1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.decoder(self.encoder(x))
+
+
+def to_tensor(crops: np.ndarray, device: torch.device) -> torch.Tensor:
+    """uint8 (B, S, S, 3) -> float (B, 3, S, S) in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(crops)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+def train(
+    model: ConvAutoencoder,
+    data: np.ndarray,
+    epochs: int,
+    batch_size: int,
+    lr: float,
+    seed: int,
+    device: torch.device,
+    progress: Callable | None = None,
+) -> list[tuple[int, int, float]]:
+    """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE; returns (epoch, step, loss) rows."""
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    model.to(device).train()
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    n = len(data)
+    steps = math.ceil(n / batch_size)
+    history = []
+    it = range(epochs)
+    for ep in it:
+        perm = torch.randperm(n, generator=g).numpy()
+        total = 0.0
+        for s in range(steps):
+            idx = np.sort(perm[s * batch_size : (s + 1) * batch_size])
+            x = to_tensor(data[idx], device)
+            loss = nn.functional.mse_loss(model(x), x)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss) * len(idx)
+            history.append((ep, ep * steps + s, float(loss)))
+            if progress:
+                progress(1)
+        log.info("autoencoder epoch %d/%d: mean loss %.5f", ep + 1, epochs, total / max(n, 1))
+    model.eval()
+    return history
+
+
+def save_checkpoint(path: Path, model: ConvAutoencoder, meta: dict) -> None:
+    """Save atomically: state dict plus plain metadata (loadable with ``weights_only=True``)."""
+    with atomic_path(Path(path)) as tmp:
+        torch.save({"state_dict": model.state_dict(), "meta": meta}, tmp)
+
+
+def load_checkpoint(path: Path, device: torch.device) -> tuple[ConvAutoencoder, dict]:
+    ck = torch.load(Path(path), map_location=device, weights_only=True)
+    meta = ck["meta"]
+    model = ConvAutoencoder(tuple(meta["channels"]))
+    model.load_state_dict(ck["state_dict"])
+    return model.to(device).eval(), meta
+
+
+def save_loss_curve(history: list[tuple[int, int, float]], csv_path: Path, png_path: Path | None) -> None:
+    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["epoch", "step", "loss"])
+        w.writerows([(e, s, f"{v:.6f}") for e, s, v in history])
+    if png_path is not None and history:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(5, 3))
+        ax.plot([s for _, s, _ in history], [v for _, _, v in history], lw=1)
+        ax.set_xlabel("step")
+        ax.set_ylabel("reconstruction MSE")
+        ax.set_yscale("log")
+        ax.set_title("autoencoder training loss")
+        fig.tight_layout()
+        with atomic_path(png_path) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
+        plt.close(fig)

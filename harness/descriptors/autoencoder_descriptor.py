@@ -1,0 +1,52 @@
+"""The autoencoder as a registered descriptor (training, checkpointing, encoding)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..config import DescriptorConfig
+from .autoencoder import ConvAutoencoder, load_checkpoint, save_checkpoint, save_loss_curve, to_tensor, train
+from .base import Descriptor
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+class AutoencoderDescriptor(Descriptor):
+    name = "autoencoder"
+    needs_training = True
+    CHECKPOINT = "autoencoder.pt"
+
+    def __init__(self, cfg: DescriptorConfig) -> None:
+        super().__init__(cfg)
+        self.device = pick_device(cfg.device)
+        self.model: ConvAutoencoder | None = None
+
+    def fit(self, crops: np.ndarray, out_dir: Path, progress=None) -> dict:  # noqa: ANN001
+        torch.manual_seed(self.cfg.seed)
+        model = ConvAutoencoder(tuple(self.cfg.channels))
+        history = train(model, crops, self.cfg.epochs, self.cfg.batch_size, self.cfg.lr, self.cfg.seed, self.device, progress)
+        save_checkpoint(out_dir / self.CHECKPOINT, model, {"channels": list(self.cfg.channels), "input_size": self.cfg.input_size})
+        save_loss_curve(history, out_dir / "loss.csv", out_dir / "loss.png")
+        self.model = model
+        first = float(np.mean([v for e, _, v in history if e == 0])) if history else float("nan")
+        last = float(np.mean([v for e, _, v in history if e == self.cfg.epochs - 1])) if history else float("nan")
+        return {"train_subimages": len(crops), "first_epoch_loss": first, "last_epoch_loss": last}
+
+    def load(self, out_dir: Path) -> None:
+        self.model, _ = load_checkpoint(out_dir / self.CHECKPOINT, self.device)
+
+    @torch.inference_mode()
+    def encode(self, crops: np.ndarray) -> np.ndarray:
+        if self.model is None:
+            raise RuntimeError("autoencoder is not trained or loaded")
+        out = []
+        for i in range(0, len(crops), self.cfg.batch_size):
+            out.append(self.model.encode(to_tensor(crops[i : i + self.cfg.batch_size], self.device)).float().cpu().numpy())
+        return np.concatenate(out) if out else np.zeros((0, 0), np.float32)

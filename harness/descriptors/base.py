@@ -1,0 +1,91 @@
+"""Descriptor interface and the training-free descriptors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..config import DescriptorConfig
+from ..errors import ConfigError
+
+
+def normalize(x: np.ndarray) -> np.ndarray:
+    """Row-wise L2 normalisation (zero rows stay zero)."""
+    x = np.asarray(x, np.float32)
+    n = np.linalg.norm(x, axis=1, keepdims=True)
+    return x / np.where(n > 0, n, 1)
+
+
+class Descriptor:
+    """Maps uint8 crops ``(B, S, S, 3)`` (RGB, S = ``input_size``) to float32 ``(B, dim)``.
+
+    ``needs_training`` descriptors get ``fit`` on reference subimages before use, and save and
+    load their state under a directory.
+    """
+
+    name = "base"
+    needs_training = False
+
+    def __init__(self, cfg: DescriptorConfig) -> None:
+        self.cfg = cfg
+
+    @property
+    def input_size(self) -> int:
+        return self.cfg.input_size
+
+    def fit(self, crops: np.ndarray, out_dir: Path) -> dict:  # pragma: no cover - trivial
+        return {}
+
+    def load(self, out_dir: Path) -> None:  # pragma: no cover - trivial
+        return None
+
+    def encode(self, crops: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+class HogDescriptor(Descriptor):
+    """Histogram of oriented gradients of the grey crop (64x64 window, 8-px cells, 9 bins)."""
+
+    name = "hog"
+
+    def __init__(self, cfg: DescriptorConfig) -> None:
+        super().__init__(cfg)
+        self.hog = cv2.HOGDescriptor((64, 64), (16, 16), (8, 8), (8, 8), 9)
+
+    def encode(self, crops: np.ndarray) -> np.ndarray:
+        out = []
+        for c in crops:
+            g = cv2.cvtColor(c, cv2.COLOR_RGB2GRAY)
+            if g.shape != (64, 64):
+                g = cv2.resize(g, (64, 64), interpolation=cv2.INTER_AREA)
+            out.append(self.hog.compute(g).ravel())
+        return np.asarray(out, np.float32).reshape(len(crops), -1)
+
+
+class ThumbDescriptor(Descriptor):
+    """A 16x16 zero-mean grey thumbnail beside an 8x4x4 HSV colour histogram (equal weight)."""
+
+    name = "thumb"
+
+    def encode(self, crops: np.ndarray) -> np.ndarray:
+        out = []
+        for c in crops:
+            g = cv2.resize(cv2.cvtColor(c, cv2.COLOR_RGB2GRAY), (16, 16), interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
+            g -= g.mean()
+            g /= np.linalg.norm(g) + 1e-6
+            hsv = cv2.cvtColor(c, cv2.COLOR_RGB2HSV)
+            hist = cv2.calcHist([hsv], [0, 1, 2], None, [8, 4, 4], [0, 180, 0, 256, 0, 256]).ravel()
+            hist /= np.linalg.norm(hist) + 1e-6
+            out.append(np.concatenate([g, hist]))
+        return np.asarray(out, np.float32).reshape(len(crops), -1)
+
+
+REGISTRY: dict[str, type[Descriptor]] = {"hog": HogDescriptor, "thumb": ThumbDescriptor}
+
+
+def make_descriptor(cfg: DescriptorConfig) -> Descriptor:
+    if cfg.name not in REGISTRY:
+        raise ConfigError(f"[descriptor] unknown name {cfg.name!r}; known: {sorted(REGISTRY)}")
+    return REGISTRY[cfg.name](cfg)
