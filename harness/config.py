@@ -101,6 +101,7 @@ class DescriptorConfig:
     name: str = "autoencoder"
     input_size: int = 256
     channels: tuple[int, int, int] = (32, 32, 16)
+    input_norm: str = "none"  # "none" (the paper) or "per_crop": standardise each crop's channels
     epochs: int = 4
     batch_size: int = 32
     lr: float = 1e-3
@@ -150,10 +151,11 @@ class FixtureConfig:
 
     generate: bool = False
     seed: int = 0
-    frames: int = 48
+    frames: int = 64
     width: int = 120
     height: int = 160
-    objects: int = 6
+    objects: int = 3
+    loop_scale: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -288,6 +290,8 @@ def validate(cfg: Config, where: str) -> None:
         raise ConfigError(f"{where}: [ingest] nclt_rotation must be cw, ccw or none")
     if cfg.retrieval.engine not in ("exact", "faiss"):
         raise ConfigError(f"{where}: [retrieval] engine must be 'exact' or 'faiss'")
+    if cfg.descriptor.input_norm not in ("none", "per_crop"):
+        raise ConfigError(f"{where}: [descriptor] input_norm must be 'none' or 'per_crop'")
     if cfg.descriptor.dtype not in ("float16", "float32"):
         raise ConfigError(f"{where}: [descriptor] dtype must be float16 or float32")
     if not cfg.proposals.methods:

@@ -48,9 +48,18 @@ class ConvAutoencoder(nn.Module):
         return self.decoder(self.encoder(x))
 
 
-def to_tensor(crops: np.ndarray, device: torch.device) -> torch.Tensor:
-    """uint8 (B, S, S, 3) -> float (B, 3, S, S) in [0, 1]."""
-    return torch.from_numpy(np.ascontiguousarray(crops)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+def to_tensor(crops: np.ndarray, device: torch.device, per_crop: bool = False) -> torch.Tensor:
+    """uint8 (B, S, S, 3) -> float (B, 3, S, S) in [0, 1].
+
+    With ``per_crop`` each crop's channels are standardised (zero mean, unit variance), then
+    squashed back into (0, 1) by a logistic, which removes global illumination and colour cast.
+    """
+    x = torch.from_numpy(np.ascontiguousarray(crops)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+    if per_crop:
+        mu = x.mean(dim=(2, 3), keepdim=True)
+        sd = x.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)
+        x = torch.sigmoid((x - mu) / sd)
+    return x
 
 
 def train(
@@ -62,6 +71,7 @@ def train(
     seed: int,
     device: torch.device,
     progress: Callable | None = None,
+    per_crop: bool = False,
 ) -> list[tuple[int, int, float]]:
     """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE; returns (epoch, step, loss) rows."""
     g = torch.Generator().manual_seed(seed)
@@ -77,13 +87,14 @@ def train(
         total = 0.0
         for s in range(steps):
             idx = np.sort(perm[s * batch_size : (s + 1) * batch_size])
-            x = to_tensor(data[idx], device)
+            x = to_tensor(data[idx], device, per_crop)
             loss = nn.functional.mse_loss(model(x), x)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            total += float(loss) * len(idx)
-            history.append((ep, ep * steps + s, float(loss)))
+            lv = float(loss.detach())
+            total += lv * len(idx)
+            history.append((ep, ep * steps + s, lv))
             if progress:
                 progress(1)
         log.info("autoencoder epoch %d/%d: mean loss %.5f", ep + 1, epochs, total / max(n, 1))

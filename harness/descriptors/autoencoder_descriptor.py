@@ -31,7 +31,7 @@ class AutoencoderDescriptor(Descriptor):
     def fit(self, crops: np.ndarray, out_dir: Path, progress=None) -> dict:  # noqa: ANN001
         torch.manual_seed(self.cfg.seed)
         model = ConvAutoencoder(tuple(self.cfg.channels))
-        history = train(model, crops, self.cfg.epochs, self.cfg.batch_size, self.cfg.lr, self.cfg.seed, self.device, progress)
+        history = train(model, crops, self.cfg.epochs, self.cfg.batch_size, self.cfg.lr, self.cfg.seed, self.device, progress, self.cfg.input_norm == "per_crop")
         save_checkpoint(out_dir / self.CHECKPOINT, model, {"channels": list(self.cfg.channels), "input_size": self.cfg.input_size})
         save_loss_curve(history, out_dir / "loss.csv", out_dir / "loss.png")
         self.model = model
@@ -48,5 +48,5 @@ class AutoencoderDescriptor(Descriptor):
             raise RuntimeError("autoencoder is not trained or loaded")
         out = []
         for i in range(0, len(crops), self.cfg.batch_size):
-            out.append(self.model.encode(to_tensor(crops[i : i + self.cfg.batch_size], self.device)).float().cpu().numpy())
+            out.append(self.model.encode(to_tensor(crops[i : i + self.cfg.batch_size], self.device, self.cfg.input_norm == "per_crop")).float().cpu().numpy())
         return np.concatenate(out) if out else np.zeros((0, 0), np.float32)

@@ -45,14 +45,35 @@ class Descriptor:
         raise NotImplementedError
 
 
+def hog(gray: np.ndarray, cell: int = 8, bins: int = 9) -> np.ndarray:
+    """Dalal-Triggs HOG of a grey image: unsigned orientations with linear bin interpolation,
+    2x2-cell blocks with stride one cell, L2-Hys normalisation (clip 0.2)."""
+    g = gray.astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1)
+    mag = np.sqrt(gx * gx + gy * gy)
+    ang = (np.degrees(np.arctan2(gy, gx)) % 180.0) / (180.0 / bins)
+    lo = np.floor(ang).astype(np.int64) % bins
+    frac = ang - np.floor(ang)
+    h, w = g.shape
+    cy, cx = h // cell, w // cell
+    hist = np.zeros((cy, cx, bins), np.float32)
+    ci = (np.arange(cy * cell) // cell)[:, None].repeat(cx * cell, 1)
+    cj = (np.arange(cx * cell) // cell)[None, :].repeat(cy * cell, 0)
+    m, l, f = mag[: cy * cell, : cx * cell], lo[: cy * cell, : cx * cell], frac[: cy * cell, : cx * cell]
+    np.add.at(hist, (ci, cj, l), m * (1 - f))
+    np.add.at(hist, (ci, cj, (l + 1) % bins), m * f)
+    blocks = np.concatenate([hist[:-1, :-1], hist[1:, :-1], hist[:-1, 1:], hist[1:, 1:]], axis=2)
+    blocks /= np.linalg.norm(blocks, axis=2, keepdims=True) + 1e-6
+    blocks = np.minimum(blocks, 0.2)
+    blocks /= np.linalg.norm(blocks, axis=2, keepdims=True) + 1e-6
+    return blocks.ravel()
+
+
 class HogDescriptor(Descriptor):
-    """Histogram of oriented gradients of the grey crop (64x64 window, 8-px cells, 9 bins)."""
+    """Histogram of oriented gradients of the grey crop resized to 64x64 (1,764 dims)."""
 
     name = "hog"
-
-    def __init__(self, cfg: DescriptorConfig) -> None:
-        super().__init__(cfg)
-        self.hog = cv2.HOGDescriptor((64, 64), (16, 16), (8, 8), (8, 8), 9)
 
     def encode(self, crops: np.ndarray) -> np.ndarray:
         out = []
@@ -60,7 +81,7 @@ class HogDescriptor(Descriptor):
             g = cv2.cvtColor(c, cv2.COLOR_RGB2GRAY)
             if g.shape != (64, 64):
                 g = cv2.resize(g, (64, 64), interpolation=cv2.INTER_AREA)
-            out.append(self.hog.compute(g).ravel())
+            out.append(hog(g))
         return np.asarray(out, np.float32).reshape(len(crops), -1)
 
 
