@@ -1,0 +1,25 @@
+"""Shared fixtures: small fixture worlds generated once per test session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from harness.fixture import FixtureSpec, generate
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: A small world written in every log format, for ingester comparisons.
+SMALL = FixtureSpec(frames=12, width=48, height=64, objects=2, loop_scale=1.0)
+
+
+@pytest.fixture(scope="session")
+def small_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return generate(tmp_path_factory.mktemp("small") / "fx", SMALL, all_formats=True)
+
+
+@pytest.fixture(scope="session")
+def default_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The default fixture (what `make reproduce-table` uses)."""
+    return generate(tmp_path_factory.mktemp("default") / "fx", FixtureSpec())
