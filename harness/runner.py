@@ -53,7 +53,7 @@ METHOD_LABELS = {
 
 
 def _progress(iterable, **kw):  # noqa: ANN001, ANN202
-    return tqdm(iterable, mininterval=1.0, dynamic_ncols=True, leave=False, **kw)
+    return tqdm(iterable, mininterval=1.0, dynamic_ncols=True, leave=False, disable=None, **kw)
 
 
 def file_sha(path: Path) -> str:
@@ -182,7 +182,7 @@ class Pipeline:
             for idx, crops in _progress(iter_crops(rows, img, dc.input_size, num_workers=dc.num_workers), desc="training crops", unit="batch"):
                 data[idx] = crops
             data.flush()
-            bar = tqdm(total=dc.epochs * int(np.ceil(n / dc.batch_size)), desc="autoencoder training", unit="step", mininterval=1.0, leave=False)
+            bar = tqdm(total=dc.epochs * int(np.ceil(n / dc.batch_size)), desc="autoencoder training", unit="step", mininterval=1.0, leave=False, disable=None)
             info = desc.fit(data, tmp, progress=bar.update)  # type: ignore[call-arg]
             bar.close()
             del data

@@ -1,0 +1,41 @@
+"""The command layer: exit codes and messages."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from harness.cli import main
+from harness.config import load_config
+from harness.errors import ConfigError
+
+from .conftest import ROOT
+
+
+def test_bad_input_is_one_error_line_and_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    p = tmp_path / "x.txt"
+    p.write_text("nope")
+    assert main(["ingest", str(p), "--session", "s", "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR: ") and "unknown log format" in err and "Traceback" not in err
+
+
+def test_fixture_and_ingest_commands(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["fixture", "--out", str(tmp_path / "fx"), "--frames", "6", "--width", "32", "--height", "40", "--loop-scale", "1.0"]) == 0
+    assert main(["ingest", str(tmp_path / "fx" / "mcap" / "2012-11-17.mcap"), "--session", "2012-11-17", "--out", str(tmp_path / "o")]) == 0
+    assert "6 frames" in capsys.readouterr().out
+
+
+def test_config_rejects_unknown_keys(tmp_path: Path) -> None:
+    text = (ROOT / "datasets" / "fixture.toml").read_text().replace("[pairs]\n", "[pairs]\nmax_yaw_dif_deg = 30\n")
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['max_yaw_dif_deg'\]"):
+        load_config(p)
+
+
+def test_nclt_config_loads(tmp_path: Path) -> None:
+    cfg = load_config(ROOT / "datasets" / "nclt.toml", data_root=str(tmp_path))
+    assert [s.name for s in cfg.sessions] == ["2012-01-22", "2012-03-31", "2012-08-04", "2012-11-17"]
+    assert cfg.descriptor.input_size == 256
