@@ -24,7 +24,7 @@ def _setup_logging(verbose: bool) -> None:
     )
 
 
-def _config(args: argparse.Namespace):  # noqa: ANN202
+def _config(args: argparse.Namespace):
     from .config import load_config
 
     cfg = load_config(Path(args.config), getattr(args, "data_root", None))
@@ -66,7 +66,7 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     return 0
 
 
-def _pipeline(args: argparse.Namespace):  # noqa: ANN202
+def _pipeline(args: argparse.Namespace):
     from .runner import Pipeline
 
     return Pipeline(_config(args), Path(args.out), rank_import=Path(args.rank_import) if getattr(args, "rank_import", None) else None)

@@ -7,6 +7,7 @@ results do not depend on the number of workers.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 
 import cv2
@@ -65,7 +66,7 @@ def iter_crops(
     uris = images.to_numpy()
     b = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     starts = np.concatenate([[0], np.nonzero(uris[1:] != uris[:-1])[0] + 1, [len(uris)]]) if len(uris) else np.zeros(1, int)
-    groups = [(str(uris[s]), np.arange(s, e), b[s:e]) for s, e in zip(starts[:-1], starts[1:], strict=True)]
+    groups = [(str(uris[s]), np.arange(s, e), b[s:e]) for s, e in itertools.pairwise(starts)]
     loader = DataLoader(
         _FrameCrops(groups, size), batch_size=frames_per_batch, shuffle=False, num_workers=num_workers,
         collate_fn=_collate, persistent_workers=False, prefetch_factor=2 if num_workers else None,

@@ -66,9 +66,8 @@ def locmap_figures(samples: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFram
         for ax, m in zip(axes[1:], FIG4, strict=True):
             lm = loc_map(boxes, fused[f"loc_{m}"].to_numpy(), w, h)
             out.mkdir(parents=True, exist_ok=True)
-            with atomic_path(out / f"{name}_{m}.npy") as tmp:
-                with open(tmp, "wb") as fh:
-                    np.save(fh, lm)
+            with atomic_path(out / f"{name}_{m}.npy") as tmp, open(tmp, "wb") as fh:
+                np.save(fh, lm)
             valid = lm[np.isfinite(lm)]
             # rank the map's values so that the colour scale reads "more changed = brighter" for every method
             ax.imshow(img, alpha=0.35)

@@ -155,7 +155,7 @@ def image_ranks_faiss(
         index = faiss.IndexFlatL2(d)
     index.add(db)
     kk = min(k, len(db))
-    D, I = index.search(q, kk)
+    D, idx = index.search(q, kk)
     order, frame_ids, starts = _frame_layout(np.asarray(db_frame))
     L = len(frame_ids)
     rank = np.empty(len(q), np.int64)
@@ -166,8 +166,8 @@ def image_ranks_faiss(
     for i in range(len(q)):
         rows = order[bounds[col[i]] : bounds[col[i] + 1]]
         dg2 = float(((db[rows] - q[i]) ** 2).sum(1).min())
-        found = I[i] >= 0
-        fr = np.asarray(db_frame)[I[i][found]]
+        found = idx[i] >= 0
+        fr = np.asarray(db_frame)[idx[i][found]]
         dd = D[i][found]
         better = {f for f, v in zip(fr, dd, strict=True) if v < dg2 and f != gt_frame[i]}
         rank[i] = 1 + len(better)

@@ -37,8 +37,8 @@ from .pairs import build_pairs
 from .proposals import compute_proposals
 from .records import FRAME_SCHEMA
 from .retrieval import image_ranks, image_ranks_faiss
-from .splits import paper_splits, roc_sob
 from .splits import label as split_label
+from .splits import paper_splits, roc_sob
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ METHOD_LABELS = {
 }
 
 
-def _progress(iterable, **kw):  # noqa: ANN001, ANN202
+def _progress(iterable, **kw):
     return tqdm(iterable, mininterval=1.0, dynamic_ncols=True, leave=False, disable=None, **kw)
 
 
@@ -375,7 +375,7 @@ def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, s
     methods = sorted(ranks["method"].unique())
     subsets = [("all", methods)] + ([(m, [m]) for m in methods] if len(methods) > 1 else [])
     keys = ["q_session", "q_camera", "q_utime", "r_session"]
-    for img_i, (key, g) in enumerate(_progress(ranks.groupby(keys, sort=True), desc="fusion", unit="image")):
+    for _img_i, (key, g) in enumerate(_progress(ranks.groupby(keys, sort=True), desc="fusion", unit="image")):
         qkey = (key[0], key[1], int(key[2]))
         if qkey not in cb:
             continue
@@ -404,7 +404,7 @@ def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, s
                     extra.append((b, r[k]))
             all_boxes = np.vstack([fused, np.array([b for b, _ in extra]).reshape(-1, 4)])
             roc, sob = roc_sob(all_boxes, cb[qkey], w, h)
-            n_f, n_x = len(fused), len(extra)
+            _n_f, n_x = len(fused), len(extra)
             frame = {
                 "q_session": key[0], "q_camera": key[1], "q_utime": int(key[2]), "r_session": key[3],
                 "season_pair": g["season_pair"].iloc[0], "proposals": name,
@@ -438,7 +438,7 @@ def _ap_rows(df: pd.DataFrame, split: Any, cfg: Config, season_pair: str, propos
         rows.append({"split": split.name, "roc_max": split.roc_max, "proposals": proposals, "season_pair": season_pair, "method": m,
                      "ap": ap, "ci_low": lo, "ci_high": hi, "positives": int(y.sum()), "negatives": int((~y).sum()),
                      "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()), "positive_rate": float(y.mean()) if len(y) else float("nan"),
-                     "query_images": int(len(np.unique(groups[sel])))})
+                     "query_images": len(np.unique(groups[sel]))})
     return rows
 
 

@@ -50,7 +50,7 @@ def test_checkpoint_round_trip_with_weights_only(tmp_path: Path) -> None:
     b.load(tmp_path)
     x = _crops(5)
     assert np.array_equal(a.encode(x), b.encode(x))
-    model, meta = load_checkpoint(tmp_path / "autoencoder.pt", torch.device("cpu"))
+    _model, meta = load_checkpoint(tmp_path / "autoencoder.pt", torch.device("cpu"))
     assert meta["channels"] == [32, 32, 16]
 
 

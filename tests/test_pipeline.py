@@ -29,7 +29,7 @@ def run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> tuple[
 
 
 def test_outputs_exist(run: tuple) -> None:
-    _, rec, out = run
+    _, _rec, out = run
     for name in ("table1.md", "table1.csv", "run.json", "splits/summary.parquet", "splits/roc_max_0.03.parquet", "plots/pr_roc_max_0.03.png"):
         assert (out / name).exists(), name
     assert list((out / "locmaps").glob("*.png"))
@@ -69,7 +69,7 @@ def test_change_is_detectable_on_the_fixture(run: tuple) -> None:
 
 
 def test_changed_subimages_rank_worse_than_unchanged(run: tuple) -> None:
-    p, _, out = run
+    _p, _, out = run
     s = pd.read_parquet(out / "splits" / "roc_max_0.05.parquet")
     orig = s[(s["proposals"] == "all") & s["loc_rank_no_fusion"].notna()]
     changed = orig[orig["RoC"] >= 0.5]["loc_rank_no_fusion"].mean()

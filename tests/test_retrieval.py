@@ -30,7 +30,7 @@ def test_matches_brute_force_with_several_subimages_per_frame(chunk: int, batch:
     gt = rng.choice(np.unique(frame), 25)
     r, L, d = image_ranks(q, db, frame, gt, chunk_rows=chunk, query_batch=batch)
     br, bl, bd = brute(q, db, frame, gt)
-    assert L == bl and np.array_equal(r, br)
+    assert bl == L and np.array_equal(r, br)
     np.testing.assert_allclose(d, bd, rtol=1e-4, atol=1e-4)
 
 

@@ -7,8 +7,8 @@ implement ``encode`` (and ``fit`` if it learns), and add it to ``REGISTRY``.
 
 from __future__ import annotations
 
-from .base import REGISTRY, Descriptor, HogDescriptor, ThumbDescriptor, make_descriptor, normalize
 from .autoencoder_descriptor import AutoencoderDescriptor
+from .base import REGISTRY, Descriptor, HogDescriptor, ThumbDescriptor, make_descriptor, normalize
 
 REGISTRY["autoencoder"] = AutoencoderDescriptor
 

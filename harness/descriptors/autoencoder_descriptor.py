@@ -28,7 +28,7 @@ class AutoencoderDescriptor(Descriptor):
         self.device = pick_device(cfg.device)
         self.model: ConvAutoencoder | None = None
 
-    def fit(self, crops: np.ndarray, out_dir: Path, progress=None) -> dict:  # noqa: ANN001
+    def fit(self, crops: np.ndarray, out_dir: Path, progress=None) -> dict:
         torch.manual_seed(self.cfg.seed)
         model = ConvAutoencoder(tuple(self.cfg.channels))
         history = train(model, crops, self.cfg.epochs, self.cfg.batch_size, self.cfg.lr, self.cfg.seed, self.device, progress, self.cfg.input_norm == "per_crop")

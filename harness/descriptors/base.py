@@ -60,9 +60,9 @@ def hog(gray: np.ndarray, cell: int = 8, bins: int = 9) -> np.ndarray:
     hist = np.zeros((cy, cx, bins), np.float32)
     ci = (np.arange(cy * cell) // cell)[:, None].repeat(cx * cell, 1)
     cj = (np.arange(cx * cell) // cell)[None, :].repeat(cy * cell, 0)
-    m, l, f = mag[: cy * cell, : cx * cell], lo[: cy * cell, : cx * cell], frac[: cy * cell, : cx * cell]
-    np.add.at(hist, (ci, cj, l), m * (1 - f))
-    np.add.at(hist, (ci, cj, (l + 1) % bins), m * f)
+    m, lb, f = mag[: cy * cell, : cx * cell], lo[: cy * cell, : cx * cell], frac[: cy * cell, : cx * cell]
+    np.add.at(hist, (ci, cj, lb), m * (1 - f))
+    np.add.at(hist, (ci, cj, (lb + 1) % bins), m * f)
     blocks = np.concatenate([hist[:-1, :-1], hist[1:, :-1], hist[:-1, 1:], hist[1:, 1:]], axis=2)
     blocks /= np.linalg.norm(blocks, axis=2, keepdims=True) + 1e-6
     blocks = np.minimum(blocks, 0.2)

@@ -7,6 +7,7 @@ mcap library's stream reader, so the messages before the damage can still be kep
 
 from __future__ import annotations
 
+import contextlib
 import sqlite3
 import struct
 from collections.abc import Iterator
@@ -79,7 +80,7 @@ class Message:
     msg: object
 
 
-def _default_typestore(fmt: str):  # noqa: ANN202
+def _default_typestore(fmt: str):
     return get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
 
 
@@ -155,10 +156,8 @@ def stream(path: Path, fmt: str, topics: tuple[str, ...]) -> Iterator[Message]:
             n += 1
             yield Message(conn.topic, conn.msgtype, int(t), msg)
     finally:
-        try:
+        with contextlib.suppress(*_READ_ERRORS):  # closing a damaged file may fail again
             reader.close()
-        except _READ_ERRORS:  # pragma: no cover - closing a damaged file
-            pass
 
 
 def _mcap_records(path: Path) -> Iterator[object]:
@@ -169,7 +168,8 @@ def _mcap_records(path: Path) -> Iterator[object]:
 
 
 def _mcap_stream_topics(path: Path) -> dict[str, tuple[str, int]]:
-    from mcap.records import Channel, Message as McapMessage, Schema
+    from mcap.records import Channel, Schema
+    from mcap.records import Message as McapMessage
 
     schemas: dict[int, str] = {}
     chans: dict[int, tuple[str, str]] = {}
@@ -189,7 +189,8 @@ def _mcap_stream_topics(path: Path) -> dict[str, tuple[str, int]]:
 
 def _mcap_stream(path: Path, topics: tuple[str, ...]) -> Iterator[Message]:
     """Sequential record-by-record read of an MCAP file whose index or summary is unusable."""
-    from mcap.records import Channel, Message as McapMessage, Schema
+    from mcap.records import Channel, Schema
+    from mcap.records import Message as McapMessage
 
     store = get_typestore(Stores.EMPTY)
     schemas: dict[int, Schema] = {}

@@ -54,7 +54,7 @@ def _finish(
     uniq = np.concatenate([[True], np.diff(pose_t) > 0]) if len(pose_t) else np.zeros(0, bool)
     report["dropped"]["duplicate_pose_time"] = int((~uniq).sum())
     pose_t, pose_v = pose_t[uniq], pose_v[uniq]
-    res = interpolate(pose_t, pose_v, img_t, int(round(ic.max_pose_gap_s * 1e6)))
+    res = interpolate(pose_t, pose_v, img_t, round(ic.max_pose_gap_s * 1e6))
     report["dropped"].update(res.dropped)
     keep = res.keep
     df = _frames_table(sc.name, sc.camera, img_t[keep], res.poses, [u for u, k in zip(uris, keep, strict=True) if k], sizes[keep])
