@@ -40,33 +40,24 @@ def _frame_layout(db_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     return order, f[starts], starts
 
 
-def frame_min_sqdist(query: torch.Tensor, db: torch.Tensor, starts: np.ndarray, chunk_rows: int) -> torch.Tensor:
-    """(n, L) smallest squared L2 distance from each query to each frame's rows.
-
-    ``db`` rows are grouped by frame with group starts ``starts``. Chunks of about ``chunk_rows``
-    database rows are cut at frame boundaries.
-    """
-    n, m = query.shape[0], db.shape[0]
-    L = len(starts)
-    out = torch.empty((n, L), dtype=torch.float32, device=query.device)
-    qn = (query * query).sum(1, keepdim=True)
+def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]]:
+    """(first frame, end frame) ranges of about ``chunk_rows`` database rows, cut at frame boundaries."""
     bounds = np.concatenate([starts, [m]])
-    f0 = 0
+    out, f0, L = [], 0, len(starts)
     while f0 < L:
-        # take frames until the chunk holds about chunk_rows rows
         f1 = int(np.searchsorted(bounds, bounds[f0] + chunk_rows, side="right")) - 1
         f1 = min(max(f1, f0 + 1), L)
-        r0, r1 = int(bounds[f0]), int(bounds[f1])
-        block = db[r0:r1]
-        d2 = (qn + (block * block).sum(1)[None, :] - 2.0 * (query @ block.T)).clamp_min_(0)
-        seg = torch.as_tensor(bounds[f0 : f1 + 1] - r0, device=query.device)
-        lengths = (seg[1:] - seg[:-1]).long()
-        idx = torch.repeat_interleave(torch.arange(f1 - f0, device=query.device), lengths)
-        red = torch.full((n, f1 - f0), float("inf"), dtype=torch.float32, device=query.device)
-        red.scatter_reduce_(1, idx[None, :].expand(n, -1), d2, reduce="amin", include_self=True)
-        out[:, f0:f1] = red
+        out.append((f0, f1))
         f0 = f1
     return out
+
+
+def frame_min_sqdist_chunk(query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """(n, k) smallest squared L2 distance from each query to each of k frames whose rows form ``block``."""
+    d2 = (qn + (block * block).sum(1)[None, :] - 2.0 * (query @ block.T)).clamp_min_(0)
+    idx = torch.repeat_interleave(torch.arange(len(lengths), device=query.device), lengths)
+    red = torch.full((query.shape[0], len(lengths)), float("inf"), dtype=torch.float32, device=query.device)
+    return red.scatter_reduce_(1, idx[None, :].expand(query.shape[0], -1), d2, reduce="amin", include_self=True)
 
 
 def image_ranks(
@@ -81,9 +72,13 @@ def image_ranks(
 ) -> tuple[np.ndarray, int, np.ndarray]:
     """Exact image-level ranks of the ground-truth frames.
 
+    The database is streamed in chunks of about ``chunk_rows`` rows (cut at frame boundaries), each
+    read once and converted to float32 on the fly, so ``db_desc`` may be a float16 memmap of any
+    size. Memory: the (n, L) per-frame minimum plus one chunk.
+
     Args:
         query_desc: (n, D) query subimage descriptors.
-        db_desc: (m, D) database subimage descriptors.
+        db_desc: (m, D) database subimage descriptors (array or memmap).
         db_frame: (m,) integer frame id of each database row.
         gt_frame: (n,) ground-truth frame id of each query (must occur in ``db_frame``).
 
@@ -93,8 +88,6 @@ def image_ranks(
     Raises:
         RetrievalError: shapes disagree or a ground-truth frame has no database row.
     """
-    query_desc = np.asarray(query_desc)
-    db_desc = np.asarray(db_desc)
     db_frame = np.asarray(db_frame)
     gt_frame = np.asarray(gt_frame)
     if query_desc.ndim != 2 or db_desc.ndim != 2 or query_desc.shape[1] != db_desc.shape[1]:
@@ -107,17 +100,23 @@ def image_ranks(
     if L == 0 or np.any(col >= L) or np.any(frame_ids[np.minimum(col, L - 1)] != gt_frame):
         raise RetrievalError("a ground-truth frame has no subimage in the database")
     dev = torch.device(device)
-    db = torch.from_numpy(np.ascontiguousarray(db_desc[order], dtype=np.float32)).to(dev)
-    rank = np.empty(len(query_desc), np.int64)
-    dist = np.empty(len(query_desc), np.float64)
-    for s in range(0, len(query_desc), query_batch):
-        q = torch.from_numpy(np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)).to(dev)
-        fm = frame_min_sqdist(q, db, starts, chunk_rows)
-        c = torch.from_numpy(col[s : s + query_batch]).to(dev)
-        dg = fm.gather(1, c[:, None])
-        better = (fm < dg).sum(1)  # G itself is never < itself
-        rank[s : s + len(q)] = (better + 1).cpu().numpy()
-        dist[s : s + len(q)] = dg[:, 0].sqrt().double().cpu().numpy()
+    n = len(query_desc)
+    contiguous = bool(np.all(order == np.arange(len(order))))
+    bounds = np.concatenate([starts, [len(order)]])
+    queries = [torch.from_numpy(np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)).to(dev) for s in range(0, n, query_batch)]
+    qnorms = [(q * q).sum(1, keepdim=True) for q in queries]
+    fm = torch.empty((n, L), dtype=torch.float32, device=dev)
+    for f0, f1 in _chunks(starts, len(order), chunk_rows):
+        r0, r1 = int(bounds[f0]), int(bounds[f1])
+        rows = db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]]
+        block = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float32)).to(dev)
+        lengths = torch.from_numpy(np.diff(bounds[f0 : f1 + 1])).to(dev)
+        for b, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
+            fm[b * query_batch : b * query_batch + len(q), f0:f1] = frame_min_sqdist_chunk(q, qn, block, lengths)
+    c = torch.from_numpy(col).to(dev)
+    dg = fm.gather(1, c[:, None])
+    rank = ((fm < dg).sum(1) + 1).cpu().numpy().astype(np.int64)  # G itself is never < itself
+    dist = dg[:, 0].sqrt().double().cpu().numpy()
     return rank, L, dist
 
 

@@ -264,7 +264,8 @@ class Pipeline:
         for method in sorted(ref_idx["method"].unique()):
             dbm = np.nonzero((ref_idx["method"] == method).to_numpy())[0]
             db_frame = ref_idx["utime"].to_numpy()[dbm]
-            db = np.asarray(ref_desc[dbm[0] : dbm[-1] + 1], np.float32) if len(dbm) and dbm[-1] - dbm[0] + 1 == len(dbm) else np.asarray(ref_desc[dbm], np.float32)
+            # a memmap view when the method's rows are contiguous (they are: proposals sort by method)
+            db = ref_desc[dbm[0] : dbm[-1] + 1] if len(dbm) and dbm[-1] - dbm[0] + 1 == len(dbm) else ref_desc[dbm]
             have = set(np.unique(db_frame).tolist())
             for qs, g in sub.groupby("q_session", sort=True):
                 q_idx = pd.read_parquet(described[qs][0] / "index.parquet")
@@ -285,7 +286,7 @@ class Pipeline:
                 qd = np.asarray(q_desc[np.sort(qm["row"].to_numpy())], np.float32)
                 qd = qd[np.argsort(np.argsort(qm["row"].to_numpy(), kind="stable"), kind="stable")]
                 if rc.engine == "faiss":
-                    res = image_ranks_faiss(qd, db, db_frame, qm["r_utime"].to_numpy(), nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe)
+                    res = image_ranks_faiss(qd, np.asarray(db, np.float32), db_frame, qm["r_utime"].to_numpy(), nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe)
                     rank, L, dist, exact = res.rank, res.L, res.dist, res.exact
                 else:
                     rank, L, dist = image_ranks(qd, db, db_frame, qm["r_utime"].to_numpy(), chunk_rows=rc.chunk_rows, query_batch=rc.query_batch, device=device)
