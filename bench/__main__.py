@@ -1,0 +1,59 @@
+"""``python -m bench [--quick] [--only CASE ...]``: stage throughput and peak memory.
+
+Each case runs in its own subprocess so that its peak resident memory (ru_maxrss) is its own.
+Results: ``results/bench/bench.json`` (all runs) and ``results/bench/bench.md`` (medians).
+Bench data is generated under ``bench/.data/`` (not in git).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "bench" / ".data"
+OUT = ROOT / "results" / "bench"
+
+CASES = ["ingest", "crops", "descriptor", "ranking", "fusion"]
+
+
+def run_case(name: str, quick: bool) -> list[dict]:
+    cmd = [sys.executable, "-m", "bench.cases", name] + (["--quick"] if quick else [])
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        print(proc.stderr[-3000:], file=sys.stderr)
+        raise SystemExit(f"bench case {name} failed")
+    return [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
+    ap.add_argument("--only", nargs="*", choices=CASES)
+    args = ap.parse_args()
+    rows = []
+    for case in args.only or CASES:
+        t0 = time.perf_counter()
+        got = run_case(case, args.quick)
+        rows += got
+        print(f"{case}: {len(got)} result(s) in {time.perf_counter() - t0:.1f} s", flush=True)
+        for r in got:
+            print("   ", r["case"], {k: v for k, v in r.items() if k not in ("case", "runs")})
+    OUT.mkdir(parents=True, exist_ok=True)
+    meta = {"python": platform.python_version(), "platform": platform.platform(), "cpus": __import__("os").cpu_count()}
+    (OUT / "bench.json").write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
+    lines = ["| case | median | unit | peak RSS MiB | notes |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['case']} | {r['median']:.4g} | {r['unit']} | {r.get('peak_rss_mib', float('nan')):.0f} | {r.get('notes', '')} |")
+    (OUT / "bench.md").write_text("\n".join(lines) + "\n")
+    print((OUT / "bench.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
