@@ -47,6 +47,7 @@ class IngestConfig:
     time_source: str = "header"  # header stamp of the image message, or "log" (bag receive time)
     nclt_rotation: str = "cw"  # how NCLT's stored images are turned upright: cw, ccw, none
     salvage: bool = False  # keep the messages read before a truncated or corrupt part
+    store_format: str = "tiff"  # lossless image store for raw images from logs: tiff (fast) or png (smaller)
 
 
 @dataclass(frozen=True)
@@ -286,6 +287,8 @@ def validate(cfg: Config, where: str) -> None:
         raise ConfigError(f"{where}: [pairs] queries must be 'annotated' or 'all'")
     if cfg.ingest.time_source not in ("header", "log"):
         raise ConfigError(f"{where}: [ingest] time_source must be 'header' or 'log'")
+    if cfg.ingest.store_format not in ("tiff", "png"):
+        raise ConfigError(f"{where}: [ingest] store_format must be 'tiff' or 'png'")
     if cfg.ingest.nclt_rotation not in ("cw", "ccw", "none"):
         raise ConfigError(f"{where}: [ingest] nclt_rotation must be cw, ccw or none")
     if cfg.retrieval.engine not in ("exact", "faiss"):

@@ -85,7 +85,17 @@ def compressed_size(data: bytes, where: str) -> tuple[int, int]:
         raise IngestError(f"{where}: cannot read compressed image header: {err}") from None
 
 
-def write_raw(path: Path, arr: np.ndarray) -> None:
-    """Write a decoded raw image losslessly as PNG (16-bit gray stays 16-bit)."""
-    if not cv2.imwrite(str(path), arr, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+STORE_FORMATS = {
+    # uncompressed TIFF: ~1 ms per 640x480 frame to write, 0.5 ms to read; PNG: 1.5x smaller, ~16x slower
+    "tiff": (".tiff", [cv2.IMWRITE_TIFF_COMPRESSION, 1]),
+    "png": (".png", [cv2.IMWRITE_PNG_COMPRESSION, 1]),
+}
+
+
+def write_raw(path: Path, arr: np.ndarray, fmt: str = "tiff") -> Path:
+    """Write a decoded raw image losslessly (16-bit gray stays 16-bit); returns the path with its suffix."""
+    ext, params = STORE_FORMATS[fmt]
+    path = path.with_suffix(ext)
+    if not cv2.imwrite(str(path), arr, params):
         raise IngestError(f"{path}: could not write image")
+    return path

@@ -105,8 +105,7 @@ def _ingest_log(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, report
                 else:
                     arr = raw_to_array(m.msg, where)
                     h, w = arr.shape[:2]
-                    name = f"{t}.png"
-                    write_raw(store / name, arr)
+                    name = write_raw(store / str(t), arr, ic.store_format).name
                 img_t.append(t)
                 uris.append(f"images/{sc.camera}/{name}")
                 sizes.append((w, h))
