@@ -41,14 +41,17 @@ def pr_plots(curves: pd.DataFrame, out: Path) -> None:
 
 
 def locmap_figures(samples: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, out: Path, n: int) -> None:
-    """For the first ``n`` changed query images: input | rank fusion | score sum | score max,
+    """For the ``n`` query images with the largest change: input | rank fusion | score sum | score max,
     with the annotated change boxes; LoC arrays saved as ``.npy`` beside the PNG."""
     if n <= 0 or not len(samples):
         return
     allp = samples[samples["proposals"] == "all"]
     chg = ann[ann["status"] == "change"]
+    # the query images with the largest annotated change first (ties: key order)
+    area = chg.assign(area=(chg["x2"] - chg["x1"]) * (chg["y2"] - chg["y1"])).groupby(["session", "camera", "utime"], as_index=False)["area"].sum()
     keys = allp[["q_session", "q_camera", "q_utime", "r_session"]].drop_duplicates()
-    keys = keys.merge(chg[["session", "camera", "utime"]].drop_duplicates().rename(columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"}))
+    keys = keys.merge(area.rename(columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"}))
+    keys = keys.sort_values(["area", "q_session", "q_utime", "r_session"], ascending=[False, True, True, True])
     fr = frames.set_index(["session", "camera", "utime"])
     for k in keys.head(n).itertuples(index=False):
         g = allp[(allp["q_session"] == k.q_session) & (allp["q_utime"] == k.q_utime) & (allp["r_session"] == k.r_session) & (allp["q_camera"] == k.q_camera)]
