@@ -120,6 +120,7 @@ class RetrievalConfig:
     query_batch: int = 1024
     faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
     faiss_nprobe: int = 8
+    faiss_check: int = 256  # queries per engine also ranked exactly, to report faiss's recall
 
 
 @dataclass(frozen=True)

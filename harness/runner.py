@@ -288,6 +288,12 @@ class Pipeline:
                 if rc.engine == "faiss":
                     res = image_ranks_faiss(qd, np.asarray(db, np.float32), db_frame, qm["r_utime"].to_numpy(), nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe)
                     rank, L, dist, exact = res.rank, res.L, res.dist, res.exact
+                    # recall against the exact engine on a deterministic sample of the queries
+                    k = min(len(qd), rc.faiss_check)
+                    ex, _, _ = image_ranks(qd[:k], db, db_frame, qm["r_utime"].to_numpy()[:k], chunk_rows=rc.chunk_rows, device=device)
+                    counts["faiss_checked"] = counts.get("faiss_checked", 0) + k
+                    counts["faiss_rank_equal_exact"] = counts.get("faiss_rank_equal_exact", 0) + int((ex == rank[:k]).sum())
+                    counts["faiss_flagged_exact"] = counts.get("faiss_flagged_exact", 0) + int(exact.sum())
                 else:
                     rank, L, dist = image_ranks(qd, db, db_frame, qm["r_utime"].to_numpy(), chunk_rows=rc.chunk_rows, query_batch=rc.query_batch, device=device)
                     exact = np.ones(len(rank), bool)
