@@ -54,7 +54,8 @@ def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]
 
 def frame_min_sqdist_chunk(query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
     """(n, k) smallest squared L2 distance from each query to each of k frames whose rows form ``block``."""
-    d2 = (qn + (block * block).sum(1)[None, :] - 2.0 * (query @ block.T)).clamp_min_(0)
+    bn = torch.linalg.vector_norm(block, dim=1).square_()  # fused: no (rows x D) temporary
+    d2 = torch.addmm(qn + bn[None, :], query, block.T, alpha=-2.0).clamp_min_(0)
     idx = torch.repeat_interleave(torch.arange(len(lengths), device=query.device), lengths)
     red = torch.full((query.shape[0], len(lengths)), float("inf"), dtype=torch.float32, device=query.device)
     return red.scatter_reduce_(1, idx[None, :].expand(query.shape[0], -1), d2, reduce="amin", include_self=True)
@@ -104,12 +105,12 @@ def image_ranks(
     contiguous = bool(np.all(order == np.arange(len(order))))
     bounds = np.concatenate([starts, [len(order)]])
     queries = [torch.from_numpy(np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)).to(dev) for s in range(0, n, query_batch)]
-    qnorms = [(q * q).sum(1, keepdim=True) for q in queries]
+    qnorms = [torch.linalg.vector_norm(q, dim=1, keepdim=True).square_() for q in queries]
     fm = torch.empty((n, L), dtype=torch.float32, device=dev)
     for f0, f1 in _chunks(starts, len(order), chunk_rows):
         r0, r1 = int(bounds[f0]), int(bounds[f1])
-        rows = db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]]
-        block = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float32)).to(dev)
+        rows = np.ascontiguousarray(db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]])
+        block = torch.from_numpy(rows).to(dev).float()  # float16 -> float32 in torch (multi-threaded)
         lengths = torch.from_numpy(np.diff(bounds[f0 : f1 + 1])).to(dev)
         for b, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
             fm[b * query_batch : b * query_batch + len(q), f0:f1] = frame_min_sqdist_chunk(q, qn, block, lengths)
