@@ -73,15 +73,8 @@ def _pipeline(args: argparse.Namespace):
 
 
 def cmd_pairs(args: argparse.Namespace) -> int:
-    from .annotations import load_annotations
-    from .runner import file_sha
-
     p = _pipeline(args)
-    p.fixture()
-    ing = p.ingest()
-    frames, fkey = p.frames(ing)
-    ann = load_annotations(p.cfg.annotations, frames)
-    pairs, key = p.pairs(frames, fkey, ann, file_sha(p.cfg.annotations))
+    *_, pairs, key = p.until_pairs()
     d = p.cache.path("pairs", key)
     print(f"{len(pairs)} pairs -> {d / 'pairs.parquet'}\n{(d / 'summary.json').read_text()}")
     return 0
@@ -98,15 +91,8 @@ def cmd_proposals(args: argparse.Namespace) -> int:
 
 
 def cmd_rank(args: argparse.Namespace) -> int:
-    from .annotations import load_annotations
-    from .runner import file_sha
-
     p = _pipeline(args)
-    p.fixture()
-    ing = p.ingest()
-    frames, fkey = p.frames(ing)
-    ann = load_annotations(p.cfg.annotations, frames)
-    pairs, pkey = p.pairs(frames, fkey, ann, file_sha(p.cfg.annotations))
+    ing, frames, _, _, _, pairs, pkey = p.until_pairs()
     described = {}
     if p.rank_import is None:
         props = p.proposals(frames, ing)

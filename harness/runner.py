@@ -322,15 +322,24 @@ class Pipeline:
         path, key = self._timed("fusion", lambda: self._run("samples", (ranks_key, ann_key, dataclasses.asdict(fc), dataclasses.asdict(sc)), build))
         return pd.read_parquet(path / "samples.parquet"), key
 
-    def run(self) -> dict:
-        """Run every stage; write the reports into ``out``; return the run record."""
-        t0 = time.perf_counter()
+    def until_pairs(self) -> tuple[dict[str, tuple[Path, str]], pd.DataFrame, str, pd.DataFrame, str, pd.DataFrame, str]:
+        """Fixture (if configured), ingest, frames, annotations and pairs.
+
+        Returns:
+            (ingested, frames, frames key, annotations, annotations key, pairs, pairs key).
+        """
         self.fixture()
         ingested = self.ingest()
         frames, fkey = self._timed("frames", lambda: self.frames(ingested))
         ann = load_annotations(self.cfg.annotations, frames)
         ann_key = file_sha(self.cfg.annotations)
         pairs, pkey = self._timed("pairs", lambda: self.pairs(frames, fkey, ann, ann_key))
+        return ingested, frames, fkey, ann, ann_key, pairs, pkey
+
+    def run(self) -> dict:
+        """Run every stage; write the reports into ``out``; return the run record."""
+        t0 = time.perf_counter()
+        ingested, frames, fkey, ann, ann_key, pairs, pkey = self.until_pairs()
         if not len(pairs):
             raise HarnessError("no query frame found a reference frame; check [pairs] and the annotations")
         if self.rank_import is None:

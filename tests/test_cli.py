@@ -39,3 +39,12 @@ def test_nclt_config_loads(tmp_path: Path) -> None:
     cfg = load_config(ROOT / "datasets" / "nclt.toml", data_root=str(tmp_path))
     assert [s.name for s in cfg.sessions] == ["2012-01-22", "2012-03-31", "2012-08-04", "2012-11-17"]
     assert cfg.descriptor.input_size == 256
+
+
+def test_stage_commands_on_the_fixture(default_world: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    args = ["--config", str(ROOT / "datasets" / "fixture.toml"), "--data-root", str(default_world), "--out", str(tmp_path)]
+    assert main(["pairs", *args]) == 0
+    out = capsys.readouterr().out
+    assert "pairs ->" in out and '"pairs_per_season_pair"' in out
+    assert main(["proposals", *args]) == 0
+    assert "edges" in capsys.readouterr().out
