@@ -111,6 +111,7 @@ class DescriptorConfig:
     device: str = "auto"
     seed: int = 0
     num_workers: int = 0
+    shard_frames: int = 256  # frames per cached descriptor shard (the unit an interrupted run resumes at)
 
 
 @dataclass(frozen=True)

@@ -193,33 +193,71 @@ class Pipeline:
         return self._timed("train", lambda: self._run("model", (dataclasses.asdict(dc), keys), build))
 
     def describe(self, frames: pd.DataFrame, props: dict[str, tuple[pd.DataFrame, str]], model: tuple[Path, str]) -> dict[str, tuple[Path, str]]:
+        """Descriptors of every proposal row, per session.
+
+        Work is cached in shards of ``shard_frames`` frames (an interrupted extraction resumes at
+        the next unfinished shard); a session's shards are then combined into one float16
+        ``desc.npy`` aligned with its ``index.parquet``, copying one shard at a time.
+        """
         dc = self.cfg.descriptor
         desc = make_descriptor(dc)
         if desc.needs_training:
             desc.load(model[0])
+        # execution-only options do not change the descriptors, so they stay out of the keys
+        dkey = {k: v for k, v in dataclasses.asdict(dc).items() if k not in ("num_workers", "shard_frames")}
         out = {}
         for sc in self.cfg.sessions:
             rows, pkey = props[sc.name]
+            utimes = np.unique(rows["utime"].to_numpy())
+            shards = [utimes[i : i + dc.shard_frames] for i in range(0, len(utimes), max(1, dc.shard_frames))]
+            shard_dirs = []
+            for si, ut in enumerate(shards):
+                sub = rows[rows["utime"].isin(ut)]
 
-            def build(tmp: Path, rows: pd.DataFrame = rows, name: str = sc.name) -> dict:
-                img = rows.merge(frames[["session", "camera", "utime", "image"]], on=["session", "camera", "utime"], how="left")["image"]
-                # frames must be contiguous for the loader: order by frame, remember the original row
-                order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
+                def build_shard(tmp: Path, sub: pd.DataFrame = sub, name: str = f"{sc.name} [{si + 1}/{len(shards)}]") -> dict:
+                    return self._encode_rows(desc, frames, sub, tmp, name)
+
+                parts = (pkey, model[1], dkey, int(ut[0]), int(ut[-1]), len(ut))
+                shard_dirs.append(self._timed("descriptors", lambda b=build_shard, p=parts: self._run("descriptor_shards", p, b))[0])
+
+            def combine(tmp: Path, rows: pd.DataFrame = rows, shard_dirs: list[Path] = shard_dirs) -> dict:
+                pos = pd.Series(np.arange(len(rows)), index=pd.MultiIndex.from_frame(rows[["method", "utime", "box_id"]]))
                 arr = None
-                for idx, crops in _progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers), desc=f"descriptors {name}", unit="batch"):
-                    v = normalize(desc.encode(crops))
+                for d in shard_dirs:
+                    idx = pd.read_parquet(d / "index.parquet", columns=["method", "utime", "box_id"])
+                    v = np.load(d / "desc.npy", mmap_mode="r")
                     if arr is None:
                         arr = np.lib.format.open_memmap(tmp / "desc.npy", mode="w+", dtype=np.dtype(dc.dtype), shape=(len(rows), v.shape[1]))
-                    arr[order[idx]] = v.astype(dc.dtype)
+                    arr[pos.loc[pd.MultiIndex.from_frame(idx)].to_numpy()] = v
                 if arr is None:
                     np.save(tmp / "desc.npy", np.zeros((0, 1), dc.dtype))
                 else:
                     arr.flush()
                 write_parquet(tmp / "index.parquet", rows)
-                return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
+                return {"subimages": len(rows), "shards": len(shard_dirs), "dim": int(arr.shape[1]) if arr is not None else 0}
 
-            out[sc.name] = self._timed("descriptors", lambda b=build, pk=pkey: self._run("descriptors", (pk, model[1], dataclasses.asdict(dc)), b))
+            path, key = self._run("descriptors", (pkey, model[1], dkey, [d.name for d in shard_dirs]), combine)
+            out[sc.name] = (path, key)
         return out
+
+    def _encode_rows(self, desc: Any, frames: pd.DataFrame, rows: pd.DataFrame, tmp: Path, name: str) -> dict:
+        """Crop, encode and L2-normalise ``rows``; write ``desc.npy`` (aligned with ``index.parquet``)."""
+        dc = self.cfg.descriptor
+        img = rows.merge(frames[["session", "camera", "utime", "image"]], on=["session", "camera", "utime"], how="left")["image"]
+        # frames must be contiguous for the loader: order by frame, remember the original row
+        order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
+        arr = None
+        for idx, crops in _progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers), desc=f"descriptors {name}", unit="batch"):
+            v = normalize(desc.encode(crops))
+            if arr is None:
+                arr = np.lib.format.open_memmap(tmp / "desc.npy", mode="w+", dtype=np.dtype(dc.dtype), shape=(len(rows), v.shape[1]))
+            arr[order[idx]] = v.astype(dc.dtype)
+        if arr is None:
+            np.save(tmp / "desc.npy", np.zeros((0, 1), dc.dtype))
+        else:
+            arr.flush()
+        write_parquet(tmp / "index.parquet", rows)
+        return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
 
     def ranks(self, frames: pd.DataFrame, pairs: pd.DataFrame, pairs_key: str, described: dict[str, tuple[Path, str]]) -> tuple[pd.DataFrame, str, dict]:
         rc = self.cfg.retrieval

@@ -128,3 +128,34 @@ def test_faiss_engine_reports_its_recall_against_exact(run: tuple, tmp_path: Pat
         # a flat index with k = 256 over a few hundred subimages sees every frame; ranks can still
         # differ at near-ties, where faiss and torch round the float32 distances differently
         assert c["faiss_rank_equal_exact"] >= 0.99 * c["faiss_checked"]
+
+
+def test_descriptor_extraction_resumes_at_the_next_shard(run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    p, _, out = run
+    shutil.copytree(out / "cache", tmp_path / "cache")
+    for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
+        shutil.rmtree(tmp_path / "cache" / stage)
+    cfg = dataclasses.replace(p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, shard_frames=16))
+    from harness.descriptors import AutoencoderDescriptor
+
+    real = AutoencoderDescriptor.encode
+    calls = {"n": 0}
+
+    def dying(self: AutoencoderDescriptor, crops: np.ndarray) -> np.ndarray:
+        calls["n"] += 1
+        if calls["n"] == 12:
+            raise KeyboardInterrupt
+        return real(self, crops)
+
+    monkeypatch.setattr(AutoencoderDescriptor, "encode", dying)
+    with pytest.raises(KeyboardInterrupt):
+        Pipeline(cfg, tmp_path).run()
+    done = len(list((tmp_path / "cache" / "descriptor_shards").glob("*/manifest.json")))
+    assert done >= 1
+    monkeypatch.setattr(AutoencoderDescriptor, "encode", real)
+    q = Pipeline(cfg, tmp_path)
+    q.run()
+    total = len(list((tmp_path / "cache" / "descriptor_shards").glob("*/manifest.json")))
+    assert q.ran["descriptor_shards"] == total - done  # only the unfinished shards ran
+    # shard size is an execution option: same descriptors, same table
+    assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
