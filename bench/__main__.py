@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "bench" / ".data"
 OUT = ROOT / "results" / "bench"
 
-CASES = ["ingest", "crops", "descriptor", "ranking", "fusion"]
+CASES = ["ingest", "crops", "descriptor", "ranking", "fusion", "executor"]
 
 
 def run_case(name: str, quick: bool) -> list[dict]:
@@ -28,7 +28,7 @@ def run_case(name: str, quick: bool) -> list[dict]:
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"bench case {name} failed")
-    return [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+    return [{**json.loads(line), "group": name} for line in proc.stdout.splitlines() if line.startswith("{")]
 
 
 def main() -> int:
@@ -37,6 +37,8 @@ def main() -> int:
     ap.add_argument("--only", nargs="*", choices=CASES)
     args = ap.parse_args()
     rows = []
+    if args.only and (OUT / "bench.json").exists():  # keep the other cases' latest figures
+        rows = [r for r in json.loads((OUT / "bench.json").read_text())["results"] if r.get("group") not in args.only]
     for case in args.only or CASES:
         t0 = time.perf_counter()
         got = run_case(case, args.quick)

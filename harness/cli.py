@@ -186,6 +186,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--out", required=True)
         p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
         p.add_argument("--seed", type=int)
+        p.add_argument("--executor", choices=["local", "ray"], default="local", help="where stage units run (ray: pip install 'dbl-harness[ray]')")
+        p.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
+        p.add_argument("--ray-cpus", type=int, help="workers of a local Ray cluster")
         if name in ("rank", "reproduce"):
             p.add_argument("--import", dest="rank_import", help="ranked lists from an external localizer (see docs)")
         p.set_defaults(func=func)

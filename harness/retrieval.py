@@ -14,6 +14,7 @@ whose ground-truth frame is found among the top k; otherwise a lower bound, flag
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,7 +111,9 @@ def image_ranks(
     for f0, f1 in _chunks(starts, len(order), chunk_rows):
         r0, r1 = int(bounds[f0]), int(bounds[f1])
         rows = np.ascontiguousarray(db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]])
-        block = torch.from_numpy(rows).to(dev).float()  # float16 -> float32 in torch (multi-threaded)
+        with warnings.catch_warnings():  # a read-only memmap view; the tensor is only read
+            warnings.simplefilter("ignore", UserWarning)
+            block = torch.from_numpy(rows).to(dev).float()  # float16 -> float32 in torch (multi-threaded)
         lengths = torch.from_numpy(np.diff(bounds[f0 : f1 + 1])).to(dev)
         for b, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
             fm[b * query_batch : b * query_batch + len(q), f0:f1] = frame_min_sqdist_chunk(q, qn, block, lengths)

@@ -29,6 +29,7 @@ from .config import FUSION_METHODS, Config
 from .crops import iter_crops
 from .descriptors import make_descriptor, normalize
 from .errors import HarnessError, RetrievalError
+from .executors import LocalExecutor
 from .fusion import cover_matrix, intersection_closure, loc_from_cover
 from .ingest import ingest_session, load_frames
 from .ingest.logs import detect_format
@@ -83,11 +84,12 @@ class Pipeline:
     cfg: Config
     out: Path
     rank_import: Path | None = None
+    executor: Any = field(default_factory=LocalExecutor)
     timings: dict[str, float] = field(default_factory=dict)
     ran: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.out = Path(self.out)
+        self.out = Path(self.out).resolve()  # workers of a remote executor may start elsewhere
         self.cache = StageCache(self.out / "cache")
 
     # ------------------------------------------------------------ helpers
@@ -96,6 +98,14 @@ class Pipeline:
         res = fn()
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
         return res
+
+    def _map(self, name: str, units: list[tuple[tuple, Callable[[Path], dict | None]]], gpu: bool = False) -> list[tuple[Path, str]]:
+        """Run independent cached units through the executor (in parallel where it can)."""
+        t0 = time.perf_counter()
+        res = self.executor.map_units(self.cache, name, units, gpu=gpu)
+        self.ran[name] = self.ran.get(name, 0) + sum(int(r) for _, r in res)
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+        return [(p, p.name) for p, _ in res]
 
     def _run(self, name: str, key_parts: tuple, build: Callable[[Path], dict | None]) -> tuple[Path, str]:
         path, ran = self.cache.run(name, key_parts, build)
@@ -118,12 +128,12 @@ class Pipeline:
             write_text(self.cfg.annotations, generated_ann.read_text())
 
     def ingest(self) -> dict[str, tuple[Path, str]]:
-        out = {}
-        for sc in self.cfg.sessions:
-            parts = ("ingest", dataclasses.asdict(sc), dataclasses.asdict(self.cfg.ingest), source_fingerprint(sc))
-            out[sc.name] = self._timed("ingest", lambda sc=sc, parts=parts: self._run(
-                "ingest", parts, lambda tmp, sc=sc: ingest_session(sc, self.cfg.ingest, tmp)))
-        return out
+        ic = self.cfg.ingest
+        units = [
+            (("ingest", dataclasses.asdict(sc), dataclasses.asdict(ic), source_fingerprint(sc)), lambda tmp, sc=sc: ingest_session(sc, ic, tmp))
+            for sc in self.cfg.sessions
+        ]
+        return dict(zip([sc.name for sc in self.cfg.sessions], self._map("ingest", units), strict=True))
 
     def frames(self, ingested: dict[str, tuple[Path, str]]) -> tuple[pd.DataFrame, str]:
         keys = [k for _, k in ingested.values()]
@@ -205,20 +215,26 @@ class Pipeline:
             desc.load(model[0])
         # execution-only options do not change the descriptors, so they stay out of the keys
         dkey = {k: v for k, v in dataclasses.asdict(dc).items() if k not in ("num_workers", "shard_frames")}
-        out = {}
+        units, session_shards = [], {}
         for sc in self.cfg.sessions:
             rows, pkey = props[sc.name]
             utimes = np.unique(rows["utime"].to_numpy())
             shards = [utimes[i : i + dc.shard_frames] for i in range(0, len(utimes), max(1, dc.shard_frames))]
-            shard_dirs = []
+            session_shards[sc.name] = (len(units), len(shards))
             for si, ut in enumerate(shards):
                 sub = rows[rows["utime"].isin(ut)]
+                fr = frames[frames["session"] == sc.name]
 
-                def build_shard(tmp: Path, sub: pd.DataFrame = sub, name: str = f"{sc.name} [{si + 1}/{len(shards)}]") -> dict:
-                    return self._encode_rows(desc, frames, sub, tmp, name)
+                def build_shard(tmp: Path, sub: pd.DataFrame = sub, fr: pd.DataFrame = fr, name: str = f"{sc.name} [{si + 1}/{len(shards)}]") -> dict:
+                    return _encode_rows(desc, dc, fr, sub, tmp, name)
 
-                parts = (pkey, model[1], dkey, int(ut[0]), int(ut[-1]), len(ut))
-                shard_dirs.append(self._timed("descriptors", lambda b=build_shard, p=parts: self._run("descriptor_shards", p, b))[0])
+                units.append(((pkey, model[1], dkey, int(ut[0]), int(ut[-1]), len(ut)), build_shard))
+        done = self._map("descriptor_shards", units, gpu=True)
+        out = {}
+        for sc in self.cfg.sessions:
+            rows, pkey = props[sc.name]
+            first, n = session_shards[sc.name]
+            shard_dirs = [p for p, _ in done[first : first + n]]
 
             def combine(tmp: Path, rows: pd.DataFrame = rows, shard_dirs: list[Path] = shard_dirs) -> dict:
                 pos = pd.Series(np.arange(len(rows)), index=pd.MultiIndex.from_frame(rows[["method", "utime", "box_id"]]))
@@ -240,25 +256,6 @@ class Pipeline:
             out[sc.name] = (path, key)
         return out
 
-    def _encode_rows(self, desc: Any, frames: pd.DataFrame, rows: pd.DataFrame, tmp: Path, name: str) -> dict:
-        """Crop, encode and L2-normalise ``rows``; write ``desc.npy`` (aligned with ``index.parquet``)."""
-        dc = self.cfg.descriptor
-        img = rows.merge(frames[["session", "camera", "utime", "image"]], on=["session", "camera", "utime"], how="left")["image"]
-        # frames must be contiguous for the loader: order by frame, remember the original row
-        order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
-        arr = None
-        for idx, crops in _progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers), desc=f"descriptors {name}", unit="batch"):
-            v = normalize(desc.encode(crops))
-            if arr is None:
-                arr = np.lib.format.open_memmap(tmp / "desc.npy", mode="w+", dtype=np.dtype(dc.dtype), shape=(len(rows), v.shape[1]))
-            arr[order[idx]] = v.astype(dc.dtype)
-        if arr is None:
-            np.save(tmp / "desc.npy", np.zeros((0, 1), dc.dtype))
-        else:
-            arr.flush()
-        write_parquet(tmp / "index.parquet", rows)
-        return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
-
     def ranks(self, frames: pd.DataFrame, pairs: pd.DataFrame, pairs_key: str, described: dict[str, tuple[Path, str]]) -> tuple[pd.DataFrame, str, dict]:
         rc = self.cfg.retrieval
         if self.rank_import is not None:
@@ -275,8 +272,9 @@ class Pipeline:
 
         device = "cuda" if rc.engine == "exact" and self.cfg.descriptor.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
         dkeys = {s: k for s, (_, k) in described.items()}
-        parts, counts_all = [], {}
-        for ref in [s.name for s in self.cfg.sessions]:
+        units = []
+        refs = [s.name for s in self.cfg.sessions]
+        for ref in refs:
             sub = pairs[pairs["r_session"] == ref]
 
             def build(tmp: Path, sub: pd.DataFrame = sub, ref: str = ref) -> dict:
@@ -284,7 +282,9 @@ class Pipeline:
                 write_parquet(tmp / "ranks.parquet", df)
                 return counts
 
-            path, key = self._timed("ranks", lambda b=build, r=ref: self._run("ranks", (r, pairs_key, dkeys, dataclasses.asdict(rc)), b))
+            units.append(((ref, pairs_key, dkeys, dataclasses.asdict(rc)), build))
+        parts, counts_all = [], {}
+        for ref, (path, key) in zip(refs, self._map("ranks", units, gpu=True), strict=True):
             parts.append(pd.read_parquet(path / "ranks.parquet"))
             counts_all[ref] = self.cache.manifest("ranks", key)["info"]
         df = pd.concat(parts, ignore_index=True)
@@ -408,6 +408,25 @@ class Pipeline:
         write_json(self.out / "run.json", record)
         record["table"] = table
         return record
+
+
+def _encode_rows(desc: Any, dc: Any, frames: pd.DataFrame, rows: pd.DataFrame, tmp: Path, name: str) -> dict:
+    """Crop, encode and L2-normalise ``rows``; write ``desc.npy`` (aligned with ``index.parquet``)."""
+    img = rows.merge(frames[["session", "camera", "utime", "image"]], on=["session", "camera", "utime"], how="left")["image"]
+    # frames must be contiguous for the loader: order by frame, remember the original row
+    order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
+    arr = None
+    for idx, crops in _progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers), desc=f"descriptors {name}", unit="batch"):
+        v = normalize(desc.encode(crops))
+        if arr is None:
+            arr = np.lib.format.open_memmap(tmp / "desc.npy", mode="w+", dtype=np.dtype(dc.dtype), shape=(len(rows), v.shape[1]))
+        arr[order[idx]] = v.astype(dc.dtype)
+    if arr is None:
+        np.save(tmp / "desc.npy", np.zeros((0, 1), dc.dtype))
+    else:
+        arr.flush()
+    write_parquet(tmp / "index.parquet", rows)
+    return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
 
 
 def _versions() -> dict:
@@ -556,9 +575,9 @@ def table1_markdown(table: pd.DataFrame, main: pd.DataFrame) -> str:
     return head + body + foot
 
 
-def reproduce(cfg: Config, out: Path, rank_import: Path | None = None) -> dict:
-    """Run the whole pipeline for ``cfg`` into ``out``."""
-    return Pipeline(cfg, Path(out), rank_import=rank_import).run()
+def reproduce(cfg: Config, out: Path, rank_import: Path | None = None, executor: Any = None) -> dict:
+    """Run the whole pipeline for ``cfg`` into ``out`` (``executor``: local by default)."""
+    return Pipeline(cfg, Path(out), rank_import=rank_import, executor=executor or LocalExecutor()).run()
 
 
 def load_run(out: Path) -> dict:

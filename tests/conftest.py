@@ -23,3 +23,15 @@ def small_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def default_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The default fixture (what `make reproduce-table` uses)."""
     return generate(tmp_path_factory.mktemp("default") / "fx", FixtureSpec())
+
+
+@pytest.fixture(scope="session")
+def local_run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> tuple:
+    """The whole pipeline on the default fixture with the local executor: (pipeline, record, out)."""
+    from harness.config import load_config
+    from harness.runner import Pipeline
+
+    out = tmp_path_factory.mktemp("run")
+    cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(default_world))
+    p = Pipeline(cfg, out)
+    return p, p.run(), out

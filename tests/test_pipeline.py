@@ -10,7 +10,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.config import load_config
 from harness.runner import Pipeline
 
 from .conftest import ROOT
@@ -20,12 +19,9 @@ from .conftest import ROOT
 TOLERANCE = 0.05
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> tuple[Pipeline, dict, Path]:
-    out = tmp_path_factory.mktemp("run")
-    cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(default_world))
-    p = Pipeline(cfg, out)
-    return p, p.run(), out
+@pytest.fixture()
+def run(local_run: tuple[Pipeline, dict, Path]) -> tuple[Pipeline, dict, Path]:
+    return local_run
 
 
 def test_outputs_exist(run: tuple) -> None:

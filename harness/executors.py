@@ -1,0 +1,114 @@
+"""Executors: where the cached stage units run.
+
+A *unit* is one call of :meth:`harness.cache.StageCache.run` (a stage name, the parts of its key and
+a build function that fills a temporary directory). Units are independent and write their output
+atomically, so they can run anywhere that sees the same filesystem, in any order, and a rerun skips
+the finished ones.
+
+- ``local`` (default): one after the other in this process.
+- ``ray``: each unit is a Ray task (``pip install 'dbl-harness[ray]'``); a worker that dies is
+  retried by Ray (``max_retries``); units of the descriptor and ranking stages ask for a GPU when
+  the cluster has one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .cache import StageCache
+from .errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+Unit = tuple[tuple[Any, ...], Callable[[Path], dict | None]]
+
+
+def run_unit(root: str, name: str, parts: tuple, build: Callable[[Path], dict | None]) -> tuple[str, bool]:
+    """Run one cached unit (in whatever process the executor chose); returns (directory, ran)."""
+    path, ran = StageCache(Path(root)).run(name, parts, build)
+    return str(path), ran
+
+
+class LocalExecutor:
+    name = "local"
+
+    def map_units(self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False) -> list[tuple[Path, bool]]:
+        del gpu
+        return [(Path(p), ran) for p, ran in (run_unit(str(cache.root), name, parts, build) for parts, build in units)]
+
+
+@dataclass
+class RayExecutor:
+    """Map units over a Ray cluster.
+
+    Args:
+        address: ``None`` starts a local cluster (``num_cpus`` workers); ``"auto"`` or
+            ``"ray://host:10001"`` joins an existing one (every node must see the output and data paths).
+        num_cpus: workers of a local cluster.
+        max_retries: retries of a unit whose worker process dies.
+        fault_once: test hook: the first unit to start creates this file and kills its own worker
+            process half-way through its build, once.
+    """
+
+    address: str | None = None
+    num_cpus: int | None = None
+    max_retries: int = 3
+    fault_once: str | None = None
+    name: str = "ray"
+
+    def __post_init__(self) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise ConfigError("--executor ray needs Ray: pip install 'dbl-harness[ray]'") from None
+        if not ray.is_initialized():
+            kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+            if self.address is None:
+                kw["num_cpus"] = self.num_cpus
+            else:
+                kw["address"] = self.address
+            ray.init(**kw)
+        self._gpus = ray.cluster_resources().get("GPU", 0) > 0
+        log.info("ray: %s", ray.cluster_resources())
+
+    def map_units(self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False) -> list[tuple[Path, bool]]:
+        import ray
+
+        out: list[tuple[Path, bool] | None] = [None] * len(units)
+        todo = []
+        for i, (parts, _) in enumerate(units):
+            key = cache.key(name, *parts)
+            if cache.is_done(name, key):  # finished shards are not even submitted
+                out[i] = (cache.path(name, key), False)
+            else:
+                todo.append(i)
+        task = ray.remote(_ray_unit).options(max_retries=self.max_retries, num_gpus=1 if (gpu and self._gpus) else 0)
+        refs = [task.remote(str(cache.root), name, units[i][0], units[i][1], self.fault_once) for i in todo]
+        for i, (p, ran) in zip(todo, ray.get(refs), strict=True):
+            out[i] = (Path(p), ran)
+        return out  # type: ignore[return-value]
+
+
+def _ray_unit(root: str, name: str, parts: tuple, build: Callable[[Path], dict | None], fault_once: str | None) -> tuple[str, bool]:
+    if fault_once and not os.path.exists(fault_once):
+
+        def dying(tmp: Path) -> dict | None:
+            (tmp / "partial").write_text("half-written")
+            Path(fault_once).touch()
+            os._exit(1)  # the worker process dies mid-unit; Ray retries the task
+
+        return run_unit(root, name, parts, dying)
+    return run_unit(root, name, parts, build)
+
+
+def make_executor(kind: str, address: str | None = None, num_cpus: int | None = None) -> LocalExecutor | RayExecutor:
+    if kind == "local":
+        return LocalExecutor()
+    if kind == "ray":
+        return RayExecutor(address=address, num_cpus=num_cpus)
+    raise ConfigError(f"unknown executor {kind!r}; known: local, ray")

@@ -1,0 +1,68 @@
+"""The Ray executor: same files and the same table as the local executor, and a worker that dies
+mid-shard is retried."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from harness.errors import ConfigError
+from harness.runner import Pipeline
+
+ray = pytest.importorskip("ray")
+
+MAPPED = ("ingest", "descriptor_shards", "descriptors", "ranks")
+
+
+@pytest.fixture(scope="module")
+def executor():
+    from harness.executors import RayExecutor
+
+    ex = RayExecutor(num_cpus=2)
+    yield ex
+    ray.shutdown()
+
+
+def _files(root: Path, stage: str) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted((root / "cache" / stage).rglob("*"))
+            if p.is_file() and p.suffix not in (".json", ".tiff", ".tif", ".jpg", ".png")}  # json: reports with timings
+
+
+def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: Path) -> None:
+    p, _, out = local_run
+    q = Pipeline(p.cfg, tmp_path, executor=executor)
+    q.run()
+    assert q.ran["descriptor_shards"] > 0 and q.ran["ranks"] == 4
+    for stage in MAPPED:
+        assert _files(tmp_path, stage) == _files(out, stage), stage
+    assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
+
+
+def test_a_worker_that_dies_mid_shard_is_retried(local_run: tuple, executor: object, tmp_path: Path) -> None:
+    from harness.executors import RayExecutor
+
+    p, _, out = local_run
+    shutil.copytree(out / "cache", tmp_path / "cache")
+    for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
+        shutil.rmtree(tmp_path / "cache" / stage)
+    marker = tmp_path / "killed-once"
+    faulty = RayExecutor(fault_once=str(marker))  # joins the running local cluster
+    q = Pipeline(p.cfg, tmp_path, executor=faulty)
+    q.run()
+    assert marker.exists(), "a worker was killed"
+    assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
+    # a rerun after the crash skips every finished shard
+    again = Pipeline(p.cfg, tmp_path, executor=faulty)
+    again.run()
+    assert sum(again.ran.values()) == 0
+
+
+def test_without_ray_the_error_says_how_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    from harness.executors import make_executor
+
+    monkeypatch.setitem(sys.modules, "ray", None)
+    with pytest.raises(ConfigError, match=r"pip install 'dbl-harness\[ray\]'"):
+        make_executor("ray")
