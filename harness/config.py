@@ -121,6 +121,7 @@ class RetrievalConfig:
     query_batch: int = 1024
     faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
     faiss_nprobe: int = 8
+    query_frames_per_shard: int = 512  # pairs per ranking unit (the unit mapped over executors)
     faiss_check: int = 256  # queries per engine also ranked exactly, to report faiss's recall
 
 

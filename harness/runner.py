@@ -272,23 +272,33 @@ class Pipeline:
 
         device = "cuda" if rc.engine == "exact" and self.cfg.descriptor.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
         dkeys = {s: k for s, (_, k) in described.items()}
-        units = []
-        refs = [s.name for s in self.cfg.sessions]
-        for ref in refs:
-            sub = pairs[pairs["r_session"] == ref]
+        # units: (reference session, chunk of query frames); one engine per method inside each.
+        # The chunk size is an execution option: it stays out of the key of what depends on ranks.
+        rkey = {k: v for k, v in dataclasses.asdict(rc).items() if k != "query_frames_per_shard"}
+        units, unit_ref = [], []
+        for ref in [s.name for s in self.cfg.sessions]:
+            sub = pairs[pairs["r_session"] == ref].reset_index(drop=True)
+            step = max(1, rc.query_frames_per_shard)
+            for c0 in range(0, max(len(sub), 1), step):
+                chunk = sub.iloc[c0 : c0 + step]
 
-            def build(tmp: Path, sub: pd.DataFrame = sub, ref: str = ref) -> dict:
-                df, counts = self._rank_reference(sub, ref, described, device)
-                write_parquet(tmp / "ranks.parquet", df)
-                return counts
+                def build(tmp: Path, chunk: pd.DataFrame = chunk, ref: str = ref) -> dict:
+                    df, counts = self._rank_reference(chunk, ref, described, device)
+                    write_parquet(tmp / "ranks.parquet", df)
+                    return counts
 
-            units.append(((ref, pairs_key, dkeys, dataclasses.asdict(rc)), build))
+                units.append(((ref, pairs_key, dkeys, rkey, c0, len(chunk)), build))
+                unit_ref.append(ref)
         parts, counts_all = [], {}
-        for ref, (path, key) in zip(refs, self._map("ranks", units, gpu=True), strict=True):
+        for ref, (path, key) in zip(unit_ref, self._map("ranks", units, gpu=True), strict=True):
             parts.append(pd.read_parquet(path / "ranks.parquet"))
-            counts_all[ref] = self.cache.manifest("ranks", key)["info"]
-        df = pd.concat(parts, ignore_index=True)
-        return df, stable_hash(pairs_key, dkeys, dataclasses.asdict(rc)), counts_all
+            c = counts_all.setdefault(ref, {})
+            for k, v in self.cache.manifest("ranks", key)["info"].items():
+                c[k] = c.get(k, 0) + v
+        df = pd.concat([p for p in parts if len(p)], ignore_index=True) if any(len(p) for p in parts) else pd.DataFrame()
+        if len(df):
+            df = df.sort_values(["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]).reset_index(drop=True)
+        return df, stable_hash(pairs_key, dkeys, rkey), counts_all
 
     def _rank_reference(self, sub: pd.DataFrame, ref: str, described: dict[str, tuple[Path, str]], device: str) -> tuple[pd.DataFrame, dict]:
         rc = self.cfg.retrieval

@@ -36,6 +36,17 @@ def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: 
     q = Pipeline(p.cfg, tmp_path, executor=executor)
     q.run()
     assert q.ran["descriptor_shards"] > 0 and q.ran["ranks"] == 4
+    # query chunks x reference sessions: a smaller chunk gives more units and the same table
+    import dataclasses
+
+    cfg = dataclasses.replace(p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, query_frames_per_shard=10))
+    chunked = Pipeline(cfg, tmp_path / "chunked", executor=executor)
+    shutil.copytree(out / "cache", tmp_path / "chunked" / "cache")
+    shutil.rmtree(tmp_path / "chunked" / "cache" / "ranks")
+    chunked.run()
+    assert chunked.ran["ranks"] > 4
+    assert chunked.ran.get("samples", 0) == 0  # same ranks, so the fusion stage is a cache hit
+    assert (tmp_path / "chunked" / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
     for stage in MAPPED:
         assert _files(tmp_path, stage) == _files(out, stage), stage
     assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
