@@ -51,7 +51,7 @@ def main() -> int:
     (OUT / "bench.json").write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
     lines = ["| case | median | unit | peak RSS MiB | notes |", "|---|---|---|---|---|"]
     for r in rows:
-        extra = "; ".join(f"{k} {v}" for k, v in r.items() if k not in ("case", "median", "unit", "runs", "peak_rss_mib", "notes"))
+        extra = "; ".join(f"{k} {v}" for k, v in r.items() if k not in ("case", "median", "unit", "runs", "peak_rss_mib", "notes", "group"))
         notes = "; ".join(x for x in (r.get("notes", ""), extra) if x)
         lines.append(f"| {r['case']} | {r['median']:.4g} | {r['unit']} | {r.get('peak_rss_mib', float('nan')):.0f} | {notes} |")
     (OUT / "bench.md").write_text("\n".join(lines) + "\n")
