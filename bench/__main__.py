@@ -15,11 +15,14 @@ import sys
 import time
 from pathlib import Path
 
+from harness.cache import atomic_path
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "bench" / ".data"
 OUT = ROOT / "results" / "bench"
 
-CASES = ["ingest", "crops", "descriptor", "ranking", "fusion", "executor"]
+CASES = ["ingest", "crops", "descriptor", "ranking", "fusion", "executor", "e2e"]
+HIDDEN = {"case", "median", "unit", "runs", "peak_rss_mib", "notes", "group", "points"}
 
 
 def run_case(name: str, quick: bool) -> list[dict]:
@@ -29,6 +32,28 @@ def run_case(name: str, quick: bool) -> list[dict]:
         print(proc.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"bench case {name} failed")
     return [{**json.loads(line), "group": name} for line in proc.stdout.splitlines() if line.startswith("{")]
+
+
+def plot_scaling(rows: list[dict], path: Path) -> None:
+    """Log-log plot of every scaling series, one panel per x quantity, with the fitted exponent."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = sorted({r["points"]["xlabel"] for r in rows})
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.5), squeeze=False)
+    for ax, xl in zip(axes[0], panels, strict=True):
+        for r in (r for r in rows if r["points"]["xlabel"] == xl):
+            ax.loglog(r["points"]["x"], r["points"]["y"], "o-", label=f"{r['case'].removeprefix('scaling: ').split(' vs ')[0]} (exp {r['median']:.2f})")
+        ax.set_xlabel(xl)
+        ax.set_ylabel(" / ".join(sorted({r["points"]["ylabel"] for r in rows if r["points"]["xlabel"] == xl})))
+        ax.legend(fontsize=7)
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
 
 
 def main() -> int:
@@ -48,13 +73,25 @@ def main() -> int:
             print("   ", r["case"], {k: v for k, v in r.items() if k not in ("case", "runs")})
     OUT.mkdir(parents=True, exist_ok=True)
     meta = {"python": platform.python_version(), "platform": platform.platform(), "cpus": __import__("os").cpu_count()}
-    (OUT / "bench.json").write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
+    with atomic_path(OUT / "bench.json") as tmp:
+        tmp.write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
     lines = ["| case | median | unit | peak RSS MiB | notes |", "|---|---|---|---|---|"]
     for r in rows:
-        extra = "; ".join(f"{k} {v}" for k, v in r.items() if k not in ("case", "median", "unit", "runs", "peak_rss_mib", "notes", "group"))
+        if r["unit"] == "exponent":
+            continue
+        extra = "; ".join(f"{k} {v}" for k, v in r.items() if k not in HIDDEN)
         notes = "; ".join(x for x in (r.get("notes", ""), extra) if x)
         lines.append(f"| {r['case']} | {r['median']:.4g} | {r['unit']} | {r.get('peak_rss_mib', float('nan')):.0f} | {notes} |")
-    (OUT / "bench.md").write_text("\n".join(lines) + "\n")
+    scaling = [r for r in rows if r["unit"] == "exponent"]
+    if scaling:
+        lines += ["", "## Scaling (cost ~ work ** exponent, least squares in log-log; plot: scaling.png)", "",
+                  "| what | fitted exponent | points (x: y) |", "|---|---|---|"]
+        for r in scaling:
+            pts = ", ".join(f"{x:g}: {y:.3g}" for x, y in zip(r["points"]["x"], r["points"]["y"], strict=True))
+            lines.append(f"| {r['case'].removeprefix('scaling: ')} | {r['median']:.2f} | {pts} ({r['points']['ylabel']}) |")
+        plot_scaling(scaling, OUT / "scaling.png")
+    with atomic_path(OUT / "bench.md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     print((OUT / "bench.md").read_text())
     return 0
 

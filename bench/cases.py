@@ -111,10 +111,12 @@ def case_crops(quick: bool) -> None:
 def _matmul_gflops() -> float:
     import torch
 
-    a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
-    a @ b
-    runs = timed(lambda: a @ b, repeat=5)
-    return 2 * 2048**3 / min(runs) / 1e9
+    best = 0.0
+    for n in (512, 1024, 2048):  # the best square float32 matmul rate: the machine's measured peak
+        a, b = torch.randn(n, n), torch.randn(n, n)
+        a @ b
+        best = max(best, 2 * n**3 / min(timed(lambda a=a, b=b: a @ b, repeat=5)) / 1e9)
+    return best
 
 
 def case_descriptor(quick: bool) -> None:
@@ -123,10 +125,10 @@ def case_descriptor(quick: bool) -> None:
 
     from harness.config import DescriptorConfig
     from harness.descriptors import AutoencoderDescriptor, HogDescriptor
-    from harness.descriptors.autoencoder import ConvAutoencoder
+    from harness.descriptors.autoencoder import ConvAutoencoder, to_tensor
 
     peak = _matmul_gflops()
-    print(json.dumps({"case": "matmul fp32 2048^3", "median": peak, "unit": "GFLOP/s", "runs": [peak], "peak_rss_mib": peak_rss_mib(), "notes": f"torch threads {torch.get_num_threads()}"}), flush=True)
+    print(json.dumps({"case": "matmul fp32 peak (best of 512..2048 square)", "median": peak, "unit": "GFLOP/s", "runs": [peak], "peak_rss_mib": peak_rss_mib(), "notes": f"torch threads {torch.get_num_threads()}"}), flush=True)
     for size, batch in ((256, 32), (64, 128)):
         cfg = DescriptorConfig(input_size=size, batch_size=batch, device="cpu")
         d = AutoencoderDescriptor(cfg)
@@ -138,48 +140,87 @@ def case_descriptor(quick: bool) -> None:
         c1, c2, c3 = 32, 32, 16
         flops = 2 * 9 * (size**2 * 3 * c1 + (size // 2) ** 2 * c1 * c2 + (size // 4) ** 2 * c2 * c3)
         rate = [n / t for t in runs]
-        emit(f"autoencoder encode {size}x{size}", rate, "subimages/s",
-             notes=f"{flops / 1e6:.0f} MFLOP/subimage; {statistics.median(rate) * flops / 1e9:.1f} GFLOP/s = {statistics.median(rate) * flops / 1e9 / peak:.0%} of matmul peak; {1000 / statistics.median(rate):.2f} ms/subimage")
+        gf = statistics.median(rate) * flops / 1e9
+        emit(f"autoencoder encode {size}x{size}", rate, "subimages/s", gflops=round(gf, 1), fraction_of_peak=round(gf / peak, 3),
+             notes=f"folded encoder, {d.encode_batch} subimages per call; {flops / 1e6:.0f} MFLOP/subimage; {gf:.1f} GFLOP/s = {gf / peak:.0%} of matmul peak; {1000 / statistics.median(rate):.2f} ms/subimage")
+        if size == 256:  # the plain trained model in batches of 32 (the path before the folded encoder), same run
+            model, per_crop = d.model, False
+
+            def plain(x=x, model=model, batch=batch, per_crop=per_crop) -> None:
+                with torch.inference_mode():
+                    for i in range(0, len(x), batch):
+                        model.encode(to_tensor(x[i : i + batch], torch.device("cpu"), per_crop))
+
+            plain()
+            base = [n / t for t in timed(plain, repeat=3)]
+            emit("autoencoder encode 256x256, plain model batch 32", base, "subimages/s",
+                 notes=f"{statistics.median(base) * flops / 1e9 / peak:.0%} of matmul peak; folded encoder speed-up {statistics.median(rate) / statistics.median(base):.1f}x")
     h = HogDescriptor(DescriptorConfig())
     x = np.random.default_rng(0).integers(0, 256, (256, 64, 64, 3), dtype=np.uint8)
     emit("hog encode 64x64", [256 / t for t in timed(lambda: h.encode(x))], "subimages/s")
 
 
+def fit_exponent(x: list[float], y: list[float]) -> float:
+    """Least-squares slope of log y against log x: cost ~ x ** exponent."""
+    return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
+
+
+def _random_db(m: int, dim: int, rng: np.random.Generator) -> Path:
+    path = DATA / f"db-{m}-{dim}.npy"
+    if not path.exists():
+        DATA.mkdir(parents=True, exist_ok=True)
+        arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(m, dim))
+        for s in range(0, m, 4096):
+            blk = rng.standard_normal((min(4096, m - s), dim), dtype=np.float32)
+            arr[s : s + len(blk)] = (blk / np.linalg.norm(blk, axis=1, keepdims=True)).astype(np.float16)
+        arr.flush()
+        del arr
+    return path
+
+
 def case_ranking(quick: bool) -> None:
-    """Exact ranking throughput (query subimages/s) at database sizes 1k, 10k, 100k (D = 16,384, float16 memmap)."""
+    """Exact ranking throughput (query subimages/s) at database sizes 1k, 10k, 100k (D = 16,384, float16 memmap).
+
+    2,048 query subimages per call (128 query frames x 16; a pipeline ranking unit holds up to
+    512 frames x 16 = 8,192), query_batch 1,024 as configured by default. Each call streams the
+    database once, so the float16 read and conversion are shared by all its queries; with only
+    256 queries that share dominates at 100k (the extra row shows it).
+    """
     from harness.retrieval import image_ranks, image_ranks_faiss
 
     peak = _matmul_gflops()
     dim = 16384
     sizes = (1000, 10_000) if quick else (1000, 10_000, 100_000)
-    nq = 256
+    nq = 2048
     rng = np.random.default_rng(0)
     q = rng.standard_normal((nq, dim), dtype=np.float32)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
+    per_query_s = []
     for m in sizes:
-        path = DATA / f"db-{m}-{dim}.npy"
-        if not path.exists():
-            DATA.mkdir(parents=True, exist_ok=True)
-            arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(m, dim))
-            for s in range(0, m, 4096):
-                blk = rng.standard_normal((min(4096, m - s), dim), dtype=np.float32)
-                arr[s : s + len(blk)] = (blk / np.linalg.norm(blk, axis=1, keepdims=True)).astype(np.float16)
-            arr.flush()
-            del arr
-        db = np.load(path, mmap_mode="r")
+        db = np.load(_random_db(m, dim, rng), mmap_mode="r")
         frame = np.arange(m) // 16
         gt = rng.choice(np.unique(frame), nq)
-        runs = timed(lambda db=db, frame=frame, gt=gt: image_ranks(q, db, frame, gt, chunk_rows=8192, query_batch=nq), repeat=3 if m < 100_000 else 1)
+        runs = timed(lambda db=db, frame=frame, gt=gt: image_ranks(q, db, frame, gt, chunk_rows=8192, query_batch=1024), repeat=3 if m < 100_000 else 1)
         flops = 2 * nq * m * dim
         rate = [nq / t for t in runs]
-        emit(f"rank exact db={m}", rate, "query subimages/s",
-             notes=f"{statistics.median([flops / t / 1e9 for t in runs]):.1f} GFLOP/s = {statistics.median([flops / t / 1e9 for t in runs]) / peak:.0%} of matmul peak ({peak:.0f} GFLOP/s)")
+        per_query_s.append(statistics.median(runs) / nq)
+        gf = statistics.median([flops / t / 1e9 for t in runs])
+        emit(f"rank exact db={m}", rate, "query subimages/s", gflops=round(gf, 1), fraction_of_peak=round(gf / peak, 3),
+             notes=f"{nq} queries; {gf:.1f} GFLOP/s = {gf / peak:.0%} of matmul peak ({peak:.0f} GFLOP/s)")
+        if m == max(sizes):
+            small = timed(lambda db=db, frame=frame, gt=gt: image_ranks(q[:256], db, frame, gt[:256], chunk_rows=8192, query_batch=256), repeat=1)
+            gf = 2 * 256 * m * dim / small[0] / 1e9
+            emit(f"rank exact db={m}, 256 queries", [256 / t for t in small], "query subimages/s",
+                 notes=f"{gf:.1f} GFLOP/s = {gf / peak:.0%} of peak: one database pass (read + float16 conversion) shared by only 256 queries")
         if m <= 10_000:
             full = np.asarray(db, np.float32)
             base = timed(lambda full=full: ((q**2).sum(1)[:, None] + (full**2).sum(1)[None] - 2 * q @ full.T), repeat=3)
             emit(f"numpy baseline distance matrix db={m}", [nq / t for t in base], "query subimages/s", notes="np.matmul of the whole float32 database, no per-frame minimum")
-            fr = timed(lambda full=full, frame=frame, gt=gt: image_ranks_faiss(q, full, frame, gt, k=256), repeat=3)
+            fr = timed(lambda full=full, frame=frame, gt=gt: image_ranks_faiss(q, full, frame, gt, k=256), repeat=1)
             emit(f"rank faiss flat k=256 db={m}", [nq / t for t in fr], "query subimages/s")
+    print(json.dumps({"case": "scaling: ranking time per query vs database size", "median": fit_exponent(list(sizes), per_query_s), "unit": "exponent",
+                      "runs": [], "peak_rss_mib": peak_rss_mib(), "points": {"x": list(sizes), "y": per_query_s, "xlabel": "database subimages",
+                                                                           "ylabel": "s per query subimage"}}), flush=True)
 
 
 def case_fusion(quick: bool) -> None:
@@ -256,6 +297,71 @@ def case_executor(quick: bool) -> None:
         results[name] = runs
         emit(f"descriptors+ranks+fusion [{name}]", runs, "s", notes="fixture: 256 frames, 16-frame shards")
     print(json.dumps({"case": "ray speed-up (local s / ray s)", "median": statistics.median(results["local"]) / statistics.median(results["ray"]), "unit": "x", "runs": [], "peak_rss_mib": peak_rss_mib(), "notes": "2 local workers on 2 cores"}), flush=True)
+
+
+STAGES = ("ingest", "pairs", "proposals", "train", "descriptor_shards", "ranks", "fusion", "labels_ap_reports")
+
+
+def nclt_scale_workload(frames: int) -> Path:
+    """The synthetic NCLT-scale logs: four ROS2 sqlite3 bags of 1,232 x 1,616 JPEG frames (generated once)."""
+    from harness.fixture import FixtureSpec, generate
+
+    root = DATA / f"nclt-scale-{frames}"
+    if not (root / "fixture.json").exists():
+        spec = FixtureSpec(frames=frames, width=1232, height=1616, render_scale=4, loop_scale=3.0, objects=6)
+        generate(root, spec, formats=("ros2",) * len(spec.sessions))
+    return root
+
+
+def case_e2e(quick: bool) -> None:
+    """End-to-end Table I (``harness reproduce``, nothing cached) on the NCLT-scale workload, at
+    several frame counts per session; per-stage times and their growth with the frame count.
+
+    Each run is its own process; its peak RSS comes from ``os.wait4`` (that process and the
+    data-loader workers it waited for).
+    """
+    import os
+    import subprocess
+    import sys
+
+    counts = (24, 48) if quick else (125, 250, 500)
+    stage_t: dict[str, list[float]] = {s: [] for s in STAGES}
+    totals = []
+    for n in counts:
+        root = nclt_scale_workload(n)
+        out = Path(tempfile.mkdtemp(dir=DATA, prefix="e2e-"))
+        cmd = [sys.executable, "-m", "harness.cli", "reproduce", "--config", str(ROOT / "bench" / "nclt_scale.toml"), "--data-root", str(root), "--out", str(out)]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "TQDM_DISABLE": "1"})
+        err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        if status != 0:
+            raise SystemExit(f"e2e run on {root} failed:\n{err[-3000:]}")
+        run = json.loads((out / "run.json").read_text())
+        shutil.rmtree(out)
+        t = run["timings_s"]
+        for s_ in STAGES:
+            stage_t[s_].append(max(float(t.get(s_, 0.0)), 1e-3))
+        totals.append(wall)
+        c = run["counts"]
+        q_images = c["pairs"]  # (query frame, reference session) pairs: one Table I query image each
+        ranked = c["ranked_subimages"]
+        eval_s = t.get("fusion", 0.0) + t.get("labels_ap_reports", 0.0)
+        print(json.dumps({
+            "case": f"e2e Table I [{n} frames/session]", "median": wall, "unit": "s", "runs": [wall],
+            "peak_rss_mib": usage.ru_maxrss / 1024,
+            "ms_per_query_image": round(1000 * wall / max(q_images, 1), 1),
+            "ms_per_frame": round(1000 * wall / c["frames"], 1),
+            "fusion_labels_ap_share": round(eval_s / wall, 4),
+            "notes": (f"{c['frames']} frames 1232x1616 JPEG, {q_images} query images ({c['annotated_frames']} annotated frames x reference sessions), "
+                      f"{ranked} ranked subimages; stages s: " + ", ".join(f"{k} {t.get(k, 0):.1f}" for k in STAGES)),
+        }), flush=True)
+    for s_ in STAGES:
+        print(json.dumps({"case": f"scaling: {s_} time vs frames per session", "median": fit_exponent(list(counts), stage_t[s_]), "unit": "exponent",
+                          "runs": [], "peak_rss_mib": peak_rss_mib(), "points": {"x": list(counts), "y": stage_t[s_], "xlabel": "frames per session", "ylabel": "s"}}), flush=True)
+    print(json.dumps({"case": "scaling: end-to-end time vs frames per session", "median": fit_exponent(list(counts), totals), "unit": "exponent",
+                      "runs": [], "peak_rss_mib": peak_rss_mib(), "points": {"x": list(counts), "y": totals, "xlabel": "frames per session", "ylabel": "s"}}), flush=True)
 
 
 def main() -> None:

@@ -36,8 +36,15 @@ def _config(args: argparse.Namespace):
 def cmd_fixture(args: argparse.Namespace) -> int:
     from .fixture import FixtureSpec, generate
 
-    spec = FixtureSpec(seed=args.seed, frames=args.frames, width=args.width, height=args.height, objects=args.objects, loop_scale=args.loop_scale)
-    out = generate(Path(args.out), spec, all_formats=args.all_formats)
+    spec = FixtureSpec(seed=args.seed, frames=args.frames, width=args.width, height=args.height, objects=args.objects,
+                       loop_scale=args.loop_scale, render_scale=args.render_scale)
+    formats = args.formats.split(",") if args.formats else None
+    if formats is not None and len(formats) == 1:
+        formats = formats * len(spec.sessions)
+    try:
+        out = generate(Path(args.out), spec, all_formats=args.all_formats, formats=formats)
+    except ValueError as err:
+        raise HarnessError(f"harness fixture: {err}") from None
     print(f"fixture written to {out} (annotations: {out / 'annotations.csv'})")
     return 0
 
@@ -160,6 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=160)
     p.add_argument("--objects", type=int, default=3, help="change objects per changed session")
     p.add_argument("--loop-scale", type=float, default=1.5, help="size of the loop road (1.0: 60 m x 40 m)")
+    p.add_argument("--render-scale", type=int, default=1, help="ray-cast at 1/scale resolution, then upsample (fast large frames)")
+    p.add_argument("--formats", default=None, help="comma-separated log format per session (one name: all sessions), e.g. ros2")
     p.add_argument("--all-formats", action="store_true", help="write every session in every log format")
     p.set_defaults(func=cmd_fixture)
 

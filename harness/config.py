@@ -104,7 +104,8 @@ class DescriptorConfig:
     channels: tuple[int, int, int] = (32, 32, 16)
     input_norm: str = "none"  # "none" (the paper) or "per_crop": standardise each crop's channels
     epochs: int = 4
-    batch_size: int = 32
+    batch_size: int = 32  # training batch
+    encode_batch: int = 0  # subimages per encoder call; 0: 2 on CPU (keeps activations in cache), batch_size on GPU
     lr: float = 1e-3
     max_train_subimages: int = 4000
     dtype: str = "float16"
@@ -298,6 +299,8 @@ def validate(cfg: Config, where: str) -> None:
         raise ConfigError(f"{where}: [retrieval] engine must be 'exact' or 'faiss'")
     if cfg.descriptor.input_norm not in ("none", "per_crop"):
         raise ConfigError(f"{where}: [descriptor] input_norm must be 'none' or 'per_crop'")
+    if cfg.descriptor.encode_batch < 0:
+        raise ConfigError(f"{where}: [descriptor] encode_batch must be >= 0 (0: automatic)")
     if cfg.descriptor.dtype not in ("float16", "float32"):
         raise ConfigError(f"{where}: [descriptor] dtype must be float16 or float32")
     if not cfg.proposals.methods:

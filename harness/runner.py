@@ -178,8 +178,10 @@ class Pipeline:
     def train(self, frames: pd.DataFrame, props: dict[str, tuple[pd.DataFrame, str]]) -> tuple[Path, str]:
         dc = self.cfg.descriptor
         desc = make_descriptor(dc)
+        # options that only affect encoding or execution do not change the trained model
+        tkey = {k: v for k, v in dataclasses.asdict(dc).items() if k not in ("num_workers", "shard_frames", "encode_batch", "dtype")}
         if not desc.needs_training:
-            return self._run("model", (dataclasses.asdict(dc),), lambda tmp: {"trained": False})
+            return self._run("model", (tkey,), lambda tmp: {"trained": False})
 
         def build(tmp: Path) -> dict:
             rows = pd.concat([p for p, _ in props.values()], ignore_index=True)
@@ -200,7 +202,7 @@ class Pipeline:
             return info
 
         keys = sorted(k for _, k in props.values())
-        return self._timed("train", lambda: self._run("model", (dataclasses.asdict(dc), keys), build))
+        return self._timed("train", lambda: self._run("model", (tkey, keys), build))
 
     def describe(self, frames: pd.DataFrame, props: dict[str, tuple[pd.DataFrame, str]], model: tuple[Path, str]) -> dict[str, tuple[Path, str]]:
         """Descriptors of every proposal row, per session.

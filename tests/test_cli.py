@@ -25,6 +25,12 @@ def test_fixture_and_ingest_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main(["fixture", "--out", str(tmp_path / "fx"), "--frames", "6", "--width", "32", "--height", "40", "--loop-scale", "1.0"]) == 0
     assert main(["ingest", str(tmp_path / "fx" / "mcap" / "2012-11-17.mcap"), "--session", "2012-11-17", "--out", str(tmp_path / "o")]) == 0
     assert "6 frames" in capsys.readouterr().out
+    assert main(["fixture", "--out", str(tmp_path / "fx2"), "--frames", "4", "--width", "32", "--height", "40", "--formats", "mcap"]) == 0
+    assert sorted(p.name for p in (tmp_path / "fx2" / "mcap").iterdir()) == ["2012-01-22.mcap", "2012-03-31.mcap", "2012-08-04.mcap", "2012-11-17.mcap"]
+    capsys.readouterr()
+    assert main(["fixture", "--out", str(tmp_path / "fx3"), "--formats", "ros2,tiff"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR: harness fixture: formats must name one of") and not (tmp_path / "fx3").exists()
 
 
 def test_config_rejects_unknown_keys(tmp_path: Path) -> None:

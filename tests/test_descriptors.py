@@ -9,7 +9,7 @@ import torch
 
 from harness.config import DescriptorConfig
 from harness.descriptors import AutoencoderDescriptor, HogDescriptor, ThumbDescriptor, normalize
-from harness.descriptors.autoencoder import ConvAutoencoder, load_checkpoint
+from harness.descriptors.autoencoder import ConvAutoencoder, inference_encoder, load_checkpoint, to_tensor
 
 
 def test_paper_architecture_gives_a_16384_dim_bottleneck() -> None:
@@ -52,6 +52,40 @@ def test_checkpoint_round_trip_with_weights_only(tmp_path: Path) -> None:
     assert np.array_equal(a.encode(x), b.encode(x))
     _model, meta = load_checkpoint(tmp_path / "autoencoder.pt", torch.device("cpu"))
     assert meta["channels"] == [32, 32, 16]
+
+
+def test_inference_encoder_equals_the_trained_encoder() -> None:
+    """Folded batch-norm, pool-before-ReLU and micro-batches give the model's own encoding."""
+    torch.manual_seed(3)
+    model = ConvAutoencoder().eval()
+    for bn in (m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)):  # non-trivial statistics
+        bn.running_mean.uniform_(-0.2, 0.2)
+        bn.running_var.uniform_(0.5, 2.0)
+        bn.weight.data.uniform_(0.5, 1.5)
+        bn.bias.data.uniform_(-0.2, 0.2)
+    x = to_tensor(_crops(6, 64), torch.device("cpu"), per_crop=True)
+    with torch.no_grad():
+        ref = model.encode(x.contiguous())
+        fused = inference_encoder(model)(x)
+    assert fused.shape == ref.shape == (6, 16 * 8 * 8)
+    assert torch.allclose(fused, ref, atol=1e-5, rtol=1e-4)
+    for step in (1, 2, 6):
+        d = AutoencoderDescriptor(DescriptorConfig(input_size=64, input_norm="per_crop", device="cpu", encode_batch=step))
+        d.model = model
+        assert np.allclose(d.encode(_crops(6, 64)), ref.numpy(), atol=1e-5, rtol=1e-4)
+
+
+def test_per_crop_normalisation_matches_its_definition() -> None:
+    """sigmoid((x - mean) / std) per crop and channel, std unbiased, on [0, 1] values."""
+    c = _crops(3, 16)
+    x = torch.from_numpy(c).permute(0, 3, 1, 2).double() / 255
+    mu, sd = x.mean(dim=(2, 3), keepdim=True), x.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)
+    want = torch.sigmoid((x - mu) / sd)
+    got = to_tensor(c, torch.device("cpu"), per_crop=True)
+    assert got.stride()[1] == 1  # channels-last memory
+    assert torch.allclose(got.double(), want, atol=1e-6)
+    flat = np.full((1, 8, 8, 3), 77, np.uint8)  # a flat crop: std clamps, no division by zero
+    assert torch.allclose(to_tensor(flat, torch.device("cpu"), per_crop=True), torch.full((1, 3, 8, 8), 0.5))
 
 
 def test_training_free_descriptors() -> None:

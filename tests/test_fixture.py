@@ -82,3 +82,30 @@ def test_seasons_change_appearance_not_geometry() -> None:
     same_place = np.corrcoef(_edges(wi), _edges(su))[0, 1]
     other_place = np.corrcoef(_edges(wi), _edges(wi_far))[0, 1]
     assert same_place > other_place + 0.2
+
+
+def test_large_frames_rendered_at_a_lower_scale_and_streamed_into_one_format(tmp_path: Path) -> None:
+    """render_scale ray-casts at 1/scale and upsamples; per-session formats; JPEG bags ingest as JPEG."""
+    import pandas as pd
+    import pytest
+
+    from harness.config import IngestConfig, SessionConfig
+    from harness.ingest import ingest_session
+
+    spec = FixtureSpec(frames=6, width=240, height=320, render_scale=4, objects=1)
+    world = build_world(spec)
+    img, masks = render(world, "SU", pose_at(world, trajectory(world, 2), np.array([trajectory(world, 2).t0_us]))[0], "2012-08-04", np.random.default_rng(0))
+    assert img.shape == (320, 240, 3)
+    assert all(m.shape == (320, 240) for _, m in masks)
+    out = generate(tmp_path / "w", spec, formats=("ros2",) * 4)
+    assert sorted(p.name for p in (out / "ros2").iterdir()) == sorted(s for s, _ in spec.sessions)
+    ann = pd.read_csv(out / "annotations.csv")
+    boxes = ann.dropna(subset=["x1"])
+    assert ((boxes.x1 >= 0) & (boxes.x2 <= 240) & (boxes.y1 >= 0) & (boxes.y2 <= 320)).all()
+    rep = ingest_session(SessionConfig(name="2012-01-22", source=str(out / "ros2" / "2012-01-22")), IngestConfig(), tmp_path / "ing")
+    assert rep["frames_written"] == 6
+    stored = sorted((tmp_path / "ing" / "images").rglob("*.*"))
+    assert stored and all(p.suffix == ".jpg" for p in stored)
+    assert cv2.imread(str(stored[0])).shape == (320, 240, 3)
+    with pytest.raises(ValueError, match="one of"):
+        generate(tmp_path / "bad", spec, formats=("ros2", "tiff", "ros2", "ros2"))

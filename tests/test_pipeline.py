@@ -93,6 +93,17 @@ def test_changing_one_option_reruns_only_what_depends_on_it(run: tuple, tmp_path
     assert all(q.ran.get(s, 0) == 0 for s in ("ingest", "proposals", "model", "descriptors", "ranks"))
 
 
+def test_encoding_options_never_retrain_the_autoencoder(run: tuple, tmp_path: Path) -> None:
+    """encode_batch and dtype change how descriptors are computed and stored, not the model."""
+    p, _, out = run
+    shutil.copytree(out / "cache", tmp_path / "cache")
+    cfg = dataclasses.replace(p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, encode_batch=5, dtype="float32", num_workers=1))
+    q = Pipeline(cfg, tmp_path)
+    q.run()
+    assert q.ran.get("model", 0) == 0
+    assert q.ran.get("descriptors", 0) == len(cfg.sessions)
+
+
 def test_interrupted_run_resumes(run: tuple, tmp_path: Path) -> None:
     p, _, out = run
     cache = tmp_path / "out"

