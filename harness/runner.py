@@ -452,60 +452,78 @@ def _versions() -> dict:
 
 def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, seed: int, max_boxes: int) -> tuple[pd.DataFrame, dict]:
     """Samples of every query image (pair) for all proposal methods together (``proposals = all``)
-    and for each method alone, with N, RoC, SoB and the LoC of each fusion method."""
+    and for each method alone, with N, RoC, SoB and the LoC of each fusion method.
+
+    Works on numpy columns of ``ranks`` sorted once by query image (stable, so each image's rows
+    keep their order) and builds one table at the end: no per-image pandas objects.
+    """
     cb = change_boxes(ann)
-    size = frames.set_index(["session", "camera", "utime"])[["width", "height"]]
+    size = dict(zip(frames[["session", "camera", "utime"]].itertuples(index=False, name=None), frames[["width", "height"]].to_numpy(), strict=True))
     counts = {"query_images": 0, "capped_closures": 0}
-    out = []
     methods = sorted(ranks["method"].unique())
     subsets = [("all", methods)] + ([(m, [m]) for m in methods] if len(methods) > 1 else [])
     keys = ["q_session", "q_camera", "q_utime", "r_session"]
-    for _img_i, (key, g) in enumerate(_progress(ranks.groupby(keys, sort=True), desc="fusion", unit="image")):
-        qkey = (key[0], key[1], int(key[2]))
+    srt = ranks.sort_values(keys, kind="stable")
+    kcols = [srt[k].to_numpy() for k in keys]
+    method = srt["method"].to_numpy()
+    season_pair = srt["season_pair"].to_numpy()
+    box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
+    n = len(srt)
+    change = np.zeros(n, bool)
+    for kc in kcols:
+        change[1:] |= kc[1:] != kc[:-1]
+    starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
+    ends = np.append(starts[1:], n)
+    cols: dict[str, list] = {c: [] for c in ("q_session", "q_camera", "q_utime", "r_session", "season_pair", "proposals", "x1", "y1", "x2", "y2",
+                                             "original", "N", "RoC", "SoB", *(f"loc_{m}" for m in FUSION_METHODS))}
+    for a, b in _progress(list(zip(starts, ends, strict=True)), desc="fusion", unit="image"):
+        key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
+        qkey = key[:3]
         if qkey not in cb:
             continue
         counts["query_images"] += 1
-        w, h = size.loc[qkey].to_numpy()
+        w, h = size[qkey]
         for name, ms in subsets:
-            gg = g[g["method"].isin(ms)]
-            if not len(gg):
+            sel = np.isin(method[a:b], ms)
+            if not sel.any():
                 continue
-            boxes = gg[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-            r, d = gg["r"].to_numpy(np.float64), gg["d"].to_numpy(np.float64)
+            boxes = box_all[a:b][sel]
+            r, d = r_all[a:b][sel], d_all[a:b][sel]
             fused, capped = intersection_closure(boxes, max_boxes)
             counts["capped_closures"] += int(capped)
             cover = cover_matrix(fused, boxes)
             img_seed = int(stable_hash(seed, key, name, length=8), 16)
             locs = {m: loc_from_cover(cover, r, d, m, img_seed) for m in FUSION_METHODS if m != "rank_no_fusion"}
             # rank_no_fusion: one sample per original box; merged into the fused row of the same box
-            fidx = {tuple(b): i for i, b in enumerate(fused)}
+            fidx = {tuple(bx): i for i, bx in enumerate(fused)}
             nof = np.full(len(fused), np.nan)
             extra = []
-            for k, b in enumerate(map(tuple, boxes)):
-                i = fidx[b]
+            for k, bx in enumerate(map(tuple, boxes)):
+                i = fidx[bx]
                 if np.isnan(nof[i]):
                     nof[i] = r[k]
                 else:
-                    extra.append((b, r[k]))
-            all_boxes = np.vstack([fused, np.array([b for b, _ in extra]).reshape(-1, 4)])
+                    extra.append((bx, r[k]))
+            all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
             roc, sob = roc_sob(all_boxes, cb[qkey], w, h)
-            _n_f, n_x = len(fused), len(extra)
-            frame = {
-                "q_session": key[0], "q_camera": key[1], "q_utime": int(key[2]), "r_session": key[3],
-                "season_pair": g["season_pair"].iloc[0], "proposals": name,
-                "x1": all_boxes[:, 0], "y1": all_boxes[:, 1], "x2": all_boxes[:, 2], "y2": all_boxes[:, 3],
-                "original": np.concatenate([~np.isnan(nof), np.ones(n_x, bool)]),
-                "N": np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64),
-                "RoC": roc, "SoB": sob,
-                "loc_rank_no_fusion": np.concatenate([nof, [v for _, v in extra]]),
-            }
+            n_rows, n_x = len(all_boxes), len(extra)
+            for c, v in zip(("q_session", "q_camera", "q_utime", "r_session"), key, strict=True):
+                cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
+            cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
+            cols["proposals"].append(np.full(n_rows, name, dtype=object))
+            for j, c in enumerate(("x1", "y1", "x2", "y2")):
+                cols[c].append(all_boxes[:, j])
+            cols["original"].append(np.concatenate([~np.isnan(nof), np.ones(n_x, bool)]))
+            cols["N"].append(np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64))
+            cols["RoC"].append(np.asarray(roc, np.float64))
+            cols["SoB"].append(np.asarray(sob, np.float64))
+            cols["loc_rank_no_fusion"].append(np.concatenate([nof, [v for _, v in extra]]))
             for m, v in locs.items():
-                frame[f"loc_{m}"] = np.concatenate([v, np.full(n_x, np.nan)])
-            out.append(pd.DataFrame(frame))
-    cols = [f"loc_{m}" for m in FUSION_METHODS]
-    df = pd.concat(out, ignore_index=True) if out else pd.DataFrame()
-    if len(df):
-        df = df[[c for c in df.columns if c not in cols] + cols]
+                cols[f"loc_{m}"].append(np.concatenate([v, np.full(n_x, np.nan)]))
+    if not cols["x1"]:
+        return pd.DataFrame(), counts
+    df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})
     return df, counts
 
 
