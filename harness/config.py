@@ -161,6 +161,8 @@ class FixtureConfig:
     height: int = 160
     objects: int = 3
     loop_scale: float = 1.5
+    render_scale: int = 1  # ray-cast at 1/scale resolution and upsample (NCLT-sized frames cheaply)
+    formats: tuple[str, ...] = ()  # log format per session; empty: nclt, ros1, ros2, mcap
 
 
 @dataclass(frozen=True)
@@ -299,6 +301,10 @@ def validate(cfg: Config, where: str) -> None:
         raise ConfigError(f"{where}: [retrieval] engine must be 'exact' or 'faiss'")
     if cfg.descriptor.input_norm not in ("none", "per_crop"):
         raise ConfigError(f"{where}: [descriptor] input_norm must be 'none' or 'per_crop'")
+    if cfg.fixture.render_scale < 1:
+        raise ConfigError(f"{where}: [fixture] render_scale must be >= 1")
+    if cfg.fixture.formats and len(cfg.fixture.formats) not in (1, len(cfg.sessions)):
+        raise ConfigError(f"{where}: [fixture] formats must name one format, or one per session ({len(cfg.sessions)})")
     if cfg.descriptor.encode_batch < 0:
         raise ConfigError(f"{where}: [descriptor] encode_batch must be >= 0 (0: automatic)")
     if cfg.descriptor.dtype not in ("float16", "float32"):

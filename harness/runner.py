@@ -28,7 +28,7 @@ from .cache import StageCache, file_fingerprint, stable_hash, write_json, write_
 from .config import FUSION_METHODS, Config
 from .crops import iter_crops
 from .descriptors import make_descriptor, normalize
-from .errors import HarnessError, RetrievalError
+from .errors import ConfigError, HarnessError, RetrievalError
 from .executors import LocalExecutor
 from .fusion import cover_matrix, intersection_closure, loc_from_cover
 from .ingest import ingest_session, load_frames
@@ -120,8 +120,13 @@ class Pipeline:
         from .fixture import FixtureSpec, generate
 
         log.info("fixture: generating into %s", self.cfg.data_root)
-        spec = FixtureSpec(seed=fx.seed, frames=fx.frames, width=fx.width, height=fx.height, objects=fx.objects, loop_scale=fx.loop_scale)
-        self._timed("fixture", lambda: generate(self.cfg.data_root, spec))
+        spec = FixtureSpec(seed=fx.seed, frames=fx.frames, width=fx.width, height=fx.height, objects=fx.objects,
+                           loop_scale=fx.loop_scale, render_scale=fx.render_scale)
+        formats = tuple(fx.formats) * (len(spec.sessions) if len(fx.formats) == 1 else 1) or None
+        try:
+            self._timed("fixture", lambda: generate(self.cfg.data_root, spec, formats=formats))
+        except ValueError as err:
+            raise ConfigError(f"[fixture] {err}") from None
         generated_ann = self.cfg.data_root / "annotations.csv"
         if not self.cfg.annotations.exists():
             self.cfg.annotations.parent.mkdir(parents=True, exist_ok=True)

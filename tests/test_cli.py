@@ -54,3 +54,21 @@ def test_stage_commands_on_the_fixture(default_world: Path, tmp_path: Path, caps
     assert "pairs ->" in out and '"pairs_per_season_pair"' in out
     assert main(["proposals", *args]) == 0
     assert "edges" in capsys.readouterr().out
+
+
+def test_fixture_section_chooses_formats_and_render_scale(tmp_path: Path) -> None:
+    """A config with [fixture] render_scale and one format generates and ingests through the pipeline."""
+    import dataclasses
+
+    from harness.config import FixtureConfig, load_config
+    from harness.runner import Pipeline
+
+    cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(tmp_path / "world"))
+    fx = FixtureConfig(generate=True, frames=6, width=64, height=80, render_scale=2, formats=("ros2",))
+    sessions = tuple(dataclasses.replace(s, source=str(tmp_path / "world" / "ros2" / s.name)) for s in cfg.sessions)
+    cfg = dataclasses.replace(cfg, fixture=fx, sessions=sessions, annotations=tmp_path / "ann.csv")
+    p = Pipeline(cfg, tmp_path / "out")
+    p.fixture()
+    frames, _ = p.frames(p.ingest())
+    assert len(frames) == 24 and set(frames["width"]) == {64} and set(frames["height"]) == {80}
+    assert all(str(u).endswith(".jpg") for u in frames["image"])
