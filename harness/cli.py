@@ -39,8 +39,6 @@ def cmd_fixture(args: argparse.Namespace) -> int:
     spec = FixtureSpec(seed=args.seed, frames=args.frames, width=args.width, height=args.height, objects=args.objects,
                        loop_scale=args.loop_scale, render_scale=args.render_scale)
     formats = args.formats.split(",") if args.formats else None
-    if formats is not None and len(formats) == 1:
-        formats = formats * len(spec.sessions)
     try:
         out = generate(Path(args.out), spec, all_formats=args.all_formats, formats=formats)
     except ValueError as err:

@@ -122,9 +122,8 @@ class Pipeline:
         log.info("fixture: generating into %s", self.cfg.data_root)
         spec = FixtureSpec(seed=fx.seed, frames=fx.frames, width=fx.width, height=fx.height, objects=fx.objects,
                            loop_scale=fx.loop_scale, render_scale=fx.render_scale)
-        formats = tuple(fx.formats) * (len(spec.sessions) if len(fx.formats) == 1 else 1) or None
         try:
-            self._timed("fixture", lambda: generate(self.cfg.data_root, spec, formats=formats))
+            self._timed("fixture", lambda: generate(self.cfg.data_root, spec, formats=fx.formats or None))
         except ValueError as err:
             raise ConfigError(f"[fixture] {err}") from None
         generated_ann = self.cfg.data_root / "annotations.csv"
