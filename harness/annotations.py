@@ -21,6 +21,7 @@ import pandas as pd
 from .cache import atomic_dir, write_json
 from .errors import AnnotationError
 from .imagestore import read_image
+from .outdirs import check_file_replaceable, check_replaceable, write_marker
 
 COLUMNS = ["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
 STATUSES = ("change", "no-change")
@@ -97,9 +98,13 @@ def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataF
     if not path.exists():
         raise AnnotationError(f"{path}: annotation file not found")
     try:
-        df = pd.read_csv(path, dtype={"session": str, "camera": str, "label": str}, keep_default_na=True)
+        df = pd.read_csv(path, dtype={"session": str, "camera": str, "label": str}, keep_default_na=True, skip_blank_lines=False)
     except (pd.errors.ParserError, UnicodeDecodeError) as err:
         raise AnnotationError(f"{path}: not a readable CSV: {err}") from None
+    except pd.errors.EmptyDataError:
+        raise AnnotationError(f"{path}: the file is empty (expected a header line {','.join(COLUMNS)})") from None
+    # blank lines are read as empty rows and dropped here, so the index stays the file's line - 2
+    df = df[~df.isna().all(axis=1)]
     return validate(df, frames, str(path))
 
 
@@ -186,8 +191,9 @@ def import_cvat(path: Path) -> pd.DataFrame:
 IMPORTERS = {"coco": import_coco, "voc": import_voc, "cvat": import_cvat}
 
 
-def import_annotations(fmt: str, src: Path, frames: pd.DataFrame | None, out: Path) -> pd.DataFrame:
-    """Import, validate and write the canonical CSV (atomically)."""
+def import_annotations(fmt: str, src: Path, frames: pd.DataFrame | None, out: Path, force: bool = False) -> pd.DataFrame:
+    """Import, validate and write the canonical CSV (atomically; an existing ``out`` only with ``force``)."""
+    out = check_file_replaceable(Path(out), force)
     if fmt not in IMPORTERS:
         raise AnnotationError(f"unknown annotation format {fmt!r}; known: {sorted(IMPORTERS)}")
     df = validate(IMPORTERS[fmt](Path(src)).reset_index(drop=True), frames, str(src))
@@ -198,7 +204,7 @@ def import_annotations(fmt: str, src: Path, frames: pd.DataFrame | None, out: Pa
     return df
 
 
-def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, limit: int | None = None) -> Path:
+def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, limit: int | None = None, force: bool = False) -> Path:
     """Write chosen query frames beside their references for a labelling tool.
 
     Each image is ``query | reference`` side by side with the query on the left, so a box drawn
@@ -206,6 +212,7 @@ def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, l
     query's width). A COCO task file (``task.json``, images only, one category ``change``)
     lists them; CVAT, Label Studio and most tools import it.
     """
+    out = check_replaceable(Path(out), "labelling-task", force)
     keyed = frames.set_index(["session", "camera", "utime"])
     q = pairs.drop_duplicates(["q_session", "q_camera", "q_utime"]).head(limit) if limit else pairs.drop_duplicates(["q_session", "q_camera", "q_utime"])
     images = []
@@ -222,4 +229,5 @@ def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, l
             images.append({"id": i, "file_name": name, "width": int(qi.shape[1] + ri.shape[1]), "height": int(qi.shape[0]),
                            "query_width": int(qi.shape[1]), "reference": image_name(row.r_session, row.r_camera, row.r_utime)})
         write_json(tmp / "task.json", {"images": images, "annotations": [], "categories": [{"id": 1, "name": "change"}]})
+        write_marker(tmp, "labelling-task")
     return Path(out)

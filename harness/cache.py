@@ -8,6 +8,7 @@ when its ``manifest.json`` exists; the manifest is written last.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
@@ -19,14 +20,43 @@ from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from .errors import CacheError
+
 log = logging.getLogger(__name__)
 
-#: Bump when a stage's output format or semantics change, so old caches are not reused.
-CODE_VERSION = "1"
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+def code_fingerprint(package_dir: Path | None = None) -> str:
+    """The package version plus a hash of every module's source.
+
+    It is part of every stage key, so an upgrade (or any edit of the code) never reuses a cache
+    entry that older code computed: correctness first, at the price of recomputing after any
+    code change.
+    """
+    from . import __version__
+
+    root = Path(package_dir) if package_dir is not None else Path(__file__).resolve().parent
+    h = hashlib.sha256(__version__.encode())
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return f"{__version__}+{h.hexdigest()[:12]}"
+
+
+#: Computed once per process; stage keys include it.
+CODE_FINGERPRINT = code_fingerprint()
+
+
+def _apply_umask(path: Path, is_dir: bool) -> None:
+    """mkstemp/mkdtemp create 0600/0700 entries; give outputs the modes the umask asks for."""
+    os.chmod(path, (0o777 if is_dir else 0o666) & ~_UMASK)
 
 
 def _jsonable(obj: Any) -> Any:
@@ -64,13 +94,14 @@ def file_fingerprint(path: Path) -> dict[str, Any]:
 @contextlib.contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
-    path = Path(path)
+    path = Path(path).resolve()
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        _apply_umask(tmp_path, is_dir=False)
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
@@ -80,11 +111,12 @@ def atomic_path(path: Path) -> Iterator[Path]:
 @contextlib.contextmanager
 def atomic_dir(path: Path) -> Iterator[Path]:
     """Yield a temporary directory; on success it replaces ``path`` (an older ``path`` is kept on failure)."""
-    path = Path(path)
+    path = Path(path).resolve()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     try:
         yield tmp
+        _apply_umask(tmp, is_dir=True)
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")
             os.replace(path, old)
@@ -110,6 +142,15 @@ def write_parquet(path: Path, df: pd.DataFrame | pa.Table, schema: pa.Schema | N
         pq.write_table(table, tmp, compression="zstd")
 
 
+def read_cached_parquet(path: Path, columns: list[str] | None = None) -> pd.DataFrame:
+    """Read a parquet file of a cache entry; a damaged file is a :class:`CacheError` naming the entry."""
+    try:
+        return pd.read_parquet(path, columns=columns)
+    except (OSError, ValueError, pa.ArrowException) as err:
+        entry = Path(path).parent
+        raise CacheError(f"{path}: damaged cache file ({type(err).__name__}: {err}); remove {entry} and rerun to rebuild it") from None
+
+
 def write_text(path: Path, text: str) -> None:
     """Write a text file atomically."""
     with atomic_path(path) as tmp:
@@ -128,16 +169,48 @@ class StageCache:
         self.root = Path(root)
 
     def key(self, name: str, *key_parts: Any) -> str:
-        return stable_hash(name, CODE_VERSION, *key_parts)
+        return stable_hash(name, CODE_FINGERPRINT, *key_parts)
 
     def path(self, name: str, key: str) -> Path:
         return self.root / name / key
 
     def is_done(self, name: str, key: str) -> bool:
-        return (self.path(name, key) / "manifest.json").exists()
+        """A complete entry: its manifest reads and every file it lists has the recorded size.
+
+        A damaged entry (a truncated file, a manifest cut short) is removed, so it is rebuilt.
+        """
+        path = self.path(name, key)
+        if not (path / "manifest.json").exists():
+            return False
+        problem = self._damage(path)
+        if problem is None:
+            return True
+        log.warning("%s: cache entry %s is damaged (%s); rebuilding it", name, path, problem)
+        shutil.rmtree(path, ignore_errors=True)
+        return False
+
+    @staticmethod
+    def _damage(path: Path) -> str | None:
+        try:
+            man = json.loads((path / "manifest.json").read_text())
+        except (OSError, ValueError) as err:
+            return f"manifest.json unreadable: {err}"
+        for rel, size in (man.get("files") or {}).items():
+            f = path / rel
+            try:
+                actual = f.stat().st_size
+            except OSError:
+                return f"{rel} is missing"
+            if actual != size:
+                return f"{rel} has {actual} bytes, {size} expected"
+        return None
 
     def manifest(self, name: str, key: str) -> dict[str, Any]:
-        return json.loads((self.path(name, key) / "manifest.json").read_text())
+        path = self.path(name, key) / "manifest.json"
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            raise CacheError(f"{path}: unreadable cache manifest ({err}); remove {path.parent} and rerun") from None
 
     def run(
         self,
@@ -153,6 +226,27 @@ class StageCache:
             return final, False
         with atomic_dir(final) as tmp:
             info = build(tmp) or {}
-            write_json(tmp / "manifest.json", {"stage": name, "key": key, "info": info})
+            files = {str(p.relative_to(tmp)): p.stat().st_size for p in sorted(tmp.rglob("*")) if p.is_file()}
+            write_json(tmp / "manifest.json", {"stage": name, "key": key, "info": info, "files": files})
         log.info("%s: wrote %s", name, final)
         return final, True
+
+
+def open_memmap_reserved(path: Path, dtype: Any, shape: tuple[int, ...]) -> np.memmap:
+    """A new ``.npy`` memmap whose disk blocks are reserved up front.
+
+    Writing into a sparse memmap on a full disk kills the process with SIGBUS ("Bus error") and
+    no message; reserving the blocks turns that into an ``OSError(ENOSPC)`` here, which the CLI
+    reports as one line.
+    """
+    arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.dtype(dtype), shape=shape)
+    fd = os.open(path, os.O_RDWR)
+    try:
+        os.posix_fallocate(fd, 0, os.fstat(fd).st_size)
+    except OSError as err:
+        if err.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+            del arr
+            raise
+    finally:
+        os.close(fd)
+    return arr

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import logging
 import sys
 from pathlib import Path
@@ -11,6 +12,15 @@ from pathlib import Path
 from .errors import HarnessError
 
 log = logging.getLogger("harness")
+
+
+_FS_ERRORS = {
+    errno.ENOSPC: "free disk space (completed stages are kept) and rerun the same command to resume",
+    errno.EDQUOT: "free disk space within the quota and rerun the same command to resume",
+    errno.EROFS: "the file system is read-only: choose a writable --out",
+    errno.EACCES: "no permission: choose a writable --out or fix the permissions",
+    errno.EPERM: "operation not permitted: choose another --out or fix the permissions",
+}
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -40,7 +50,7 @@ def cmd_fixture(args: argparse.Namespace) -> int:
                        loop_scale=args.loop_scale, render_scale=args.render_scale)
     formats = args.formats.split(",") if args.formats else None
     try:
-        out = generate(Path(args.out), spec, all_formats=args.all_formats, formats=formats)
+        out = generate(Path(args.out), spec, all_formats=args.all_formats, formats=formats, force=args.force)
     except ValueError as err:
         raise HarnessError(f"harness fixture: {err}") from None
     print(f"fixture written to {out} (annotations: {out / 'annotations.csv'})")
@@ -50,36 +60,52 @@ def cmd_fixture(args: argparse.Namespace) -> int:
 def cmd_ingest(args: argparse.Namespace) -> int:
     from .config import IngestConfig, SessionConfig
     from .ingest import ingest_session
+    from .outdirs import check_replaceable, claim_dir
 
     if args.config:
         cfg = _config(args)
         sessions, ic = cfg.sessions, cfg.ingest
-        if args.salvage:
-            ic = dataclasses.replace(ic, salvage=True)
+        ic = dataclasses.replace(ic, salvage=ic.salvage or args.salvage, verify_images=ic.verify_images or args.verify_images)
+        for sc in sessions:  # check every session's output before any work
+            check_replaceable(Path(args.out) / sc.name, "ingest", args.force)
+        out = claim_dir(Path(args.out), "ingest-set")
         for sc in sessions:
-            rep = ingest_session(sc, ic, Path(args.out) / sc.name)
-            print(f"{sc.name}: {rep['frames_written']} frames -> {Path(args.out) / sc.name / 'frames.parquet'}")
+            rep = ingest_session(sc, ic, out / sc.name, force=args.force)
+            print(f"{sc.name}: {rep['frames_written']} frames -> {out / sc.name / 'frames.parquet'}")
         return 0
     if not args.source or not args.session:
         raise HarnessError("ingest needs SOURCE and --session NAME, or --config FILE")
+    if args.max_pose_gap <= 0:
+        raise HarnessError(f"--max-pose-gap {args.max_pose_gap}: must be > 0 seconds")
     sc = SessionConfig(name=args.session, source=str(Path(args.source).resolve()), camera=args.camera,
                        image_topic=args.image_topic, pose_topic=args.pose_topic, tf_child_frame=args.tf_child_frame)
-    ic = IngestConfig(max_pose_gap_s=args.max_pose_gap, time_source=args.time_source, salvage=args.salvage)
-    rep = ingest_session(sc, ic, Path(args.out))
+    ic = IngestConfig(max_pose_gap_s=args.max_pose_gap, time_source=args.time_source, salvage=args.salvage,
+                      verify_images=args.verify_images)
+    rep = ingest_session(sc, ic, Path(args.out), force=args.force)
     print(f"{rep['frames_written']} frames -> {Path(args.out) / 'frames.parquet'}; report: {Path(args.out) / 'ingest_report.json'}")
     print(f"dropped: {rep['dropped']}")
     return 0
 
 
 def _pipeline(args: argparse.Namespace):
+    from .executors import make_executor
     from .runner import Pipeline
 
-    return Pipeline(_config(args), Path(args.out), rank_import=Path(args.rank_import) if getattr(args, "rank_import", None) else None)
+    if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
+        raise HarnessError("--address and --ray-cpus need --executor ray")
+    if args.ray_cpus is not None and args.ray_cpus < 1:
+        raise HarnessError(f"--ray-cpus {args.ray_cpus}: must be >= 1")
+    cfg = _config(args)  # validated before any executor or directory is set up
+    rank_import = Path(args.rank_import) if getattr(args, "rank_import", None) else None
+    if rank_import is not None and not rank_import.exists():
+        raise HarnessError(f"{rank_import}: --import file not found")
+    return Pipeline(cfg, Path(args.out), rank_import=rank_import, executor=make_executor(args.executor, args.address, args.ray_cpus))
 
 
 def cmd_pairs(args: argparse.Namespace) -> int:
     p = _pipeline(args)
-    *_, pairs, key = p.until_pairs()
+    with p.locked():
+        *_, pairs, key = p.until_pairs()
     d = p.cache.path("pairs", key)
     print(f"{len(pairs)} pairs -> {d / 'pairs.parquet'}\n{(d / 'summary.json').read_text()}")
     return 0
@@ -87,46 +113,96 @@ def cmd_pairs(args: argparse.Namespace) -> int:
 
 def cmd_proposals(args: argparse.Namespace) -> int:
     p = _pipeline(args)
-    p.fixture()
-    ing = p.ingest()
-    frames, _ = p.frames(ing)
-    for s, (df, key) in p.proposals(frames, ing).items():
+    with p.locked():
+        p.fixture()
+        ing = p.ingest()
+        frames, _ = p.frames(ing)
+        props = p.proposals(frames, ing)
+    for s, (df, key) in props.items():
         print(f"{s}: {len(df)} proposals {df.groupby('method').size().to_dict()} -> {p.cache.path('proposals', key) / 'proposals.parquet'}")
     return 0
 
 
 def cmd_rank(args: argparse.Namespace) -> int:
-    p = _pipeline(args)
-    ing, frames, _, _, _, pairs, pkey = p.until_pairs()
-    described = {}
-    if p.rank_import is None:
-        props = p.proposals(frames, ing)
-        described = p.describe(frames, props, p.train(frames, props))
-    ranks, _, counts = p.ranks(frames, pairs, pkey, described)
     from .cache import write_json, write_parquet
 
-    write_parquet(Path(args.out) / "ranks.parquet", ranks)
-    write_json(Path(args.out) / "rank_report.json", counts)
-    print(f"{len(ranks)} ranked query subimages -> {Path(args.out) / 'ranks.parquet'}; counts: {counts}")
+    p = _pipeline(args)
+    with p.locked():
+        ing, frames, _, _, _, pairs, pkey = p.until_pairs()
+        described = {}
+        if p.rank_import is None:
+            props = p.proposals(frames, ing)
+            described = p.describe(frames, props, p.train(frames, props))
+        ranks, _, counts = p.ranks(frames, pairs, pkey, described)
+        write_parquet(p.out / "ranks.parquet", ranks)
+        write_json(p.out / "rank_report.json", counts)
+    print(f"{len(ranks)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: {counts}")
     return 0
+
+
+def _print_change_table(console, rep, table: str, title: str) -> None:
+    """One change table with intervals, the floor row, and its confound warnings."""
+    from rich.table import Table
+
+    from .config import FUSION_METHODS
+    from .reports import METHOD_LABELS, pivot
+
+    ap, lo, hi = (pivot(rep.summary, table, rep.methods, v) for v in ("ap", "ci_low", "ci_high"))
+    floor = pivot(rep.summary, table, rep.methods, "floor")
+    t = Table(title=title)
+    t.add_column("AP [95% CI]")
+    for c in ap.columns:
+        t.add_column(f"{c:.2f}" if isinstance(c, float) else str(c), justify="right")
+    shown_sep = False
+    for m in ap.index:
+        if m not in FUSION_METHODS and not shown_sep:
+            t.add_section()
+            shown_sep = True
+        t.add_row(METHOD_LABELS[m], *("NaN" if ap.loc[m, c] != ap.loc[m, c] else
+                                      f"{ap.loc[m, c]:.2f} [{lo.loc[m, c]:.2f}, {hi.loc[m, c]:.2f}]" if lo.loc[m, c] == lo.loc[m, c]
+                                      else f"{ap.loc[m, c]:.2f}" for c in ap.columns))
+    t.add_section()
+    ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
+    t.add_row("floor (random ranking)", *("NaN" if floor.loc[ref, c] != floor.loc[ref, c] else f"{floor.loc[ref, c]:.2f}" for c in ap.columns))
+    console.print(t)
+    for w in rep.warnings[table]:
+        console.print(f"[bold yellow]{w}[/]")
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from .runner import METHOD_LABELS
+    from .reports import LOC_COLUMNS
 
     rec = _pipeline(args).run()
-    table = rec["table"]
-    t = Table(title=f"Table I: AP by RoC-max ({rec['config']['name']})")
-    t.add_column("AP")
-    for c in table.columns:
-        t.add_column(f"{c:.2f}", justify="right")
-    for m, row in table.iterrows():
-        t.add_row(METHOD_LABELS[m], *("NaN" if v != v else f"{v:.2f}" for v in row.to_numpy()))
-    Console().print(t)
-    print(f"reports in {Path(args.out)}: table1.md, table1.csv, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)")
+    rep = rec["reports"]
+    console = Console(width=max(Console().width, 110))
+    loc = rep.localization
+    lt = Table(title=f"Localization quality (ground truth: place within {rec['config']['retrieval']['gt_radius_m']:g} m)")
+    lt.add_column("props")
+    lt.add_column("pair")
+    for _, lab, _ in LOC_COLUMNS:
+        lt.add_column(lab, justify="right")
+    for r in loc[loc["season_pair"] == "all"].itertuples(index=False):
+        lt.add_row(r.proposals, r.season_pair, *(str(int(getattr(r, c))) if d == 0 else ("NaN" if getattr(r, c) != getattr(r, c) else f"{getattr(r, c):.{d}f}")
+                                                 for c, _, d in LOC_COLUMNS))
+    console.print(lt)
+    print("  per season pair: localization.md")
+    name = rec["config"]["name"]
+    _print_change_table(console, rep, "I", f"Table I: AP by RoC-max, the paper's protocol ({name})")
+    _print_change_table(console, rep, "S", f"Table S: size-stratified AP by RoC-max ({name})")
+    _print_change_table(console, rep, "P", f"Table P: pixel AP and image AP ({name})")
+    summ = rep.summary
+    cmp_ = summ[(summ["table"] == "S") & (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()]
+    if len(cmp_):
+        last = cmp_[cmp_["roc_max"] == cmp_["roc_max"].max()]
+        print(f"Paired comparisons with rank fusion (Table S, RoC-max {last['roc_max'].iloc[0]:.2f}; all tables: comparisons.md):")
+        for r in last.itertuples():
+            print(f"  {r.method} - rank_fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}]"
+                  + (f", sign flips in {100 * r.sign_flip_share:.0f}% of resamples" if r.sign_flip_share == r.sign_flip_share else ""))
+    print(f"reports in {Path(args.out)}: localization.md, table1.md, tableS.md, tableP.md, comparisons.md (+ .csv, .tex), "
+          f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)")
     return 0
 
 
@@ -139,7 +215,7 @@ def cmd_annotations(args: argparse.Namespace) -> int:
             from .ingest import load_frames
 
             frames = load_frames(Path(args.frames))
-        df = import_annotations(args.format, Path(args.src), frames, Path(args.out))
+        df = import_annotations(args.format, Path(args.src), frames, Path(args.out), force=args.force)
         print(f"{len(df)} annotation rows -> {args.out}")
         return 0
     import pandas as pd
@@ -147,7 +223,12 @@ def cmd_annotations(args: argparse.Namespace) -> int:
     from .ingest import load_frames
 
     pairs = pd.read_parquet(args.pairs)
-    out = export_for_labelling(pairs, load_frames(Path(args.frames)), Path(args.out), args.limit)
+    from .outdirs import check_replaceable
+
+    if args.limit is not None and args.limit < 1:
+        raise HarnessError(f"--limit {args.limit}: must be >= 1")
+    check_replaceable(Path(args.out), "labelling-task", args.force)  # before reading anything
+    out = export_for_labelling(pairs, load_frames(Path(args.frames)), Path(args.out), args.limit, force=args.force)
     print(f"labelling task written to {out} (task.json + images/)")
     return 0
 
@@ -168,6 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render-scale", type=int, default=1, help="ray-cast at 1/scale resolution, then upsample (fast large frames)")
     p.add_argument("--formats", default=None, help="comma-separated log format per session (one name: all sessions), e.g. ros2")
     p.add_argument("--all-formats", action="store_true", help="write every session in every log format")
+    p.add_argument("--force", action="store_true", help="replace --out if it is a fixture the harness generated")
     p.set_defaults(func=cmd_fixture)
 
     p = sub.add_parser("ingest", help="turn a season log into frames.parquet")
@@ -183,6 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time-source", choices=["header", "log"], default="header")
     p.add_argument("--max-pose-gap", type=float, default=0.1, help="seconds")
     p.add_argument("--salvage", action="store_true", help="keep the frames read before a damaged part of a log")
+    p.add_argument("--verify-images", action="store_true", help="decode every compressed image fully; drop and count broken ones")
+    p.add_argument("--force", action="store_true", help="replace --out if it is an earlier ingest output of the harness")
     p.set_defaults(func=cmd_ingest)
 
     for name, func, hlp in (("pairs", cmd_pairs, "build cross-season pairs"), ("proposals", cmd_proposals, "compute object proposals"),
@@ -207,12 +291,14 @@ def build_parser() -> argparse.ArgumentParser:
     pi.add_argument("src")
     pi.add_argument("--out", required=True)
     pi.add_argument("--frames", help="frames.parquet to validate against")
+    pi.add_argument("--force", action="store_true", help="replace --out if it exists")
     pi.set_defaults(func=cmd_annotations)
     pe = asub.add_parser("export")
     pe.add_argument("--pairs", required=True)
     pe.add_argument("--frames", required=True)
     pe.add_argument("--out", required=True)
     pe.add_argument("--limit", type=int)
+    pe.add_argument("--force", action="store_true", help="replace --out if it is a labelling task the harness wrote")
     pe.set_defaults(func=cmd_annotations)
     return ap
 
@@ -224,6 +310,12 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except HarnessError as err:
         print(f"ERROR: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        if err.errno not in _FS_ERRORS:
+            raise
+        where = err.filename or "an output file"
+        print(f"ERROR: {where}: {err.strerror or err}; {_FS_ERRORS[err.errno]}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("ERROR: interrupted; completed stages are cached, rerun the same command to resume", file=sys.stderr)

@@ -8,7 +8,10 @@ directory) and substitutes ``{data_root}`` in session sources.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import tomllib
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -17,6 +20,7 @@ from .errors import ConfigError
 
 T = TypeVar("T")
 
+#: Table I's six rows, in SPEC section 7's order.
 FUSION_METHODS = (
     "rank_fusion",
     "rank_fusion_le2",
@@ -25,6 +29,17 @@ FUSION_METHODS = (
     "score_max",
     "score_sum",
 )
+#: The paper's two variants and the three baselines (SPEC section 7), the separate block of every table.
+EXTRA_METHODS = (
+    "rank_fusion_asc",
+    "rank_fusion_raw",
+    "size_prior",
+    "cover_count",
+    "random",
+)
+#: Baselines that read no pixel: SPEC section 7's confound warning compares them with the six.
+BASELINES = ("size_prior", "cover_count", "random")
+ALL_METHODS = FUSION_METHODS + EXTRA_METHODS
 
 
 @dataclass(frozen=True)
@@ -48,6 +63,7 @@ class IngestConfig:
     nclt_rotation: str = "cw"  # how NCLT's stored images are turned upright: cw, ccw, none
     salvage: bool = False  # keep the messages read before a truncated or corrupt part
     store_format: str = "tiff"  # lossless image store for raw images from logs: tiff (fast) or png (smaller)
+    verify_images: bool = False  # decode every compressed image in full at ingest; drop and count broken ones
 
 
 @dataclass(frozen=True)
@@ -118,6 +134,7 @@ class DescriptorConfig:
 @dataclass(frozen=True)
 class RetrievalConfig:
     engine: str = "exact"  # exact or faiss
+    gt_radius_m: float = 2.0  # ground-truth place: reference frames within this radius of G (SPEC 6); 0: G alone
     chunk_rows: int = 8192
     query_batch: int = 1024
     faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
@@ -128,7 +145,7 @@ class RetrievalConfig:
 
 @dataclass(frozen=True)
 class FusionConfig:
-    methods: tuple[str, ...] = FUSION_METHODS
+    methods: tuple[str, ...] = ALL_METHODS  # computed and reported; SPEC order is kept whatever the order here
     seed: int = 0
     max_fused_boxes: int = 4096
 
@@ -140,6 +157,7 @@ class SplitsConfig:
     pos_sob: tuple[float, float] = (0.0, 0.4)
     neg_roc_min: float = 0.0
     neg_sob: tuple[float, float] = (0.4, 1.0)
+    sob_strata: tuple[float, ...] = (0.0, 0.02, 0.05, 0.1, 0.2, 0.4, 1.0)  # Table S: SoB strata edges, [lo, hi), the last closed
 
 
 @dataclass(frozen=True)
@@ -188,25 +206,70 @@ class Config:
         return {s.name: s.season or season_of(s.name) for s in self.sessions}
 
 
+def _type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def _coerce(value: Any, hint: Any, where: str) -> Any:
+    """Check ``value`` (from TOML) against the field's type hint; lists become tuples, ints floats.
+
+    Raises:
+        ConfigError: naming the key, the value and the expected type.
+    """
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (types.UnionType, typing.Union):
+        last: ConfigError | None = None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, where)
+            except ConfigError as err:
+                last = err
+        raise last or ConfigError(f"{where}: unexpected value {value!r}")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: expected a list of {len(args)} values, got {list(value)!r}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
 def _build(cls: type[T], data: Any, where: str) -> T:
-    """Build dataclass ``cls`` from a dict, rejecting unknown keys and coercing lists to tuples."""
+    """Build dataclass ``cls`` from a dict, rejecting unknown keys and values of the wrong type."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    hints = typing.get_type_hints(cls)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
-        ftype = fields[name].type
         sub = _NESTED.get((cls.__name__, name))
         if sub is not None:
             kwargs[name] = _build(sub, value, f"{where}.{name}")
-        elif isinstance(value, list):
-            kwargs[name] = tuple(value)
         else:
-            kwargs[name] = value
-        del ftype
+            kwargs[name] = _coerce(value, hints[name], f"{where} {name}")
     try:
         return cls(**kwargs)
     except TypeError as err:
@@ -282,37 +345,85 @@ def parse_config(doc: dict[str, Any], base: Path, where: str, data_root: str | N
     return cfg
 
 
+def _check(ok: bool, where: str, key: str, value: Any, allowed: str) -> None:
+    if not ok:
+        raise ConfigError(f"{where}: {key} = {value!r} is out of range; allowed: {allowed}")
+
+
+def _range(where: str, key: str, pair: tuple[float, float], lo: float = 0.0, hi: float = 1.0) -> None:
+    _check(lo <= pair[0] <= pair[1] <= hi, where, key, list(pair), f"[low, high] with {lo} <= low <= high <= {hi}")
+
+
+PROPOSAL_METHODS = ("grid5", "edges", "mser", "yolo", "file")
+
+
 def validate(cfg: Config, where: str) -> None:
-    """Range checks that a dataclass cannot express."""
-    bad = [m for m in cfg.fusion.methods if m not in FUSION_METHODS]
-    if bad:
-        raise ConfigError(f"{where}: [fusion] unknown method(s) {bad}; known: {list(FUSION_METHODS)}")
-    if not 0 < cfg.pairs.max_yaw_diff_deg <= 180:
-        raise ConfigError(f"{where}: [pairs] max_yaw_diff_deg must be in (0, 180]")
-    if cfg.pairs.queries not in ("annotated", "all"):
-        raise ConfigError(f"{where}: [pairs] queries must be 'annotated' or 'all'")
-    if cfg.ingest.time_source not in ("header", "log"):
-        raise ConfigError(f"{where}: [ingest] time_source must be 'header' or 'log'")
-    if cfg.ingest.store_format not in ("tiff", "png"):
-        raise ConfigError(f"{where}: [ingest] store_format must be 'tiff' or 'png'")
-    if cfg.ingest.nclt_rotation not in ("cw", "ccw", "none"):
-        raise ConfigError(f"{where}: [ingest] nclt_rotation must be cw, ccw or none")
-    if cfg.retrieval.engine not in ("exact", "faiss"):
-        raise ConfigError(f"{where}: [retrieval] engine must be 'exact' or 'faiss'")
-    if cfg.descriptor.input_norm not in ("none", "per_crop"):
-        raise ConfigError(f"{where}: [descriptor] input_norm must be 'none' or 'per_crop'")
-    if cfg.fixture.render_scale < 1:
-        raise ConfigError(f"{where}: [fixture] render_scale must be >= 1")
-    if cfg.fixture.formats and len(cfg.fixture.formats) not in (1, len(cfg.sessions)):
-        raise ConfigError(f"{where}: [fixture] formats must name one format, or one per session ({len(cfg.sessions)})")
-    if cfg.descriptor.encode_batch < 0:
-        raise ConfigError(f"{where}: [descriptor] encode_batch must be >= 0 (0: automatic)")
-    if cfg.descriptor.dtype not in ("float16", "float32"):
-        raise ConfigError(f"{where}: [descriptor] dtype must be float16 or float32")
-    if not cfg.proposals.methods:
-        raise ConfigError(f"{where}: [proposals] methods must not be empty")
-    if any(not 0 <= r <= 1 for r in cfg.splits.roc_max):
-        raise ConfigError(f"{where}: [splits] roc_max values must lie in [0, 1]")
+    """Range checks that a dataclass cannot express, all at load time, before any work.
+
+    Raises:
+        ConfigError: naming the key, the value and the allowed range.
+    """
+    c = _check
+    fu, pa, ig, de, re_, sp, rp, fx, pr = (cfg.fusion, cfg.pairs, cfg.ingest, cfg.descriptor, cfg.retrieval, cfg.splits,
+                                           cfg.report, cfg.fixture, cfg.proposals)
+    bad = [m for m in fu.methods if m not in ALL_METHODS]
+    c(not bad and len(fu.methods) > 0, where, "[fusion] methods", list(fu.methods), f"a non-empty list of {list(ALL_METHODS)}")
+    c(len(set(fu.methods)) == len(fu.methods), where, "[fusion] methods", list(fu.methods), "each method once")
+    c(fu.max_fused_boxes >= 1, where, "[fusion] max_fused_boxes", fu.max_fused_boxes, ">= 1")
+    c(0 < pa.max_yaw_diff_deg <= 180, where, "[pairs] max_yaw_diff_deg", pa.max_yaw_diff_deg, "(0, 180]")
+    c(pa.max_distance_m is None or pa.max_distance_m > 0, where, "[pairs] max_distance_m", pa.max_distance_m, "> 0 metres")
+    c(pa.stride_m >= 0, where, "[pairs] stride_m", pa.stride_m, ">= 0 metres")
+    c(pa.queries in ("annotated", "all"), where, "[pairs] queries", pa.queries, "'annotated' or 'all'")
+    c(ig.max_pose_gap_s > 0, where, "[ingest] max_pose_gap_s", ig.max_pose_gap_s, "> 0 seconds")
+    c(ig.time_source in ("header", "log"), where, "[ingest] time_source", ig.time_source, "'header' or 'log'")
+    c(ig.store_format in ("tiff", "png"), where, "[ingest] store_format", ig.store_format, "'tiff' or 'png'")
+    c(ig.nclt_rotation in ("cw", "ccw", "none"), where, "[ingest] nclt_rotation", ig.nclt_rotation, "cw, ccw or none")
+    c(re_.engine in ("exact", "faiss"), where, "[retrieval] engine", re_.engine, "'exact' or 'faiss'")
+    c(re_.gt_radius_m >= 0, where, "[retrieval] gt_radius_m", re_.gt_radius_m, ">= 0 metres (0: the ground-truth frame alone)")
+    for key in ("chunk_rows", "query_batch", "faiss_nprobe", "query_frames_per_shard"):
+        c(getattr(re_, key) >= 1, where, f"[retrieval] {key}", getattr(re_, key), ">= 1")
+    for key in ("faiss_nlist", "faiss_check"):
+        c(getattr(re_, key) >= 0, where, f"[retrieval] {key}", getattr(re_, key), ">= 0")
+    c(de.input_norm in ("none", "per_crop"), where, "[descriptor] input_norm", de.input_norm, "'none' or 'per_crop'")
+    c(de.dtype in ("float16", "float32"), where, "[descriptor] dtype", de.dtype, "float16 or float32")
+    c(de.device in ("auto", "cpu", "cuda") or de.device.startswith("cuda:"), where, "[descriptor] device", de.device, "auto, cpu, cuda or cuda:N")
+    c(de.encode_batch >= 0, where, "[descriptor] encode_batch", de.encode_batch, ">= 0 (0: automatic)")
+    for key in ("epochs", "batch_size", "max_train_subimages", "shard_frames"):
+        c(getattr(de, key) >= 1, where, f"[descriptor] {key}", getattr(de, key), ">= 1")
+    c(de.num_workers >= 0, where, "[descriptor] num_workers", de.num_workers, ">= 0")
+    c(de.input_size >= 8 and de.input_size % 8 == 0, where, "[descriptor] input_size", de.input_size, "a multiple of 8, >= 8 pixels")
+    c(de.lr > 0, where, "[descriptor] lr", de.lr, "> 0")
+    c(all(ch >= 1 for ch in de.channels), where, "[descriptor] channels", list(de.channels), "three integers >= 1")
+    badp = [m for m in pr.methods if m not in PROPOSAL_METHODS]
+    c(not badp and len(pr.methods) > 0, where, "[proposals] methods", list(pr.methods), f"a non-empty list of {list(PROPOSAL_METHODS)}")
+    c("file" not in pr.methods or bool(pr.file), where, "[proposals] file", pr.file, "a path to a box table (the method 'file' is listed)")
+    c("yolo" not in pr.methods or bool(pr.yolo.weights), where, "[proposals.yolo] weights", pr.yolo.weights,
+      "a local weights path (the method 'yolo' is listed)")
+    c(0 <= pr.yolo.conf <= 1, where, "[proposals.yolo] conf", pr.yolo.conf, "[0, 1]")
+    for sub_name in ("edges", "mser"):
+        sub = getattr(pr, sub_name)
+        c(sub.max_boxes >= 1, where, f"[proposals.{sub_name}] max_boxes", sub.max_boxes, ">= 1")
+        _range(where, f"[proposals.{sub_name}] min_area_frac..max_area_frac", (sub.min_area_frac, sub.max_area_frac))
+    c(len(sp.roc_max) > 0, where, "[splits] roc_max", list(sp.roc_max), "a non-empty list of values in [0, 1]")
+    c(all(0 <= r <= 1 for r in sp.roc_max), where, "[splits] roc_max", list(sp.roc_max), "values in [0, 1]")
+    c(len(set(sp.roc_max)) == len(sp.roc_max), where, "[splits] roc_max", list(sp.roc_max), "distinct values")
+    _range(where, "[splits] pos_roc", sp.pos_roc)
+    _range(where, "[splits] pos_sob", sp.pos_sob)
+    _range(where, "[splits] neg_sob", sp.neg_sob)
+    c(0 <= sp.neg_roc_min <= min(sp.roc_max), where, "[splits] neg_roc_min", sp.neg_roc_min, f"[0, min(roc_max) = {min(sp.roc_max)}]")
+    st_ = sp.sob_strata
+    c(len(st_) >= 2 and all(a < b for a, b in itertools.pairwise(st_)) and st_[0] >= 0 and st_[-1] <= 1, where,
+      "[splits] sob_strata", list(st_), "at least two increasing edges in [0, 1]")
+    c(rp.bootstrap >= 0, where, "[report] bootstrap", rp.bootstrap, ">= 0 resamples (0: no intervals)")
+    c(0 < rp.ci < 1, where, "[report] ci", rp.ci, "(0, 1), e.g. 0.95")
+    c(rp.locmap_examples >= 0, where, "[report] locmap_examples", rp.locmap_examples, ">= 0")
+    c(fx.render_scale >= 1, where, "[fixture] render_scale", fx.render_scale, ">= 1")
+    c(fx.frames >= 1, where, "[fixture] frames", fx.frames, ">= 1")
+    c(fx.width >= 8 and fx.height >= 8, where, "[fixture] width x height", (fx.width, fx.height), ">= 8 pixels each")
+    c(fx.objects >= 0, where, "[fixture] objects", fx.objects, ">= 0")
+    c(fx.loop_scale > 0, where, "[fixture] loop_scale", fx.loop_scale, "> 0")
+    c(not fx.formats or len(fx.formats) in (1, len(cfg.sessions)), where, "[fixture] formats", list(fx.formats),
+      f"one format, or one per session ({len(cfg.sessions)})")
 
 
 def load_config(path: Path, data_root: str | None = None) -> Config:

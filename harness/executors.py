@@ -37,6 +37,10 @@ def run_unit(root: str, name: str, parts: tuple, build: Callable[[Path], dict | 
 class LocalExecutor:
     name = "local"
 
+    def describe(self) -> dict[str, Any]:
+        """What ran the units, for ``run.json``."""
+        return {"name": "local", "workers": 1}
+
     def map_units(self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False) -> list[tuple[Path, bool]]:
         del gpu
         return [(Path(p), ran) for p, ran in (run_unit(str(cache.root), name, parts, build) for parts, build in units)]
@@ -75,6 +79,13 @@ class RayExecutor:
             ray.init(**kw)
         self._gpus = ray.cluster_resources().get("GPU", 0) > 0
         log.info("ray: %s", ray.cluster_resources())
+
+    def describe(self) -> dict[str, Any]:
+        """What ran the units, for ``run.json``: the cluster's address and CPU workers."""
+        import ray
+
+        res = ray.cluster_resources()
+        return {"name": "ray", "address": self.address or "local", "workers": int(res.get("CPU", 0)), "gpus": int(res.get("GPU", 0))}
 
     def map_units(self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False) -> list[tuple[Path, bool]]:
         import ray

@@ -1,12 +1,23 @@
-"""Fusion of subimage ranks into sample LoC values (SPEC section 7) and pixel-wise LoC maps."""
+"""Fusion of subimage ranks into sample LoC values (SPEC section 7), the per-image sample table,
+and pixel-wise LoC maps."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
 import numpy as np
+import pandas as pd
 
-from .config import FUSION_METHODS
+from .annotations import change_boxes
+from .cache import stable_hash
+from .config import ALL_METHODS
+from .splits import roc_sob
 
-FUSED_METHODS = tuple(m for m in FUSION_METHODS if m != "rank_no_fusion")
+#: Methods whose samples are the fused qBB set (every method but rank_no_fusion).
+FUSED_METHODS = tuple(m for m in ALL_METHODS if m != "rank_no_fusion")
+#: Baselines computed from the image rather than the ranks.
+IMAGE_BASELINES = ("size_prior", "random")
 
 
 def intersection_closure(boxes: np.ndarray, max_boxes: int | None = None) -> tuple[np.ndarray, bool]:
@@ -62,18 +73,74 @@ def _subset_cover(cover: np.ndarray, k: int, rng: np.random.Generator) -> np.nda
     return out
 
 
+def r_desc_of(r: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """``r' = (L + 1 - rank) / L`` from ``r = rank / L`` (SPEC section 6)."""
+    r, L = np.asarray(r, np.float64), np.asarray(L, np.float64)
+    return (L + 1.0) / L - r
+
+
+def loc_from_cover(cover: np.ndarray, method: str, *, r: np.ndarray, d: np.ndarray, L: np.ndarray | None = None,
+                   seed: int = 0) -> np.ndarray:
+    """LoC of the fused boxes (rows of ``cover``) for one method of SPEC section 7 ("higher = more likely changed").
+
+    Args:
+        cover: (m, n) bool: original box k contains fused box i.
+        method: a fused-set method id other than ``size_prior`` and ``random`` (see :func:`image_loc`).
+        r: (n,) normalised ranks ``rank / L`` of the originals.
+        d: (n,) exact L2 distances of the originals to their ground-truth place.
+        L: (n,) rank-list lengths; needed by every rank-fusion method except ``rank_fusion_asc``.
+        seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
+    """
+    r = np.asarray(r, np.float64)
+    if method == "score_max":
+        return np.where(cover, np.asarray(d, np.float64)[None, :], -np.inf).max(1)
+    if method == "score_sum":
+        return (cover * np.asarray(d, np.float64)[None, :]).sum(1)
+    if method == "cover_count":
+        return cover.sum(1).astype(np.float64)
+    if method == "rank_fusion_asc":  # the paper's variant 2: ascending order (SPEC's earlier formula)
+        return 1.0 / (cover.sum(1) * (cover * (1.0 / r)[None, :]).sum(1))
+    if method not in ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", "rank_fusion_raw"):
+        raise ValueError(f"unknown fused-set method {method!r}; known: {FUSED_METHODS}")
+    if L is None:
+        raise ValueError(f"{method} needs the rank-list lengths L (r' = (L + 1 - rank) / L)")
+    rd = r_desc_of(r, L)
+    if method in ("rank_fusion_le2", "rank_fusion_le3"):
+        cover = _subset_cover(cover, 2 if method.endswith("2") else 3, np.random.default_rng(seed))
+    inv = 1.0 / (rd * np.asarray(L, np.float64)) if method == "rank_fusion_raw" else 1.0 / rd  # raw: 1 / (L + 1 - rank)
+    return cover.sum(1) * (cover * inv[None, :]).sum(1)
+
+
+def image_loc(fused: np.ndarray, method: str, width: float, height: float, seed: int) -> np.ndarray:
+    """The baselines that need the image rather than ranks: ``size_prior`` (1 - SoB) and ``random``.
+
+    Args:
+        fused: (m, 4) sample boxes.
+        width, height: the image size in pixels.
+        seed: the query image's seed (``random``: uniform in [0, 1), reproducible per image).
+    """
+    if method == "size_prior":
+        area = (fused[:, 2] - fused[:, 0]) * (fused[:, 3] - fused[:, 1])
+        return 1.0 - area / float(width * height)
+    if method == "random":
+        return np.random.default_rng(seed).random(len(fused))
+    raise ValueError(f"{method!r} is not an image baseline (size_prior, random)")
+
+
 def fuse(
-    boxes: np.ndarray, r: np.ndarray, d: np.ndarray, method: str, seed: int = 0, max_boxes: int | None = None
+    boxes: np.ndarray, r: np.ndarray, d: np.ndarray, method: str, seed: int = 0, max_boxes: int | None = None,
+    *, L: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Samples and their LoC for one query image.
+    """Samples and their LoC for one query image (SPEC section 7).
 
     Args:
         boxes: (n, 4) original boxes of all proposal methods.
         r: (n,) normalised ranks in (0, 1].
-        d: (n,) L2 distances to the ground-truth frame.
-        method: one of ``rank_fusion``, ``rank_fusion_le2``, ``rank_fusion_le3``,
-            ``rank_no_fusion``, ``score_max``, ``score_sum``.
+        d: (n,) L2 distances to the ground-truth place.
+        method: any method id of SPEC section 7 except ``size_prior`` and ``random``
+            (:func:`image_loc`).
         seed: seeds the random cover subsets of the ``le`` methods.
+        L: (n,) rank-list lengths, for ``r'`` (every rank-fusion method except ``rank_fusion_asc``).
 
     Returns:
         (sample_boxes (m, 4), loc (m,)).
@@ -83,24 +150,39 @@ def fuse(
     d = np.asarray(d, np.float64)
     if method == "rank_no_fusion":
         return boxes.copy(), r.copy()
-    if method not in FUSED_METHODS:
-        raise ValueError(f"unknown fusion method {method!r}; known: {FUSION_METHODS}")
+    if method not in FUSED_METHODS or method in IMAGE_BASELINES:
+        raise ValueError(f"fuse() computes {[m for m in ALL_METHODS if m not in IMAGE_BASELINES]}, got {method!r} (size_prior, random: image_loc)")
     fused, _ = intersection_closure(boxes, max_boxes)
     cover = cover_matrix(fused, boxes)
-    return fused, loc_from_cover(cover, r, d, method, seed)
+    return fused, loc_from_cover(cover, method, r=r, d=d, L=L, seed=seed)
 
 
-def loc_from_cover(cover: np.ndarray, r: np.ndarray, d: np.ndarray, method: str, seed: int = 0) -> np.ndarray:
-    """LoC of fused boxes from their cover matrix (shared by :func:`fuse` and the runner)."""
-    if method == "score_max":
-        return np.where(cover, d[None, :], -np.inf).max(1)
-    if method == "score_sum":
-        return (cover * d[None, :]).sum(1)
-    if method in ("rank_fusion_le2", "rank_fusion_le3"):
-        cover = _subset_cover(cover, 2 if method.endswith("2") else 3, np.random.default_rng(seed))
-    n = cover.sum(1)
-    inv = (cover * (1.0 / r)[None, :]).sum(1)
-    return 1.0 / (n * inv)
+def pixel_regions(boxes: np.ndarray, change: np.ndarray, width: float, height: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The image cut into rectangular regions by every box edge (exact areas, SPEC section 9).
+
+    Returns:
+        (area (c,), positive (c,) bool: inside the union of the change boxes, owner (c,) int: the
+        index of the smallest box of ``boxes`` holding the region, -1 where none does).
+        Ties in area (identical boxes) go to the lowest index; callers order boxes so that this
+        is the box they want.
+    """
+    b = np.clip(np.asarray(boxes, np.float64).reshape(-1, 4), 0, [width, height, width, height])
+    ch = np.clip(np.asarray(change, np.float64).reshape(-1, 4), 0, [width, height, width, height])
+    xs = np.unique(np.concatenate([[0.0, width], b[:, 0], b[:, 2], ch[:, 0], ch[:, 2]]))
+    ys = np.unique(np.concatenate([[0.0, height], b[:, 1], b[:, 3], ch[:, 1], ch[:, 3]]))
+    area = np.outer(np.diff(ys), np.diff(xs))  # (rows, cols) of the region grid
+    owner = np.full(area.shape, -1, np.int64)
+    # paint boxes from the largest to the smallest, so each region keeps the smallest box holding it
+    barea = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    order = np.lexsort((-np.arange(len(b)), -barea))  # equal areas: the lowest index painted last
+    cx0, cx1 = np.searchsorted(xs, b[:, 0]), np.searchsorted(xs, b[:, 2])
+    cy0, cy1 = np.searchsorted(ys, b[:, 1]), np.searchsorted(ys, b[:, 3])
+    for i in order:
+        owner[cy0[i] : cy1[i], cx0[i] : cx1[i]] = i
+    positive = np.zeros(area.shape, bool)
+    for x0, y0, x1, y1 in ch:
+        positive[np.searchsorted(ys, y0) : np.searchsorted(ys, y1), np.searchsorted(xs, x0) : np.searchsorted(xs, x1)] = True
+    return area.ravel(), positive.ravel(), owner.ravel()
 
 
 def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -118,3 +200,102 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
         v0, v1 = int(np.ceil(y1 - 0.5)), int(np.ceil(y2 - 0.5))
         out[max(v0, 0) : max(min(v1, height), 0), max(u0, 0) : max(min(u1, width), 0)] = loc[i]
     return out
+
+
+def ordered_methods(methods: Iterable[str]) -> tuple[str, ...]:
+    """The configured methods in SPEC section 7's order (Table I's six, then variants and baselines)."""
+    want = set(methods)
+    return tuple(m for m in ALL_METHODS if m in want)
+
+
+def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, seed: int, max_boxes: int,
+                 methods: Sequence[str] = ALL_METHODS,
+                 progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it) -> tuple[pd.DataFrame, dict]:
+    """Samples of every annotated query image (one per pair) with the LoC of each method.
+
+    Samples are built for all proposal methods together (``proposals = all``) and, where there
+    are several, for each alone. Columns: the query image's key, ``season_pair``, ``proposals``,
+    the box, ``original`` (an original box rather than only an intersection), ``N``, ``RoC``,
+    ``SoB`` and ``loc_<method>`` for each of ``methods``. ``rank_no_fusion`` has values on
+    original boxes only (an original box that is also another's fused box shares its row; a
+    duplicate original gets a row of its own), the fused-set methods on fused boxes only.
+
+    Works on numpy columns of ``ranks`` sorted once by query image (stable, so each image's rows
+    keep their order) and builds one table at the end: no per-image pandas objects.
+    """
+    cb = change_boxes(ann)
+    size = dict(zip(frames[["session", "camera", "utime"]].itertuples(index=False, name=None), frames[["width", "height"]].to_numpy(), strict=True))
+    counts = {"query_images": 0, "capped_closures": 0}
+    methods = ordered_methods(methods)
+    props = sorted(ranks["method"].unique())
+    subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
+    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    srt = ranks.sort_values(keys, kind="stable")
+    kcols = [srt[k].to_numpy() for k in keys]
+    method = srt["method"].to_numpy()
+    season_pair = srt["season_pair"].to_numpy()
+    box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
+    L_all = srt["L"].to_numpy(np.float64)
+    n = len(srt)
+    change = np.zeros(n, bool)
+    for kc in kcols:
+        change[1:] |= kc[1:] != kc[:-1]
+    starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
+    ends = np.append(starts[1:], n)
+    cols: dict[str, list] = {c: [] for c in ("q_session", "q_camera", "q_utime", "r_session", "season_pair", "proposals", "x1", "y1", "x2", "y2",
+                                             "original", "N", "RoC", "SoB", *(f"loc_{m}" for m in methods))}
+    for a, b in progress(list(zip(starts, ends, strict=True))):
+        key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
+        qkey = key[:3]
+        if qkey not in cb:
+            continue
+        counts["query_images"] += 1
+        w, h = size[qkey]
+        for name, ms in subsets:
+            sel = np.isin(method[a:b], ms)
+            if not sel.any():
+                continue
+            boxes = box_all[a:b][sel]
+            r, d, L = r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]
+            fused, capped = intersection_closure(boxes, max_boxes)
+            counts["capped_closures"] += int(capped)
+            cover = cover_matrix(fused, boxes)
+            img_seed = int(stable_hash(seed, key, name, length=8), 16)
+            locs = {}
+            for m in methods:
+                if m in IMAGE_BASELINES:
+                    locs[m] = image_loc(fused, m, w, h, img_seed)
+                elif m != "rank_no_fusion":
+                    locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed)
+            # rank_no_fusion: one sample per original box; merged into the fused row of the same box
+            fidx = {tuple(bx): i for i, bx in enumerate(fused)}
+            nof = np.full(len(fused), np.nan)
+            extra = []
+            for k, bx in enumerate(map(tuple, boxes)):
+                i = fidx[bx]
+                if np.isnan(nof[i]):
+                    nof[i] = r[k]
+                else:
+                    extra.append((bx, r[k]))
+            all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
+            roc, sob = roc_sob(all_boxes, cb[qkey], w, h)
+            n_rows, n_x = len(all_boxes), len(extra)
+            for c, v in zip(("q_session", "q_camera", "q_utime", "r_session"), key, strict=True):
+                cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
+            cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
+            cols["proposals"].append(np.full(n_rows, name, dtype=object))
+            for j, c in enumerate(("x1", "y1", "x2", "y2")):
+                cols[c].append(all_boxes[:, j])
+            cols["original"].append(np.concatenate([~np.isnan(nof), np.ones(n_x, bool)]))
+            cols["N"].append(np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64))
+            cols["RoC"].append(np.asarray(roc, np.float64))
+            cols["SoB"].append(np.asarray(sob, np.float64))
+            if "rank_no_fusion" in methods:
+                cols["loc_rank_no_fusion"].append(np.concatenate([nof, [v for _, v in extra]]))
+            for m, v in locs.items():
+                cols[f"loc_{m}"].append(np.concatenate([v, np.full(n_x, np.nan)]))
+    if not cols["x1"]:
+        return pd.DataFrame(), counts
+    df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})
+    return df, counts

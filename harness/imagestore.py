@@ -25,11 +25,40 @@ def make_uri(path: str | Path, rotation: str = "none") -> str:
     return str(path) if rotation in ("none", "", None) else f"{path}#rot={rotation}"
 
 
+ROTATIONS = ("cw", "ccw", "180")
+
+
 def split_uri(uri: str) -> tuple[str, str]:
-    """(path, rotation) of a URI."""
-    path, _, frag = uri.partition("#")
-    rot = frag[4:] if frag.startswith("rot=") else "none"
-    return path, rot
+    """(path, rotation) of a URI. Only a trailing ``#rot=<cw|ccw|180>`` is a fragment: a ``#``
+    anywhere else belongs to the path."""
+    path, sep, rot = uri.rpartition("#rot=")
+    if sep and rot in ROTATIONS:
+        return path, rot
+    return uri, "none"
+
+
+#: Prefixes of the image URIs that cached frame tables hold, so a run directory or a data root
+#: can move: ``{out}/...`` is relative to the run directory, ``{data_root}/...`` to the data.
+OUT_PREFIX, DATA_PREFIX = "{out}/", "{data_root}/"
+
+
+def portable_uri(uri: str, out: Path, data_root: Path) -> str:
+    """An absolute URI made relative to ``out`` or ``data_root`` where it lies under one of them."""
+    path, rot = split_uri(uri)
+    p = Path(path)
+    for base, prefix in ((Path(out).resolve(), OUT_PREFIX), (Path(data_root).resolve(), DATA_PREFIX)):
+        if p.is_relative_to(base):
+            return make_uri(prefix + p.relative_to(base).as_posix(), rot)
+    return uri
+
+
+def local_uri(uri: str, out: Path, data_root: Path) -> str:
+    """The inverse of :func:`portable_uri` for this run's ``out`` and ``data_root``."""
+    if uri.startswith(OUT_PREFIX):
+        return str(Path(out).resolve()) + "/" + uri[len(OUT_PREFIX):]
+    if uri.startswith(DATA_PREFIX):
+        return str(Path(data_root).resolve()) + "/" + uri[len(DATA_PREFIX):]
+    return uri
 
 
 def resolve(uri: str, base: Path) -> str:

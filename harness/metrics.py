@@ -1,4 +1,5 @@
-"""101-point interpolated average precision (SPEC section 9), PR curves and bootstrap intervals."""
+"""101-point interpolated average precision (SPEC section 9), its size-stratified form (section 8),
+weighted AP for pixel regions, PR curves, and bootstrap intervals with paired comparisons."""
 
 from __future__ import annotations
 
@@ -26,6 +27,68 @@ def pr_curve(labels: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.nda
     return s[last], precision, recall
 
 
+def _interp_ap(precision: np.ndarray, recall: np.ndarray) -> float:
+    """Mean over R = 0, 0.01, ..., 1 of the largest precision at recall >= R (0 if none)."""
+    pmax = np.maximum.accumulate(precision[::-1])[::-1]
+    idx = np.searchsorted(recall, RECALL_GRID - 1e-12, side="left")
+    interp = np.where(idx < len(recall), pmax[np.minimum(idx, len(recall) - 1)], 0.0)
+    return float(interp.mean())
+
+
+def weighted_average_precision(labels: np.ndarray, scores: np.ndarray, weights: np.ndarray) -> float:
+    """101-point AP where sample i counts ``weights[i]`` times (pixel areas, bootstrap multiplicities).
+
+    With integer weights it equals :func:`average_precision` of the samples repeated that often.
+    NaN when the positives' total weight is 0.
+    """
+    labels = np.asarray(labels).astype(bool)
+    w = np.asarray(weights, np.float64)
+    if not (w * labels).sum() > 0:
+        return float("nan")
+    order = np.argsort(-np.asarray(scores, np.float64), kind="stable")
+    s, y, w = np.asarray(scores, np.float64)[order], labels[order], w[order]
+    last = np.concatenate([np.nonzero(s[1:] != s[:-1])[0], [len(s) - 1]])
+    tp = np.cumsum(w * y)[last]
+    fp = np.cumsum(w * ~y)[last]
+    keep = (tp + fp) > 0
+    tp, fp = tp[keep], fp[keep]
+    return _interp_ap(tp / (tp + fp), tp / tp[-1])
+
+
+def stratified_ap(labels: np.ndarray, scores: np.ndarray, sob: np.ndarray, edges: np.ndarray | list[float],
+                  weights: np.ndarray | None = None) -> tuple[float, float]:
+    """Size-stratified AP (SPEC section 8): (AP, floor).
+
+    Samples are binned by SoB into strata ``[edges[k], edges[k+1])`` (the last one closed). Within
+    every stratum holding at least one positive and one negative the 101-point AP is computed;
+    the result is the mean of those APs weighted by each stratum's positives, and the floor is
+    the same weighted mean of the strata's positive rates (the AP of a random ranking). Strata
+    without a positive or without a negative take no part. (NaN, NaN) when no stratum qualifies.
+    ``weights`` (optional) count sample i that many times (bootstrap multiplicities).
+    """
+    labels = np.asarray(labels).astype(bool)
+    wt = np.ones(len(labels)) if weights is None else np.asarray(weights, np.float64)
+    scores = np.asarray(scores, np.float64)
+    sob = np.asarray(sob, np.float64)
+    edges = np.asarray(edges, np.float64)
+    k = np.clip(np.searchsorted(edges, sob, side="right") - 1, 0, len(edges) - 2)
+    inside = (sob >= edges[0]) & (sob <= edges[-1])
+    aps, floors, wts = [], [], []
+    for j in range(len(edges) - 1):
+        sel = inside & (k == j) & (wt > 0)
+        pos, total = float(wt[sel & labels].sum()), float(wt[sel].sum())
+        if pos == 0 or pos == total:
+            continue
+        aps.append(weighted_average_precision(labels[sel], scores[sel], wt[sel]) if weights is not None
+                   else average_precision(labels[sel], scores[sel]))
+        floors.append(pos / total)
+        wts.append(pos)
+    if not wts:
+        return float("nan"), float("nan")
+    w = np.asarray(wts, np.float64)
+    return float(np.dot(w, aps) / w.sum()), float(np.dot(w, floors) / w.sum())
+
+
 def average_precision(labels: np.ndarray, scores: np.ndarray) -> float:
     """101-point interpolated AP; NaN when there is no positive.
 
@@ -38,11 +101,7 @@ def average_precision(labels: np.ndarray, scores: np.ndarray) -> float:
     if labels.sum() == 0:
         return float("nan")
     _, p, rec = pr_curve(labels, scores)
-    # suffix max of precision over recall-sorted points (recall is non-decreasing along the curve)
-    pmax = np.maximum.accumulate(p[::-1])[::-1]
-    idx = np.searchsorted(rec, RECALL_GRID - 1e-12, side="left")
-    interp = np.where(idx < len(rec), pmax[np.minimum(idx, len(rec) - 1)], 0.0)
-    return float(interp.mean())
+    return _interp_ap(p, rec)
 
 
 def bootstrap_ap(
@@ -54,19 +113,64 @@ def bootstrap_ap(
     """
     if n_boot <= 0 or len(labels) == 0:
         return float("nan"), float("nan")
-    labels = np.asarray(labels).astype(bool)
-    scores = np.asarray(scores, np.float64)
     uniq, inv = np.unique(groups, return_inverse=True)
-    members = [np.nonzero(inv == g)[0] for g in range(len(uniq))]
+    return interval(bootstrap_aps(labels, np.asarray(scores, np.float64), inv, resample_counts(len(uniq), n_boot, seed)), ci)
+
+
+def resample_counts(n_groups: int, n_boot: int, seed: int) -> np.ndarray:
+    """(n_boot, n_groups) multiplicities of each group in ``n_boot`` resamples with replacement.
+
+    Drawing them once and giving the same matrix to every method makes the bootstrap *paired*:
+    each method is scored on the same resampled query images.
+    """
     rng = np.random.default_rng(seed)
-    aps = []
-    for _ in range(n_boot):
-        pick = rng.integers(0, len(uniq), len(uniq))
-        idx = np.concatenate([members[g] for g in pick])
-        aps.append(average_precision(labels[idx], scores[idx]))
-    aps_arr = np.array(aps)
-    aps_arr = aps_arr[~np.isnan(aps_arr)]
-    if not len(aps_arr):
+    out = np.zeros((max(n_boot, 0), n_groups), np.int64)
+    for b in range(max(n_boot, 0)):
+        out[b] = np.bincount(rng.integers(0, n_groups, n_groups), minlength=n_groups) if n_groups else out[b]
+    return out
+
+
+def bootstrap_aps(labels: np.ndarray, scores: np.ndarray, group_index: np.ndarray, counts: np.ndarray,
+                  weights: np.ndarray | None = None, stat: str = "ap", sob: np.ndarray | None = None,
+                  edges: np.ndarray | None = None) -> np.ndarray:
+    """AP (or stratified AP) of every resample; ``counts`` from :func:`resample_counts`.
+
+    Args:
+        group_index: (n,) the query image (0..n_groups-1) of each sample.
+        weights: optional per-sample weights (pixel areas), multiplied by the group's multiplicity.
+        stat: ``ap`` or ``stratified`` (needs ``sob`` and ``edges``).
+
+    Returns:
+        (n_boot,) APs; NaN where a resample has no positive.
+    """
+    labels = np.asarray(labels).astype(bool)
+    base = np.ones(len(labels)) if weights is None else np.asarray(weights, np.float64)
+    out = np.empty(len(counts))
+    for b, c in enumerate(counts):
+        w = base * c[group_index]
+        if stat == "stratified":
+            out[b] = stratified_ap(labels, scores, sob, edges, w)[0]  # type: ignore[arg-type]
+        else:
+            out[b] = weighted_average_precision(labels, scores, w)
+    return out
+
+
+def interval(values: np.ndarray, ci: float) -> tuple[float, float]:
+    """Percentile interval at level ``ci`` of the finite values (NaN, NaN if none)."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if not len(v):
         return float("nan"), float("nan")
     a = (1 - ci) / 2
-    return float(np.quantile(aps_arr, a)), float(np.quantile(aps_arr, 1 - a))
+    return float(np.quantile(v, a)), float(np.quantile(v, 1 - a))
+
+
+def paired_difference(aps_a: np.ndarray, aps_b: np.ndarray, ap_a: float, ap_b: float, ci: float) -> dict[str, float]:
+    """``a - b`` from a paired bootstrap: the difference, its interval, and the share of resamples
+    whose difference has the other sign than the observed one (0 when the observed one is 0)."""
+    d = np.asarray(aps_a, np.float64) - np.asarray(aps_b, np.float64)
+    d = d[np.isfinite(d)]
+    diff = ap_a - ap_b
+    lo, hi = interval(d, ci)
+    flips = float(np.mean(np.sign(d) != np.sign(diff))) if len(d) and diff != 0 else float("nan")
+    return {"diff": diff, "diff_ci_low": lo, "diff_ci_high": hi, "sign_flip_share": flips}

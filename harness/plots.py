@@ -25,7 +25,9 @@ def _save(fig: plt.Figure, path: Path) -> None:
     plt.close(fig)
 
 
-def pr_plots(curves: pd.DataFrame, out: Path) -> None:
+def pr_plots(curves: pd.DataFrame, out: Path) -> list[Path]:
+    """One PNG of PR curves per split; returns the paths written."""
+    written = []
     for split, g in curves.groupby("split", sort=True):
         fig, ax = plt.subplots(figsize=(5, 4))
         for m, gm in g.groupby("method", sort=False):
@@ -38,13 +40,18 @@ def pr_plots(curves: pd.DataFrame, out: Path) -> None:
         ax.legend(fontsize=7)
         fig.tight_layout()
         _save(fig, out / f"pr_{split}.png")
+        written.append(out / f"pr_{split}.png")
+    return written
 
 
-def locmap_figures(samples: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, out: Path, n: int) -> None:
-    """For the ``n`` query images with the largest change: input | rank fusion | score sum | score max,
-    with the annotated change boxes; LoC arrays saved as ``.npy`` beside the PNG."""
-    if n <= 0 or not len(samples):
-        return
+def locmap_figures(samples: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, out: Path, n: int) -> list[Path]:
+    """For the ``n`` query images with the largest change: input | rank fusion | score sum | score max
+    (those of them that were computed), with the annotated change boxes; LoC arrays saved as
+    ``.npy`` beside the PNG. Returns the paths written."""
+    written: list[Path] = []
+    shown = [m for m in FIG4 if f"loc_{m}" in samples.columns]
+    if n <= 0 or not len(samples) or not shown:
+        return written
     allp = samples[samples["proposals"] == "all"]
     chg = ann[ann["status"] == "change"]
     # the query images with the largest annotated change first (ties: key order)
@@ -58,19 +65,20 @@ def locmap_figures(samples: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFram
         f = fr.loc[(k.q_session, k.q_camera, k.q_utime)]
         img = read_image(f["image"])
         w, h = int(f["width"]), int(f["height"])
-        fused = g[g["loc_rank_fusion"].notna()]
+        fused = g[g[f"loc_{shown[0]}"].notna()]
         boxes = fused[["x1", "y1", "x2", "y2"]].to_numpy()
         name = f"{k.q_session}_{k.q_utime}_vs_{k.r_session}"
-        fig, axes = plt.subplots(1, 4, figsize=(10, 3.6))
+        fig, axes = plt.subplots(1, 1 + len(shown), figsize=(2.5 * (1 + len(shown)), 3.6))
         axes[0].imshow(img)
         axes[0].set_title("input", fontsize=9)
         for b in chg[(chg["session"] == k.q_session) & (chg["utime"] == k.q_utime)][["x1", "y1", "x2", "y2"]].to_numpy():
             axes[0].add_patch(plt.Rectangle((b[0], b[1]), b[2] - b[0], b[3] - b[1], fill=False, ec="red", lw=1.5))
-        for ax, m in zip(axes[1:], FIG4, strict=True):
+        for ax, m in zip(axes[1:], shown, strict=True):
             lm = loc_map(boxes, fused[f"loc_{m}"].to_numpy(), w, h)
             out.mkdir(parents=True, exist_ok=True)
             with atomic_path(out / f"{name}_{m}.npy") as tmp, open(tmp, "wb") as fh:
                 np.save(fh, lm)
+            written.append(out / f"{name}_{m}.npy")
             valid = lm[np.isfinite(lm)]
             # rank the map's values so that the colour scale reads "more changed = brighter" for every method
             ax.imshow(img, alpha=0.35)
@@ -82,3 +90,5 @@ def locmap_figures(samples: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFram
         fig.suptitle(f"{k.q_session} {k.q_utime} vs {k.r_session}", fontsize=9)
         fig.tight_layout()
         _save(fig, out / f"{name}.png")
+        written.append(out / f"{name}.png")
+    return written

@@ -1,9 +1,11 @@
 """Image-level rank retrieval (SPEC section 6).
 
-For a query subimage q whose ground-truth reference frame is G:
+For a query subimage q whose ground-truth reference frame is G, with the ground-truth *place*
+P(G) (the reference frames near G; P(G) = {G} when no place is given):
 ``dist(q, F)`` is the smallest L2 distance from q to any subimage of frame F;
-``rank(q) = 1 + #{F != G : dist(q, F) < dist(q, G)}`` (ties counted in q's favour);
-``L`` is the number of reference frames in the database; ``r = rank / L``; ``d = dist(q, G)``.
+``d(q) = min over F in P(G) of dist(q, F)``, computed exactly (differences, not the expansion);
+``rank(q) = 1 + #{F outside P(G) : dist(q, F) < d(q)}`` (ties counted in q's favour);
+``L = 1 + #frames outside P(G)``; ``r = rank / L``; ``r' = (L + 1 - rank) / L``.
 
 The exact engine computes the per-frame minimum with batched matrix products over chunks of the
 database, so memory is bounded by ``query_batch x (chunk_rows + L)`` whatever the database size.
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,9 +31,29 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Ranks:
     rank: np.ndarray  # (n,) int64
-    L: int
+    L: np.ndarray  # (n,) int64: 1 + frames outside the ground-truth place
     dist: np.ndarray  # (n,) float64
     exact: np.ndarray  # (n,) bool: False where an approximate engine could only bound the rank
+    place_size: np.ndarray  # (n,) int64: frames of the place that are in the database
+
+
+def _place_columns(frame_ids: np.ndarray, gt_frame: np.ndarray, place: Sequence[np.ndarray] | None) -> list[np.ndarray]:
+    """Per query, the database columns (sorted frame ids) of its ground-truth place; G must be present."""
+    L = len(frame_ids)
+    col = np.searchsorted(frame_ids, gt_frame)
+    if L == 0 or np.any(col >= L) or np.any(frame_ids[np.minimum(col, L - 1)] != gt_frame):
+        raise RetrievalError("a ground-truth frame has no subimage in the database")
+    if place is None:
+        return [np.array([c]) for c in col]
+    if len(place) != len(gt_frame):
+        raise RetrievalError(f"place must hold one entry per query ({len(gt_frame)}), got {len(place)}")
+    out = []
+    for c, p in zip(col, place, strict=True):
+        p = np.asarray(p)
+        pc = np.searchsorted(frame_ids, p)
+        ok = (pc < L) & (frame_ids[np.minimum(pc, L - 1)] == p)
+        out.append(np.union1d(pc[ok], [c]))  # frames of the place without subimages are not in the list
+    return out
 
 
 def _frame_layout(db_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -67,25 +90,32 @@ def image_ranks(
     db_desc: np.ndarray,
     db_frame: np.ndarray,
     gt_frame: np.ndarray,
+    place: Sequence[np.ndarray] | None = None,
     *,
     chunk_rows: int = 8192,
     query_batch: int = 1024,
     device: str | torch.device = "cpu",
-) -> tuple[np.ndarray, int, np.ndarray]:
-    """Exact image-level ranks of the ground-truth frames.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact image-level ranks of the ground-truth places.
 
     The database is streamed in chunks of about ``chunk_rows`` rows (cut at frame boundaries), each
     read once and converted to float32 on the fly, so ``db_desc`` may be a float16 memmap of any
-    size. Memory: the (n, L) per-frame minimum plus one chunk.
+    size. Memory: the (n, frames) per-frame minimum plus one chunk; the place adds nothing of
+    that order. Ranks compare the per-frame minima of the fast matrix-product path with each
+    other; ``d`` is then recomputed exactly from the place's own rows (differences, float64), so
+    a query equal to a database row gets ``d = 0``.
 
     Args:
         query_desc: (n, D) query subimage descriptors.
         db_desc: (m, D) database subimage descriptors (array or memmap).
         db_frame: (m,) integer frame id of each database row.
         gt_frame: (n,) ground-truth frame id of each query (must occur in ``db_frame``).
+        place: per query, the frame ids of its ground-truth place P(G) (G is always added; ids
+            with no database row are ignored). None: P(G) = {G}, the literal single-frame rank.
 
     Returns:
-        ``rank`` (n,) int64, ``L`` (number of distinct frames), ``dist`` (n,) float64 L2 distance to G.
+        ``rank`` (n,) int64, ``L`` (n,) int64 (1 + frames outside the place), ``dist`` (n,)
+        float64 exact L2 distance ``d`` to the place.
 
     Raises:
         RetrievalError: shapes disagree or a ground-truth frame has no database row.
@@ -98,9 +128,7 @@ def image_ranks(
         raise RetrievalError("db_frame must align with db_desc and gt_frame with query_desc")
     order, frame_ids, starts = _frame_layout(db_frame)
     L = len(frame_ids)
-    col = np.searchsorted(frame_ids, gt_frame)
-    if L == 0 or np.any(col >= L) or np.any(frame_ids[np.minimum(col, L - 1)] != gt_frame):
-        raise RetrievalError("a ground-truth frame has no subimage in the database")
+    pcols = _place_columns(frame_ids, gt_frame, place)
     dev = torch.device(device)
     n = len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
@@ -117,11 +145,42 @@ def image_ranks(
         lengths = torch.from_numpy(np.diff(bounds[f0 : f1 + 1])).to(dev)
         for b, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
             fm[b * query_batch : b * query_batch + len(q), f0:f1] = frame_min_sqdist_chunk(q, qn, block, lengths)
-    c = torch.from_numpy(col).to(dev)
-    dg = fm.gather(1, c[:, None])
-    rank = ((fm < dg).sum(1) + 1).cpu().numpy().astype(np.int64)  # G itself is never < itself
-    dist = dg[:, 0].sqrt().double().cpu().numpy()
-    return rank, L, dist
+    qi = np.repeat(np.arange(n), [len(c) for c in pcols])
+    pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
+    in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
+    in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
+    dg = torch.where(in_place, fm, torch.full_like(fm, float("inf"))).amin(1, keepdim=True)
+    rank = (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)  # place frames never count
+    Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
+    fm_np = fm.cpu().numpy()
+    del fm, in_place
+    dist = _exact_place_dist(query_desc, db_desc, order, bounds, pcols, fm_np, dg[:, 0].cpu().numpy())
+    return rank, Lq, dist
+
+
+def _exact_place_dist(query_desc: np.ndarray, db_desc: np.ndarray, order: np.ndarray, bounds: np.ndarray,
+                      pcols: list[np.ndarray], fm: np.ndarray, dg: np.ndarray) -> np.ndarray:
+    """``d`` = the exact smallest L2 distance from each query to the rows of its place.
+
+    Only the place's frames whose fast-path minimum lies within the expansion's error of the
+    best are recomputed (usually one frame), by differences in float64.
+    """
+    out = np.empty(len(pcols), np.float64)
+    cache: dict[int, np.ndarray] = {}
+    for i, cols in enumerate(pcols):
+        near = cols[fm[i, cols] <= dg[i] + 1e-2 + 1e-3 * abs(dg[i])] if len(cols) > 1 else cols
+        q = np.asarray(query_desc[i], np.float64)
+        best = np.inf
+        for c in near:
+            rows = cache.get(int(c))
+            if rows is None:
+                if len(cache) > 512:
+                    cache.clear()
+                rows = np.asarray(db_desc[np.sort(order[bounds[c] : bounds[c + 1]])], np.float64)
+                cache[int(c)] = rows
+            best = min(best, float(((rows - q) ** 2).sum(1).min()))
+        out[i] = np.sqrt(best)
+    return out
 
 
 def image_ranks_faiss(
@@ -129,6 +188,7 @@ def image_ranks_faiss(
     db_desc: np.ndarray,
     db_frame: np.ndarray,
     gt_frame: np.ndarray,
+    place: Sequence[np.ndarray] | None = None,
     *,
     k: int = 256,
     nlist: int = 0,
@@ -137,9 +197,10 @@ def image_ranks_faiss(
 ) -> Ranks:
     """Approximate ranks from a faiss top-k subimage search.
 
-    ``dist(q, G)`` is computed exactly from G's own rows. Frames among the top k with a smaller
-    distance are counted; when the k-th distance is still below ``dist(q, G)`` frames beyond the
-    top k may be better too, so the rank is a lower bound and ``exact`` is False.
+    ``d`` is computed exactly from the place's own rows. Frames outside the place among the top k
+    with a smaller distance are counted; when the k-th distance is still below ``d`` frames
+    beyond the top k may be better too, so the rank is a lower bound and ``exact`` is False.
+    ``place`` as in :func:`image_ranks`.
     """
     try:
         import faiss
@@ -161,19 +222,21 @@ def image_ranks_faiss(
     D, idx = index.search(q, kk)
     order, frame_ids, starts = _frame_layout(np.asarray(db_frame))
     L = len(frame_ids)
+    pcols = _place_columns(frame_ids, np.asarray(gt_frame), place)
     rank = np.empty(len(q), np.int64)
     dist = np.empty(len(q), np.float64)
     exact = np.empty(len(q), bool)
     bounds = np.concatenate([starts, [len(order)]])
-    col = np.searchsorted(frame_ids, gt_frame)
     for i in range(len(q)):
-        rows = order[bounds[col[i]] : bounds[col[i] + 1]]
-        dg2 = float(((db[rows] - q[i]) ** 2).sum(1).min())
+        rows = np.concatenate([order[bounds[c] : bounds[c + 1]] for c in pcols[i]])
+        dg2 = float(((db[rows].astype(np.float64) - q[i]) ** 2).sum(1).min())
         found = idx[i] >= 0
         fr = np.asarray(db_frame)[idx[i][found]]
         dd = D[i][found]
-        better = {f for f, v in zip(fr, dd, strict=True) if v < dg2 and f != gt_frame[i]}
+        members = set(frame_ids[pcols[i]].tolist())
+        better = {f for f, v in zip(fr.tolist(), dd, strict=True) if v < dg2 and f not in members}
         rank[i] = 1 + len(better)
         dist[i] = np.sqrt(dg2)
         exact[i] = bool(len(dd) == len(db) or (len(dd) and dd[-1] >= dg2))
-    return Ranks(rank, L, dist, exact)
+    sizes = np.array([len(c) for c in pcols], np.int64)
+    return Ranks(rank, L - sizes + 1, dist, exact, sizes)

@@ -6,6 +6,7 @@ one option reruns only what depends on it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -13,7 +14,7 @@ import logging
 import platform
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,35 +24,34 @@ import pandas as pd
 from tqdm import tqdm
 
 from . import __version__
-from .annotations import change_boxes, load_annotations
-from .cache import StageCache, file_fingerprint, stable_hash, write_json, write_parquet, write_text
-from .config import FUSION_METHODS, Config
+from .annotations import load_annotations
+from .cache import (
+    StageCache,
+    file_fingerprint,
+    open_memmap_reserved,
+    read_cached_parquet,
+    stable_hash,
+    write_json,
+    write_parquet,
+    write_text,
+)
+from .config import Config
 from .crops import iter_crops
 from .descriptors import make_descriptor, normalize
 from .errors import ConfigError, HarnessError, RetrievalError
 from .executors import LocalExecutor
-from .fusion import cover_matrix, intersection_closure, loc_from_cover
+from .fusion import fuse_samples, ordered_methods
+from .imagestore import local_uri, portable_uri
 from .ingest import ingest_session, load_frames
 from .ingest.logs import detect_format
-from .metrics import average_precision, bootstrap_ap, pr_curve
-from .pairs import build_pairs
+from .outdirs import claim_dir, run_lock
+from .pairs import build_pairs, ground_truth_places
 from .proposals import compute_proposals
 from .records import FRAME_SCHEMA
+from .reports import METHOD_LABELS, write_reports  # noqa: F401 - METHOD_LABELS re-exported for callers
 from .retrieval import image_ranks, image_ranks_faiss
-from .splits import label as split_label
-from .splits import paper_splits, roc_sob
 
 log = logging.getLogger(__name__)
-
-METHOD_LABELS = {
-    "rank_fusion": "rank fusion",
-    "rank_fusion_le2": "rank fusion (<=2)",
-    "rank_fusion_le3": "rank fusion (<=3)",
-    "rank_no_fusion": "rank w/o fusion",
-    "score_max": "score max",
-    "score_sum": "score sum",
-}
-
 
 def _progress(iterable, **kw):
     return tqdm(iterable, mininterval=1.0, dynamic_ncols=True, leave=False, disable=None, **kw)
@@ -89,8 +89,32 @@ class Pipeline:
     ran: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.out = Path(self.out).resolve()  # workers of a remote executor may start elsewhere
+        # never write into a directory the harness did not create; resolved: remote workers may start elsewhere
+        self.out = claim_dir(Path(self.out), "run")
         self.cache = StageCache(self.out / "cache")
+        self._lock_depth = 0
+        self._lock_cm: Any = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Stage units (closures over the pipeline) travel to remote workers; the lock stays here."""
+        state = self.__dict__.copy()
+        state["_lock_cm"], state["_lock_depth"] = None, 0
+        return state
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the run lock of ``out`` (re-entrant within this pipeline); see :func:`harness.outdirs.run_lock`."""
+        if self._lock_depth == 0:
+            self._lock_cm = run_lock(self.out)
+            self._lock_cm.__enter__()
+        self._lock_depth += 1
+        try:
+            yield
+        finally:
+            self._lock_depth -= 1
+            if self._lock_depth == 0:
+                cm, self._lock_cm = self._lock_cm, None
+                cm.__exit__(None, None, None)
 
     # ------------------------------------------------------------ helpers
     def _timed(self, name: str, fn: Callable[[], Any]) -> Any:
@@ -114,9 +138,21 @@ class Pipeline:
 
     # ------------------------------------------------------------ stages
     def fixture(self) -> None:
+        """Generate the fixture into ``data_root`` when configured and absent.
+
+        An existing fixture is reused as it is. A ``data_root`` that exists and holds anything
+        else is never touched: that is someone's data, and the error says so.
+        """
         fx = self.cfg.fixture
-        if not fx.generate or (self.cfg.data_root / "fixture.json").exists():
+        root = self.cfg.data_root
+        if not fx.generate or (root / "fixture.json").exists():
             return
+        if root.exists() and (not root.is_dir() or any(root.iterdir())):
+            raise ConfigError(
+                f"{root}: [fixture] generate = true, but data_root exists and holds no generated fixture "
+                "(no fixture.json); the harness never writes into it. Set generate = false for real data, "
+                "or point data_root (--data-root) at a new directory"
+            )
         from .fixture import FixtureSpec, generate
 
         log.info("fixture: generating into %s", self.cfg.data_root)
@@ -144,11 +180,14 @@ class Pipeline:
 
         def build(tmp: Path) -> dict:
             df = pd.concat([load_frames(p / "frames.parquet") for p, _ in ingested.values()], ignore_index=True)
+            df["image"] = [portable_uri(u, self.out, self.cfg.data_root) for u in df["image"]]
             write_parquet(tmp / "frames.parquet", df.sort_values(["session", "camera", "utime"]), schema=FRAME_SCHEMA)
             return {"frames": len(df)}
 
         path, key = self._run("frames", tuple(keys), build)
-        return pd.read_parquet(path / "frames.parquet"), key
+        df = read_cached_parquet(path / "frames.parquet")
+        df["image"] = [local_uri(u, self.out, self.cfg.data_root) for u in df["image"]]
+        return df, key
 
     def pairs(self, frames: pd.DataFrame, frames_key: str, ann: pd.DataFrame, ann_key: str) -> tuple[pd.DataFrame, str]:
         pc = self.cfg.pairs
@@ -161,7 +200,7 @@ class Pipeline:
             return summary
 
         path, key = self._run("pairs", (frames_key, dataclasses.asdict(pc), ann_key if queries is not None else None, self.cfg.seasons()), build)
-        return pd.read_parquet(path / "pairs.parquet"), key
+        return read_cached_parquet(path / "pairs.parquet"), key
 
     def proposals(self, frames: pd.DataFrame, ingested: dict[str, tuple[Path, str]]) -> dict[str, tuple[pd.DataFrame, str]]:
         pc = self.cfg.proposals
@@ -176,7 +215,7 @@ class Pipeline:
                 return {"rows": len(df), "per_method": df.groupby("method").size().to_dict()}
 
             path, key = self._timed("proposals", lambda b=build, s=sc.name: self._run("proposals", (ingested[s][1], dataclasses.asdict(pc), file_fp), b))
-            out[sc.name] = (pd.read_parquet(path / "proposals.parquet"), key)
+            out[sc.name] = (read_cached_parquet(path / "proposals.parquet"), key)
         return out
 
     def train(self, frames: pd.DataFrame, props: dict[str, tuple[pd.DataFrame, str]]) -> tuple[Path, str]:
@@ -194,7 +233,7 @@ class Pipeline:
             pick = np.sort(rng.choice(len(rows), size=n, replace=False))
             rows = rows.iloc[pick].reset_index(drop=True)
             img = rows.merge(frames[["session", "camera", "utime", "image"]], on=["session", "camera", "utime"], how="left")["image"]
-            data = np.lib.format.open_memmap(tmp / "train_crops.npy", mode="w+", dtype=np.uint8, shape=(n, dc.input_size, dc.input_size, 3))
+            data = open_memmap_reserved(tmp / "train_crops.npy", np.uint8, (n, dc.input_size, dc.input_size, 3))
             for idx, crops in _progress(iter_crops(rows, img, dc.input_size, num_workers=dc.num_workers), desc="training crops", unit="batch"):
                 data[idx] = crops
             data.flush()
@@ -246,10 +285,10 @@ class Pipeline:
                 pos = pd.Series(np.arange(len(rows)), index=pd.MultiIndex.from_frame(rows[["method", "utime", "box_id"]]))
                 arr = None
                 for d in shard_dirs:
-                    idx = pd.read_parquet(d / "index.parquet", columns=["method", "utime", "box_id"])
+                    idx = read_cached_parquet(d / "index.parquet", columns=["method", "utime", "box_id"])
                     v = np.load(d / "desc.npy", mmap_mode="r")
                     if arr is None:
-                        arr = np.lib.format.open_memmap(tmp / "desc.npy", mode="w+", dtype=np.dtype(dc.dtype), shape=(len(rows), v.shape[1]))
+                        arr = open_memmap_reserved(tmp / "desc.npy", dc.dtype, (len(rows), v.shape[1]))
                     arr[pos.loc[pd.MultiIndex.from_frame(idx)].to_numpy()] = v
                 if arr is None:
                     np.save(tmp / "desc.npy", np.zeros((0, 1), dc.dtype))
@@ -268,12 +307,13 @@ class Pipeline:
             from .ranks_import import ranks_from_import, read_import
 
             def build_imp(tmp: Path) -> dict:
-                df, counts = ranks_from_import(read_import(self.rank_import), pairs, str(self.rank_import))
+                df, counts = ranks_from_import(read_import(self.rank_import), pairs, str(self.rank_import), frames,
+                                               rc.gt_radius_m, self.cfg.pairs.max_yaw_diff_deg)
                 write_parquet(tmp / "ranks.parquet", df)
                 return counts
 
-            path, key = self._run("ranks", ("import", file_fingerprint(self.rank_import), pairs_key), build_imp)
-            return pd.read_parquet(path / "ranks.parquet"), key, self.cache.manifest("ranks", key)["info"]
+            path, key = self._run("ranks", ("import", file_fingerprint(self.rank_import), pairs_key, rc.gt_radius_m), build_imp)
+            return read_cached_parquet(path / "ranks.parquet"), key, self.cache.manifest("ranks", key)["info"]
         import torch
 
         device = "cuda" if rc.engine == "exact" and self.cfg.descriptor.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
@@ -289,7 +329,7 @@ class Pipeline:
                 chunk = sub.iloc[c0 : c0 + step]
 
                 def build(tmp: Path, chunk: pd.DataFrame = chunk, ref: str = ref) -> dict:
-                    df, counts = self._rank_reference(chunk, ref, described, device)
+                    df, counts = self._rank_reference(chunk, ref, described, device, frames)
                     write_parquet(tmp / "ranks.parquet", df)
                     return counts
 
@@ -297,7 +337,7 @@ class Pipeline:
                 unit_ref.append(ref)
         parts, counts_all = [], {}
         for ref, (path, key) in zip(unit_ref, self._map("ranks", units, gpu=True), strict=True):
-            parts.append(pd.read_parquet(path / "ranks.parquet"))
+            parts.append(read_cached_parquet(path / "ranks.parquet"))
             c = counts_all.setdefault(ref, {})
             for k, v in self.cache.manifest("ranks", key)["info"].items():
                 c[k] = c.get(k, 0) + v
@@ -306,13 +346,19 @@ class Pipeline:
             df = df.sort_values(["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]).reset_index(drop=True)
         return df, stable_hash(pairs_key, dkeys, rkey), counts_all
 
-    def _rank_reference(self, sub: pd.DataFrame, ref: str, described: dict[str, tuple[Path, str]], device: str) -> tuple[pd.DataFrame, dict]:
+    def _rank_reference(self, sub: pd.DataFrame, ref: str, described: dict[str, tuple[Path, str]], device: str,
+                        frames: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
         rc = self.cfg.retrieval
         counts = {"query_subimages": 0, "ranked": 0, "no_rank_reference_frame_has_no_subimage": 0, "query_frames_without_subimages": 0}
         if not len(sub):
             return pd.DataFrame(), counts
+        ref_frames = frames[frames["session"] == ref]
+        places = {}
+        for cam, g in sub.groupby("r_camera", sort=True):
+            fr = ref_frames[ref_frames["camera"] == cam]
+            places[cam] = ground_truth_places(fr, g["r_utime"].to_numpy(), rc.gt_radius_m, self.cfg.pairs.max_yaw_diff_deg)
         ref_dir = described[ref][0]
-        ref_idx = pd.read_parquet(ref_dir / "index.parquet")
+        ref_idx = read_cached_parquet(ref_dir / "index.parquet")
         ref_desc = np.load(ref_dir / "desc.npy", mmap_mode="r")
         out = []
         for method in sorted(ref_idx["method"].unique()):
@@ -322,7 +368,7 @@ class Pipeline:
             db = ref_desc[dbm[0] : dbm[-1] + 1] if len(dbm) and dbm[-1] - dbm[0] + 1 == len(dbm) else ref_desc[dbm]
             have = set(np.unique(db_frame).tolist())
             for qs, g in sub.groupby("q_session", sort=True):
-                q_idx = pd.read_parquet(described[qs][0] / "index.parquet")
+                q_idx = read_cached_parquet(described[qs][0] / "index.parquet")
                 q_desc = np.load(described[qs][0] / "desc.npy", mmap_mode="r")
                 q_idx["row"] = np.arange(len(q_idx))
                 qm = q_idx[q_idx["method"] == method].merge(
@@ -339,25 +385,30 @@ class Pipeline:
                     continue
                 qd = np.asarray(q_desc[np.sort(qm["row"].to_numpy())], np.float32)
                 qd = qd[np.argsort(np.argsort(qm["row"].to_numpy(), kind="stable"), kind="stable")]
+                gt = qm["r_utime"].to_numpy()
+                place = [places[c][int(u)] for c, u in zip(qm["r_camera"], gt, strict=True)]
                 if rc.engine == "faiss":
-                    res = image_ranks_faiss(qd, np.asarray(db, np.float32), db_frame, qm["r_utime"].to_numpy(), nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe)
+                    res = image_ranks_faiss(qd, np.asarray(db, np.float32), db_frame, gt, place, nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe)
                     rank, L, dist, exact = res.rank, res.L, res.dist, res.exact
                     # recall against the exact engine on a deterministic sample of the queries
                     k = min(len(qd), rc.faiss_check)
-                    ex, _, _ = image_ranks(qd[:k], db, db_frame, qm["r_utime"].to_numpy()[:k], chunk_rows=rc.chunk_rows, device=device)
+                    ex, _, _ = image_ranks(qd[:k], db, db_frame, gt[:k], place[:k], chunk_rows=rc.chunk_rows, device=device)
                     counts["faiss_checked"] = counts.get("faiss_checked", 0) + k
                     counts["faiss_rank_equal_exact"] = counts.get("faiss_rank_equal_exact", 0) + int((ex == rank[:k]).sum())
                     counts["faiss_flagged_exact"] = counts.get("faiss_flagged_exact", 0) + int(exact.sum())
                 else:
-                    rank, L, dist = image_ranks(qd, db, db_frame, qm["r_utime"].to_numpy(), chunk_rows=rc.chunk_rows, query_batch=rc.query_batch, device=device)
+                    rank, L, dist = image_ranks(qd, db, db_frame, gt, place, chunk_rows=rc.chunk_rows, query_batch=rc.query_batch, device=device)
                     exact = np.ones(len(rank), bool)
+                frame_set = np.unique(db_frame)
+                place_size = np.array([int(np.isin(p, frame_set).sum()) for p in place], np.int64)
                 counts["ranked"] += len(rank)
                 out.append(pd.DataFrame({
                     "q_session": qm["session"], "q_camera": qm["camera"], "q_utime": qm["utime"],
                     "r_session": qm["r_session"], "r_camera": qm["r_camera"], "r_utime": qm["r_utime"],
                     "season_pair": qm["season_pair"], "method": method, "box_id": qm["box_id"],
                     "x1": qm["x1"], "y1": qm["y1"], "x2": qm["x2"], "y2": qm["y2"],
-                    "rank": rank, "L": np.full(len(rank), L, np.int64), "r": rank / L, "d": dist, "exact": exact,
+                    "rank": rank, "L": L, "r": rank / L, "r_desc": (L + 1 - rank) / L, "d": dist, "exact": exact,
+                    "place_size": place_size,
                 }))
         df = pd.concat(out, ignore_index=True) if out else pd.DataFrame()
         if len(df):
@@ -369,12 +420,13 @@ class Pipeline:
         fc, sc = self.cfg.fusion, self.cfg.splits
 
         def build(tmp: Path) -> dict:
-            df, counts = fuse_samples(ranks, frames, ann, fc.seed, fc.max_fused_boxes)
+            df, counts = fuse_samples(ranks, frames, ann, fc.seed, fc.max_fused_boxes, methods=ordered_methods(fc.methods),
+                                      progress=lambda it: _progress(it, desc="fusion", unit="image"))
             write_parquet(tmp / "samples.parquet", df)
             return counts
 
         path, key = self._timed("fusion", lambda: self._run("samples", (ranks_key, ann_key, dataclasses.asdict(fc), dataclasses.asdict(sc)), build))
-        return pd.read_parquet(path / "samples.parquet"), key
+        return read_cached_parquet(path / "samples.parquet"), key
 
     def until_pairs(self) -> tuple[dict[str, tuple[Path, str]], pd.DataFrame, str, pd.DataFrame, str, pd.DataFrame, str]:
         """Fixture (if configured), ingest, frames, annotations and pairs.
@@ -392,8 +444,17 @@ class Pipeline:
 
     def run(self) -> dict:
         """Run every stage; write the reports into ``out``; return the run record."""
+        with self.locked():
+            return self._run_all()
+
+    def _run_all(self) -> dict:
         t0 = time.perf_counter()
         ingested, frames, fkey, ann, ann_key, pairs, pkey = self.until_pairs()
+        if not (ann["status"] == "change").any():
+            raise HarnessError(
+                f"{self.cfg.annotations}: no frame is annotated 'change', so no split has a positive and every AP "
+                "would be NaN; annotate at least one change box"
+            )
         if not len(pairs):
             raise HarnessError("no query frame found a reference frame; check [pairs] and the annotations")
         if self.rank_import is None:
@@ -407,7 +468,8 @@ class Pipeline:
             raise RetrievalError("no query subimage got a rank")
         samples, skey = self.samples(ranks, rkey, frames, ann, ann_key)
         t_eval = time.perf_counter()
-        table = write_reports(self.cfg, self.out, samples, ranks, frames, ann)
+        reports = write_reports(self.cfg, self.out, samples, ranks, frames, ann,
+                                progress=lambda it: _progress(it, desc="splits", unit="split"))
         self.timings["labels_ap_reports"] = time.perf_counter() - t_eval
         record = {
             "config": dataclasses.asdict(self.cfg),
@@ -417,12 +479,16 @@ class Pipeline:
             "timings_s": {k: round(v, 3) for k, v in self.timings.items()},
             "total_s": round(time.perf_counter() - t0, 3),
             "stage_units_run": self.ran,
+            "executor": self.executor.describe(),
             "counts": {"frames": len(frames), "annotated_frames": int(ann[["session", "camera", "utime"]].drop_duplicates().shape[0]),
                        "pairs": len(pairs), "ranked_subimages": len(ranks), "samples": len(samples), "rank_counts": rank_counts},
             "keys": {"frames": fkey, "pairs": pkey, "ranks": rkey, "samples": skey},
+            "localization": reports.localization.to_dict(orient="records"),
+            "warnings": reports.warnings,
         }
         write_json(self.out / "run.json", record)
-        record["table"] = table
+        record["table"] = reports.tables["I"]
+        record["reports"] = reports
         return record
 
 
@@ -435,7 +501,7 @@ def _encode_rows(desc: Any, dc: Any, frames: pd.DataFrame, rows: pd.DataFrame, t
     for idx, crops in _progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers), desc=f"descriptors {name}", unit="batch"):
         v = normalize(desc.encode(crops))
         if arr is None:
-            arr = np.lib.format.open_memmap(tmp / "desc.npy", mode="w+", dtype=np.dtype(dc.dtype), shape=(len(rows), v.shape[1]))
+            arr = open_memmap_reserved(tmp / "desc.npy", dc.dtype, (len(rows), v.shape[1]))
         arr[order[idx]] = v.astype(dc.dtype)
     if arr is None:
         np.save(tmp / "desc.npy", np.zeros((0, 1), dc.dtype))
@@ -452,161 +518,6 @@ def _versions() -> dict:
 
     return {"dbl-harness": __version__, "python": platform.python_version(), "numpy": np.__version__, "pandas": pd.__version__,
             "torch": torch.__version__, "opencv": cv2.__version__, "rosbags": getattr(rosbags, "__version__", "?"), "platform": platform.platform()}
-
-
-def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, seed: int, max_boxes: int) -> tuple[pd.DataFrame, dict]:
-    """Samples of every query image (pair) for all proposal methods together (``proposals = all``)
-    and for each method alone, with N, RoC, SoB and the LoC of each fusion method.
-
-    Works on numpy columns of ``ranks`` sorted once by query image (stable, so each image's rows
-    keep their order) and builds one table at the end: no per-image pandas objects.
-    """
-    cb = change_boxes(ann)
-    size = dict(zip(frames[["session", "camera", "utime"]].itertuples(index=False, name=None), frames[["width", "height"]].to_numpy(), strict=True))
-    counts = {"query_images": 0, "capped_closures": 0}
-    methods = sorted(ranks["method"].unique())
-    subsets = [("all", methods)] + ([(m, [m]) for m in methods] if len(methods) > 1 else [])
-    keys = ["q_session", "q_camera", "q_utime", "r_session"]
-    srt = ranks.sort_values(keys, kind="stable")
-    kcols = [srt[k].to_numpy() for k in keys]
-    method = srt["method"].to_numpy()
-    season_pair = srt["season_pair"].to_numpy()
-    box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-    r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
-    n = len(srt)
-    change = np.zeros(n, bool)
-    for kc in kcols:
-        change[1:] |= kc[1:] != kc[:-1]
-    starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
-    ends = np.append(starts[1:], n)
-    cols: dict[str, list] = {c: [] for c in ("q_session", "q_camera", "q_utime", "r_session", "season_pair", "proposals", "x1", "y1", "x2", "y2",
-                                             "original", "N", "RoC", "SoB", *(f"loc_{m}" for m in FUSION_METHODS))}
-    for a, b in _progress(list(zip(starts, ends, strict=True)), desc="fusion", unit="image"):
-        key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
-        qkey = key[:3]
-        if qkey not in cb:
-            continue
-        counts["query_images"] += 1
-        w, h = size[qkey]
-        for name, ms in subsets:
-            sel = np.isin(method[a:b], ms)
-            if not sel.any():
-                continue
-            boxes = box_all[a:b][sel]
-            r, d = r_all[a:b][sel], d_all[a:b][sel]
-            fused, capped = intersection_closure(boxes, max_boxes)
-            counts["capped_closures"] += int(capped)
-            cover = cover_matrix(fused, boxes)
-            img_seed = int(stable_hash(seed, key, name, length=8), 16)
-            locs = {m: loc_from_cover(cover, r, d, m, img_seed) for m in FUSION_METHODS if m != "rank_no_fusion"}
-            # rank_no_fusion: one sample per original box; merged into the fused row of the same box
-            fidx = {tuple(bx): i for i, bx in enumerate(fused)}
-            nof = np.full(len(fused), np.nan)
-            extra = []
-            for k, bx in enumerate(map(tuple, boxes)):
-                i = fidx[bx]
-                if np.isnan(nof[i]):
-                    nof[i] = r[k]
-                else:
-                    extra.append((bx, r[k]))
-            all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
-            roc, sob = roc_sob(all_boxes, cb[qkey], w, h)
-            n_rows, n_x = len(all_boxes), len(extra)
-            for c, v in zip(("q_session", "q_camera", "q_utime", "r_session"), key, strict=True):
-                cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
-            cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
-            cols["proposals"].append(np.full(n_rows, name, dtype=object))
-            for j, c in enumerate(("x1", "y1", "x2", "y2")):
-                cols[c].append(all_boxes[:, j])
-            cols["original"].append(np.concatenate([~np.isnan(nof), np.ones(n_x, bool)]))
-            cols["N"].append(np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64))
-            cols["RoC"].append(np.asarray(roc, np.float64))
-            cols["SoB"].append(np.asarray(sob, np.float64))
-            cols["loc_rank_no_fusion"].append(np.concatenate([nof, [v for _, v in extra]]))
-            for m, v in locs.items():
-                cols[f"loc_{m}"].append(np.concatenate([v, np.full(n_x, np.nan)]))
-    if not cols["x1"]:
-        return pd.DataFrame(), counts
-    df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})
-    return df, counts
-
-
-def _ap_rows(df: pd.DataFrame, split: Any, cfg: Config, season_pair: str, proposals: str) -> list[dict]:
-    rows = []
-    lab = split_label(df["RoC"].to_numpy(), df["SoB"].to_numpy(), split)
-    groups = (df["q_session"] + "|" + df["q_utime"].astype(str) + "|" + df["r_session"]).to_numpy()
-    for i, m in enumerate(FUSION_METHODS):
-        loc = df[f"loc_{m}"].to_numpy()
-        sel = (lab >= 0) & ~np.isnan(loc)
-        y, s = lab[sel] == 1, loc[sel]
-        ap = average_precision(y, s)
-        lo, hi = (bootstrap_ap(y, s, groups[sel], cfg.report.bootstrap, cfg.report.ci, cfg.seed + i) if season_pair == "all" and proposals == "all"
-                  else (float("nan"), float("nan")))
-        rows.append({"split": split.name, "roc_max": split.roc_max, "proposals": proposals, "season_pair": season_pair, "method": m,
-                     "ap": ap, "ci_low": lo, "ci_high": hi, "positives": int(y.sum()), "negatives": int((~y).sum()),
-                     "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()), "positive_rate": float(y.mean()) if len(y) else float("nan"),
-                     "query_images": len(np.unique(groups[sel]))})
-    return rows
-
-
-def write_reports(cfg: Config, out: Path, samples: pd.DataFrame, ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame) -> pd.DataFrame:
-    """Table I, per-split reports, the summary, PR plots and LoC-map figures."""
-    splits = paper_splits(cfg.splits)
-    summary = []
-    curves = []
-    for sp in _progress(splits, desc="splits", unit="split"):
-        lab = split_label(samples["RoC"].to_numpy(), samples["SoB"].to_numpy(), sp)
-        rep = samples.assign(label=lab)
-        write_parquet(out / "splits" / f"{sp.name}.parquet", rep)
-        for prop, g in samples.groupby("proposals", sort=True):
-            summary += _ap_rows(g, sp, cfg, "all", str(prop))
-            if prop == "all":
-                for pair, gp in g.groupby("season_pair", sort=True):
-                    summary += _ap_rows(gp, sp, cfg, str(pair), "all")
-        allg = rep[rep["proposals"] == "all"]
-        for m in FUSION_METHODS:
-            sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()
-            if (allg.loc[sel, "label"] == 1).any():
-                thr, p, r = pr_curve(allg.loc[sel, "label"].to_numpy() == 1, allg.loc[sel, f"loc_{m}"].to_numpy())
-                curves.append(pd.DataFrame({"split": sp.name, "method": m, "threshold": thr, "precision": p, "recall": r}))
-    summ = pd.DataFrame(summary)
-    write_parquet(out / "splits" / "summary.parquet", summ)
-    if curves:
-        write_parquet(out / "splits" / "pr_curves.parquet", pd.concat(curves, ignore_index=True))
-    main = summ[(summ["proposals"] == "all") & (summ["season_pair"] == "all")]
-    table = main.pivot(index="method", columns="roc_max", values="ap").reindex(list(FUSION_METHODS))
-    write_text(out / "table1.csv", table1_csv(table))
-    write_text(out / "table1.md", table1_markdown(table, main))
-    if cfg.report.plots:
-        from .plots import locmap_figures, pr_plots
-
-        if curves:
-            pr_plots(pd.concat(curves, ignore_index=True), out / "plots")
-        locmap_figures(samples, frames, ann, out / "locmaps", cfg.report.locmap_examples)
-    return table
-
-
-def table1_csv(table: pd.DataFrame) -> str:
-    cols = list(table.columns)
-    lines = ["method," + ",".join(f"{c:.2f}" for c in cols)]
-    for m, row in table.iterrows():
-        lines.append(m + "," + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy()))
-    return "\n".join(lines) + "\n"
-
-
-def table1_markdown(table: pd.DataFrame, main: pd.DataFrame) -> str:
-    cols = list(table.columns)
-    head = "| AP | " + " | ".join(f"{c:.2f}" for c in cols) + " |\n|---|" + "---|" * len(cols) + "\n"
-    body = "".join(
-        f"| {METHOD_LABELS[m]} | " + " | ".join("NaN" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy()) + " |\n"
-        for m, row in table.iterrows()
-    )
-    counts = main.drop_duplicates("roc_max").set_index("roc_max")
-    rk = main[main["method"] == "rank_fusion"].set_index("roc_max")
-    foot = "\nColumns: RoC-max of the negative range. Positives / negatives per column (fused samples): " + ", ".join(
-        f"{c:.2f}: {int(rk.loc[c, 'positives'])}/{int(rk.loc[c, 'negatives'])}" for c in cols if c in rk.index) + ".\n"
-    del counts
-    return head + body + foot
 
 
 def reproduce(cfg: Config, out: Path, rank_import: Path | None = None, executor: Any = None) -> dict:

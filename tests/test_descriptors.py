@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from harness.config import DescriptorConfig
@@ -96,3 +97,30 @@ def test_training_free_descriptors() -> None:
     n = normalize(h)
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1, rtol=1e-5)
     assert np.array_equal(HogDescriptor(DescriptorConfig()).encode(x), h)
+
+
+def test_hog_values_on_hand_built_edges() -> None:
+    """A vertical step edge has horizontal gradients only (orientation 0: bin 0); a horizontal one
+    has orientation 90 degrees, which lies half-way between bins 4 and 5 (20-degree bins)."""
+    from harness.descriptors.base import hog
+
+    img = np.zeros((64, 64), np.uint8)
+    img[:, 32:] = 255
+    v = hog(img).reshape(7, 7, 4, 9)
+    assert v.max() > 0
+    assert np.abs(v[..., 1:]).max() == 0  # all energy in bin 0
+    assert np.abs(v[:, [0, 1, 5, 6]]).max() == 0  # blocks away from the edge (columns 31-32) are empty
+    h = hog(img.T.copy()).reshape(7, 7, 4, 9)
+    nz = h[h.sum(-1) > 0]
+    np.testing.assert_allclose(nz[:, 4], nz[:, 5], rtol=1e-5)
+    assert np.abs(np.delete(nz, [4, 5], axis=-1)).max() == 0
+
+
+def test_thumbnail_values_on_a_flat_grey_crop() -> None:
+    """Flat grey: the zero-mean thumbnail is all zeros; the HSV histogram is one-hot at
+    (H bin 0, S bin 0, V bin 128 // 64 = 2), flat index 2, with unit norm."""
+    crop = np.full((1, 64, 64, 3), 128, np.uint8)
+    t = ThumbDescriptor(DescriptorConfig()).encode(crop)[0]
+    assert np.abs(t[:256]).max() == 0
+    hist = t[256:]
+    assert hist[2] == pytest.approx(1.0, abs=1e-5) and np.abs(np.delete(hist, 2)).max() == 0

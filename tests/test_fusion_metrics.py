@@ -27,22 +27,53 @@ def test_closure_of_three_boxes() -> None:
     assert {tuple(b) for b in fused.astype(int).tolist()} == set(CLOSURE) and not capped
 
 
+# Rank lists of length L = 10: ranks 1, 5, 10 (r = rank / L); r' = (L + 1 - rank) / L = 1.0, 0.6, 0.1
+L10 = np.array([10, 10, 10])
+INV_RD = {"A": 1.0, "B": 10 / 6, "C": 10.0}  # 1 / r'
+
+
 def test_rank_fusion_by_hand() -> None:
-    got = _by_cover(*fuse(BOXES, R, D, "rank_fusion"))
-    inv = {"A": 10, "B": 2, "C": 1}
-    for cov, v in got.items():
-        n, s = len(cov), sum(inv[c] for c in cov)
-        assert v == pytest.approx(1 / (n * s))
-    assert got["ABC"] == pytest.approx(1 / 39) and got["A"] == pytest.approx(0.1)
+    """SPEC 7: LoC = N * sum 1/r' (the paper's descending order), written out per fused box."""
+    got = _by_cover(*fuse(BOXES, R, D, "rank_fusion", L=L10))
+    want = {"A": 1.0, "B": 10 / 6, "C": 10.0, "AB": 2 * (1 + 10 / 6), "AC": 2 * (1 + 10), "BC": 2 * (10 / 6 + 10),
+            "ABC": 3 * (1 + 10 / 6 + 10)}
+    assert got == pytest.approx(want)
+    assert got["ABC"] == pytest.approx(38.0) and got["A"] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="needs the rank-list lengths"):
+        fuse(BOXES, R, D, "rank_fusion")
+
+
+def test_paper_variants_by_hand() -> None:
+    """Variant 2 (ascending): 1 / (N * sum 1/r); variant 1 (raw): N * sum 1 / (L + 1 - rank)."""
+    asc = _by_cover(*fuse(BOXES, R, D, "rank_fusion_asc"))
+    assert asc["A"] == pytest.approx(0.1) and asc["AB"] == pytest.approx(1 / 24) and asc["ABC"] == pytest.approx(1 / 39)
+    raw = _by_cover(*fuse(BOXES, R, D, "rank_fusion_raw", L=L10))
+    # L + 1 - rank = 10, 6, 1
+    assert raw["A"] == pytest.approx(0.1) and raw["C"] == pytest.approx(1.0)
+    assert raw["ABC"] == pytest.approx(3 * (0.1 + 1 / 6 + 1.0)) and raw["BC"] == pytest.approx(2 * (1 / 6 + 1.0))
+
+
+def test_baselines_by_hand() -> None:
+    from harness.fusion import image_loc
+
+    cc = _by_cover(*fuse(BOXES, R, D, "cover_count"))
+    assert cc == {"A": 1, "B": 1, "C": 1, "AB": 2, "AC": 2, "BC": 2, "ABC": 3}
+    fused, _ = intersection_closure(BOXES)
+    sp = _by_cover(fused, image_loc(fused, "size_prior", 22, 16, seed=0))
+    assert sp["A"] == pytest.approx(1 - 100 / 352) and sp["ABC"] == pytest.approx(1 - 6 / 352) and sp["C"] == pytest.approx(1 - 96 / 352)
+    r1, r2 = image_loc(fused, "random", 22, 16, seed=7), image_loc(fused, "random", 22, 16, seed=7)
+    assert np.array_equal(r1, r2) and ((r1 >= 0) & (r1 < 1)).all() and len(set(r1.tolist())) == len(r1)
+    assert not np.array_equal(r1, image_loc(fused, "random", 22, 16, seed=8))
+    with pytest.raises(ValueError, match="image_loc"):
+        fuse(BOXES, R, D, "size_prior")
 
 
 def test_rank_fusion_le2_uses_two_of_three() -> None:
-    got = _by_cover(*fuse(BOXES, R, D, "rank_fusion_le2", seed=3))
-    inv = {"A": 10, "B": 2, "C": 1}
-    assert any(got["ABC"] == pytest.approx(1 / (2 * (inv[a] + inv[b]))) for a, b in ("AB", "AC", "BC"))
-    assert got["AB"] == pytest.approx(1 / 24)  # two covers: unchanged
-    assert _by_cover(*fuse(BOXES, R, D, "rank_fusion_le2", seed=3))["ABC"] == got["ABC"]  # seeded
-    assert _by_cover(*fuse(BOXES, R, D, "rank_fusion_le3"))["ABC"] == pytest.approx(1 / 39)
+    got = _by_cover(*fuse(BOXES, R, D, "rank_fusion_le2", seed=3, L=L10))
+    assert any(got["ABC"] == pytest.approx(2 * (INV_RD[a] + INV_RD[b])) for a, b in ("AB", "AC", "BC"))
+    assert got["AB"] == pytest.approx(2 * (1 + 10 / 6))  # two covers: unchanged
+    assert _by_cover(*fuse(BOXES, R, D, "rank_fusion_le2", seed=3, L=L10))["ABC"] == got["ABC"]  # seeded
+    assert _by_cover(*fuse(BOXES, R, D, "rank_fusion_le3", L=L10))["ABC"] == pytest.approx(38.0)
 
 
 def test_score_methods_and_no_fusion_by_hand() -> None:
@@ -67,16 +98,20 @@ box_st = st.tuples(st.integers(0, 30), st.integers(0, 30), st.integers(1, 20), s
 
 @settings(max_examples=50, deadline=None)
 @given(st.lists(box_st, min_size=1, max_size=6, unique=True), st.data())
-def test_rank_fusion_equals_r_where_one_box_covers(boxes: list, data: st.DataObject) -> None:
+def test_rank_fusion_orders_single_covers_as_r_does(boxes: list, data: st.DataObject) -> None:
+    """Where one box covers a sample, rank fusion's LoC is 1/r' = L / (L + 1 - rank): increasing in r."""
     b = np.array(boxes, float)
-    r = np.array(data.draw(st.lists(st.floats(0.01, 1), min_size=len(b), max_size=len(b))))
-    fused, loc = fuse(b, r, np.ones(len(b)), "rank_fusion")
+    L = np.array(data.draw(st.lists(st.integers(1, 50), min_size=len(b), max_size=len(b))))
+    rank = np.array([data.draw(st.integers(1, int(n))) for n in L])
+    r = rank / L
+    fused, loc = fuse(b, r, np.ones(len(b)), "rank_fusion", L=L)
     from harness.fusion import cover_matrix
 
     cov = cover_matrix(fused, b)
     one = cov.sum(1) == 1
-    np.testing.assert_allclose(loc[one], r[cov[one].argmax(1)])
-    assert (loc > 0).all() and (loc <= 1).all()
+    k = cov[one].argmax(1)
+    np.testing.assert_allclose(loc[one], L[k] / (L[k] + 1 - rank[k]))
+    assert (loc >= 1 - 1e-12).all()
 
 
 def test_ap_by_hand_with_ties() -> None:
@@ -91,11 +126,13 @@ def test_ap_by_hand_with_ties() -> None:
 
 
 def test_recall_grid_tolerance() -> None:
-    # 29 of 100 positives first: recall 0.29 must reach R = 0.29
-    labels = np.r_[np.ones(29), np.zeros(1), np.ones(71)]
+    """35 of 100 positives first, then a negative: recall 0.35 = 35/100 must reach R = 0.35, although
+    np.linspace(0, 1, 101)[35] = 0.35000000000000003 > 35/100 in floating point. Without the
+    tolerance, R = 0.35 would take the precision after the negative (100/101 at best)."""
+    labels = np.r_[np.ones(35), np.zeros(1), np.ones(65)]
     scores = -np.arange(len(labels), dtype=float)
-    ap = average_precision(labels, scores)
-    assert ap > 0.99
+    assert np.linspace(0, 1, 101)[35] > 35 / 100  # the float trap this test is about
+    assert average_precision(labels, scores) == pytest.approx((36 * 1 + 65 * 100 / 101) / 101, abs=1e-12)
 
 
 # scores on a 0.1 grid, so that the transforms below keep distinct values distinct in floating point

@@ -64,7 +64,7 @@ def test_report_counts_what_was_read_and_dropped(small_world: Path, tmp_path: Pa
     session = SMALL.sessions[0][0]
     _ingest(small_world, "nclt", session, tmp_path / "n")
     rep = json.loads((tmp_path / "n" / "ingest_report.json").read_text())
-    assert rep["dropped"]["groundtruth_nan_rows"] == 3
+    assert rep["dropped"]["groundtruth_non_finite_rows"] == 3
     assert rep["frames_written"] == SMALL.frames
     _ingest(small_world, "ros1", session, tmp_path / "r")
     rep = json.loads((tmp_path / "r" / "ingest_report.json").read_text())
@@ -141,17 +141,16 @@ def test_bayer_is_demosaiced(tmp_path: Path, pattern: str) -> None:
 
 
 def test_compressed_png_is_stored_as_is(tmp_path: Path) -> None:
+    """A PNG CompressedImage is kept byte for byte (lossless: the pixels come back exactly); JPEG likewise as .jpg."""
     rgb = np.random.default_rng(1).integers(0, 256, (10, 12, 3), dtype=np.uint8)
     poses = [Pose(t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0) for t in (1_000_000, 1_200_000)]
-    path = tmp_path / "bag"
-
-    class PngFrame(W.LogFrame):
-        pass
-
-    W.write_ros2(path, [W.LogFrame(1_100_000, rgb)], poses, storage="sqlite3", image="compressed")
-    df = _frames_of(path, tmp_path / "o")
-    assert df["image"][0].endswith(".jpg")
+    W.write_ros2(tmp_path / "png", [W.LogFrame(1_100_000, rgb)], poses, storage="sqlite3", image="compressed", compressed_format="png")
+    df = _frames_of(tmp_path / "png", tmp_path / "o")
+    assert df["image"][0].endswith(".png") and Path(df["image"][0]).read_bytes().startswith(b"\x89PNG")
     assert df["width"][0] == 12 and df["height"][0] == 10
+    assert np.array_equal(read_image(df["image"][0]), rgb)
+    W.write_ros2(tmp_path / "jpg", [W.LogFrame(1_100_000, rgb)], poses, storage="sqlite3", image="compressed")
+    assert _frames_of(tmp_path / "jpg", tmp_path / "o2")["image"][0].endswith(".jpg")
 
 
 # ------------------------------------------------------------------ bad input
@@ -212,7 +211,7 @@ def test_earlier_results_survive_a_failed_rerun(tmp_path: Path) -> None:
     ingest_session(SessionConfig(name="s", source=str(good)), IngestConfig(), out)
     before = (out / "frames.parquet").read_bytes()
     with pytest.raises(TopicError):
-        ingest_session(SessionConfig(name="s", source=str(good), image_topic="/nope"), IngestConfig(), out)
+        ingest_session(SessionConfig(name="s", source=str(good), image_topic="/nope"), IngestConfig(), out, force=True)
     assert (out / "frames.parquet").read_bytes() == before
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out")] == []
 
@@ -288,7 +287,7 @@ def test_non_monotonic_image_stamps_are_rejected(tmp_path: Path) -> None:
             w.write(co, p.utime * 1000, W.ROS1.serialize_ros1(W.odometry_msg(W.ROS1, p, True), "nav_msgs/msg/Odometry"))
         for k, f in enumerate(frames):
             w.write(ci, 2_000_000_000 + k, W.ROS1.serialize_ros1(W.image_msg(W.ROS1, f.utime, f.image, "rgb8", True), "sensor_msgs/msg/Image"))
-    with pytest.raises(IngestError, match=r"not monotonic: message .* at utime 1100000"):
+    with pytest.raises(IngestError, match=r"image_raw message 3: image time stamps are not monotonic: utime 1100000 comes after utime 1200000"):
         ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")
 
 

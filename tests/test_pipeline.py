@@ -14,9 +14,16 @@ from harness.runner import Pipeline
 
 from .conftest import ROOT
 
-#: Largest allowed absolute AP difference from the committed table (BLAS and CPU differences
-#: between machines change the trained autoencoder's descriptors slightly).
-TOLERANCE = 0.05
+#: Largest allowed absolute difference from the committed two-decimal tables. Same machine, same
+#: bytes (tested below); between machines BLAS and CPU differences move the trained autoencoder's
+#: descriptors slightly: the largest drift measured so far is one rounding step, 0.01.
+TOLERANCE = 0.011
+
+
+def _copy_cache(out: Path, dst: Path) -> None:
+    """A run directory with another run's cache (and the harness's marker, so it may be written into)."""
+    shutil.copytree(out / "cache", dst / "cache")
+    shutil.copy(out / ".dbl-harness.json", dst / ".dbl-harness.json")
 
 
 @pytest.fixture()
@@ -26,7 +33,9 @@ def run(local_run: tuple[Pipeline, dict, Path]) -> tuple[Pipeline, dict, Path]:
 
 def test_outputs_exist(run: tuple) -> None:
     _, _rec, out = run
-    for name in ("table1.md", "table1.csv", "run.json", "splits/summary.parquet", "splits/roc_max_0.03.parquet", "plots/pr_roc_max_0.03.png"):
+    for name in ("table1.md", "table1.csv", "table1.tex", "tableS.md", "tableS.csv", "tableS.tex", "tableP.md", "tableP.csv", "tableP.tex",
+                 "localization.md", "localization.csv", "localization.tex", "comparisons.md", "ranks.parquet",
+                 "run.json", "splits/summary.parquet", "splits/roc_max_0.03.parquet", "plots/pr_roc_max_0.03.png"):
         assert (out / name).exists(), name
     assert list((out / "locmaps").glob("*.png"))
     rep = pd.read_parquet(out / "splits" / "roc_max_0.01.parquet")
@@ -37,31 +46,139 @@ def test_outputs_exist(run: tuple) -> None:
     assert len(set(summ["season_pair"]) - {"all"}) >= 9
 
 
+def regression_diff(out: Path) -> dict[str, float]:
+    """Largest absolute difference of a run's Table I and localization table from the committed ones."""
+    got = pd.read_csv(out / "table1.csv", index_col=0)
+    want = pd.read_csv(ROOT / "tests" / "regression" / "table1.csv", index_col=0)
+    assert list(got.index) == list(want.index) and list(got.columns) == list(want.columns)
+    loc = pd.read_csv(out / "localization.csv")
+    loc = loc[loc["season_pair"] == "all"].set_index("proposals")
+    want_loc = pd.read_csv(ROOT / "tests" / "regression" / "localization.csv").set_index("proposals")
+    cols = ["recall_at_1", "recall_at_5", "median_r", "clean_recall_at_1"]
+    return {"table1": float(np.nanmax(np.abs(got.to_numpy() - want.to_numpy()))),
+            "localization": float(np.abs(loc.loc[want_loc.index, cols].to_numpy() - want_loc[cols].to_numpy()).max())}
+
+
 def test_regression_table_matches_the_committed_one(run: tuple) -> None:
     _, _, out = run
     got = pd.read_csv(out / "table1.csv", index_col=0)
     want = pd.read_csv(ROOT / "tests" / "regression" / "table1.csv", index_col=0)
-    assert list(got.index) == list(want.index) and list(got.columns) == list(want.columns)
-    np.testing.assert_allclose(got.to_numpy(), want.to_numpy(), atol=TOLERANCE)
+    assert np.array_equal(np.isnan(got.to_numpy()), np.isnan(want.to_numpy()))
+    diff = regression_diff(out)
+    assert diff["table1"] <= TOLERANCE and diff["localization"] <= TOLERANCE, diff
 
 
-def test_change_is_detectable_on_the_fixture(run: tuple) -> None:
-    """AP well above the positive rate (the AP of a random ranking) for the localization ranks
-    without fusion and for score max. Rank fusion and its <=2/<=3 variants sit at the positive
-    rate here: SPEC's LoC 1/(N * sum 1/r) shrinks with the number of covering boxes, and every
-    positive (a small box inside a change) is covered by N >= 2 boxes while the negatives
-    (SoB >= 0.4) are single grid boxes; see docs/method.md."""
+def test_sample_counts_are_exactly_the_committed_ones(run: tuple) -> None:
+    """Counts depend on proposals, annotations and the closure only, not on floating point: exact."""
     _, _, out = run
     s = pd.read_parquet(out / "splits" / "summary.parquet")
-    main = s[(s["proposals"] == "all") & (s["season_pair"] == "all")].set_index(["method", "roc_max"])
-    for m in ("rank_no_fusion", "score_max"):
-        for r in (0.01, 0.03, 0.05):
-            row = main.loc[(m, r)]
-            assert row["ap"] > row["positive_rate"] + 0.1, (m, r, row["ap"], row["positive_rate"])
+    got = s[(s["table"] == "I") & (s["proposals"] == "all") & (s["season_pair"] == "all") & s["method"].isin(["rank_fusion", "rank_no_fusion"])]
+    want = pd.read_csv(ROOT / "tests" / "regression" / "counts.csv")
+    merged = want.merge(got, on=["method", "roc_max"], suffixes=("", "_got"), how="left")
+    for c in ("positives", "negatives", "left_out", "query_images"):
+        assert (merged[c] == merged[f"{c}_got"]).all(), merged[["method", "roc_max", c, f"{c}_got"]]
+
+
+def test_an_untrained_autoencoder_fails_the_regression(run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The mutant that skips training must be caught: the regression is not blind to the model."""
+    import harness.descriptors.autoencoder_descriptor as ad
+
+    p, _, _ = run
+    monkeypatch.setattr(ad, "train", lambda *a, **k: [])
+    Pipeline(p.cfg, tmp_path / "mutant").run()
+    diff = regression_diff(tmp_path / "mutant")
+    assert max(diff.values()) > 5 * TOLERANCE, diff
+
+
+def test_the_papers_orderings_show_on_the_fixture(run: tuple) -> None:
+    """Under the paper's splits: rank fusion above rank w/o fusion, and the ascending variant far
+    below rank fusion (the paper: it "did not work well"); every method above the random baseline
+    by a margin; AP never below the floor of interpolated AP (the positive rate)."""
+    _, _, out = run
+    s = pd.read_parquet(out / "splits" / "summary.parquet")
+    main = s[(s["table"] == "I") & (s["proposals"] == "all") & (s["season_pair"] == "all")].set_index(["method", "roc_max"])
     for r in (0.01, 0.03, 0.05):
+        ap = {m: main.loc[(m, r), "ap"] for m in ("rank_fusion", "rank_no_fusion", "rank_fusion_asc", "random", "score_max")}
+        assert ap["rank_fusion"] > ap["rank_no_fusion"] + 0.2, (r, ap)
+        assert ap["rank_fusion_asc"] < ap["rank_fusion"] - 0.5, (r, ap)
+        assert ap["score_max"] > ap["random"] + 0.5, (r, ap)
         row = main.loc[("rank_fusion", r)]
-        assert row["ap"] >= row["positive_rate"] - 1e-9  # the floor of interpolated AP
-        assert row["positives"] > 20 and row["negatives"] > 100
+        assert row["ap"] >= row["positive_rate"] - 1e-9
+        assert row["ci_low"] <= row["ap"] <= row["ci_high"]
+
+
+def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> None:
+    """Every cell of Table I from OUT/ranks.parquet and the annotations, with an independent
+    implementation of SPEC sections 7-9 (brute-force closure, the LoC formulas, labels, AP)."""
+    import itertools
+
+    from harness.annotations import load_annotations
+
+    p, _, out = run
+    ranks = pd.read_parquet(out / "ranks.parquet")
+    ann = load_annotations(p.cfg.annotations)
+    frames = pd.read_parquet(next((out / "cache" / "frames").glob("*/frames.parquet")))
+    size = {(r.session, r.camera, int(r.utime)): (r.width, r.height) for r in frames.itertuples()}
+    changes: dict[tuple, list] = {}
+    for r in ann.itertuples():
+        changes.setdefault((r.session, r.camera, int(r.utime)), [])
+        if r.status == "change":
+            changes[(r.session, r.camera, int(r.utime))].append((r.x1, r.y1, r.x2, r.y2))
+
+    def union_area_in(b: tuple, rects: list) -> float:
+        xs = sorted({b[0], b[2], *(v for q in rects for v in (q[0], q[2]) if b[0] < v < b[2])})
+        ys = sorted({b[1], b[3], *(v for q in rects for v in (q[1], q[3]) if b[1] < v < b[3])})
+        area = 0.0
+        for x0, x1 in itertools.pairwise(xs):
+            for y0, y1 in itertools.pairwise(ys):
+                if any(q[0] <= x0 and x1 <= q[2] and q[1] <= y0 and y1 <= q[3] for q in rects):
+                    area += (x1 - x0) * (y1 - y0)
+        return area
+
+    samples = {m: [] for m in ("rank_fusion", "rank_no_fusion", "score_sum", "rank_fusion_asc", "cover_count")}
+    for key, g in ranks.groupby(["q_session", "q_camera", "q_utime", "r_session"]):
+        qk = (key[0], key[1], int(key[2]))
+        if qk not in changes:
+            continue
+        w, h = size[qk]
+        orig = [(tuple(b), rank, L, d) for b, rank, L, d in zip(g[["x1", "y1", "x2", "y2"]].itertuples(index=False, name=None),
+                                                                  g["rank"], g["L"], g["d"], strict=True)]
+        closure = {o[0] for o in orig}
+        while True:
+            new = {(max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3])) for a in closure for b in closure}
+            new = {b for b in new if b[2] > b[0] and b[3] > b[1]} - closure
+            if not new:
+                break
+            closure |= new
+
+        def roc_sob(b: tuple, qk: tuple = qk, w: float = w, h: float = h) -> tuple[float, float]:
+            a = (b[2] - b[0]) * (b[3] - b[1])
+            return union_area_in(b, changes[qk]) / a, a / (w * h)
+
+        for b in closure:
+            cov = [o for o in orig if o[0][0] <= b[0] and o[0][1] <= b[1] and o[0][2] >= b[2] and o[0][3] >= b[3]]
+            n = len(cov)
+            rc, sb = roc_sob(b)
+            samples["rank_fusion"].append((rc, sb, n * sum(L / (L + 1 - rank) for _, rank, L, _ in cov)))
+            samples["rank_fusion_asc"].append((rc, sb, 1 / (n * sum(L / rank for _, rank, L, _ in cov))))
+            samples["score_sum"].append((rc, sb, sum(d for *_, d in cov)))
+            samples["cover_count"].append((rc, sb, float(n)))
+        for b, rank, L, _ in orig:
+            samples["rank_no_fusion"].append((*roc_sob(b), rank / L))
+
+    def ap101(labels: list, scores: list) -> float:
+        pts = []
+        for t in sorted(set(scores), reverse=True):
+            sel = [y for y, s in zip(labels, scores, strict=True) if s >= t]
+            pts.append((sum(sel) / sum(labels), sum(sel) / len(sel)))
+        return sum(max([p for rec, p in pts if rec >= R - 1e-12], default=0.0) for R in [i / 100 for i in range(101)]) / 101
+
+    table = pd.read_csv(out / "table1.csv", index_col=0)
+    for m, rows in samples.items():
+        for rmax in (0.01, 0.03, 0.05):
+            lab = [(1 if 0.9 <= rc <= 1 and sb <= 0.4 else 0) for rc, sb, _ in rows if (0.9 <= rc <= 1 and sb <= 0.4) or (rc <= rmax and 0.4 <= sb <= 1)]
+            sc = [v for rc, sb, v in rows if (0.9 <= rc <= 1 and sb <= 0.4) or (rc <= rmax and 0.4 <= sb <= 1)]
+            assert round(ap101(lab, sc), 2) == pytest.approx(table.loc[m, f"{rmax:.2f}"], abs=1e-9), (m, rmax)
 
 
 def test_changed_subimages_rank_worse_than_unchanged(run: tuple) -> None:
@@ -85,7 +202,7 @@ def test_rerun_does_no_work_and_gives_the_same_bytes(run: tuple) -> None:
 
 def test_changing_one_option_reruns_only_what_depends_on_it(run: tuple, tmp_path: Path) -> None:
     p, _, out = run
-    shutil.copytree(out / "cache", tmp_path / "cache")
+    _copy_cache(out, tmp_path)
     cfg = dataclasses.replace(p.cfg, fusion=dataclasses.replace(p.cfg.fusion, seed=5))
     q = Pipeline(cfg, tmp_path)
     q.run()
@@ -96,7 +213,7 @@ def test_changing_one_option_reruns_only_what_depends_on_it(run: tuple, tmp_path
 def test_encoding_options_never_retrain_the_autoencoder(run: tuple, tmp_path: Path) -> None:
     """encode_batch and dtype change how descriptors are computed and stored, not the model."""
     p, _, out = run
-    shutil.copytree(out / "cache", tmp_path / "cache")
+    _copy_cache(out, tmp_path)
     cfg = dataclasses.replace(p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, encode_batch=5, dtype="float32", num_workers=1))
     q = Pipeline(cfg, tmp_path)
     q.run()
@@ -107,7 +224,7 @@ def test_encoding_options_never_retrain_the_autoencoder(run: tuple, tmp_path: Pa
 def test_interrupted_run_resumes(run: tuple, tmp_path: Path) -> None:
     p, _, out = run
     cache = tmp_path / "out"
-    shutil.copytree(out / "cache", cache / "cache")
+    _copy_cache(out, cache)
     # lose the last stages, as if the run died after the descriptors
     for stage in ("ranks", "samples"):
         shutil.rmtree(cache / "cache" / stage)
@@ -126,7 +243,7 @@ def test_same_config_and_seed_same_table_in_a_fresh_directory(run: tuple, tmp_pa
 
 def test_faiss_engine_reports_its_recall_against_exact(run: tuple, tmp_path: Path) -> None:
     p, _, out = run
-    shutil.copytree(out / "cache", tmp_path / "cache")
+    _copy_cache(out, tmp_path)
     cfg = dataclasses.replace(p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, engine="faiss"))
     rec = Pipeline(cfg, tmp_path).run()
     counts = rec["counts"]["rank_counts"]
@@ -139,7 +256,7 @@ def test_faiss_engine_reports_its_recall_against_exact(run: tuple, tmp_path: Pat
 
 def test_descriptor_extraction_resumes_at_the_next_shard(run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     p, _, out = run
-    shutil.copytree(out / "cache", tmp_path / "cache")
+    _copy_cache(out, tmp_path)
     for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
         shutil.rmtree(tmp_path / "cache" / stage)
     cfg = dataclasses.replace(p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, shard_frames=16))

@@ -41,7 +41,7 @@ def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: 
 
     cfg = dataclasses.replace(p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, query_frames_per_shard=10))
     chunked = Pipeline(cfg, tmp_path / "chunked", executor=executor)
-    shutil.copytree(out / "cache", tmp_path / "chunked" / "cache")
+    shutil.copytree(out / "cache", tmp_path / "chunked" / "cache", dirs_exist_ok=True)
     shutil.rmtree(tmp_path / "chunked" / "cache" / "ranks")
     chunked.run()
     assert chunked.ran["ranks"] > 4
@@ -57,6 +57,7 @@ def test_a_worker_that_dies_mid_shard_is_retried(local_run: tuple, executor: obj
 
     p, _, out = local_run
     shutil.copytree(out / "cache", tmp_path / "cache")
+    shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
     for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
         shutil.rmtree(tmp_path / "cache" / stage)
     marker = tmp_path / "killed-once"
@@ -77,3 +78,22 @@ def test_without_ray_the_error_says_how_to_install(monkeypatch: pytest.MonkeyPat
     monkeypatch.setitem(sys.modules, "ray", None)
     with pytest.raises(ConfigError, match=r"pip install 'dbl-harness\[ray\]'"):
         make_executor("ray")
+
+
+def test_the_cli_hands_the_ray_executor_to_the_pipeline(local_run: tuple, executor: object, tmp_path: Path) -> None:
+    """As a user types it: --executor ray --ray-cpus 2 runs the units on Ray and run.json says so."""
+    import json
+
+    from harness.cli import main
+
+    from .conftest import ROOT
+
+    p, _, out = local_run
+    args = ["reproduce", "--config", str(ROOT / "datasets" / "fixture.toml"), "--data-root", str(p.cfg.data_root),
+            "--out", str(tmp_path / "o"), "--executor", "ray", "--ray-cpus", "2"]
+    assert main(args) == 0
+    rec = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert rec["executor"]["name"] == "ray" and rec["executor"]["workers"] >= 1
+    assert (tmp_path / "o" / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
+    local = json.loads((out / "run.json").read_text())
+    assert local["executor"] == {"name": "local", "workers": 1}

@@ -11,14 +11,18 @@ from harness.ranks_import import ranks_from_import
 from harness.retrieval import image_ranks, image_ranks_faiss
 
 
-def brute(q: np.ndarray, db: np.ndarray, frame: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+def brute(q: np.ndarray, db: np.ndarray, frame: np.ndarray, gt: np.ndarray, place: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """SPEC section 6 as a loop: d = min over the place, rank = 1 + frames outside it strictly closer, L = 1 + frames outside."""
     frames = np.unique(frame)
-    rank, dist = [], []
-    for qi, g in zip(q, gt, strict=True):
-        fm = {f: np.sqrt(((db[frame == f] - qi) ** 2).sum(1)).min() for f in frames}
-        rank.append(1 + sum(1 for f in frames if f != g and fm[f] < fm[g]))
-        dist.append(fm[g])
-    return np.array(rank), len(frames), np.array(dist)
+    rank, dist, Ls = [], [], []
+    for i, (qi, g) in enumerate(zip(q, gt, strict=True)):
+        members = {int(g)} | ({int(f) for f in place[i] if f in frames} if place is not None else set())
+        fm = {f: np.sqrt(((db[frame == f].astype(np.float64) - qi) ** 2).sum(1)).min() for f in frames}
+        dq = min(fm[f] for f in members)
+        rank.append(1 + sum(1 for f in frames if f not in members and fm[f] < dq))
+        dist.append(dq)
+        Ls.append(1 + sum(1 for f in frames if f not in members))
+    return np.array(rank), np.array(Ls), np.array(dist)
 
 
 @pytest.mark.parametrize(("chunk", "batch"), [(8192, 1024), (7, 3), (1, 1)])
@@ -30,8 +34,76 @@ def test_matches_brute_force_with_several_subimages_per_frame(chunk: int, batch:
     gt = rng.choice(np.unique(frame), 25)
     r, L, d = image_ranks(q, db, frame, gt, chunk_rows=chunk, query_batch=batch)
     br, bl, bd = brute(q, db, frame, gt)
-    assert bl == L and np.array_equal(r, br)
+    assert np.array_equal(bl, L) and np.array_equal(r, br)
     np.testing.assert_allclose(d, bd, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize(("chunk", "batch"), [(8192, 1024), (7, 3)])
+def test_place_matches_brute_force(chunk: int, batch: int) -> None:
+    rng = np.random.default_rng(2)
+    db = rng.normal(size=(300, 6)).astype(np.float32)
+    frame = rng.integers(100, 140, 300)
+    q = rng.normal(size=(25, 6)).astype(np.float32)
+    gt = rng.choice(np.unique(frame), 25)
+    # places of 1-4 frames around G, some ids with no database row (ignored)
+    place = [np.array(sorted({int(g), *rng.integers(95, 145, rng.integers(0, 4)).tolist()})) for g in gt]
+    r, L, d = image_ranks(q, db, frame, gt, place, chunk_rows=chunk, query_batch=batch)
+    br, bl, bd = brute(q, db, frame, gt, place)
+    assert np.array_equal(r, br) and np.array_equal(L, bl)
+    np.testing.assert_allclose(d, bd, rtol=1e-6, atol=1e-6)
+    assert (len(np.unique(frame)) >= L).all() and (len(np.unique(frame)) > L).any()
+
+
+def test_place_by_hand() -> None:
+    # frames 1..5 on a line, one subimage each; G = 3, place {2, 3}; q is nearest to frame 2, then 1, 4
+    db = np.array([[1.0], [2.0], [3.0], [4.0], [5.0]], np.float32)
+    frame = np.array([1, 2, 3, 4, 5])
+    q = np.array([[1.9]], np.float32)
+    r, L, d = image_ranks(q, db, frame, np.array([3]))  # the single frame: frames 2 (0.1), 1 (0.9) are closer than 3 (1.1)
+    assert r.tolist() == [3] and L.tolist() == [5] and d[0] == pytest.approx(1.1, abs=1e-6)
+    r, L, d = image_ranks(q, db, frame, np.array([3]), [np.array([2, 3])])  # the place {2, 3}: d = 0.1, nothing outside closer
+    assert r.tolist() == [1] and L.tolist() == [4] and d[0] == pytest.approx(0.1, abs=1e-6)
+    r, L, d = image_ranks(q, db, frame, np.array([3]), [np.array([3, 4])])  # place {3, 4}: d = 1.1; frames 2, 1 closer
+    assert r.tolist() == [3] and L.tolist() == [4]
+
+
+def test_radius_zero_reproduces_the_single_frame_rank() -> None:
+    """gt_radius_m = 0: places of G alone give exactly the ranks without a place (the earlier engine)."""
+    import pandas as pd
+
+    from harness.pairs import ground_truth_places
+
+    rng = np.random.default_rng(3)
+    db = rng.normal(size=(200, 5)).astype(np.float32)
+    frame = rng.integers(0, 30, 200) * 1000
+    q = rng.normal(size=(20, 5)).astype(np.float32)
+    gt = rng.choice(np.unique(frame), 20)
+    ref = pd.DataFrame({"utime": np.unique(frame), "x": np.arange(len(np.unique(frame))) * 0.5, "y": 0.0, "yaw": 0.0})
+    places = ground_truth_places(ref, gt, 0.0, 45.0)
+    r0, L0, d0 = image_ranks(q, db, frame, gt)
+    r1, L1, d1 = image_ranks(q, db, frame, gt, [places[int(g)] for g in gt])
+    assert np.array_equal(r0, r1) and np.array_equal(L0, L1) and np.array_equal(d0, d1)
+    # frames 0.5 m apart: a 1.2 m radius holds G and two neighbours on each side (fewer at the ends)
+    wide = ground_truth_places(ref, gt, 1.2, 45.0)
+    assert all(len(wide[int(g)]) in (3, 4, 5) for g in gt)
+
+
+def test_places_respect_the_heading_gate() -> None:
+    import pandas as pd
+
+    from harness.pairs import ground_truth_places
+
+    ref = pd.DataFrame({"utime": [1, 2, 3, 4], "x": [0.0, 0.5, 1.0, 0.2], "y": 0.0, "yaw": [0.0, 0.1, 0.0, np.pi]})
+    assert ground_truth_places(ref, np.array([1]), 2.0, 45.0)[1].tolist() == [1, 2, 3]  # frame 4 faces the other way
+
+
+def test_d_is_exact_for_a_query_equal_to_a_database_row() -> None:
+    rng = np.random.default_rng(4)
+    db = rng.normal(size=(50, 4096)).astype(np.float32) * 10
+    frame = np.repeat(np.arange(10), 5)
+    q = db[[7, 23]].copy()
+    _, _, d = image_ranks(q, db, frame, np.array([1, 4]))
+    assert d.tolist() == [0.0, 0.0]
 
 
 def test_ties_count_in_the_query_s_favour() -> None:
@@ -39,7 +111,7 @@ def test_ties_count_in_the_query_s_favour() -> None:
     frame = np.array([1, 2, 3, 4])
     q = np.array([[1, 0], [0, 1]], np.float32)
     r, L, d = image_ranks(q, db, frame, np.array([2, 1]))
-    assert L == 4
+    assert L.tolist() == [4, 4]
     assert r.tolist() == [1, 2]  # tie with frames 1 and 4 -> rank 1; frame 3 is strictly closer for q2
     assert d[0] == 0.0
 
@@ -84,3 +156,26 @@ def test_imported_lists() -> None:
         ranks_from_import(_imp([10, 20], 2), PAIRS, "x")
     with pytest.raises(RetrievalError, match="repeats a frame"):
         ranks_from_import(_imp([10, 10, 30], 9), PAIRS, "x")
+
+
+REF_FRAMES = pd.DataFrame({"session": "B", "camera": "c", "utime": [10, 20, 30, 40, 50], "x": [0.0, 5.0, 10.0, 11.0, 20.0], "y": 0.0, "yaw": 0.0})
+
+
+def test_imported_lists_are_scored_against_the_place() -> None:
+    # G = 30 at x = 10; frame 40 at x = 11 belongs to its place (radius 2 m), the others do not
+    df, _ = ranks_from_import(_imp([10, 40, 30, 20, 50], 5, distance=0.7), PAIRS, "x", REF_FRAMES, gt_radius_m=2.0)
+    assert df["rank"][0] == 2 and df["L"][0] == 4 and df["place_size"][0] == 2  # 10 listed before 40; L = 1 + 3 outside
+    assert df["r"][0] == pytest.approx(2 / 4) and df["r_desc"][0] == pytest.approx(3 / 4)
+    df, _ = ranks_from_import(_imp([10, 40, 30, 20, 50], 5), PAIRS, "x", REF_FRAMES, gt_radius_m=0.0)
+    assert df["rank"][0] == 3 and df["L"][0] == 5  # the single frame: 10 and 40 before it
+    # truncated list without the place: 'next' counts only listed frames outside it
+    df, counts = ranks_from_import(_imp([10, 20], 5), PAIRS, "x", REF_FRAMES, gt_radius_m=2.0, missing="next")
+    assert df["rank"][0] == 3 and not df["exact"][0] and counts["gt_missing_from_truncated_list"] == 1
+
+
+def test_imported_ids_that_match_no_frame_are_refused_or_counted() -> None:
+    # nanoseconds for microseconds: no id matches a frame of session B
+    with pytest.raises(RetrievalError, match=r"5 of 5 listed reference ids match no frame.*e\.g\. 10000 in session B"):
+        ranks_from_import(_imp([10000, 20000, 30000, 40000, 50000], 5), PAIRS, "x", REF_FRAMES)
+    df, counts = ranks_from_import(_imp([10, 20, 30, 99], 5), PAIRS, "x", REF_FRAMES)  # one stray id: counted
+    assert counts["unmatched_reference_ids"] == 1 and df["rank"][0] == 3

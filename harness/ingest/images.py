@@ -85,6 +85,22 @@ def compressed_size(data: bytes, where: str) -> tuple[int, int]:
         raise IngestError(f"{where}: cannot read compressed image header: {err}") from None
 
 
+def decode_problem(data: bytes) -> str | None:
+    """Why a JPEG or PNG does not decode in full (truncated body, bad data), or None when it does.
+
+    The header alone (all that ingest reads by default) says nothing about the body; this decodes
+    every pixel, with truncated images treated as errors.
+    """
+    if data.startswith(b"\xff\xd8") and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        return "JPEG body is truncated (no end-of-image marker)"
+    try:
+        with PILImage.open(io.BytesIO(data)) as im:
+            im.load()
+    except (OSError, ValueError, SyntaxError) as err:
+        return f"image does not decode: {err}"
+    return None
+
+
 STORE_FORMATS = {
     # uncompressed TIFF: ~1 ms per 640x480 frame to write, 0.5 ms to read; PNG: 1.5x smaller, ~16x slower
     "tiff": (".tiff", [cv2.IMWRITE_TIFF_COMPRESSION, 1]),

@@ -17,11 +17,32 @@ POSE_TYPES = (
 )
 
 
-def euler_from_quaternion(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:
-    """ZYX Euler angles (roll, pitch, yaw) of a unit quaternion."""
+#: A quaternion whose norm is within this of 1 is normalised (and counted); beyond it, rejected.
+QUAT_TOLERANCE = 1e-3
+
+
+def euler_from_quaternion(x: float, y: float, z: float, w: float, where: str = "quaternion",
+                          stats: dict[str, int] | None = None) -> tuple[float, float, float]:
+    """ZYX Euler angles (roll, pitch, yaw) of a unit quaternion, radians.
+
+    A non-finite quaternion gives NaN angles (the pose is then dropped and counted). A norm
+    within :data:`QUAT_TOLERANCE` of 1 is normalised (counted in ``stats`` as
+    ``quaternion_normalised`` when off by more than 1e-6).
+
+    Raises:
+        IngestError: The norm is further from 1 (e.g. Euler angles stored in quaternion fields);
+            ``where`` names the file and message.
+    """
+    if not all(math.isfinite(v) for v in (x, y, z, w)):
+        return math.nan, math.nan, math.nan
     n = math.sqrt(x * x + y * y + z * z + w * w)
-    if n == 0:
-        raise ValueError("zero quaternion")
+    if abs(n - 1.0) > QUAT_TOLERANCE:
+        raise IngestError(
+            f"{where}: orientation quaternion ({x:.6g}, {y:.6g}, {z:.6g}, {w:.6g}) has norm {n:.6g}, not 1 "
+            f"(tolerance {QUAT_TOLERANCE}); is it Euler angles stored in quaternion fields?"
+        )
+    if stats is not None and abs(n - 1.0) > 1e-6:
+        stats["quaternion_normalised"] = stats.get("quaternion_normalised", 0) + 1
     x, y, z, w = x / n, y / n, z / n, w / n
     roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     sp = max(-1.0, min(1.0, 2 * (w * y - z * x)))
@@ -35,14 +56,15 @@ def stamp_us(header: object) -> int:
     return int(st.sec) * 1_000_000 + int(st.nanosec) // 1000
 
 
-def _pose_row(t: int, pose: object) -> tuple:
+def _pose_row(t: int, pose: object, where: str, stats: dict[str, int] | None) -> tuple:
     p, q = pose.position, pose.orientation  # type: ignore[attr-defined]
-    r, pi, y = euler_from_quaternion(q.x, q.y, q.z, q.w)
+    r, pi, y = euler_from_quaternion(q.x, q.y, q.z, q.w, where, stats)
     return (t, float(p.x), float(p.y), float(p.z), r, pi, y)
 
 
-def pose_rows(msg: object, msgtype: str, log_us: int, time_source: str, tf_child: str | None) -> list[tuple]:
-    """Pose rows ``(utime, x, y, z, roll, pitch, yaw)`` carried by one message."""
+def pose_rows(msg: object, msgtype: str, log_us: int, time_source: str, tf_child: str | None,
+              where: str = "pose message", stats: dict[str, int] | None = None) -> list[tuple]:
+    """Pose rows ``(utime, x, y, z, roll, pitch, yaw)`` carried by one message (metres, radians, µs)."""
     if msgtype == "tf2_msgs/msg/TFMessage":
         out = []
         for tr in msg.transforms:  # type: ignore[attr-defined]
@@ -50,13 +72,13 @@ def pose_rows(msg: object, msgtype: str, log_us: int, time_source: str, tf_child
                 continue
             t = stamp_us(tr.header) if time_source == "header" else log_us
             tl, q = tr.transform.translation, tr.transform.rotation
-            r, pi, y = euler_from_quaternion(q.x, q.y, q.z, q.w)
+            r, pi, y = euler_from_quaternion(q.x, q.y, q.z, q.w, f"{where} ({tr.child_frame_id})", stats)
             out.append((t, float(tl.x), float(tl.y), float(tl.z), r, pi, y))
         return out
     t = stamp_us(msg.header) if time_source == "header" else log_us  # type: ignore[attr-defined]
     if msgtype == "geometry_msgs/msg/PoseStamped":
-        return [_pose_row(t, msg.pose)]  # type: ignore[attr-defined]
-    return [_pose_row(t, msg.pose.pose)]  # type: ignore[attr-defined]  # Odometry, PoseWithCovarianceStamped
+        return [_pose_row(t, msg.pose, where, stats)]  # type: ignore[attr-defined]
+    return [_pose_row(t, msg.pose.pose, where, stats)]  # type: ignore[attr-defined]  # Odometry, PoseWithCovarianceStamped
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -114,13 +136,19 @@ def interpolate(pose_t: np.ndarray, pose_v: np.ndarray, img_t: np.ndarray, max_g
     return InterpResult(out, keep, dropped)
 
 
-def check_monotonic(t: np.ndarray, where: str, what: str) -> None:
-    """Raise if time stamps go backwards (equal stamps are allowed here and handled by the caller)."""
+def check_monotonic(t: np.ndarray, where: str, what: str, numbers: np.ndarray | None = None, unit: str = "message") -> None:
+    """Raise if time stamps go backwards (equal stamps are allowed here and handled by the caller).
+
+    Args:
+        numbers: the 1-based message or line number of each stamp (default 1..n), named in the error.
+        unit: what ``numbers`` count (``message``, ``line``).
+    """
     if len(t) > 1:
         back = np.nonzero(np.diff(t) < 0)[0]
         if len(back):
             i = int(back[0])
+            num = np.arange(1, len(t) + 1) if numbers is None else np.asarray(numbers)
             raise IngestError(
-                f"{where}: {what} time stamps are not monotonic: message {i + 1} at utime {int(t[i + 1])} "
-                f"comes after {int(t[i])} ({len(back)} backward step(s) in all)"
+                f"{where}: {what} time stamps are not monotonic: {unit} {int(num[i + 1])} at utime {int(t[i + 1])} "
+                f"comes after {unit} {int(num[i])} at utime {int(t[i])} ({len(back)} backward step(s) in all)"
             )

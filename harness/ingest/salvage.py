@@ -1,0 +1,178 @@
+"""Sequential readers for damaged logs (``--salvage``): keep every message before the damage.
+
+rosbags' readers need a ROS1 bag's index (written at the end, so a truncated bag has none) and a
+ROS2 bag's intact database. These readers walk the file from its start instead:
+
+- ROS1: record by record (bag header, connections, chunks with ``none``, ``bz2`` or ``lz4``
+  compression, messages), stopping at the first damaged record or chunk;
+- ROS2 sqlite3: the ``messages`` table row by row in insertion order, until sqlite reports the
+  damage; ROS2 with MCAP storage: the MCAP stream reader.
+"""
+
+from __future__ import annotations
+
+import bz2
+import sqlite3
+import struct
+from collections.abc import Iterator
+from pathlib import Path
+
+from rosbags.typesys import Stores, get_typestore
+
+from ..errors import CorruptLogError, IngestError
+
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+OP_MSG, OP_CONN, OP_CHUNK = 0x02, 0x07, 0x05
+
+
+class _Damaged(Exception):
+    pass
+
+
+def _fields(buf: bytes) -> dict[str, bytes]:
+    out, i = {}, 0
+    while i < len(buf):
+        if i + 4 > len(buf):
+            raise _Damaged("header field length cut short")
+        (n,) = struct.unpack_from("<I", buf, i)
+        i += 4
+        if i + n > len(buf):
+            raise _Damaged("header field cut short")
+        name, sep, value = buf[i : i + n].partition(b"=")
+        if not sep:
+            raise _Damaged("header field without '='")
+        out[name.decode(errors="replace")] = value
+        i += n
+    return out
+
+
+def _records(buf: bytes, start: int) -> Iterator[tuple[dict[str, bytes], bytes]]:
+    i = start
+    while i < len(buf):
+        if i + 4 > len(buf):
+            raise _Damaged("record header length cut short")
+        (hl,) = struct.unpack_from("<I", buf, i)
+        if i + 4 + hl + 4 > len(buf):
+            raise _Damaged("record header cut short")
+        header = _fields(buf[i + 4 : i + 4 + hl])
+        (dl,) = struct.unpack_from("<I", buf, i + 4 + hl)
+        d0 = i + 8 + hl
+        if d0 + dl > len(buf):
+            raise _Damaged("record data cut short")
+        yield header, buf[d0 : d0 + dl]
+        i = d0 + dl
+
+
+def _decompress(kind: str, data: bytes, size: int) -> bytes:
+    if kind == "none":
+        return data
+    try:
+        if kind == "bz2":
+            out = bz2.decompress(data)
+        elif kind == "lz4":
+            import lz4.frame
+
+            out = lz4.frame.decompress(data)
+        else:
+            raise _Damaged(f"unknown chunk compression {kind!r}")
+    except (OSError, ValueError, RuntimeError, EOFError) as err:
+        raise _Damaged(f"chunk does not decompress: {err}") from None
+    if len(out) != size:
+        raise _Damaged(f"chunk decompresses to {len(out)} bytes, {size} expected")
+    return out
+
+
+def _ros1_type(name: str) -> str:
+    pkg, _, msg = name.partition("/")
+    return f"{pkg}/msg/{msg}"
+
+
+def ros1_messages(path: Path, topics: tuple[str, ...] | None) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, ROS2-style type, log time in ns, raw ROS1 bytes) of every readable message, in file order.
+
+    Raises:
+        CorruptLogError: at the first damaged record, with the count of messages yielded before it.
+    """
+    buf = Path(path).read_bytes()
+    if not buf.startswith(ROS1_MAGIC):
+        raise CorruptLogError(path, 0, "not a ROS1 bag (no '#ROSBAG V2.0' magic)", salvage=True)
+    conns: dict[int, tuple[str, str]] = {}
+    n = 0
+
+    def walk(data: bytes, start: int) -> Iterator[tuple[str, str, int, bytes]]:
+        nonlocal n
+        for header, payload in _records(data, start):
+            op = header.get("op", b"\xff")[0]
+            if op == OP_CHUNK:
+                size = struct.unpack("<I", header["size"])[0]
+                yield from walk(_decompress(header["compression"].decode(), payload, size), 0)
+            elif op == OP_CONN:
+                cid = struct.unpack("<I", header["conn"])[0]
+                info = _fields(payload)
+                conns[cid] = (header["topic"].decode(), _ros1_type(info["type"].decode()))
+            elif op == OP_MSG:
+                cid = struct.unpack("<I", header["conn"])[0]
+                sec, nsec = struct.unpack("<II", header["time"])
+                if cid in conns and (topics is None or conns[cid][0] in topics):
+                    n += 1
+                    yield conns[cid][0], conns[cid][1], sec * 1_000_000_000 + nsec, payload
+
+    try:
+        yield from walk(buf, len(ROS1_MAGIC))
+    except (_Damaged, KeyError, struct.error, IndexError) as err:
+        raise CorruptLogError(path, n, f"{type(err).__name__}: {err}", salvage=True) from None
+
+
+def ros1_topics(path: Path) -> dict[str, tuple[str, int]]:
+    """Topic -> (type, readable messages) of a damaged ROS1 bag, read sequentially."""
+    counts: dict[str, tuple[str, int]] = {}
+    try:
+        for topic, typ, _, _ in ros1_messages(path, None):
+            counts[topic] = (typ, counts.get(topic, (typ, 0))[1] + 1)
+    except CorruptLogError:
+        pass
+    return counts
+
+
+def _ros2_db(path: Path) -> Path:
+    dbs = sorted(Path(path).glob("*.db3"))
+    if not dbs:
+        raise IngestError(f"{path}: --salvage reads sqlite3 ROS2 bags and MCAP storage; no .db3 file found")
+    return dbs[0]
+
+
+def ros2_sqlite_messages(path: Path, topics: tuple[str, ...] | None) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, type, time in ns, raw CDR) of every readable row of a damaged ROS2 sqlite3 bag, in insertion order."""
+    db = _ros2_db(path)
+    n = 0
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        try:
+            types = {int(i): (str(name), str(typ)) for i, name, typ in con.execute("SELECT id, name, type FROM topics")}
+            for tid, t, data in con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id"):
+                topic, typ = types.get(int(tid), ("", ""))
+                if topics is None or topic in topics:
+                    n += 1
+                    yield topic, typ, int(t), bytes(data)
+        finally:
+            con.close()
+    except sqlite3.DatabaseError as err:
+        raise CorruptLogError(path, n, f"sqlite3: {err}", salvage=True) from None
+
+
+def ros2_sqlite_topics(path: Path) -> dict[str, tuple[str, int]]:
+    db = _ros2_db(path)
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        try:
+            return {str(name): (str(typ), 0) for name, typ in con.execute("SELECT name, type FROM topics")}
+        finally:
+            con.close()
+    except sqlite3.DatabaseError:
+        return {}
+
+
+def deserializer(fmt: str):
+    """A function (raw bytes, type) -> message for ROS1 or CDR payloads."""
+    store = get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
+    return store.deserialize_ros1 if fmt == "ros1" else store.deserialize_cdr
