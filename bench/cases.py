@@ -72,7 +72,7 @@ def case_ingest(quick: bool) -> None:
             des = timed(lambda s=src, k=kind, t=topics: [None for _ in stream(s, k, t)])
             extra["deserialize_mb_s"] = round(statistics.median([nbytes / 1e6 / t for t in des]), 1)
         tmp = Path(tempfile.mkdtemp())
-        ing = timed(lambda s=src, t=tmp: ingest_session(SessionConfig(name="2012-01-22", source=str(s)), IngestConfig(), t / "o"))
+        ing = timed(lambda s=src, t=tmp: ingest_session(SessionConfig(name="2012-01-22", source=str(s)), IngestConfig(), t / "o", force=True))
         shutil.rmtree(tmp)
         mb = nbytes / 1e6
         emit(f"ingest[{fmt}]", [mb / t for t in ing], "MB/s", raw_read_mb_s=round(statistics.median([mb / t for t in raw]), 1), **extra,

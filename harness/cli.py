@@ -77,9 +77,12 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         raise HarnessError("ingest needs SOURCE and --session NAME, or --config FILE")
     if args.max_pose_gap <= 0:
         raise HarnessError(f"--max-pose-gap {args.max_pose_gap}: must be > 0 seconds")
+    if args.max_tf_gap <= 0:
+        raise HarnessError(f"--max-tf-gap {args.max_tf_gap}: must be > 0 seconds")
     sc = SessionConfig(name=args.session, source=str(Path(args.source).resolve()), camera=args.camera,
-                       image_topic=args.image_topic, pose_topic=args.pose_topic, tf_child_frame=args.tf_child_frame)
-    ic = IngestConfig(max_pose_gap_s=args.max_pose_gap, time_source=args.time_source, salvage=args.salvage,
+                       image_topic=args.image_topic, pose_topic=args.pose_topic, tf_child_frame=args.tf_child_frame,
+                       fixed_frame=args.fixed_frame, camera_frame=args.camera_frame)
+    ic = IngestConfig(max_pose_gap_s=args.max_pose_gap, max_tf_gap_s=args.max_tf_gap, time_source=args.time_source, salvage=args.salvage,
                       verify_images=args.verify_images)
     rep = ingest_session(sc, ic, Path(args.out), force=args.force)
     print(f"{rep['frames_written']} frames -> {Path(args.out) / 'frames.parquet'}; report: {Path(args.out) / 'ingest_report.json'}")
@@ -233,6 +236,54 @@ def cmd_annotations(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_inspect(args: argparse.Namespace) -> int:
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from .inspect import inspect_log
+
+    info = inspect_log(Path(args.log))
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+        return 0
+    console = Console(width=max(Console().width, 110))
+    console.print(f"[bold]{info['path']}[/] ({info['format']})")
+    if info["format"] == "nclt":
+        t = Table(title="NCLT sessions")
+        for c in ("session", "cameras (images)", "ground-truth rows"):
+            t.add_column(c)
+        for s in info["sessions"]:
+            t.add_row(s["session"], ", ".join(f"{k} ({v})" for k, v in s["cameras"].items()), str(s["ground_truth_rows"]))
+        console.print(t)
+    else:
+        t = Table(title="Topics")
+        for c, j in (("topic", "left"), ("type", "left"), ("messages", "right"), ("rate Hz", "right"), ("span s", "right"), ("first s", "right")):
+            t.add_column(c, justify=j)  # type: ignore[arg-type]
+        for r in info["topics"]:
+            t.add_row(r["topic"], r["type"], str(r["messages"]), f"{r['rate_hz']:.2f}", f"{r['span_s']:.2f}",
+                      "" if r["first_s"] is None else f"{r['first_s']:.3f}")
+        console.print(t)
+        if info["images"]:
+            t = Table(title="Images")
+            for c in ("topic", "encoding", "size", "frame_id"):
+                t.add_column(c)
+            for topic, im in info["images"].items():
+                t.add_row(topic, im["encoding"], f"{im['width']}x{im['height']}", im["frame_id"])
+            console.print(t)
+        if info["tf"]:
+            t = Table(title=f"tf tree (roots: {', '.join(info['tf_roots'])})")
+            for c in ("parent", "child", "kind", "transforms", "rate Hz"):
+                t.add_column(c)
+            for e in info["tf"]:
+                t.add_row(e["parent"], e["child"], "static" if e["static"] else "dynamic", str(e["transforms"]), f"{e['rate_hz']:.2f}")
+            console.print(t)
+    console.print("Config lines that would ingest it:", style="bold")
+    print(info["suggested_config"])
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="harness", description="Detection-by-Localization benchmark harness")
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -261,7 +312,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default="Cam5")
     p.add_argument("--image-topic")
     p.add_argument("--pose-topic")
-    p.add_argument("--tf-child-frame")
+    p.add_argument("--tf-child-frame", help="older name of --camera-frame")
+    p.add_argument("--fixed-frame", help="/tf: the frame poses are expressed in (default: the tree's root)")
+    p.add_argument("--camera-frame", help="/tf: the camera's frame (default: the images' header.frame_id)")
+    p.add_argument("--max-tf-gap", type=float, default=1.0, help="seconds, for /tf transforms slower than --max-pose-gap")
     p.add_argument("--time-source", choices=["header", "log"], default="header")
     p.add_argument("--max-pose-gap", type=float, default=0.1, help="seconds")
     p.add_argument("--salvage", action="store_true", help="keep the frames read before a damaged part of a log")
@@ -283,6 +337,11 @@ def build_parser() -> argparse.ArgumentParser:
         if name in ("rank", "reproduce"):
             p.add_argument("--import", dest="rank_import", help="ranked lists from an external localizer (see docs)")
         p.set_defaults(func=func)
+
+    p = sub.add_parser("inspect", help="what is in a log: topics, rates, images, the tf tree, and config lines to ingest it")
+    p.add_argument("log", help="an NCLT root, a .bag, a ROS2 bag directory or an .mcap")
+    p.add_argument("--json", action="store_true", help="print the description as JSON")
+    p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("annotations", help="import annotations from labelling tools, or export a labelling task")
     asub = p.add_subparsers(dest="action", required=True)

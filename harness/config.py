@@ -53,12 +53,15 @@ class SessionConfig:
     camera: str = "Cam5"
     image_topic: str | None = None
     pose_topic: str | None = None
-    tf_child_frame: str | None = None
+    tf_child_frame: str | None = None  # older name of camera_frame: the frame whose pose /tf gives
+    fixed_frame: str | None = None  # /tf: the frame poses are expressed in (default: the tree's root)
+    camera_frame: str | None = None  # /tf: the camera's frame (default: the images' header.frame_id)
 
 
 @dataclass(frozen=True)
 class IngestConfig:
-    max_pose_gap_s: float = 0.1
+    max_pose_gap_s: float = 0.1  # pose topics and fast /tf transforms: a sample at most this before and after an image
+    max_tf_gap_s: float = 1.0  # /tf transforms published more slowly than max_pose_gap_s (map -> odom at 1-10 Hz)
     time_source: str = "header"  # header stamp of the image message, or "log" (bag receive time)
     nclt_rotation: str = "cw"  # how NCLT's stored images are turned upright: cw, ccw, none
     salvage: bool = False  # keep the messages read before a truncated or corrupt part
@@ -375,6 +378,7 @@ def validate(cfg: Config, where: str) -> None:
     c(pa.stride_m >= 0, where, "[pairs] stride_m", pa.stride_m, ">= 0 metres")
     c(pa.queries in ("annotated", "all"), where, "[pairs] queries", pa.queries, "'annotated' or 'all'")
     c(ig.max_pose_gap_s > 0, where, "[ingest] max_pose_gap_s", ig.max_pose_gap_s, "> 0 seconds")
+    c(ig.max_tf_gap_s > 0, where, "[ingest] max_tf_gap_s", ig.max_tf_gap_s, "> 0 seconds")
     c(ig.time_source in ("header", "log"), where, "[ingest] time_source", ig.time_source, "'header' or 'log'")
     c(ig.store_format in ("tiff", "png"), where, "[ingest] store_format", ig.store_format, "'tiff' or 'png'")
     c(ig.nclt_rotation in ("cw", "ccw", "none"), where, "[ingest] nclt_rotation", ig.nclt_rotation, "cw, ccw or none")

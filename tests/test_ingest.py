@@ -53,7 +53,7 @@ def test_round_trip_poses_and_pixels(small_world: Path, tmp_path: Path, fmt: str
 
 def test_all_formats_give_the_same_frame_table(small_world: Path, tmp_path: Path) -> None:
     session = SMALL.sessions[1][0]
-    tables = [_ingest(small_world, f, session, tmp_path / f).drop(columns=["image"]) for f in FORMATS]
+    tables = [_ingest(small_world, f, session, tmp_path / f).drop(columns=["image", "pose_frame", "pose_of"]) for f in FORMATS]
     for t in tables[1:]:
         pd.testing.assert_frame_equal(tables[0], t, check_exact=False, atol=1e-9, rtol=0)
 
@@ -333,11 +333,15 @@ def test_tf_with_several_children_needs_a_choice(tmp_path: Path) -> None:
         img = W.image_msg(ROS2, 1_100_000, np.zeros((4, 4, 3), np.uint8), "rgb8")
         w.add_message(ids["/camera/image_raw"], 1_100_000_000, bytes(ROS2.serialize_cdr(img, "sensor_msgs/msg/Image")), 1_100_000_000)
         w.finish()
-    with pytest.raises(IngestError, match=r"several child frames \['base_link', 'camera'\]"):
-        ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")
-    ingest_session(SessionConfig(name="s", source=str(path), tf_child_frame="base_link"), IngestConfig(), tmp_path / "o")
+    # the images' header.frame_id ("camera") is in the tree: its pose is taken, no flag needed
+    ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")
     df = load_frames(tmp_path / "o" / "frames.parquet")
-    assert df["x"][0] == pytest.approx(2.0)
+    assert df["x"][0] == pytest.approx(2.0) and df["pose_frame"][0] == "map" and df["pose_of"][0] == "camera"
+    # tf_child_frame (the older name of camera_frame) picks another frame of the tree
+    ingest_session(SessionConfig(name="s", source=str(path), tf_child_frame="base_link"), IngestConfig(), tmp_path / "o2")
+    assert load_frames(tmp_path / "o2" / "frames.parquet")["pose_of"][0] == "base_link"
+    with pytest.raises(IngestError, match=r"camera frame 'lidar' \(camera_frame\) is not in the /tf tree; frames: \['base_link', 'camera', 'map'\]"):
+        ingest_session(SessionConfig(name="s", source=str(path), camera_frame="lidar"), IngestConfig(), tmp_path / "o3")
 
 
 def test_unknown_format_is_rejected(tmp_path: Path) -> None:

@@ -19,12 +19,14 @@ from ..outdirs import check_replaceable, write_marker
 from ..records import FRAME_COLUMNS, FRAME_SCHEMA
 from .images import compressed_kind, compressed_size, decode_problem, raw_to_array, write_raw
 from .logs import choose_topics, detect_format, list_topics, stream, uri_safe_path
-from .poses import check_monotonic, interpolate, pose_rows, stamp_us
+from .poses import POSE_TYPES, check_monotonic, euler_from_quaternion, interpolate, pose_rows, stamp_us
+from .tf import TfTree
 
 log = logging.getLogger(__name__)
 
 
-def _frames_table(session: str, camera: str, img_t: np.ndarray, poses: np.ndarray, uris: list[str], sizes: np.ndarray) -> pd.DataFrame:
+def _frames_table(session: str, camera: str, img_t: np.ndarray, poses: np.ndarray, uris: list[str], sizes: np.ndarray,
+                  pose_frame: str = "", pose_of: str = "") -> pd.DataFrame:
     df = pd.DataFrame(
         {
             "session": session,
@@ -39,6 +41,8 @@ def _frames_table(session: str, camera: str, img_t: np.ndarray, poses: np.ndarra
             "image": uris,
             "width": sizes[:, 0].astype(np.int32),
             "height": sizes[:, 1].astype(np.int32),
+            "pose_frame": pose_frame,
+            "pose_of": pose_of,
         },
         columns=FRAME_COLUMNS,
     )
@@ -60,14 +64,21 @@ def _finish(
     pose_t, pose_v = pose_t[uniq], pose_v[uniq]
     res = interpolate(pose_t, pose_v, img_t, round(ic.max_pose_gap_s * 1e6))
     report["dropped"].update(res.dropped)
-    keep = res.keep
-    df = _frames_table(sc.name, sc.camera, img_t[keep], res.poses, [u for u, k in zip(uris, keep, strict=True) if k], sizes[keep])
-    report["frames_written"] = len(df)
     report["poses_used"] = len(pose_t)
+    return _write_frames(sc, tmp, img_t, uris, sizes, res.poses, res.keep, report)
+
+
+def _write_frames(sc: SessionConfig, tmp: Path, img_t: np.ndarray, uris: list[str], sizes: np.ndarray, poses: np.ndarray,
+                  keep: np.ndarray, report: dict) -> pd.DataFrame:
+    """The frame table of the images kept (``poses``: one row per kept image) and the report."""
+    pf = report.get("pose_frames", {})
+    df = _frames_table(sc.name, sc.camera, img_t[keep], poses, [u for u, k in zip(uris, keep, strict=True) if k], sizes[keep],
+                       pf.get("pose_frame", ""), pf.get("pose_of", ""))
+    report["frames_written"] = len(df)
     if len(img_t) and not len(df):
         raise IngestError(
             f"{sc.source}: none of the {len(img_t)} images got a pose (dropped: {report['dropped']}); "
-            "check the pose topic, the time source and [ingest] max_pose_gap_s"
+            "check the pose topic (or /tf frames), the time source and [ingest] max_pose_gap_s / max_tf_gap_s"
         )
     write_parquet(tmp / "frames.parquet", df, schema=FRAME_SCHEMA)
     write_json(tmp / "ingest_report.json", report)
@@ -85,11 +96,42 @@ def _ingest_log(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, report
             raise CorruptLogError(src, err.messages_read, err.detail.replace(str(readable), str(src)), ic.salvage) from None
 
 
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+def _is_static_tf(topic: str) -> bool:
+    return topic.rstrip("/").split("/")[-1] == "tf_static"
+
+
+def _pose_mode(sc: SessionConfig, topics: dict[str, tuple[str, int]], where: str) -> str:
+    """``tf`` (poses composed through the tf tree) or ``topic`` (one pose topic, as it is)."""
+    tf_topics = [t for t, (typ, _) in topics.items() if typ == TF_TYPE]
+    if sc.pose_topic is not None:
+        if sc.pose_topic in topics and topics[sc.pose_topic][0] == TF_TYPE:
+            return "tf"
+        return "topic"
+    if sc.fixed_frame or sc.camera_frame:
+        if not tf_topics:
+            raise IngestError(f"{where}: fixed_frame / camera_frame are set, but the log has no tf2_msgs/TFMessage topic")
+        return "tf"
+    others = [t for t, (typ, _) in topics.items() if typ in POSE_TYPES and typ != TF_TYPE]
+    return "topic" if others or not tf_topics else "tf"
+
+
 def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, report: dict, src: Path, readable: Path) -> pd.DataFrame:
     """Ingest a ROS log; ``readable`` is ``src`` or a link to it that rosbags can open."""
     topics = list_topics(readable, fmt, salvage=ic.salvage)
-    image_topic, pose_topic = choose_topics(topics, sc.image_topic, sc.pose_topic, str(src))
-    report["topics"] = {"image": image_topic, "pose": pose_topic, "available": {t: v[0] for t, v in sorted(topics.items())}}
+    mode = _pose_mode(sc, topics, str(src))
+    if mode == "tf":
+        no_tf = {t: v for t, v in topics.items() if v[0] != TF_TYPE}
+        image_topic, _ = choose_topics(no_tf | {"__tf__": (TF_TYPE, 0)}, sc.image_topic, "__tf__", str(src))
+        pose_topics = tuple(sorted(t for t, (typ, _) in topics.items() if typ == TF_TYPE))
+    else:
+        no_tf = {t: v for t, v in topics.items() if v[0] != TF_TYPE or t == sc.pose_topic}
+        image_topic, pose_topic = choose_topics(no_tf, sc.image_topic, sc.pose_topic, str(src))
+        pose_topics = (pose_topic,)
+    report["topics"] = {"image": image_topic, "pose": list(pose_topics), "pose_source": mode,
+                        "available": {t: v[0] for t, v in sorted(topics.items())}}
     store = tmp / "images" / sc.camera
     store.mkdir(parents=True)
     read: Counter[str] = Counter()
@@ -97,11 +139,14 @@ def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, r
     uris: list[str] = []
     sizes: list[tuple[int, int]] = []
     seen: set[int] = set()
-    rows_by_child: dict[str | None, list[tuple]] = {}
+    rows: list[tuple] = []
+    tree = TfTree()
+    frame_ids: Counter[str] = Counter()
+    pose_frame: dict[str, str] = {}
     dropped = report["dropped"]
     stats: dict[str, int] = {}
     try:
-        for m in stream(readable, fmt, (image_topic, pose_topic), salvage=ic.salvage):
+        for m in stream(readable, fmt, (image_topic, *pose_topics), salvage=ic.salvage):
             read[m.topic] += 1
             where = f"{src}: {m.topic} message {read[m.topic]}"
             if m.topic == image_topic:
@@ -112,6 +157,7 @@ def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, r
                     dropped["duplicate_image_time"] = dropped.get("duplicate_image_time", 0) + 1
                     continue
                 seen.add(t)
+                frame_ids[str(m.msg.header.frame_id).lstrip("/")] += 1  # type: ignore[attr-defined]
                 if m.msgtype.endswith("CompressedImage"):
                     kind = compressed_kind(m.msg, where)
                     data = bytes(np.asarray(m.msg.data, dtype=np.uint8))  # type: ignore[attr-defined]
@@ -131,17 +177,24 @@ def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, r
                 img_t.append(t)
                 uris.append(f"images/{sc.camera}/{name}")
                 sizes.append((w, h))
+            elif mode == "tf":
+                static = _is_static_tf(m.topic)
+                for tr in m.msg.transforms:  # type: ignore[attr-defined]
+                    tl, q = tr.transform.translation, tr.transform.rotation
+                    vals = (tl.x, tl.y, tl.z, q.x, q.y, q.z, q.w)
+                    if not all(math.isfinite(v) for v in vals):
+                        dropped["non_finite_pose"] = dropped.get("non_finite_pose", 0) + 1
+                        continue
+                    edge = f"{str(tr.header.frame_id).lstrip('/')}->{str(tr.child_frame_id).lstrip('/')}"
+                    euler_from_quaternion(q.x, q.y, q.z, q.w, f"{where} ({edge})", stats)  # the norm check
+                    t = stamp_us(tr.header) if ic.time_source == "header" else m.log_ns // 1000
+                    tree.add(str(tr.header.frame_id), str(tr.child_frame_id), t, (tl.x, tl.y, tl.z), (q.x, q.y, q.z, q.w), static, where)
             else:
-                tf_child = sc.tf_child_frame
                 num = read[m.topic]
-                if m.msgtype == "tf2_msgs/msg/TFMessage":
-                    for tr in m.msg.transforms:  # type: ignore[attr-defined]
-                        if tf_child in (None, tr.child_frame_id):
-                            rows_by_child.setdefault(tr.child_frame_id, []).extend(
-                                (*r, num) for r in pose_rows(_OneTf(tr), m.msgtype, m.log_ns // 1000, ic.time_source, tf_child, where, stats))
-                else:
-                    rows_by_child.setdefault(None, []).extend(
-                        (*r, num) for r in pose_rows(m.msg, m.msgtype, m.log_ns // 1000, ic.time_source, None, where, stats))
+                if not pose_frame:
+                    pose_frame = {"pose_frame": str(m.msg.header.frame_id).lstrip("/"),  # type: ignore[attr-defined]
+                                  "pose_of": str(getattr(m.msg, "child_frame_id", "") or m.topic).lstrip("/")}
+                rows.extend((*r, num) for r in pose_rows(m.msg, m.msgtype, m.log_ns // 1000, ic.time_source, None, where, stats))
     except CorruptLogError as err:
         if not ic.salvage:
             raise
@@ -149,37 +202,69 @@ def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, r
         log.warning("%s: salvaging %d messages read before the damage (%s)", src, err.messages_read, err.detail)
     report["messages_read"] = dict(sorted(read.items()))
     if sum(read.values()) == 0:
-        raise IngestError(f"{src}: the log has no message on {image_topic} or {pose_topic} (empty log)")
+        raise IngestError(f"{src}: the log has no message on {image_topic} or {', '.join(pose_topics)} (empty log)")
     if not img_t:
         raise IngestError(f"{src}: no image message on {image_topic}")
-    rows = _pose_rows_for(rows_by_child, sc, src)
+    report["normalised"] = {"quaternion_normalised": stats.get("quaternion_normalised", 0)}
+    img_arr, size_arr = np.array(img_t, np.int64), np.array(sizes, np.int64)
+    if mode == "tf":
+        return _finish_tf(sc, ic, tmp, img_arr, uris, size_arr, tree, frame_ids, report, src)
     if not rows:
-        raise IngestError(f"{src}: no pose message on {pose_topic}")
+        raise IngestError(f"{src}: no pose message on {pose_topics[0]}")
+    report["pose_frames"] = pose_frame
     pose_arr = np.array(rows, dtype=np.float64)
     pose_t = pose_arr[:, 0].astype(np.int64)
-    check_monotonic(pose_t, f"{src}: {pose_topic}", "pose", numbers=pose_arr[:, 7].astype(np.int64))
-    report["normalised"] = {"quaternion_normalised": stats.get("quaternion_normalised", 0)}
-    return _finish(sc, ic, tmp, np.array(img_t, np.int64), uris, np.array(sizes, np.int64), pose_t, pose_arr[:, 1:7], report)
+    check_monotonic(pose_t, f"{src}: {pose_topics[0]}", "pose", numbers=pose_arr[:, 7].astype(np.int64))
+    return _finish(sc, ic, tmp, img_arr, uris, size_arr, pose_t, pose_arr[:, 1:7], report)
 
 
-class _OneTf:
-    """A TFMessage view holding one transform (so pose_rows handles one child at a time)."""
-
-    def __init__(self, tr: object) -> None:
-        self.transforms = [tr]
-
-
-def _pose_rows_for(rows_by_child: dict[str | None, list[tuple]], sc: SessionConfig, src: Path) -> list[tuple]:
-    if None in rows_by_child:
-        return rows_by_child[None]
-    children = sorted(c for c in rows_by_child if rows_by_child[c])
-    if sc.tf_child_frame is not None:
-        if sc.tf_child_frame not in rows_by_child:
-            raise IngestError(f"{src}: /tf has no transform to child frame {sc.tf_child_frame!r}; child frames: {children}")
-        return rows_by_child[sc.tf_child_frame]
-    if len(children) > 1:
-        raise IngestError(f"{src}: /tf holds several child frames {children}; choose one with tf_child_frame")
-    return rows_by_child[children[0]] if children else []
+def _finish_tf(sc: SessionConfig, ic: IngestConfig, tmp: Path, img_t: np.ndarray, uris: list[str], sizes: np.ndarray, tree: TfTree,
+               frame_ids: Counter[str], report: dict, src: Path) -> pd.DataFrame:
+    """Camera poses composed through the tf tree at the image times (SPEC section 3)."""
+    if not tree.edges:
+        raise IngestError(f"{src}: the /tf topics hold no transform")
+    frames = tree.frames()
+    roots = tree.roots()
+    if sc.fixed_frame:
+        fixed = sc.fixed_frame.lstrip("/")
+        if fixed not in frames:
+            raise IngestError(f"{src}: fixed_frame {fixed!r} is not in the /tf tree; frames: {sorted(frames)}")
+    elif len(roots) == 1:
+        fixed = roots[0]
+    else:
+        raise IngestError(f"{src}: the /tf tree has several roots {roots}; choose the frame poses are expressed in with fixed_frame")
+    named = sc.camera_frame or sc.tf_child_frame
+    if named:
+        camera, why = named.lstrip("/"), "camera_frame"
+    elif len(frame_ids) == 1:
+        camera, why = next(iter(frame_ids)), "the images' header.frame_id"
+    else:
+        raise IngestError(f"{src}: the images name several frames {sorted(frame_ids)}; choose one with camera_frame")
+    if camera not in frames:
+        below = ", ".join(sorted(e.child for e in tree.edges.values() if e.parent == fixed))
+        raise IngestError(f"{src}: the camera frame {camera!r} ({why}) is not in the /tf tree; frames: {sorted(frames)}; "
+                          f"set camera_frame (children of {fixed}: {below})")
+    path = tree.path(fixed, camera)
+    gaps, transforms = {}, {}
+    for e in tree.edges.values():
+        interval = e.median_interval_s()
+        gap_s = ic.max_pose_gap_s if interval <= ic.max_pose_gap_s else ic.max_tf_gap_s
+        gaps[e.name] = round(gap_s * 1e6)
+        transforms[e.name] = {"static": e.static, "transforms": len(e.times), "on_path": e in path,
+                              "median_interval_s": None if e.static or not math.isfinite(interval) else round(interval, 4),
+                              "gap_s": None if e.static else gap_s}
+    trans, rot, ok, drops = tree.lookup(fixed, camera, img_t, gaps)
+    for edge, reasons in drops.items():
+        for reason, count in reasons.items():
+            report["dropped"][f"tf {edge}: {reason}"] = count
+    report["tf"] = {"fixed_frame": fixed, "camera_frame": camera, "path": [e.name for e in path], "roots": roots, "transforms": transforms}
+    report["pose_frames"] = {"pose_frame": fixed, "pose_of": camera}
+    if len(img_t) and not ok.any():
+        raise IngestError(f"{src}: none of the {len(img_t)} images got a pose from /tf ({fixed} -> {camera}); dropped: {report['dropped']}; "
+                          "check the time source and [ingest] max_pose_gap_s / max_tf_gap_s")
+    eul = np.array([euler_from_quaternion(*q) for q in rot[ok]]).reshape(-1, 3)
+    poses = np.column_stack([trans[ok], eul])
+    return _write_frames(sc, tmp, img_t, uris, sizes, poses, ok, report)
 
 
 def read_nclt_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
@@ -232,6 +317,7 @@ def _ingest_nclt(sc: SessionConfig, ic: IngestConfig, tmp: Path, report: dict) -
     gt_path = root / "ground_truth" / f"groundtruth_{sc.name}.csv"
     pose_t, pose_v, nan_rows, _ = read_nclt_groundtruth(gt_path)
     report["dropped"]["groundtruth_non_finite_rows"] = nan_rows
+    report["pose_frames"] = {"pose_frame": "nclt_world", "pose_of": "body"}  # NCLT ground truth: the robot body, not the camera
     report["messages_read"] = {"ground_truth_rows": len(pose_t) + nan_rows}
     files = []
     bad = 0
