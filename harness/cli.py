@@ -206,6 +206,24 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
                   + (f", sign flips in {100 * r.sign_flip_share:.0f}% of resamples" if r.sign_flip_share == r.sign_flip_share else ""))
     print(f"reports in {Path(args.out)}: localization.md, table1.md, tableS.md, tableP.md, comparisons.md (+ .csv, .tex), "
           f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)")
+    if rec.get("report_html"):
+        print(f"report: {rec['report_html']}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from .outdirs import claim_dir, run_lock
+    from .report_html import write_html_report
+
+    if args.gallery is not None and args.gallery < 0:
+        raise HarnessError(f"--gallery {args.gallery}: must be >= 0")
+    out = Path(args.out)
+    if not (out / "run.json").exists():
+        raise HarnessError(f"{out}: no run.json here; run `harness reproduce --out {out}` first")
+    out = claim_dir(out, "run")  # a run directory the harness wrote, nothing else
+    with run_lock(out):
+        path = write_html_report(out, args.gallery)
+    print(f"report: {path}")
     return 0
 
 
@@ -337,6 +355,11 @@ def build_parser() -> argparse.ArgumentParser:
         if name in ("rank", "reproduce"):
             p.add_argument("--import", dest="rank_import", help="ranked lists from an external localizer (see docs)")
         p.set_defaults(func=func)
+
+    p = sub.add_parser("report", help="(re)write OUT/report.html for an existing run")
+    p.add_argument("out", help="a run directory (the --out of harness reproduce)")
+    p.add_argument("--gallery", type=int, help="thumbnails per method and kind (default: the run's [report] gallery)")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("inspect", help="what is in a log: topics, rates, images, the tf tree, and config lines to ingest it")
     p.add_argument("log", help="an NCLT root, a .bag, a ROS2 bag directory or an .mcap")

@@ -169,6 +169,8 @@ class ReportConfig:
     ci: float = 0.95
     locmap_examples: int = 4
     plots: bool = True
+    html: bool = True  # write report.html (the one page to look at) after the tables
+    gallery: int = 3  # report.html: worst false positives and missed changes shown per method
 
 
 @dataclass(frozen=True)
@@ -420,6 +422,7 @@ def validate(cfg: Config, where: str) -> None:
       "[splits] sob_strata", list(st_), "at least two increasing edges in [0, 1]")
     c(rp.bootstrap >= 0, where, "[report] bootstrap", rp.bootstrap, ">= 0 resamples (0: no intervals)")
     c(0 < rp.ci < 1, where, "[report] ci", rp.ci, "(0, 1), e.g. 0.95")
+    c(rp.gallery >= 0, where, "[report] gallery", rp.gallery, ">= 0 thumbnails per method and kind")
     c(rp.locmap_examples >= 0, where, "[report] locmap_examples", rp.locmap_examples, ">= 0")
     c(fx.render_scale >= 1, where, "[fixture] render_scale", fx.render_scale, ">= 1")
     c(fx.frames >= 1, where, "[fixture] frames", fx.frames, ">= 1")

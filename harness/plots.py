@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from .cache import atomic_path
+from .config import FUSION_METHODS
 from .fusion import loc_map
 from .imagestore import read_image
 
@@ -30,8 +31,11 @@ def pr_plots(curves: pd.DataFrame, out: Path) -> list[Path]:
     written = []
     for split, g in curves.groupby("split", sort=True):
         fig, ax = plt.subplots(figsize=(5, 4))
-        for m, gm in g.groupby("method", sort=False):
-            ax.step(gm["recall"], gm["precision"], where="post", label=m, lw=1.2)
+        cmap = plt.get_cmap("tab20")
+        for i, (m, gm) in enumerate(g.groupby("method", sort=False)):
+            extra = m not in FUSION_METHODS  # variants and baselines: dashed
+            ax.step(gm["recall"], gm["precision"], where="post", label=m, lw=1.0 if extra else 1.4, ls="--" if extra else "-",
+                    color=cmap(i % 20))
         ax.set_xlabel("recall")
         ax.set_ylabel("precision")
         ax.set_xlim(0, 1)

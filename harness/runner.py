@@ -485,8 +485,15 @@ class Pipeline:
             "keys": {"frames": fkey, "pairs": pkey, "ranks": rkey, "samples": skey},
             "localization": reports.localization.to_dict(orient="records"),
             "warnings": reports.warnings,
+            "ingest": {name: _ingest_summary(path / "ingest_report.json") for name, (path, _) in ingested.items()},
         }
         write_json(self.out / "run.json", record)
+        if self.cfg.report.html:
+            from .report_html import write_html_report
+
+            t_html = time.perf_counter()
+            record["report_html"] = str(write_html_report(self.out))
+            self.timings["report_html"] = time.perf_counter() - t_html
         record["table"] = reports.tables["I"]
         record["reports"] = reports
         return record
@@ -511,13 +518,26 @@ def _encode_rows(desc: Any, dc: Any, frames: pd.DataFrame, rows: pd.DataFrame, t
     return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
 
 
+def _ingest_summary(path: Path) -> dict:
+    """What run.json keeps of a session's ingest report: frames written, drops, pose frames."""
+    rep = json.loads(path.read_text())
+    return {k: rep[k] for k in ("format", "frames_written", "dropped", "pose_frames", "salvaged") if k in rep}
+
+
 def _versions() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
     import cv2
-    import rosbags
     import torch
 
+    def ver(dist: str) -> str:
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            return "?"
+
     return {"dbl-harness": __version__, "python": platform.python_version(), "numpy": np.__version__, "pandas": pd.__version__,
-            "torch": torch.__version__, "opencv": cv2.__version__, "rosbags": getattr(rosbags, "__version__", "?"), "platform": platform.platform()}
+            "torch": torch.__version__, "opencv": cv2.__version__, "rosbags": ver("rosbags"), "mcap": ver("mcap"), "platform": platform.platform()}
 
 
 def reproduce(cfg: Config, out: Path, rank_import: Path | None = None, executor: Any = None) -> dict:
