@@ -302,6 +302,17 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_gc(args: argparse.Namespace) -> int:
+    from .gc import collect_garbage
+
+    res = collect_garbage(Path(args.out), dry_run=args.dry_run)
+    verb = "would remove" if args.dry_run else "removed"
+    for entry in res.removed:
+        print(f"  {verb}: cache/{entry}")
+    print(f"{verb} {len(res.removed)} cache entries ({res.bytes_removed / 1e6:.1f} MB) that the last run did not use; kept {res.kept}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="harness", description="Detection-by-Localization benchmark harness")
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -360,6 +371,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", help="a run directory (the --out of harness reproduce)")
     p.add_argument("--gallery", type=int, help="thumbnails per method and kind (default: the run's [report] gallery)")
     p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("gc", help="remove the cache entries of OUT that its last run did not use")
+    p.add_argument("out", help="a run directory (the --out of harness reproduce)")
+    p.add_argument("--dry-run", action="store_true", help="list what would be removed, and its size; remove nothing")
+    p.set_defaults(func=cmd_gc)
 
     p = sub.add_parser("inspect", help="what is in a log: topics, rates, images, the tf tree, and config lines to ingest it")
     p.add_argument("log", help="an NCLT root, a .bag, a ROS2 bag directory or an .mcap")

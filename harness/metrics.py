@@ -130,10 +130,40 @@ def resample_counts(n_groups: int, n_boot: int, seed: int) -> np.ndarray:
     return out
 
 
+class _Ranked:
+    """Samples sorted once by score (descending, stable) with the ends of the groups of tied scores,
+    so the AP of any reweighting (a bootstrap resample) costs one cumulative sum, not a sort."""
+
+    def __init__(self, labels: np.ndarray, scores: np.ndarray, members: np.ndarray) -> None:
+        s = np.asarray(scores, np.float64)[members]
+        order = np.argsort(-s, kind="stable")
+        self.idx = members[order]
+        self.y = np.asarray(labels, bool)[self.idx]
+        ss = s[order]
+        self.last = np.concatenate([np.nonzero(ss[1:] != ss[:-1])[0], [len(ss) - 1]]) if len(ss) else np.zeros(0, np.int64)
+
+    def aps(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(AP, positive weight) for each row of ``w`` ((B, n_samples) weights of all samples)."""
+        ws = w[:, self.idx]
+        tp = np.cumsum(ws * self.y, axis=1)[:, self.last]
+        fp = np.cumsum(ws * ~self.y, axis=1)[:, self.last]
+        out = np.full(len(w), np.nan)
+        pos = tp[:, -1] if tp.shape[1] else np.zeros(len(w))
+        for b in np.nonzero(pos > 0)[0]:
+            tot = tp[b] + fp[b]
+            prec = np.divide(tp[b], tot, out=np.zeros_like(tot), where=tot > 0)
+            out[b] = _interp_ap(prec, tp[b] / pos[b])
+        return out, pos
+
+
 def bootstrap_aps(labels: np.ndarray, scores: np.ndarray, group_index: np.ndarray, counts: np.ndarray,
                   weights: np.ndarray | None = None, stat: str = "ap", sob: np.ndarray | None = None,
-                  edges: np.ndarray | None = None) -> np.ndarray:
+                  edges: np.ndarray | None = None, block_bytes: int = 64 << 20) -> np.ndarray:
     """AP (or stratified AP) of every resample; ``counts`` from :func:`resample_counts`.
+
+    The samples are sorted once; each resample is a reweighting (a sample drawn k times counts k
+    times), evaluated in blocks of resamples whose weight matrix stays under ``block_bytes``.
+    Equal to :func:`weighted_average_precision` / :func:`stratified_ap` of each resample.
 
     Args:
         group_index: (n,) the query image (0..n_groups-1) of each sample.
@@ -144,14 +174,35 @@ def bootstrap_aps(labels: np.ndarray, scores: np.ndarray, group_index: np.ndarra
         (n_boot,) APs; NaN where a resample has no positive.
     """
     labels = np.asarray(labels).astype(bool)
-    base = np.ones(len(labels)) if weights is None else np.asarray(weights, np.float64)
+    scores = np.asarray(scores, np.float64)
+    n = len(labels)
+    base = np.ones(n) if weights is None else np.asarray(weights, np.float64)
+    if stat == "stratified":
+        e = np.asarray(edges, np.float64)
+        sb = np.asarray(sob, np.float64)
+        k = np.clip(np.searchsorted(e, sb, side="right") - 1, 0, len(e) - 2)
+        inside = (sb >= e[0]) & (sb <= e[-1])
+        parts = [_Ranked(labels, scores, np.nonzero(inside & (k == j))[0]) for j in range(len(e) - 1)]
+    else:
+        parts = [_Ranked(labels, scores, np.arange(n))]
     out = np.empty(len(counts))
-    for b, c in enumerate(counts):
-        w = base * c[group_index]
-        if stat == "stratified":
-            out[b] = stratified_ap(labels, scores, sob, edges, w)[0]  # type: ignore[arg-type]
-        else:
-            out[b] = weighted_average_precision(labels, scores, w)
+    step = max(1, int(block_bytes // max(8 * n, 1)))
+    for b0 in range(0, len(counts), step):
+        w = base[None, :] * counts[b0 : b0 + step][:, group_index]
+        if stat != "stratified":
+            out[b0 : b0 + step] = parts[0].aps(w)[0]
+            continue
+        num = np.zeros(len(w))
+        den = np.zeros(len(w))
+        for part in parts:
+            if not len(part.idx):
+                continue
+            ap, pos = part.aps(w)
+            total = w[:, part.idx].sum(1)
+            ok = (pos > 0) & (pos < total)  # a stratum takes part with a positive and a negative
+            num[ok] += pos[ok] * ap[ok]
+            den[ok] += pos[ok]
+        out[b0 : b0 + step] = np.divide(num, den, out=np.full(len(w), np.nan), where=den > 0)
     return out
 
 

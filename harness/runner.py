@@ -94,6 +94,7 @@ class Pipeline:
         self.cache = StageCache(self.out / "cache")
         self._lock_depth = 0
         self._lock_cm: Any = None
+        self.used: dict[str, set[str]] = {}  # cache entries this pipeline read or wrote: what `harness gc` keeps
 
     def __getstate__(self) -> dict[str, Any]:
         """Stage units (closures over the pipeline) travel to remote workers; the lock stays here."""
@@ -128,12 +129,14 @@ class Pipeline:
         t0 = time.perf_counter()
         res = self.executor.map_units(self.cache, name, units, gpu=gpu)
         self.ran[name] = self.ran.get(name, 0) + sum(int(r) for _, r in res)
+        self.used.setdefault(name, set()).update(Path(p).name for p, _ in res)
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
         return [(p, p.name) for p, _ in res]
 
     def _run(self, name: str, key_parts: tuple, build: Callable[[Path], dict | None]) -> tuple[Path, str]:
         path, ran = self.cache.run(name, key_parts, build)
         self.ran[name] = self.ran.get(name, 0) + int(ran)
+        self.used.setdefault(name, set()).add(path.name)
         return path, path.name
 
     # ------------------------------------------------------------ stages
@@ -486,6 +489,7 @@ class Pipeline:
             "localization": reports.localization.to_dict(orient="records"),
             "warnings": reports.warnings,
             "ingest": {name: _ingest_summary(path / "ingest_report.json") for name, (path, _) in ingested.items()},
+            "cache_entries": {stage: sorted(keys) for stage, keys in sorted(self.used.items())},
         }
         write_json(self.out / "run.json", record)
         if self.cfg.report.html:

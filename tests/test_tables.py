@@ -176,3 +176,22 @@ def test_reproduce_prints_the_tables_in_order(local_run: tuple, tmp_path: Path, 
     text = capsys.readouterr().out
     marks = [text.index(m) for m in ("Localization quality", "Table I:", "WARNING (Table I)", "Table S:", "Table P:", "Paired comparisons")]
     assert marks == sorted(marks), marks
+
+
+def test_bootstrap_sorted_once_equals_each_resample_computed_alone() -> None:
+    """The fast bootstrap (one sort, reweighted cumulative sums, blocks of resamples) gives exactly
+    the AP, the weighted AP and the stratified AP of every resample computed on its own."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    y = rng.random(n) < 0.05
+    s = np.round(rng.random(n) + y * 0.3, 2)  # many ties
+    sob = rng.random(n) * 0.6
+    g = rng.integers(0, 120, n)
+    w = rng.random(n) * 5
+    c = resample_counts(120, 60, 1)
+    edges = np.array([0, 0.02, 0.05, 0.1, 0.2, 0.4, 1.0])
+    np.testing.assert_array_equal(bootstrap_aps(y, s, g, c, block_bytes=1 << 16),
+                                  [weighted_average_precision(y, s, cc[g]) for cc in c])
+    np.testing.assert_array_equal(bootstrap_aps(y, s, g, c, weights=w), [weighted_average_precision(y, s, w * cc[g]) for cc in c])
+    np.testing.assert_array_equal(bootstrap_aps(y, s, g, c, stat="stratified", sob=sob, edges=edges),
+                                  [stratified_ap(y, s, sob, edges, cc[g].astype(float))[0] for cc in c])
