@@ -33,18 +33,26 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
-def code_fingerprint(package_dir: Path | None = None) -> str:
-    """The package version plus a hash of every module's source.
+#: Modules that no cached stage runs: the reports, figures and the report page are rebuilt on every
+#: run, and the command layer only reads arguments into the config (whose values are in the keys).
+#: Editing them never recomputes a stage; editing any other module recomputes every stage.
+NOT_IN_STAGES = frozenset({"cli.py", "reports.py", "report_html.py", "plots.py", "inspect.py", "gc.py"})
 
-    It is part of every stage key, so an upgrade (or any edit of the code) never reuses a cache
-    entry that older code computed: correctness first, at the price of recomputing after any
-    code change.
+
+def code_fingerprint(package_dir: Path | None = None) -> str:
+    """The package version plus a hash of the source of every module a cached stage can run.
+
+    It is part of every stage key, so an upgrade (or any edit of such code) never reuses a cache
+    entry that older code computed: correctness first, at the price of recomputing after a code
+    change. Modules in :data:`NOT_IN_STAGES` are left out.
     """
     from . import __version__
 
     root = Path(package_dir) if package_dir is not None else Path(__file__).resolve().parent
     h = hashlib.sha256(__version__.encode())
     for f in sorted(root.rglob("*.py")):
+        if f.parent == root and f.name in NOT_IN_STAGES:
+            continue
         h.update(str(f.relative_to(root)).encode())
         h.update(f.read_bytes())
     return f"{__version__}+{h.hexdigest()[:12]}"

@@ -180,7 +180,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
     rec = _pipeline(args).run()
     rep = rec["reports"]
-    console = Console(width=max(Console().width, 110))
+    console = Console(width=max(Console().width, 140))
     loc = rep.localization
     lt = Table(title=f"Localization quality (ground truth: place within {rec['config']['retrieval']['gt_radius_m']:g} m)")
     lt.add_column("props")
@@ -266,7 +266,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(info, indent=2, default=str))
         return 0
-    console = Console(width=max(Console().width, 110))
+    console = Console(width=max(Console().width, 140))
     console.print(f"[bold]{info['path']}[/] ({info['format']})")
     if info["format"] == "nclt":
         t = Table(title="NCLT sessions")
