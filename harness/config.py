@@ -138,6 +138,7 @@ class DescriptorConfig:
 class RetrievalConfig:
     engine: str = "exact"  # exact or faiss
     gt_radius_m: float = 2.0  # ground-truth place: reference frames within this radius of G (SPEC 6); 0: G alone
+    db_stride_m: float = 0.0  # reference database by place: one frame per this many metres of trajectory; 0: every frame
     chunk_rows: int = 8192
     query_batch: int = 1024
     faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
@@ -385,6 +386,7 @@ def validate(cfg: Config, where: str) -> None:
     c(ig.store_format in ("tiff", "png"), where, "[ingest] store_format", ig.store_format, "'tiff' or 'png'")
     c(ig.nclt_rotation in ("cw", "ccw", "none"), where, "[ingest] nclt_rotation", ig.nclt_rotation, "cw, ccw or none")
     c(re_.engine in ("exact", "faiss"), where, "[retrieval] engine", re_.engine, "'exact' or 'faiss'")
+    c(re_.db_stride_m >= 0, where, "[retrieval] db_stride_m", re_.db_stride_m, ">= 0 metres (0: every reference frame)")
     c(re_.gt_radius_m >= 0, where, "[retrieval] gt_radius_m", re_.gt_radius_m, ">= 0 metres (0: the ground-truth frame alone)")
     for key in ("chunk_rows", "query_batch", "faiss_nprobe", "query_frames_per_shard"):
         c(getattr(re_, key) >= 1, where, f"[retrieval] {key}", getattr(re_, key), ">= 1")

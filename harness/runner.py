@@ -45,7 +45,7 @@ from .imagestore import local_uri, portable_uri
 from .ingest import ingest_session, load_frames
 from .ingest.logs import detect_format
 from .outdirs import claim_dir, run_lock
-from .pairs import build_pairs, ground_truth_places
+from .pairs import build_pairs, ground_truth_places, thin_by_stride
 from .proposals import compute_proposals
 from .records import FRAME_SCHEMA
 from .reports import METHOD_LABELS, write_reports  # noqa: F401 - METHOD_LABELS re-exported for callers
@@ -357,15 +357,25 @@ class Pipeline:
             return pd.DataFrame(), counts
         ref_frames = frames[frames["session"] == ref]
         places = {}
+        kept: set[int] | None = None  # reference frames in the database ([retrieval] db_stride_m)
         for cam, g in sub.groupby("r_camera", sort=True):
             fr = ref_frames[ref_frames["camera"] == cam]
             places[cam] = ground_truth_places(fr, g["r_utime"].to_numpy(), rc.gt_radius_m, self.cfg.pairs.max_yaw_diff_deg)
+        if rc.db_stride_m > 0:
+            kept = set()
+            for _, fr in ref_frames.groupby("camera", sort=True):
+                fr = fr.sort_values("utime")
+                kept.update(int(u) for u in fr["utime"].to_numpy()[thin_by_stride(fr[["x", "y"]].to_numpy(), rc.db_stride_m)])
+            counts["no_rank_place_not_in_database"] = 0
         ref_dir = described[ref][0]
         ref_idx = read_cached_parquet(ref_dir / "index.parquet")
         ref_desc = np.load(ref_dir / "desc.npy", mmap_mode="r")
         out = []
         for method in sorted(ref_idx["method"].unique()):
-            dbm = np.nonzero((ref_idx["method"] == method).to_numpy())[0]
+            in_db = (ref_idx["method"] == method).to_numpy().copy()
+            if kept is not None:
+                in_db &= ref_idx["utime"].isin(kept).to_numpy()
+            dbm = np.nonzero(in_db)[0]
             db_frame = ref_idx["utime"].to_numpy()[dbm]
             # a memmap view when the method's rows are contiguous (they are: proposals sort by method)
             db = ref_desc[dbm[0] : dbm[-1] + 1] if len(dbm) and dbm[-1] - dbm[0] + 1 == len(dbm) else ref_desc[dbm]
@@ -381,8 +391,13 @@ class Pipeline:
                 if not len(qm):
                     continue
                 counts["query_subimages"] += len(qm)
-                ok = qm["r_utime"].isin(have).to_numpy()
-                counts["no_rank_reference_frame_has_no_subimage"] += int((~ok).sum())
+                if kept is None:
+                    ok = qm["r_utime"].isin(have).to_numpy()
+                    counts["no_rank_reference_frame_has_no_subimage"] += int((~ok).sum())
+                else:  # a thinned database: the place must keep a frame; it stands in for G
+                    ok = np.array([bool(have.intersection(places[c][int(u)].tolist())) for c, u in zip(qm["r_camera"], qm["r_utime"], strict=True)],
+                                  bool) if len(qm) else np.zeros(0, bool)
+                    counts["no_rank_place_not_in_database"] += int((~ok).sum())
                 qm = qm[ok].reset_index(drop=True)
                 if not len(qm):
                     continue
@@ -390,6 +405,9 @@ class Pipeline:
                 qd = qd[np.argsort(np.argsort(qm["row"].to_numpy(), kind="stable"), kind="stable")]
                 gt = qm["r_utime"].to_numpy()
                 place = [places[c][int(u)] for c, u in zip(qm["r_camera"], gt, strict=True)]
+                if kept is not None:  # G itself may be thinned away: the place's frames in the database stand for it
+                    place = [p[np.isin(p, db_frame)] for p in place]
+                    gt = np.array([g if g in set(p.tolist()) else p[np.argmin(np.abs(p - g))] for g, p in zip(gt, place, strict=True)], np.int64)
                 if rc.engine == "faiss":
                     res = image_ranks_faiss(qd, np.asarray(db, np.float32), db_frame, gt, place, nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe)
                     rank, L, dist, exact = res.rank, res.L, res.dist, res.exact
