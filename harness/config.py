@@ -127,6 +127,10 @@ class DescriptorConfig:
     encode_batch: int = 0  # subimages per encoder call; 0: 2 on CPU (keeps activations in cache), batch_size on GPU
     lr: float = 1e-3
     max_train_subimages: int = 4000
+    train_samples: int = 0  # > 0: train on this many sample-steps (not epochs) with early stopping on held-out crops
+    holdout: float = 0.1  # share of the training crops held out for early stopping (train_samples > 0)
+    eval_every: int = 50  # steps between held-out evaluations
+    patience: int = 4  # evaluations without improvement before training stops
     dtype: str = "float16"
     device: str = "auto"
     seed: int = 0
@@ -395,6 +399,9 @@ def validate(cfg: Config, where: str) -> None:
     c(de.input_norm in ("none", "per_crop"), where, "[descriptor] input_norm", de.input_norm, "'none' or 'per_crop'")
     c(de.dtype in ("float16", "float32"), where, "[descriptor] dtype", de.dtype, "float16 or float32")
     c(de.device in ("auto", "cpu", "cuda") or de.device.startswith("cuda:"), where, "[descriptor] device", de.device, "auto, cpu, cuda or cuda:N")
+    c(de.train_samples >= 0, where, "[descriptor] train_samples", de.train_samples, ">= 0 (0: train for epochs)")
+    c(0 <= de.holdout < 1, where, "[descriptor] holdout", de.holdout, "[0, 1)")
+    c(de.eval_every >= 1 and de.patience >= 1, where, "[descriptor] eval_every, patience", (de.eval_every, de.patience), ">= 1 each")
     c(de.encode_batch >= 0, where, "[descriptor] encode_batch", de.encode_batch, ">= 0 (0: automatic)")
     for key in ("epochs", "batch_size", "max_train_subimages", "shard_frames"):
         c(getattr(de, key) >= 1, where, f"[descriptor] {key}", getattr(de, key), ">= 1")

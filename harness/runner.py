@@ -240,7 +240,8 @@ class Pipeline:
             for idx, crops in _progress(iter_crops(rows, img, dc.input_size, num_workers=dc.num_workers), desc="training crops", unit="batch"):
                 data[idx] = crops
             data.flush()
-            bar = tqdm(total=dc.epochs * int(np.ceil(n / dc.batch_size)), desc="autoencoder training", unit="step", mininterval=1.0, leave=False, disable=None)
+            total = int(np.ceil(dc.train_samples / dc.batch_size)) if dc.train_samples > 0 else dc.epochs * int(np.ceil(n / dc.batch_size))
+            bar = tqdm(total=total, desc="autoencoder training", unit="step", mininterval=1.0, leave=False, disable=None)
             info = desc.fit(data, tmp, progress=bar.update)  # type: ignore[call-arg]
             bar.close()
             del data

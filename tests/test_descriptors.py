@@ -124,3 +124,29 @@ def test_thumbnail_values_on_a_flat_grey_crop() -> None:
     assert np.abs(t[:256]).max() == 0
     hist = t[256:]
     assert hist[2] == pytest.approx(1.0, abs=1e-5) and np.abs(np.delete(hist, 2)).max() == 0
+
+
+def test_training_on_a_sample_budget_with_early_stopping(tmp_path: Path) -> None:
+    """A budget in samples bounds the steps whatever the crop count; held-out crops stop it early
+    once their loss stops improving, and the best weights are kept. Seeded: the same twice."""
+    from harness.descriptors.autoencoder import train_budget
+
+    x = _crops(64, 32)
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        model = ConvAutoencoder((8, 8, 4))
+        hist, info = train_budget(model, x, samples=40 * 8, batch_size=8, lr=3e-3, seed=0, device=torch.device("cpu"),
+                                  holdout=0.25, eval_every=5, patience=100)
+        runs.append((hist, info))
+    hist, info = runs[0]
+    assert info["steps"] == 40 and len(hist) == 40 and info["held_out"] == 16 and not info["stopped_early"]
+    assert runs[0][1]["held_out_curve"] == runs[1][1]["held_out_curve"]  # reproducible
+    curve = [v for _, v in info["held_out_curve"]]
+    assert curve[-1] < curve[0]  # the held-out loss falls
+    assert info["best_held_out_loss"] == min(curve)
+    # patience 1 with a learning rate that diverges: it stops at the first evaluation without improvement
+    model = ConvAutoencoder((8, 8, 4))
+    _, info = train_budget(model, x, samples=200 * 8, batch_size=8, lr=5.0, seed=0, device=torch.device("cpu"),
+                           holdout=0.25, eval_every=2, patience=1)
+    assert info["stopped_early"] and info["steps"] < 200

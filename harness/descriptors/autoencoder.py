@@ -128,6 +128,86 @@ def train(
     return history
 
 
+def train_budget(
+    model: ConvAutoencoder,
+    data: np.ndarray,
+    samples: int,
+    batch_size: int,
+    lr: float,
+    seed: int,
+    device: torch.device,
+    holdout: float = 0.1,
+    eval_every: int = 50,
+    patience: int = 4,
+    progress: Callable | None = None,
+    per_crop: bool = False,
+) -> tuple[list[tuple[int, int, float]], dict]:
+    """Train on a budget of ``samples`` sample-steps (not epochs), with early stopping.
+
+    A seeded ``holdout`` share of the crops is never trained on; every ``eval_every`` steps its mean
+    loss is measured, the best weights so far are kept, and training stops after ``patience``
+    evaluations without improvement. The cost is bounded by ``samples`` whatever the session's
+    length. Returns (epoch, step, loss) rows (epoch = passes over the training crops so far) and a
+    summary: steps run, held-out loss curve, best step, whether it stopped early.
+    """
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    n = len(data)
+    perm = torch.randperm(n, generator=g).numpy()
+    n_hold = min(max(1, round(n * holdout)), max(n - 1, 0)) if holdout > 0 and n > 1 else 0
+    hold, train_idx = np.sort(perm[:n_hold]), perm[n_hold:]
+    model.to(device, memory_format=torch.channels_last).train()
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    steps = max(1, math.ceil(samples / batch_size))
+    history: list[tuple[int, int, float]] = []
+    curve: list[tuple[int, float]] = []
+    best, best_step, best_state, bad = float("inf"), 0, None, 0
+    order, pos, epoch = np.array([], np.int64), 0, -1
+    stopped = False
+
+    def held_out_loss() -> float:
+        model.eval()
+        with torch.no_grad():
+            tot = 0.0
+            for s in range(0, n_hold, batch_size):
+                x = to_tensor(data[hold[s : s + batch_size]], device, per_crop)
+                tot += float(nn.functional.mse_loss(model(x), x)) * len(x)
+        model.train()
+        return tot / max(n_hold, 1)
+
+    for step in range(steps):
+        if pos >= len(order):
+            epoch += 1
+            order = train_idx[torch.randperm(len(train_idx), generator=g).numpy()]
+            pos = 0
+        idx = np.sort(order[pos : pos + batch_size])
+        pos += batch_size
+        x = to_tensor(data[idx], device, per_crop)
+        loss = nn.functional.mse_loss(model(x), x)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        history.append((epoch, step, float(loss.detach())))
+        if progress:
+            progress(1)
+        if n_hold and ((step + 1) % eval_every == 0 or step + 1 == steps):
+            hl = held_out_loss()
+            curve.append((step + 1, hl))
+            if hl < best - 1e-7:
+                best, best_step, bad = hl, step + 1, 0
+                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            else:
+                bad += 1
+                if bad >= patience:
+                    stopped = True
+                    break
+    if best_state is not None:
+        model.load_state_dict(best_state)
+    model.eval()
+    return history, {"steps": len(history), "held_out": n_hold, "held_out_curve": curve, "best_step": best_step,
+                     "best_held_out_loss": best if curve else float("nan"), "stopped_early": stopped}
+
+
 def save_checkpoint(path: Path, model: ConvAutoencoder, meta: dict) -> None:
     """Save atomically: state dict plus plain metadata (loadable with ``weights_only=True``)."""
     with atomic_path(Path(path)) as tmp:

@@ -16,6 +16,7 @@ from .autoencoder import (
     save_loss_curve,
     to_tensor,
     train,
+    train_budget,
 )
 from .base import Descriptor
 
@@ -49,13 +50,20 @@ class AutoencoderDescriptor(Descriptor):
     def fit(self, crops: np.ndarray, out_dir: Path, progress=None) -> dict:
         torch.manual_seed(self.cfg.seed)
         model = ConvAutoencoder(tuple(self.cfg.channels))
-        history = train(model, crops, self.cfg.epochs, self.cfg.batch_size, self.cfg.lr, self.cfg.seed, self.device, progress, self.cfg.input_norm == "per_crop")
+        per_crop = self.cfg.input_norm == "per_crop"
+        extra: dict = {}
+        if self.cfg.train_samples > 0:  # a budget in samples with early stopping on held-out crops
+            history, extra = train_budget(model, crops, self.cfg.train_samples, self.cfg.batch_size, self.cfg.lr, self.cfg.seed,
+                                          self.device, self.cfg.holdout, self.cfg.eval_every, self.cfg.patience, progress, per_crop)
+        else:
+            history = train(model, crops, self.cfg.epochs, self.cfg.batch_size, self.cfg.lr, self.cfg.seed, self.device, progress, per_crop)
         save_checkpoint(out_dir / self.CHECKPOINT, model, {"channels": list(self.cfg.channels), "input_size": self.cfg.input_size})
         save_loss_curve(history, out_dir / "loss.csv", out_dir / "loss.png")
         self.model = model
+        last_epoch = max((e for e, _, _ in history), default=0)
         first = float(np.mean([v for e, _, v in history if e == 0])) if history else float("nan")
-        last = float(np.mean([v for e, _, v in history if e == self.cfg.epochs - 1])) if history else float("nan")
-        return {"train_subimages": len(crops), "first_epoch_loss": first, "last_epoch_loss": last}
+        last = float(np.mean([v for e, _, v in history if e == last_epoch])) if history else float("nan")
+        return {"train_subimages": len(crops), "first_epoch_loss": first, "last_epoch_loss": last, **extra}
 
     def load(self, out_dir: Path) -> None:
         self.model, _ = load_checkpoint(out_dir / self.CHECKPOINT, self.device)
