@@ -379,25 +379,11 @@ def test_7_a_hash_in_data_and_out_paths_works(tmp_path: Path, capsys: pytest.Cap
 
 @pytest.mark.parametrize("compression", ["none", "bz2", "lz4"])
 def test_8_salvage_keeps_the_frames_of_a_truncated_ros1_bag(tmp_path: Path, compression: str) -> None:
-    from rosbags.rosbag1 import Writer as Writer1
-
     rgb = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
     path = tmp_path / "full.bag"
-    w = Writer1(path)
-    if compression != "none":
-        w.set_compression(getattr(Writer1.CompressionFormat, compression.upper()))
-    w.chunk_threshold = 20_000  # several chunks, so a truncation leaves whole chunks before it
-    w.open()
-    try:
-        ci = w.add_connection("/camera/image_raw", "sensor_msgs/msg/Image", typestore=W.ROS1)
-        co = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=W.ROS1)
-        for i in range(40):
-            t = 1_000_000 + i * 50_000
-            w.write(co, t * 1000, W.ROS1.serialize_ros1(W.odometry_msg(W.ROS1, Pose(t, float(i), 0, 0, 0, 0, 0), True), "nav_msgs/msg/Odometry"))
-            if i % 2:
-                w.write(ci, t * 1000, W.ROS1.serialize_ros1(W.image_msg(W.ROS1, t, rgb, "rgb8", True), "sensor_msgs/msg/Image"))
-    finally:
-        w.close()
+    poses = [Pose(1_000_000 + i * 50_000, float(i), 0, 0, 0, 0, 0) for i in range(40)]
+    frames = [W.LogFrame(p.utime, rgb) for p in poses[1::2]]
+    W.write_ros1(path, frames, poses, compression=compression, chunk_bytes=20_000)  # several chunks: whole ones survive
     bad = tmp_path / "trunc.bag"
     bad.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
     with pytest.raises(CorruptLogError, match=r"Rerun with --salvage"):

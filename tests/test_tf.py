@@ -168,22 +168,11 @@ def test_compressed_image_format_strings_as_drivers_write_them(tmp_path: Path, f
 
 @pytest.mark.parametrize("compression", ["bz2", "lz4"])
 def test_ros1_bags_with_compressed_chunks(tmp_path: Path, compression: str) -> None:
-    from rosbags.rosbag1 import Writer as Writer1
-
     rgb = np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8)
     path = tmp_path / "c.bag"
-    w = Writer1(path)
-    w.set_compression(getattr(Writer1.CompressionFormat, compression.upper()))
-    w.open()
-    ci = w.add_connection("/camera/image_raw", "sensor_msgs/msg/Image", typestore=W.ROS1)
-    co = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=W.ROS1)
-    for i in range(20):
-        t = 1_000_000 + i * 50_000
-        w.write(co, t * 1000, W.ROS1.serialize_ros1(W.odometry_msg(W.ROS1, Pose(t, float(i), 0, 0, 0, 0, 0), True), "nav_msgs/msg/Odometry"))
-        if i % 2:
-            w.write(ci, t * 1000, W.ROS1.serialize_ros1(W.image_msg(W.ROS1, t, rgb, "rgb8", True), "sensor_msgs/msg/Image"))
-    w.close()
-    assert compression.encode() in path.read_bytes()[:4096] or True  # the chunk headers name the compression
+    poses = [Pose(1_000_000 + i * 50_000, float(i), 0, 0, 0, 0, 0) for i in range(20)]
+    W.write_ros1(path, [W.LogFrame(p.utime, rgb) for p in poses[1::2]], poses, compression=compression)
+    assert f"compression={compression}".encode() in path.read_bytes()  # the chunk headers name it
     rep = ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")
     df = load_frames(tmp_path / "o" / "frames.parquet")
     assert rep["frames_written"] == 10 and df["x"].tolist() == [float(i) for i in range(1, 20, 2)]
@@ -255,3 +244,23 @@ def test_inspect_prints_topics_and_the_tree_of_every_log(small_world: Path, tmp_
     sess.pop("season")
     ingest_session(SessionConfig(**sess), IngestConfig(), tmp_path / "o")
     assert main(["inspect", str(tmp_path / "nope.bag")]) == 1
+
+
+def test_tf_flags_as_a_user_types_them(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """--fixed-frame, --camera-frame and --max-tf-gap reach the ingester through the CLI."""
+    bag = write_robot_bag(tmp_path / "robot")
+    base = ["ingest", str(bag), "--session", "s"]
+    assert main([*base, "--out", str(tmp_path / "a"), "--fixed-frame", "odom", "--camera-frame", "base_link"]) == 0
+    rep = json.loads((tmp_path / "a" / "ingest_report.json").read_text())
+    assert rep["tf"]["path"] == ["odom->base_link"] and rep["pose_frames"] == {"pose_frame": "odom", "pose_of": "base_link"}
+    df = load_frames(tmp_path / "a" / "frames.parquet")
+    s = (df["utime"][0] - T0) / 1e6
+    assert df["x"][0] == pytest.approx(s, abs=1e-3)  # base_link in odom: x = s metres
+    capsys.readouterr()
+    assert main([*base, "--out", str(tmp_path / "b"), "--max-tf-gap", "0.2"]) == 1  # 2 Hz map -> odom no longer bridged
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR: ") and "tf map->odom: pose_gap" in err
+    assert main([*base, "--out", str(tmp_path / "c"), "--max-tf-gap", "0"]) == 1
+    assert "--max-tf-gap 0.0: must be > 0 seconds" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "d"), "--camera-frame", "lidar"]) == 1
+    assert "camera frame 'lidar' (camera_frame) is not in the /tf tree" in capsys.readouterr().err
