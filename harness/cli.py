@@ -106,40 +106,39 @@ def _pipeline(args: argparse.Namespace):
 
 
 def cmd_pairs(args: argparse.Namespace) -> int:
+    from .runner import until_pairs
+
     p = _pipeline(args)
     with p.locked():
-        *_, pairs, key = p.until_pairs()
-    d = p.cache.path("pairs", key)
-    print(f"{len(pairs)} pairs -> {d / 'pairs.parquet'}\n{(d / 'summary.json').read_text()}")
+        *_, pairs = until_pairs(p)
+    d = p.cache.path("pairs", pairs.key)
+    print(f"{len(pairs.df)} pairs -> {d / 'pairs.parquet'}\n{(d / 'summary.json').read_text()}")
     return 0
 
 
 def cmd_proposals(args: argparse.Namespace) -> int:
+    from .runner import frame_table, generate_fixture, ingest_logs, session_proposals
+
     p = _pipeline(args)
     with p.locked():
-        p.fixture()
-        ing = p.ingest()
-        frames, _ = p.frames(ing)
-        props = p.proposals(frames, ing)
-    for s, (df, key) in props.items():
-        print(f"{s}: {len(df)} proposals {df.groupby('method').size().to_dict()} -> {p.cache.path('proposals', key) / 'proposals.parquet'}")
+        generate_fixture(p)
+        ing = ingest_logs(p)
+        props = session_proposals(p, frame_table(p, ing), ing)
+    for s, t in props.items():
+        print(f"{s}: {len(t.df)} proposals {t.df.groupby('method').size().to_dict()} -> {p.cache.path('proposals', t.key) / 'proposals.parquet'}")
     return 0
 
 
 def cmd_rank(args: argparse.Namespace) -> int:
     from .cache import write_json, write_parquet
+    from .runner import until_ranks
 
     p = _pipeline(args)
     with p.locked():
-        ing, frames, _, _, _, pairs, pkey = p.until_pairs()
-        described = {}
-        if p.rank_import is None:
-            props = p.proposals(frames, ing)
-            described = p.describe(frames, props, p.train(frames, props))
-        ranks, _, counts = p.ranks(frames, pairs, pkey, described)
-        write_parquet(p.out / "ranks.parquet", ranks)
-        write_json(p.out / "rank_report.json", counts)
-    print(f"{len(ranks)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: {counts}")
+        *_, ranks = until_ranks(p, check=False)
+        write_parquet(p.out / "ranks.parquet", ranks.df)
+        write_json(p.out / "rank_report.json", ranks.counts)
+    print(f"{len(ranks.df)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: {ranks.counts}")
     return 0
 
 

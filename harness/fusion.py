@@ -4,14 +4,17 @@ and pixel-wise LoC maps."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+from functools import partial
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from .annotations import change_boxes
-from .cache import stable_hash
-from .config import ALL_METHODS
+from .cache import stable_hash, write_parquet
+from .config import ALL_METHODS, FusionConfig
+from .progress import progress
 from .splits import roc_sob
 
 #: Methods whose samples are the fused qBB set (every method but rank_no_fusion).
@@ -299,3 +302,15 @@ def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, s
         return pd.DataFrame(), counts
     df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})
     return df, counts
+
+
+def write_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, fc: FusionConfig, tmp: Path) -> dict[str, int]:
+    """Build the samples (:func:`fuse_samples` with ``[fusion]``) into ``tmp/samples.parquet``.
+
+    Returns:
+        The fusion counters (query images, capped closures).
+    """
+    df, counts = fuse_samples(ranks, frames, ann, fc.seed, fc.max_fused_boxes, methods=ordered_methods(fc.methods),
+                              progress=partial(progress, desc="fusion", unit="image"))
+    write_parquet(tmp / "samples.parquet", df)
+    return counts

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from .cache import write_json, write_parquet
 from .config import PairsConfig
 
 log = logging.getLogger(__name__)
@@ -176,3 +178,16 @@ def ground_truth_places(ref_frames: pd.DataFrame, gt_utime: np.ndarray, radius_m
         near = near[yaw_diff_deg(yaw[near], yaw[p]) < max_yaw_deg] if len(near) else near
         out[int(g)] = np.union1d(ut[near], [g]).astype(np.int64)
     return out
+
+
+def write_pairs(frames: pd.DataFrame, cfg: PairsConfig, seasons: dict[str, str], queries: pd.DataFrame | None,
+                tmp: Path) -> dict:
+    """Build the pairs (:func:`build_pairs`) into ``tmp/pairs.parquet`` and ``tmp/summary.json``.
+
+    Returns:
+        The pairing summary (queries, pairs, drops by reason).
+    """
+    pairs, summary = build_pairs(frames, cfg, seasons, queries)
+    write_parquet(tmp / "pairs.parquet", pairs)
+    write_json(tmp / "summary.json", summary)
+    return summary

@@ -14,15 +14,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable
+from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pandas as pd
 
+from .cache import write_parquet
 from .config import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
 from .errors import AnnotationError, ConfigError
 from .imagestore import read_image
+from .progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -289,3 +292,20 @@ def compute_proposals(
     df = pd.concat([d for d in out if len(d)], ignore_index=True) if out else pd.DataFrame(columns=PROPOSAL_COLUMNS)
     df["class"] = df["class"].astype(str)
     return df[PROPOSAL_COLUMNS].sort_values(["method", "session", "camera", "utime", "box_id"]).reset_index(drop=True)
+
+
+def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: Path) -> dict:
+    """One session's proposals (:func:`compute_proposals`) into ``tmp/proposals.parquet``.
+
+    Args:
+        frames: The session's frames.
+        cfg: ``[proposals]``.
+        name: The session (for the progress bar).
+        tmp: The entry's directory.
+
+    Returns:
+        ``{"rows": proposal rows, "per_method": rows per method}``.
+    """
+    df = compute_proposals(frames, cfg, progress=partial(progress, desc=f"proposals {name}", unit="batch"))
+    write_parquet(tmp / "proposals.parquet", df)
+    return {"rows": len(df), "per_method": df.groupby("method").size().to_dict()}

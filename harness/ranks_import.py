@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from .cache import write_parquet
 from .errors import RetrievalError
 
 log = logging.getLogger(__name__)
@@ -142,3 +143,23 @@ def ranks_from_import(df: pd.DataFrame, pairs: pd.DataFrame, where: str, frames:
     out["exact"] = exact
     out["place_size"] = psize
     return out, counts
+
+
+def write_imported_ranks(path: Path, pairs: pd.DataFrame, frames: pd.DataFrame, radius_m: float, max_yaw_deg: float,
+                         tmp: Path) -> dict:
+    """Read the user's rank file, score it against the pairs' places, write ``tmp/ranks.parquet``.
+
+    Args:
+        path: The rank file (parquet or CSV, schema above).
+        pairs: The run's pairs.
+        frames: The frame table (the places' frames).
+        radius_m: The place radius, metres.
+        max_yaw_deg: The place's heading limit, degrees.
+        tmp: The entry's directory.
+
+    Returns:
+        The import counters (unmatched ids, rows without a place frame, ...).
+    """
+    df, counts = ranks_from_import(read_import(path), pairs, str(path), frames, radius_m, max_yaw_deg)
+    write_parquet(tmp / "ranks.parquet", df)
+    return counts

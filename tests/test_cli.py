@@ -63,14 +63,14 @@ def test_fixture_section_chooses_formats_and_render_scale(tmp_path: Path) -> Non
     import dataclasses
 
     from harness.config import FixtureConfig, load_config
-    from harness.runner import Pipeline
+    from harness.runner import Pipeline, frame_table, generate_fixture, ingest_logs
 
     cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(tmp_path / "world"))
     fx = FixtureConfig(generate=True, frames=6, width=64, height=80, render_scale=2, formats=("ros2",))
     sessions = tuple(dataclasses.replace(s, source=str(tmp_path / "world" / "ros2" / s.name)) for s in cfg.sessions)
     cfg = dataclasses.replace(cfg, fixture=fx, sessions=sessions, annotations=tmp_path / "ann.csv")
     p = Pipeline(cfg, tmp_path / "out")
-    p.fixture()
-    frames, _ = p.frames(p.ingest())
+    generate_fixture(p)
+    frames = frame_table(p, ingest_logs(p)).df
     assert len(frames) == 24 and set(frames["width"]) == {64} and set(frames["height"]) == {80}
     assert all(str(u).endswith(".jpg") for u in frames["image"])

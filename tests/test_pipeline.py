@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 from pathlib import Path
 
@@ -288,3 +289,25 @@ def test_descriptor_extraction_resumes_at_the_next_shard(run: tuple, tmp_path: P
     assert q.ran["descriptor_shards"] == total - done  # only the unfinished shards ran
     # shard size is an execution option: same descriptors, same table
     assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
+
+
+def test_stage_files_and_tables_are_identical_to_the_regression(run: tuple) -> None:
+    """Every stage file and report of the fixture run has the committed content (entry keys masked).
+
+    ``tests/regression/stages.json`` was written by the code before the runner was restructured
+    into stage functions; the restructured code reproduces it file for file. Ingest, frames and
+    pairs must match anywhere; the float stages only where torch runs the same CPU kernels.
+    """
+    from .stage_digests import PORTABLE, cpu_capability, digests
+
+    p, _, out = run
+    want = json.loads((ROOT / "tests" / "regression" / "stages.json").read_text())
+    got = digests(out, p.cfg.data_root)
+    assert set(got) == set(want["files"]), set(got) ^ set(want["files"])
+    portable = [k for k in got if k.startswith(PORTABLE)]
+    assert len(portable) >= 5
+    assert {k: got[k] for k in portable} == {k: want["files"][k] for k in portable}
+    if cpu_capability() != want["cpu_capability"]:
+        pytest.skip(f"float stages written on {want['cpu_capability']}, this machine runs {cpu_capability()} kernels")
+    differ = sorted(k for k in got if got[k] != want["files"][k])
+    assert not differ, f"changed: {differ}; regenerate with python -m tests.stage_digests (see its docstring)"

@@ -1,6 +1,6 @@
 """Ingesters: NCLT native files, ROS1 bags, ROS2 bags (sqlite3 or mcap storage) and plain MCAP."""
 
 from .logs import detect_format
-from .session import ingest_session, load_frames, read_nclt_groundtruth
+from .session import combine_frames, ingest_session, load_frames, read_nclt_groundtruth
 
-__all__ = ["detect_format", "ingest_session", "load_frames", "read_nclt_groundtruth"]
+__all__ = ["combine_frames", "detect_format", "ingest_session", "load_frames", "read_nclt_groundtruth"]

@@ -14,7 +14,7 @@ import pandas as pd
 from ..cache import atomic_dir, write_json, write_parquet
 from ..config import IngestConfig, SessionConfig
 from ..errors import CorruptLogError, IngestError
-from ..imagestore import make_uri, resolve, stored_size, upright_size
+from ..imagestore import make_uri, portable_uri, resolve, stored_size, upright_size
 from ..outdirs import check_replaceable, write_marker
 from ..records import FRAME_COLUMNS, FRAME_SCHEMA
 from .images import compressed_kind, compressed_size, decode_problem, raw_to_array, write_raw
@@ -381,3 +381,24 @@ def load_frames(path: Path) -> pd.DataFrame:
     base = path.parent
     df["image"] = [resolve(u, base) for u in df["image"]]
     return df
+
+
+def combine_frames(ingest_dirs: list[Path], out: Path, data_root: Path, tmp: Path) -> dict[str, int]:
+    """The frame table of a run: every session's ``frames.parquet``, sorted by session, camera, utime.
+
+    Image URIs are stored relative to ``out`` or ``data_root`` (``{out}/...``, ``{data_root}/...``),
+    so a run directory or data root can move.
+
+    Args:
+        ingest_dirs: The sessions' ingest entries.
+        out: The run directory.
+        data_root: The data root of the config.
+        tmp: The frames entry's directory (``frames.parquet`` is written there).
+
+    Returns:
+        ``{"frames": number of frames}``.
+    """
+    df = pd.concat([load_frames(p / "frames.parquet") for p in ingest_dirs], ignore_index=True)
+    df["image"] = [portable_uri(u, out, data_root) for u in df["image"]]
+    write_parquet(tmp / "frames.parquet", df.sort_values(["session", "camera", "utime"]), schema=FRAME_SCHEMA)
+    return {"frames": len(df)}

@@ -1,0 +1,128 @@
+"""The descriptor stages' units (SPEC section 5): training crops and the model, encoding shards,
+combining a session's shards. Each is a function of typed inputs to files in a temporary entry
+directory (the runner caches it); none reads the config beyond ``[descriptor]``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from ..cache import open_memmap_reserved, read_cached_parquet, write_parquet
+from ..config import DescriptorConfig
+from ..crops import iter_crops
+from ..progress import progress
+from . import make_descriptor, normalize
+
+FRAME_KEY = ["session", "camera", "utime"]
+
+
+def _images(rows: pd.DataFrame, frames: pd.DataFrame) -> pd.Series:
+    """The image URI of each proposal row's frame, aligned with ``rows``."""
+    return rows.merge(frames[[*FRAME_KEY, "image"]], on=FRAME_KEY, how="left")["image"]
+
+
+def train_model(dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame, tmp: Path) -> dict[str, Any]:
+    """Train the descriptor on up to ``max_train_subimages`` crops of ``rows`` (drawn with ``seed``).
+
+    The crops go to a memmap in ``tmp`` (removed after training), so memory does not grow with
+    the sample. Descriptors that need no training write nothing.
+
+    Args:
+        dc: ``[descriptor]``.
+        frames: The frame table (for image URIs).
+        rows: Proposal rows of every session (the training pool).
+        tmp: The model entry's directory.
+
+    Returns:
+        The training record (losses, steps, stop reason) kept in the entry's manifest.
+    """
+    desc = make_descriptor(dc)
+    if not desc.needs_training:
+        return {"trained": False}
+    rng = np.random.default_rng(dc.seed)
+    n = min(len(rows), dc.max_train_subimages)
+    rows = rows.iloc[np.sort(rng.choice(len(rows), size=n, replace=False))].reset_index(drop=True)
+    data = open_memmap_reserved(tmp / "train_crops.npy", np.uint8, (n, dc.input_size, dc.input_size, 3))
+    for idx, crops in progress(iter_crops(rows, _images(rows, frames), dc.input_size, num_workers=dc.num_workers),
+                               "training crops", "batch"):
+        data[idx] = crops
+    data.flush()
+    steps_per_epoch = int(np.ceil(n / dc.batch_size))
+    total = int(np.ceil(dc.train_samples / dc.batch_size)) if dc.train_samples > 0 else dc.epochs * steps_per_epoch
+    bar = tqdm(total=total, desc="autoencoder training", unit="step", mininterval=1.0, leave=False, disable=None)
+    info = desc.fit(data, tmp, progress=bar.update)
+    bar.close()
+    del data
+    (tmp / "train_crops.npy").unlink()
+    return info
+
+
+def encode_shard(dc: DescriptorConfig, model_dir: Path, frames: pd.DataFrame, rows: pd.DataFrame, name: str,
+                 tmp: Path) -> dict[str, Any]:
+    """Crop, encode and L2-normalise ``rows``; write ``desc.npy`` aligned with ``index.parquet``.
+
+    Args:
+        dc: ``[descriptor]`` (``dtype`` is the stored type).
+        model_dir: The model entry (ignored by descriptors that need no training).
+        frames: The session's frames (for image URIs).
+        rows: The shard's proposal rows.
+        name: What the progress bar calls the shard.
+        tmp: The shard entry's directory.
+
+    Returns:
+        ``{"subimages": rows, "dim": descriptor length}``.
+    """
+    desc = make_descriptor(dc)
+    if desc.needs_training:
+        desc.load(model_dir)
+    img = _images(rows, frames)
+    # frames must be contiguous for the loader: order by frame, remember the original row
+    order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
+    arr = None
+    for idx, crops in progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers),
+                               f"descriptors {name}", "batch"):
+        v = normalize(desc.encode(crops))
+        if arr is None:
+            arr = open_memmap_reserved(tmp / "desc.npy", dc.dtype, (len(rows), v.shape[1]))
+        arr[order[idx]] = v.astype(dc.dtype)
+    _finish_desc(tmp, arr, dc.dtype)
+    write_parquet(tmp / "index.parquet", rows)
+    return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
+
+
+def combine_shards(dc: DescriptorConfig, rows: pd.DataFrame, shard_dirs: list[Path], tmp: Path) -> dict[str, Any]:
+    """One session's ``desc.npy`` aligned with its proposal ``rows``, copied one shard at a time.
+
+    Args:
+        dc: ``[descriptor]`` (the stored dtype).
+        rows: The session's proposal rows (the output's row order).
+        shard_dirs: The shard entries, each with ``desc.npy`` and ``index.parquet``.
+        tmp: The combined entry's directory.
+
+    Returns:
+        ``{"subimages", "shards", "dim"}``.
+    """
+    pos = pd.Series(np.arange(len(rows)), index=pd.MultiIndex.from_frame(rows[["method", "utime", "box_id"]]))
+    arr = None
+    for d in shard_dirs:
+        idx = read_cached_parquet(d / "index.parquet", columns=["method", "utime", "box_id"])
+        v = np.load(d / "desc.npy", mmap_mode="r")
+        if arr is None:
+            arr = open_memmap_reserved(tmp / "desc.npy", dc.dtype, (len(rows), v.shape[1]))
+        arr[pos.loc[pd.MultiIndex.from_frame(idx)].to_numpy()] = v
+    _finish_desc(tmp, arr, dc.dtype)
+    write_parquet(tmp / "index.parquet", rows)
+    return {"subimages": len(rows), "shards": len(shard_dirs), "dim": int(arr.shape[1]) if arr is not None else 0}
+
+
+def _finish_desc(tmp: Path, arr: np.memmap | None, dtype: str) -> None:
+    """Flush the memmap, or write an empty (0, 1) array when there were no rows."""
+    if arr is None:
+        np.save(tmp / "desc.npy", np.zeros((0, 1), dtype))
+    else:
+        arr.flush()

@@ -1,0 +1,117 @@
+"""Every stage's cache key, in one place.
+
+A stage entry lives under ``<out>/cache/<stage>/<key>/``, where ``key`` is a hash of the parts
+returned here plus :data:`harness.cache.CODE_FINGERPRINT` (so new code never reuses old results).
+A part is what the stage's output depends on: the keys of the entries it reads and the config
+sections it uses. Options that only change *how* a stage runs (workers, shard and batch sizes,
+the device) stay out, so changing them reuses every entry. ``docs/architecture.md`` lists them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from .cache import file_fingerprint
+from .config import Config, DescriptorConfig, ProposalsConfig, RetrievalConfig, SessionConfig
+from .ingest.logs import detect_format
+
+Parts = tuple[Any, ...]
+
+#: Descriptor options that change neither the trained model nor the descriptors' values.
+DESCRIPTOR_EXECUTION = ("num_workers", "shard_frames")
+#: ... and the ones that change the descriptors but not the model (the stored dtype, the batch).
+MODEL_EXCLUDED = (*DESCRIPTOR_EXECUTION, "encode_batch", "dtype")
+#: Retrieval options that only cut the ranking work into units.
+RETRIEVAL_EXECUTION = ("query_frames_per_shard",)
+
+
+def source_fingerprint(sc: SessionConfig) -> Any:
+    """Identity of a session's source: only the files that session reads (paths, sizes, mtimes)."""
+    src = Path(sc.source)
+    fmt = detect_format(src) if sc.format == "auto" else sc.format
+    if fmt == "nclt":
+        return {
+            "images": file_fingerprint(src / "images" / sc.name / "lb3" / sc.camera),
+            "gt": file_fingerprint(src / "ground_truth" / f"groundtruth_{sc.name}.csv"),
+        }
+    return file_fingerprint(src)
+
+
+def ingest(cfg: Config, sc: SessionConfig) -> Parts:
+    """One session's ingest: its config, ``[ingest]`` and its source files."""
+    return ("ingest", dataclasses.asdict(sc), dataclasses.asdict(cfg.ingest), source_fingerprint(sc))
+
+
+def frames(ingest_keys: list[str]) -> Parts:
+    """The frame table: the ingest entries it concatenates."""
+    return tuple(ingest_keys)
+
+
+def pairs(cfg: Config, frames_key: str, ann_key: str) -> Parts:
+    """Pairs: frames, ``[pairs]``, the seasons, and the annotations when they choose the queries."""
+    pc = cfg.pairs
+    return (frames_key, dataclasses.asdict(pc), ann_key if pc.queries == "annotated" else None, cfg.seasons())
+
+
+def proposals_file(pc: ProposalsConfig) -> Any:
+    """The proposal file's fingerprint (its path alone when it does not exist)."""
+    return file_fingerprint(Path(pc.file)) if pc.file and Path(pc.file).exists() else pc.file
+
+
+def proposals(cfg: Config, ingest_key: str) -> Parts:
+    """One session's proposals: its ingest entry, ``[proposals]`` and the proposal file."""
+    return (ingest_key, dataclasses.asdict(cfg.proposals), proposals_file(cfg.proposals))
+
+
+def model_options(dc: DescriptorConfig) -> dict[str, Any]:
+    """The ``[descriptor]`` options that change the trained model."""
+    return {k: v for k, v in dataclasses.asdict(dc).items() if k not in MODEL_EXCLUDED}
+
+
+def model(cfg: Config, trains: bool, proposal_keys: list[str]) -> Parts:
+    """The model: its options and (when it trains) the proposal entries it samples crops from."""
+    if not trains:
+        return (model_options(cfg.descriptor),)
+    return (model_options(cfg.descriptor), sorted(proposal_keys))
+
+
+def descriptor_options(dc: DescriptorConfig) -> dict[str, Any]:
+    """The ``[descriptor]`` options that change descriptor values."""
+    return {k: v for k, v in dataclasses.asdict(dc).items() if k not in DESCRIPTOR_EXECUTION}
+
+
+def descriptor_shard(cfg: Config, proposals_key: str, model_key: str, utimes: list[int]) -> Parts:
+    """One shard of a session's descriptors: proposals, model, options and the shard's frames."""
+    return (proposals_key, model_key, descriptor_options(cfg.descriptor), utimes[0], utimes[-1], len(utimes))
+
+
+def descriptors(cfg: Config, proposals_key: str, model_key: str, shard_keys: list[str]) -> Parts:
+    """A session's combined descriptors: the shards it copies."""
+    return (proposals_key, model_key, descriptor_options(cfg.descriptor), shard_keys)
+
+
+def retrieval_options(rc: RetrievalConfig) -> dict[str, Any]:
+    """The ``[retrieval]`` options that change ranks."""
+    return {k: v for k, v in dataclasses.asdict(rc).items() if k not in RETRIEVAL_EXECUTION}
+
+
+def ranks_unit(cfg: Config, ref: str, pairs_key: str, descriptor_keys: dict[str, str], first: int, n: int) -> Parts:
+    """One ranking unit: a reference session and ``n`` of its pairs from row ``first``."""
+    return (ref, pairs_key, descriptor_keys, retrieval_options(cfg.retrieval), first, n)
+
+
+def ranks(cfg: Config, pairs_key: str, descriptor_keys: dict[str, str]) -> Parts:
+    """The rank table's key (not a cache entry: what the samples depend on)."""
+    return (pairs_key, descriptor_keys, retrieval_options(cfg.retrieval))
+
+
+def ranks_import(cfg: Config, path: Path, pairs_key: str) -> Parts:
+    """Ranks imported from a user's file: the file, the pairs and the place radius."""
+    return ("import", file_fingerprint(path), pairs_key, cfg.retrieval.gt_radius_m)
+
+
+def samples(cfg: Config, ranks_key: str, ann_key: str) -> Parts:
+    """Samples: ranks, annotations, ``[fusion]`` and ``[splits]``."""
+    return (ranks_key, ann_key, dataclasses.asdict(cfg.fusion), dataclasses.asdict(cfg.splits))
