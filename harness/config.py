@@ -152,6 +152,16 @@ class RetrievalConfig:
 
 
 @dataclass(frozen=True)
+class ProjectionConfig:
+    """Compact descriptors (docs/method.md): PCA or PCA-whitening to ``dim``, fitted on the reference sessions."""
+
+    dim: int = 0  # 0: off, rank with the full descriptor (SPEC 6); > 0: project to this many dimensions
+    whiten: bool = False  # divide each component by its standard deviation before re-normalising
+    fit_samples: int = 8192  # reference subimages (a seeded sample) encoded to fit the directions; memory fit_samples x D x 4 bytes
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class FusionConfig:
     methods: tuple[str, ...] = ALL_METHODS  # computed and reported; SPEC order is kept whatever the order here
     seed: int = 0
@@ -205,6 +215,7 @@ class Config:
     proposals: ProposalsConfig = field(default_factory=ProposalsConfig)
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    projection: ProjectionConfig = field(default_factory=ProjectionConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     splits: SplitsConfig = field(default_factory=SplitsConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
@@ -298,6 +309,7 @@ _SECTIONS: dict[str, type] = {
     "proposals": ProposalsConfig,
     "descriptor": DescriptorConfig,
     "retrieval": RetrievalConfig,
+    "projection": ProjectionConfig,
     "fusion": FusionConfig,
     "splits": SplitsConfig,
     "report": ReportConfig,
@@ -396,6 +408,9 @@ def validate(cfg: Config, where: str) -> None:
         c(getattr(re_, key) >= 1, where, f"[retrieval] {key}", getattr(re_, key), ">= 1")
     for key in ("faiss_nlist", "faiss_check"):
         c(getattr(re_, key) >= 0, where, f"[retrieval] {key}", getattr(re_, key), ">= 0")
+    pj = cfg.projection
+    c(pj.dim >= 0, where, "[projection] dim", pj.dim, ">= 0 (0: the full descriptor)")
+    c(pj.fit_samples >= max(pj.dim, 1), where, "[projection] fit_samples", pj.fit_samples, f">= dim ({pj.dim}) and >= 1")
     c(de.input_norm in ("none", "per_crop"), where, "[descriptor] input_norm", de.input_norm, "'none' or 'per_crop'")
     c(de.dtype in ("float16", "float32"), where, "[descriptor] dtype", de.dtype, "float16 or float32")
     c(de.device in ("auto", "cpu", "cuda") or de.device.startswith("cuda:"), where, "[descriptor] device", de.device, "auto, cpu, cuda or cuda:N")

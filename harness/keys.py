@@ -82,14 +82,20 @@ def descriptor_options(dc: DescriptorConfig) -> dict[str, Any]:
     return {k: v for k, v in dataclasses.asdict(dc).items() if k not in DESCRIPTOR_EXECUTION}
 
 
-def descriptor_shard(cfg: Config, proposals_key: str, model_key: str, utimes: list[int]) -> Parts:
-    """One shard of a session's descriptors: proposals, model, options and the shard's frames."""
-    return (proposals_key, model_key, descriptor_options(cfg.descriptor), utimes[0], utimes[-1], len(utimes))
+def descriptor_shard(cfg: Config, proposals_key: str, model_key: str, utimes: list[int], projection_key: str | None) -> Parts:
+    """One shard of a session's descriptors: proposals, model, options, the shard's frames (and the projection)."""
+    parts = (proposals_key, model_key, descriptor_options(cfg.descriptor), utimes[0], utimes[-1], len(utimes))
+    return parts if projection_key is None else (*parts, projection_key)
 
 
 def descriptors(cfg: Config, proposals_key: str, model_key: str, shard_keys: list[str]) -> Parts:
     """A session's combined descriptors: the shards it copies."""
     return (proposals_key, model_key, descriptor_options(cfg.descriptor), shard_keys)
+
+
+def projection(cfg: Config, model_key: str, reference_proposal_keys: list[str]) -> Parts:
+    """The compact-descriptor projection: ``[projection]``, the model and the reference sessions' proposals."""
+    return (dataclasses.asdict(cfg.projection), model_key, descriptor_options(cfg.descriptor), sorted(reference_proposal_keys))
 
 
 def retrieval_options(rc: RetrievalConfig) -> dict[str, Any]:

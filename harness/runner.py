@@ -1,6 +1,6 @@
 """The pipeline (SPEC sections 3-10) as a chain of stage calls.
 
-logs -> frames -> pairs -> proposals -> model -> descriptors -> ranks -> samples -> tables
+logs -> frames -> pairs -> proposals -> model [-> projection] -> descriptors -> ranks -> samples -> tables
 
 Each stage is a module-level function of typed inputs (the :class:`Pipeline` context and the
 outputs of the stages before it) to a typed output. It builds its cache key with
@@ -33,7 +33,7 @@ from .annotations import load_annotations
 from .cache import StageCache, read_cached_parquet, stable_hash, write_json, write_parquet, write_text
 from .config import Config
 from .descriptors import make_descriptor
-from .descriptors.extract import combine_shards, encode_shard, train_model
+from .descriptors.extract import combine_shards, encode_shard, fit_projection_unit, train_model
 from .errors import ConfigError, HarnessError, RetrievalError
 from .executors import LocalExecutor
 from .fusion import write_samples
@@ -227,8 +227,22 @@ def descriptor_model(p: Pipeline, frames: Table, props: dict[str, Table]) -> Ent
     return p.unit("model", keys.model(p.cfg, trains, [t.key for t in props.values()]), build)
 
 
-def session_descriptors(p: Pipeline, frames: Table, props: dict[str, Table], model: Entry) -> dict[str, Entry]:
-    """proposals + model -> each session's float descriptors (``desc.npy``) aligned with ``index.parquet``.
+def descriptor_projection(p: Pipeline, frames: Table, pairs: Table, props: dict[str, Table], model: Entry) -> Entry | None:
+    """model -> the compact-descriptor projection (``[projection] dim > 0``), fitted on the reference sessions.
+
+    The reference sessions are those some pair ranks against; None when the projection is off.
+    """
+    if p.cfg.projection.dim == 0:
+        return None
+    refs = sorted(set(pairs.df["r_session"]))
+    rows = pd.concat([props[s].df for s in refs], ignore_index=True)
+    build = partial(fit_projection_unit, p.cfg.descriptor, p.cfg.projection, model.path, frames.df, rows)
+    return p.unit("projection", keys.projection(p.cfg, model.key, [props[s].key for s in refs]), build)
+
+
+def session_descriptors(p: Pipeline, frames: Table, props: dict[str, Table], model: Entry,
+                        projection: Entry | None = None) -> dict[str, Entry]:
+    """proposals + model (+ projection) -> each session's descriptors (``desc.npy``) aligned with ``index.parquet``.
 
     Work is cached in shards of ``shard_frames`` frames (an interrupted extraction resumes at the
     next unfinished shard); a session's shards are then combined, one shard at a time.
@@ -242,8 +256,10 @@ def session_descriptors(p: Pipeline, frames: Table, props: dict[str, Table], mod
         shards = [utimes[i : i + dc.shard_frames] for i in range(0, len(utimes), max(1, dc.shard_frames))]
         spans[sc.name] = (len(units), len(units) + len(shards))
         for si, ut in enumerate(shards):
-            build = partial(encode_shard, dc, model.path, fr, rows[rows["utime"].isin(ut)], f"{sc.name} [{si + 1}/{len(shards)}]")
-            units.append((keys.descriptor_shard(p.cfg, props[sc.name].key, model.key, [int(u) for u in ut]), build))
+            build = partial(encode_shard, dc, model.path, projection.path if projection else None, fr, rows[rows["utime"].isin(ut)],
+                            f"{sc.name} [{si + 1}/{len(shards)}]")
+            key = keys.descriptor_shard(p.cfg, props[sc.name].key, model.key, [int(u) for u in ut], projection.key if projection else None)
+            units.append((key, build))
     shards_done = p.units("descriptor_shards", units, gpu=True)
     out = {}
     for sc in p.cfg.sessions:
@@ -361,7 +377,8 @@ def until_ranks(p: Pipeline, check: bool = True) -> tuple[dict[str, Entry], Tabl
     if p.rank_import is None:
         props = session_proposals(p, frames, ingested)
         model = descriptor_model(p, frames, props)
-        described = session_descriptors(p, frames, props, model)
+        projection = descriptor_projection(p, frames, pairs, props, model)
+        described = session_descriptors(p, frames, props, model, projection)
     return ingested, frames, ann, pairs, query_ranks(p, frames, pairs, described)
 
 

@@ -1,10 +1,11 @@
-"""The descriptor stages' units (SPEC section 5): training crops and the model, encoding shards,
+"""The descriptor stages' units (SPEC section 6): training crops and the model, encoding shards,
 combining a session's shards. Each is a function of typed inputs to files in a temporary entry
 directory (the runner caches it); none reads the config beyond ``[descriptor]``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -13,10 +14,12 @@ import pandas as pd
 from tqdm import tqdm
 
 from ..cache import open_memmap_reserved, read_cached_parquet, write_parquet
-from ..config import DescriptorConfig
+from ..config import DescriptorConfig, ProjectionConfig
 from ..crops import iter_crops
+from ..errors import RetrievalError
 from ..progress import progress
-from . import make_descriptor, normalize
+from .base import Descriptor, make_descriptor, normalize
+from .projection import fit_projection, load_projection, project
 
 FRAME_KEY = ["session", "camera", "utime"]
 
@@ -62,34 +65,77 @@ def train_model(dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame, 
     return info
 
 
-def encode_shard(dc: DescriptorConfig, model_dir: Path, frames: pd.DataFrame, rows: pd.DataFrame, name: str,
-                 tmp: Path) -> dict[str, Any]:
-    """Crop, encode and L2-normalise ``rows``; write ``desc.npy`` aligned with ``index.parquet``.
+def _loaded(dc: DescriptorConfig, model_dir: Path) -> Descriptor:
+    desc = make_descriptor(dc)
+    if desc.needs_training:
+        desc.load(model_dir)
+    return desc
+
+
+def _encoded(desc: Descriptor, dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame,
+             name: str) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(row positions in ``rows``, L2-normalised float32 descriptors) batch by batch, frame by frame."""
+    img = _images(rows, frames)
+    # frames must be contiguous for the loader: order by frame, remember the original row
+    order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
+    for idx, crops in progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers),
+                               f"descriptors {name}", "batch"):
+        yield order[idx], normalize(desc.encode(crops))
+
+
+def fit_projection_unit(dc: DescriptorConfig, pc: ProjectionConfig, model_dir: Path, frames: pd.DataFrame,
+                        rows: pd.DataFrame, tmp: Path) -> dict[str, Any]:
+    """Fit ``[projection]`` on up to ``fit_samples`` of the reference ``rows`` (a seeded sample), encoded here.
+
+    Memory: the sample, ``fit_samples x D`` float32 (512 MiB at 8,192 x 16,384).
+
+    Args:
+        dc: ``[descriptor]``.
+        pc: ``[projection]``.
+        model_dir: The trained model.
+        frames: The frame table (image URIs).
+        rows: The reference sessions' proposal rows.
+        tmp: The entry's directory (see :func:`harness.descriptors.projection.fit_projection`).
+
+    Returns:
+        The fit record (rows sampled, dims, explained variance).
+    """
+    pick = np.sort(np.random.default_rng(pc.seed).choice(len(rows), size=min(len(rows), pc.fit_samples), replace=False))
+    rows = rows.iloc[pick].reset_index(drop=True)
+    sample = None
+    for pos, v in _encoded(_loaded(dc, model_dir), dc, frames, rows, "projection sample"):
+        if sample is None:
+            sample = np.empty((len(rows), v.shape[1]), np.float32)
+        sample[pos] = v
+    if sample is None:
+        raise RetrievalError("[projection] the reference sessions have no subimage to fit the projection on")
+    return {"reference_rows": len(pick), **fit_projection(pc, sample, tmp)}
+
+
+def encode_shard(dc: DescriptorConfig, model_dir: Path, projection_dir: Path | None, frames: pd.DataFrame,
+                 rows: pd.DataFrame, name: str, tmp: Path) -> dict[str, Any]:
+    """Crop, encode, L2-normalise (and project) ``rows``; write ``desc.npy`` aligned with ``index.parquet``.
 
     Args:
         dc: ``[descriptor]`` (``dtype`` is the stored type).
         model_dir: The model entry (ignored by descriptors that need no training).
+        projection_dir: A fitted projection entry, applied before storing; None: the full descriptor.
         frames: The session's frames (for image URIs).
         rows: The shard's proposal rows.
         name: What the progress bar calls the shard.
         tmp: The shard entry's directory.
 
     Returns:
-        ``{"subimages": rows, "dim": descriptor length}``.
+        ``{"subimages": rows, "dim": stored descriptor length}``.
     """
-    desc = make_descriptor(dc)
-    if desc.needs_training:
-        desc.load(model_dir)
-    img = _images(rows, frames)
-    # frames must be contiguous for the loader: order by frame, remember the original row
-    order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
+    proj = load_projection(projection_dir) if projection_dir is not None else None
     arr = None
-    for idx, crops in progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers),
-                               f"descriptors {name}", "batch"):
-        v = normalize(desc.encode(crops))
+    for pos, v in _encoded(_loaded(dc, model_dir), dc, frames, rows, name):
+        if proj is not None:
+            v = project(v, *proj)
         if arr is None:
             arr = open_memmap_reserved(tmp / "desc.npy", dc.dtype, (len(rows), v.shape[1]))
-        arr[order[idx]] = v.astype(dc.dtype)
+        arr[pos] = v.astype(dc.dtype)
     _finish_desc(tmp, arr, dc.dtype)
     write_parquet(tmp / "index.parquet", rows)
     return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
