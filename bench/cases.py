@@ -10,6 +10,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -165,8 +166,8 @@ def fit_exponent(x: list[float], y: list[float]) -> float:
     return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
 
 
-def _random_db(m: int, dim: int, rng: np.random.Generator) -> Path:
-    path = DATA / f"db-{m}-{dim}.npy"
+def _random_db(m: int, dim: int, rng: np.random.Generator, tag: str = "") -> Path:
+    path = DATA / f"db-{m}-{dim}{tag}.npy"
     if not path.exists():
         DATA.mkdir(parents=True, exist_ok=True)
         arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(m, dim))
@@ -320,7 +321,7 @@ def case_executor(quick: bool) -> None:
     print(json.dumps({"case": "ray speed-up (local s / ray s)", "median": statistics.median(results["local"]) / statistics.median(results["ray"]), "unit": "x", "runs": [], "peak_rss_mib": peak_rss_mib(), "notes": "2 local workers on 2 cores"}), flush=True)
 
 
-STAGES = ("ingest", "pairs", "proposals", "train", "descriptor_shards", "ranks", "fusion", "labels_ap_reports")
+STAGES = ("ingest", "pairs", "proposals", "model", "descriptor_shards", "ranks", "samples", "labels_ap_reports")
 
 
 def nclt_scale_workload(frames: int) -> Path:
@@ -334,6 +335,29 @@ def nclt_scale_workload(frames: int) -> Path:
     return root
 
 
+def reproduce_subprocess(config: Path, root: Path, prefix: str) -> tuple[Path, dict[str, Any], Any, float]:
+    """``harness reproduce`` of ``config`` on ``root`` in its own process, into a new directory.
+
+    Returns:
+        (run directory, its run.json, ``os.wait4`` resource usage (peak RSS of the run and the
+        loader workers it waited for), wall seconds).
+    """
+    import os
+    import subprocess
+    import sys
+
+    out = Path(tempfile.mkdtemp(dir=DATA, prefix=prefix))
+    cmd = [sys.executable, "-m", "harness.cli", "reproduce", "--config", str(config), "--data-root", str(root), "--out", str(out)]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "TQDM_DISABLE": "1"})
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if status != 0:
+        raise SystemExit(f"reproduce {config.name} on {root} failed:\n{err[-3000:]}")
+    return out, json.loads((out / "run.json").read_text()), usage, wall
+
+
 def case_e2e(quick: bool) -> None:
     """End-to-end Table I (``harness reproduce``, nothing cached) on the NCLT-scale workload, at
     several frame counts per session; per-stage times and their growth with the frame count.
@@ -341,25 +365,13 @@ def case_e2e(quick: bool) -> None:
     Each run is its own process; its peak RSS comes from ``os.wait4`` (that process and the
     data-loader workers it waited for).
     """
-    import os
-    import subprocess
-    import sys
 
     counts = (24, 48) if quick else (125, 250, 500)
     stage_t: dict[str, list[float]] = {s: [] for s in STAGES}
     totals = []
     for n in counts:
         root = nclt_scale_workload(n)
-        out = Path(tempfile.mkdtemp(dir=DATA, prefix="e2e-"))
-        cmd = [sys.executable, "-m", "harness.cli", "reproduce", "--config", str(ROOT / "bench" / "nclt_scale.toml"), "--data-root", str(root), "--out", str(out)]
-        t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "TQDM_DISABLE": "1"})
-        err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        if status != 0:
-            raise SystemExit(f"e2e run on {root} failed:\n{err[-3000:]}")
-        run = json.loads((out / "run.json").read_text())
+        out, run, usage, wall = reproduce_subprocess(ROOT / "bench" / "nclt_scale.toml", root, "e2e-")
         shutil.rmtree(out)
         t = run["timings_s"]
         for s_ in STAGES:
@@ -368,7 +380,7 @@ def case_e2e(quick: bool) -> None:
         c = run["counts"]
         q_images = c["pairs"]  # (query frame, reference session) pairs: one Table I query image each
         ranked = c["ranked_subimages"]
-        eval_s = t.get("fusion", 0.0) + t.get("labels_ap_reports", 0.0)
+        eval_s = t.get("samples", 0.0) + t.get("labels_ap_reports", 0.0)
         print(json.dumps({
             "case": f"e2e Table I [{n} frames/session]", "median": wall, "unit": "s", "runs": [wall],
             "peak_rss_mib": usage.ru_maxrss / 1024,
@@ -385,12 +397,159 @@ def case_e2e(quick: bool) -> None:
                       "runs": [], "peak_rss_mib": peak_rss_mib(), "points": {"x": list(counts), "y": totals, "xlabel": "frames per session", "ylabel": "s"}}), flush=True)
 
 
+#: The whole NCLT as the paper uses it (issue 15): four sessions of about 25,000 Ladybug frames,
+#: 16 subimages per frame, 5,242 query images.
+NCLT_FRAMES = 100_000
+NCLT_SUBIMAGES = 1_600_000
+NCLT_QUERY_IMAGES = 5_242
+NCLT_DB_ROWS = 400_000
+
+
+def _anon_peak_poller() -> tuple[Any, dict[str, float]]:
+    """A thread sampling this process's anonymous resident memory (RssAnon) every 20 ms.
+
+    Peak RSS (VmHWM) also counts the database's file pages mapped by the memmap, which the
+    kernel may drop at will; RssAnon is what the process itself holds.
+    """
+    import threading
+
+    peak = {"anon_mib": 0.0}
+    stop = threading.Event()
+
+    def poll() -> None:
+        while not stop.is_set():
+            for line in Path("/proc/self/status").read_text().splitlines():
+                if line.startswith("RssAnon:"):
+                    peak["anon_mib"] = max(peak["anon_mib"], int(line.split()[1]) / 1024)
+            stop.wait(0.02)
+
+    th = threading.Thread(target=poll, daemon=True)
+    th.start()
+    return stop, peak
+
+
+def rank_job(m: int, nq: int, dim: int, sessions: int, memory_mb: float) -> None:
+    """One subprocess: rank ``nq`` queries against each of ``sessions`` databases of ``m`` float16 rows.
+
+    Queries are noisy copies of database rows (so ground-truth ranks spread like a working
+    localizer's); 16 rows per frame; the place is G alone. Prints seconds, peaks and disk.
+    """
+    from harness.retrieval import image_ranks
+
+    stop, peak = _anon_peak_poller()
+    secs, disk, r1 = [], 0, []
+    for s_ in range(sessions):
+        rng = np.random.default_rng(s_)
+        path = _random_db(m, dim, rng, tag=f"s{s_}")
+        disk += path.stat().st_size
+        db = np.load(path, mmap_mode="r")
+        frame = np.arange(m) // 16
+        pick = np.sort(rng.choice(m, nq, replace=False))
+        q = np.empty((nq, dim), np.float32)
+        for c in range(0, nq, 8192):
+            q[c : c + 8192] = db[pick[c : c + 8192]]
+        q += 0.35 * rng.standard_normal(q.shape, dtype=np.float32) / np.sqrt(dim)
+        t0 = time.perf_counter()
+        rank, _, _ = image_ranks(q, db, frame, frame[pick], chunk_rows=8192, query_batch=1024, memory_mb=memory_mb)
+        secs.append(time.perf_counter() - t0)
+        r1.append(float((rank == 1).mean()))
+        del db, q
+    stop.set()
+    hwm = next(int(x.split()[1]) / 1024 for x in Path("/proc/self/status").read_text().splitlines() if x.startswith("VmHWM:"))
+    print(json.dumps({"seconds": secs, "vmhwm_mib": hwm, "anon_peak_mib": peak["anon_mib"], "db_bytes": disk, "recall_at_1": r1}), flush=True)
+
+
+def _rank_subprocess(m: int, nq: int, dim: int, sessions: int, memory_mb: float) -> dict[str, Any]:
+    import subprocess
+    import sys
+
+    args = json.dumps({"m": m, "nq": nq, "dim": dim, "sessions": sessions, "memory_mb": memory_mb})
+    proc = subprocess.run([sys.executable, "-m", "bench.cases", "rankjob", "--args", args], cwd=ROOT, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"rank job {args} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def case_full_nclt(quick: bool) -> None:
+    """The whole NCLT on this machine (issue 15): ranking measured at full size, the other stages'
+    rates measured on the NCLT-scale workload with the full-NCLT settings (``bench/nclt_full.toml``),
+    all in this run, then projected to 100,000 frames, 1.6 M subimages and 5,242 query images.
+
+    - ranking: 4 reference databases of 400,000 float16 rows at the projected dim (256), each
+      ranked against its 20,968 query subimages (84k in all), exactly as the pipeline does;
+    - memory: the same engine on 2,048 queries against 40,000 and 400,000 rows (10x), peak
+      anonymous memory of each in its own process;
+    - the other stages: ``harness reproduce`` on 125 frames per session (``--quick``: 24).
+    """
+
+    dim, mem = 256, 1024.0
+    m = NCLT_DB_ROWS if not quick else NCLT_DB_ROWS // 10
+    nq = NCLT_QUERY_IMAGES * 16 // 4 if not quick else 2048
+    full = _rank_subprocess(m, nq, dim, 4, mem)
+    rank_s = sum(full["seconds"])
+    emit(f"full-nclt ranking: 4 x {m:,} rows x {dim} dims, {4 * nq:,} query subimages", [rank_s], "s",
+         ms_per_query_image=round(1000 * rank_s / (4 * nq / 16), 2), anon_peak_mib=round(full["anon_peak_mib"]),
+         notes=f"exact engine, memory_mb {mem:g}; per database s: " + ", ".join(f"{x:.1f}" for x in full["seconds"])
+         + f"; float16 databases {full['db_bytes'] / 1e9:.2f} GB; peak anonymous memory {full['anon_peak_mib']:.0f} MiB "
+         f"(peak RSS with mapped database pages {full['vmhwm_mib']:.0f} MiB)")
+    flat = {}
+    for rows in (NCLT_DB_ROWS // 10, NCLT_DB_ROWS):
+        flat[rows] = _rank_subprocess(rows, 2048, dim, 1, mem)
+        emit(f"full-nclt memory: 2,048 queries vs {rows:,} rows", [flat[rows]["anon_peak_mib"]], "MiB",
+             notes=f"peak anonymous memory; peak RSS incl. mapped database pages {flat[rows]['vmhwm_mib']:.0f} MiB; {flat[rows]['seconds'][0]:.1f} s")
+    ratio = flat[NCLT_DB_ROWS]["anon_peak_mib"] / flat[NCLT_DB_ROWS // 10]["anon_peak_mib"]
+    emit("full-nclt memory ratio (database 10x larger)", [ratio], "x", notes="1.0 = flat: memory bounded by memory_mb and chunk_rows, not the database")
+
+    frames_per_session = 24 if quick else 125
+    root = nclt_scale_workload(frames_per_session)
+    out, run, usage, wall = reproduce_subprocess(ROOT / "bench" / "nclt_full.toml", root, "full-")
+    t, c = run["timings_s"], run["counts"]
+    subimages = sum(json.loads((d / "manifest.json").read_text())["info"]["subimages"] for d in (out / "cache" / "descriptors").iterdir())
+    images_bytes = _size(out / "cache" / "ingest")
+    # stages whose files grow with the frames, and the fixed rest (model, projection, reports)
+    per_frame_bytes = sum(_size(out / "cache" / s_) for s_ in ("frames", "pairs", "proposals", "descriptor_shards", "descriptors", "ranks", "samples"))
+    per_frame_bytes += sum(_size(f) for f in out.glob("*.parquet")) + _size(out / "splits")
+    fixed_bytes = _size(out) - images_bytes - per_frame_bytes
+    shutil.rmtree(out)
+    frames, q_images = c["frames"], c["pairs"]
+    # stage: (measured figure, its unit, projected seconds for the whole NCLT)
+    rows = [
+        ("ingest (ROS2 JPEG bags)", t.get("ingest", 0) / frames * 1000, "ms/frame", t.get("ingest", 0) / frames * NCLT_FRAMES),
+        ("proposals (grid5 + edges)", t.get("proposals", 0) / frames * 1000, "ms/frame", t.get("proposals", 0) / frames * NCLT_FRAMES),
+        ("autoencoder training (6,000 sample-steps budget)", t.get("model", 0), "s, fixed", t.get("model", 0)),
+        ("projection fit (8,192 reference subimages)", t.get("projection", 0), "s, fixed", t.get("projection", 0)),
+        ("descriptors (crop, encode 256x256, project)", t.get("descriptor_shards", 0) / subimages * 1000, "ms/subimage",
+         t.get("descriptor_shards", 0) / subimages * NCLT_SUBIMAGES),
+        ("ranking (measured at full size above)", rank_s, "s, full size", rank_s),
+        ("fusion, labels, AP, reports", (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * 1000, "ms/query image",
+         (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * NCLT_QUERY_IMAGES),
+    ]
+    total = sum(r[3] for r in rows)
+    for name, rate, unit, proj in rows:
+        print(json.dumps({"case": f"full-nclt projection: {name}", "median": rate, "unit": unit, "runs": [rate],
+                          "peak_rss_mib": usage.ru_maxrss / 1024, "projected_min_cpu": round(proj / 60, 1),
+                          "notes": f"projected {proj / 60:.1f} min for the whole NCLT on this CPU"}), flush=True)
+    disk_gb = (per_frame_bytes / frames * NCLT_FRAMES + fixed_bytes) / 1e9
+    print(json.dumps({"case": "full-nclt projection: total", "median": total / 3600, "unit": "h (CPU)", "runs": [total / 3600],
+                      "peak_rss_mib": usage.ru_maxrss / 1024, "disk_gb": round(disk_gb, 2),
+                      "notes": (f"goal < 2 h, < 20 GB, < 8 GiB; workload run {wall:.0f} s on {frames} frames, {subimages} subimages, "
+                                f"{q_images} query images; peak RSS of that run {usage.ru_maxrss / 1024:.0f} MiB; disk: stage files that grow with the "
+                                f"frames {per_frame_bytes / 1e6:.1f} MB, fixed (model, projection, reports) {fixed_bytes / 1e6:.1f} MB "
+                                f"-> {disk_gb:.2f} GB for 100,000 frames (NCLT's own images "
+                                f"are read in place; a ROS2 bag's are stored: {images_bytes / frames * NCLT_FRAMES / 1e9:.1f} GB more); "
+                                "GPU: not measured, no GPU was lent to this task")}), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("case")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--args", default="{}", help="rankjob: its arguments as JSON")
     a = ap.parse_args()
-    globals()[f"case_{a.case}"](a.quick)
+    if a.case == "rankjob":
+        rank_job(**json.loads(a.args))
+        return
+    globals()[f"case_{a.case.replace('-', '_')}"](a.quick)
 
 
 if __name__ == "__main__":

@@ -145,6 +145,7 @@ class RetrievalConfig:
     db_stride_m: float = 0.0  # reference database by place: one frame per this many metres of trajectory; 0: every frame
     chunk_rows: int = 8192
     query_batch: int = 1024
+    memory_mb: float = 1024.0  # exact engine: budget (MiB) of the (queries x frames) matrices per database pass; bounds memory whatever the data size
     faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
     faiss_nprobe: int = 8
     query_frames_per_shard: int = 512  # pairs per ranking unit (the unit mapped over executors)
@@ -406,6 +407,7 @@ def validate(cfg: Config, where: str) -> None:
     c(re_.gt_radius_m >= 0, where, "[retrieval] gt_radius_m", re_.gt_radius_m, ">= 0 metres (0: the ground-truth frame alone)")
     for key in ("chunk_rows", "query_batch", "faiss_nprobe", "query_frames_per_shard"):
         c(getattr(re_, key) >= 1, where, f"[retrieval] {key}", getattr(re_, key), ">= 1")
+    c(re_.memory_mb > 0, where, "[retrieval] memory_mb", re_.memory_mb, "> 0 MiB")
     for key in ("faiss_nlist", "faiss_check"):
         c(getattr(re_, key) >= 0, where, f"[retrieval] {key}", getattr(re_, key), ">= 0")
     pj = cfg.projection

@@ -24,7 +24,7 @@ DESCRIPTOR_EXECUTION = ("num_workers", "shard_frames")
 #: ... and the ones that change the descriptors but not the model (the stored dtype, the batch).
 MODEL_EXCLUDED = (*DESCRIPTOR_EXECUTION, "encode_batch", "dtype")
 #: Retrieval options that only cut the ranking work into units.
-RETRIEVAL_EXECUTION = ("query_frames_per_shard",)
+RETRIEVAL_EXECUTION = ("query_frames_per_shard", "memory_mb")
 
 
 def source_fingerprint(sc: SessionConfig) -> Any:

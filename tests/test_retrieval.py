@@ -179,3 +179,18 @@ def test_imported_ids_that_match_no_frame_are_refused_or_counted() -> None:
         ranks_from_import(_imp([10000, 20000, 30000, 40000, 50000], 5), PAIRS, "x", REF_FRAMES)
     df, counts = ranks_from_import(_imp([10, 20, 30, 99], 5), PAIRS, "x", REF_FRAMES)  # one stray id: counted
     assert counts["unmatched_reference_ids"] == 1 and df["rank"][0] == 3
+
+
+def test_a_memory_budget_ranks_in_groups_with_the_same_result() -> None:
+    """``memory_mb`` bounds the (queries x frames) matrices: tiny budgets give groups of one query."""
+    rng = np.random.default_rng(3)
+    db = rng.standard_normal((600, 8)).astype(np.float16)
+    frame = np.repeat(np.arange(150), 4)
+    q = rng.standard_normal((37, 8)).astype(np.float32)
+    gt = rng.choice(150, 37)
+    place = [np.array([g, (g + 1) % 150]) for g in gt]
+    whole = image_ranks(q, db, frame, gt, place, chunk_rows=64)
+    for mb in (1e-6, 150 * 9 * 5 / 2**20):  # one query per group; five per group
+        got = image_ranks(q, db, frame, gt, place, chunk_rows=64, memory_mb=mb)
+        for a, b in zip(whole, got, strict=True):
+            np.testing.assert_array_equal(a, b)

@@ -27,6 +27,11 @@ from ..errors import RetrievalError
 
 log = logging.getLogger(__name__)
 
+#: Bytes of place rows (float64) kept between queries by the exact ``d`` recomputation.
+CACHE_BYTES = 64 << 20
+#: Database rows per chunk on a CUDA device (at least): larger than on CPU, where a chunk should stay in cache.
+CUDA_CHUNK_ROWS = 65536
+
 
 @dataclass(frozen=True)
 class Ranks:
@@ -95,13 +100,15 @@ def image_ranks(
     chunk_rows: int = 8192,
     query_batch: int = 1024,
     device: str | torch.device = "cpu",
+    memory_mb: float = 1024.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact image-level ranks of the ground-truth places.
 
     The database is streamed in chunks of about ``chunk_rows`` rows (cut at frame boundaries), each
     read once and converted to float32 on the fly, so ``db_desc`` may be a float16 memmap of any
-    size. Memory: the (n, frames) per-frame minimum plus one chunk; the place adds nothing of
-    that order. Ranks compare the per-frame minima of the fast matrix-product path with each
+    size. Memory is bounded by ``memory_mb``, not by the data: queries are ranked in groups
+    whose (group, frames) per-frame minimum and place mask fit in it (each group streams the
+    database once), plus one chunk of ``chunk_rows`` rows. Ranks compare the per-frame minima of the fast matrix-product path with each
     other; ``d`` is then recomputed exactly from the place's own rows (differences, float64), so
     a query equal to a database row gets ``d = 0``.
 
@@ -112,6 +119,10 @@ def image_ranks(
         gt_frame: (n,) ground-truth frame id of each query (must occur in ``db_frame``).
         place: per query, the frame ids of its ground-truth place P(G) (G is always added; ids
             with no database row are ignored). None: P(G) = {G}, the literal single-frame rank.
+        chunk_rows: Database rows per streamed chunk.
+        query_batch: Queries per matrix product.
+        device: ``"cpu"`` or ``"cuda"`` (float32 products; float16 rows converted on the device).
+        memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, 9 bytes per cell.
 
     Returns:
         ``rank`` (n,) int64, ``L`` (n,) int64 (1 + frames outside the place), ``dist`` (n,)
@@ -129,8 +140,21 @@ def image_ranks(
     order, frame_ids, starts = _frame_layout(db_frame)
     L = len(frame_ids)
     pcols = _place_columns(frame_ids, gt_frame, place)
-    dev = torch.device(device)
     n = len(query_desc)
+    group = max(1, int(memory_mb * 2**20 // (9 * max(L, 1))))
+    if torch.device(device).type == "cuda":  # device memory is large and the copy costs more than the product
+        chunk_rows = max(chunk_rows, CUDA_CHUNK_ROWS)
+    rank, Lq, dist = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.float64))
+    for g0 in range(0, n, group):
+        g = slice(g0, min(n, g0 + group))
+        rank[g], Lq[g], dist[g] = _rank_group(query_desc[g], db_desc, order, starts, pcols[g], chunk_rows, query_batch, torch.device(device))
+    return rank, Lq, dist
+
+
+def _rank_group(query_desc: np.ndarray, db_desc: np.ndarray, order: np.ndarray, starts: np.ndarray, pcols: list[np.ndarray],
+                chunk_rows: int, query_batch: int, dev: torch.device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`image_ranks` for one group of queries: one pass over the database."""
+    L, n = len(starts), len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
     bounds = np.concatenate([starts, [len(order)]])
     queries = [torch.from_numpy(np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)).to(dev) for s in range(0, n, query_batch)]
@@ -149,7 +173,7 @@ def image_ranks(
     pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
     in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
     in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
-    dg = torch.where(in_place, fm, torch.full_like(fm, float("inf"))).amin(1, keepdim=True)
+    dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
     rank = (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)  # place frames never count
     Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
     fm_np = fm.cpu().numpy()
@@ -167,6 +191,7 @@ def _exact_place_dist(query_desc: np.ndarray, db_desc: np.ndarray, order: np.nda
     """
     out = np.empty(len(pcols), np.float64)
     cache: dict[int, np.ndarray] = {}
+    cached_bytes = 0
     for i, cols in enumerate(pcols):
         near = cols[fm[i, cols] <= dg[i] + 1e-2 + 1e-3 * abs(dg[i])] if len(cols) > 1 else cols
         q = np.asarray(query_desc[i], np.float64)
@@ -174,10 +199,12 @@ def _exact_place_dist(query_desc: np.ndarray, db_desc: np.ndarray, order: np.nda
         for c in near:
             rows = cache.get(int(c))
             if rows is None:
-                if len(cache) > 512:
+                if cached_bytes > CACHE_BYTES:  # frames recur for neighbouring queries; bounded, not grown
                     cache.clear()
+                    cached_bytes = 0
                 rows = np.asarray(db_desc[np.sort(order[bounds[c] : bounds[c + 1]])], np.float64)
                 cache[int(c)] = rows
+                cached_bytes += rows.nbytes
             best = min(best, float(((rows - q) ** 2).sum(1).min()))
         out[i] = np.sqrt(best)
     return out

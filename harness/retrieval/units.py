@@ -118,12 +118,13 @@ def _rank_query_session(rc: RetrievalConfig, method: str, g: pd.DataFrame, qdir:
         rank, L, dist, exact = res.rank, res.L, res.dist, res.exact
         # recall against the exact engine on a deterministic sample of the queries
         k = min(len(qd), rc.faiss_check)
-        ex, _, _ = image_ranks(qd[:k], db, db_frame, gt[:k], place[:k], chunk_rows=rc.chunk_rows, device=device)
+        ex, _, _ = image_ranks(qd[:k], db, db_frame, gt[:k], place[:k], chunk_rows=rc.chunk_rows, device=device, memory_mb=rc.memory_mb)
         counts["faiss_checked"] = counts.get("faiss_checked", 0) + k
         counts["faiss_rank_equal_exact"] = counts.get("faiss_rank_equal_exact", 0) + int((ex == rank[:k]).sum())
         counts["faiss_flagged_exact"] = counts.get("faiss_flagged_exact", 0) + int(exact.sum())
     else:
-        rank, L, dist = image_ranks(qd, db, db_frame, gt, place, chunk_rows=rc.chunk_rows, query_batch=rc.query_batch, device=device)
+        rank, L, dist = image_ranks(qd, db, db_frame, gt, place, chunk_rows=rc.chunk_rows, query_batch=rc.query_batch, device=device,
+                                     memory_mb=rc.memory_mb)
         exact = np.ones(len(rank), bool)
     frame_set = np.unique(db_frame)
     place_size = np.array([int(np.isin(p, frame_set).sum()) for p in place], np.int64)
