@@ -190,7 +190,7 @@ def test_a_memory_budget_ranks_in_groups_with_the_same_result() -> None:
     gt = rng.choice(150, 37)
     place = [np.array([g, (g + 1) % 150]) for g in gt]
     whole = image_ranks(q, db, frame, gt, place, chunk_rows=64)
-    for mb in (1e-6, 150 * 9 * 5 / 2**20):  # one query per group; five per group
+    for mb in (1e-6, 150 * 16 * 5 / 2**20):  # one query per group; five per group
         got = image_ranks(q, db, frame, gt, place, chunk_rows=64, memory_mb=mb)
         for a, b in zip(whole, got, strict=True):
             np.testing.assert_array_equal(a, b)

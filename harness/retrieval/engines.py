@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 
 #: Bytes of place rows (float64) kept between queries by the exact ``d`` recomputation.
 CACHE_BYTES = 64 << 20
+#: Bytes per (query, frame) cell a group holds at its peak: the float32 minima, the place mask, the
+#: masked copy and the comparison's boolean temporaries.
+CELL_BYTES = 16
 #: Database rows per chunk on a CUDA device (at least): larger than on CPU, where a chunk should stay in cache.
 CUDA_CHUNK_ROWS = 65536
 
@@ -108,7 +111,8 @@ def image_ranks(
     read once and converted to float32 on the fly, so ``db_desc`` may be a float16 memmap of any
     size. Memory is bounded by ``memory_mb``, not by the data: queries are ranked in groups
     whose (group, frames) per-frame minimum and place mask fit in it (each group streams the
-    database once), plus one chunk of ``chunk_rows`` rows. Ranks compare the per-frame minima of the fast matrix-product path with each
+    database once), plus one chunk of ``chunk_rows`` rows and its (query_batch x chunk_rows)
+    distances. Ranks compare the per-frame minima of the fast matrix-product path with each
     other; ``d`` is then recomputed exactly from the place's own rows (differences, float64), so
     a query equal to a database row gets ``d = 0``.
 
@@ -122,7 +126,7 @@ def image_ranks(
         chunk_rows: Database rows per streamed chunk.
         query_batch: Queries per matrix product.
         device: ``"cpu"`` or ``"cuda"`` (float32 products; float16 rows converted on the device).
-        memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, 9 bytes per cell.
+        memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, :data:`CELL_BYTES` per cell.
 
     Returns:
         ``rank`` (n,) int64, ``L`` (n,) int64 (1 + frames outside the place), ``dist`` (n,)
@@ -141,7 +145,7 @@ def image_ranks(
     L = len(frame_ids)
     pcols = _place_columns(frame_ids, gt_frame, place)
     n = len(query_desc)
-    group = max(1, int(memory_mb * 2**20 // (9 * max(L, 1))))
+    group = max(1, int(memory_mb * 2**20 // (CELL_BYTES * max(L, 1))))
     if torch.device(device).type == "cuda":  # device memory is large and the copy costs more than the product
         chunk_rows = max(chunk_rows, CUDA_CHUNK_ROWS)
     rank, Lq, dist = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.float64))
