@@ -88,3 +88,17 @@ def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(local_run
     small = pd.read_csv(tmp_path / "localization.csv").set_index(["proposals", "season_pair"])
     assert 0.8 * full.loc[("all", "all"), "recall_at_1"] < small.loc[("all", "all"), "recall_at_1"] <= full.loc[("all", "all"), "recall_at_1"]
     assert rec["config"]["projection"]["dim"] == 64
+
+
+def test_memory_mb_as_a_user_types_it(tmp_path: Path) -> None:
+    """``[retrieval] memory_mb`` is read from the TOML and a non-positive budget is refused with its value."""
+    from harness.config import load_config
+
+    from .conftest import ROOT
+
+    text = (ROOT / "datasets" / "fixture.toml").read_text()
+    (tmp_path / "c.toml").write_text(text + "\n[retrieval]\nmemory_mb = 256\n")
+    assert load_config(tmp_path / "c.toml").retrieval.memory_mb == 256
+    (tmp_path / "bad.toml").write_text(text + "\n[retrieval]\nmemory_mb = 0\n")
+    with pytest.raises(ConfigError, match=r"\[retrieval\] memory_mb.*0.*> 0 MiB"):
+        load_config(tmp_path / "bad.toml")
