@@ -94,7 +94,9 @@ def main() -> int:
     if proj:
         lines += ["", "## Full NCLT (100,000 frames, 1.6 M subimages, 5,242 query images): measured rates, projected times", "",
                   "Rates measured in this run (case full-nclt; ranking at full size, the other stages on the NCLT-scale",
-                  "workload with `bench/nclt_full.toml`), projected linearly to the whole NCLT.", "",
+                  "workload with `bench/nclt_full.toml`), projected linearly to the whole NCLT: ingest over every",
+                  "frame, proposals and descriptors over the frames a run describes (query frames and the reference",
+                  "frames a `db_stride_m` database keeps; see the notes under the table for the assumption).", "",
                   "| stage | measured | unit | projected, CPU (min) | projected, GPU |", "|---|---|---|---|---|"]
         for r in proj:
             name = r["case"].removeprefix("full-nclt projection: ")

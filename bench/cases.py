@@ -403,6 +403,12 @@ NCLT_FRAMES = 100_000
 NCLT_SUBIMAGES = 1_600_000
 NCLT_QUERY_IMAGES = 5_242
 NCLT_DB_ROWS = 400_000
+#: What the bench cannot measure without the real logs: the length of each session's trajectory,
+#: which sets how many reference frames a ``db_stride_m`` database keeps. 8 km is an assumption
+#: (1.5 h at 1.5 m/s), not an NCLT figure; the bench also prints the length at which the total
+#: would reach the 2-hour goal, so the claim does not rest on it.
+NCLT_ASSUMED_SESSION_M = 8_000.0
+GOAL_S = 2 * 3600.0
 
 
 def _anon_peak_poller() -> tuple[Any, dict[str, float]]:
@@ -512,19 +518,38 @@ def case_full_nclt(quick: bool) -> None:
     fixed_bytes = _size(out) - images_bytes - per_frame_bytes
     shutil.rmtree(out)
     frames, q_images = c["frames"], c["pairs"]
+    described = frames - sum(c["frames_not_described"].values())  # proposed and encoded in this run
+    stride = float(run["config"]["retrieval"]["db_stride_m"])
+
+    def nclt_described(session_m: float) -> float:
+        """Frames the whole NCLT proposes and encodes: every query frame (at most one per query
+        image) and one reference frame per stride of each session's trajectory (all when 0)."""
+        kept = 4 * session_m / stride if stride > 0 else NCLT_FRAMES
+        return min(NCLT_FRAMES, NCLT_QUERY_IMAGES + kept)
+
+    sub_per_frame = NCLT_SUBIMAGES / NCLT_FRAMES
+    prop_s = t.get("proposals", 0) / described  # s per described frame
+    desc_s = t.get("descriptor_shards", 0) / subimages  # s per described subimage
+    d_full = nclt_described(NCLT_ASSUMED_SESSION_M)
     # stage: (measured figure, its unit, projected seconds for the whole NCLT)
     rows = [
-        ("ingest (ROS2 JPEG bags)", t.get("ingest", 0) / frames * 1000, "ms/frame", t.get("ingest", 0) / frames * NCLT_FRAMES),
-        ("proposals (grid5 + edges)", t.get("proposals", 0) / frames * 1000, "ms/frame", t.get("proposals", 0) / frames * NCLT_FRAMES),
+        ("ingest (ROS2 JPEG bags), every frame", t.get("ingest", 0) / frames * 1000, "ms/frame", t.get("ingest", 0) / frames * NCLT_FRAMES),
+        (f"proposals (grid5 + edges), {d_full:,.0f} described frames", prop_s * 1000, "ms/frame", prop_s * d_full),
         ("autoencoder training (6,000 sample-steps budget)", t.get("model", 0), "s, fixed", t.get("model", 0)),
         ("projection fit (8,192 reference subimages)", t.get("projection", 0), "s, fixed", t.get("projection", 0)),
-        ("descriptors (crop, encode 256x256, project)", t.get("descriptor_shards", 0) / subimages * 1000, "ms/subimage",
-         t.get("descriptor_shards", 0) / subimages * NCLT_SUBIMAGES),
-        ("ranking (measured at full size above)", rank_s, "s, full size", rank_s),
+        (f"descriptors (crop, encode 256x256, project), {d_full * sub_per_frame:,.0f} subimages", desc_s * 1000, "ms/subimage",
+         desc_s * d_full * sub_per_frame),
+        ("ranking (measured at full size above: 400k rows, no stride)", rank_s, "s, full size", rank_s),
         ("fusion, labels, AP, reports", (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * 1000, "ms/query image",
          (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * NCLT_QUERY_IMAGES),
     ]
     total = sum(r[3] for r in rows)
+    per_described = prop_s + desc_s * sub_per_frame  # s per described frame
+    fixed_s = total - per_described * d_full
+    every_frame_s = fixed_s + per_described * NCLT_FRAMES
+    # the session length at which the total reaches the goal (every frame described beyond it)
+    budget_frames = (GOAL_S - fixed_s) / per_described - NCLT_QUERY_IMAGES
+    break_even_m = budget_frames * stride / 4 if stride > 0 else float("nan")
     for name, rate, unit, proj in rows:
         print(json.dumps({"case": f"full-nclt projection: {name}", "median": rate, "unit": unit, "runs": [rate],
                           "peak_rss_mib": usage.ru_maxrss / 1024, "projected_min_cpu": round(proj / 60, 1),
@@ -532,11 +557,16 @@ def case_full_nclt(quick: bool) -> None:
     disk_gb = (per_frame_bytes / frames * NCLT_FRAMES + fixed_bytes) / 1e9
     print(json.dumps({"case": "full-nclt projection: total", "median": total / 3600, "unit": "h (CPU)", "runs": [total / 3600],
                       "peak_rss_mib": usage.ru_maxrss / 1024, "disk_gb": round(disk_gb, 2),
-                      "notes": (f"goal < 2 h, < 20 GB, < 8 GiB; workload run {wall:.0f} s on {frames} frames, {subimages} subimages, "
-                                f"{q_images} query images; peak RSS of that run {usage.ru_maxrss / 1024:.0f} MiB; disk: stage files that grow with the "
-                                f"frames {per_frame_bytes / 1e6:.1f} MB, fixed (model, projection, reports) {fixed_bytes / 1e6:.1f} MB "
-                                f"-> {disk_gb:.2f} GB for 100,000 frames (NCLT's own images "
-                                f"are read in place; a ROS2 bag's are stored: {images_bytes / frames * NCLT_FRAMES / 1e9:.1f} GB more); "
+                      "described_frames": round(d_full), "db_stride_m": stride,
+                      "every_frame_h": round(every_frame_s / 3600, 2), "break_even_session_km": round(break_even_m / 1000, 1),
+                      "notes": (f"goal < 2 h, < 20 GB, < 8 GiB; db_stride_m {stride:g} m: {d_full:,.0f} of 100,000 frames proposed and "
+                                f"encoded, with each session's trajectory assumed {NCLT_ASSUMED_SESSION_M / 1000:g} km long (not measured); "
+                                f"the total reaches 2 h only at {break_even_m / 1000:.1f} km per session; every frame described: "
+                                f"{every_frame_s / 3600:.2f} h; workload run {wall:.0f} s on {frames} frames ({described} described), "
+                                f"{subimages} subimages, {q_images} query images; peak RSS of that run {usage.ru_maxrss / 1024:.0f} MiB; "
+                                f"disk: stage files that grow with the frames {per_frame_bytes / 1e6:.1f} MB, fixed (model, projection, "
+                                f"reports) {fixed_bytes / 1e6:.1f} MB -> {disk_gb:.2f} GB for 100,000 frames, every frame counted (NCLT's own "
+                                f"images are read in place; a ROS2 bag's are stored: {images_bytes / frames * NCLT_FRAMES / 1e9:.1f} GB more); "
                                 "GPU: not measured, no GPU was lent to this task")}), flush=True)
 
 

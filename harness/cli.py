@@ -117,13 +117,12 @@ def cmd_pairs(args: argparse.Namespace) -> int:
 
 
 def cmd_proposals(args: argparse.Namespace) -> int:
-    from .runner import frame_table, generate_fixture, ingest_logs, session_proposals
+    from .runner import session_proposals, until_pairs
 
     p = _pipeline(args)
     with p.locked():
-        generate_fixture(p)
-        ing = ingest_logs(p)
-        props = session_proposals(p, frame_table(p, ing), ing)
+        ing, frames, _, pairs = until_pairs(p)
+        props = session_proposals(p, frames, pairs, ing)
     for s, t in props.items():
         print(f"{s}: {len(t.df)} proposals {t.df.groupby('method').size().to_dict()} -> {p.cache.path('proposals', t.key) / 'proposals.parquet'}")
     return 0

@@ -13,7 +13,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from .cache import file_fingerprint
+from .cache import file_fingerprint, stable_hash
 from .config import Config, DescriptorConfig, ProposalsConfig, RetrievalConfig, SessionConfig
 from .ingest.logs import detect_format
 
@@ -60,9 +60,12 @@ def proposals_file(pc: ProposalsConfig) -> Any:
     return file_fingerprint(Path(pc.file)) if pc.file and Path(pc.file).exists() else pc.file
 
 
-def proposals(cfg: Config, ingest_key: str) -> Parts:
-    """One session's proposals: its ingest entry, ``[proposals]`` and the proposal file."""
-    return (ingest_key, dataclasses.asdict(cfg.proposals), proposals_file(cfg.proposals))
+def proposals(cfg: Config, ingest_key: str, frames: list[tuple[str, int]]) -> Parts:
+    """One session's proposals: its ingest entry, the frames it describes, ``[proposals]``, the proposal file.
+
+    ``frames`` are the (camera, utime) of the described frames (``retrieval.described_frames``).
+    """
+    return (ingest_key, stable_hash(frames), dataclasses.asdict(cfg.proposals), proposals_file(cfg.proposals))
 
 
 def model_options(dc: DescriptorConfig) -> dict[str, Any]:

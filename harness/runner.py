@@ -44,7 +44,7 @@ from .pairs import write_pairs
 from .progress import progress
 from .proposals import write_proposals
 from .reports import METHOD_LABELS, Reports, write_reports  # noqa: F401 - METHOD_LABELS re-exported for callers
-from .retrieval import rank_reference
+from .retrieval import described_frames, rank_reference
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +88,7 @@ class Pipeline:
         timings: Seconds per stage.
         ran: Entries built per stage (0 everywhere on a cached rerun).
         used: Entries read or written per stage (what ``harness gc`` keeps).
+        not_described: Frames per session that no ranking reads (not proposed or encoded).
     """
 
     cfg: Config
@@ -97,6 +98,7 @@ class Pipeline:
     timings: dict[str, float] = field(default_factory=dict)
     ran: dict[str, int] = field(default_factory=dict)
     used: dict[str, set[str]] = field(default_factory=dict)
+    not_described: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         # never write into a directory the harness did not create; resolved: remote workers may start elsewhere
@@ -209,12 +211,22 @@ def query_pairs(p: Pipeline, frames: Table, ann: Table) -> Table:
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
 
 
-def session_proposals(p: Pipeline, frames: Table, ingested: dict[str, Entry]) -> dict[str, Table]:
-    """frames -> each session's proposal boxes (SPEC section 5)."""
+def session_proposals(p: Pipeline, frames: Table, pairs: Table, ingested: dict[str, Entry]) -> dict[str, Table]:
+    """frames + pairs -> each session's proposal boxes (SPEC section 5), on the frames ranking reads.
+
+    Those are a session's query frames and, for a reference session, the frames its database keeps
+    (every frame unless ``[retrieval] db_stride_m``); the others are counted in ``run.json``
+    (``counts.frames_not_described``), never proposed or encoded.
+    """
     out = {}
+    described = described_frames(frames.df, pairs.df, p.cfg.retrieval.db_stride_m)
+    empty = frames.df.iloc[:0]
     for sc in p.cfg.sessions:
-        build = partial(write_proposals, frames.df[frames.df["session"] == sc.name], p.cfg.proposals, sc.name)
-        entry = p.unit("proposals", keys.proposals(p.cfg, ingested[sc.name].key), build)
+        fr = described.get(sc.name, empty)
+        p.not_described[sc.name] = int((frames.df["session"] == sc.name).sum()) - len(fr)
+        build = partial(write_proposals, fr, p.cfg.proposals, sc.name)
+        used = [(str(c), int(u)) for c, u in zip(fr["camera"], fr["utime"], strict=True)]
+        entry = p.unit("proposals", keys.proposals(p.cfg, ingested[sc.name].key, used), build)
         out[sc.name] = Table(read_cached_parquet(entry.path / "proposals.parquet"), entry.key)
     return out
 
@@ -375,7 +387,7 @@ def until_ranks(p: Pipeline, check: bool = True) -> tuple[dict[str, Entry], Tabl
         check_inputs(p, ann, pairs)
     described: dict[str, Entry] = {}
     if p.rank_import is None:
-        props = session_proposals(p, frames, ingested)
+        props = session_proposals(p, frames, pairs, ingested)
         model = descriptor_model(p, frames, props)
         projection = descriptor_projection(p, frames, pairs, props, model)
         described = session_descriptors(p, frames, props, model, projection)
@@ -431,7 +443,8 @@ def run_record(p: Pipeline, ingested: dict[str, Entry], frames: Table, ann: Tabl
         "stage_units_run": p.ran,
         "executor": p.executor.describe(),
         "counts": {"frames": len(frames.df), "annotated_frames": int(ann.df[["session", "camera", "utime"]].drop_duplicates().shape[0]),
-                   "pairs": len(pairs.df), "ranked_subimages": len(ranks.df), "samples": len(samples.df), "rank_counts": ranks.counts},
+                   "pairs": len(pairs.df),
+                   "frames_not_described": dict(sorted(p.not_described.items())), "ranked_subimages": len(ranks.df), "samples": len(samples.df), "rank_counts": ranks.counts},
         "keys": {"frames": frames.key, "pairs": pairs.key, "ranks": ranks.key, "samples": samples.key},
         "localization": reports.localization.to_dict(orient="records"),
         "warnings": reports.warnings,

@@ -9,17 +9,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.runner import Pipeline
+from harness.pairs import thin_by_stride
+from harness.retrieval import described_frames
+from harness.runner import Pipeline, load_run
 
 
-def _variant(local_run: tuple, tmp_path: Path, name: str, **retrieval: float) -> tuple[dict, Path]:
+def _variant(local_run: tuple, tmp_path: Path, name: str, reuse: bool = True, **retrieval: float) -> tuple[dict, Path]:
     p, _, out = local_run
     shutil.copytree(out / "cache", tmp_path / name / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / name / ".dbl-harness.json")
     cfg = dataclasses.replace(p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, **retrieval))
     q = Pipeline(cfg, tmp_path / name)
     rec = q.run()
-    assert q.ran.get("descriptors", 0) == 0 and q.ran.get("model", 0) == 0  # only ranks and what follows
+    if reuse:  # the same described frames: only ranks and what follows run again
+        assert q.ran.get("proposals", 0) == 0 and q.ran.get("descriptors", 0) == 0 and q.ran.get("model", 0) == 0
     return rec, tmp_path / name
 
 
@@ -33,7 +36,7 @@ def test_a_stride_below_the_frame_spacing_keeps_every_frame(local_run: tuple, tm
 def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(local_run: tuple, tmp_path: Path) -> None:
     _, _, out = local_run
     full = pd.read_parquet(out / "ranks.parquet")
-    rec, o = _variant(local_run, tmp_path, "thin", db_stride_m=9.0, gt_radius_m=5.0)
+    rec, o = _variant(local_run, tmp_path, "thin", reuse=False, db_stride_m=9.0, gt_radius_m=5.0)
     thin = pd.read_parquet(o / "ranks.parquet")
     assert thin["L"].max() < full["L"].max() * 0.75  # about every other frame of the loop is kept
     counts = rec["counts"]["rank_counts"]
@@ -41,3 +44,39 @@ def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(lo
     assert lost >= 0 and sum(c["ranked"] for c in counts.values()) == len(thin)
     assert (thin["place_size"] >= 1).all() and np.isfinite(thin["d"]).all()
     assert pd.read_csv(o / "table1.csv")["method"].tolist() == pd.read_csv(out / "table1.csv")["method"].tolist()
+
+
+def test_a_thinned_database_proposes_and_describes_only_the_frames_ranking_reads(local_run: tuple, tmp_path: Path) -> None:
+    rec, o = _variant(local_run, tmp_path, "thin", reuse=False, db_stride_m=9.0, gt_radius_m=5.0)
+    run = load_run(o)
+    frames = pd.read_parquet(o / "cache" / "frames" / run["keys"]["frames"] / "frames.parquet")
+    pairs = pd.read_parquet(o / "cache" / "pairs" / run["keys"]["pairs"] / "pairs.parquet")
+    not_described = rec["counts"]["frames_not_described"]
+    props = {str(t["session"].iat[0]): t for t in _entries(o, run, "proposals", "proposals.parquet")}
+    described = {str(t["session"].iat[0]): t for t in _entries(o, run, "descriptors", "index.parquet")}
+    assert sorted(props) == sorted(described) == sorted(frames["session"].unique())
+    for name, fr in frames.groupby("session"):
+        fr = fr.sort_values("utime")
+        kept = set(fr["utime"].to_numpy()[thin_by_stride(fr[["x", "y"]].to_numpy(), 9.0)].tolist())
+        queried = set(pairs.loc[pairs["q_session"] == name, "q_utime"].tolist())
+        assert set(props[name]["utime"]) == set(described[name]["utime"]) == kept | queried
+        assert len(described[name]) == len(props[name])
+        assert not_described[name] == len(fr) - len(kept | queried) > 0
+
+
+def _entries(o: Path, run: dict, stage: str, file: str) -> list[pd.DataFrame]:
+    return [pd.read_parquet(o / "cache" / stage / k / file) for k in run["cache_entries"][stage]]
+
+
+def test_described_frames_by_hand() -> None:
+    frames = pd.DataFrame({"session": ["a"] * 4 + ["b"] * 3 + ["c"] * 2, "camera": ["Cam5"] * 9,
+                           "utime": [1, 2, 3, 4, 1, 2, 3, 7, 8],
+                           "x": [0.0, 1.0, 2.0, 3.0, 0.0, 5.0, 10.0, 0.0, 1.0], "y": [0.0] * 9})
+    pairs = pd.DataFrame({"q_session": ["a", "b"], "q_camera": ["Cam5", "Cam5"], "q_utime": [2, 2],
+                          "r_session": ["b", "a"], "r_camera": ["Cam5", "Cam5"], "r_utime": [1, 3]})
+    every = described_frames(frames, pairs, 0.0)
+    assert every["a"]["utime"].tolist() == [1, 2, 3, 4] and every["b"]["utime"].tolist() == [1, 2, 3]
+    assert every["c"].empty  # neither queried nor a reference: never proposed
+    thin = described_frames(frames, pairs, 2.0)
+    assert thin["a"]["utime"].tolist() == [1, 2, 3]  # kept 1 (start) and 3 (2 m travelled); 2 is a query frame
+    assert thin["b"]["utime"].tolist() == [1, 2, 3]  # 5 m apart: every frame kept

@@ -35,6 +35,34 @@ def kept_reference_frames(ref_frames: pd.DataFrame, stride_m: float) -> set[int]
     return kept
 
 
+def described_frames(frames: pd.DataFrame, pairs: pd.DataFrame, stride_m: float) -> dict[str, pd.DataFrame]:
+    """Each session's frames that ranking reads, the only ones proposed and described.
+
+    A session's query frames (those of its pairs) and, where some pair ranks against it, the
+    reference frames its database keeps: every frame when ``stride_m`` is 0, else one per
+    ``stride_m`` metres (:func:`kept_reference_frames`). Frames near a ground-truth place that the
+    database does not keep need poses only, never descriptors.
+
+    Args:
+        frames: The frame table.
+        pairs: The pairs.
+        stride_m: ``[retrieval] db_stride_m`` (metres; 0: every frame).
+
+    Returns:
+        Session name -> its described frames (rows of ``frames`` in their order), every session of
+        ``frames``, empty where no pair reads the session.
+    """
+    refs = set(pairs["r_session"])
+    out = {}
+    for name, fr in frames.groupby("session", sort=True):
+        q = pairs[pairs["q_session"] == name]
+        use = pd.MultiIndex.from_frame(fr[["camera", "utime"]]).isin(pd.MultiIndex.from_frame(q[["q_camera", "q_utime"]]))
+        if name in refs:
+            use |= fr["utime"].isin(kept_reference_frames(fr, stride_m)).to_numpy() if stride_m > 0 else True
+        out[str(name)] = fr[use]
+    return out
+
+
 def rank_reference(rc: RetrievalConfig, max_yaw_deg: float, pairs: pd.DataFrame, ref: str, descriptors: dict[str, Path],
                    frames: pd.DataFrame, device: str) -> tuple[pd.DataFrame, dict[str, int]]:
     """Rank rows of every query subimage of ``pairs`` against reference session ``ref``.
