@@ -10,12 +10,13 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import inspect
 import json
 import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,27 @@ def stable_hash(*parts: Any, length: int = 16) -> str:
     """A short sha256 of JSON-serialisable parts (dataclasses, dicts, paths, scalars)."""
     text = json.dumps([_jsonable(p) for p in parts], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def source_fingerprints(
+    registry: Mapping[str, Callable[..., Any]], names: Iterable[str]
+) -> dict[str, str]:
+    """Source hashes of the functions of ``registry`` named in ``names`` from outside the package.
+
+    Code inside the package is covered by :data:`CODE_FINGERPRINT`; a function a user registers
+    (a proposal method, a fusion method) is not, so its own source goes into the stage's key.
+    """
+    out = {}
+    for name in names:
+        fn = registry.get(name)
+        if fn is None or getattr(fn, "__module__", "").startswith("harness."):
+            continue
+        try:
+            src = inspect.getsource(fn)
+        except (OSError, TypeError):
+            src = getattr(fn, "__qualname__", repr(fn))
+        out[name] = hashlib.sha256(src.encode()).hexdigest()[:16]
+    return out
 
 
 def file_fingerprint(path: Path) -> dict[str, Any]:

@@ -452,9 +452,6 @@ def _range(
     )
 
 
-PROPOSAL_METHODS = ("grid5", "edges", "mser", "yolo", "file")
-
-
 def validate(cfg: Config, where: str) -> None:
     """Range checks that a dataclass cannot express, all at load time, before any work.
 
@@ -473,13 +470,15 @@ def validate(cfg: Config, where: str) -> None:
         cfg.fixture,
         cfg.proposals,
     )
-    bad = [m for m in fu.methods if m not in ALL_METHODS]
+    from .fusion import known_methods as fusion_methods  # SPEC section 7's and registered ones
+
+    bad = [m for m in fu.methods if m not in fusion_methods()]
     c(
         not bad and len(fu.methods) > 0,
         where,
         "[fusion] methods",
         list(fu.methods),
-        f"a non-empty list of {list(ALL_METHODS)}",
+        f"a non-empty list of {list(fusion_methods())}",
     )
     c(
         len(set(fu.methods)) == len(fu.methods),
@@ -630,13 +629,15 @@ def validate(cfg: Config, where: str) -> None:
         list(de.channels),
         "three integers >= 1",
     )
-    badp = [m for m in pr.methods if m not in PROPOSAL_METHODS]
+    from .proposals import known_methods  # the registry (built-ins and registered methods)
+
+    badp = [m for m in pr.methods if m not in known_methods()]
     c(
         not badp and len(pr.methods) > 0,
         where,
         "[proposals] methods",
         list(pr.methods),
-        f"a non-empty list of {list(PROPOSAL_METHODS)}",
+        f"a non-empty list of {list(known_methods())}",
     )
     c(
         "file" not in pr.methods or bool(pr.file),

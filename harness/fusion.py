@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from .annotations import change_boxes
-from .cache import stable_hash, write_parquet
+from .cache import source_fingerprints, stable_hash, write_parquet
 from .config import ALL_METHODS, FusionConfig
 from .progress import progress
 from .splits import roc_sob
@@ -23,6 +23,39 @@ from .splits import roc_sob
 FUSED_METHODS = tuple(m for m in ALL_METHODS if m != "rank_no_fusion")
 #: Baselines computed from the image rather than the ranks.
 IMAGE_BASELINES = ("size_prior", "random")
+
+#: A fused-set method's LoC from the cover matrix: (cover (m, n) bool, r (n,) = rank / L,
+#: d (n,) L2 distances, L (n,) list lengths) -> (m,) LoC, higher = more likely changed.
+CoverLoc = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+#: Fused-set methods registered beside SPEC section 7's (:func:`register_method`).
+REGISTERED: dict[str, CoverLoc] = {}
+
+
+def register_method(name: str, loc: CoverLoc, label: str) -> None:
+    """Add a fused-set fusion method, computed and reported when ``[fusion] methods`` lists it.
+
+    It is reported after SPEC section 7's methods under ``label``; its source is part of the
+    samples' cache key, so editing it recomputes them.
+
+    Raises:
+        ValueError: ``name`` is taken.
+    """
+    from .reports import METHOD_LABELS  # reports build on fusion; the labels live there
+
+    if name in known_methods():
+        raise ValueError(f"fusion method {name!r} exists; known: {list(known_methods())}")
+    REGISTERED[name] = loc
+    METHOD_LABELS[name] = label
+
+
+def known_methods() -> tuple[str, ...]:
+    """Every method ``[fusion] methods`` may list: SPEC section 7's, then registered ones."""
+    return (*ALL_METHODS, *REGISTERED)
+
+
+def method_fingerprints(methods: Iterable[str]) -> dict[str, str]:
+    """The source hash of each listed method registered from outside the package."""
+    return source_fingerprints(REGISTERED, methods)
 
 
 def intersection_closure(
@@ -114,15 +147,19 @@ def loc_from_cover(
         seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
     """
     r = np.asarray(r, np.float64)
+    if method in REGISTERED:
+        lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
+        return np.asarray(
+            REGISTERED[method](cover, r, np.asarray(d, np.float64), lengths), np.float64
+        )
     if method == "score_max":
         return np.asarray(np.where(cover, np.asarray(d, np.float64)[None, :], -np.inf).max(1))
     if method == "score_sum":
         return np.asarray((cover * np.asarray(d, np.float64)[None, :]).sum(1), np.float64)
     if method == "cover_count":
         return np.asarray(cover.sum(1), np.float64)
-    if (
-        method == "rank_fusion_asc"
-    ):  # the paper's variant 2: ascending order (SPEC's earlier formula)
+    # the paper's variant 2: ascending order (SPEC's earlier formula)
+    if method == "rank_fusion_asc":
         return np.asarray(1.0 / (cover.sum(1) * (cover * (1.0 / r)[None, :]).sum(1)), np.float64)
     if method not in ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", "rank_fusion_raw"):
         raise ValueError(f"unknown fused-set method {method!r}; known: {FUSED_METHODS}")
@@ -184,9 +221,9 @@ def fuse(
     d = np.asarray(d, np.float64)
     if method == "rank_no_fusion":
         return boxes.copy(), r.copy()
-    if method not in FUSED_METHODS or method in IMAGE_BASELINES:
+    if method not in (*FUSED_METHODS, *REGISTERED) or method in IMAGE_BASELINES:
         raise ValueError(
-            f"fuse() computes {[m for m in ALL_METHODS if m not in IMAGE_BASELINES]}, got "
+            f"fuse() computes {[m for m in known_methods() if m not in IMAGE_BASELINES]}, got "
             f"{method!r} (size_prior, random: image_loc)"
         )
     fused, _ = intersection_closure(boxes, max_boxes)
@@ -249,7 +286,7 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
 def ordered_methods(methods: Iterable[str]) -> tuple[str, ...]:
     """The configured methods in SPEC section 7's order: Table I's six, variants, baselines."""
     want = set(methods)
-    return tuple(m for m in ALL_METHODS if m in want)
+    return tuple(m for m in known_methods() if m in want)
 
 
 def fuse_samples(

@@ -15,7 +15,9 @@ from typing import Any
 
 from .cache import file_fingerprint, stable_hash
 from .config import Config, DescriptorConfig, ProposalsConfig, RetrievalConfig, SessionConfig
+from .fusion import method_fingerprints as fusion_method_fingerprints
 from .ingest.logs import detect_format
+from .proposals import method_fingerprints
 
 Parts = tuple[Any, ...]
 
@@ -73,15 +75,16 @@ def proposals_file(pc: ProposalsConfig) -> Any:
 def proposals(cfg: Config, ingest_key: str, frames: list[tuple[str, int]]) -> Parts:
     """One session's proposals.
 
-    Its ingest entry, the frames it describes, ``[proposals]``, the proposal file.
-
-    ``frames`` are the (camera, utime) of the described frames (``retrieval.described_frames``).
+    Its ingest entry, the frames it describes (``frames``: their (camera, utime), from
+    ``retrieval.described_frames``), ``[proposals]``, the proposal file and the source of any
+    method registered from outside the package.
     """
     return (
         ingest_key,
         stable_hash(frames),
         dataclasses.asdict(cfg.proposals),
         proposals_file(cfg.proposals),
+        method_fingerprints(cfg.proposals.methods),  # registered methods' own source
     )
 
 
@@ -161,5 +164,11 @@ def ranks_import(cfg: Config, path: Path, pairs_key: str) -> Parts:
 
 
 def samples(cfg: Config, ranks_key: str, ann_key: str) -> Parts:
-    """Samples: ranks, annotations, ``[fusion]`` and ``[splits]``."""
-    return (ranks_key, ann_key, dataclasses.asdict(cfg.fusion), dataclasses.asdict(cfg.splits))
+    """Samples: ranks, annotations, ``[fusion]``, ``[splits]`` (and registered methods' source)."""
+    return (
+        ranks_key,
+        ann_key,
+        dataclasses.asdict(cfg.fusion),
+        dataclasses.asdict(cfg.splits),
+        fusion_method_fingerprints(cfg.fusion.methods),
+    )

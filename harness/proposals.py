@@ -13,7 +13,7 @@ Methods (each one modality with its own retrieval engine):
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from functools import partial
 from pathlib import Path
 
@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .cache import write_parquet
+from .cache import source_fingerprints, write_parquet
 from .config import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
 from .errors import AnnotationError, ConfigError
 from .imagestore import read_image
@@ -29,7 +29,8 @@ from .progress import progress
 
 log = logging.getLogger(__name__)
 
-METHODS = ("grid5", "edges", "mser", "yolo", "file")
+#: Methods with their own code path: grid5 (no pixels), yolo (batched), file (a user's table).
+SPECIAL_METHODS = ("grid5", "yolo", "file")
 PROPOSAL_COLUMNS = [
     "session",
     "camera",
@@ -308,6 +309,47 @@ def load_file_proposals(path: Path, frames: pd.DataFrame) -> pd.DataFrame:
 # ---------------------------------------------------------------- driver
 
 
+#: A per-image proposer: the upright (H, W, 3) uint8 RGB image and ``[proposals]`` ->
+#: (boxes (k, 4) x1, y1, x2, y2 in pixels, scores (k,), higher = better).
+ImageProposer = Callable[[np.ndarray, ProposalsConfig], tuple[np.ndarray, np.ndarray]]
+
+
+def _edges(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    return edge_boxes(rgb, cfg.edges)
+
+
+def _mser(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    return mser_boxes(rgb, cfg.mser)
+
+
+#: Proposal methods that read one image at a time, by name (``[proposals] methods``).
+IMAGE_METHODS: dict[str, ImageProposer] = {"edges": _edges, "mser": _mser}
+
+
+def register_method(name: str, proposer: ImageProposer) -> None:
+    """Add a per-image proposal method, selected by ``name`` in ``[proposals] methods``.
+
+    Its source is part of the proposals' cache key (:func:`method_fingerprints`), so editing it
+    recomputes them. Each method gets its own rank engine (SPEC section 6).
+
+    Raises:
+        ValueError: ``name`` is taken.
+    """
+    if name in SPECIAL_METHODS or name in IMAGE_METHODS:
+        raise ValueError(f"proposal method {name!r} exists; known: {list(known_methods())}")
+    IMAGE_METHODS[name] = proposer
+
+
+def known_methods() -> tuple[str, ...]:
+    """Every proposal method name ``[proposals] methods`` may list."""
+    return ("grid5", *IMAGE_METHODS, "yolo", "file")
+
+
+def method_fingerprints(methods: Sequence[str]) -> dict[str, str]:
+    """The source hash of each listed method registered from outside the package."""
+    return source_fingerprints(IMAGE_METHODS, methods)
+
+
 def compute_proposals(
     frames: pd.DataFrame,
     cfg: ProposalsConfig,
@@ -317,9 +359,11 @@ def compute_proposals(
     frames = frames.sort_values(["session", "camera", "utime"]).reset_index(drop=True)
     out: list[pd.DataFrame] = []
     methods = list(cfg.methods)
-    unknown = [m for m in methods if m not in METHODS]
+    unknown = [m for m in methods if m not in known_methods()]
     if unknown:
-        raise ConfigError(f"[proposals] unknown method(s) {unknown}; known: {list(METHODS)}")
+        raise ConfigError(
+            f"[proposals] unknown method(s) {unknown}; known: {list(known_methods())}"
+        )
 
     def rows(
         f: pd.Series, method: str, boxes: np.ndarray, scores: np.ndarray, classes: list[str]
@@ -344,22 +388,19 @@ def compute_proposals(
     if "grid5" in methods:
         for f in frames.itertuples(index=False):
             out.append(rows(f, "grid5", grid5(f.width, f.height), np.ones(5), [""] * 5))
-    pixel_methods = [m for m in methods if m in ("edges", "mser", "yolo")]
-    if pixel_methods:
-        yolo = YoloProposer(cfg.yolo) if "yolo" in pixel_methods else None
+    per_image = [m for m in IMAGE_METHODS if m in methods]
+    if per_image or "yolo" in methods:
+        yolo = YoloProposer(cfg.yolo) if "yolo" in methods else None
         batch = max(1, cfg.yolo.batch)
         items = list(frames.itertuples(index=False))
         for i in progress(range(0, len(items), batch)):
             chunk = items[i : i + batch]
             imgs = [read_image(f.image) for f in chunk]
-            if "edges" in pixel_methods:
+            for m in per_image:
                 for f, im in zip(chunk, imgs, strict=True):
-                    b, s = edge_boxes(im, cfg.edges)
-                    out.append(rows(f, "edges", b, s, [""] * len(b)))
-            if "mser" in pixel_methods:
-                for f, im in zip(chunk, imgs, strict=True):
-                    b, s = mser_boxes(im, cfg.mser)
-                    out.append(rows(f, "mser", b, s, [""] * len(b)))
+                    b, s = IMAGE_METHODS[m](im, cfg)
+                    b = np.asarray(b, np.float64).reshape(-1, 4)
+                    out.append(rows(f, m, b, np.asarray(s, np.float64), [""] * len(b)))
             if yolo is not None:
                 for f, (b, s, c) in zip(chunk, yolo(imgs), strict=True):
                     out.append(rows(f, "yolo", b, s, [str(int(k)) for k in c]))

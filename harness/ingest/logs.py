@@ -14,7 +14,7 @@ import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -83,8 +83,52 @@ def uri_safe_path(path: Path) -> Iterator[Path]:
         yield link
 
 
+class LogReader(Protocol):
+    """A log format beside the built-in ones (:func:`register_format`).
+
+    Messages are rosbags-style objects (a ``sensor_msgs``/``nav_msgs``/``geometry_msgs``/
+    ``tf2_msgs`` message of the ROS2 typestore, e.g. from ``typestore.deserialize_cdr``);
+    everything after the stream (images, poses, tf, drops, the report) is shared.
+    """
+
+    def detect(self, path: Path) -> bool:
+        """Whether ``path`` is a log of this format."""
+        ...
+
+    def topics(self, path: Path) -> dict[str, tuple[str, int]]:
+        """Topic -> (message type, message count)."""
+        ...
+
+    def messages(self, path: Path, topics: tuple[str, ...]) -> Iterator[Message]:
+        """The messages of ``topics`` in log order (log time in ns)."""
+        ...
+
+
+#: Log formats registered beside nclt, ros1, ros2 and mcap, by name (``format`` of a session).
+READERS: dict[str, LogReader] = {}
+BUILTIN_FORMATS = ("nclt", "ros1", "ros2", "mcap")
+
+
+def register_format(name: str, reader: LogReader) -> None:
+    """Add a log format, named by a session's ``format`` or found by ``reader.detect``.
+
+    Registered readers are asked before the built-in layouts are looked for.
+
+    Raises:
+        ValueError: ``name`` is taken.
+    """
+    if name in known_formats():
+        raise ValueError(f"log format {name!r} exists; known: {list(known_formats())}")
+    READERS[name] = reader
+
+
+def known_formats() -> tuple[str, ...]:
+    """Every log format a session may name: the built-in ones, then registered ones."""
+    return (*BUILTIN_FORMATS, *READERS)
+
+
 def detect_format(path: Path) -> str:
-    """``nclt``, ``ros1``, ``ros2`` or ``mcap`` from what is at ``path``.
+    """``nclt``, ``ros1``, ``ros2``, ``mcap`` or a registered format from what is at ``path``.
 
     Raises:
         IngestError: The path does not exist or is of no known format.
@@ -92,6 +136,9 @@ def detect_format(path: Path) -> str:
     path = Path(path)
     if not path.exists():
         raise IngestError(f"{path}: no such file or directory")
+    registered = [name for name, r in READERS.items() if r.detect(path)]
+    if registered:
+        return registered[0]
     if path.is_dir():
         if (path / "metadata.yaml").exists():
             return "ros2"
@@ -136,6 +183,8 @@ def list_topics(path: Path, fmt: str, salvage: bool = False) -> dict[str, tuple[
     and ROS2 bags with ``salvage``); a damaged log whose topics cannot be read is a
     :class:`CorruptLogError`, never an "empty" log.
     """
+    if fmt in READERS:
+        return READERS[fmt].topics(Path(path))
     try:
         with AnyReader([Path(path)], default_typestore=_default_typestore(fmt)) as reader:
             return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
@@ -220,6 +269,9 @@ def stream(
     Raises:
         CorruptLogError: The log is damaged; ``messages_read`` says how many were yielded before.
     """
+    if fmt in READERS:
+        yield from READERS[fmt].messages(Path(path), topics)
+        return
     n = 0
     try:
         reader = AnyReader([Path(path)], default_typestore=_default_typestore(fmt))

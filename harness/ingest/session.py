@@ -18,7 +18,14 @@ from ..imagestore import make_uri, portable_uri, resolve, stored_size, upright_s
 from ..outdirs import check_replaceable, write_marker
 from ..records import FRAME_COLUMNS, FRAME_SCHEMA
 from .images import compressed_kind, compressed_size, decode_problem, raw_to_array, write_raw
-from .logs import choose_topics, detect_format, list_topics, stream, uri_safe_path
+from .logs import (
+    choose_topics,
+    detect_format,
+    known_formats,
+    list_topics,
+    stream,
+    uri_safe_path,
+)
 from .poses import (
     POSE_TYPES,
     check_monotonic,
@@ -501,8 +508,8 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
     """
     src = Path(sc.source)
     fmt = detect_format(src) if sc.format == "auto" else sc.format
-    if fmt not in ("nclt", "ros1", "ros2", "mcap"):
-        raise IngestError(f"{src}: unknown format {fmt!r}")
+    if fmt not in known_formats():
+        raise IngestError(f"{src}: unknown format {fmt!r}; known: {list(known_formats())}")
     out = check_replaceable(Path(out), "ingest", force)
     t0 = time.perf_counter()
     report: dict = {
