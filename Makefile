@@ -26,8 +26,10 @@ setup: $(STAMP)  ## Create .venv and install torch, the package and its dev tool
 test: $(STAMP)  ## Run the whole test suite (CI runs exactly this)
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
-lint: $(STAMP)  ## Run ruff
+lint: $(STAMP)  ## ruff (rules, line length 100, formatting) and mypy (strict on the numeric kernels)
 	$(BIN)/ruff check harness tests bench
+	$(BIN)/ruff format --check harness tests bench
+	$(BIN)/mypy
 
 bench: $(STAMP)  ## Run the benchmarks; results go to results/bench/
 	$(BIN)/python -m bench

@@ -31,7 +31,11 @@ def run_case(name: str, quick: bool) -> list[dict]:
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"bench case {name} failed")
-    return [{**json.loads(line), "group": name} for line in proc.stdout.splitlines() if line.startswith("{")]
+    return [
+        {**json.loads(line), "group": name}
+        for line in proc.stdout.splitlines()
+        if line.startswith("{")
+    ]
 
 
 def plot_scaling(rows: list[dict], path: Path) -> None:
@@ -45,9 +49,17 @@ def plot_scaling(rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.5), squeeze=False)
     for ax, xl in zip(axes[0], panels, strict=True):
         for r in (r for r in rows if r["points"]["xlabel"] == xl):
-            ax.loglog(r["points"]["x"], r["points"]["y"], "o-", label=f"{r['case'].removeprefix('scaling: ').split(' vs ')[0]} (exp {r['median']:.2f})")
+            ax.loglog(
+                r["points"]["x"],
+                r["points"]["y"],
+                "o-",
+                label=f"{r['case'].removeprefix('scaling: ').split(' vs ')[0]} (exp "
+                f"{r['median']:.2f})",
+            )
         ax.set_xlabel(xl)
-        ax.set_ylabel(" / ".join(sorted({r["points"]["ylabel"] for r in rows if r["points"]["xlabel"] == xl})))
+        ax.set_ylabel(
+            " / ".join(sorted({r["points"]["ylabel"] for r in rows if r["points"]["xlabel"] == xl}))
+        )
         ax.legend(fontsize=7)
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
@@ -63,7 +75,11 @@ def main() -> int:
     args = ap.parse_args()
     rows = []
     if args.only and (OUT / "bench.json").exists():  # keep the other cases' latest figures
-        rows = [r for r in json.loads((OUT / "bench.json").read_text())["results"] if r.get("group") not in args.only]
+        rows = [
+            r
+            for r in json.loads((OUT / "bench.json").read_text())["results"]
+            if r.get("group") not in args.only
+        ]
     for case in args.only or CASES:
         t0 = time.perf_counter()
         got = run_case(case, args.quick)
@@ -72,7 +88,11 @@ def main() -> int:
         for r in got:
             print("   ", r["case"], {k: v for k, v in r.items() if k not in ("case", "runs")})
     OUT.mkdir(parents=True, exist_ok=True)
-    meta = {"python": platform.python_version(), "platform": platform.platform(), "cpus": __import__("os").cpu_count()}
+    meta = {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "cpus": __import__("os").cpu_count(),
+    }
     with atomic_path(OUT / "bench.json") as tmp:
         tmp.write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
     lines = ["| case | median | unit | peak RSS MiB | notes |", "|---|---|---|---|---|"]
@@ -81,29 +101,69 @@ def main() -> int:
             continue
         extra = "; ".join(f"{k} {v}" for k, v in r.items() if k not in HIDDEN)
         notes = "; ".join(x for x in (r.get("notes", ""), extra) if x)
-        lines.append(f"| {r['case']} | {r['median']:.4g} | {r['unit']} | {r.get('peak_rss_mib', float('nan')):.0f} | {notes} |")
+        lines.append(
+            f"| {r['case']} | {r['median']:.4g} | {r['unit']} | "
+            f"{r.get('peak_rss_mib', float('nan')):.0f} | {notes} |"
+        )
     scaling = [r for r in rows if r["unit"] == "exponent"]
     if scaling:
-        lines += ["", "## Scaling (cost ~ work ** exponent, least squares in log-log; plot: scaling.png)", "",
-                  "| what | fitted exponent | points (x: y) |", "|---|---|---|"]
+        lines += [
+            "",
+            "## Scaling (cost ~ work ** exponent, least squares in log-log; plot: scaling.png)",
+            "",
+            "| what | fitted exponent | points (x: y) |",
+            "|---|---|---|",
+        ]
         for r in scaling:
-            pts = ", ".join(f"{x:g}: {y:.3g}" for x, y in zip(r["points"]["x"], r["points"]["y"], strict=True))
-            lines.append(f"| {r['case'].removeprefix('scaling: ')} | {r['median']:.2f} | {pts} ({r['points']['ylabel']}) |")
+            pts = ", ".join(
+                f"{x:g}: {y:.3g}" for x, y in zip(r["points"]["x"], r["points"]["y"], strict=True)
+            )
+            lines.append(
+                f"| {r['case'].removeprefix('scaling: ')} | {r['median']:.2f} | {pts} "
+                f"({r['points']['ylabel']}) |"
+            )
         plot_scaling(scaling, OUT / "scaling.png")
     proj = [r for r in rows if r["case"].startswith("full-nclt projection: ")]
     if proj:
-        lines += ["", "## Full NCLT (100,000 frames, 1.6 M subimages, 5,242 query images): measured rates, projected times", "",
-                  "Rates measured in this run (case full-nclt; ranking at full size, the other stages on the NCLT-scale",
-                  "workload with `bench/nclt_full.toml`), projected linearly to the whole NCLT: ingest over every",
-                  "frame, proposals and descriptors over the frames a run describes (query frames and the reference",
-                  "frames a `db_stride_m` database keeps; see the notes under the table for the assumption).", "",
-                  "| stage | measured | unit | projected, CPU (min) | projected, GPU |", "|---|---|---|---|---|"]
+        lines += [
+            "",
+            (
+                "## Full NCLT (100,000 frames, 1.6 M subimages, 5,242 query images): measured "
+                "rates, projected times"
+            ),
+            "",
+            (
+                "Rates measured in this run (case full-nclt; ranking at full size, the other "
+                "stages on the NCLT-scale"
+            ),
+            (
+                "workload with `bench/nclt_full.toml`), projected linearly to the whole NCLT: "
+                "ingest over every"
+            ),
+            (
+                "frame, proposals and descriptors over the frames a run describes (query frames "
+                "and the reference"
+            ),
+            (
+                "frames a `db_stride_m` database keeps; see the notes under the table for the "
+                "assumption)."
+            ),
+            "",
+            "| stage | measured | unit | projected, CPU (min) | projected, GPU |",
+            "|---|---|---|---|---|",
+        ]
         for r in proj:
             name = r["case"].removeprefix("full-nclt projection: ")
             if name == "total":
-                lines.append(f"| **total** | | | **{60 * r['median']:.0f} min = {r['median']:.2f} h** | not measured: no GPU lent |")
+                lines.append(
+                    f"| **total** | | | **{60 * r['median']:.0f} min = {r['median']:.2f} "
+                    "h** | not measured: no GPU lent |"
+                )
             else:
-                lines.append(f"| {name} | {r['median']:.4g} | {r['unit']} | {r['projected_min_cpu']:.1f} | not measured |")
+                lines.append(
+                    f"| {name} | {r['median']:.4g} | {r['unit']} | "
+                    f"{r['projected_min_cpu']:.1f} | not measured |"
+                )
         tot = next((r for r in proj if r["case"].endswith("total")), None)
         if tot:
             lines += ["", tot["notes"]]

@@ -23,7 +23,19 @@ def peak_rss_mib() -> float:
 
 
 def emit(case: str, runs: list[float], unit: str, **extra: object) -> None:
-    print(json.dumps({"case": case, "median": statistics.median(runs), "unit": unit, "runs": runs, "peak_rss_mib": peak_rss_mib(), **extra}), flush=True)
+    print(
+        json.dumps(
+            {
+                "case": case,
+                "median": statistics.median(runs),
+                "unit": unit,
+                "runs": runs,
+                "peak_rss_mib": peak_rss_mib(),
+                **extra,
+            }
+        ),
+        flush=True,
+    )
 
 
 def timed(fn, repeat: int = 3) -> list[float]:
@@ -36,7 +48,11 @@ def timed(fn, repeat: int = 3) -> list[float]:
 
 
 def _size(path: Path) -> int:
-    return path.stat().st_size if path.is_file() else sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    return (
+        path.stat().st_size
+        if path.is_file()
+        else sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    )
 
 
 def _read_all(path: Path) -> None:
@@ -53,7 +69,14 @@ def case_ingest(quick: bool) -> None:
     from harness.fixture import FixtureSpec, generate
     from harness.fixture.generate import FORMATS, session_path
 
-    spec = FixtureSpec(frames=16 if quick else 48, width=480, height=640, objects=0, sessions=(("2012-01-22", "WI"),), changed_sessions=())
+    spec = FixtureSpec(
+        frames=16 if quick else 48,
+        width=480,
+        height=640,
+        objects=0,
+        sessions=(("2012-01-22", "WI"),),
+        changed_sessions=(),
+    )
     root = DATA / f"ingest-{spec.frames}"
     if not (root / "fixture.json").exists():
         generate(root, spec, all_formats=True)
@@ -73,11 +96,23 @@ def case_ingest(quick: bool) -> None:
             des = timed(lambda s=src, k=kind, t=topics: [None for _ in stream(s, k, t)])
             extra["deserialize_mb_s"] = round(statistics.median([nbytes / 1e6 / t for t in des]), 1)
         tmp = Path(tempfile.mkdtemp())
-        ing = timed(lambda s=src, t=tmp: ingest_session(SessionConfig(name="2012-01-22", source=str(s)), IngestConfig(), t / "o", force=True))
+        ing = timed(
+            lambda s=src, t=tmp: ingest_session(
+                SessionConfig(name="2012-01-22", source=str(s)), IngestConfig(), t / "o", force=True
+            )
+        )
         shutil.rmtree(tmp)
         mb = nbytes / 1e6
-        emit(f"ingest[{fmt}]", [mb / t for t in ing], "MB/s", raw_read_mb_s=round(statistics.median([mb / t for t in raw]), 1), **extra,
-             notes=f"{mb:.1f} MB, {spec.frames} frames {spec.width}x{spec.height}; ratio to raw read {statistics.median([mb / t for t in ing]) / statistics.median([mb / t for t in raw]):.3f}")
+        raw_mb_s = statistics.median([mb / t for t in raw])
+        emit(
+            f"ingest[{fmt}]",
+            [mb / t for t in ing],
+            "MB/s",
+            raw_read_mb_s=round(raw_mb_s, 1),
+            **extra,
+            notes=f"{mb:.1f} MB, {spec.frames} frames {spec.width}x{spec.height}; ratio to raw "
+            f"read {statistics.median([mb / t for t in ing]) / raw_mb_s:.3f}",
+        )
 
 
 def case_crops(quick: bool) -> None:
@@ -105,8 +140,18 @@ def case_crops(quick: bool) -> None:
             rows.append((p, x1, y1, x1 + rng.uniform(100, 430), y1 + rng.uniform(100, 510)))
     df = pd.DataFrame(rows, columns=["image", "x1", "y1", "x2", "y2"])
     for workers in (0, 2):
-        runs = timed(lambda w=workers: [None for _ in iter_crops(df, df["image"], 256, frames_per_batch=4, num_workers=w)], repeat=3)
-        emit(f"crop+resize[workers={workers}]", [len(df) / t for t in runs], "subimages/s", notes=f"{n} JPEG frames 1232x1616, 16 boxes each")
+        runs = timed(
+            lambda w=workers: [
+                None for _ in iter_crops(df, df["image"], 256, frames_per_batch=4, num_workers=w)
+            ],
+            repeat=3,
+        )
+        emit(
+            f"crop+resize[workers={workers}]",
+            [len(df) / t for t in runs],
+            "subimages/s",
+            notes=f"{n} JPEG frames 1232x1616, 16 boxes each",
+        )
 
 
 def _matmul_gflops() -> float:
@@ -121,7 +166,7 @@ def _matmul_gflops() -> float:
 
 
 def case_descriptor(quick: bool) -> None:
-    """Autoencoder encoding throughput and its fraction of the machine's measured matmul FLOP rate."""
+    """Autoencoder encoding throughput and its fraction of the measured matmul FLOP rate."""
     import torch
 
     from harness.config import DescriptorConfig
@@ -129,7 +174,19 @@ def case_descriptor(quick: bool) -> None:
     from harness.descriptors.autoencoder import ConvAutoencoder, to_tensor
 
     peak = _matmul_gflops()
-    print(json.dumps({"case": "matmul fp32 peak (best of 512..2048 square)", "median": peak, "unit": "GFLOP/s", "runs": [peak], "peak_rss_mib": peak_rss_mib(), "notes": f"torch threads {torch.get_num_threads()}"}), flush=True)
+    print(
+        json.dumps(
+            {
+                "case": "matmul fp32 peak (best of 512..2048 square)",
+                "median": peak,
+                "unit": "GFLOP/s",
+                "runs": [peak],
+                "peak_rss_mib": peak_rss_mib(),
+                "notes": f"torch threads {torch.get_num_threads()}",
+            }
+        ),
+        flush=True,
+    )
     for size, batch in ((256, 32), (64, 128)):
         cfg = DescriptorConfig(input_size=size, batch_size=batch, device="cpu")
         d = AutoencoderDescriptor(cfg)
@@ -142,9 +199,20 @@ def case_descriptor(quick: bool) -> None:
         flops = 2 * 9 * (size**2 * 3 * c1 + (size // 2) ** 2 * c1 * c2 + (size // 4) ** 2 * c2 * c3)
         rate = [n / t for t in runs]
         gf = statistics.median(rate) * flops / 1e9
-        emit(f"autoencoder encode {size}x{size}", rate, "subimages/s", gflops=round(gf, 1), fraction_of_peak=round(gf / peak, 3),
-             notes=f"folded encoder, {d.encode_batch} subimages per call; {flops / 1e6:.0f} MFLOP/subimage; {gf:.1f} GFLOP/s = {gf / peak:.0%} of matmul peak; {1000 / statistics.median(rate):.2f} ms/subimage")
-        if size == 256:  # the plain trained model in batches of 32 (the path before the folded encoder), same run
+        emit(
+            f"autoencoder encode {size}x{size}",
+            rate,
+            "subimages/s",
+            gflops=round(gf, 1),
+            fraction_of_peak=round(gf / peak, 3),
+            notes=f"folded encoder, {d.encode_batch} subimages per call; {flops / 1e6:.0f} "
+            f"MFLOP/subimage; {gf:.1f} GFLOP/s = {gf / peak:.0%} of matmul peak; "
+            f"{1000 / statistics.median(rate):.2f} ms/subimage",
+        )
+        if (
+            size == 256
+            # the plain trained model in batches of 32 (the path before the folded encoder)
+        ):
             model, per_crop = d.model, False
 
             def plain(x=x, model=model, batch=batch, per_crop=per_crop) -> None:
@@ -154,8 +222,13 @@ def case_descriptor(quick: bool) -> None:
 
             plain()
             base = [n / t for t in timed(plain, repeat=3)]
-            emit("autoencoder encode 256x256, plain model batch 32", base, "subimages/s",
-                 notes=f"{statistics.median(base) * flops / 1e9 / peak:.0%} of matmul peak; folded encoder speed-up {statistics.median(rate) / statistics.median(base):.1f}x")
+            emit(
+                "autoencoder encode 256x256, plain model batch 32",
+                base,
+                "subimages/s",
+                notes=f"{statistics.median(base) * flops / 1e9 / peak:.0%} of matmul peak; folded "
+                f"encoder speed-up {statistics.median(rate) / statistics.median(base):.1f}x",
+            )
     h = HogDescriptor(DescriptorConfig())
     x = np.random.default_rng(0).integers(0, 256, (256, 64, 64, 3), dtype=np.uint8)
     emit("hog encode 64x64", [256 / t for t in timed(lambda: h.encode(x))], "subimages/s")
@@ -173,14 +246,17 @@ def _random_db(m: int, dim: int, rng: np.random.Generator, tag: str = "") -> Pat
         arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(m, dim))
         for s in range(0, m, 4096):
             blk = rng.standard_normal((min(4096, m - s), dim), dtype=np.float32)
-            arr[s : s + len(blk)] = (blk / np.linalg.norm(blk, axis=1, keepdims=True)).astype(np.float16)
+            arr[s : s + len(blk)] = (blk / np.linalg.norm(blk, axis=1, keepdims=True)).astype(
+                np.float16
+            )
         arr.flush()
         del arr
     return path
 
 
 def case_ranking(quick: bool) -> None:
-    """Exact ranking throughput (query subimages/s) at database sizes 1k, 10k, 100k (D = 16,384, float16 memmap).
+    """Exact ranking throughput (query subimages/s) at database sizes 1k, 10k, 100k (D = 16,384,
+    float16 memmap).
 
     2,048 query subimages per call (128 query frames x 16; a pipeline ranking unit holds up to
     512 frames x 16 = 8,192), query_batch 1,024 as configured by default. Each call streams the
@@ -201,27 +277,75 @@ def case_ranking(quick: bool) -> None:
         db = np.load(_random_db(m, dim, rng), mmap_mode="r")
         frame = np.arange(m) // 16
         gt = rng.choice(np.unique(frame), nq)
-        runs = timed(lambda db=db, frame=frame, gt=gt: image_ranks(q, db, frame, gt, chunk_rows=8192, query_batch=1024), repeat=3 if m < 100_000 else 1)
+        runs = timed(
+            lambda db=db, frame=frame, gt=gt: image_ranks(
+                q, db, frame, gt, chunk_rows=8192, query_batch=1024
+            ),
+            repeat=3 if m < 100_000 else 1,
+        )
         flops = 2 * nq * m * dim
         rate = [nq / t for t in runs]
         per_query_s.append(statistics.median(runs) / nq)
         gf = statistics.median([flops / t / 1e9 for t in runs])
-        emit(f"rank exact db={m}", rate, "query subimages/s", gflops=round(gf, 1), fraction_of_peak=round(gf / peak, 3),
-             notes=f"{nq} queries; {gf:.1f} GFLOP/s = {gf / peak:.0%} of matmul peak ({peak:.0f} GFLOP/s)")
+        emit(
+            f"rank exact db={m}",
+            rate,
+            "query subimages/s",
+            gflops=round(gf, 1),
+            fraction_of_peak=round(gf / peak, 3),
+            notes=f"{nq} queries; {gf:.1f} GFLOP/s = {gf / peak:.0%} of matmul peak ({peak:.0f} "
+            "GFLOP/s)",
+        )
         if m == max(sizes):
-            small = timed(lambda db=db, frame=frame, gt=gt: image_ranks(q[:256], db, frame, gt[:256], chunk_rows=8192, query_batch=256), repeat=1)
+            small = timed(
+                lambda db=db, frame=frame, gt=gt: image_ranks(
+                    q[:256], db, frame, gt[:256], chunk_rows=8192, query_batch=256
+                ),
+                repeat=1,
+            )
             gf = 2 * 256 * m * dim / small[0] / 1e9
-            emit(f"rank exact db={m}, 256 queries", [256 / t for t in small], "query subimages/s",
-                 notes=f"{gf:.1f} GFLOP/s = {gf / peak:.0%} of peak: one database pass (read + float16 conversion) shared by only 256 queries")
+            emit(
+                f"rank exact db={m}, 256 queries",
+                [256 / t for t in small],
+                "query subimages/s",
+                notes=f"{gf:.1f} GFLOP/s = {gf / peak:.0%} of peak: one database pass (read + "
+                "float16 conversion) shared by only 256 queries",
+            )
         if m <= 10_000:
             full = np.asarray(db, np.float32)
-            base = timed(lambda full=full: ((q**2).sum(1)[:, None] + (full**2).sum(1)[None] - 2 * q @ full.T), repeat=3)
-            emit(f"numpy baseline distance matrix db={m}", [nq / t for t in base], "query subimages/s", notes="np.matmul of the whole float32 database, no per-frame minimum")
-            fr = timed(lambda full=full, frame=frame, gt=gt: image_ranks_faiss(q, full, frame, gt, k=256), repeat=1)
+            base = timed(
+                lambda full=full: (q**2).sum(1)[:, None] + (full**2).sum(1)[None] - 2 * q @ full.T,
+                repeat=3,
+            )
+            emit(
+                f"numpy baseline distance matrix db={m}",
+                [nq / t for t in base],
+                "query subimages/s",
+                notes="np.matmul of the whole float32 database, no per-frame minimum",
+            )
+            fr = timed(
+                lambda full=full, frame=frame, gt=gt: image_ranks_faiss(q, full, frame, gt, k=256),
+                repeat=1,
+            )
             emit(f"rank faiss flat k=256 db={m}", [nq / t for t in fr], "query subimages/s")
-    print(json.dumps({"case": "scaling: ranking time per query vs database size", "median": fit_exponent(list(sizes), per_query_s), "unit": "exponent",
-                      "runs": [], "peak_rss_mib": peak_rss_mib(), "points": {"x": list(sizes), "y": per_query_s, "xlabel": "database subimages",
-                                                                           "ylabel": "s per query subimage"}}), flush=True)
+    print(
+        json.dumps(
+            {
+                "case": "scaling: ranking time per query vs database size",
+                "median": fit_exponent(list(sizes), per_query_s),
+                "unit": "exponent",
+                "runs": [],
+                "peak_rss_mib": peak_rss_mib(),
+                "points": {
+                    "x": list(sizes),
+                    "y": per_query_s,
+                    "xlabel": "database subimages",
+                    "ylabel": "s per query subimage",
+                },
+            }
+        ),
+        flush=True,
+    )
 
 
 def case_fusion(quick: bool) -> None:
@@ -248,11 +372,59 @@ def case_fusion(quick: bool) -> None:
             boxes.append([x1, y1, x1 + rng.uniform(50, 330), y1 + rng.uniform(50, 410)])
         for k, b in enumerate(boxes):
             rank = int(rng.integers(1, 101))
-            rows.append(("A", "c", i, "B", "c", i, "WI->SU", "grid5" if k < 5 else "yolo", k, *b, rank, 100, rank / 100, rng.uniform(0, 2), True))
-        ann.append(("A", "c", i, "change", 400.0, 500.0, 700.0, 900.0, "") if i % 2 else ("A", "c", i, "no-change", np.nan, np.nan, np.nan, np.nan, ""))
-    ranks = pd.DataFrame(rows, columns=["q_session", "q_camera", "q_utime", "r_session", "r_camera", "r_utime", "season_pair", "method", "box_id", "x1", "y1", "x2", "y2", "rank", "L", "r", "d", "exact"])
-    frames = pd.DataFrame({"session": "A", "camera": "c", "utime": np.arange(n_img), "width": 1232, "height": 1616})
-    annotations = pd.DataFrame(ann, columns=["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"])
+            rows.append(
+                (
+                    "A",
+                    "c",
+                    i,
+                    "B",
+                    "c",
+                    i,
+                    "WI->SU",
+                    "grid5" if k < 5 else "yolo",
+                    k,
+                    *b,
+                    rank,
+                    100,
+                    rank / 100,
+                    rng.uniform(0, 2),
+                    True,
+                )
+            )
+        ann.append(
+            ("A", "c", i, "change", 400.0, 500.0, 700.0, 900.0, "")
+            if i % 2
+            else ("A", "c", i, "no-change", np.nan, np.nan, np.nan, np.nan, "")
+        )
+    ranks = pd.DataFrame(
+        rows,
+        columns=[
+            "q_session",
+            "q_camera",
+            "q_utime",
+            "r_session",
+            "r_camera",
+            "r_utime",
+            "season_pair",
+            "method",
+            "box_id",
+            "x1",
+            "y1",
+            "x2",
+            "y2",
+            "rank",
+            "L",
+            "r",
+            "d",
+            "exact",
+        ],
+    )
+    frames = pd.DataFrame(
+        {"session": "A", "camera": "c", "utime": np.arange(n_img), "width": 1232, "height": 1616}
+    )
+    annotations = pd.DataFrame(
+        ann, columns=["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
+    )
     samples, _ = fuse_samples(ranks, frames, annotations, 0, 4096)
     allp = samples[samples["proposals"] == "all"].reset_index(drop=True)
     methods = tuple(c[4:] for c in samples.columns if c.startswith("loc_"))
@@ -274,12 +446,27 @@ def case_fusion(quick: bool) -> None:
         _pixel_image_rows(cfg, allp, frames, annotations, methods, ids)
 
     note = f"17 boxes per image, {len(methods)} methods"
-    emit("fusion (all proposal subsets)", [n_img / t for t in timed(fusion, repeat=3)], "query images/s", notes=note)
+    emit(
+        "fusion (all proposal subsets)",
+        [n_img / t for t in timed(fusion, repeat=3)],
+        "query images/s",
+        notes=note,
+    )
     la = timed(labels_ap, repeat=3)
-    emit("labels + AP (5 splits, Table I)", [1000 * t / n_img for t in la], "ms per query image", notes=note)
+    emit(
+        "labels + AP (5 splits, Table I)",
+        [1000 * t / n_img for t in la],
+        "ms per query image",
+        notes=note,
+    )
     px = timed(pixel_image_ap, repeat=3)
-    emit("pixel AP + image AP (exact regions, Table P)", [1000 * t / n_img for t in px], "ms per query image",
-         ratio_to_labels_ap=round(float(np.median(px) / np.median(la)), 2), notes=note + ", without bootstrap")
+    emit(
+        "pixel AP + image AP (exact regions, Table P)",
+        [1000 * t / n_img for t in px],
+        "ms per query image",
+        ratio_to_labels_ap=round(float(np.median(px) / np.median(la)), 2),
+        notes=note + ", without bootstrap",
+    )
 
 
 def case_executor(quick: bool) -> None:
@@ -317,25 +504,58 @@ def case_executor(quick: bool) -> None:
             runs.append(time.perf_counter() - t0)
             shutil.rmtree(tmp)
         results[name] = runs
-        emit(f"descriptors+ranks+fusion [{name}]", runs, "s", notes="fixture: 256 frames, 16-frame shards")
-    print(json.dumps({"case": "ray speed-up (local s / ray s)", "median": statistics.median(results["local"]) / statistics.median(results["ray"]), "unit": "x", "runs": [], "peak_rss_mib": peak_rss_mib(), "notes": "2 local workers on 2 cores"}), flush=True)
+        emit(
+            f"descriptors+ranks+fusion [{name}]",
+            runs,
+            "s",
+            notes="fixture: 256 frames, 16-frame shards",
+        )
+    print(
+        json.dumps(
+            {
+                "case": "ray speed-up (local s / ray s)",
+                "median": statistics.median(results["local"]) / statistics.median(results["ray"]),
+                "unit": "x",
+                "runs": [],
+                "peak_rss_mib": peak_rss_mib(),
+                "notes": "2 local workers on 2 cores",
+            }
+        ),
+        flush=True,
+    )
 
 
-STAGES = ("ingest", "pairs", "proposals", "model", "descriptor_shards", "ranks", "samples", "labels_ap_reports")
+STAGES = (
+    "ingest",
+    "pairs",
+    "proposals",
+    "model",
+    "descriptor_shards",
+    "ranks",
+    "samples",
+    "labels_ap_reports",
+)
 
 
 def nclt_scale_workload(frames: int) -> Path:
-    """The synthetic NCLT-scale logs: four ROS2 sqlite3 bags of 1,232 x 1,616 JPEG frames (generated once)."""
+    """The synthetic NCLT-scale logs.
+
+    Four ROS2 sqlite3 bags of 1,232 x 1,616 JPEG frames (generated once).
+    """
     from harness.fixture import FixtureSpec, generate
 
     root = DATA / f"nclt-scale-{frames}"
     if not (root / "fixture.json").exists():
-        spec = FixtureSpec(frames=frames, width=1232, height=1616, render_scale=4, loop_scale=3.0, objects=6)
+        spec = FixtureSpec(
+            frames=frames, width=1232, height=1616, render_scale=4, loop_scale=3.0, objects=6
+        )
         generate(root, spec, formats=("ros2",) * len(spec.sessions))
     return root
 
 
-def reproduce_subprocess(config: Path, root: Path, prefix: str) -> tuple[Path, dict[str, Any], Any, float]:
+def reproduce_subprocess(
+    config: Path, root: Path, prefix: str
+) -> tuple[Path, dict[str, Any], Any, float]:
     """``harness reproduce`` of ``config`` on ``root`` in its own process, into a new directory.
 
     Returns:
@@ -347,9 +567,26 @@ def reproduce_subprocess(config: Path, root: Path, prefix: str) -> tuple[Path, d
     import sys
 
     out = Path(tempfile.mkdtemp(dir=DATA, prefix=prefix))
-    cmd = [sys.executable, "-m", "harness.cli", "reproduce", "--config", str(config), "--data-root", str(root), "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "harness.cli",
+        "reproduce",
+        "--config",
+        str(config),
+        "--data-root",
+        str(root),
+        "--out",
+        str(out),
+    ]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "TQDM_DISABLE": "1"})
+    proc = subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "TQDM_DISABLE": "1"},
+    )
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
@@ -371,30 +608,77 @@ def case_e2e(quick: bool) -> None:
     totals = []
     for n in counts:
         root = nclt_scale_workload(n)
-        out, run, usage, wall = reproduce_subprocess(ROOT / "bench" / "nclt_scale.toml", root, "e2e-")
+        out, run, usage, wall = reproduce_subprocess(
+            ROOT / "bench" / "nclt_scale.toml", root, "e2e-"
+        )
         shutil.rmtree(out)
         t = run["timings_s"]
         for s_ in STAGES:
             stage_t[s_].append(max(float(t.get(s_, 0.0)), 1e-3))
         totals.append(wall)
         c = run["counts"]
-        q_images = c["pairs"]  # (query frame, reference session) pairs: one Table I query image each
+        # (query frame, reference session) pairs: one Table I query image each
+        q_images = c["pairs"]
         ranked = c["ranked_subimages"]
         eval_s = t.get("samples", 0.0) + t.get("labels_ap_reports", 0.0)
-        print(json.dumps({
-            "case": f"e2e Table I [{n} frames/session]", "median": wall, "unit": "s", "runs": [wall],
-            "peak_rss_mib": usage.ru_maxrss / 1024,
-            "ms_per_query_image": round(1000 * wall / max(q_images, 1), 1),
-            "ms_per_frame": round(1000 * wall / c["frames"], 1),
-            "fusion_labels_ap_share": round(eval_s / wall, 4),
-            "notes": (f"{c['frames']} frames 1232x1616 JPEG, {q_images} query images ({c['annotated_frames']} annotated frames x reference sessions), "
-                      f"{ranked} ranked subimages; stages s: " + ", ".join(f"{k} {t.get(k, 0):.1f}" for k in STAGES)),
-        }), flush=True)
+        print(
+            json.dumps(
+                {
+                    "case": f"e2e Table I [{n} frames/session]",
+                    "median": wall,
+                    "unit": "s",
+                    "runs": [wall],
+                    "peak_rss_mib": usage.ru_maxrss / 1024,
+                    "ms_per_query_image": round(1000 * wall / max(q_images, 1), 1),
+                    "ms_per_frame": round(1000 * wall / c["frames"], 1),
+                    "fusion_labels_ap_share": round(eval_s / wall, 4),
+                    "notes": (
+                        f"{c['frames']} frames 1232x1616 JPEG, {q_images} query images "
+                        f"({c['annotated_frames']} annotated frames x reference sessions), "
+                        f"{ranked} ranked subimages; stages s: "
+                        + ", ".join(f"{k} {t.get(k, 0):.1f}" for k in STAGES)
+                    ),
+                }
+            ),
+            flush=True,
+        )
     for s_ in STAGES:
-        print(json.dumps({"case": f"scaling: {s_} time vs frames per session", "median": fit_exponent(list(counts), stage_t[s_]), "unit": "exponent",
-                          "runs": [], "peak_rss_mib": peak_rss_mib(), "points": {"x": list(counts), "y": stage_t[s_], "xlabel": "frames per session", "ylabel": "s"}}), flush=True)
-    print(json.dumps({"case": "scaling: end-to-end time vs frames per session", "median": fit_exponent(list(counts), totals), "unit": "exponent",
-                      "runs": [], "peak_rss_mib": peak_rss_mib(), "points": {"x": list(counts), "y": totals, "xlabel": "frames per session", "ylabel": "s"}}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "case": f"scaling: {s_} time vs frames per session",
+                    "median": fit_exponent(list(counts), stage_t[s_]),
+                    "unit": "exponent",
+                    "runs": [],
+                    "peak_rss_mib": peak_rss_mib(),
+                    "points": {
+                        "x": list(counts),
+                        "y": stage_t[s_],
+                        "xlabel": "frames per session",
+                        "ylabel": "s",
+                    },
+                }
+            ),
+            flush=True,
+        )
+    print(
+        json.dumps(
+            {
+                "case": "scaling: end-to-end time vs frames per session",
+                "median": fit_exponent(list(counts), totals),
+                "unit": "exponent",
+                "runs": [],
+                "peak_rss_mib": peak_rss_mib(),
+                "points": {
+                    "x": list(counts),
+                    "y": totals,
+                    "xlabel": "frames per session",
+                    "ylabel": "s",
+                },
+            }
+        ),
+        flush=True,
+    )
 
 
 #: The whole NCLT as the paper uses it (issue 15): four sessions of about 25,000 Ladybug frames,
@@ -435,7 +719,8 @@ def _anon_peak_poller() -> tuple[Any, dict[str, float]]:
 
 
 def rank_job(m: int, nq: int, dim: int, sessions: int, memory_mb: float) -> None:
-    """One subprocess: rank ``nq`` queries against each of ``sessions`` databases of ``m`` float16 rows.
+    """One subprocess: rank ``nq`` queries against each of ``sessions`` databases of ``m`` float16
+    rows.
 
     Queries are noisy copies of database rows (so ground-truth ranks spread like a working
     localizer's); 16 rows per frame; the place is G alone. Prints seconds, peaks and disk.
@@ -456,13 +741,30 @@ def rank_job(m: int, nq: int, dim: int, sessions: int, memory_mb: float) -> None
             q[c : c + 8192] = db[pick[c : c + 8192]]
         q += 0.35 * rng.standard_normal(q.shape, dtype=np.float32) / np.sqrt(dim)
         t0 = time.perf_counter()
-        rank, _, _ = image_ranks(q, db, frame, frame[pick], chunk_rows=8192, query_batch=1024, memory_mb=memory_mb)
+        rank, _, _ = image_ranks(
+            q, db, frame, frame[pick], chunk_rows=8192, query_batch=1024, memory_mb=memory_mb
+        )
         secs.append(time.perf_counter() - t0)
         r1.append(float((rank == 1).mean()))
         del db, q
     stop.set()
-    hwm = next(int(x.split()[1]) / 1024 for x in Path("/proc/self/status").read_text().splitlines() if x.startswith("VmHWM:"))
-    print(json.dumps({"seconds": secs, "vmhwm_mib": hwm, "anon_peak_mib": peak["anon_mib"], "db_bytes": disk, "recall_at_1": r1}), flush=True)
+    hwm = next(
+        int(x.split()[1]) / 1024
+        for x in Path("/proc/self/status").read_text().splitlines()
+        if x.startswith("VmHWM:")
+    )
+    print(
+        json.dumps(
+            {
+                "seconds": secs,
+                "vmhwm_mib": hwm,
+                "anon_peak_mib": peak["anon_mib"],
+                "db_bytes": disk,
+                "recall_at_1": r1,
+            }
+        ),
+        flush=True,
+    )
 
 
 def _rank_subprocess(m: int, nq: int, dim: int, sessions: int, memory_mb: float) -> dict[str, Any]:
@@ -470,7 +772,13 @@ def _rank_subprocess(m: int, nq: int, dim: int, sessions: int, memory_mb: float)
     import sys
 
     args = json.dumps({"m": m, "nq": nq, "dim": dim, "sessions": sessions, "memory_mb": memory_mb})
-    proc = subprocess.run([sys.executable, "-m", "bench.cases", "rankjob", "--args", args], cwd=ROOT, capture_output=True, text=True, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench.cases", "rankjob", "--args", args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if proc.returncode != 0:
         raise SystemExit(f"rank job {args} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -478,7 +786,8 @@ def _rank_subprocess(m: int, nq: int, dim: int, sessions: int, memory_mb: float)
 
 def case_full_nclt(quick: bool) -> None:
     """The whole NCLT on this machine (issue 15): ranking measured at full size, the other stages'
-    rates measured on the NCLT-scale workload with the full-NCLT settings (``bench/nclt_full.toml``),
+    rates measured on the NCLT-scale workload with the full-NCLT settings
+    (``bench/nclt_full.toml``),
     all in this run, then projected to 100,000 frames, 1.6 M subimages and 5,242 query images.
 
     - ranking: 4 reference databases of 400,000 float16 rows at the projected dim (256), each
@@ -493,27 +802,58 @@ def case_full_nclt(quick: bool) -> None:
     nq = NCLT_QUERY_IMAGES * 16 // 4 if not quick else 2048
     full = _rank_subprocess(m, nq, dim, 4, mem)
     rank_s = sum(full["seconds"])
-    emit(f"full-nclt ranking: 4 x {m:,} rows x {dim} dims, {4 * nq:,} query subimages", [rank_s], "s",
-         ms_per_query_image=round(1000 * rank_s / (4 * nq / 16), 2), anon_peak_mib=round(full["anon_peak_mib"]),
-         notes=f"exact engine, memory_mb {mem:g}; per database s: " + ", ".join(f"{x:.1f}" for x in full["seconds"])
-         + f"; float16 databases {full['db_bytes'] / 1e9:.2f} GB; peak anonymous memory {full['anon_peak_mib']:.0f} MiB "
-         f"(peak RSS with mapped database pages {full['vmhwm_mib']:.0f} MiB)")
+    emit(
+        f"full-nclt ranking: 4 x {m:,} rows x {dim} dims, {4 * nq:,} query subimages",
+        [rank_s],
+        "s",
+        ms_per_query_image=round(1000 * rank_s / (4 * nq / 16), 2),
+        anon_peak_mib=round(full["anon_peak_mib"]),
+        notes=f"exact engine, memory_mb {mem:g}; per database s: "
+        + ", ".join(f"{x:.1f}" for x in full["seconds"])
+        + f"; float16 databases {full['db_bytes'] / 1e9:.2f} GB; peak anonymous memory "
+        f"{full['anon_peak_mib']:.0f} MiB "
+        f"(peak RSS with mapped database pages {full['vmhwm_mib']:.0f} MiB)",
+    )
     flat = {}
     for rows in (NCLT_DB_ROWS // 10, NCLT_DB_ROWS):  # memory_mb 256: the budget binds at both sizes
         flat[rows] = _rank_subprocess(rows, nq, dim, 1, 256.0)
-        emit(f"full-nclt memory: {nq:,} queries vs {rows:,} rows, memory_mb 256", [flat[rows]["anon_peak_mib"]], "MiB",
-             notes=f"peak anonymous memory; peak RSS incl. mapped database pages {flat[rows]['vmhwm_mib']:.0f} MiB; {flat[rows]['seconds'][0]:.1f} s")
+        emit(
+            f"full-nclt memory: {nq:,} queries vs {rows:,} rows, memory_mb 256",
+            [flat[rows]["anon_peak_mib"]],
+            "MiB",
+            notes="peak anonymous memory; peak RSS incl. mapped database pages "
+            f"{flat[rows]['vmhwm_mib']:.0f} MiB; {flat[rows]['seconds'][0]:.1f} s",
+        )
     ratio = flat[NCLT_DB_ROWS]["anon_peak_mib"] / flat[NCLT_DB_ROWS // 10]["anon_peak_mib"]
-    emit("full-nclt memory ratio (database 10x larger)", [ratio], "x", notes="1.0 = flat: memory bounded by memory_mb and chunk_rows, not the database")
+    emit(
+        "full-nclt memory ratio (database 10x larger)",
+        [ratio],
+        "x",
+        notes="1.0 = flat: memory bounded by memory_mb and chunk_rows, not the database",
+    )
 
     frames_per_session = 24 if quick else 125
     root = nclt_scale_workload(frames_per_session)
     out, run, usage, wall = reproduce_subprocess(ROOT / "bench" / "nclt_full.toml", root, "full-")
     t, c = run["timings_s"], run["counts"]
-    subimages = sum(json.loads((d / "manifest.json").read_text())["info"]["subimages"] for d in (out / "cache" / "descriptors").iterdir())
+    subimages = sum(
+        json.loads((d / "manifest.json").read_text())["info"]["subimages"]
+        for d in (out / "cache" / "descriptors").iterdir()
+    )
     images_bytes = _size(out / "cache" / "ingest")
     # stages whose files grow with the frames, and the fixed rest (model, projection, reports)
-    per_frame_bytes = sum(_size(out / "cache" / s_) for s_ in ("frames", "pairs", "proposals", "descriptor_shards", "descriptors", "ranks", "samples"))
+    per_frame_bytes = sum(
+        _size(out / "cache" / s_)
+        for s_ in (
+            "frames",
+            "pairs",
+            "proposals",
+            "descriptor_shards",
+            "descriptors",
+            "ranks",
+            "samples",
+        )
+    )
     per_frame_bytes += sum(_size(f) for f in out.glob("*.parquet")) + _size(out / "splits")
     fixed_bytes = _size(out) - images_bytes - per_frame_bytes
     shutil.rmtree(out)
@@ -533,15 +873,48 @@ def case_full_nclt(quick: bool) -> None:
     d_full = nclt_described(NCLT_ASSUMED_SESSION_M)
     # stage: (measured figure, its unit, projected seconds for the whole NCLT)
     rows = [
-        ("ingest (ROS2 JPEG bags), every frame", t.get("ingest", 0) / frames * 1000, "ms/frame", t.get("ingest", 0) / frames * NCLT_FRAMES),
-        (f"proposals (grid5 + edges), {d_full:,.0f} described frames", prop_s * 1000, "ms/frame", prop_s * d_full),
-        ("autoencoder training (6,000 sample-steps budget)", t.get("model", 0), "s, fixed", t.get("model", 0)),
-        ("projection fit (8,192 reference subimages)", t.get("projection", 0), "s, fixed", t.get("projection", 0)),
-        (f"descriptors (crop, encode 256x256, project), {d_full * sub_per_frame:,.0f} subimages", desc_s * 1000, "ms/subimage",
-         desc_s * d_full * sub_per_frame),
-        ("ranking (measured at full size above: 400k rows, no stride)", rank_s, "s, full size", rank_s),
-        ("fusion, labels, AP, reports", (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * 1000, "ms/query image",
-         (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * NCLT_QUERY_IMAGES),
+        (
+            "ingest (ROS2 JPEG bags), every frame",
+            t.get("ingest", 0) / frames * 1000,
+            "ms/frame",
+            t.get("ingest", 0) / frames * NCLT_FRAMES,
+        ),
+        (
+            f"proposals (grid5 + edges), {d_full:,.0f} described frames",
+            prop_s * 1000,
+            "ms/frame",
+            prop_s * d_full,
+        ),
+        (
+            "autoencoder training (6,000 sample-steps budget)",
+            t.get("model", 0),
+            "s, fixed",
+            t.get("model", 0),
+        ),
+        (
+            "projection fit (8,192 reference subimages)",
+            t.get("projection", 0),
+            "s, fixed",
+            t.get("projection", 0),
+        ),
+        (
+            f"descriptors (crop, encode 256x256, project), {d_full * sub_per_frame:,.0f} subimages",
+            desc_s * 1000,
+            "ms/subimage",
+            desc_s * d_full * sub_per_frame,
+        ),
+        (
+            "ranking (measured at full size above: 400k rows, no stride)",
+            rank_s,
+            "s, full size",
+            rank_s,
+        ),
+        (
+            "fusion, labels, AP, reports",
+            (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * 1000,
+            "ms/query image",
+            (t.get("samples", 0) + t.get("labels_ap_reports", 0)) / q_images * NCLT_QUERY_IMAGES,
+        ),
     ]
     total = sum(r[3] for r in rows)
     per_described = prop_s + desc_s * sub_per_frame  # s per described frame
@@ -551,23 +924,57 @@ def case_full_nclt(quick: bool) -> None:
     budget_frames = (GOAL_S - fixed_s) / per_described - NCLT_QUERY_IMAGES
     break_even_m = budget_frames * stride / 4 if stride > 0 else float("nan")
     for name, rate, unit, proj in rows:
-        print(json.dumps({"case": f"full-nclt projection: {name}", "median": rate, "unit": unit, "runs": [rate],
-                          "peak_rss_mib": usage.ru_maxrss / 1024, "projected_min_cpu": round(proj / 60, 1),
-                          "notes": f"projected {proj / 60:.1f} min for the whole NCLT on this CPU"}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "case": f"full-nclt projection: {name}",
+                    "median": rate,
+                    "unit": unit,
+                    "runs": [rate],
+                    "peak_rss_mib": usage.ru_maxrss / 1024,
+                    "projected_min_cpu": round(proj / 60, 1),
+                    "notes": f"projected {proj / 60:.1f} min for the whole NCLT on this CPU",
+                }
+            ),
+            flush=True,
+        )
     disk_gb = (per_frame_bytes / frames * NCLT_FRAMES + fixed_bytes) / 1e9
-    print(json.dumps({"case": "full-nclt projection: total", "median": total / 3600, "unit": "h (CPU)", "runs": [total / 3600],
-                      "peak_rss_mib": usage.ru_maxrss / 1024, "disk_gb": round(disk_gb, 2),
-                      "described_frames": round(d_full), "db_stride_m": stride,
-                      "every_frame_h": round(every_frame_s / 3600, 2), "break_even_session_km": round(break_even_m / 1000, 1),
-                      "notes": (f"goal < 2 h, < 20 GB, < 8 GiB; db_stride_m {stride:g} m: {d_full:,.0f} of 100,000 frames proposed and "
-                                f"encoded, with each session's trajectory assumed {NCLT_ASSUMED_SESSION_M / 1000:g} km long (not measured); "
-                                f"the total reaches 2 h only at {break_even_m / 1000:.1f} km per session; every frame described: "
-                                f"{every_frame_s / 3600:.2f} h; workload run {wall:.0f} s on {frames} frames ({described} described), "
-                                f"{subimages} subimages, {q_images} query images; peak RSS of that run {usage.ru_maxrss / 1024:.0f} MiB; "
-                                f"disk: stage files that grow with the frames {per_frame_bytes / 1e6:.1f} MB, fixed (model, projection, "
-                                f"reports) {fixed_bytes / 1e6:.1f} MB -> {disk_gb:.2f} GB for 100,000 frames, every frame counted (NCLT's own "
-                                f"images are read in place; a ROS2 bag's are stored: {images_bytes / frames * NCLT_FRAMES / 1e9:.1f} GB more); "
-                                "GPU: not measured, no GPU was lent to this task")}), flush=True)
+    print(
+        json.dumps(
+            {
+                "case": "full-nclt projection: total",
+                "median": total / 3600,
+                "unit": "h (CPU)",
+                "runs": [total / 3600],
+                "peak_rss_mib": usage.ru_maxrss / 1024,
+                "disk_gb": round(disk_gb, 2),
+                "described_frames": round(d_full),
+                "db_stride_m": stride,
+                "every_frame_h": round(every_frame_s / 3600, 2),
+                "break_even_session_km": round(break_even_m / 1000, 1),
+                "notes": (
+                    f"goal < 2 h, < 20 GB, < 8 GiB; db_stride_m {stride:g} m: {d_full:,.0f} "
+                    "of 100,000 frames proposed and "
+                    "encoded, with each session's trajectory assumed "
+                    f"{NCLT_ASSUMED_SESSION_M / 1000:g} km long (not measured); "
+                    f"the total reaches 2 h only at {break_even_m / 1000:.1f} km per "
+                    "session; every frame described: "
+                    f"{every_frame_s / 3600:.2f} h; workload run {wall:.0f} s on {frames} "
+                    f"frames ({described} described), "
+                    f"{subimages} subimages, {q_images} query images; peak RSS of that run "
+                    f"{usage.ru_maxrss / 1024:.0f} MiB; "
+                    "disk: stage files that grow with the frames "
+                    f"{per_frame_bytes / 1e6:.1f} MB, fixed (model, projection, "
+                    f"reports) {fixed_bytes / 1e6:.1f} MB -> {disk_gb:.2f} GB for 100,000 "
+                    "frames, every frame counted (NCLT's own "
+                    "images are read in place; a ROS2 bag's are stored: "
+                    f"{images_bytes / frames * NCLT_FRAMES / 1e9:.1f} GB more); "
+                    "GPU: not measured, no GPU was lent to this task"
+                ),
+            }
+        ),
+        flush=True,
+    )
 
 
 def main() -> None:

@@ -1,3 +1,9 @@
+"""dbl-harness: a batch benchmark of self-localization as change detection on NCLT logs.
+
+The pipeline's chain is :mod:`harness.runner`; the method contract is SPEC.md (see
+``docs/method.md``) and the stage map ``docs/architecture.md``.
+"""
+
 from importlib.metadata import version as _v
 
 __all__ = ["__version__"]

@@ -29,13 +29,22 @@ _NAME = re.compile(r"^(?P<session>.+?)__(?P<camera>.+?)__(?P<utime>-?\d+)(\.[A-Z
 
 
 def image_name(session: str, camera: str, utime: int, ext: str = ".png") -> str:
+    """The labelling file name of a frame: ``<session>__<camera>__<utime><ext>``."""
     return f"{session}__{camera}__{int(utime)}{ext}"
 
 
 def parse_image_name(name: str, where: str) -> tuple[str, str, int]:
+    """(session, camera, utime) of a labelling file name.
+
+    Raises:
+        AnnotationError: The name is not ``<session>__<camera>__<utime>.<ext>`` (``where``
+            names the file).
+    """
     m = _NAME.match(Path(name).name)
     if not m:
-        raise AnnotationError(f"{where}: image name {name!r} is not of the form <session>__<camera>__<utime>.<ext>")
+        raise AnnotationError(
+            f"{where}: image name {name!r} is not of the form <session>__<camera>__<utime>.<ext>"
+        )
     return m["session"], m["camera"], int(m["utime"])
 
 
@@ -59,7 +68,9 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
     def fail(mask: np.ndarray, what: str) -> None:
         if mask.any():
             i = int(np.nonzero(mask)[0][0])
-            raise AnnotationError(f"{where}: line {line[i]}: {what} ({int(mask.sum())} row(s) in all)")
+            raise AnnotationError(
+                f"{where}: line {line[i]}: {what} ({int(mask.sum())} row(s) in all)"
+            )
 
     try:
         df["utime"] = pd.to_numeric(df["utime"], errors="raise").astype(np.int64)
@@ -76,7 +87,10 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
     fail(chg & ~np.isfinite(box).all(axis=1), "a change row needs a numeric box x1, y1, x2, y2")
     fail(~chg & np.isfinite(box).any(axis=1), "a no-change row must leave the box empty")
     with np.errstate(invalid="ignore"):
-        fail(chg & ((box[:, 2] <= box[:, 0]) | (box[:, 3] <= box[:, 1])), "box has zero or negative area")
+        fail(
+            chg & ((box[:, 2] <= box[:, 0]) | (box[:, 3] <= box[:, 1])),
+            "box has zero or negative area",
+        )
         fail(chg & ((box[:, 0] < 0) | (box[:, 1] < 0)), "box starts outside the image")
     keys = ["session", "camera", "utime"]
     if frames is not None:
@@ -84,11 +98,16 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
         m = df.merge(fk, on=keys, how="left", indicator=True)
         fail((m["_merge"] == "left_only").to_numpy(), "unknown frame (not in the frame table)")
         with np.errstate(invalid="ignore"):
-            fail(chg & ((box[:, 2] > m["width"].to_numpy()) | (box[:, 3] > m["height"].to_numpy())), "box ends outside the image")
+            fail(
+                chg & ((box[:, 2] > m["width"].to_numpy()) | (box[:, 3] > m["height"].to_numpy())),
+                "box ends outside the image",
+            )
     both = df.groupby(keys)["status"].transform("nunique").to_numpy() > 1
     fail(both, "frame is annotated both change and no-change")
     fail(df.duplicated(keep="first").to_numpy(), "duplicate row")
-    fail((~chg) & df.duplicated(keys, keep="first").to_numpy(), "duplicate no-change row for a frame")
+    fail(
+        (~chg) & df.duplicated(keys, keep="first").to_numpy(), "duplicate no-change row for a frame"
+    )
     return df[COLUMNS].sort_values(keys + ["x1", "y1"], na_position="first").reset_index(drop=True)
 
 
@@ -98,11 +117,18 @@ def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataF
     if not path.exists():
         raise AnnotationError(f"{path}: annotation file not found")
     try:
-        df = pd.read_csv(path, dtype={"session": str, "camera": str, "label": str}, keep_default_na=True, skip_blank_lines=False)
+        df = pd.read_csv(
+            path,
+            dtype={"session": str, "camera": str, "label": str},
+            keep_default_na=True,
+            skip_blank_lines=False,
+        )
     except (pd.errors.ParserError, UnicodeDecodeError) as err:
         raise AnnotationError(f"{path}: not a readable CSV: {err}") from None
     except pd.errors.EmptyDataError:
-        raise AnnotationError(f"{path}: the file is empty (expected a header line {','.join(COLUMNS)})") from None
+        raise AnnotationError(
+            f"{path}: the file is empty (expected a header line {','.join(COLUMNS)})"
+        ) from None
     # blank lines are read as empty rows and dropped here, so the index stays the file's line - 2
     df = df[~df.isna().all(axis=1)]
     return validate(df, frames, str(path))
@@ -120,11 +146,28 @@ def change_boxes(ann: pd.DataFrame) -> dict[tuple[str, str, int], np.ndarray]:
 # ---------------------------------------------------------------- importers
 
 
-def _rows_for_image(name: str, boxes: list[tuple[float, float, float, float, str]], where: str) -> list[dict]:
+def _rows_for_image(
+    name: str, boxes: list[tuple[float, float, float, float, str]], where: str
+) -> list[dict]:
     s, c, t = parse_image_name(name, where)
     if not boxes:
-        return [dict(session=s, camera=c, utime=t, status="no-change", x1=np.nan, y1=np.nan, x2=np.nan, y2=np.nan, label="")]
-    return [dict(session=s, camera=c, utime=t, status="change", x1=x1, y1=y1, x2=x2, y2=y2, label=lab) for x1, y1, x2, y2, lab in boxes]
+        return [
+            dict(
+                session=s,
+                camera=c,
+                utime=t,
+                status="no-change",
+                x1=np.nan,
+                y1=np.nan,
+                x2=np.nan,
+                y2=np.nan,
+                label="",
+            )
+        ]
+    return [
+        dict(session=s, camera=c, utime=t, status="change", x1=x1, y1=y1, x2=x2, y2=y2, label=lab)
+        for x1, y1, x2, y2, lab in boxes
+    ]
 
 
 def import_coco(path: Path) -> pd.DataFrame:
@@ -137,12 +180,33 @@ def import_coco(path: Path) -> pd.DataFrame:
         for a in doc.get("annotations", []):
             x, y, w, h = (float(v) for v in a["bbox"])
             if a["image_id"] not in per:
-                raise AnnotationError(f"{path}: annotation {a.get('id')} refers to unknown image_id {a['image_id']}")
+                raise AnnotationError(
+                    f"{path}: annotation {a.get('id')} refers to unknown image_id {a['image_id']}"
+                )
             per[a["image_id"]].append((x, y, x + w, y + h, cats.get(a.get("category_id"), "")))
     except (KeyError, TypeError, ValueError) as err:
-        raise AnnotationError(f"{path}: not a COCO annotation file: {type(err).__name__}: {err}") from None
-    rows = [r for i, name in sorted(images.items()) for r in _rows_for_image(name, per[i], f"{path}: image {i}")]
+        raise AnnotationError(
+            f"{path}: not a COCO annotation file: {type(err).__name__}: {err}"
+        ) from None
+    rows = [
+        r
+        for i, name in sorted(images.items())
+        for r in _rows_for_image(name, per[i], f"{path}: image {i}")
+    ]
     return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def _number(text: str | None, name: str) -> float:
+    """An XML attribute or element text as a float; a missing one is a ValueError naming it."""
+    if text is None:
+        raise ValueError(f"no {name}")
+    return float(text)
+
+
+def _cvat_box(b: ET.Element) -> tuple[float, float, float, float, str]:
+    """A CVAT ``<box>``: (xtl, ytl, xbr, ybr, label)."""
+    x1, y1, x2, y2 = (_number(b.get(k), k) for k in ("xtl", "ytl", "xbr", "ybr"))
+    return x1, y1, x2, y2, b.get("label", "")
 
 
 def import_voc(folder: Path) -> pd.DataFrame:
@@ -160,8 +224,10 @@ def import_voc(folder: Path) -> pd.DataFrame:
                 bb = obj.find("bndbox")
                 if bb is None:
                     raise AnnotationError(f"{f}: object without bndbox")
-                boxes.append((float(bb.findtext("xmin")), float(bb.findtext("ymin")), float(bb.findtext("xmax")),  # type: ignore[arg-type]
-                              float(bb.findtext("ymax")), obj.findtext("name") or ""))  # type: ignore[arg-type]
+                x1, y1, x2, y2 = (
+                    _number(bb.findtext(k), k) for k in ("xmin", "ymin", "xmax", "ymax")
+                )
+                boxes.append((x1, y1, x2, y2, obj.findtext("name") or ""))
         except (ET.ParseError, TypeError, ValueError) as err:
             raise AnnotationError(f"{f}: not a VOC annotation: {err}") from None
         rows += _rows_for_image(name, boxes, str(f))
@@ -177,13 +243,16 @@ def import_cvat(path: Path) -> pd.DataFrame:
     rows: list[dict] = []
     images = root.findall("image")
     if not images:
-        raise AnnotationError(f"{path}: no <image> elements (is this a CVAT for images 1.1 export?)")
+        raise AnnotationError(
+            f"{path}: no <image> elements (is this a CVAT for images 1.1 export?)"
+        )
     for im in images:
         try:
-            boxes = [(float(b.get("xtl")), float(b.get("ytl")), float(b.get("xbr")), float(b.get("ybr")), b.get("label", ""))  # type: ignore[arg-type]
-                     for b in im.findall("box")]
+            boxes = [_cvat_box(b) for b in im.findall("box")]
         except (TypeError, ValueError) as err:
-            raise AnnotationError(f"{path}: image {im.get('name')}: bad box attribute: {err}") from None
+            raise AnnotationError(
+                f"{path}: image {im.get('name')}: bad box attribute: {err}"
+            ) from None
         rows += _rows_for_image(im.get("name", ""), boxes, f"{path}: image {im.get('id')}")
     return pd.DataFrame(rows, columns=COLUMNS)
 
@@ -191,8 +260,13 @@ def import_cvat(path: Path) -> pd.DataFrame:
 IMPORTERS = {"coco": import_coco, "voc": import_voc, "cvat": import_cvat}
 
 
-def import_annotations(fmt: str, src: Path, frames: pd.DataFrame | None, out: Path, force: bool = False) -> pd.DataFrame:
-    """Import, validate and write the canonical CSV (atomically; an existing ``out`` only with ``force``)."""
+def import_annotations(
+    fmt: str, src: Path, frames: pd.DataFrame | None, out: Path, force: bool = False
+) -> pd.DataFrame:
+    """Import, validate and write the canonical CSV.
+
+    Written atomically; an existing ``out`` is replaced only with ``force``.
+    """
     out = check_file_replaceable(Path(out), force)
     if fmt not in IMPORTERS:
         raise AnnotationError(f"unknown annotation format {fmt!r}; known: {sorted(IMPORTERS)}")
@@ -204,7 +278,13 @@ def import_annotations(fmt: str, src: Path, frames: pd.DataFrame | None, out: Pa
     return df
 
 
-def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, limit: int | None = None, force: bool = False) -> Path:
+def export_for_labelling(
+    pairs: pd.DataFrame,
+    frames: pd.DataFrame,
+    out: Path,
+    limit: int | None = None,
+    force: bool = False,
+) -> Path:
     """Write chosen query frames beside their references for a labelling tool.
 
     Each image is ``query | reference`` side by side with the query on the left, so a box drawn
@@ -214,7 +294,11 @@ def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, l
     """
     out = check_replaceable(Path(out), "labelling-task", force)
     keyed = frames.set_index(["session", "camera", "utime"])
-    q = pairs.drop_duplicates(["q_session", "q_camera", "q_utime"]).head(limit) if limit else pairs.drop_duplicates(["q_session", "q_camera", "q_utime"])
+    q = (
+        pairs.drop_duplicates(["q_session", "q_camera", "q_utime"]).head(limit)
+        if limit
+        else pairs.drop_duplicates(["q_session", "q_camera", "q_utime"])
+    )
     images = []
     with atomic_dir(Path(out)) as tmp:
         (tmp / "images").mkdir()
@@ -225,9 +309,22 @@ def export_for_labelling(pairs: pd.DataFrame, frames: pd.DataFrame, out: Path, l
             if ri.shape[0] != qi.shape[0]:
                 ri = cv2.resize(ri, (int(ri.shape[1] * qi.shape[0] / ri.shape[0]), qi.shape[0]))
             name = image_name(row.q_session, row.q_camera, row.q_utime)
-            cv2.imwrite(str(tmp / "images" / name), cv2.cvtColor(np.hstack([qi, ri]), cv2.COLOR_RGB2BGR))
-            images.append({"id": i, "file_name": name, "width": int(qi.shape[1] + ri.shape[1]), "height": int(qi.shape[0]),
-                           "query_width": int(qi.shape[1]), "reference": image_name(row.r_session, row.r_camera, row.r_utime)})
-        write_json(tmp / "task.json", {"images": images, "annotations": [], "categories": [{"id": 1, "name": "change"}]})
+            cv2.imwrite(
+                str(tmp / "images" / name), cv2.cvtColor(np.hstack([qi, ri]), cv2.COLOR_RGB2BGR)
+            )
+            images.append(
+                {
+                    "id": i,
+                    "file_name": name,
+                    "width": int(qi.shape[1] + ri.shape[1]),
+                    "height": int(qi.shape[0]),
+                    "query_width": int(qi.shape[1]),
+                    "reference": image_name(row.r_session, row.r_camera, row.r_utime),
+                }
+            )
+        write_json(
+            tmp / "task.json",
+            {"images": images, "annotations": [], "categories": [{"id": 1, "name": "change"}]},
+        )
         write_marker(tmp, "labelling-task")
     return Path(out)

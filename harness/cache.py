@@ -10,12 +10,13 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import inspect
 import json
 import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,9 @@ os.umask(_UMASK)
 #: Modules that no cached stage runs: the reports, figures and the report page are rebuilt on every
 #: run, and the command layer only reads arguments into the config (whose values are in the keys).
 #: Editing them never recomputes a stage; editing any other module recomputes every stage.
-NOT_IN_STAGES = frozenset({"cli.py", "reports.py", "report_html.py", "plots.py", "inspect.py", "gc.py"})
+NOT_IN_STAGES = frozenset(
+    {"cli.py", "reports.py", "report_html.py", "plots.py", "inspect.py", "gc.py"}
+)
 
 
 def code_fingerprint(package_dir: Path | None = None) -> str:
@@ -85,6 +88,27 @@ def stable_hash(*parts: Any, length: int = 16) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:length]
 
 
+def source_fingerprints(
+    registry: Mapping[str, Callable[..., Any]], names: Iterable[str]
+) -> dict[str, str]:
+    """Source hashes of the functions of ``registry`` named in ``names`` from outside the package.
+
+    Code inside the package is covered by :data:`CODE_FINGERPRINT`; a function a user registers
+    (a proposal method, a fusion method) is not, so its own source goes into the stage's key.
+    """
+    out = {}
+    for name in names:
+        fn = registry.get(name)
+        if fn is None or getattr(fn, "__module__", "").startswith("harness."):
+            continue
+        try:
+            src = inspect.getsource(fn)
+        except (OSError, TypeError):
+            src = getattr(fn, "__qualname__", repr(fn))
+        out[name] = hashlib.sha256(src.encode()).hexdigest()[:16]
+    return out
+
+
 def file_fingerprint(path: Path) -> dict[str, Any]:
     """Cheap identity of a file or directory tree: relative names, sizes and mtimes."""
     path = Path(path)
@@ -101,7 +125,10 @@ def file_fingerprint(path: Path) -> dict[str, Any]:
 
 @contextlib.contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    """Yield a temporary path beside ``path``.
+
+    Rename it onto ``path`` only if the block succeeds.
+    """
     path = Path(path).resolve()
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -118,7 +145,10 @@ def atomic_path(path: Path) -> Iterator[Path]:
 
 @contextlib.contextmanager
 def atomic_dir(path: Path) -> Iterator[Path]:
-    """Yield a temporary directory; on success it replaces ``path`` (an older ``path`` is kept on failure)."""
+    """Yield a temporary directory.
+
+    On success it replaces ``path`` (an older ``path`` is kept on failure).
+    """
     path = Path(path).resolve()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
@@ -145,18 +175,28 @@ def write_json(path: Path, obj: Any) -> None:
 
 def write_parquet(path: Path, df: pd.DataFrame | pa.Table, schema: pa.Schema | None = None) -> None:
     """Write a parquet table atomically (no pandas index, deterministic bytes for equal data)."""
-    table = df if isinstance(df, pa.Table) else pa.Table.from_pandas(df, schema=schema, preserve_index=False)
+    table = (
+        df
+        if isinstance(df, pa.Table)
+        else pa.Table.from_pandas(df, schema=schema, preserve_index=False)
+    )
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp, compression="zstd")
 
 
 def read_cached_parquet(path: Path, columns: list[str] | None = None) -> pd.DataFrame:
-    """Read a parquet file of a cache entry; a damaged file is a :class:`CacheError` naming the entry."""
+    """Read a parquet file of a cache entry.
+
+    A damaged file is a :class:`CacheError` naming the entry.
+    """
     try:
         return pd.read_parquet(path, columns=columns)
     except (OSError, ValueError, pa.ArrowException) as err:
         entry = Path(path).parent
-        raise CacheError(f"{path}: damaged cache file ({type(err).__name__}: {err}); remove {entry} and rerun to rebuild it") from None
+        raise CacheError(
+            f"{path}: damaged cache file ({type(err).__name__}: {err}); remove {entry} and "
+            "rerun to rebuild it"
+        ) from None
 
 
 def write_text(path: Path, text: str) -> None:
@@ -177,9 +217,11 @@ class StageCache:
         self.root = Path(root)
 
     def key(self, name: str, *key_parts: Any) -> str:
+        """The entry key of stage ``name``: a hash of its parts and the code fingerprint."""
         return stable_hash(name, CODE_FINGERPRINT, *key_parts)
 
     def path(self, name: str, key: str) -> Path:
+        """The directory of entry ``key`` of stage ``name``."""
         return self.root / name / key
 
     def is_done(self, name: str, key: str) -> bool:
@@ -214,11 +256,18 @@ class StageCache:
         return None
 
     def manifest(self, name: str, key: str) -> dict[str, Any]:
+        """The manifest of a complete entry.
+
+        Raises:
+            CacheError: The manifest is unreadable (the message says which entry to remove).
+        """
         path = self.path(name, key) / "manifest.json"
         try:
             return json.loads(path.read_text())
         except (OSError, ValueError) as err:
-            raise CacheError(f"{path}: unreadable cache manifest ({err}); remove {path.parent} and rerun") from None
+            raise CacheError(
+                f"{path}: unreadable cache manifest ({err}); remove {path.parent} and rerun"
+            ) from None
 
     def run(
         self,
@@ -234,8 +283,14 @@ class StageCache:
             return final, False
         with atomic_dir(final) as tmp:
             info = build(tmp) or {}
-            files = {str(p.relative_to(tmp)): p.stat().st_size for p in sorted(tmp.rglob("*")) if p.is_file()}
-            write_json(tmp / "manifest.json", {"stage": name, "key": key, "info": info, "files": files})
+            files = {
+                str(p.relative_to(tmp)): p.stat().st_size
+                for p in sorted(tmp.rglob("*"))
+                if p.is_file()
+            }
+            write_json(
+                tmp / "manifest.json", {"stage": name, "key": key, "info": info, "files": files}
+            )
         log.info("%s: wrote %s", name, final)
         return final, True
 

@@ -1,4 +1,7 @@
-"""``harness``: one subcommand per stage plus ``reproduce``. Library errors become one ``ERROR:`` line and exit 1."""
+"""``harness``: one subcommand per stage plus ``reproduce``.
+
+Library errors become one ``ERROR:`` line and exit 1.
+"""
 
 from __future__ import annotations
 
@@ -15,7 +18,8 @@ log = logging.getLogger("harness")
 
 
 _FS_ERRORS = {
-    errno.ENOSPC: "free disk space (completed stages are kept) and rerun the same command to resume",
+    errno.ENOSPC: "free disk space (completed stages are kept) and rerun the same command "
+    "to resume",
     errno.EDQUOT: "free disk space within the quota and rerun the same command to resume",
     errno.EROFS: "the file system is read-only: choose a writable --out",
     errno.EACCES: "no permission: choose a writable --out or fix the permissions",
@@ -44,13 +48,23 @@ def _config(args: argparse.Namespace):
 
 
 def cmd_fixture(args: argparse.Namespace) -> int:
+    """``harness fixture``: generate the synthetic fixture world."""
     from .fixture import FixtureSpec, generate
 
-    spec = FixtureSpec(seed=args.seed, frames=args.frames, width=args.width, height=args.height, objects=args.objects,
-                       loop_scale=args.loop_scale, render_scale=args.render_scale)
+    spec = FixtureSpec(
+        seed=args.seed,
+        frames=args.frames,
+        width=args.width,
+        height=args.height,
+        objects=args.objects,
+        loop_scale=args.loop_scale,
+        render_scale=args.render_scale,
+    )
     formats = args.formats.split(",") if args.formats else None
     try:
-        out = generate(Path(args.out), spec, all_formats=args.all_formats, formats=formats, force=args.force)
+        out = generate(
+            Path(args.out), spec, all_formats=args.all_formats, formats=formats, force=args.force
+        )
     except ValueError as err:
         raise HarnessError(f"harness fixture: {err}") from None
     print(f"fixture written to {out} (annotations: {out / 'annotations.csv'})")
@@ -58,6 +72,7 @@ def cmd_fixture(args: argparse.Namespace) -> int:
 
 
 def cmd_ingest(args: argparse.Namespace) -> int:
+    """``harness ingest``: one log into a frame table and an ingest report."""
     from .config import IngestConfig, SessionConfig
     from .ingest import ingest_session
     from .outdirs import check_replaceable, claim_dir
@@ -65,13 +80,19 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     if args.config:
         cfg = _config(args)
         sessions, ic = cfg.sessions, cfg.ingest
-        ic = dataclasses.replace(ic, salvage=ic.salvage or args.salvage, verify_images=ic.verify_images or args.verify_images)
+        ic = dataclasses.replace(
+            ic,
+            salvage=ic.salvage or args.salvage,
+            verify_images=ic.verify_images or args.verify_images,
+        )
         for sc in sessions:  # check every session's output before any work
             check_replaceable(Path(args.out) / sc.name, "ingest", args.force)
         out = claim_dir(Path(args.out), "ingest-set")
         for sc in sessions:
             rep = ingest_session(sc, ic, out / sc.name, force=args.force)
-            print(f"{sc.name}: {rep['frames_written']} frames -> {out / sc.name / 'frames.parquet'}")
+            print(
+                f"{sc.name}: {rep['frames_written']} frames -> {out / sc.name / 'frames.parquet'}"
+            )
         return 0
     if not args.source or not args.session:
         raise HarnessError("ingest needs SOURCE and --session NAME, or --config FILE")
@@ -79,13 +100,28 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         raise HarnessError(f"--max-pose-gap {args.max_pose_gap}: must be > 0 seconds")
     if args.max_tf_gap <= 0:
         raise HarnessError(f"--max-tf-gap {args.max_tf_gap}: must be > 0 seconds")
-    sc = SessionConfig(name=args.session, source=str(Path(args.source).resolve()), camera=args.camera,
-                       image_topic=args.image_topic, pose_topic=args.pose_topic, tf_child_frame=args.tf_child_frame,
-                       fixed_frame=args.fixed_frame, camera_frame=args.camera_frame)
-    ic = IngestConfig(max_pose_gap_s=args.max_pose_gap, max_tf_gap_s=args.max_tf_gap, time_source=args.time_source, salvage=args.salvage,
-                      verify_images=args.verify_images)
+    sc = SessionConfig(
+        name=args.session,
+        source=str(Path(args.source).resolve()),
+        camera=args.camera,
+        image_topic=args.image_topic,
+        pose_topic=args.pose_topic,
+        tf_child_frame=args.tf_child_frame,
+        fixed_frame=args.fixed_frame,
+        camera_frame=args.camera_frame,
+    )
+    ic = IngestConfig(
+        max_pose_gap_s=args.max_pose_gap,
+        max_tf_gap_s=args.max_tf_gap,
+        time_source=args.time_source,
+        salvage=args.salvage,
+        verify_images=args.verify_images,
+    )
     rep = ingest_session(sc, ic, Path(args.out), force=args.force)
-    print(f"{rep['frames_written']} frames -> {Path(args.out) / 'frames.parquet'}; report: {Path(args.out) / 'ingest_report.json'}")
+    print(
+        f"{rep['frames_written']} frames -> {Path(args.out) / 'frames.parquet'}; report: "
+        f"{Path(args.out) / 'ingest_report.json'}"
+    )
     print(f"dropped: {rep['dropped']}")
     return 0
 
@@ -102,10 +138,16 @@ def _pipeline(args: argparse.Namespace):
     rank_import = Path(args.rank_import) if getattr(args, "rank_import", None) else None
     if rank_import is not None and not rank_import.exists():
         raise HarnessError(f"{rank_import}: --import file not found")
-    return Pipeline(cfg, Path(args.out), rank_import=rank_import, executor=make_executor(args.executor, args.address, args.ray_cpus))
+    return Pipeline(
+        cfg,
+        Path(args.out),
+        rank_import=rank_import,
+        executor=make_executor(args.executor, args.address, args.ray_cpus),
+    )
 
 
 def cmd_pairs(args: argparse.Namespace) -> int:
+    """``harness pairs``: run up to the pairs and say where they are."""
     from .runner import until_pairs
 
     p = _pipeline(args)
@@ -117,6 +159,7 @@ def cmd_pairs(args: argparse.Namespace) -> int:
 
 
 def cmd_proposals(args: argparse.Namespace) -> int:
+    """``harness proposals``: run up to the proposals and say where they are."""
     from .runner import session_proposals, until_pairs
 
     p = _pipeline(args)
@@ -124,11 +167,15 @@ def cmd_proposals(args: argparse.Namespace) -> int:
         ing, frames, _, pairs = until_pairs(p)
         props = session_proposals(p, frames, pairs, ing)
     for s, t in props.items():
-        print(f"{s}: {len(t.df)} proposals {t.df.groupby('method').size().to_dict()} -> {p.cache.path('proposals', t.key) / 'proposals.parquet'}")
+        print(
+            f"{s}: {len(t.df)} proposals {t.df.groupby('method').size().to_dict()} -> "
+            f"{p.cache.path('proposals', t.key) / 'proposals.parquet'}"
+        )
     return 0
 
 
 def cmd_rank(args: argparse.Namespace) -> int:
+    """``harness rank``: run (or import) the ranks into ``ranks.parquet``."""
     from .cache import write_json, write_parquet
     from .runner import until_ranks
 
@@ -137,7 +184,10 @@ def cmd_rank(args: argparse.Namespace) -> int:
         *_, ranks = until_ranks(p, check=False)
         write_parquet(p.out / "ranks.parquet", ranks.df)
         write_json(p.out / "rank_report.json", ranks.counts)
-    print(f"{len(ranks.df)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: {ranks.counts}")
+    print(
+        f"{len(ranks.df)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: "
+        f"{ranks.counts}"
+    )
     return 0
 
 
@@ -159,18 +209,33 @@ def _print_change_table(console, rep, table: str, title: str) -> None:
         if m not in FUSION_METHODS and not shown_sep:
             t.add_section()
             shown_sep = True
-        t.add_row(METHOD_LABELS[m], *("NaN" if ap.loc[m, c] != ap.loc[m, c] else
-                                      f"{ap.loc[m, c]:.2f} [{lo.loc[m, c]:.2f}, {hi.loc[m, c]:.2f}]" if lo.loc[m, c] == lo.loc[m, c]
-                                      else f"{ap.loc[m, c]:.2f}" for c in ap.columns))
+        t.add_row(
+            METHOD_LABELS[m],
+            *(
+                "NaN"
+                if ap.loc[m, c] != ap.loc[m, c]
+                else f"{ap.loc[m, c]:.2f} [{lo.loc[m, c]:.2f}, {hi.loc[m, c]:.2f}]"
+                if lo.loc[m, c] == lo.loc[m, c]
+                else f"{ap.loc[m, c]:.2f}"
+                for c in ap.columns
+            ),
+        )
     t.add_section()
     ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
-    t.add_row("floor (random ranking)", *("NaN" if floor.loc[ref, c] != floor.loc[ref, c] else f"{floor.loc[ref, c]:.2f}" for c in ap.columns))
+    t.add_row(
+        "floor (random ranking)",
+        *(
+            "NaN" if floor.loc[ref, c] != floor.loc[ref, c] else f"{floor.loc[ref, c]:.2f}"
+            for c in ap.columns
+        ),
+    )
     console.print(t)
     for w in rep.warnings[table]:
         console.print(f"[bold yellow]{w}[/]")
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
+    """``harness reproduce``: the whole pipeline; prints Table I and where the reports are."""
     from rich.console import Console
     from rich.table import Table
 
@@ -180,14 +245,25 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     rep = rec["reports"]
     console = Console(width=max(Console().width, 140))
     loc = rep.localization
-    lt = Table(title=f"Localization quality (ground truth: place within {rec['config']['retrieval']['gt_radius_m']:g} m)")
+    lt = Table(
+        title="Localization quality (ground truth: place within "
+        f"{rec['config']['retrieval']['gt_radius_m']:g} m)"
+    )
     lt.add_column("props")
     lt.add_column("pair")
     for _, lab, _ in LOC_COLUMNS:
         lt.add_column(lab, justify="right")
     for r in loc[loc["season_pair"] == "all"].itertuples(index=False):
-        lt.add_row(r.proposals, r.season_pair, *(str(int(getattr(r, c))) if d == 0 else ("NaN" if getattr(r, c) != getattr(r, c) else f"{getattr(r, c):.{d}f}")
-                                                 for c, _, d in LOC_COLUMNS))
+        lt.add_row(
+            r.proposals,
+            r.season_pair,
+            *(
+                str(int(getattr(r, c)))
+                if d == 0
+                else ("NaN" if getattr(r, c) != getattr(r, c) else f"{getattr(r, c):.{d}f}")
+                for c, _, d in LOC_COLUMNS
+            ),
+        )
     console.print(lt)
     print("  per season pair: localization.md")
     name = rec["config"]["name"]
@@ -195,21 +271,40 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     _print_change_table(console, rep, "S", f"Table S: size-stratified AP by RoC-max ({name})")
     _print_change_table(console, rep, "P", f"Table P: pixel AP and image AP ({name})")
     summ = rep.summary
-    cmp_ = summ[(summ["table"] == "S") & (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()]
+    cmp_ = summ[
+        (summ["table"] == "S")
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] == "all")
+        & summ["diff"].notna()
+    ]
     if len(cmp_):
         last = cmp_[cmp_["roc_max"] == cmp_["roc_max"].max()]
-        print(f"Paired comparisons with rank fusion (Table S, RoC-max {last['roc_max'].iloc[0]:.2f}; all tables: comparisons.md):")
+        print(
+            "Paired comparisons with rank fusion (Table S, RoC-max "
+            f"{last['roc_max'].iloc[0]:.2f}; all tables: comparisons.md):"
+        )
         for r in last.itertuples():
-            print(f"  {r.method} - rank_fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}]"
-                  + (f", sign flips in {100 * r.sign_flip_share:.0f}% of resamples" if r.sign_flip_share == r.sign_flip_share else ""))
-    print(f"reports in {Path(args.out)}: localization.md, table1.md, tableS.md, tableP.md, comparisons.md (+ .csv, .tex), "
-          f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)")
+            print(
+                f"  {r.method} - rank_fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, "
+                f"{r.diff_ci_high:+.2f}]"
+                + (
+                    f", sign flips in {100 * r.sign_flip_share:.0f}% of resamples"
+                    if r.sign_flip_share == r.sign_flip_share
+                    else ""
+                )
+            )
+    print(
+        f"reports in {Path(args.out)}: localization.md, table1.md, tableS.md, tableP.md, "
+        "comparisons.md (+ .csv, .tex), "
+        f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)"
+    )
     if rec.get("report_html"):
         print(f"report: {rec['report_html']}")
     return 0
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    """``harness report``: (re)write ``report.html`` of an earlier run."""
     from .outdirs import claim_dir, run_lock
     from .report_html import write_html_report
 
@@ -226,6 +321,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_annotations(args: argparse.Namespace) -> int:
+    """``harness annotations``: export frames for labelling or import a labelled set."""
     from .annotations import export_for_labelling, import_annotations
 
     if args.action == "import":
@@ -234,7 +330,9 @@ def cmd_annotations(args: argparse.Namespace) -> int:
             from .ingest import load_frames
 
             frames = load_frames(Path(args.frames))
-        df = import_annotations(args.format, Path(args.src), frames, Path(args.out), force=args.force)
+        df = import_annotations(
+            args.format, Path(args.src), frames, Path(args.out), force=args.force
+        )
         print(f"{len(df)} annotation rows -> {args.out}")
         return 0
     import pandas as pd
@@ -247,12 +345,15 @@ def cmd_annotations(args: argparse.Namespace) -> int:
     if args.limit is not None and args.limit < 1:
         raise HarnessError(f"--limit {args.limit}: must be >= 1")
     check_replaceable(Path(args.out), "labelling-task", args.force)  # before reading anything
-    out = export_for_labelling(pairs, load_frames(Path(args.frames)), Path(args.out), args.limit, force=args.force)
+    out = export_for_labelling(
+        pairs, load_frames(Path(args.frames)), Path(args.out), args.limit, force=args.force
+    )
     print(f"labelling task written to {out} (task.json + images/)")
     return 0
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
+    """``harness inspect``: topics, image encodings and the tf tree of a log."""
     import json
 
     from rich.console import Console
@@ -271,15 +372,32 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         for c in ("session", "cameras (images)", "ground-truth rows"):
             t.add_column(c)
         for s in info["sessions"]:
-            t.add_row(s["session"], ", ".join(f"{k} ({v})" for k, v in s["cameras"].items()), str(s["ground_truth_rows"]))
+            t.add_row(
+                s["session"],
+                ", ".join(f"{k} ({v})" for k, v in s["cameras"].items()),
+                str(s["ground_truth_rows"]),
+            )
         console.print(t)
     else:
         t = Table(title="Topics")
-        for c, j in (("topic", "left"), ("type", "left"), ("messages", "right"), ("rate Hz", "right"), ("span s", "right"), ("first s", "right")):
+        for c, j in (
+            ("topic", "left"),
+            ("type", "left"),
+            ("messages", "right"),
+            ("rate Hz", "right"),
+            ("span s", "right"),
+            ("first s", "right"),
+        ):
             t.add_column(c, justify=j)  # type: ignore[arg-type]
         for r in info["topics"]:
-            t.add_row(r["topic"], r["type"], str(r["messages"]), f"{r['rate_hz']:.2f}", f"{r['span_s']:.2f}",
-                      "" if r["first_s"] is None else f"{r['first_s']:.3f}")
+            t.add_row(
+                r["topic"],
+                r["type"],
+                str(r["messages"]),
+                f"{r['rate_hz']:.2f}",
+                f"{r['span_s']:.2f}",
+                "" if r["first_s"] is None else f"{r['first_s']:.3f}",
+            )
         console.print(t)
         if info["images"]:
             t = Table(title="Images")
@@ -293,7 +411,13 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             for c in ("parent", "child", "kind", "transforms", "rate Hz"):
                 t.add_column(c)
             for e in info["tf"]:
-                t.add_row(e["parent"], e["child"], "static" if e["static"] else "dynamic", str(e["transforms"]), f"{e['rate_hz']:.2f}")
+                t.add_row(
+                    e["parent"],
+                    e["child"],
+                    "static" if e["static"] else "dynamic",
+                    str(e["transforms"]),
+                    f"{e['rate_hz']:.2f}",
+                )
             console.print(t)
     console.print("Config lines that would ingest it:", style="bold")
     print(info["suggested_config"])
@@ -301,18 +425,25 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_gc(args: argparse.Namespace) -> int:
+    """``harness gc``: remove (or list, ``--dry-run``) cache entries the last run did not use."""
     from .gc import collect_garbage
 
     res = collect_garbage(Path(args.out), dry_run=args.dry_run)
     verb = "would remove" if args.dry_run else "removed"
     for entry in res.removed:
         print(f"  {verb}: cache/{entry}")
-    print(f"{verb} {len(res.removed)} cache entries ({res.bytes_removed / 1e6:.1f} MB) that the last run did not use; kept {res.kept}")
+    print(
+        f"{verb} {len(res.removed)} cache entries ({res.bytes_removed / 1e6:.1f} MB) that "
+        f"the last run did not use; kept {res.kept}"
+    )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="harness", description="Detection-by-Localization benchmark harness")
+    """The ``harness`` argument parser: one subcommand per stage."""
+    ap = argparse.ArgumentParser(
+        prog="harness", description="Detection-by-Localization benchmark harness"
+    )
     ap.add_argument("-v", "--verbose", action="store_true")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
@@ -323,11 +454,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=120)
     p.add_argument("--height", type=int, default=160)
     p.add_argument("--objects", type=int, default=3, help="change objects per changed session")
-    p.add_argument("--loop-scale", type=float, default=1.5, help="size of the loop road (1.0: 60 m x 40 m)")
-    p.add_argument("--render-scale", type=int, default=1, help="ray-cast at 1/scale resolution, then upsample (fast large frames)")
-    p.add_argument("--formats", default=None, help="comma-separated log format per session (one name: all sessions), e.g. ros2")
-    p.add_argument("--all-formats", action="store_true", help="write every session in every log format")
-    p.add_argument("--force", action="store_true", help="replace --out if it is a fixture the harness generated")
+    p.add_argument(
+        "--loop-scale", type=float, default=1.5, help="size of the loop road (1.0: 60 m x 40 m)"
+    )
+    p.add_argument(
+        "--render-scale",
+        type=int,
+        default=1,
+        help="ray-cast at 1/scale resolution, then upsample (fast large frames)",
+    )
+    p.add_argument(
+        "--formats",
+        default=None,
+        help="comma-separated log format per session (one name: all sessions), e.g. ros2",
+    )
+    p.add_argument(
+        "--all-formats", action="store_true", help="write every session in every log format"
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out if it is a fixture the harness generated",
+    )
     p.set_defaults(func=cmd_fixture)
 
     p = sub.add_parser("ingest", help="turn a season log into frames.parquet")
@@ -340,47 +488,91 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-topic")
     p.add_argument("--pose-topic")
     p.add_argument("--tf-child-frame", help="older name of --camera-frame")
-    p.add_argument("--fixed-frame", help="/tf: the frame poses are expressed in (default: the tree's root)")
-    p.add_argument("--camera-frame", help="/tf: the camera's frame (default: the images' header.frame_id)")
-    p.add_argument("--max-tf-gap", type=float, default=1.0, help="seconds, for /tf transforms slower than --max-pose-gap")
+    p.add_argument(
+        "--fixed-frame", help="/tf: the frame poses are expressed in (default: the tree's root)"
+    )
+    p.add_argument(
+        "--camera-frame", help="/tf: the camera's frame (default: the images' header.frame_id)"
+    )
+    p.add_argument(
+        "--max-tf-gap",
+        type=float,
+        default=1.0,
+        help="seconds, for /tf transforms slower than --max-pose-gap",
+    )
     p.add_argument("--time-source", choices=["header", "log"], default="header")
     p.add_argument("--max-pose-gap", type=float, default=0.1, help="seconds")
-    p.add_argument("--salvage", action="store_true", help="keep the frames read before a damaged part of a log")
-    p.add_argument("--verify-images", action="store_true", help="decode every compressed image fully; drop and count broken ones")
-    p.add_argument("--force", action="store_true", help="replace --out if it is an earlier ingest output of the harness")
+    p.add_argument(
+        "--salvage", action="store_true", help="keep the frames read before a damaged part of a log"
+    )
+    p.add_argument(
+        "--verify-images",
+        action="store_true",
+        help="decode every compressed image fully; drop and count broken ones",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out if it is an earlier ingest output of the harness",
+    )
     p.set_defaults(func=cmd_ingest)
 
-    for name, func, hlp in (("pairs", cmd_pairs, "build cross-season pairs"), ("proposals", cmd_proposals, "compute object proposals"),
-                            ("rank", cmd_rank, "ranks of the ground-truth reference per query subimage"),
-                            ("reproduce", cmd_reproduce, "run the whole pipeline and write Table I")):
+    for name, func, hlp in (
+        ("pairs", cmd_pairs, "build cross-season pairs"),
+        ("proposals", cmd_proposals, "compute object proposals"),
+        ("rank", cmd_rank, "ranks of the ground-truth reference per query subimage"),
+        ("reproduce", cmd_reproduce, "run the whole pipeline and write Table I"),
+    ):
         p = sub.add_parser(name, help=hlp)
         p.add_argument("--config", required=True)
         p.add_argument("--out", required=True)
         p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
         p.add_argument("--seed", type=int)
-        p.add_argument("--executor", choices=["local", "ray"], default="local", help="where stage units run (ray: pip install 'dbl-harness[ray]')")
+        p.add_argument(
+            "--executor",
+            choices=["local", "ray"],
+            default="local",
+            help="where stage units run (ray: pip install 'dbl-harness[ray]')",
+        )
         p.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
         p.add_argument("--ray-cpus", type=int, help="workers of a local Ray cluster")
         if name in ("rank", "reproduce"):
-            p.add_argument("--import", dest="rank_import", help="ranked lists from an external localizer (see docs)")
+            p.add_argument(
+                "--import",
+                dest="rank_import",
+                help="ranked lists from an external localizer (see docs)",
+            )
         p.set_defaults(func=func)
 
     p = sub.add_parser("report", help="(re)write OUT/report.html for an existing run")
     p.add_argument("out", help="a run directory (the --out of harness reproduce)")
-    p.add_argument("--gallery", type=int, help="thumbnails per method and kind (default: the run's [report] gallery)")
+    p.add_argument(
+        "--gallery",
+        type=int,
+        help="thumbnails per method and kind (default: the run's [report] gallery)",
+    )
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("gc", help="remove the cache entries of OUT that its last run did not use")
     p.add_argument("out", help="a run directory (the --out of harness reproduce)")
-    p.add_argument("--dry-run", action="store_true", help="list what would be removed, and its size; remove nothing")
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="list what would be removed, and its size; remove nothing",
+    )
     p.set_defaults(func=cmd_gc)
 
-    p = sub.add_parser("inspect", help="what is in a log: topics, rates, images, the tf tree, and config lines to ingest it")
+    p = sub.add_parser(
+        "inspect",
+        help="what is in a log: topics, rates, images, the tf tree, and config lines to ingest it",
+    )
     p.add_argument("log", help="an NCLT root, a .bag, a ROS2 bag directory or an .mcap")
     p.add_argument("--json", action="store_true", help="print the description as JSON")
     p.set_defaults(func=cmd_inspect)
 
-    p = sub.add_parser("annotations", help="import annotations from labelling tools, or export a labelling task")
+    p = sub.add_parser(
+        "annotations", help="import annotations from labelling tools, or export a labelling task"
+    )
     asub = p.add_subparsers(dest="action", required=True)
     pi = asub.add_parser("import")
     pi.add_argument("format", choices=["coco", "voc", "cvat"])
@@ -394,12 +586,21 @@ def build_parser() -> argparse.ArgumentParser:
     pe.add_argument("--frames", required=True)
     pe.add_argument("--out", required=True)
     pe.add_argument("--limit", type=int)
-    pe.add_argument("--force", action="store_true", help="replace --out if it is a labelling task the harness wrote")
+    pe.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out if it is a labelling task the harness wrote",
+    )
     pe.set_defaults(func=cmd_annotations)
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; library errors become one ``ERROR:`` line.
+
+    Returns:
+        The exit status: 0, or 1 after an error.
+    """
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
     try:
@@ -414,7 +615,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ERROR: {where}: {err.strerror or err}; {_FS_ERRORS[err.errno]}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("ERROR: interrupted; completed stages are cached, rerun the same command to resume", file=sys.stderr)
+        print(
+            "ERROR: interrupted; completed stages are cached, rerun the same command to resume",
+            file=sys.stderr,
+        )
         return 130
 
 

@@ -29,7 +29,8 @@ FUSION_METHODS = (
     "score_max",
     "score_sum",
 )
-#: The paper's two variants and the three baselines (SPEC section 7), the separate block of every table.
+# : The paper's two variants and the three baselines (SPEC section 7), the separate block of every
+# table.
 EXTRA_METHODS = (
     "rank_fusion_asc",
     "rank_fusion_raw",
@@ -44,7 +45,10 @@ ALL_METHODS = FUSION_METHODS + EXTRA_METHODS
 
 @dataclass(frozen=True)
 class SessionConfig:
-    """One season log. ``source`` is an NCLT root, a ``.bag``, a ROS2 bag directory or an ``.mcap``."""
+    """One season log.
+
+    ``source`` is an NCLT root, a ``.bag``, a ROS2 bag directory or an ``.mcap``.
+    """
 
     name: str
     source: str
@@ -54,23 +58,33 @@ class SessionConfig:
     image_topic: str | None = None
     pose_topic: str | None = None
     tf_child_frame: str | None = None  # older name of camera_frame: the frame whose pose /tf gives
-    fixed_frame: str | None = None  # /tf: the frame poses are expressed in (default: the tree's root)
-    camera_frame: str | None = None  # /tf: the camera's frame (default: the images' header.frame_id)
+    # /tf: the frame poses are expressed in (default: the tree's root)
+    fixed_frame: str | None = None
+    # /tf: the camera's frame (default: the images' header.frame_id)
+    camera_frame: str | None = None
 
 
 @dataclass(frozen=True)
 class IngestConfig:
-    max_pose_gap_s: float = 0.1  # pose topics and fast /tf transforms: a sample at most this before and after an image
-    max_tf_gap_s: float = 1.0  # /tf transforms published more slowly than max_pose_gap_s (map -> odom at 1-10 Hz)
+    """``[ingest]``: how logs become frames (times in seconds)."""
+
+    # pose topics and fast /tf transforms: a sample at most this before and after an image
+    max_pose_gap_s: float = 0.1
+    # /tf transforms published more slowly than max_pose_gap_s (map -> odom at 1-10 Hz)
+    max_tf_gap_s: float = 1.0
     time_source: str = "header"  # header stamp of the image message, or "log" (bag receive time)
     nclt_rotation: str = "cw"  # how NCLT's stored images are turned upright: cw, ccw, none
     salvage: bool = False  # keep the messages read before a truncated or corrupt part
-    store_format: str = "tiff"  # lossless image store for raw images from logs: tiff (fast) or png (smaller)
-    verify_images: bool = False  # decode every compressed image in full at ingest; drop and count broken ones
+    # lossless image store for raw images from logs: tiff (fast) or png (smaller)
+    store_format: str = "tiff"
+    # decode every compressed image in full at ingest; drop and count broken ones
+    verify_images: bool = False
 
 
 @dataclass(frozen=True)
 class PairsConfig:
+    """``[pairs]``: cross-season pairing (SPEC section 4; degrees, metres)."""
+
     max_yaw_diff_deg: float = 45.0
     max_distance_m: float | None = 10.0
     stride_m: float = 0.0
@@ -79,6 +93,8 @@ class PairsConfig:
 
 @dataclass(frozen=True)
 class YoloConfig:
+    """``[proposals.yolo]``: the supervised proposer (a local TorchScript weights file)."""
+
     weights: str | None = None
     conf: float = 0.05
     iou: float = 0.7
@@ -90,6 +106,8 @@ class YoloConfig:
 
 @dataclass(frozen=True)
 class MserConfig:
+    """``[proposals.mser]``: MSER region proposals (areas as fractions of the image)."""
+
     max_boxes: int = 12
     min_area_frac: float = 0.01
     max_area_frac: float = 0.4
@@ -99,6 +117,8 @@ class MserConfig:
 
 @dataclass(frozen=True)
 class EdgesConfig:
+    """``[proposals.edges]``: edge-contour proposals (areas as fractions of the image)."""
+
     max_boxes: int = 12
     min_area_frac: float = 0.005
     max_area_frac: float = 0.4
@@ -109,6 +129,8 @@ class EdgesConfig:
 
 @dataclass(frozen=True)
 class ProposalsConfig:
+    """``[proposals]``: the proposal methods (SPEC section 5) and their sections."""
+
     methods: tuple[str, ...] = ("grid5", "edges")
     edges: EdgesConfig = field(default_factory=EdgesConfig)
     yolo: YoloConfig = field(default_factory=YoloConfig)
@@ -118,34 +140,46 @@ class ProposalsConfig:
 
 @dataclass(frozen=True)
 class DescriptorConfig:
+    """``[descriptor]``: the subimage descriptor, its training and encoding (SPEC section 6)."""
+
     name: str = "autoencoder"
     input_size: int = 256
     channels: tuple[int, int, int] = (32, 32, 16)
     input_norm: str = "none"  # "none" (the paper) or "per_crop": standardise each crop's channels
     epochs: int = 4
     batch_size: int = 32  # training batch
-    encode_batch: int = 0  # subimages per encoder call; 0: 2 on CPU (keeps activations in cache), batch_size on GPU
+    # subimages per encoder call; 0: 2 on CPU (keeps activations in cache), batch_size on GPU
+    encode_batch: int = 0
     lr: float = 1e-3
     max_train_subimages: int = 4000
-    train_samples: int = 0  # > 0: train on this many sample-steps (not epochs) with early stopping on held-out crops
-    holdout: float = 0.1  # share of the training crops held out for early stopping (train_samples > 0)
+    # > 0: train on this many sample-steps (not epochs) with early stopping on held-out crops
+    train_samples: int = 0
+    # share of the training crops held out for early stopping (train_samples > 0)
+    holdout: float = 0.1
     eval_every: int = 50  # steps between held-out evaluations
     patience: int = 4  # evaluations without improvement before training stops
     dtype: str = "float16"
     device: str = "auto"
     seed: int = 0
     num_workers: int = 0
-    shard_frames: int = 256  # frames per cached descriptor shard (the unit an interrupted run resumes at)
+    # frames per cached descriptor shard (the unit an interrupted run resumes at)
+    shard_frames: int = 256
 
 
 @dataclass(frozen=True)
 class RetrievalConfig:
+    """``[retrieval]``: the rank engine, the ground-truth place and the database (metres)."""
+
     engine: str = "exact"  # exact or faiss
-    gt_radius_m: float = 2.0  # ground-truth place: reference frames within this radius of G (SPEC 6); 0: G alone
-    db_stride_m: float = 0.0  # reference database by place: one frame per this many metres of trajectory; 0: every frame
+    # ground-truth place: reference frames within this radius of G (SPEC 6); 0: G alone
+    gt_radius_m: float = 2.0
+    # reference database by place: one frame per this many metres of trajectory; 0: every frame
+    db_stride_m: float = 0.0
     chunk_rows: int = 8192
     query_batch: int = 1024
-    memory_mb: float = 1024.0  # exact engine: budget (MiB) of the (queries x frames) matrices per database pass; bounds memory whatever the data size
+    # exact engine: budget (MiB) of the (queries x frames) matrices per database pass; bounds memory
+    # whatever the data size
+    memory_mb: float = 1024.0
     faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
     faiss_nprobe: int = 8
     query_frames_per_shard: int = 512  # pairs per ranking unit (the unit mapped over executors)
@@ -154,33 +188,54 @@ class RetrievalConfig:
 
 @dataclass(frozen=True)
 class ProjectionConfig:
-    """Compact descriptors (docs/method.md): PCA or PCA-whitening to ``dim``, fitted on the reference sessions."""
+    """Compact descriptors (docs/method.md).
 
-    dim: int = 0  # 0: off, rank with the full descriptor (SPEC 6); > 0: project to this many dimensions
+    PCA or PCA-whitening to ``dim``, fitted on the reference sessions.
+    """
+
+    # 0: off, rank with the full descriptor (SPEC 6); > 0: project to this many dimensions
+    dim: int = 0
     whiten: bool = False  # divide each component by its standard deviation before re-normalising
-    fit_samples: int = 8192  # reference subimages (a seeded sample) encoded to fit the directions; memory fit_samples x D x 4 bytes
+    # reference subimages (a seeded sample) encoded to fit the directions; memory fit_samples x D x
+    # 4 bytes
+    fit_samples: int = 8192
     seed: int = 0
 
 
 @dataclass(frozen=True)
 class FusionConfig:
-    methods: tuple[str, ...] = ALL_METHODS  # computed and reported; SPEC order is kept whatever the order here
+    """``[fusion]``: the methods of SPEC section 7 that are computed and reported."""
+
+    # computed and reported; SPEC order is kept whatever the order here
+    methods: tuple[str, ...] = ALL_METHODS
     seed: int = 0
     max_fused_boxes: int = 4096
 
 
 @dataclass(frozen=True)
 class SplitsConfig:
+    """``[splits]``: RoC/SoB ranges of the difficulty splits and Table S strata (SPEC 8)."""
+
     roc_max: tuple[float, ...] = (0.01, 0.02, 0.03, 0.04, 0.05)
     pos_roc: tuple[float, float] = (0.9, 1.0)
     pos_sob: tuple[float, float] = (0.0, 0.4)
     neg_roc_min: float = 0.0
     neg_sob: tuple[float, float] = (0.4, 1.0)
-    sob_strata: tuple[float, ...] = (0.0, 0.02, 0.05, 0.1, 0.2, 0.4, 1.0)  # Table S: SoB strata edges, [lo, hi), the last closed
+    sob_strata: tuple[float, ...] = (
+        0.0,
+        0.02,
+        0.05,
+        0.1,
+        0.2,
+        0.4,
+        1.0,
+    )  # Table S: SoB strata edges, [lo, hi), the last closed
 
 
 @dataclass(frozen=True)
 class ReportConfig:
+    """``[report]``: bootstrap, plots, ``report.html`` and its gallery."""
+
     bootstrap: int = 1000
     ci: float = 0.95
     locmap_examples: int = 4
@@ -206,6 +261,8 @@ class FixtureConfig:
 
 @dataclass(frozen=True)
 class Config:
+    """A whole run's configuration, as loaded from TOML and checked (:func:`load_config`)."""
+
     name: str
     data_root: Path
     annotations: Path
@@ -223,6 +280,7 @@ class Config:
     fixture: FixtureConfig = field(default_factory=FixtureConfig)
 
     def seasons(self) -> dict[str, str]:
+        """Session name -> season code (``WI``, ``SP``, ``SU``, ``AU``)."""
         from .records import season_of
 
         return {s.name: s.season or season_of(s.name) for s in self.sessions}
@@ -255,8 +313,12 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
-            raise ConfigError(f"{where}: expected a list of {len(args)} values, got {list(value)!r}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
+            raise ConfigError(
+                f"{where}: expected a list of {len(args)} values, got {list(value)!r}"
+            )
+        return tuple(
+            _coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
+        )
     if hint is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{where}: expected true or false, got {value!r}")
@@ -327,8 +389,13 @@ def project_root(start: Path) -> Path:
     return start
 
 
-def parse_config(doc: dict[str, Any], base: Path, where: str, data_root: str | None = None) -> Config:
-    """Build a :class:`Config` from a parsed TOML document; relative paths resolve against ``base``."""
+def parse_config(
+    doc: dict[str, Any], base: Path, where: str, data_root: str | None = None
+) -> Config:
+    """Build a :class:`Config` from a parsed TOML document.
+
+    Relative paths resolve against ``base``.
+    """
     top_keys = {"name", "data_root", "annotations", "sessions", "seed", *_SECTIONS}
     unknown = sorted(set(doc) - top_keys)
     if unknown:
@@ -373,11 +440,16 @@ def _check(ok: bool, where: str, key: str, value: Any, allowed: str) -> None:
         raise ConfigError(f"{where}: {key} = {value!r} is out of range; allowed: {allowed}")
 
 
-def _range(where: str, key: str, pair: tuple[float, float], lo: float = 0.0, hi: float = 1.0) -> None:
-    _check(lo <= pair[0] <= pair[1] <= hi, where, key, list(pair), f"[low, high] with {lo} <= low <= high <= {hi}")
-
-
-PROPOSAL_METHODS = ("grid5", "edges", "mser", "yolo", "file")
+def _range(
+    where: str, key: str, pair: tuple[float, float], lo: float = 0.0, hi: float = 1.0
+) -> None:
+    _check(
+        lo <= pair[0] <= pair[1] <= hi,
+        where,
+        key,
+        list(pair),
+        f"[low, high] with {lo} <= low <= high <= {hi}",
+    )
 
 
 def validate(cfg: Config, where: str) -> None:
@@ -387,24 +459,101 @@ def validate(cfg: Config, where: str) -> None:
         ConfigError: naming the key, the value and the allowed range.
     """
     c = _check
-    fu, pa, ig, de, re_, sp, rp, fx, pr = (cfg.fusion, cfg.pairs, cfg.ingest, cfg.descriptor, cfg.retrieval, cfg.splits,
-                                           cfg.report, cfg.fixture, cfg.proposals)
-    bad = [m for m in fu.methods if m not in ALL_METHODS]
-    c(not bad and len(fu.methods) > 0, where, "[fusion] methods", list(fu.methods), f"a non-empty list of {list(ALL_METHODS)}")
-    c(len(set(fu.methods)) == len(fu.methods), where, "[fusion] methods", list(fu.methods), "each method once")
+    fu, pa, ig, de, re_, sp, rp, fx, pr = (
+        cfg.fusion,
+        cfg.pairs,
+        cfg.ingest,
+        cfg.descriptor,
+        cfg.retrieval,
+        cfg.splits,
+        cfg.report,
+        cfg.fixture,
+        cfg.proposals,
+    )
+    from .fusion import known_methods as fusion_methods  # SPEC section 7's and registered ones
+
+    bad = [m for m in fu.methods if m not in fusion_methods()]
+    c(
+        not bad and len(fu.methods) > 0,
+        where,
+        "[fusion] methods",
+        list(fu.methods),
+        f"a non-empty list of {list(fusion_methods())}",
+    )
+    c(
+        len(set(fu.methods)) == len(fu.methods),
+        where,
+        "[fusion] methods",
+        list(fu.methods),
+        "each method once",
+    )
     c(fu.max_fused_boxes >= 1, where, "[fusion] max_fused_boxes", fu.max_fused_boxes, ">= 1")
-    c(0 < pa.max_yaw_diff_deg <= 180, where, "[pairs] max_yaw_diff_deg", pa.max_yaw_diff_deg, "(0, 180]")
-    c(pa.max_distance_m is None or pa.max_distance_m > 0, where, "[pairs] max_distance_m", pa.max_distance_m, "> 0 metres")
+    c(
+        0 < pa.max_yaw_diff_deg <= 180,
+        where,
+        "[pairs] max_yaw_diff_deg",
+        pa.max_yaw_diff_deg,
+        "(0, 180]",
+    )
+    c(
+        pa.max_distance_m is None or pa.max_distance_m > 0,
+        where,
+        "[pairs] max_distance_m",
+        pa.max_distance_m,
+        "> 0 metres",
+    )
     c(pa.stride_m >= 0, where, "[pairs] stride_m", pa.stride_m, ">= 0 metres")
-    c(pa.queries in ("annotated", "all"), where, "[pairs] queries", pa.queries, "'annotated' or 'all'")
+    c(
+        pa.queries in ("annotated", "all"),
+        where,
+        "[pairs] queries",
+        pa.queries,
+        "'annotated' or 'all'",
+    )
     c(ig.max_pose_gap_s > 0, where, "[ingest] max_pose_gap_s", ig.max_pose_gap_s, "> 0 seconds")
     c(ig.max_tf_gap_s > 0, where, "[ingest] max_tf_gap_s", ig.max_tf_gap_s, "> 0 seconds")
-    c(ig.time_source in ("header", "log"), where, "[ingest] time_source", ig.time_source, "'header' or 'log'")
-    c(ig.store_format in ("tiff", "png"), where, "[ingest] store_format", ig.store_format, "'tiff' or 'png'")
-    c(ig.nclt_rotation in ("cw", "ccw", "none"), where, "[ingest] nclt_rotation", ig.nclt_rotation, "cw, ccw or none")
-    c(re_.engine in ("exact", "faiss"), where, "[retrieval] engine", re_.engine, "'exact' or 'faiss'")
-    c(re_.db_stride_m >= 0, where, "[retrieval] db_stride_m", re_.db_stride_m, ">= 0 metres (0: every reference frame)")
-    c(re_.gt_radius_m >= 0, where, "[retrieval] gt_radius_m", re_.gt_radius_m, ">= 0 metres (0: the ground-truth frame alone)")
+    c(
+        ig.time_source in ("header", "log"),
+        where,
+        "[ingest] time_source",
+        ig.time_source,
+        "'header' or 'log'",
+    )
+    c(
+        ig.store_format in ("tiff", "png"),
+        where,
+        "[ingest] store_format",
+        ig.store_format,
+        "'tiff' or 'png'",
+    )
+    c(
+        ig.nclt_rotation in ("cw", "ccw", "none"),
+        where,
+        "[ingest] nclt_rotation",
+        ig.nclt_rotation,
+        "cw, ccw or none",
+    )
+    c(
+        re_.engine in ("exact", "faiss"),
+        where,
+        "[retrieval] engine",
+        re_.engine,
+        "'exact' or 'faiss'",
+    )
+    c(
+        re_.db_stride_m >= 0,
+        where,
+        "[retrieval] db_stride_m",
+        re_.db_stride_m,
+        ">= 0 metres (0: every reference frame)",
+    )
+    c(
+        re_.gt_radius_m >= 0,
+        where,
+        "[retrieval] gt_radius_m",
+        re_.gt_radius_m,
+        ">= 0 metres (0: the ground-truth frame alone)",
+    )
     for key in ("chunk_rows", "query_batch", "faiss_nprobe", "query_frames_per_shard"):
         c(getattr(re_, key) >= 1, where, f"[retrieval] {key}", getattr(re_, key), ">= 1")
     c(re_.memory_mb > 0, where, "[retrieval] memory_mb", re_.memory_mb, "> 0 MiB")
@@ -412,51 +561,177 @@ def validate(cfg: Config, where: str) -> None:
         c(getattr(re_, key) >= 0, where, f"[retrieval] {key}", getattr(re_, key), ">= 0")
     pj = cfg.projection
     c(pj.dim >= 0, where, "[projection] dim", pj.dim, ">= 0 (0: the full descriptor)")
-    c(pj.fit_samples >= max(pj.dim, 1), where, "[projection] fit_samples", pj.fit_samples, f">= dim ({pj.dim}) and >= 1")
-    c(de.input_norm in ("none", "per_crop"), where, "[descriptor] input_norm", de.input_norm, "'none' or 'per_crop'")
-    c(de.dtype in ("float16", "float32"), where, "[descriptor] dtype", de.dtype, "float16 or float32")
-    c(de.device in ("auto", "cpu", "cuda") or de.device.startswith("cuda:"), where, "[descriptor] device", de.device, "auto, cpu, cuda or cuda:N")
-    c(de.train_samples >= 0, where, "[descriptor] train_samples", de.train_samples, ">= 0 (0: train for epochs)")
+    c(
+        pj.fit_samples >= max(pj.dim, 1),
+        where,
+        "[projection] fit_samples",
+        pj.fit_samples,
+        f">= dim ({pj.dim}) and >= 1",
+    )
+    c(
+        de.input_norm in ("none", "per_crop"),
+        where,
+        "[descriptor] input_norm",
+        de.input_norm,
+        "'none' or 'per_crop'",
+    )
+    c(
+        de.dtype in ("float16", "float32"),
+        where,
+        "[descriptor] dtype",
+        de.dtype,
+        "float16 or float32",
+    )
+    c(
+        de.device in ("auto", "cpu", "cuda") or de.device.startswith("cuda:"),
+        where,
+        "[descriptor] device",
+        de.device,
+        "auto, cpu, cuda or cuda:N",
+    )
+    c(
+        de.train_samples >= 0,
+        where,
+        "[descriptor] train_samples",
+        de.train_samples,
+        ">= 0 (0: train for epochs)",
+    )
     c(0 <= de.holdout < 1, where, "[descriptor] holdout", de.holdout, "[0, 1)")
-    c(de.eval_every >= 1 and de.patience >= 1, where, "[descriptor] eval_every, patience", (de.eval_every, de.patience), ">= 1 each")
-    c(de.encode_batch >= 0, where, "[descriptor] encode_batch", de.encode_batch, ">= 0 (0: automatic)")
+    c(
+        de.eval_every >= 1 and de.patience >= 1,
+        where,
+        "[descriptor] eval_every, patience",
+        (de.eval_every, de.patience),
+        ">= 1 each",
+    )
+    c(
+        de.encode_batch >= 0,
+        where,
+        "[descriptor] encode_batch",
+        de.encode_batch,
+        ">= 0 (0: automatic)",
+    )
     for key in ("epochs", "batch_size", "max_train_subimages", "shard_frames"):
         c(getattr(de, key) >= 1, where, f"[descriptor] {key}", getattr(de, key), ">= 1")
     c(de.num_workers >= 0, where, "[descriptor] num_workers", de.num_workers, ">= 0")
-    c(de.input_size >= 8 and de.input_size % 8 == 0, where, "[descriptor] input_size", de.input_size, "a multiple of 8, >= 8 pixels")
+    c(
+        de.input_size >= 8 and de.input_size % 8 == 0,
+        where,
+        "[descriptor] input_size",
+        de.input_size,
+        "a multiple of 8, >= 8 pixels",
+    )
     c(de.lr > 0, where, "[descriptor] lr", de.lr, "> 0")
-    c(all(ch >= 1 for ch in de.channels), where, "[descriptor] channels", list(de.channels), "three integers >= 1")
-    badp = [m for m in pr.methods if m not in PROPOSAL_METHODS]
-    c(not badp and len(pr.methods) > 0, where, "[proposals] methods", list(pr.methods), f"a non-empty list of {list(PROPOSAL_METHODS)}")
-    c("file" not in pr.methods or bool(pr.file), where, "[proposals] file", pr.file, "a path to a box table (the method 'file' is listed)")
-    c("yolo" not in pr.methods or bool(pr.yolo.weights), where, "[proposals.yolo] weights", pr.yolo.weights,
-      "a local weights path (the method 'yolo' is listed)")
+    c(
+        all(ch >= 1 for ch in de.channels),
+        where,
+        "[descriptor] channels",
+        list(de.channels),
+        "three integers >= 1",
+    )
+    from .proposals import known_methods  # the registry (built-ins and registered methods)
+
+    badp = [m for m in pr.methods if m not in known_methods()]
+    c(
+        not badp and len(pr.methods) > 0,
+        where,
+        "[proposals] methods",
+        list(pr.methods),
+        f"a non-empty list of {list(known_methods())}",
+    )
+    c(
+        "file" not in pr.methods or bool(pr.file),
+        where,
+        "[proposals] file",
+        pr.file,
+        "a path to a box table (the method 'file' is listed)",
+    )
+    c(
+        "yolo" not in pr.methods or bool(pr.yolo.weights),
+        where,
+        "[proposals.yolo] weights",
+        pr.yolo.weights,
+        "a local weights path (the method 'yolo' is listed)",
+    )
     c(0 <= pr.yolo.conf <= 1, where, "[proposals.yolo] conf", pr.yolo.conf, "[0, 1]")
     for sub_name in ("edges", "mser"):
         sub = getattr(pr, sub_name)
         c(sub.max_boxes >= 1, where, f"[proposals.{sub_name}] max_boxes", sub.max_boxes, ">= 1")
-        _range(where, f"[proposals.{sub_name}] min_area_frac..max_area_frac", (sub.min_area_frac, sub.max_area_frac))
-    c(len(sp.roc_max) > 0, where, "[splits] roc_max", list(sp.roc_max), "a non-empty list of values in [0, 1]")
-    c(all(0 <= r <= 1 for r in sp.roc_max), where, "[splits] roc_max", list(sp.roc_max), "values in [0, 1]")
-    c(len(set(sp.roc_max)) == len(sp.roc_max), where, "[splits] roc_max", list(sp.roc_max), "distinct values")
+        _range(
+            where,
+            f"[proposals.{sub_name}] min_area_frac..max_area_frac",
+            (sub.min_area_frac, sub.max_area_frac),
+        )
+    c(
+        len(sp.roc_max) > 0,
+        where,
+        "[splits] roc_max",
+        list(sp.roc_max),
+        "a non-empty list of values in [0, 1]",
+    )
+    c(
+        all(0 <= r <= 1 for r in sp.roc_max),
+        where,
+        "[splits] roc_max",
+        list(sp.roc_max),
+        "values in [0, 1]",
+    )
+    c(
+        len(set(sp.roc_max)) == len(sp.roc_max),
+        where,
+        "[splits] roc_max",
+        list(sp.roc_max),
+        "distinct values",
+    )
     _range(where, "[splits] pos_roc", sp.pos_roc)
     _range(where, "[splits] pos_sob", sp.pos_sob)
     _range(where, "[splits] neg_sob", sp.neg_sob)
-    c(0 <= sp.neg_roc_min <= min(sp.roc_max), where, "[splits] neg_roc_min", sp.neg_roc_min, f"[0, min(roc_max) = {min(sp.roc_max)}]")
+    c(
+        0 <= sp.neg_roc_min <= min(sp.roc_max),
+        where,
+        "[splits] neg_roc_min",
+        sp.neg_roc_min,
+        f"[0, min(roc_max) = {min(sp.roc_max)}]",
+    )
     st_ = sp.sob_strata
-    c(len(st_) >= 2 and all(a < b for a, b in itertools.pairwise(st_)) and st_[0] >= 0 and st_[-1] <= 1, where,
-      "[splits] sob_strata", list(st_), "at least two increasing edges in [0, 1]")
-    c(rp.bootstrap >= 0, where, "[report] bootstrap", rp.bootstrap, ">= 0 resamples (0: no intervals)")
+    c(
+        len(st_) >= 2
+        and all(a < b for a, b in itertools.pairwise(st_))
+        and st_[0] >= 0
+        and st_[-1] <= 1,
+        where,
+        "[splits] sob_strata",
+        list(st_),
+        "at least two increasing edges in [0, 1]",
+    )
+    c(
+        rp.bootstrap >= 0,
+        where,
+        "[report] bootstrap",
+        rp.bootstrap,
+        ">= 0 resamples (0: no intervals)",
+    )
     c(0 < rp.ci < 1, where, "[report] ci", rp.ci, "(0, 1), e.g. 0.95")
     c(rp.gallery >= 0, where, "[report] gallery", rp.gallery, ">= 0 thumbnails per method and kind")
     c(rp.locmap_examples >= 0, where, "[report] locmap_examples", rp.locmap_examples, ">= 0")
     c(fx.render_scale >= 1, where, "[fixture] render_scale", fx.render_scale, ">= 1")
     c(fx.frames >= 1, where, "[fixture] frames", fx.frames, ">= 1")
-    c(fx.width >= 8 and fx.height >= 8, where, "[fixture] width x height", (fx.width, fx.height), ">= 8 pixels each")
+    c(
+        fx.width >= 8 and fx.height >= 8,
+        where,
+        "[fixture] width x height",
+        (fx.width, fx.height),
+        ">= 8 pixels each",
+    )
     c(fx.objects >= 0, where, "[fixture] objects", fx.objects, ">= 0")
     c(fx.loop_scale > 0, where, "[fixture] loop_scale", fx.loop_scale, "> 0")
-    c(not fx.formats or len(fx.formats) in (1, len(cfg.sessions)), where, "[fixture] formats", list(fx.formats),
-      f"one format, or one per session ({len(cfg.sessions)})")
+    c(
+        not fx.formats or len(fx.formats) in (1, len(cfg.sessions)),
+        where,
+        "[fixture] formats",
+        list(fx.formats),
+        f"one format, or one per session ({len(cfg.sessions)})",
+    )
 
 
 def load_config(path: Path, data_root: str | None = None) -> Config:

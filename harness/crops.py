@@ -31,7 +31,9 @@ def crop_resize(rgb: np.ndarray, boxes: np.ndarray, size: int) -> np.ndarray:
         a, b = int(np.clip(np.floor(x1), 0, w - 1)), int(np.clip(np.floor(y1), 0, h - 1))
         c, d = int(np.clip(np.ceil(x2), a + 1, w)), int(np.clip(np.ceil(y2), b + 1, h))
         patch = rgb[b:d, a:c]
-        interp = cv2.INTER_AREA if (patch.shape[0] > size or patch.shape[1] > size) else cv2.INTER_LINEAR
+        interp = (
+            cv2.INTER_AREA if (patch.shape[0] > size or patch.shape[1] > size) else cv2.INTER_LINEAR
+        )
         out[i] = cv2.resize(patch, (size, size), interpolation=interp)
     return out
 
@@ -54,7 +56,11 @@ def _collate(items: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np
 
 
 def iter_crops(
-    boxes: pd.DataFrame, images: pd.Series, size: int, frames_per_batch: int = 8, num_workers: int = 0
+    boxes: pd.DataFrame,
+    images: pd.Series,
+    size: int,
+    frames_per_batch: int = 8,
+    num_workers: int = 0,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Yield ``(row positions, crops uint8 (b, size, size, 3))`` for the rows of ``boxes``.
 
@@ -62,14 +68,25 @@ def iter_crops(
         boxes: rows with ``x1, y1, x2, y2`` and a frame key; rows of one frame must be contiguous.
         images: image URI per row of ``boxes`` (aligned).
         size: output side in pixels.
+        frames_per_batch: frames decoded per batch (rows of one frame are never split).
+        num_workers: DataLoader processes decoding and cropping (0: in this process).
     """
     uris = images.to_numpy()
     b = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-    starts = np.concatenate([[0], np.nonzero(uris[1:] != uris[:-1])[0] + 1, [len(uris)]]) if len(uris) else np.zeros(1, int)
+    starts = (
+        np.concatenate([[0], np.nonzero(uris[1:] != uris[:-1])[0] + 1, [len(uris)]])
+        if len(uris)
+        else np.zeros(1, int)
+    )
     groups = [(str(uris[s]), np.arange(s, e), b[s:e]) for s, e in itertools.pairwise(starts)]
     loader = DataLoader(
-        _FrameCrops(groups, size), batch_size=frames_per_batch, shuffle=False, num_workers=num_workers,
-        collate_fn=_collate, persistent_workers=False, prefetch_factor=2 if num_workers else None,
+        _FrameCrops(groups, size),
+        batch_size=frames_per_batch,
+        shuffle=False,
+        num_workers=num_workers,
+        collate_fn=_collate,
+        persistent_workers=False,
+        prefetch_factor=2 if num_workers else None,
         generator=torch.Generator().manual_seed(0),
     )
     yield from loader

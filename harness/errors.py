@@ -1,4 +1,7 @@
-"""Error classes. Library code raises these; the CLI maps them to exit code 1 with one clear line."""
+"""Error classes.
+
+Library code raises these; the CLI maps them to exit code 1 with one clear line.
+"""
 
 from __future__ import annotations
 
@@ -18,18 +21,22 @@ class IngestError(HarnessError):
 class CorruptLogError(IngestError):
     """A log is truncated or damaged part-way; ``messages_read`` were readable before the damage."""
 
-    def __init__(self, path: object, messages_read: int, detail: str, salvage: bool = False) -> None:
+    def __init__(
+        self, path: object, messages_read: int, detail: str, salvage: bool = False
+    ) -> None:
         self.path = path
         self.messages_read = messages_read
         self.detail = detail
         advice = (
             "--salvage was given, but nothing before the damage could be kept"
             if salvage and messages_read == 0
-            else "--salvage was given" if salvage
+            else "--salvage was given"
+            if salvage
             else "Rerun with --salvage to keep the frames read before the damage."
         )
         super().__init__(
-            f"{path}: log is truncated or corrupt ({detail}); {messages_read} messages were read before the damage. {advice}"
+            f"{path}: log is truncated or corrupt ({detail}); {messages_read} messages were "
+            f"read before the damage. {advice}"
         )
 
 

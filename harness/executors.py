@@ -28,22 +28,36 @@ log = logging.getLogger(__name__)
 Unit = tuple[tuple[Any, ...], Callable[[Path], dict | None]]
 
 
-def run_unit(root: str, name: str, parts: tuple, build: Callable[[Path], dict | None]) -> tuple[str, bool]:
+def run_unit(
+    root: str, name: str, parts: tuple, build: Callable[[Path], dict | None]
+) -> tuple[str, bool]:
     """Run one cached unit (in whatever process the executor chose); returns (directory, ran)."""
     path, ran = StageCache(Path(root)).run(name, parts, build)
     return str(path), ran
 
 
 class LocalExecutor:
+    """Builds units one after another in this process."""
+
     name = "local"
 
     def describe(self) -> dict[str, Any]:
         """What ran the units, for ``run.json``."""
         return {"name": "local", "workers": 1}
 
-    def map_units(self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False) -> list[tuple[Path, bool]]:
+    def map_units(
+        self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False
+    ) -> list[tuple[Path, bool]]:
+        """Build every unit not yet in ``cache`` (in order).
+
+        Returns:
+            (entry path, whether it was built now) per unit.
+        """
         del gpu
-        return [(Path(p), ran) for p, ran in (run_unit(str(cache.root), name, parts, build) for parts, build in units)]
+        return [
+            (Path(p), ran)
+            for p, ran in (run_unit(str(cache.root), name, parts, build) for parts, build in units)
+        ]
 
 
 @dataclass
@@ -52,7 +66,8 @@ class RayExecutor:
 
     Args:
         address: ``None`` starts a local cluster (``num_cpus`` workers); ``"auto"`` or
-            ``"ray://host:10001"`` joins an existing one (every node must see the output and data paths).
+            ``"ray://host:10001"`` joins an existing one (every node must see the output and data
+            paths).
         num_cpus: workers of a local cluster.
         max_retries: retries of a unit whose worker process dies.
         fault_once: test hook: the first unit to start creates this file and kills its own worker
@@ -85,9 +100,21 @@ class RayExecutor:
         import ray
 
         res = ray.cluster_resources()
-        return {"name": "ray", "address": self.address or "local", "workers": int(res.get("CPU", 0)), "gpus": int(res.get("GPU", 0))}
+        return {
+            "name": "ray",
+            "address": self.address or "local",
+            "workers": int(res.get("CPU", 0)),
+            "gpus": int(res.get("GPU", 0)),
+        }
 
-    def map_units(self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False) -> list[tuple[Path, bool]]:
+    def map_units(
+        self, cache: StageCache, name: str, units: list[Unit], gpu: bool = False
+    ) -> list[tuple[Path, bool]]:
+        """Build the missing units as Ray tasks (a GPU each when ``gpu`` and the cluster has one).
+
+        Returns:
+            (entry path, whether it was built now) per unit, in the units' order.
+        """
         import ray
 
         out: list[tuple[Path, bool] | None] = [None] * len(units)
@@ -98,14 +125,21 @@ class RayExecutor:
                 out[i] = (cache.path(name, key), False)
             else:
                 todo.append(i)
-        task = ray.remote(_ray_unit).options(max_retries=self.max_retries, num_gpus=1 if (gpu and self._gpus) else 0)
-        refs = [task.remote(str(cache.root), name, units[i][0], units[i][1], self.fault_once) for i in todo]
+        task = ray.remote(_ray_unit).options(
+            max_retries=self.max_retries, num_gpus=1 if (gpu and self._gpus) else 0
+        )
+        refs = [
+            task.remote(str(cache.root), name, units[i][0], units[i][1], self.fault_once)
+            for i in todo
+        ]
         for i, (p, ran) in zip(todo, ray.get(refs), strict=True):
             out[i] = (Path(p), ran)
         return out  # type: ignore[return-value]
 
 
-def _ray_unit(root: str, name: str, parts: tuple, build: Callable[[Path], dict | None], fault_once: str | None) -> tuple[str, bool]:
+def _ray_unit(
+    root: str, name: str, parts: tuple, build: Callable[[Path], dict | None], fault_once: str | None
+) -> tuple[str, bool]:
     if fault_once and not os.path.exists(fault_once):
 
         def dying(tmp: Path) -> dict | None:
@@ -117,7 +151,14 @@ def _ray_unit(root: str, name: str, parts: tuple, build: Callable[[Path], dict |
     return run_unit(root, name, parts, build)
 
 
-def make_executor(kind: str, address: str | None = None, num_cpus: int | None = None) -> LocalExecutor | RayExecutor:
+def make_executor(
+    kind: str, address: str | None = None, num_cpus: int | None = None
+) -> LocalExecutor | RayExecutor:
+    """The executor ``--executor`` names (``local`` or ``ray``).
+
+    Raises:
+        ConfigError: An unknown kind.
+    """
     if kind == "local":
         return LocalExecutor()
     if kind == "ray":

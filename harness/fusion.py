@@ -1,5 +1,7 @@
-"""Fusion of subimage ranks into sample LoC values (SPEC section 7), the per-image sample table,
-and pixel-wise LoC maps."""
+"""Fusion of subimage ranks into sample LoC values (SPEC section 7).
+
+Also the per-image sample table and pixel-wise LoC maps.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from .annotations import change_boxes
-from .cache import stable_hash, write_parquet
+from .cache import source_fingerprints, stable_hash, write_parquet
 from .config import ALL_METHODS, FusionConfig
 from .progress import progress
 from .splits import roc_sob
@@ -22,8 +24,43 @@ FUSED_METHODS = tuple(m for m in ALL_METHODS if m != "rank_no_fusion")
 #: Baselines computed from the image rather than the ranks.
 IMAGE_BASELINES = ("size_prior", "random")
 
+#: A fused-set method's LoC from the cover matrix: (cover (m, n) bool, r (n,) = rank / L,
+#: d (n,) L2 distances, L (n,) list lengths) -> (m,) LoC, higher = more likely changed.
+CoverLoc = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+#: Fused-set methods registered beside SPEC section 7's (:func:`register_method`).
+REGISTERED: dict[str, CoverLoc] = {}
 
-def intersection_closure(boxes: np.ndarray, max_boxes: int | None = None) -> tuple[np.ndarray, bool]:
+
+def register_method(name: str, loc: CoverLoc, label: str) -> None:
+    """Add a fused-set fusion method, computed and reported when ``[fusion] methods`` lists it.
+
+    It is reported after SPEC section 7's methods under ``label``; its source is part of the
+    samples' cache key, so editing it recomputes them.
+
+    Raises:
+        ValueError: ``name`` is taken.
+    """
+    from .reports import METHOD_LABELS  # reports build on fusion; the labels live there
+
+    if name in known_methods():
+        raise ValueError(f"fusion method {name!r} exists; known: {list(known_methods())}")
+    REGISTERED[name] = loc
+    METHOD_LABELS[name] = label
+
+
+def known_methods() -> tuple[str, ...]:
+    """Every method ``[fusion] methods`` may list: SPEC section 7's, then registered ones."""
+    return (*ALL_METHODS, *REGISTERED)
+
+
+def method_fingerprints(methods: Iterable[str]) -> dict[str, str]:
+    """The source hash of each listed method registered from outside the package."""
+    return source_fingerprints(REGISTERED, methods)
+
+
+def intersection_closure(
+    boxes: np.ndarray, max_boxes: int | None = None
+) -> tuple[np.ndarray, bool]:
     """The closure of ``boxes`` under pairwise intersection (positive area, duplicates merged).
 
     Semi-naive fixed point: each round intersects only the boxes found in the previous round
@@ -62,7 +99,12 @@ def intersection_closure(boxes: np.ndarray, max_boxes: int | None = None) -> tup
 def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
     """(m, n) bool: original k contains fused box i."""
     f, o = fused[:, None, :], originals[None, :, :]
-    return (o[..., 0] <= f[..., 0]) & (o[..., 1] <= f[..., 1]) & (o[..., 2] >= f[..., 2]) & (o[..., 3] >= f[..., 3])
+    return (
+        (o[..., 0] <= f[..., 0])
+        & (o[..., 1] <= f[..., 1])
+        & (o[..., 2] >= f[..., 2])
+        & (o[..., 3] >= f[..., 3])
+    )
 
 
 def _subset_cover(cover: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -79,30 +121,46 @@ def _subset_cover(cover: np.ndarray, k: int, rng: np.random.Generator) -> np.nda
 def r_desc_of(r: np.ndarray, L: np.ndarray) -> np.ndarray:
     """``r' = (L + 1 - rank) / L`` from ``r = rank / L`` (SPEC section 6)."""
     r, L = np.asarray(r, np.float64), np.asarray(L, np.float64)
-    return (L + 1.0) / L - r
+    return np.asarray((L + 1.0) / L - r, np.float64)
 
 
-def loc_from_cover(cover: np.ndarray, method: str, *, r: np.ndarray, d: np.ndarray, L: np.ndarray | None = None,
-                   seed: int = 0) -> np.ndarray:
-    """LoC of the fused boxes (rows of ``cover``) for one method of SPEC section 7 ("higher = more likely changed").
+def loc_from_cover(
+    cover: np.ndarray,
+    method: str,
+    *,
+    r: np.ndarray,
+    d: np.ndarray,
+    L: np.ndarray | None = None,
+    seed: int = 0,
+) -> np.ndarray:
+    """LoC of the fused boxes (rows of ``cover``) for one method of SPEC section 7.
+
+    Higher is more likely changed.
 
     Args:
         cover: (m, n) bool: original box k contains fused box i.
-        method: a fused-set method id other than ``size_prior`` and ``random`` (see :func:`image_loc`).
+        method: a fused-set method id other than ``size_prior`` and ``random`` (see
+            :func:`image_loc`).
         r: (n,) normalised ranks ``rank / L`` of the originals.
         d: (n,) exact L2 distances of the originals to their ground-truth place.
         L: (n,) rank-list lengths; needed by every rank-fusion method except ``rank_fusion_asc``.
         seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
     """
     r = np.asarray(r, np.float64)
+    if method in REGISTERED:
+        lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
+        return np.asarray(
+            REGISTERED[method](cover, r, np.asarray(d, np.float64), lengths), np.float64
+        )
     if method == "score_max":
-        return np.where(cover, np.asarray(d, np.float64)[None, :], -np.inf).max(1)
+        return np.asarray(np.where(cover, np.asarray(d, np.float64)[None, :], -np.inf).max(1))
     if method == "score_sum":
-        return (cover * np.asarray(d, np.float64)[None, :]).sum(1)
+        return np.asarray((cover * np.asarray(d, np.float64)[None, :]).sum(1), np.float64)
     if method == "cover_count":
-        return cover.sum(1).astype(np.float64)
-    if method == "rank_fusion_asc":  # the paper's variant 2: ascending order (SPEC's earlier formula)
-        return 1.0 / (cover.sum(1) * (cover * (1.0 / r)[None, :]).sum(1))
+        return np.asarray(cover.sum(1), np.float64)
+    # the paper's variant 2: ascending order (SPEC's earlier formula)
+    if method == "rank_fusion_asc":
+        return np.asarray(1.0 / (cover.sum(1) * (cover * (1.0 / r)[None, :]).sum(1)), np.float64)
     if method not in ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", "rank_fusion_raw"):
         raise ValueError(f"unknown fused-set method {method!r}; known: {FUSED_METHODS}")
     if L is None:
@@ -110,8 +168,9 @@ def loc_from_cover(cover: np.ndarray, method: str, *, r: np.ndarray, d: np.ndarr
     rd = r_desc_of(r, L)
     if method in ("rank_fusion_le2", "rank_fusion_le3"):
         cover = _subset_cover(cover, 2 if method.endswith("2") else 3, np.random.default_rng(seed))
-    inv = 1.0 / (rd * np.asarray(L, np.float64)) if method == "rank_fusion_raw" else 1.0 / rd  # raw: 1 / (L + 1 - rank)
-    return cover.sum(1) * (cover * inv[None, :]).sum(1)
+    # raw: 1 / (L + 1 - rank)
+    inv = 1.0 / (rd * np.asarray(L, np.float64)) if method == "rank_fusion_raw" else 1.0 / rd
+    return np.asarray(cover.sum(1) * (cover * inv[None, :]).sum(1), np.float64)
 
 
 def image_loc(fused: np.ndarray, method: str, width: float, height: float, seed: int) -> np.ndarray:
@@ -119,20 +178,28 @@ def image_loc(fused: np.ndarray, method: str, width: float, height: float, seed:
 
     Args:
         fused: (m, 4) sample boxes.
-        width, height: the image size in pixels.
+        method: ``size_prior`` or ``random``.
+        width: the image width in pixels.
+        height: the image height in pixels.
         seed: the query image's seed (``random``: uniform in [0, 1), reproducible per image).
     """
     if method == "size_prior":
         area = (fused[:, 2] - fused[:, 0]) * (fused[:, 3] - fused[:, 1])
-        return 1.0 - area / float(width * height)
+        return np.asarray(1.0 - area / float(width * height), np.float64)
     if method == "random":
         return np.random.default_rng(seed).random(len(fused))
     raise ValueError(f"{method!r} is not an image baseline (size_prior, random)")
 
 
 def fuse(
-    boxes: np.ndarray, r: np.ndarray, d: np.ndarray, method: str, seed: int = 0, max_boxes: int | None = None,
-    *, L: np.ndarray | None = None,
+    boxes: np.ndarray,
+    r: np.ndarray,
+    d: np.ndarray,
+    method: str,
+    seed: int = 0,
+    max_boxes: int | None = None,
+    *,
+    L: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Samples and their LoC for one query image (SPEC section 7).
 
@@ -143,6 +210,7 @@ def fuse(
         method: any method id of SPEC section 7 except ``size_prior`` and ``random``
             (:func:`image_loc`).
         seed: seeds the random cover subsets of the ``le`` methods.
+        max_boxes: cap on the intersection closure (:func:`intersection_closure`); None: none.
         L: (n,) rank-list lengths, for ``r'`` (every rank-fusion method except ``rank_fusion_asc``).
 
     Returns:
@@ -153,14 +221,19 @@ def fuse(
     d = np.asarray(d, np.float64)
     if method == "rank_no_fusion":
         return boxes.copy(), r.copy()
-    if method not in FUSED_METHODS or method in IMAGE_BASELINES:
-        raise ValueError(f"fuse() computes {[m for m in ALL_METHODS if m not in IMAGE_BASELINES]}, got {method!r} (size_prior, random: image_loc)")
+    if method not in (*FUSED_METHODS, *REGISTERED) or method in IMAGE_BASELINES:
+        raise ValueError(
+            f"fuse() computes {[m for m in known_methods() if m not in IMAGE_BASELINES]}, got "
+            f"{method!r} (size_prior, random: image_loc)"
+        )
     fused, _ = intersection_closure(boxes, max_boxes)
     cover = cover_matrix(fused, boxes)
     return fused, loc_from_cover(cover, method, r=r, d=d, L=L, seed=seed)
 
 
-def pixel_regions(boxes: np.ndarray, change: np.ndarray, width: float, height: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pixel_regions(
+    boxes: np.ndarray, change: np.ndarray, width: float, height: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The image cut into rectangular regions by every box edge (exact areas, SPEC section 9).
 
     Returns:
@@ -184,12 +257,17 @@ def pixel_regions(boxes: np.ndarray, change: np.ndarray, width: float, height: f
         owner[cy0[i] : cy1[i], cx0[i] : cx1[i]] = i
     positive = np.zeros(area.shape, bool)
     for x0, y0, x1, y1 in ch:
-        positive[np.searchsorted(ys, y0) : np.searchsorted(ys, y1), np.searchsorted(xs, x0) : np.searchsorted(xs, x1)] = True
+        positive[
+            np.searchsorted(ys, y0) : np.searchsorted(ys, y1),
+            np.searchsorted(xs, x0) : np.searchsorted(xs, x1),
+        ] = True
     return area.ravel(), positive.ravel(), owner.ravel()
 
 
 def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Pixel-wise LoC: each pixel (by its centre) takes the LoC of the smallest sample box holding it.
+    """Pixel-wise LoC.
+
+    Each pixel (by its centre) takes the LoC of the smallest sample box holding it.
 
     For a fused set, the smallest box holding a pixel is the intersection of all boxes covering
     it. Pixels that no box covers are NaN.
@@ -206,14 +284,20 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
 
 
 def ordered_methods(methods: Iterable[str]) -> tuple[str, ...]:
-    """The configured methods in SPEC section 7's order (Table I's six, then variants and baselines)."""
+    """The configured methods in SPEC section 7's order: Table I's six, variants, baselines."""
     want = set(methods)
-    return tuple(m for m in ALL_METHODS if m in want)
+    return tuple(m for m in known_methods() if m in want)
 
 
-def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, seed: int, max_boxes: int,
-                 methods: Sequence[str] = ALL_METHODS,
-                 progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it) -> tuple[pd.DataFrame, dict]:
+def fuse_samples(
+    ranks: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    seed: int,
+    max_boxes: int,
+    methods: Sequence[str] = ALL_METHODS,
+    progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Samples of every annotated query image (one per pair) with the LoC of each method.
 
     Samples are built for all proposal methods together (``proposals = all``) and, where there
@@ -227,7 +311,13 @@ def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, s
     keep their order) and builds one table at the end: no per-image pandas objects.
     """
     cb = change_boxes(ann)
-    size = dict(zip(frames[["session", "camera", "utime"]].itertuples(index=False, name=None), frames[["width", "height"]].to_numpy(), strict=True))
+    size = dict(
+        zip(
+            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames[["width", "height"]].to_numpy(),
+            strict=True,
+        )
+    )
     counts = {"query_images": 0, "capped_closures": 0}
     methods = ordered_methods(methods)
     props = sorted(ranks["method"].unique())
@@ -246,8 +336,26 @@ def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, s
         change[1:] |= kc[1:] != kc[:-1]
     starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
     ends = np.append(starts[1:], n)
-    cols: dict[str, list] = {c: [] for c in ("q_session", "q_camera", "q_utime", "r_session", "season_pair", "proposals", "x1", "y1", "x2", "y2",
-                                             "original", "N", "RoC", "SoB", *(f"loc_{m}" for m in methods))}
+    cols: dict[str, list[Any]] = {
+        c: []
+        for c in (
+            "q_session",
+            "q_camera",
+            "q_utime",
+            "r_session",
+            "season_pair",
+            "proposals",
+            "x1",
+            "y1",
+            "x2",
+            "y2",
+            "original",
+            "N",
+            "RoC",
+            "SoB",
+            *(f"loc_{m}" for m in methods),
+        )
+    }
     for a, b in progress(list(zip(starts, ends, strict=True))):
         key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
         qkey = key[:3]
@@ -291,7 +399,9 @@ def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, s
             for j, c in enumerate(("x1", "y1", "x2", "y2")):
                 cols[c].append(all_boxes[:, j])
             cols["original"].append(np.concatenate([~np.isnan(nof), np.ones(n_x, bool)]))
-            cols["N"].append(np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64))
+            cols["N"].append(
+                np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64)
+            )
             cols["RoC"].append(np.asarray(roc, np.float64))
             cols["SoB"].append(np.asarray(sob, np.float64))
             if "rank_no_fusion" in methods:
@@ -304,13 +414,22 @@ def fuse_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, s
     return df, counts
 
 
-def write_samples(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, fc: FusionConfig, tmp: Path) -> dict[str, int]:
+def write_samples(
+    ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, fc: FusionConfig, tmp: Path
+) -> dict[str, int]:
     """Build the samples (:func:`fuse_samples` with ``[fusion]``) into ``tmp/samples.parquet``.
 
     Returns:
         The fusion counters (query images, capped closures).
     """
-    df, counts = fuse_samples(ranks, frames, ann, fc.seed, fc.max_fused_boxes, methods=ordered_methods(fc.methods),
-                              progress=partial(progress, desc="fusion", unit="image"))
+    df, counts = fuse_samples(
+        ranks,
+        frames,
+        ann,
+        fc.seed,
+        fc.max_fused_boxes,
+        methods=ordered_methods(fc.methods),
+        progress=partial(progress, desc="fusion", unit="image"),
+    )
     write_parquet(tmp / "samples.parquet", df)
     return counts

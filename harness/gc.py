@@ -32,25 +32,35 @@ def _size(path: Path) -> int:
 
 
 def collect_garbage(out: Path, dry_run: bool = False) -> GcResult:
-    """Remove (or, with ``dry_run``, list) the cache entries of ``out`` that its last run did not use.
+    """Remove the cache entries of ``out`` that its last run did not use.
+
+    With ``dry_run``, only list them.
 
     Raises:
         HarnessError: ``out`` is no run directory, or its run.json predates ``cache_entries``.
     """
     out = Path(out)
     if not (out / "run.json").exists():
-        raise HarnessError(f"{out}: no run.json here; gc keeps what the last `harness reproduce` used, so run it first")
+        raise HarnessError(
+            f"{out}: no run.json here; gc keeps what the last `harness reproduce` used, so "
+            "run it first"
+        )
     out = claim_dir(out, "run")
     run = json.loads((out / "run.json").read_text())
     keep = run.get("cache_entries")
     if keep is None:
-        raise HarnessError(f"{out}/run.json has no cache_entries (written by an older harness); rerun `harness reproduce` first")
+        raise HarnessError(
+            f"{out}/run.json has no cache_entries (written by an older harness); rerun "
+            "`harness reproduce` first"
+        )
     res = GcResult()
     with run_lock(out):
         cache = out / "cache"
         for stage in sorted(p for p in cache.iterdir() if p.is_dir()) if cache.is_dir() else []:
             wanted = set(keep.get(stage.name, []))
-            for entry in sorted(p for p in stage.iterdir() if p.is_dir() and not is_temp_name(p.name)):
+            for entry in sorted(
+                p for p in stage.iterdir() if p.is_dir() and not is_temp_name(p.name)
+            ):
                 if entry.name in wanted:
                     res.kept += 1
                     continue

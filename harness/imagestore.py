@@ -21,7 +21,7 @@ _ROT = {"cw": cv2.ROTATE_90_CLOCKWISE, "ccw": cv2.ROTATE_90_COUNTERCLOCKWISE, "1
 
 
 def make_uri(path: str | Path, rotation: str = "none") -> str:
-    """Build an image URI from a path and a turn-upright rotation (``none``, ``cw``, ``ccw``, ``180``)."""
+    """An image URI from a path and a turn-upright rotation (``none``, ``cw``, ``ccw``, ``180``)."""
     return str(path) if rotation in ("none", "", None) else f"{path}#rot={rotation}"
 
 
@@ -29,8 +29,10 @@ ROTATIONS = ("cw", "ccw", "180")
 
 
 def split_uri(uri: str) -> tuple[str, str]:
-    """(path, rotation) of a URI. Only a trailing ``#rot=<cw|ccw|180>`` is a fragment: a ``#``
-    anywhere else belongs to the path."""
+    """(path, rotation) of a URI.
+
+    Only a trailing ``#rot=<cw|ccw|180>`` is a fragment: a ``#`` anywhere else belongs to the path.
+    """
     path, sep, rot = uri.rpartition("#rot=")
     if sep and rot in ROTATIONS:
         return path, rot
@@ -46,7 +48,10 @@ def portable_uri(uri: str, out: Path, data_root: Path) -> str:
     """An absolute URI made relative to ``out`` or ``data_root`` where it lies under one of them."""
     path, rot = split_uri(uri)
     p = Path(path)
-    for base, prefix in ((Path(out).resolve(), OUT_PREFIX), (Path(data_root).resolve(), DATA_PREFIX)):
+    for base, prefix in (
+        (Path(out).resolve(), OUT_PREFIX),
+        (Path(data_root).resolve(), DATA_PREFIX),
+    ):
         if p.is_relative_to(base):
             return make_uri(prefix + p.relative_to(base).as_posix(), rot)
     return uri
@@ -55,9 +60,9 @@ def portable_uri(uri: str, out: Path, data_root: Path) -> str:
 def local_uri(uri: str, out: Path, data_root: Path) -> str:
     """The inverse of :func:`portable_uri` for this run's ``out`` and ``data_root``."""
     if uri.startswith(OUT_PREFIX):
-        return str(Path(out).resolve()) + "/" + uri[len(OUT_PREFIX):]
+        return str(Path(out).resolve()) + "/" + uri[len(OUT_PREFIX) :]
     if uri.startswith(DATA_PREFIX):
-        return str(Path(data_root).resolve()) + "/" + uri[len(DATA_PREFIX):]
+        return str(Path(data_root).resolve()) + "/" + uri[len(DATA_PREFIX) :]
     return uri
 
 
@@ -71,6 +76,7 @@ def resolve(uri: str, base: Path) -> str:
 
 
 def upright_size(stored_w: int, stored_h: int, rotation: str) -> tuple[int, int]:
+    """(width, height) of the upright image, pixels, from the stored size and its rotation."""
     return (stored_h, stored_w) if rotation in ("cw", "ccw") else (stored_w, stored_h)
 
 

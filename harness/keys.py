@@ -15,7 +15,9 @@ from typing import Any
 
 from .cache import file_fingerprint, stable_hash
 from .config import Config, DescriptorConfig, ProposalsConfig, RetrievalConfig, SessionConfig
+from .fusion import method_fingerprints as fusion_method_fingerprints
 from .ingest.logs import detect_format
+from .proposals import method_fingerprints
 
 Parts = tuple[Any, ...]
 
@@ -41,7 +43,12 @@ def source_fingerprint(sc: SessionConfig) -> Any:
 
 def ingest(cfg: Config, sc: SessionConfig) -> Parts:
     """One session's ingest: its config, ``[ingest]`` and its source files."""
-    return ("ingest", dataclasses.asdict(sc), dataclasses.asdict(cfg.ingest), source_fingerprint(sc))
+    return (
+        "ingest",
+        dataclasses.asdict(sc),
+        dataclasses.asdict(cfg.ingest),
+        source_fingerprint(sc),
+    )
 
 
 def frames(ingest_keys: list[str]) -> Parts:
@@ -52,7 +59,12 @@ def frames(ingest_keys: list[str]) -> Parts:
 def pairs(cfg: Config, frames_key: str, ann_key: str) -> Parts:
     """Pairs: frames, ``[pairs]``, the seasons, and the annotations when they choose the queries."""
     pc = cfg.pairs
-    return (frames_key, dataclasses.asdict(pc), ann_key if pc.queries == "annotated" else None, cfg.seasons())
+    return (
+        frames_key,
+        dataclasses.asdict(pc),
+        ann_key if pc.queries == "annotated" else None,
+        cfg.seasons(),
+    )
 
 
 def proposals_file(pc: ProposalsConfig) -> Any:
@@ -61,11 +73,19 @@ def proposals_file(pc: ProposalsConfig) -> Any:
 
 
 def proposals(cfg: Config, ingest_key: str, frames: list[tuple[str, int]]) -> Parts:
-    """One session's proposals: its ingest entry, the frames it describes, ``[proposals]``, the proposal file.
+    """One session's proposals.
 
-    ``frames`` are the (camera, utime) of the described frames (``retrieval.described_frames``).
+    Its ingest entry, the frames it describes (``frames``: their (camera, utime), from
+    ``retrieval.described_frames``), ``[proposals]``, the proposal file and the source of any
+    method registered from outside the package.
     """
-    return (ingest_key, stable_hash(frames), dataclasses.asdict(cfg.proposals), proposals_file(cfg.proposals))
+    return (
+        ingest_key,
+        stable_hash(frames),
+        dataclasses.asdict(cfg.proposals),
+        proposals_file(cfg.proposals),
+        method_fingerprints(cfg.proposals.methods),  # registered methods' own source
+    )
 
 
 def model_options(dc: DescriptorConfig) -> dict[str, Any]:
@@ -85,9 +105,21 @@ def descriptor_options(dc: DescriptorConfig) -> dict[str, Any]:
     return {k: v for k, v in dataclasses.asdict(dc).items() if k not in DESCRIPTOR_EXECUTION}
 
 
-def descriptor_shard(cfg: Config, proposals_key: str, model_key: str, utimes: list[int], projection_key: str | None) -> Parts:
-    """One shard of a session's descriptors: proposals, model, options, the shard's frames (and the projection)."""
-    parts = (proposals_key, model_key, descriptor_options(cfg.descriptor), utimes[0], utimes[-1], len(utimes))
+def descriptor_shard(
+    cfg: Config, proposals_key: str, model_key: str, utimes: list[int], projection_key: str | None
+) -> Parts:
+    """One shard of a session's descriptors.
+
+    Proposals, model, options, the shard's frames (and the projection).
+    """
+    parts = (
+        proposals_key,
+        model_key,
+        descriptor_options(cfg.descriptor),
+        utimes[0],
+        utimes[-1],
+        len(utimes),
+    )
     return parts if projection_key is None else (*parts, projection_key)
 
 
@@ -97,8 +129,16 @@ def descriptors(cfg: Config, proposals_key: str, model_key: str, shard_keys: lis
 
 
 def projection(cfg: Config, model_key: str, reference_proposal_keys: list[str]) -> Parts:
-    """The compact-descriptor projection: ``[projection]``, the model and the reference sessions' proposals."""
-    return (dataclasses.asdict(cfg.projection), model_key, descriptor_options(cfg.descriptor), sorted(reference_proposal_keys))
+    """The compact-descriptor projection.
+
+    ``[projection]``, the model and the reference sessions' proposals.
+    """
+    return (
+        dataclasses.asdict(cfg.projection),
+        model_key,
+        descriptor_options(cfg.descriptor),
+        sorted(reference_proposal_keys),
+    )
 
 
 def retrieval_options(rc: RetrievalConfig) -> dict[str, Any]:
@@ -106,7 +146,9 @@ def retrieval_options(rc: RetrievalConfig) -> dict[str, Any]:
     return {k: v for k, v in dataclasses.asdict(rc).items() if k not in RETRIEVAL_EXECUTION}
 
 
-def ranks_unit(cfg: Config, ref: str, pairs_key: str, descriptor_keys: dict[str, str], first: int, n: int) -> Parts:
+def ranks_unit(
+    cfg: Config, ref: str, pairs_key: str, descriptor_keys: dict[str, str], first: int, n: int
+) -> Parts:
     """One ranking unit: a reference session and ``n`` of its pairs from row ``first``."""
     return (ref, pairs_key, descriptor_keys, retrieval_options(cfg.retrieval), first, n)
 
@@ -122,5 +164,11 @@ def ranks_import(cfg: Config, path: Path, pairs_key: str) -> Parts:
 
 
 def samples(cfg: Config, ranks_key: str, ann_key: str) -> Parts:
-    """Samples: ranks, annotations, ``[fusion]`` and ``[splits]``."""
-    return (ranks_key, ann_key, dataclasses.asdict(cfg.fusion), dataclasses.asdict(cfg.splits))
+    """Samples: ranks, annotations, ``[fusion]``, ``[splits]`` (and registered methods' source)."""
+    return (
+        ranks_key,
+        ann_key,
+        dataclasses.asdict(cfg.fusion),
+        dataclasses.asdict(cfg.splits),
+        fusion_method_fingerprints(cfg.fusion.methods),
+    )

@@ -1,5 +1,8 @@
-"""101-point interpolated average precision (SPEC section 9), its size-stratified form (section 8),
-weighted AP for pixel regions, PR curves, and bootstrap intervals with paired comparisons."""
+"""101-point interpolated average precision (SPEC section 9) and its relatives.
+
+Its size-stratified form (section 8), weighted AP for pixel regions, PR curves, and bootstrap
+intervals with paired comparisons.
+"""
 
 from __future__ import annotations
 
@@ -18,7 +21,11 @@ def pr_curve(labels: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.nda
     scores = np.asarray(scores, np.float64)
     order = np.argsort(-scores, kind="stable")
     s, y = scores[order], labels[order]
-    last = np.concatenate([np.nonzero(s[1:] != s[:-1])[0], [len(s) - 1]]) if len(s) else np.zeros(0, np.int64)
+    last = (
+        np.concatenate([np.nonzero(s[1:] != s[:-1])[0], [len(s) - 1]])
+        if len(s)
+        else np.zeros(0, np.int64)
+    )
     tp = np.cumsum(y)[last]
     fp = np.cumsum(~y)[last]
     npos = int(labels.sum())
@@ -35,8 +42,12 @@ def _interp_ap(precision: np.ndarray, recall: np.ndarray) -> float:
     return float(interp.mean())
 
 
-def weighted_average_precision(labels: np.ndarray, scores: np.ndarray, weights: np.ndarray) -> float:
-    """101-point AP where sample i counts ``weights[i]`` times (pixel areas, bootstrap multiplicities).
+def weighted_average_precision(
+    labels: np.ndarray, scores: np.ndarray, weights: np.ndarray
+) -> float:
+    """101-point AP where sample i counts ``weights[i]`` times.
+
+    Weights are pixel areas or bootstrap multiplicities.
 
     With integer weights it equals :func:`average_precision` of the samples repeated that often.
     NaN when the positives' total weight is 0.
@@ -55,8 +66,13 @@ def weighted_average_precision(labels: np.ndarray, scores: np.ndarray, weights: 
     return _interp_ap(tp / (tp + fp), tp / tp[-1])
 
 
-def stratified_ap(labels: np.ndarray, scores: np.ndarray, sob: np.ndarray, edges: np.ndarray | list[float],
-                  weights: np.ndarray | None = None) -> tuple[float, float]:
+def stratified_ap(
+    labels: np.ndarray,
+    scores: np.ndarray,
+    sob: np.ndarray,
+    edges: np.ndarray | list[float],
+    weights: np.ndarray | None = None,
+) -> tuple[float, float]:
     """Size-stratified AP (SPEC section 8): (AP, floor).
 
     Samples are binned by SoB into strata ``[edges[k], edges[k+1])`` (the last one closed). Within
@@ -79,8 +95,11 @@ def stratified_ap(labels: np.ndarray, scores: np.ndarray, sob: np.ndarray, edges
         pos, total = float(wt[sel & labels].sum()), float(wt[sel].sum())
         if pos == 0 or pos == total:
             continue
-        aps.append(weighted_average_precision(labels[sel], scores[sel], wt[sel]) if weights is not None
-                   else average_precision(labels[sel], scores[sel]))
+        aps.append(
+            weighted_average_precision(labels[sel], scores[sel], wt[sel])
+            if weights is not None
+            else average_precision(labels[sel], scores[sel])
+        )
         floors.append(pos / total)
         wts.append(pos)
     if not wts:
@@ -114,7 +133,12 @@ def bootstrap_ap(
     if n_boot <= 0 or len(labels) == 0:
         return float("nan"), float("nan")
     uniq, inv = np.unique(groups, return_inverse=True)
-    return interval(bootstrap_aps(labels, np.asarray(scores, np.float64), inv, resample_counts(len(uniq), n_boot, seed)), ci)
+    return interval(
+        bootstrap_aps(
+            labels, np.asarray(scores, np.float64), inv, resample_counts(len(uniq), n_boot, seed)
+        ),
+        ci,
+    )
 
 
 def resample_counts(n_groups: int, n_boot: int, seed: int) -> np.ndarray:
@@ -126,13 +150,19 @@ def resample_counts(n_groups: int, n_boot: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     out = np.zeros((max(n_boot, 0), n_groups), np.int64)
     for b in range(max(n_boot, 0)):
-        out[b] = np.bincount(rng.integers(0, n_groups, n_groups), minlength=n_groups) if n_groups else out[b]
+        out[b] = (
+            np.bincount(rng.integers(0, n_groups, n_groups), minlength=n_groups)
+            if n_groups
+            else out[b]
+        )
     return out
 
 
 class _Ranked:
-    """Samples sorted once by score (descending, stable) with the ends of the groups of tied scores,
-    so the AP of any reweighting (a bootstrap resample) costs one cumulative sum, not a sort."""
+    """Samples sorted once by score (descending, stable) with the ends of tied groups.
+
+    The AP of any reweighting (a bootstrap resample) then costs one cumulative sum, not a sort.
+    """
 
     def __init__(self, labels: np.ndarray, scores: np.ndarray, members: np.ndarray) -> None:
         s = np.asarray(scores, np.float64)[members]
@@ -140,7 +170,11 @@ class _Ranked:
         self.idx = members[order]
         self.y = np.asarray(labels, bool)[self.idx]
         ss = s[order]
-        self.last = np.concatenate([np.nonzero(ss[1:] != ss[:-1])[0], [len(ss) - 1]]) if len(ss) else np.zeros(0, np.int64)
+        self.last = (
+            np.concatenate([np.nonzero(ss[1:] != ss[:-1])[0], [len(ss) - 1]])
+            if len(ss)
+            else np.zeros(0, np.int64)
+        )
 
     def aps(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(AP, positive weight) for each row of ``w`` ((B, n_samples) weights of all samples)."""
@@ -156,9 +190,17 @@ class _Ranked:
         return out, pos
 
 
-def bootstrap_aps(labels: np.ndarray, scores: np.ndarray, group_index: np.ndarray, counts: np.ndarray,
-                  weights: np.ndarray | None = None, stat: str = "ap", sob: np.ndarray | None = None,
-                  edges: np.ndarray | None = None, block_bytes: int = 64 << 20) -> np.ndarray:
+def bootstrap_aps(
+    labels: np.ndarray,
+    scores: np.ndarray,
+    group_index: np.ndarray,
+    counts: np.ndarray,
+    weights: np.ndarray | None = None,
+    stat: str = "ap",
+    sob: np.ndarray | None = None,
+    edges: np.ndarray | None = None,
+    block_bytes: int = 64 << 20,
+) -> np.ndarray:
     """AP (or stratified AP) of every resample; ``counts`` from :func:`resample_counts`.
 
     The samples are sorted once; each resample is a reweighting (a sample drawn k times counts k
@@ -166,9 +208,15 @@ def bootstrap_aps(labels: np.ndarray, scores: np.ndarray, group_index: np.ndarra
     Equal to :func:`weighted_average_precision` / :func:`stratified_ap` of each resample.
 
     Args:
+        labels: (n,) bool, the positives.
+        scores: (n,) LoC, higher = more likely changed.
         group_index: (n,) the query image (0..n_groups-1) of each sample.
         weights: optional per-sample weights (pixel areas), multiplied by the group's multiplicity.
         stat: ``ap`` or ``stratified`` (needs ``sob`` and ``edges``).
+        counts: (n_boot, n_groups) multiplicity of each query image in each resample.
+        sob: (n,) SoB of each sample (``stratified``).
+        edges: the SoB strata edges (``stratified``).
+        block_bytes: the largest weight matrix evaluated at once, bytes.
 
     Returns:
         (n_boot,) APs; NaN where a resample has no positive.
@@ -182,7 +230,9 @@ def bootstrap_aps(labels: np.ndarray, scores: np.ndarray, group_index: np.ndarra
         sb = np.asarray(sob, np.float64)
         k = np.clip(np.searchsorted(e, sb, side="right") - 1, 0, len(e) - 2)
         inside = (sb >= e[0]) & (sb <= e[-1])
-        parts = [_Ranked(labels, scores, np.nonzero(inside & (k == j))[0]) for j in range(len(e) - 1)]
+        parts = [
+            _Ranked(labels, scores, np.nonzero(inside & (k == j))[0]) for j in range(len(e) - 1)
+        ]
     else:
         parts = [_Ranked(labels, scores, np.arange(n))]
     out = np.empty(len(counts))
@@ -216,9 +266,14 @@ def interval(values: np.ndarray, ci: float) -> tuple[float, float]:
     return float(np.quantile(v, a)), float(np.quantile(v, 1 - a))
 
 
-def paired_difference(aps_a: np.ndarray, aps_b: np.ndarray, ap_a: float, ap_b: float, ci: float) -> dict[str, float]:
-    """``a - b`` from a paired bootstrap: the difference, its interval, and the share of resamples
-    whose difference has the other sign than the observed one (0 when the observed one is 0)."""
+def paired_difference(
+    aps_a: np.ndarray, aps_b: np.ndarray, ap_a: float, ap_b: float, ci: float
+) -> dict[str, float]:
+    """``a - b`` from a paired bootstrap.
+
+    The difference, its interval, and the share of resamples whose difference has the other sign
+    than the observed one (0 when the observed one is 0).
+    """
     d = np.asarray(aps_a, np.float64) - np.asarray(aps_b, np.float64)
     d = d[np.isfinite(d)]
     diff = ap_a - ap_b

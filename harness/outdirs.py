@@ -68,7 +68,11 @@ def _legacy_run_dir(path: Path) -> bool:
         rec = json.loads((path / "run.json").read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(rec, dict) and "dbl-harness" in rec.get("versions", {}) and (path / "cache").is_dir()
+    return (
+        isinstance(rec, dict)
+        and "dbl-harness" in rec.get("versions", {})
+        and (path / "cache").is_dir()
+    )
 
 
 def claim_dir(path: Path, kind: str, flag: str = "--out") -> Path:
@@ -91,10 +95,13 @@ def claim_dir(path: Path, kind: str, flag: str = "--out") -> Path:
             write_marker(path, kind)
             return path
         if kind_found is not None:
-            raise OwnershipError(f"{path}: holds a harness {kind_found} output, not a {kind}; choose another {flag}")
+            raise OwnershipError(
+                f"{path}: holds a harness {kind_found} output, not a {kind}; choose another {flag}"
+            )
         if not _is_empty_dir(path):
             raise OwnershipError(
-                f"{path}: exists and holds files the harness did not write (e.g. {_first_entry(path)!r}); "
+                f"{path}: exists and holds files the harness did not write (e.g. "
+                f"{_first_entry(path)!r}); "
                 f"the harness never writes into such a directory: choose a new or empty {flag}"
             )
     path.mkdir(parents=True, exist_ok=True)
@@ -115,21 +122,31 @@ def check_replaceable(path: Path, kind: str, force: bool, flag: str = "--out") -
     path = Path(path).expanduser().resolve()
     cwd = Path.cwd().resolve()
     if path == cwd or path in cwd.parents:
-        raise OwnershipError(f"{path}: {flag} is the working directory or one of its parents; give a new path")
+        raise OwnershipError(
+            f"{path}: {flag} is the working directory or one of its parents; give a new path"
+        )
     if not path.exists() or _is_empty_dir(path):
         return path
     if not path.is_dir():
-        raise OwnershipError(f"{path}: {flag} names an existing file the harness did not write; give a new path")
+        raise OwnershipError(
+            f"{path}: {flag} names an existing file the harness did not write; give a new path"
+        )
     found = owner_kind(path)
     if found is None:
         raise OwnershipError(
-            f"{path}: exists and holds files the harness did not write (e.g. {_first_entry(path)!r}); "
+            f"{path}: exists and holds files the harness did not write (e.g. "
+            f"{_first_entry(path)!r}); "
             f"it is never replaced: choose a new {flag}"
         )
     if found != kind:
-        raise OwnershipError(f"{path}: holds a harness {found} output, not a {kind}; choose another {flag}")
+        raise OwnershipError(
+            f"{path}: holds a harness {found} output, not a {kind}; choose another {flag}"
+        )
     if not force:
-        raise OwnershipError(f"{path}: exists (a harness {kind} output); pass --force to replace it, or choose a new {flag}")
+        raise OwnershipError(
+            f"{path}: exists (a harness {kind} output); pass --force to replace it, or "
+            f"choose a new {flag}"
+        )
     return path
 
 
@@ -144,7 +161,10 @@ def check_file_replaceable(path: Path, force: bool, flag: str = "--out") -> Path
 
 
 def is_temp_name(name: str) -> bool:
-    """Names of the temporaries that :mod:`harness.cache` creates (``.<name>.<random>.tmp``, ``.<name>.old-<pid>``)."""
+    """Names of the temporaries that :mod:`harness.cache` creates.
+
+    Those are ``.<name>.<random>.tmp`` and ``.<name>.old-<pid>``.
+    """
     return name.startswith(".") and (name.endswith(".tmp") or ".old-" in name)
 
 
@@ -196,7 +216,12 @@ def run_lock(directory: Path) -> Iterator[None]:
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         n = sweep_temporaries(directory)
         if n:
-            log.info("removed %d temporary entr%s left by an interrupted run under %s", n, "y" if n == 1 else "ies", directory)
+            log.info(
+                "removed %d temporary entr%s left by an interrupted run under %s",
+                n,
+                "y" if n == 1 else "ies",
+                directory,
+            )
         yield
     finally:
         with contextlib.suppress(OSError):

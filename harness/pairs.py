@@ -1,5 +1,8 @@
-"""Cross-season pairs (SPEC section 4): each query frame's nearest-position reference in every other
-session among frames whose heading differs by less than ``max_yaw_diff_deg``."""
+"""Cross-season pairs (SPEC section 4).
+
+Each query frame's nearest-position reference in every other session among frames whose heading
+differs by less than ``max_yaw_diff_deg``.
+"""
 
 from __future__ import annotations
 
@@ -17,8 +20,15 @@ from .config import PairsConfig
 log = logging.getLogger(__name__)
 
 PAIR_COLUMNS = [
-    "q_session", "q_camera", "q_utime", "r_session", "r_camera", "r_utime",
-    "distance_m", "yaw_diff_deg", "season_pair",
+    "q_session",
+    "q_camera",
+    "q_utime",
+    "r_session",
+    "r_camera",
+    "r_utime",
+    "distance_m",
+    "yaw_diff_deg",
+    "season_pair",
 ]
 
 
@@ -43,12 +53,18 @@ def thin_by_stride(xy: np.ndarray, stride_m: float) -> np.ndarray:
 
 
 def nearest_with_heading(
-    ref_xy: np.ndarray, ref_yaw: np.ndarray, ref_utime: np.ndarray,
-    q_xy: np.ndarray, q_yaw: np.ndarray, max_yaw_deg: float, max_dist: float | None,
+    ref_xy: np.ndarray,
+    ref_yaw: np.ndarray,
+    ref_utime: np.ndarray,
+    q_xy: np.ndarray,
+    q_yaw: np.ndarray,
+    max_yaw_deg: float,
+    max_dist: float | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For each query, the index of the nearest reference with heading difference < ``max_yaw_deg``.
 
-    Ties in distance go to the earlier reference frame (smaller utime). Returns (index or -1, distance).
+    Ties in distance go to the earlier reference frame (smaller utime). Returns (index or -1,
+    distance).
     A KD-tree is queried with a growing k until each query's answer is certain.
     """
     n, m = len(q_xy), len(ref_xy)
@@ -85,7 +101,12 @@ def nearest_with_heading(
     return best, best_d
 
 
-def build_pairs(frames: pd.DataFrame, cfg: PairsConfig, seasons: dict[str, str], queries: pd.DataFrame | None = None) -> tuple[pd.DataFrame, dict]:
+def build_pairs(
+    frames: pd.DataFrame,
+    cfg: PairsConfig,
+    seasons: dict[str, str],
+    queries: pd.DataFrame | None = None,
+) -> tuple[pd.DataFrame, dict]:
     """Pairs of every query frame with each other session.
 
     Args:
@@ -96,7 +117,8 @@ def build_pairs(frames: pd.DataFrame, cfg: PairsConfig, seasons: dict[str, str],
             (the annotated ones); stride thinning applies only when this is None.
 
     Returns:
-        (pairs table with PAIR_COLUMNS, summary dict with counts per season pair and unmatched queries).
+        (pairs table with PAIR_COLUMNS, summary dict with counts per season pair and unmatched
+        queries).
     """
     frames = frames.sort_values(["session", "camera", "utime"]).reset_index(drop=True)
     if queries is not None:
@@ -118,8 +140,13 @@ def build_pairs(frames: pd.DataFrame, cfg: PairsConfig, seasons: dict[str, str],
         if not len(q):
             continue
         idx, dist = nearest_with_heading(
-            ref[["x", "y"]].to_numpy(), ref["yaw"].to_numpy(), ref["utime"].to_numpy(),
-            q[["x", "y"]].to_numpy(), q["yaw"].to_numpy(), cfg.max_yaw_diff_deg, cfg.max_distance_m,
+            ref[["x", "y"]].to_numpy(),
+            ref["yaw"].to_numpy(),
+            ref["utime"].to_numpy(),
+            q[["x", "y"]].to_numpy(),
+            q["yaw"].to_numpy(),
+            cfg.max_yaw_diff_deg,
+            cfg.max_distance_m,
         )
         sp = [f"{seasons.get(s, s)}->{seasons.get(rs, rs)}" for s in q["session"]]
         for s, ok in zip(sp, idx >= 0, strict=True):
@@ -127,26 +154,46 @@ def build_pairs(frames: pd.DataFrame, cfg: PairsConfig, seasons: dict[str, str],
         hit = idx >= 0
         r = ref.iloc[idx[hit]].reset_index(drop=True)
         qh = q[hit].reset_index(drop=True)
-        out.append(pd.DataFrame({
-            "q_session": qh["session"], "q_camera": qh["camera"], "q_utime": qh["utime"],
-            "r_session": r["session"], "r_camera": r["camera"], "r_utime": r["utime"],
-            "distance_m": dist[hit], "yaw_diff_deg": yaw_diff_deg(qh["yaw"].to_numpy(), r["yaw"].to_numpy()),
-            "season_pair": np.array(sp, dtype=object)[hit],
-        }))
+        out.append(
+            pd.DataFrame(
+                {
+                    "q_session": qh["session"],
+                    "q_camera": qh["camera"],
+                    "q_utime": qh["utime"],
+                    "r_session": r["session"],
+                    "r_camera": r["camera"],
+                    "r_utime": r["utime"],
+                    "distance_m": dist[hit],
+                    "yaw_diff_deg": yaw_diff_deg(qh["yaw"].to_numpy(), r["yaw"].to_numpy()),
+                    "season_pair": np.array(sp, dtype=object)[hit],
+                }
+            )
+        )
     pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=PAIR_COLUMNS)
-    pairs = pairs.sort_values(["q_session", "q_camera", "q_utime", "r_session"]).reset_index(drop=True)
+    pairs = pairs.sort_values(["q_session", "q_camera", "q_utime", "r_session"]).reset_index(
+        drop=True
+    )
     summary = {
         "queries": len(q_all),
         "pairs": len(pairs),
         "pairs_per_season_pair": dict(sorted(matched.items())),
         "no_reference_per_season_pair": dict(sorted(unmatched.items())),
-        "queries_without_any_reference": int(len(q_all) - pairs[["q_session", "q_camera", "q_utime"]].drop_duplicates().shape[0]),
+        "queries_without_any_reference": int(
+            len(q_all) - pairs[["q_session", "q_camera", "q_utime"]].drop_duplicates().shape[0]
+        ),
     }
-    log.info("pairs: %d queries, %d pairs, %d (query, session) without reference", len(q_all), len(pairs), sum(unmatched.values()))
+    log.info(
+        "pairs: %d queries, %d pairs, %d (query, session) without reference",
+        len(q_all),
+        len(pairs),
+        sum(unmatched.values()),
+    )
     return pairs[PAIR_COLUMNS], summary
 
 
-def ground_truth_places(ref_frames: pd.DataFrame, gt_utime: np.ndarray, radius_m: float, max_yaw_deg: float) -> dict[int, np.ndarray]:
+def ground_truth_places(
+    ref_frames: pd.DataFrame, gt_utime: np.ndarray, radius_m: float, max_yaw_deg: float
+) -> dict[int, np.ndarray]:
     """The ground-truth place P(G) of each reference frame G (SPEC section 6).
 
     P(G) = the frames of the reference session within ``radius_m`` metres of G's position whose
@@ -156,6 +203,8 @@ def ground_truth_places(ref_frames: pd.DataFrame, gt_utime: np.ndarray, radius_m
     Args:
         ref_frames: the reference session's frames (``utime, x, y, yaw``; one camera).
         gt_utime: the ground-truth frames G whose place is wanted.
+        radius_m: the place's radius, metres.
+        max_yaw_deg: the largest heading difference from G, degrees.
 
     Returns:
         G's utime -> sorted utimes of P(G).
@@ -180,8 +229,13 @@ def ground_truth_places(ref_frames: pd.DataFrame, gt_utime: np.ndarray, radius_m
     return out
 
 
-def write_pairs(frames: pd.DataFrame, cfg: PairsConfig, seasons: dict[str, str], queries: pd.DataFrame | None,
-                tmp: Path) -> dict:
+def write_pairs(
+    frames: pd.DataFrame,
+    cfg: PairsConfig,
+    seasons: dict[str, str],
+    queries: pd.DataFrame | None,
+    tmp: Path,
+) -> dict:
     """Build the pairs (:func:`build_pairs`) into ``tmp/pairs.parquet`` and ``tmp/summary.json``.
 
     Returns:

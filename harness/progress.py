@@ -11,7 +11,9 @@ T = TypeVar("T")
 
 
 def progress(iterable: Iterable[T], desc: str, unit: str = "it") -> Iterable[T]:
-    """Wrap ``iterable`` in a progress bar named ``desc`` counting ``unit`` (refreshed at most once a second).
+    """Wrap ``iterable`` in a progress bar named ``desc`` counting ``unit``.
+
+    Refreshed at most once a second.
 
     Args:
         iterable: The work items.
@@ -21,4 +23,12 @@ def progress(iterable: Iterable[T], desc: str, unit: str = "it") -> Iterable[T]:
     Returns:
         An iterable over the same items.
     """
-    return tqdm(iterable, desc=desc, unit=unit, mininterval=1.0, dynamic_ncols=True, leave=False, disable=None)
+    return tqdm(
+        iterable,
+        desc=desc,
+        unit=unit,
+        mininterval=1.0,
+        dynamic_ncols=True,
+        leave=False,
+        disable=None,
+    )

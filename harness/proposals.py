@@ -13,7 +13,7 @@ Methods (each one modality with its own retrieval engine):
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from functools import partial
 from pathlib import Path
 
@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .cache import write_parquet
+from .cache import source_fingerprints, write_parquet
 from .config import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
 from .errors import AnnotationError, ConfigError
 from .imagestore import read_image
@@ -29,8 +29,21 @@ from .progress import progress
 
 log = logging.getLogger(__name__)
 
-METHODS = ("grid5", "edges", "mser", "yolo", "file")
-PROPOSAL_COLUMNS = ["session", "camera", "utime", "method", "box_id", "x1", "y1", "x2", "y2", "score", "class"]
+#: Methods with their own code path: grid5 (no pixels), yolo (batched), file (a user's table).
+SPECIAL_METHODS = ("grid5", "yolo", "file")
+PROPOSAL_COLUMNS = [
+    "session",
+    "camera",
+    "utime",
+    "method",
+    "box_id",
+    "x1",
+    "y1",
+    "x2",
+    "y2",
+    "score",
+    "class",
+]
 
 
 def grid5(width: float, height: float) -> np.ndarray:
@@ -48,14 +61,20 @@ def grid5(width: float, height: float) -> np.ndarray:
     )
 
 
-def nms(boxes: np.ndarray, scores: np.ndarray, iou: float, classes: np.ndarray | None = None) -> np.ndarray:
+def nms(
+    boxes: np.ndarray, scores: np.ndarray, iou: float, classes: np.ndarray | None = None
+) -> np.ndarray:
     """Indices kept by (class-aware) non-maximum suppression, highest score first; ties by index."""
     if len(boxes) == 0:
         return np.zeros(0, np.int64)
-    xywh = np.column_stack([boxes[:, 0], boxes[:, 1], boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]])
+    xywh = np.column_stack(
+        [boxes[:, 0], boxes[:, 1], boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]]
+    )
     cls = np.zeros(len(boxes), np.int32) if classes is None else classes.astype(np.int32)
-    keep = cv2.dnn.NMSBoxesBatched(xywh.tolist(), scores.astype(float).tolist(), cls.tolist(), -1e9, float(iou))
-    keep = np.asarray(keep, np.int64).ravel()
+    kept = cv2.dnn.NMSBoxesBatched(
+        xywh.tolist(), scores.astype(float).tolist(), cls.tolist(), -1e9, float(iou)
+    )
+    keep = np.asarray(kept, np.int64).ravel()
     order = np.lexsort((keep, -scores[keep]))
     return keep[order]
 
@@ -64,10 +83,18 @@ def mser_boxes(rgb: np.ndarray, cfg: MserConfig) -> tuple[np.ndarray, np.ndarray
     """MSER region boxes in full-image pixels, scored by their area fraction; (k, 4), (k,)."""
     h, w = rgb.shape[:2]
     scale = min(1.0, cfg.work_width / w)
-    small = cv2.resize(rgb, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA) if scale < 1 else rgb
+    small = (
+        cv2.resize(
+            rgb, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA
+        )
+        if scale < 1
+        else rgb
+    )
     gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
     sa = gray.shape[0] * gray.shape[1]
-    mser = cv2.MSER_create(5, max(8, int(cfg.min_area_frac * sa * 0.3)), int(cfg.max_area_frac * sa))
+    mser = cv2.MSER_create(  # type: ignore[attr-defined]  # not in OpenCV's stubs
+        5, max(8, int(cfg.min_area_frac * sa * 0.3)), int(cfg.max_area_frac * sa)
+    )
     _, bb = mser.detectRegions(gray)
     if len(bb) == 0:
         return np.zeros((0, 4)), np.zeros(0)
@@ -84,14 +111,22 @@ def mser_boxes(rgb: np.ndarray, cfg: MserConfig) -> tuple[np.ndarray, np.ndarray
 
 
 def edge_boxes(rgb: np.ndarray, cfg: EdgesConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Boxes of closed edge contours at several dilation scales, scored by edge density; (k, 4), (k,).
+    """Boxes of closed edge contours at several dilation scales, scored by edge density.
+
+    Returns boxes (k, 4) and scores (k,).
 
     Canny thresholds follow the image's median grey level; each dilation size merges nearby
     edges into larger contours, so one image gives parts and whole objects alike.
     """
     h, w = rgb.shape[:2]
     scale = min(1.0, cfg.work_width / w)
-    small = cv2.resize(rgb, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA) if scale < 1 else rgb
+    small = (
+        cv2.resize(
+            rgb, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA
+        )
+        if scale < 1
+        else rgb
+    )
     gray = cv2.GaussianBlur(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
     med = float(np.median(gray))
     edges = cv2.Canny(gray, int(0.33 * med), int(0.66 * med) + 1)
@@ -132,19 +167,27 @@ class YoloProposer:
 
         if not cfg.weights:
             raise ConfigError(
-                "[proposals.yolo] weights is not set: export a model to TorchScript on a machine with "
-                "ultralytics (yolo export model=yolov8n.pt format=torchscript) and give its local path"
+                "[proposals.yolo] weights is not set: export a model to TorchScript on a "
+                "machine with "
+                "ultralytics (yolo export model=yolov8n.pt format=torchscript) and give its "
+                "local path"
             )
         path = Path(cfg.weights).expanduser()
         if not path.exists():
             raise ConfigError(
-                f"YOLO weights file {path} does not exist; nothing is downloaded at run time. Export one with "
-                "'yolo export model=yolov8n.pt format=torchscript' where ultralytics is installed and copy the "
+                f"YOLO weights file {path} does not exist; nothing is downloaded at run "
+                "time. Export one with "
+                "'yolo export model=yolov8n.pt format=torchscript' where ultralytics is "
+                "installed and copy the "
                 ".torchscript file here"
             )
         self.cfg = cfg
         dev = cfg.device
-        self.device = torch.device("cuda" if dev == "auto" and torch.cuda.is_available() else ("cpu" if dev == "auto" else dev))
+        self.device = torch.device(
+            "cuda"
+            if dev == "auto" and torch.cuda.is_available()
+            else ("cpu" if dev == "auto" else dev)
+        )
         try:
             self.model = torch.jit.load(str(path), map_location=self.device).eval()
         except (RuntimeError, ValueError) as err:
@@ -168,7 +211,13 @@ class YoloProposer:
         for i in range(0, len(images), self.cfg.batch):
             chunk = images[i : i + self.cfg.batch]
             lb = [self._letterbox(im) for im in chunk]
-            x = torch.from_numpy(np.stack([b[0] for b in lb])).to(self.device).permute(0, 3, 1, 2).float() / 255.0
+            x = (
+                torch.from_numpy(np.stack([b[0] for b in lb]))
+                .to(self.device)
+                .permute(0, 3, 1, 2)
+                .float()
+                / 255.0
+            )
             with torch.inference_mode():
                 y = self.model(x)
             if isinstance(y, (list, tuple)):
@@ -178,7 +227,9 @@ class YoloProposer:
                 results.append(self._decode(pred, r, px, py, im.shape[1], im.shape[0]))
         return results
 
-    def _decode(self, pred: np.ndarray, r: float, px: float, py: float, w: int, h: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _decode(
+        self, pred: np.ndarray, r: float, px: float, py: float, w: int, h: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if pred.shape[0] < pred.shape[1]:  # (4 + nc, N): v8 layout
             pred = pred.T
             xywh, cls_scores = pred[:, :4], pred[:, 4:]
@@ -190,7 +241,14 @@ class YoloProposer:
         score = cls_scores[np.arange(len(cls)), cls]
         ok = score >= self.cfg.conf
         xywh, score, cls = xywh[ok], score[ok], cls[ok]
-        boxes = np.column_stack([xywh[:, 0] - xywh[:, 2] / 2, xywh[:, 1] - xywh[:, 3] / 2, xywh[:, 0] + xywh[:, 2] / 2, xywh[:, 1] + xywh[:, 3] / 2])
+        boxes = np.column_stack(
+            [
+                xywh[:, 0] - xywh[:, 2] / 2,
+                xywh[:, 1] - xywh[:, 3] / 2,
+                xywh[:, 0] + xywh[:, 2] / 2,
+                xywh[:, 1] + xywh[:, 3] / 2,
+            ]
+        )
         boxes = (boxes - [px, py, px, py]) / r
         boxes = np.clip(boxes, 0, [w, h, w, h]).astype(np.float64)
         area_ok = (boxes[:, 2] - boxes[:, 0] >= 1) & (boxes[:, 3] - boxes[:, 1] >= 1)
@@ -203,7 +261,9 @@ class YoloProposer:
 
 
 def load_file_proposals(path: Path, frames: pd.DataFrame) -> pd.DataFrame:
-    """A user's proposal table (CSV or parquet): ``session, camera, utime, x1, y1, x2, y2`` [, ``score``, ``class``].
+    """A user's proposal table (CSV or parquet).
+
+    Columns ``session, camera, utime, x1, y1, x2, y2`` [, ``score``, ``class``].
 
     Raises:
         AnnotationError: naming the row: unknown frame, box of zero area or outside the image.
@@ -211,7 +271,11 @@ def load_file_proposals(path: Path, frames: pd.DataFrame) -> pd.DataFrame:
     path = Path(path)
     if not path.exists():
         raise AnnotationError(f"{path}: proposal file not found")
-    df = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path, dtype={"session": str, "camera": str})
+    df = (
+        pd.read_parquet(path)
+        if path.suffix == ".parquet"
+        else pd.read_csv(path, dtype={"session": str, "camera": str})
+    )
     need = ["session", "camera", "utime", "x1", "y1", "x2", "y2"]
     miss = [c for c in need if c not in df.columns]
     if miss:
@@ -226,7 +290,13 @@ def load_file_proposals(path: Path, frames: pd.DataFrame) -> pd.DataFrame:
         (m["width"].isna().to_numpy(), "unknown frame"),
         (~np.isfinite(b).all(1), "non-numeric box"),
         ((b[:, 2] <= b[:, 0]) | (b[:, 3] <= b[:, 1]), "box has zero or negative area"),
-        ((b[:, 0] < 0) | (b[:, 1] < 0) | (b[:, 2] > m["width"].to_numpy()) | (b[:, 3] > m["height"].to_numpy()), "box outside the image"),
+        (
+            (b[:, 0] < 0)
+            | (b[:, 1] < 0)
+            | (b[:, 2] > m["width"].to_numpy())
+            | (b[:, 3] > m["height"].to_numpy()),
+            "box outside the image",
+        ),
     ]
     for mask, what in checks:
         mask = np.asarray(mask, bool)
@@ -239,59 +309,125 @@ def load_file_proposals(path: Path, frames: pd.DataFrame) -> pd.DataFrame:
 # ---------------------------------------------------------------- driver
 
 
+#: A per-image proposer: the upright (H, W, 3) uint8 RGB image and ``[proposals]`` ->
+#: (boxes (k, 4) x1, y1, x2, y2 in pixels, scores (k,), higher = better).
+ImageProposer = Callable[[np.ndarray, ProposalsConfig], tuple[np.ndarray, np.ndarray]]
+
+
+def _edges(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    return edge_boxes(rgb, cfg.edges)
+
+
+def _mser(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    return mser_boxes(rgb, cfg.mser)
+
+
+#: Proposal methods that read one image at a time, by name (``[proposals] methods``).
+IMAGE_METHODS: dict[str, ImageProposer] = {"edges": _edges, "mser": _mser}
+
+
+def register_method(name: str, proposer: ImageProposer) -> None:
+    """Add a per-image proposal method, selected by ``name`` in ``[proposals] methods``.
+
+    Its source is part of the proposals' cache key (:func:`method_fingerprints`), so editing it
+    recomputes them. Each method gets its own rank engine (SPEC section 6).
+
+    Raises:
+        ValueError: ``name`` is taken.
+    """
+    if name in SPECIAL_METHODS or name in IMAGE_METHODS:
+        raise ValueError(f"proposal method {name!r} exists; known: {list(known_methods())}")
+    IMAGE_METHODS[name] = proposer
+
+
+def known_methods() -> tuple[str, ...]:
+    """Every proposal method name ``[proposals] methods`` may list."""
+    return ("grid5", *IMAGE_METHODS, "yolo", "file")
+
+
+def method_fingerprints(methods: Sequence[str]) -> dict[str, str]:
+    """The source hash of each listed method registered from outside the package."""
+    return source_fingerprints(IMAGE_METHODS, methods)
+
+
 def compute_proposals(
-    frames: pd.DataFrame, cfg: ProposalsConfig, progress: Callable[[Iterable], Iterable] = lambda it: it
+    frames: pd.DataFrame,
+    cfg: ProposalsConfig,
+    progress: Callable[[Iterable], Iterable] = lambda it: it,
 ) -> pd.DataFrame:
     """Proposal rows (PROPOSAL_COLUMNS) of every method in ``cfg.methods`` for every frame."""
     frames = frames.sort_values(["session", "camera", "utime"]).reset_index(drop=True)
     out: list[pd.DataFrame] = []
     methods = list(cfg.methods)
-    unknown = [m for m in methods if m not in METHODS]
+    unknown = [m for m in methods if m not in known_methods()]
     if unknown:
-        raise ConfigError(f"[proposals] unknown method(s) {unknown}; known: {list(METHODS)}")
+        raise ConfigError(
+            f"[proposals] unknown method(s) {unknown}; known: {list(known_methods())}"
+        )
 
-    def rows(f: pd.Series, method: str, boxes: np.ndarray, scores: np.ndarray, classes: list[str]) -> pd.DataFrame:
+    def rows(
+        f: pd.Series, method: str, boxes: np.ndarray, scores: np.ndarray, classes: list[str]
+    ) -> pd.DataFrame:
         n = len(boxes)
-        return pd.DataFrame({
-            "session": f.session, "camera": f.camera, "utime": np.full(n, f.utime, np.int64), "method": method,
-            "box_id": np.arange(n, dtype=np.int32), "x1": boxes[:, 0] if n else [], "y1": boxes[:, 1] if n else [],
-            "x2": boxes[:, 2] if n else [], "y2": boxes[:, 3] if n else [], "score": scores, "class": classes,
-        })
+        return pd.DataFrame(
+            {
+                "session": f.session,
+                "camera": f.camera,
+                "utime": np.full(n, f.utime, np.int64),
+                "method": method,
+                "box_id": np.arange(n, dtype=np.int32),
+                "x1": boxes[:, 0] if n else [],
+                "y1": boxes[:, 1] if n else [],
+                "x2": boxes[:, 2] if n else [],
+                "y2": boxes[:, 3] if n else [],
+                "score": scores,
+                "class": classes,
+            }
+        )
 
     if "grid5" in methods:
         for f in frames.itertuples(index=False):
             out.append(rows(f, "grid5", grid5(f.width, f.height), np.ones(5), [""] * 5))
-    pixel_methods = [m for m in methods if m in ("edges", "mser", "yolo")]
-    if pixel_methods:
-        yolo = YoloProposer(cfg.yolo) if "yolo" in pixel_methods else None
+    per_image = [m for m in IMAGE_METHODS if m in methods]
+    if per_image or "yolo" in methods:
+        yolo = YoloProposer(cfg.yolo) if "yolo" in methods else None
         batch = max(1, cfg.yolo.batch)
         items = list(frames.itertuples(index=False))
         for i in progress(range(0, len(items), batch)):
             chunk = items[i : i + batch]
             imgs = [read_image(f.image) for f in chunk]
-            if "edges" in pixel_methods:
+            for m in per_image:
                 for f, im in zip(chunk, imgs, strict=True):
-                    b, s = edge_boxes(im, cfg.edges)
-                    out.append(rows(f, "edges", b, s, [""] * len(b)))
-            if "mser" in pixel_methods:
-                for f, im in zip(chunk, imgs, strict=True):
-                    b, s = mser_boxes(im, cfg.mser)
-                    out.append(rows(f, "mser", b, s, [""] * len(b)))
+                    b, s = IMAGE_METHODS[m](im, cfg)
+                    b = np.asarray(b, np.float64).reshape(-1, 4)
+                    out.append(rows(f, m, b, np.asarray(s, np.float64), [""] * len(b)))
             if yolo is not None:
                 for f, (b, s, c) in zip(chunk, yolo(imgs), strict=True):
                     out.append(rows(f, "yolo", b, s, [str(int(k)) for k in c]))
     if "file" in methods:
         if not cfg.file:
-            raise ConfigError("[proposals] method 'file' needs [proposals] file = <path to the table>")
+            raise ConfigError(
+                "[proposals] method 'file' needs [proposals] file = <path to the table>"
+            )
         fp = load_file_proposals(Path(cfg.file), frames)
         fp = fp.merge(frames[["session", "camera", "utime"]], on=["session", "camera", "utime"])
-        fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(drop=True)
+        fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(
+            drop=True
+        )
         fp["method"] = "file"
         fp["box_id"] = fp.groupby(["session", "camera", "utime"]).cumcount().astype(np.int32)
         out.append(fp[PROPOSAL_COLUMNS])
-    df = pd.concat([d for d in out if len(d)], ignore_index=True) if out else pd.DataFrame(columns=PROPOSAL_COLUMNS)
+    df = (
+        pd.concat([d for d in out if len(d)], ignore_index=True)
+        if out
+        else pd.DataFrame(columns=PROPOSAL_COLUMNS)
+    )
     df["class"] = df["class"].astype(str)
-    return df[PROPOSAL_COLUMNS].sort_values(["method", "session", "camera", "utime", "box_id"]).reset_index(drop=True)
+    return (
+        df[PROPOSAL_COLUMNS]
+        .sort_values(["method", "session", "camera", "utime", "box_id"])
+        .reset_index(drop=True)
+    )
 
 
 def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: Path) -> dict:
@@ -306,6 +442,8 @@ def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: 
     Returns:
         ``{"rows": proposal rows, "per_method": rows per method}``.
     """
-    df = compute_proposals(frames, cfg, progress=partial(progress, desc=f"proposals {name}", unit="batch"))
+    df = compute_proposals(
+        frames, cfg, progress=partial(progress, desc=f"proposals {name}", unit="batch")
+    )
     write_parquet(tmp / "proposals.parquet", df)
     return {"rows": len(df), "per_method": df.groupby("method").size().to_dict()}

@@ -19,7 +19,22 @@ NCLT_SEASONS: dict[str, str] = {
 }
 
 FRAME_KEY = ["session", "camera", "utime"]
-FRAME_COLUMNS = ["session", "camera", "utime", "x", "y", "z", "roll", "pitch", "yaw", "image", "width", "height", "pose_frame", "pose_of"]
+FRAME_COLUMNS = [
+    "session",
+    "camera",
+    "utime",
+    "x",
+    "y",
+    "z",
+    "roll",
+    "pitch",
+    "yaw",
+    "image",
+    "width",
+    "height",
+    "pose_frame",
+    "pose_of",
+]
 
 FRAME_SCHEMA = pa.schema(
     [
@@ -36,7 +51,10 @@ FRAME_SCHEMA = pa.schema(
         ("width", pa.int32()),
         ("height", pa.int32()),
         ("pose_frame", pa.string()),  # the frame the pose is expressed in (e.g. map)
-        ("pose_of", pa.string()),  # the frame whose pose it is (e.g. the camera's frame, or base_link)
+        (
+            "pose_of",
+            pa.string(),
+        ),  # the frame whose pose it is (e.g. the camera's frame, or base_link)
     ]
 )
 

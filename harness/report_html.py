@@ -38,20 +38,31 @@ log = logging.getLogger(__name__)
 THUMB_H = 200
 
 CSS = """
-body { font-family: -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif; margin: 0 auto; max-width: 1180px;
-       padding: 1.5rem 2rem 4rem; color: #1d2330; line-height: 1.45; background: #fbfbfd; }
-h1 { font-size: 1.7rem; margin-bottom: .2rem; } h2 { margin-top: 2.4rem; border-bottom: 2px solid #d9dde6; padding-bottom: .25rem; }
+body { font-family: -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif;
+       margin: 0 auto; max-width: 1180px; padding: 1.5rem 2rem 4rem; color: #1d2330;
+       line-height: 1.45; background: #fbfbfd; }
+h1 { font-size: 1.7rem; margin-bottom: .2rem; }
+h2 { margin-top: 2.4rem; border-bottom: 2px solid #d9dde6; padding-bottom: .25rem; }
 h3 { margin-top: 1.6rem; } .sub { color: #5b6475; margin-top: 0; }
 table { border-collapse: collapse; margin: .6rem 0 1rem; font-size: .88rem; background: #fff; }
-th, td { border: 1px solid #d9dde6; padding: .28rem .55rem; text-align: right; white-space: nowrap; }
+th, td { border: 1px solid #d9dde6; padding: .28rem .55rem; text-align: right;
+         white-space: nowrap; }
 th { background: #eef1f6; } td:first-child, th:first-child { text-align: left; }
-tr.sep td { background: #f4f5f8; font-style: italic; color: #5b6475; } tr.floor td { background: #f7f7ef; color: #5b6475; }
-.ci { color: #7a8394; font-size: .8em; } .warn { background: #fff4d6; border-left: 4px solid #e0a100; padding: .5rem .8rem; margin: .6rem 0; }
+tr.sep td { background: #f4f5f8; font-style: italic; color: #5b6475; }
+tr.floor td { background: #f7f7ef; color: #5b6475; }
+.ci { color: #7a8394; font-size: .8em; }
+.warn { background: #fff4d6; border-left: 4px solid #e0a100; padding: .5rem .8rem;
+        margin: .6rem 0; }
 .facts td { text-align: left; white-space: normal; } td.l { text-align: left; }
-details summary { cursor: pointer; color: #2f5fb3; margin: .4rem 0; } .facts td:first-child { font-weight: 600; color: #3b4456; }
-.grid { display: flex; flex-wrap: wrap; gap: 1rem; } .grid figure { margin: 0; background: #fff; border: 1px solid #d9dde6; padding: .4rem; }
-figure img { display: block; max-width: 100%; } figcaption { font-size: .78rem; color: #3b4456; margin-top: .3rem; max-width: 560px; }
-.pr img { width: 360px; } .note { color: #5b6475; font-size: .85rem; } code { background: #eef1f6; padding: 0 .25rem; border-radius: 3px; }
+details summary { cursor: pointer; color: #2f5fb3; margin: .4rem 0; }
+.facts td:first-child { font-weight: 600; color: #3b4456; }
+.grid { display: flex; flex-wrap: wrap; gap: 1rem; }
+.grid figure { margin: 0; background: #fff; border: 1px solid #d9dde6; padding: .4rem; }
+figure img { display: block; max-width: 100%; }
+figcaption { font-size: .78rem; color: #3b4456; margin-top: .3rem; max-width: 560px; }
+.pr img { width: 360px; }
+.note { color: #5b6475; font-size: .85rem; }
+code { background: #eef1f6; padding: 0 .25rem; border-radius: 3px; }
 nav a { margin-right: .8rem; font-size: .9rem; }
 """
 
@@ -61,7 +72,8 @@ window.addEventListener('load', function () {
   var ok = imgs.filter(function (i) { return i.complete && i.naturalWidth > 0; }).length;
   document.body.setAttribute('data-images-total', String(imgs.length));
   document.body.setAttribute('data-images-loaded', String(ok));
-  document.body.setAttribute('data-tables', String(document.querySelectorAll('table[data-table]').length));
+  var tables = document.querySelectorAll('table[data-table]').length;
+  document.body.setAttribute('data-tables', String(tables));
 });
 """
 
@@ -74,16 +86,30 @@ def _num(v: float, d: int = 2) -> str:
     return "NaN" if v != v else f"{v:.{d}f}"
 
 
+NAN = float("nan")
+
+
+def _diff_colour(lo: float, hi: float) -> str:
+    """A paired difference's background: green when its interval lies above 0, red below."""
+    return "#e3f4e1" if lo > 0 else "#fbe3e1" if hi < 0 else "#fff"
+
+
 def _heat(v: float, floor: float = 0.0) -> str:
     """A background colour for AP: pale red at the floor (a random ranking) to green at 1."""
     if v != v:
         return "#f0f0f0"
     v = float(np.clip((v - floor) / (1 - floor) if floor == floor and floor < 1 else v, 0, 1))
-    r, g, b = (int(255 - 90 * v), int(215 + 25 * v), int(215 - 60 * v)) if v >= 0.5 else (250, int(205 + 40 * v), int(200 + 20 * v))
+    r, g, b = (
+        (int(255 - 90 * v), int(215 + 25 * v), int(215 - 60 * v))
+        if v >= 0.5
+        else (250, int(205 + 40 * v), int(200 + 20 * v))
+    )
     return f"rgb({r},{g},{b})"
 
 
-def _change_table(summ: pd.DataFrame, table: str, methods: tuple[str, ...], warnings: list[str]) -> str:
+def _change_table(
+    summ: pd.DataFrame, table: str, methods: tuple[str, ...], warnings: list[str]
+) -> str:
     ap, lo, hi = (pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high"))
     floor = pivot(summ, table, methods, "floor")
     cols = list(ap.columns)
@@ -92,18 +118,35 @@ def _change_table(summ: pd.DataFrame, table: str, methods: tuple[str, ...], warn
     rows, sep = [], False
     for m in ap.index:
         if m not in FUSION_METHODS and not sep:
-            rows.append(f'<tr class="sep"><td colspan="{len(cols) + 1}">variants and baselines (the baselines read no pixel)</td></tr>')
+            rows.append(
+                f'<tr class="sep"><td colspan="{len(cols) + 1}">variants and baselines (the '
+                "baselines read no pixel)</td></tr>"
+            )
             sep = True
         cells = "".join(
             f'<td style="background:{_heat(ap.loc[m, c], floor.loc[m, c])}">{_num(ap.loc[m, c])}'
-            + (f' <span class="ci">[{_num(lo.loc[m, c])}, {_num(hi.loc[m, c])}]</span>' if lo.loc[m, c] == lo.loc[m, c] else "") + "</td>"
-            for c in cols)
+            + (
+                f' <span class="ci">[{_num(lo.loc[m, c])}, {_num(hi.loc[m, c])}]</span>'
+                if lo.loc[m, c] == lo.loc[m, c]
+                else ""
+            )
+            + "</td>"
+            for c in cols
+        )
         rows.append(f"<tr><td>{_e(METHOD_LABELS[m])}</td>{cells}</tr>")
-    rows.append('<tr class="floor"><td>floor (random ranking)</td>' + "".join(f"<td>{_num(floor.loc[ref, c])}</td>" for c in cols) + "</tr>")
+    rows.append(
+        '<tr class="floor"><td>floor (random ranking)</td>'
+        + "".join(f"<td>{_num(floor.loc[ref, c])}</td>" for c in cols)
+        + "</tr>"
+    )
     title, intro = TABLE_INTRO[table]
     warn = "".join(f'<div class="warn">{_e(w)}</div>' for w in warnings)
-    return (f'<h2 id="table{table}">{_e(title)}</h2><p class="note">{_e(intro)} Cells: AP [95% bootstrap interval over query images]; colour: from the floor (red) to 1 (green).</p>'
-            f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}')
+    return (
+        f'<h2 id="table{table}">{_e(title)}</h2><p class="note">{_e(intro)} Cells: AP [95% '
+        "bootstrap interval over query images]; colour: from the floor (red) to 1 "
+        "(green).</p>"
+        f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}'
+    )
 
 
 def _localization(loc: pd.DataFrame, radius: float) -> str:
@@ -112,40 +155,71 @@ def _localization(loc: pd.DataFrame, radius: float) -> str:
     def rows(df: pd.DataFrame) -> str:
         return "".join(
             f'<tr><td>{_e(r.proposals)}</td><td class="l">{_e(r.season_pair)}</td>'
-            + "".join(f"<td>{int(getattr(r, c))}</td>" if d == 0 else f"<td>{_num(float(getattr(r, c)), d)}</td>" for c, _, d in LOC_COLUMNS)
-            + "</tr>" for r in df.itertuples(index=False))
+            + "".join(
+                f"<td>{int(getattr(r, c))}</td>"
+                if d == 0
+                else f"<td>{_num(float(getattr(r, c)), d)}</td>"
+                for c, _, d in LOC_COLUMNS
+            )
+            + "</tr>"
+            for r in df.itertuples(index=False)
+        )
 
     table = f"<tr><th>proposals</th><th>season pair</th>{head}</tr>"
-    return ('<h2 id="localization">Localization quality</h2><p class="note">Every change figure rests on these ranks. Ground truth: '
-            f"the reference frames within {radius:g} m of the paired frame (the place). R@k: share of query subimages whose place "
-            "ranks within the first k; median r: 0.5 is chance; clean: subimages of annotated frames with RoC &le; 0.05.</p>"
-            f'<table data-table="localization">{table}{rows(loc[loc["season_pair"] == "all"])}</table>'
-            f'<details><summary>per season pair</summary><table>{table}{rows(loc[loc["season_pair"] != "all"])}</table></details>')
+    return (
+        '<h2 id="localization">Localization quality</h2><p class="note">Every change figure '
+        "rests on these ranks. Ground truth: "
+        f"the reference frames within {radius:g} m of the paired frame (the place). R@k: "
+        "share of query subimages whose place "
+        "ranks within the first k; median r: 0.5 is chance; clean: subimages of annotated "
+        "frames with RoC &le; 0.05.</p>"
+        f'<table data-table="localization">{table}{rows(loc[loc["season_pair"] == "all"])}</table>'
+        "<details><summary>per season "
+        f"pair</summary><table>{table}{rows(loc[loc['season_pair'] != 'all'])}</table></details>"
+    )
 
 
 def _heatmap(summ: pd.DataFrame, table: str, method: str) -> str:
     """AP of one method per season pair (query season down, reference season across)."""
-    d = summ[(summ["table"] == "I") & (summ["proposals"] == "all") & (summ["season_pair"] != "all") & (summ["method"] == method)]
+    d = summ[
+        (summ["table"] == "I")
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] != "all")
+        & (summ["method"] == method)
+    ]
     if not len(d):
         return ""
     split = d["split"].iloc[-1]
     d = d[d["split"] == split]
     pairs = d.set_index("season_pair")["ap"].to_dict()
     floors = d.set_index("season_pair")["positive_rate"].to_dict()
-    seasons = sorted({p.split("->")[0] for p in pairs} | {p.split("->")[1] for p in pairs},
-                     key=lambda s: ["WI", "SP", "SU", "AU"].index(s) if s in ("WI", "SP", "SU", "AU") else 9)
+    seasons = sorted(
+        {p.split("->")[0] for p in pairs} | {p.split("->")[1] for p in pairs},
+        key=lambda s: ["WI", "SP", "SU", "AU"].index(s) if s in ("WI", "SP", "SU", "AU") else 9,
+    )
     head = "".join(f"<th>{_e(s)}</th>" for s in seasons)
+
+    def cell(q: str, r: str) -> str:
+        if q == r:
+            return "<td>&mdash;</td>"
+        ap = pairs.get(f"{q}->{r}", NAN)
+        return f'<td style="background:{_heat(ap, floors.get(f"{q}->{r}", 0.0))}">{_num(ap)}</td>'
+
     rows = "".join(
-        f"<tr><th>{_e(q)}</th>" + "".join(
-            "<td>&mdash;</td>" if q == r else f'<td style="background:{_heat(pairs.get(f"{q}->{r}", float("nan")), floors.get(f"{q}->{r}", 0.0))}">'
-            f'{_num(pairs.get(f"{q}->{r}", float("nan")))}</td>' for r in seasons) + "</tr>"
-        for q in seasons)
-    return (f'<h2 id="heatmap">AP per season pair</h2><p class="note">{_e(METHOD_LABELS[method])}, Table I, {_e(split)}; query season '
-            f'down, reference season across (per-pair AP has no interval: few query images per pair; NaN: no positive in that pair).</p>'
-            f'<table data-table="heatmap"><tr><th>query \\ reference</th>{head}</tr>{rows}</table>')
+        f"<tr><th>{_e(q)}</th>" + "".join(cell(q, r) for r in seasons) + "</tr>" for q in seasons
+    )
+    return (
+        '<h2 id="heatmap">AP per season pair</h2><p '
+        f'class="note">{_e(METHOD_LABELS[method])}, Table I, {_e(split)}; query season '
+        "down, reference season across (per-pair AP has no interval: few query images per "
+        "pair; NaN: no positive in that pair).</p>"
+        f'<table data-table="heatmap"><tr><th>query \\ reference</th>{head}</tr>{rows}</table>'
+    )
 
 
-def _draw_boxes(img: np.ndarray, boxes: np.ndarray, colour: tuple[int, int, int], width: int) -> np.ndarray:
+def _draw_boxes(
+    img: np.ndarray, boxes: np.ndarray, colour: tuple[int, int, int], width: int
+) -> np.ndarray:
     out = img.copy()
     for x1, y1, x2, y2 in np.asarray(boxes, np.float64).reshape(-1, 4):
         cv2.rectangle(out, (round(x1), round(y1)), (round(x2) - 1, round(y2) - 1), colour, width)
@@ -157,8 +231,13 @@ def _panel(img: np.ndarray) -> np.ndarray:
     return cv2.resize(img, (max(1, round(w * THUMB_H / h)), THUMB_H), interpolation=cv2.INTER_AREA)
 
 
-def _thumbnail(query: np.ndarray, reference: np.ndarray, lmap: np.ndarray, change: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """query (change boxes red, the sample yellow) | reference | LoC map over the query (brighter = more changed)."""
+def _thumbnail(
+    query: np.ndarray, reference: np.ndarray, lmap: np.ndarray, change: np.ndarray, box: np.ndarray
+) -> np.ndarray:
+    """Query (change boxes red, the sample yellow) | reference | LoC map over the query.
+
+    The brighter the map, the more changed.
+    """
     lw = max(1, round(query.shape[0] / THUMB_H))
     q = _draw_boxes(_draw_boxes(query, change, (230, 40, 40), 2 * lw), box, (255, 215, 0), 2 * lw)
     valid = np.isfinite(lmap)
@@ -168,13 +247,19 @@ def _thumbnail(query: np.ndarray, reference: np.ndarray, lmap: np.ndarray, chang
     else:
         norm = np.zeros(lmap.shape)
     heat = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
-    heat = np.where(valid[..., None], (0.7 * heat + 0.3 * query).astype(np.uint8), (0.35 * query).astype(np.uint8))
+    heat = np.where(
+        valid[..., None],
+        (0.7 * heat + 0.3 * query).astype(np.uint8),
+        (0.35 * query).astype(np.uint8),
+    )
     heat = _draw_boxes(_draw_boxes(heat, change, (230, 40, 40), 2 * lw), box, (255, 215, 0), 2 * lw)
     gap = np.full((THUMB_H, 6, 3), 255, np.uint8)
     return np.hstack([_panel(q), gap, _panel(reference), gap, _panel(heat)])
 
 
-def _gallery(out: Path, run: dict, n: int, frames: pd.DataFrame, ann: pd.DataFrame, ranks: pd.DataFrame) -> tuple[str, list[Path]]:
+def _gallery(
+    out: Path, run: dict, n: int, frames: pd.DataFrame, ann: pd.DataFrame, ranks: pd.DataFrame
+) -> tuple[str, list[Path]]:
     """The highest-LoC false positives and lowest-LoC missed changes per method, as thumbnails."""
     split_files = sorted((out / "splits").glob("roc_max_*.parquet"))
     if n <= 0 or not split_files:
@@ -184,7 +269,9 @@ def _gallery(out: Path, run: dict, n: int, frames: pd.DataFrame, ann: pd.DataFra
     rep = rep.reset_index(names="row")
     rep = rep[rep["proposals"] == "all"]
     fr = frames.set_index(["session", "camera", "utime"])
-    refs = ranks.drop_duplicates(["q_session", "q_camera", "q_utime", "r_session"]).set_index(["q_session", "q_camera", "q_utime", "r_session"])
+    refs = ranks.drop_duplicates(["q_session", "q_camera", "q_utime", "r_session"]).set_index(
+        ["q_session", "q_camera", "q_utime", "r_session"]
+    )
     chg = ann[ann["status"] == "change"]
     cache: dict[tuple, np.ndarray] = {}
 
@@ -201,34 +288,68 @@ def _gallery(out: Path, run: dict, n: int, frames: pd.DataFrame, ann: pd.DataFra
         fps = lab[lab["label"] == 0].sort_values([col, "row"], ascending=[False, True]).head(n)
         misses = lab[lab["label"] == 1].sort_values([col, "row"], ascending=[True, True]).head(n)
         figs = []
-        for kind, rows in (("false positive: the highest LoC among negatives", fps), ("missed change: the lowest LoC among positives", misses)):
+        for kind, rows in (
+            ("false positive: the highest LoC among negatives", fps),
+            ("missed change: the lowest LoC among positives", misses),
+        ):
             for r in rows.itertuples():
                 qk = (r.q_session, r.q_camera, int(r.q_utime))
                 rk = refs.loc[(r.q_session, r.q_camera, int(r.q_utime), r.r_session)]
                 rkey = (r.r_session, rk["r_camera"], int(rk["r_utime"]))
-                img = rep[(rep["q_session"] == r.q_session) & (rep["q_camera"] == r.q_camera) & (rep["q_utime"] == r.q_utime)
-                          & (rep["r_session"] == r.r_session) & rep[col].notna()]
+                img = rep[
+                    (rep["q_session"] == r.q_session)
+                    & (rep["q_camera"] == r.q_camera)
+                    & (rep["q_utime"] == r.q_utime)
+                    & (rep["r_session"] == r.r_session)
+                    & rep[col].notna()
+                ]
                 w, h = int(fr.loc[qk, "width"]), int(fr.loc[qk, "height"])
-                lmap = loc_map(img[["x1", "y1", "x2", "y2"]].to_numpy(np.float64), img[col].to_numpy(np.float64), w, h)
-                change = chg[(chg["session"] == r.q_session) & (chg["camera"] == r.q_camera) & (chg["utime"] == r.q_utime)][["x1", "y1", "x2", "y2"]].to_numpy()
-                thumb = _thumbnail(image(qk), image(rkey), lmap, change, np.array([[r.x1, r.y1, r.x2, r.y2]]))
+                lmap = loc_map(
+                    img[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
+                    img[col].to_numpy(np.float64),
+                    w,
+                    h,
+                )
+                change = chg[
+                    (chg["session"] == r.q_session)
+                    & (chg["camera"] == r.q_camera)
+                    & (chg["utime"] == r.q_utime)
+                ][["x1", "y1", "x2", "y2"]].to_numpy()
+                thumb = _thumbnail(
+                    image(qk), image(rkey), lmap, change, np.array([[r.x1, r.y1, r.x2, r.y2]])
+                )
                 name = f"{m}_{'fp' if kind.startswith('false') else 'miss'}_{r.row}.jpg"
-                ok, buf = cv2.imencode(".jpg", cv2.cvtColor(thumb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 82])
+                ok, buf = cv2.imencode(
+                    ".jpg", cv2.cvtColor(thumb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 82]
+                )
                 if not ok:
                     raise HarnessError(f"{out / 'report' / name}: could not encode a thumbnail")
                 with atomic_path(out / "report" / name) as tmp:
                     tmp.write_bytes(buf.tobytes())
                 written.append(out / "report" / name)
                 figs.append(
-                    f'<figure><img src="report/{_e(name)}" alt="{_e(kind)}" loading="lazy"><figcaption><b>{_e(kind.split(":")[0])}</b>, LoC '
-                    f'{r.__getattribute__(col):.3g}, RoC {r.RoC:.2f}, SoB {r.SoB:.3f}, N {r.N}<br>{_e(r.q_session)} {int(r.q_utime)} vs '
-                    f'{_e(r.r_session)} ({_e(r.season_pair)}); <a href="{_e(split_file.relative_to(out))}">{_e(split_file.name)}</a> row {r.row}'
-                    "</figcaption></figure>")
-        parts.append(f'<h3>{_e(METHOD_LABELS[m])}</h3><div class="grid">{"".join(figs) or "<p class=note>no labelled samples</p>"}</div>')
-    intro = ("<p class='note'>Per method, the negatives it scored highest (false positives) and the positives it scored lowest "
-             f"(missed changes) under {_e(split_file.stem)} (Table I's labels). Each: query with the annotated change (red) and the sample "
-             "(yellow) | its reference | the method's LoC map over the query (brighter = more likely changed). Rows refer to the split "
-             f"report. At most {n} of each per method (<code>[report] gallery</code>).</p>")
+                    f'<figure><img src="report/{_e(name)}" alt="{_e(kind)}" '
+                    f'loading="lazy"><figcaption><b>{_e(kind.split(":")[0])}</b>, LoC '
+                    f"{r.__getattribute__(col):.3g}, RoC {r.RoC:.2f}, SoB {r.SoB:.3f}, N "
+                    f"{r.N}<br>{_e(r.q_session)} {int(r.q_utime)} vs "
+                    f"{_e(r.r_session)} ({_e(r.season_pair)}); <a "
+                    f'href="{_e(split_file.relative_to(out))}">{_e(split_file.name)}</a> '
+                    f"row {r.row}"
+                    "</figcaption></figure>"
+                )
+        parts.append(
+            f"<h3>{_e(METHOD_LABELS[m])}</h3><div "
+            f'class="grid">{"".join(figs) or "<p class=note>no labelled samples</p>"}</div>'
+        )
+    intro = (
+        "<p class='note'>Per method, the negatives it scored highest (false positives) and "
+        "the positives it scored lowest "
+        f"(missed changes) under {_e(split_file.stem)} (Table I's labels). Each: query with "
+        "the annotated change (red) and the sample "
+        "(yellow) | its reference | the method's LoC map over the query (brighter = more "
+        "likely changed). Rows refer to the split "
+        f"report. At most {n} of each per method (<code>[report] gallery</code>).</p>"
+    )
     return '<h2 id="gallery">Change maps: worst cases</h2>' + intro + "".join(parts), written
 
 
@@ -255,61 +376,126 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     methods = tuple(m for m in METHOD_LABELS if m in set(summ["method"]))
     warnings = run.get("warnings", {})
     counts = run["counts"]
-    drops = {s: ", ".join(f"{k} {v}" for k, v in d.get("dropped", {}).items() if v) for s, d in run.get("ingest", {}).items()}
+    drops = {
+        s: ", ".join(f"{k} {v}" for k, v in d.get("dropped", {}).items() if v)
+        for s, d in run.get("ingest", {}).items()
+    }
     facts = [
-        ("config", f"{cfg['name']} ({len(cfg['sessions'])} sessions)"), ("data root", cfg["data_root"]), ("annotations", cfg["annotations"]),
-        ("versions", ", ".join(f"{k} {v}" for k, v in run["versions"].items() if k != "platform")), ("platform", run["versions"].get("platform", "")),
+        ("config", f"{cfg['name']} ({len(cfg['sessions'])} sessions)"),
+        ("data root", cfg["data_root"]),
+        ("annotations", cfg["annotations"]),
+        ("versions", ", ".join(f"{k} {v}" for k, v in run["versions"].items() if k != "platform")),
+        ("platform", run["versions"].get("platform", "")),
         ("executor", ", ".join(f"{k} {v}" for k, v in run.get("executor", {}).items())),
-        ("time", f"{run['total_s']:.1f} s: " + ", ".join(f"{k} {v:.1f}" for k, v in run["timings_s"].items())),
-        ("counts", f"{counts['frames']} frames, {counts['annotated_frames']} annotated frames, {counts['pairs']} pairs (query images), "
-                   f"{counts['ranked_subimages']} ranked subimages, {counts['samples']} samples"),
+        (
+            "time",
+            f"{run['total_s']:.1f} s: "
+            + ", ".join(f"{k} {v:.1f}" for k, v in run["timings_s"].items()),
+        ),
+        (
+            "counts",
+            (
+                f"{counts['frames']} frames, {counts['annotated_frames']} annotated frames, "
+                f"{counts['pairs']} pairs (query images), "
+                f"{counts['ranked_subimages']} ranked subimages, {counts['samples']} samples"
+            ),
+        ),
         ("dropped at ingest", "; ".join(f"{s}: {d}" for s, d in drops.items() if d) or "nothing"),
-        ("ranking", "; ".join(f"{s}: {', '.join(f'{k} {v}' for k, v in c.items() if v)}" for s, c in counts.get("rank_counts", {}).items())),
+        (
+            "ranking",
+            "; ".join(
+                f"{s}: {', '.join(f'{k} {v}' for k, v in c.items() if v)}"
+                for s, c in counts.get("rank_counts", {}).items()
+            ),
+        ),
     ]
     fact_rows = "".join(f"<tr><td>{_e(k)}</td><td>{_e(v)}</td></tr>" for k, v in facts)
     prs = sorted((out / "plots").glob("pr_*.png"))
-    pr_html = "".join(f'<figure><img src="{_e(p.relative_to(out))}" alt="{_e(p.stem)}"><figcaption>{_e(p.stem[3:])}</figcaption></figure>'
-                      for p in prs)
-    cmp_rows = summ[(summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()]
+    pr_html = "".join(
+        f'<figure><img src="{_e(p.relative_to(out))}" '
+        f'alt="{_e(p.stem)}"><figcaption>{_e(p.stem[3:])}</figcaption></figure>'
+        for p in prs
+    )
+    cmp_rows = summ[
+        (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()
+    ]
     cmp_html = ""
     for table in ("I", "S", "P"):
         t = cmp_rows[cmp_rows["table"] == table]
         if not len(t):
             continue
-        d = t.pivot(index="method", columns="split", values="diff").reindex([m for m in methods if m in set(t["method"])])
+        d = t.pivot(index="method", columns="split", values="diff").reindex(
+            [m for m in methods if m in set(t["method"])]
+        )
         lo = t.pivot(index="method", columns="split", values="diff_ci_low").reindex(d.index)
         hi = t.pivot(index="method", columns="split", values="diff_ci_high").reindex(d.index)
         cols = [c for c in t["split"].drop_duplicates()]
         head = "".join(f"<th>{_e(c)}</th>" for c in cols)
-        body = "".join(
-            f"<tr><td>{_e(METHOD_LABELS[m])} &minus; rank fusion</td>" + "".join(
-                f'<td style="background:{"#e3f4e1" if lo.loc[m, c] > 0 else "#fbe3e1" if hi.loc[m, c] < 0 else "#fff"}">{d.loc[m, c]:+.2f} '
-                f'<span class="ci">[{lo.loc[m, c]:+.2f}, {hi.loc[m, c]:+.2f}]</span></td>' for c in cols) + "</tr>" for m in d.index)
-        cmp_html += f'<h3>{_e(TABLE_INTRO[table][0])}</h3><table data-table="cmp{table}"><tr><th>difference</th>{head}</tr>{body}</table>'
+        diffs = "".join(
+            f"<tr><td>{_e(METHOD_LABELS[m])} &minus; rank fusion</td>"
+            + "".join(
+                f'<td style="background:{_diff_colour(lo.loc[m, c], hi.loc[m, c])}">'
+                f"{d.loc[m, c]:+.2f} "
+                f'<span class="ci">[{lo.loc[m, c]:+.2f}, {hi.loc[m, c]:+.2f}]</span></td>'
+                for c in cols
+            )
+            + "</tr>"
+            for m in d.index
+        )
+        cmp_html += (
+            f"<h3>{_e(TABLE_INTRO[table][0])}</h3><table "
+            f'data-table="cmp{table}"><tr><th>difference</th>{head}</tr>{diffs}</table>'
+        )
     gallery_html, thumbs = _gallery(out, run, n, frames, ann, ranks)
     keep = {p.resolve() for p in thumbs}
     for p in (out / "report").glob("*.jpg") if (out / "report").is_dir() else []:
-        if p.resolve() not in keep:  # thumbnails of an earlier page (a larger gallery) this page no longer shows
+        if p.resolve() not in keep:  # thumbnails of an earlier page that this page no longer shows
             p.unlink()
     body = [
         f"<h1>Detection-by-Localization: {_e(cfg['name'])}</h1>",
-        f"<p class='sub'>dbl-harness {_e(run['versions'].get('dbl-harness', ''))}, seed {run['seed']}</p>",
-        "<nav>" + "".join(f'<a href="#{a}">{t}</a>' for a, t in (("facts", "run"), ("localization", "localization"), ("tableI", "Table I"),
-                                                                  ("tableS", "Table S"), ("tableP", "Table P"), ("comparisons", "comparisons"),
-                                                                  ("pr", "PR curves"), ("heatmap", "season pairs"), ("gallery", "change maps"))) + "</nav>",
+        (
+            f"<p class='sub'>dbl-harness {_e(run['versions'].get('dbl-harness', ''))}, seed "
+            f"{run['seed']}</p>"
+        ),
+        "<nav>"
+        + "".join(
+            f'<a href="#{a}">{t}</a>'
+            for a, t in (
+                ("facts", "run"),
+                ("localization", "localization"),
+                ("tableI", "Table I"),
+                ("tableS", "Table S"),
+                ("tableP", "Table P"),
+                ("comparisons", "comparisons"),
+                ("pr", "PR curves"),
+                ("heatmap", "season pairs"),
+                ("gallery", "change maps"),
+            )
+        )
+        + "</nav>",
         f'<h2 id="facts">Run</h2><table class="facts" data-table="facts">{fact_rows}</table>',
         _localization(loc, float(cfg["retrieval"]["gt_radius_m"])),
         *(_change_table(summ, t, methods, warnings.get(t, [])) for t in ("I", "S", "P")),
-        '<h2 id="comparisons">Paired comparisons with rank fusion</h2><p class="note">AP(method) &minus; AP(rank fusion) over the same '
-        "bootstrap resamples of query images, with its 95% interval; green: better than rank fusion, red: worse, white: cannot be told apart "
+        '<h2 id="comparisons">Paired comparisons with rank fusion</h2><p '
+        'class="note">AP(method) &minus; AP(rank fusion) over the same '
+        "bootstrap resamples of query images, with its 95% interval; green: better than "
+        "rank fusion, red: worse, white: cannot be told apart "
         "on this data.</p>" + cmp_html,
-        f'<h2 id="pr">Precision-recall curves (Table I splits)</h2><div class="grid pr">{pr_html}</div>',
+        (
+            '<h2 id="pr">Precision-recall curves (Table I splits)</h2><div class="grid '
+            f'pr">{pr_html}</div>'
+        ),
         _heatmap(summ, "I", "rank_fusion" if "rank_fusion" in methods else methods[0]),
         gallery_html,
     ]
-    page = ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><meta name='viewport' content='width=device-width, initial-scale=1'>"
-            f"<title>dbl-harness report: {_e(cfg['name'])}</title><style>{CSS}</style><script>{SCRIPT}</script></head><body>"
-            + "\n".join(body) + "</body></html>\n")
+    page = (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><meta name='viewport' "
+        "content='width=device-width, initial-scale=1'>"
+        "<title>dbl-harness report: "
+        f"{_e(cfg['name'])}</title><style>{CSS}</style><script>{SCRIPT}</script></head><body>"
+        + "\n".join(body)
+        + "</body></html>\n"
+    )
     write_text(out / "report.html", page)
     log.info("report: wrote %s", out / "report.html")
     return out / "report.html"

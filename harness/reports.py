@@ -1,5 +1,7 @@
-"""Reports of a run (SPEC sections 6, 9 and 10): localization quality, Table I, the per-split
-reports and their summary, PR curves and LoC-map figures.
+"""Reports of a run (SPEC sections 6, 9 and 10).
+
+Localization quality, Table I, the per-split reports and their summary, PR curves and LoC-map
+figures.
 
 Every file is written atomically; files of an earlier run into the same directory that this run
 no longer produces (a split dropped from the config, an old figure) are removed, so a directory
@@ -12,6 +14,7 @@ import logging
 import zlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +65,9 @@ def _fmt(v: float, digits: int = 2) -> str:
 # ------------------------------------------------------------------ localization quality
 
 
-def localization_table(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame) -> pd.DataFrame:
+def localization_table(
+    ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame
+) -> pd.DataFrame:
     """Recall@1, recall@5 and median r per proposal method x season pair (and over all pairs).
 
     Each statistic is given over all ranked query subimages and over the clean ones (annotated
@@ -70,64 +75,116 @@ def localization_table(ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFr
     ranking) and 0.5 (its median r).
     """
     cb = change_boxes(ann)
-    size = {k: (int(w), int(h)) for k, w, h in zip(frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
-                                                   frames["width"], frames["height"], strict=True)}
+    size = {
+        k: (int(w), int(h))
+        for k, w, h in zip(
+            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames["width"],
+            frames["height"],
+            strict=True,
+        )
+    }
     roc = np.full(len(ranks), np.nan)
     for key, idx in ranks.groupby(["q_session", "q_camera", "q_utime"], sort=False).indices.items():
         k = (str(key[0]), str(key[1]), int(key[2]))
         if k in cb:
             w, h = size[k]
-            roc[idx] = roc_sob(ranks[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)[idx], cb[k], w, h)[0]
+            roc[idx] = roc_sob(
+                ranks[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)[idx], cb[k], w, h
+            )[0]
     df = ranks.assign(_clean=roc <= CLEAN_ROC)
     rows = []
     for prop, gp in [("all", df), *df.groupby("method", sort=True)]:
         for pair, g in [("all", gp), *gp.groupby("season_pair", sort=True)]:
             c = g[g["_clean"]]
-            rows.append({
-                "proposals": str(prop), "season_pair": str(pair),
-                "subimages": len(g), "recall_at_1": float((g["rank"] == 1).mean()), "recall_at_5": float((g["rank"] <= 5).mean()),
-                "median_r": float(g["r"].median()), "chance_recall_at_1": float((1.0 / g["L"]).mean()),
-                "clean_subimages": len(c),
-                "clean_recall_at_1": float((c["rank"] == 1).mean()) if len(c) else float("nan"),
-                "clean_recall_at_5": float((c["rank"] <= 5).mean()) if len(c) else float("nan"),
-                "clean_median_r": float(c["r"].median()) if len(c) else float("nan"),
-                "median_place_size": float(g["place_size"].median()) if "place_size" in g.columns else 1.0,
-            })
+            rows.append(
+                {
+                    "proposals": str(prop),
+                    "season_pair": str(pair),
+                    "subimages": len(g),
+                    "recall_at_1": float((g["rank"] == 1).mean()),
+                    "recall_at_5": float((g["rank"] <= 5).mean()),
+                    "median_r": float(g["r"].median()),
+                    "chance_recall_at_1": float((1.0 / g["L"]).mean()),
+                    "clean_subimages": len(c),
+                    "clean_recall_at_1": float((c["rank"] == 1).mean()) if len(c) else float("nan"),
+                    "clean_recall_at_5": float((c["rank"] <= 5).mean()) if len(c) else float("nan"),
+                    "clean_median_r": float(c["r"].median()) if len(c) else float("nan"),
+                    "median_place_size": float(g["place_size"].median())
+                    if "place_size" in g.columns
+                    else 1.0,
+                }
+            )
     return pd.DataFrame(rows)
 
 
-LOC_COLUMNS = [("subimages", "n", 0), ("recall_at_1", "R@1", 2), ("recall_at_5", "R@5", 2), ("median_r", "med r", 3),
-               ("chance_recall_at_1", "chance R@1", 3), ("clean_recall_at_1", "clean R@1", 2), ("clean_recall_at_5", "clean R@5", 2),
-               ("clean_median_r", "clean med r", 3)]
+LOC_COLUMNS = [
+    ("subimages", "n", 0),
+    ("recall_at_1", "R@1", 2),
+    ("recall_at_5", "R@5", 2),
+    ("median_r", "med r", 3),
+    ("chance_recall_at_1", "chance R@1", 3),
+    ("clean_recall_at_1", "clean R@1", 2),
+    ("clean_recall_at_5", "clean R@5", 2),
+    ("clean_median_r", "clean med r", 3),
+]
 
 
 def localization_markdown(loc: pd.DataFrame, gt_radius_m: float) -> str:
-    head = "| proposals | season pair | " + " | ".join(lab for _, lab, _ in LOC_COLUMNS) + " |\n|---|---|" + "---:|" * len(LOC_COLUMNS) + "\n"
+    """The localization table as markdown (recall@1/5, median r, chance rates)."""
+    head = (
+        "| proposals | season pair | "
+        + " | ".join(lab for _, lab, _ in LOC_COLUMNS)
+        + " |\n|---|---|"
+        + "---:|" * len(LOC_COLUMNS)
+        + "\n"
+    )
     body = "".join(
-        f"| {r.proposals} | {r.season_pair} | " + " | ".join(
-            str(int(getattr(r, c))) if d == 0 else _fmt(float(getattr(r, c)), d) for c, _, d in LOC_COLUMNS) + " |\n"
+        f"| {r.proposals} | {r.season_pair} | "
+        + " | ".join(
+            str(int(getattr(r, c))) if d == 0 else _fmt(float(getattr(r, c)), d)
+            for c, _, d in LOC_COLUMNS
+        )
+        + " |\n"
         for r in loc.itertuples(index=False)
     )
-    foot = (f"\nLocalization quality of the engines whose ranks every change figure rests on. Ground truth: the place of "
-            f"the reference frame (frames within {gt_radius_m:g} m, SPEC section 6). R@k: share of query subimages whose "
-            f"place ranks within the first k; median r: median normalised rank (0.5 = chance); clean: subimages of "
-            f"annotated frames with RoC <= {CLEAN_ROC}. R@1 by chance: mean 1/L.\n")
+    foot = (
+        "\nLocalization quality of the engines whose ranks every change figure rests on. "
+        "Ground truth: the place of "
+        f"the reference frame (frames within {gt_radius_m:g} m, SPEC section 6). R@k: share "
+        "of query subimages whose "
+        "place ranks within the first k; median r: median normalised rank (0.5 = chance); "
+        "clean: subimages of "
+        f"annotated frames with RoC <= {CLEAN_ROC}. R@1 by chance: mean 1/L.\n"
+    )
     return "# Localization quality\n\n" + head + body + foot
 
 
 # ------------------------------------------------------------------ change tables (I, S, P)
 
 ALL_INDEX = {m: i for i, m in enumerate(ordered_methods(METHOD_LABELS))}
-#: A baseline within this of the best of the six methods is reported under the table (SPEC section 7).
+# : A baseline within this of the best of the six methods is reported under the table (SPEC section
+# 7).
 WARN_MARGIN = 0.02
 
 
 def _groups(df: pd.DataFrame) -> np.ndarray:
-    return (df["q_session"].astype(str) + "|" + df["q_camera"].astype(str) + "|" + df["q_utime"].astype(str) + "|" + df["r_session"].astype(str)).to_numpy()
+    return (
+        df["q_session"].astype(str)
+        + "|"
+        + df["q_camera"].astype(str)
+        + "|"
+        + df["q_utime"].astype(str)
+        + "|"
+        + df["r_session"].astype(str)
+    ).to_numpy()
 
 
 def stratified_labels(roc: np.ndarray, split: Split) -> np.ndarray:
-    """SPEC section 8's size-stratified labels: by RoC only (+1 positive, 0 negative, -1 left out)."""
+    """SPEC section 8's size-stratified labels.
+
+    By RoC only (+1 positive, 0 negative, -1 left out).
+    """
     pos = (roc >= split.pos_roc[0]) & (roc <= split.pos_roc[1])
     neg = (roc >= split.neg_roc[0]) & (roc <= split.neg_roc[1])
     out = np.full(len(roc), -1, np.int8)
@@ -137,16 +194,22 @@ def stratified_labels(roc: np.ndarray, split: Split) -> np.ndarray:
 
 
 class _Pooled:
-    """Pooled APs of one table column for every method, with bootstrap intervals and the paired
-    comparison with ``rank_fusion`` over the same resampled query images."""
+    """Pooled APs of one table column for every method, with bootstrap intervals.
+
+    Also the paired comparison with ``rank_fusion`` over the same resampled query images.
+    """
 
     def __init__(self, cfg: Config, image_ids: dict[str, int], column: str) -> None:
         self.cfg, self.ids, self.column = cfg, image_ids, column
-        self.counts = resample_counts(len(image_ids), cfg.report.bootstrap, cfg.seed + (zlib.crc32(column.encode()) % 10_000))
+        self.counts = resample_counts(
+            len(image_ids), cfg.report.bootstrap, cfg.seed + (zlib.crc32(column.encode()) % 10_000)
+        )
         self.rows: list[dict] = []
         self.boot: dict[str, np.ndarray] = {}
 
-    def add(self, method: str, row: dict, boot_fn: Callable[[np.ndarray], np.ndarray] | None) -> None:
+    def add(
+        self, method: str, row: dict, boot_fn: Callable[[np.ndarray], np.ndarray] | None
+    ) -> None:
         """``boot_fn(counts)`` gives the method's AP in every resample (None: no interval)."""
         b = boot_fn(self.counts) if boot_fn is not None and len(self.counts) else np.full(0, np.nan)
         lo, hi = interval(b, self.cfg.report.ci)
@@ -157,13 +220,30 @@ class _Pooled:
         ref = next((r for r in self.rows if r["method"] == "rank_fusion"), None)
         for r in self.rows:
             if ref is None or r["method"] == "rank_fusion" or not len(self.boot[r["method"]]):
-                r.update({"diff": float("nan"), "diff_ci_low": float("nan"), "diff_ci_high": float("nan"), "sign_flip_share": float("nan")})
+                r.update(
+                    {
+                        "diff": float("nan"),
+                        "diff_ci_low": float("nan"),
+                        "diff_ci_high": float("nan"),
+                        "sign_flip_share": float("nan"),
+                    }
+                )
             else:
-                r.update(paired_difference(self.boot[r["method"]], self.boot["rank_fusion"], r["ap"], ref["ap"], self.cfg.report.ci))
+                r.update(
+                    paired_difference(
+                        self.boot[r["method"]],
+                        self.boot["rank_fusion"],
+                        r["ap"],
+                        ref["ap"],
+                        self.cfg.report.ci,
+                    )
+                )
         return self.rows
 
 
-def _table_i_rows(df: pd.DataFrame, split: Split, methods: tuple[str, ...], season_pair: str, proposals: str) -> list[dict]:
+def _table_i_rows(
+    df: pd.DataFrame, split: Split, methods: tuple[str, ...], season_pair: str, proposals: str
+) -> list[dict]:
     """Per-split APs without intervals (the breakdowns by proposal method and season pair)."""
     rows = []
     lab = split_label(df["RoC"].to_numpy(), df["SoB"].to_numpy(), split)
@@ -172,16 +252,37 @@ def _table_i_rows(df: pd.DataFrame, split: Split, methods: tuple[str, ...], seas
         loc = df[f"loc_{m}"].to_numpy()
         sel = (lab >= 0) & ~np.isnan(loc)
         y = lab[sel] == 1
-        rows.append({"table": "I", "split": split.name, "roc_max": split.roc_max, "proposals": proposals, "season_pair": season_pair,
-                     "method": m, "ap": average_precision(y, loc[sel]), "floor": float(y.mean()) if len(y) else float("nan"),
-                     "ci_low": float("nan"), "ci_high": float("nan"), "positives": int(y.sum()), "negatives": int((~y).sum()),
-                     "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()), "positive_rate": float(y.mean()) if len(y) else float("nan"),
-                     "query_images": len(np.unique(groups[sel]))})
+        rows.append(
+            {
+                "table": "I",
+                "split": split.name,
+                "roc_max": split.roc_max,
+                "proposals": proposals,
+                "season_pair": season_pair,
+                "method": m,
+                "ap": average_precision(y, loc[sel]),
+                "floor": float(y.mean()) if len(y) else float("nan"),
+                "ci_low": float("nan"),
+                "ci_high": float("nan"),
+                "positives": int(y.sum()),
+                "negatives": int((~y).sum()),
+                "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
+                "positive_rate": float(y.mean()) if len(y) else float("nan"),
+                "query_images": len(np.unique(groups[sel])),
+            }
+        )
     return rows
 
 
-def _pooled_rows(cfg: Config, samples: pd.DataFrame, methods: tuple[str, ...], split: Split, table: str, ids: dict[str, int]) -> list[dict]:
-    """Table I (``table = "I"``) or Table S (``"S"``) column ``split`` over all proposals and season pairs."""
+def _pooled_rows(
+    cfg: Config,
+    samples: pd.DataFrame,
+    methods: tuple[str, ...],
+    split: Split,
+    table: str,
+    ids: dict[str, int],
+) -> list[dict]:
+    """Table I (``table = "I"``) or S (``"S"``) column ``split``, all proposals and season pairs."""
     df = samples
     gi = np.array([ids[g] for g in _groups(df)], np.int64)
     roc, sob = df["RoC"].to_numpy(), df["SoB"].to_numpy()
@@ -195,35 +296,77 @@ def _pooled_rows(cfg: Config, samples: pd.DataFrame, methods: tuple[str, ...], s
         if table == "I":
             ap, floor = average_precision(y, sc), (float(y.mean()) if len(y) else float("nan"))
 
-            def boot(c: np.ndarray, y: np.ndarray = y, sc: np.ndarray = sc, g: np.ndarray = g) -> np.ndarray:
-                return bootstrap_aps(y, sc, g, c)
+            boot = partial(bootstrap_aps, y, sc, g)
         else:
             ap, floor = stratified_ap(y, sc, sb, edges)
 
-            def boot(c: np.ndarray, y: np.ndarray = y, sc: np.ndarray = sc, g: np.ndarray = g, sb: np.ndarray = sb) -> np.ndarray:
-                return bootstrap_aps(y, sc, g, c, stat="stratified", sob=sb, edges=edges)
-        pooled.add(m, {"table": table, "split": split.name, "roc_max": split.roc_max, "proposals": "all", "season_pair": "all",
-                       "ap": ap, "floor": floor, "positives": int(y.sum()), "negatives": int((~y).sum()),
-                       "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()), "positive_rate": float(y.mean()) if len(y) else float("nan"),
-                       "query_images": len(np.unique(g))}, boot)
+            boot = partial(bootstrap_aps, y, sc, g, stat="stratified", sob=sb, edges=edges)
+
+        pooled.add(
+            m,
+            {
+                "table": table,
+                "split": split.name,
+                "roc_max": split.roc_max,
+                "proposals": "all",
+                "season_pair": "all",
+                "ap": ap,
+                "floor": floor,
+                "positives": int(y.sum()),
+                "negatives": int((~y).sum()),
+                "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
+                "positive_rate": float(y.mean()) if len(y) else float("nan"),
+                "query_images": len(np.unique(g)),
+            },
+            boot,
+        )
     return pooled.finish()
 
 
-def _pixel_image_rows(cfg: Config, samples: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, methods: tuple[str, ...],
-                      ids: dict[str, int]) -> list[dict]:
-    """Table P (SPEC section 9): pixel AP over exact regions and image AP, pooled, with intervals."""
+def _pixel_image_rows(
+    cfg: Config,
+    samples: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    methods: tuple[str, ...],
+    ids: dict[str, int],
+) -> list[dict]:
+    """Table P (SPEC section 9).
+
+    Pixel AP over exact regions and image AP, pooled, with intervals.
+    """
     cb = change_boxes(ann)
-    size = {k: (float(w), float(h)) for k, w, h in zip(frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
-                                                       frames["width"], frames["height"], strict=True)}
-    low = {m: float(np.nanmin(samples[f"loc_{m}"].to_numpy())) if samples[f"loc_{m}"].notna().any() else 0.0 for m in methods}
+    size = {
+        k: (float(w), float(h))
+        for k, w, h in zip(
+            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames["width"],
+            frames["height"],
+            strict=True,
+        )
+    }
+    low = {
+        m: float(np.nanmin(samples[f"loc_{m}"].to_numpy()))
+        if samples[f"loc_{m}"].notna().any()
+        else 0.0
+        for m in methods
+    }
     px: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "w": [], "g": []} for m in methods}
     img: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "g": []} for m in methods}
     groups = _groups(samples)
     boxes = samples[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     locs = {m: samples[f"loc_{m}"].to_numpy(np.float64) for m in methods}
     fused_methods = [m for m in methods if m != "rank_no_fusion"]
-    in_fused = np.isfinite(np.column_stack([locs[m] for m in fused_methods])).any(1) if fused_methods else np.zeros(len(samples), bool)
-    qs, qc, qu = samples["q_session"].to_numpy(), samples["q_camera"].to_numpy(), samples["q_utime"].to_numpy()
+    in_fused = (
+        np.isfinite(np.column_stack([locs[m] for m in fused_methods])).any(1)
+        if fused_methods
+        else np.zeros(len(samples), bool)
+    )
+    qs, qc, qu = (
+        samples["q_session"].to_numpy(),
+        samples["q_camera"].to_numpy(),
+        samples["q_utime"].to_numpy(),
+    )
     for gkey, idx in pd.Series(np.arange(len(samples))).groupby(groups, sort=True).indices.items():
         qk = (str(qs[idx[0]]), str(qc[idx[0]]), int(qu[idx[0]]))
         w, h = size[qk]
@@ -232,18 +375,23 @@ def _pixel_image_rows(cfg: Config, samples: pd.DataFrame, frames: pd.DataFrame, 
         sets = {"fused": idx[in_fused[idx]]}
         if "rank_no_fusion" in methods:
             o = idx[np.isfinite(locs["rank_no_fusion"][idx])]
-            sets["orig"] = o[np.argsort(-locs["rank_no_fusion"][o], kind="stable")]  # identical boxes: the highest LoC owns their regions
+            sets["orig"] = o[
+                np.argsort(-locs["rank_no_fusion"][o], kind="stable")
+            ]  # identical boxes: the highest LoC owns their regions
         regions = {}
         for k, v in sets.items():
             area, pos, owner = pixel_regions(boxes[v], change, w, h)
-            # regions with the same owner and label get the same LoC under every method: sum them once
+            # regions with the same owner and label get the same LoC under every method: sum them
+            # once
             uniq, inv = np.unique((owner + 1) * 2 + pos, return_inverse=True)
             regions[k] = (np.bincount(inv, weights=area), (uniq % 2).astype(bool), uniq // 2 - 1)
         for m in methods:
             key = "orig" if m == "rank_no_fusion" else "fused"
             area, pos, owner = regions[key]
             vals = locs[m][sets[key]]
-            px[m]["s"].append(np.where(owner >= 0, vals[np.maximum(owner, 0)] if len(vals) else low[m], low[m]))
+            px[m]["s"].append(
+                np.where(owner >= 0, vals[np.maximum(owner, 0)] if len(vals) else low[m], low[m])
+            )
             px[m]["y"].append(pos)
             px[m]["w"].append(area)
             px[m]["g"].append(np.full(len(area), gid))
@@ -265,25 +413,54 @@ def _pixel_image_rows(cfg: Config, samples: pd.DataFrame, frames: pd.DataFrame, 
                 ap = weighted_average_precision(y_, s_, w_)
                 pos_w, tot_w = float(w_[y_].sum()), float(w_.sum())
 
-                def boot(c: np.ndarray, y_: np.ndarray = y_, s_: np.ndarray = s_, g_: np.ndarray = g_, w_: np.ndarray = w_) -> np.ndarray:
-                    return bootstrap_aps(y_, s_, g_, c, weights=w_)
-                extra = {"positives": round(pos_w), "negatives": round(tot_w - pos_w), "positive_rate": pos_w / tot_w if tot_w else float("nan")}
+                boot = partial(bootstrap_aps, y_, s_, g_, weights=w_)
+
+                extra = {
+                    "positives": round(pos_w),
+                    "negatives": round(tot_w - pos_w),
+                    "positive_rate": pos_w / tot_w if tot_w else float("nan"),
+                }
             else:
-                s_, y_, g_ = np.asarray(d["s"], np.float64), np.asarray(d["y"], bool), np.asarray(d["g"], np.int64)
+                s_, y_, g_ = (
+                    np.asarray(d["s"], np.float64),
+                    np.asarray(d["y"], bool),
+                    np.asarray(d["g"], np.int64),
+                )
                 ap = average_precision(y_, s_)
 
-                def boot(c: np.ndarray, y_: np.ndarray = y_, s_: np.ndarray = s_, g_: np.ndarray = g_) -> np.ndarray:
-                    return bootstrap_aps(y_, s_, g_, c)
-                extra = {"positives": int(y_.sum()), "negatives": int((~y_).sum()), "positive_rate": float(y_.mean()) if len(y_) else float("nan")}
-            pooled.add(m, {"table": "P", "split": name, "roc_max": float("nan"), "proposals": "all", "season_pair": "all", "ap": ap,
-                           "floor": extra["positive_rate"], "left_out": 0, "query_images": len(np.unique(g_)), **extra}, boot)
+                boot = partial(bootstrap_aps, y_, s_, g_)
+
+                extra = {
+                    "positives": int(y_.sum()),
+                    "negatives": int((~y_).sum()),
+                    "positive_rate": float(y_.mean()) if len(y_) else float("nan"),
+                }
+            pooled.add(
+                m,
+                {
+                    "table": "P",
+                    "split": name,
+                    "roc_max": float("nan"),
+                    "proposals": "all",
+                    "season_pair": "all",
+                    "ap": ap,
+                    "floor": extra["positive_rate"],
+                    "left_out": 0,
+                    "query_images": len(np.unique(g_)),
+                    **extra,
+                },
+                boot,
+            )
         rows += pooled.finish()
     return rows
 
 
 def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
-    """SPEC section 7: where a baseline that reads no pixel comes within 0.02 of the best of the six
-    methods, say so: one line per baseline, naming every split where it happens and both APs."""
+    """SPEC section 7: warn where a baseline that reads no pixel nears the best method.
+
+    Where one comes within 0.02 of the best of the six methods, say so: one line per baseline,
+    naming every split where it happens and both APs.
+    """
     hits: dict[str, list[str]] = {}
     for split, g in main.groupby("split", sort=False):
         six = g[g["method"].isin(FUSION_METHODS)].dropna(subset=["ap"])
@@ -292,19 +469,41 @@ def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
         best = six.loc[six["ap"].idxmax()]
         for b in BASELINES:
             row = g[g["method"] == b]
-            if len(row) and np.isfinite(row["ap"].iloc[0]) and row["ap"].iloc[0] >= best["ap"] - WARN_MARGIN:
-                name = f"RoC-max {row['roc_max'].iloc[0]:.2f}" if table != "Table P" else f"{split} AP"
-                hits.setdefault(b, []).append(f"{name}: {row['ap'].iloc[0]:.2f} vs {best['method']} {best['ap']:.2f}")
-    see = "; read Table S (tableS.md), which compares boxes of the same size" if table == "Table I" else ""
-    return [f"WARNING ({table}): the baseline {b}, which reads no pixel, comes within {WARN_MARGIN} of the best of the six methods "
-            f"({'; '.join(v)}): under this protocol it separates the labels without detecting anything{see}." for b, v in hits.items()]
+            if (
+                len(row)
+                and np.isfinite(row["ap"].iloc[0])
+                and row["ap"].iloc[0] >= best["ap"] - WARN_MARGIN
+            ):
+                name = (
+                    f"RoC-max {row['roc_max'].iloc[0]:.2f}" if table != "Table P" else f"{split} AP"
+                )
+                hits.setdefault(b, []).append(
+                    f"{name}: {row['ap'].iloc[0]:.2f} vs {best['method']} {best['ap']:.2f}"
+                )
+    see = (
+        "; read Table S (tableS.md), which compares boxes of the same size"
+        if table == "Table I"
+        else ""
+    )
+    return [
+        f"WARNING ({table}): the baseline {b}, which reads no pixel, comes within "
+        f"{WARN_MARGIN} of the best of the six methods "
+        f"({'; '.join(v)}): under this protocol it separates the labels without detecting "
+        f"anything{see}."
+        for b, v in hits.items()
+    ]
 
 
 # ------------------------------------------------------------------ rendering
 
 
-def pivot(summ: pd.DataFrame, table: str, methods: tuple[str, ...], value: str = "ap") -> pd.DataFrame:
-    main = summ[(summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")]
+def pivot(
+    summ: pd.DataFrame, table: str, methods: tuple[str, ...], value: str = "ap"
+) -> pd.DataFrame:
+    """One table's ``value`` (AP by default), method x split, in SPEC order."""
+    main = summ[
+        (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+    ]
     col = "split" if table == "P" else "roc_max"
     t = main.pivot(index="method", columns=col, values=value).reindex(list(methods))
     if table == "P":
@@ -316,7 +515,9 @@ def table_csv(table: pd.DataFrame) -> str:
     """One row per method id (first column ``method``), one column per split, two decimals."""
     lines = ["method," + ",".join(_col(c) for c in table.columns)]
     for m, row in table.iterrows():
-        lines.append(str(m) + "," + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy()))
+        lines.append(
+            str(m) + "," + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy())
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -334,86 +535,178 @@ def _cell(v: float, lo: float, hi: float) -> str:
 
 
 TABLE_INTRO = {
-    "I": ("Table I", "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): positives are small boxes "
-                     "(SoB <= 0.4), negatives large ones (SoB >= 0.4)."),
-    "S": ("Table S", "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of boxes of the same size, "
-                     "weighted by the strata's positives. The floor is the same weighted mean of the strata's positive rates."),
-    "P": ("Table P", "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact region areas) and image AP "
-                     "(each query image scores the largest LoC of its samples), SPEC section 9."),
+    "I": (
+        "Table I",
+        (
+            "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): "
+            "positives are small boxes "
+            "(SoB <= 0.4), negatives large ones (SoB >= 0.4)."
+        ),
+    ),
+    "S": (
+        "Table S",
+        (
+            "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
+            "boxes of the same size, "
+            "weighted by the strata's positives. The floor is the same weighted mean of the "
+            "strata's positive rates."
+        ),
+    ),
+    "P": (
+        "Table P",
+        (
+            "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact "
+            "region areas) and image AP "
+            "(each query image scores the largest LoC of its samples), SPEC section 9."
+        ),
+    ),
 }
 
 
-def table_markdown(summ: pd.DataFrame, table: str, methods: tuple[str, ...], warnings: list[str]) -> str:
-    """A change table as markdown: the six methods, then the variants and baselines; cells AP [95% interval]."""
+def table_markdown(
+    summ: pd.DataFrame, table: str, methods: tuple[str, ...], warnings: list[str]
+) -> str:
+    """A change table as markdown: the six methods, then the variants and baselines.
+
+    Cells AP [95% interval].
+    """
     ap, lo, hi = (pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high"))
     floor = pivot(summ, table, methods, "floor")
     cols = list(ap.columns)
     title, intro = TABLE_INTRO[table]
-    head = "| AP [95% CI] | " + " | ".join(_col(c) for c in cols) + " |\n|---|" + "---:|" * len(cols) + "\n"
+    head = (
+        "| AP [95% CI] | "
+        + " | ".join(_col(c) for c in cols)
+        + " |\n|---|"
+        + "---:|" * len(cols)
+        + "\n"
+    )
     lines, first_extra = [], True
     for m in ap.index:
         if m not in FUSION_METHODS and first_extra:
             lines.append("| *variants and baselines* |" + " |" * len(cols) + "\n")
             first_extra = False
-        lines.append(f"| {METHOD_LABELS[str(m)]} | " + " | ".join(_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c]) for c in cols) + " |\n")
+        lines.append(
+            f"| {METHOD_LABELS[str(m)]} | "
+            + " | ".join(_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c]) for c in cols)
+            + " |\n"
+        )
     ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
-    lines.append(f"| *floor ({'fused set' if ref != 'rank_no_fusion' else 'original boxes'})* | "
-                 + " | ".join(_fmt(floor.loc[ref, c]) for c in cols) + " |\n")
+    lines.append(
+        f"| *floor ({'fused set' if ref != 'rank_no_fusion' else 'original boxes'})* | "
+        + " | ".join(_fmt(floor.loc[ref, c]) for c in cols)
+        + " |\n"
+    )
     if "rank_no_fusion" in floor.index and table != "P":
-        lines.append("| *floor (original boxes)* | " + " | ".join(_fmt(floor.loc["rank_no_fusion", c]) for c in cols) + " |\n")
-    main = summ[(summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all") & (summ["method"] == ref)]
-    counts = "; ".join(f"{_col(r.roc_max if table != 'P' else r.split)}: {r.positives} positives / {r.negatives} negatives"
-                       + (" (pixels)" if table == "P" and r.split == "pixel" else "")
-                       for r in main.itertuples())
+        lines.append(
+            "| *floor (original boxes)* | "
+            + " | ".join(_fmt(floor.loc["rank_no_fusion", c]) for c in cols)
+            + " |\n"
+        )
+    main = summ[
+        (summ["table"] == table)
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] == "all")
+        & (summ["method"] == ref)
+    ]
+    counts = "; ".join(
+        f"{_col(r.roc_max if table != 'P' else r.split)}: {r.positives} positives / "
+        f"{r.negatives} negatives" + (" (pixels)" if table == "P" and r.split == "pixel" else "")
+        for r in main.itertuples()
+    )
     warn = "".join(f"\n**{w}**\n" for w in warnings)
-    return (f"# {title}\n\n{intro}\n\n" + head + "".join(lines)
-            + f"\nFloor: the AP of a random ranking. Counts ({ref}): {counts}. Intervals: 95% bootstrap over query images; "
-              "the paired differences with rank fusion are in comparisons.md.\n" + warn)
+    return (
+        f"# {title}\n\n{intro}\n\n"
+        + head
+        + "".join(lines)
+        + f"\nFloor: the AP of a random ranking. Counts ({ref}): {counts}. Intervals: 95% "
+        "bootstrap over query images; "
+        "the paired differences with rank fusion are in comparisons.md.\n" + warn
+    )
 
 
 def _tex_escape(s: str) -> str:
-    return (s.replace("\\", r"\textbackslash{}").replace("&", r"\&").replace("%", r"\%").replace("_", r"\_")
-            .replace("#", r"\#").replace("<=", r"$\leq$").replace("@", "@"))
+    return (
+        s.replace("\\", r"\textbackslash{}")
+        .replace("&", r"\&")
+        .replace("%", r"\%")
+        .replace("_", r"\_")
+        .replace("#", r"\#")
+        .replace("<=", r"$\leq$")
+        .replace("@", "@")
+    )
 
 
 def table_latex(t: pd.DataFrame, caption_cols: str = "") -> str:
-    """A booktabs ``tabular`` of one table (two decimals; the variants and baselines after a rule)."""
+    """A booktabs ``tabular`` of one table.
+
+    Two decimals; the variants and baselines come after a rule.
+    """
     cols = list(t.columns)
-    out = [r"\begin{tabular}{l" + "r" * len(cols) + "}", r"\toprule",
-           " & ".join([_tex_escape(caption_cols or "Method")] + [_tex_escape(_col(c)) for c in cols]) + r" \\", r"\midrule"]
+    out = [
+        r"\begin{tabular}{l" + "r" * len(cols) + "}",
+        r"\toprule",
+        " & ".join([_tex_escape(caption_cols or "Method")] + [_tex_escape(_col(c)) for c in cols])
+        + r" \\",
+        r"\midrule",
+    ]
     first_extra = True
     for m, row in t.iterrows():
         if m not in FUSION_METHODS and first_extra and m in METHOD_LABELS:
             out.append(r"\midrule")
             first_extra = False
         label = METHOD_LABELS.get(str(m), str(m))
-        out.append(" & ".join([_tex_escape(label)] + ["--" if v != v else f"{v:.2f}" for v in row.to_numpy()]) + r" \\")
+        out.append(
+            " & ".join(
+                [_tex_escape(label)] + ["--" if v != v else f"{v:.2f}" for v in row.to_numpy()]
+            )
+            + r" \\"
+        )
     out += [r"\bottomrule", r"\end{tabular}"]
     return "\n".join(out) + "\n"
 
 
 def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
     """Every method against rank fusion, in words, for every pooled column of Tables I, S and P."""
-    lines = ["# Paired comparisons with rank fusion", "",
-             "Each line: AP(method) - AP(rank fusion) [95% interval of the difference over the same bootstrap resamples of query "
-             "images]; 'sign flips' is the share of resamples in which the difference has the other sign.", ""]
+    lines = [
+        "# Paired comparisons with rank fusion",
+        "",
+        (
+            "Each line: AP(method) - AP(rank fusion) [95% interval of the difference over the "
+            "same bootstrap resamples of query "
+            "images]; 'sign flips' is the share of resamples in which the difference has the "
+            "other sign."
+        ),
+        "",
+    ]
     for table in ("I", "S", "P"):
-        main = summ[(summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")]
+        main = summ[
+            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+        ]
         for split, g in main.groupby("split", sort=False):
             lines.append(f"## {TABLE_INTRO[table][0]}, {split}")
             lines.append("")
             for r in g.itertuples():
                 if r.method == "rank_fusion" or r.diff != r.diff:
                     continue
-                flips = f"sign flips in {100 * r.sign_flip_share:.0f}% of resamples" if r.sign_flip_share == r.sign_flip_share else "no difference"
-                lines.append(f"- {METHOD_LABELS[r.method]} - rank fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}] ({flips})")
+                flips = (
+                    f"sign flips in {100 * r.sign_flip_share:.0f}% of resamples"
+                    if r.sign_flip_share == r.sign_flip_share
+                    else "no difference"
+                )
+                lines.append(
+                    f"- {METHOD_LABELS[r.method]} - rank fusion = {r.diff:+.2f} "
+                    f"[{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}] ({flips})"
+                )
             lines.append("")
     return "\n".join(lines)
 
 
 def localization_latex(loc: pd.DataFrame) -> str:
-    t = loc[loc["season_pair"] == "all"].set_index("proposals")[["recall_at_1", "recall_at_5", "median_r", "chance_recall_at_1",
-                                                                 "clean_recall_at_1"]]
+    """The localization table (all season pairs) as a booktabs ``tabular``."""
+    t = loc[loc["season_pair"] == "all"].set_index("proposals")[
+        ["recall_at_1", "recall_at_5", "median_r", "chance_recall_at_1", "clean_recall_at_1"]
+    ]
     t.columns = ["R@1", "R@5", "median r", "R@1 by chance", "clean R@1"]
     return table_latex(t, "Proposals")
 
@@ -422,7 +715,10 @@ def localization_latex(loc: pd.DataFrame) -> str:
 
 
 def _remove_stale(directory: Path, pattern: str, keep: set[Path]) -> int:
-    """Remove files matching ``pattern`` in ``directory`` (inside the harness's own run directory) not in ``keep``."""
+    """Remove files matching ``pattern`` in ``directory`` that are not in ``keep``.
+
+    ``directory`` lies inside the harness's own run directory.
+    """
     n = 0
     if directory.is_dir():
         for p in directory.glob(pattern):
@@ -443,8 +739,15 @@ class Reports:
     methods: tuple[str, ...]
 
 
-def write_reports(cfg: Config, out: Path, samples: pd.DataFrame, ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame,
-                  progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it) -> Reports:
+def write_reports(
+    cfg: Config,
+    out: Path,
+    samples: pd.DataFrame,
+    ranks: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+) -> Reports:
     """Write every report of a run into ``out``."""
     methods = ordered_methods(cfg.fusion.methods)
     written: set[Path] = set()
@@ -465,7 +768,9 @@ def write_reports(cfg: Config, out: Path, samples: pd.DataFrame, ranks: pd.DataF
     curves = []
     for sp in progress(splits):
         lab = split_label(samples["RoC"].to_numpy(), samples["SoB"].to_numpy(), sp)
-        rep = samples.assign(label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp))
+        rep = samples.assign(
+            label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp)
+        )
         write_parquet(put(out / "splits" / f"{sp.name}.parquet"), rep)
         summary += _pooled_rows(cfg, allp, methods, sp, "I", ids)
         summary += _pooled_rows(cfg, allp, methods, sp, "S", ids)
@@ -479,17 +784,33 @@ def write_reports(cfg: Config, out: Path, samples: pd.DataFrame, ranks: pd.DataF
         for m in methods:
             sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()
             if (allg.loc[sel, "label"] == 1).any():
-                thr, p, r = pr_curve(allg.loc[sel, "label"].to_numpy() == 1, allg.loc[sel, f"loc_{m}"].to_numpy())
-                curves.append(pd.DataFrame({"split": sp.name, "method": m, "threshold": thr, "precision": p, "recall": r}))
+                thr, p, r = pr_curve(
+                    allg.loc[sel, "label"].to_numpy() == 1, allg.loc[sel, f"loc_{m}"].to_numpy()
+                )
+                curves.append(
+                    pd.DataFrame(
+                        {
+                            "split": sp.name,
+                            "method": m,
+                            "threshold": thr,
+                            "precision": p,
+                            "recall": r,
+                        }
+                    )
+                )
     summary += _pixel_image_rows(cfg, allp, frames, ann, methods, ids)
     summ = pd.DataFrame(summary)
     write_parquet(put(out / "splits" / "summary.parquet"), summ)
     if curves:
-        write_parquet(put(out / "splits" / "pr_curves.parquet"), pd.concat(curves, ignore_index=True))
+        write_parquet(
+            put(out / "splits" / "pr_curves.parquet"), pd.concat(curves, ignore_index=True)
+        )
     tables, warnings = {}, {}
     for table, stem in (("I", "table1"), ("S", "tableS"), ("P", "tableP")):
         t = pivot(summ, table, methods)
-        main = summ[(summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")]
+        main = summ[
+            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+        ]
         warnings[table] = confound_warnings(main, TABLE_INTRO[table][0])
         tables[table] = t
         write_text(put(out / f"{stem}.csv"), table_csv(t))
@@ -500,12 +821,18 @@ def write_reports(cfg: Config, out: Path, samples: pd.DataFrame, ranks: pd.DataF
         from .plots import locmap_figures, pr_plots
 
         if curves:
-            for p in pr_plots(pd.concat(curves, ignore_index=True), out / "plots"):
-                put(p)
-        for p in locmap_figures(samples, frames, ann, out / "locmaps", cfg.report.locmap_examples):
-            put(p)
-    stale = _remove_stale(out / "splits", "*.parquet", written) + _remove_stale(out / "plots", "pr_*.png", written)
+            for png in pr_plots(pd.concat(curves, ignore_index=True), out / "plots"):
+                put(png)
+        for png in locmap_figures(
+            samples, frames, ann, out / "locmaps", cfg.report.locmap_examples
+        ):
+            put(png)
+    stale = _remove_stale(out / "splits", "*.parquet", written) + _remove_stale(
+        out / "plots", "pr_*.png", written
+    )
     stale += _remove_stale(out / "locmaps", "*", written)
     if stale:
-        log.info("reports: removed %d file(s) of an earlier run that this run no longer writes", stale)
+        log.info(
+            "reports: removed %d file(s) of an earlier run that this run no longer writes", stale
+        )
     return Reports(summ, loc, tables, warnings, methods)

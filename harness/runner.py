@@ -1,6 +1,7 @@
 """The pipeline (SPEC sections 3-10) as a chain of stage calls.
 
-logs -> frames -> pairs -> proposals -> model [-> projection] -> descriptors -> ranks -> samples -> tables
+logs -> frames -> pairs -> proposals -> model [-> projection] -> descriptors -> ranks -> samples ->
+tables
 
 Each stage is a module-level function of typed inputs (the :class:`Pipeline` context and the
 outputs of the stages before it) to a typed output. It builds its cache key with
@@ -30,7 +31,14 @@ import pandas as pd
 
 from . import __version__, keys
 from .annotations import load_annotations
-from .cache import StageCache, read_cached_parquet, stable_hash, write_json, write_parquet, write_text
+from .cache import (
+    StageCache,
+    read_cached_parquet,
+    stable_hash,
+    write_json,
+    write_parquet,
+    write_text,
+)
 from .config import Config
 from .descriptors import make_descriptor
 from .descriptors.extract import combine_shards, encode_shard, fit_projection_unit, train_model
@@ -43,7 +51,7 @@ from .outdirs import claim_dir, run_lock
 from .pairs import write_pairs
 from .progress import progress
 from .proposals import write_proposals
-from .reports import METHOD_LABELS, Reports, write_reports  # noqa: F401 - METHOD_LABELS re-exported for callers
+from .reports import Reports, write_reports
 from .retrieval import described_frames, rank_reference
 
 log = logging.getLogger(__name__)
@@ -69,7 +77,7 @@ class Table:
 
 @dataclass(frozen=True)
 class RankTable:
-    """Rank rows of every query subimage, the key samples depend on, and counters per reference session."""
+    """Rank rows of every query subimage, their key, and counters per reference session."""
 
     df: pd.DataFrame
     key: str
@@ -101,7 +109,8 @@ class Pipeline:
     not_described: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        # never write into a directory the harness did not create; resolved: remote workers may start elsewhere
+        # never write into a directory the harness did not create; resolved: remote workers may
+        # start elsewhere
         self.out = claim_dir(Path(self.out), "run")
         self.cache = StageCache(self.out / "cache")
         self._lock_depth = 0
@@ -129,8 +138,10 @@ class Pipeline:
         self._count(stage, [(path, ran)], t0)
         return Entry(path, path.name)
 
-    def units(self, stage: str, units: list[tuple[tuple[Any, ...], Build]], gpu: bool = False) -> list[Entry]:
-        """Entries of independent units of ``stage``, built through the executor (in parallel where it can)."""
+    def units(
+        self, stage: str, units: list[tuple[tuple[Any, ...], Build]], gpu: bool = False
+    ) -> list[Entry]:
+        """Entries of independent units of ``stage``, built through the executor (in parallel)."""
         t0 = time.perf_counter()
         res = self.executor.map_units(self.cache, stage, units, gpu=gpu)
         self._count(stage, res, t0)
@@ -142,7 +153,10 @@ class Pipeline:
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
 
     def run(self) -> dict[str, Any]:
-        """Run every stage under the run lock; write the reports into ``out``; return the run record."""
+        """Run every stage under the run lock; write the reports into ``out``.
+
+        Return the run record.
+        """
         with self.locked():
             return run_all(self)
 
@@ -161,15 +175,24 @@ def generate_fixture(p: Pipeline) -> None:
         return
     if root.exists() and (not root.is_dir() or any(root.iterdir())):
         raise ConfigError(
-            f"{root}: [fixture] generate = true, but data_root exists and holds no generated fixture "
-            "(no fixture.json); the harness never writes into it. Set generate = false for real data, "
+            f"{root}: [fixture] generate = true, but data_root exists and holds no "
+            "generated fixture "
+            "(no fixture.json); the harness never writes into it. Set generate = false for "
+            "real data, "
             "or point data_root (--data-root) at a new directory"
         )
     from .fixture import FixtureSpec, generate
 
     log.info("fixture: generating into %s", root)
-    spec = FixtureSpec(seed=fx.seed, frames=fx.frames, width=fx.width, height=fx.height, objects=fx.objects,
-                       loop_scale=fx.loop_scale, render_scale=fx.render_scale)
+    spec = FixtureSpec(
+        seed=fx.seed,
+        frames=fx.frames,
+        width=fx.width,
+        height=fx.height,
+        objects=fx.objects,
+        loop_scale=fx.loop_scale,
+        render_scale=fx.render_scale,
+    )
     t0 = time.perf_counter()
     try:
         generate(root, spec, formats=fx.formats or None)
@@ -182,7 +205,7 @@ def generate_fixture(p: Pipeline) -> None:
 
 
 def ingest_logs(p: Pipeline) -> dict[str, Entry]:
-    """logs -> one ingest entry per session (``frames.parquet``, images, ``ingest_report.json``)."""
+    """Logs -> one ingest entry per session (``frames.parquet``, images, ``ingest_report.json``)."""
     units: list[tuple[tuple[Any, ...], Build]] = [
         (keys.ingest(p.cfg, sc), partial(ingest_session, sc, p.cfg.ingest)) for sc in p.cfg.sessions
     ]
@@ -190,7 +213,7 @@ def ingest_logs(p: Pipeline) -> dict[str, Entry]:
 
 
 def frame_table(p: Pipeline, ingested: dict[str, Entry]) -> Table:
-    """ingest entries -> the run's frame table (image URIs local to this machine)."""
+    """Ingest entries -> the run's frame table (image URIs local to this machine)."""
     build = partial(combine_frames, [e.path for e in ingested.values()], p.out, p.cfg.data_root)
     entry = p.unit("frames", keys.frames([e.key for e in ingested.values()]), build)
     df = read_cached_parquet(entry.path / "frames.parquet")
@@ -204,15 +227,19 @@ def annotation_table(p: Pipeline, frames: Table) -> Table:
 
 
 def query_pairs(p: Pipeline, frames: Table, ann: Table) -> Table:
-    """frames (+ annotations) -> one reference viewpoint per query frame and season (SPEC section 4)."""
+    """Frames (+ annotations) -> a reference viewpoint per query frame and season (SPEC 4)."""
     queries = ann.df if p.cfg.pairs.queries == "annotated" else None
     build = partial(write_pairs, frames.df, p.cfg.pairs, p.cfg.seasons(), queries)
     entry = p.unit("pairs", keys.pairs(p.cfg, frames.key, ann.key), build)
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
 
 
-def session_proposals(p: Pipeline, frames: Table, pairs: Table, ingested: dict[str, Entry]) -> dict[str, Table]:
-    """frames + pairs -> each session's proposal boxes (SPEC section 5), on the frames ranking reads.
+def session_proposals(
+    p: Pipeline, frames: Table, pairs: Table, ingested: dict[str, Entry]
+) -> dict[str, Table]:
+    """Frames + pairs -> each session's proposal boxes (SPEC section 5).
+
+    Only on the frames ranking reads.
 
     Those are a session's query frames and, for a reference session, the frames its database keeps
     (every frame unless ``[retrieval] db_stride_m``); the others are counted in ``run.json``
@@ -232,15 +259,21 @@ def session_proposals(p: Pipeline, frames: Table, pairs: Table, ingested: dict[s
 
 
 def descriptor_model(p: Pipeline, frames: Table, props: dict[str, Table]) -> Entry:
-    """proposals -> the trained descriptor model (an empty entry for descriptors that do not train)."""
+    """Proposals -> the trained descriptor model (empty for descriptors that do not train)."""
     trains = make_descriptor(p.cfg.descriptor).needs_training
-    rows = pd.concat([t.df for t in props.values()], ignore_index=True) if trains else pd.DataFrame()
+    rows = (
+        pd.concat([t.df for t in props.values()], ignore_index=True) if trains else pd.DataFrame()
+    )
     build = partial(train_model, p.cfg.descriptor, frames.df, rows)
     return p.unit("model", keys.model(p.cfg, trains, [t.key for t in props.values()]), build)
 
 
-def descriptor_projection(p: Pipeline, frames: Table, pairs: Table, props: dict[str, Table], model: Entry) -> Entry | None:
-    """model -> the compact-descriptor projection (``[projection] dim > 0``), fitted on the reference sessions.
+def descriptor_projection(
+    p: Pipeline, frames: Table, pairs: Table, props: dict[str, Table], model: Entry
+) -> Entry | None:
+    """Model -> the compact-descriptor projection (``[projection] dim > 0``).
+
+    Fitted on the reference sessions.
 
     The reference sessions are those some pair ranks against; None when the projection is off.
     """
@@ -248,13 +281,24 @@ def descriptor_projection(p: Pipeline, frames: Table, pairs: Table, props: dict[
         return None
     refs = sorted(set(pairs.df["r_session"]))
     rows = pd.concat([props[s].df for s in refs], ignore_index=True)
-    build = partial(fit_projection_unit, p.cfg.descriptor, p.cfg.projection, model.path, frames.df, rows)
-    return p.unit("projection", keys.projection(p.cfg, model.key, [props[s].key for s in refs]), build)
+    build = partial(
+        fit_projection_unit, p.cfg.descriptor, p.cfg.projection, model.path, frames.df, rows
+    )
+    return p.unit(
+        "projection", keys.projection(p.cfg, model.key, [props[s].key for s in refs]), build
+    )
 
 
-def session_descriptors(p: Pipeline, frames: Table, props: dict[str, Table], model: Entry,
-                        projection: Entry | None = None) -> dict[str, Entry]:
-    """proposals + model (+ projection) -> each session's descriptors (``desc.npy``) aligned with ``index.parquet``.
+def session_descriptors(
+    p: Pipeline,
+    frames: Table,
+    props: dict[str, Table],
+    model: Entry,
+    projection: Entry | None = None,
+) -> dict[str, Entry]:
+    """Proposals + model (+ projection) -> each session's descriptors.
+
+    ``desc.npy``, aligned with ``index.parquet``.
 
     Work is cached in shards of ``shard_frames`` frames (an interrupted extraction resumes at the
     next unfinished shard); a session's shards are then combined, one shard at a time.
@@ -265,19 +309,38 @@ def session_descriptors(p: Pipeline, frames: Table, props: dict[str, Table], mod
     for sc in p.cfg.sessions:
         rows, fr = props[sc.name].df, frames.df[frames.df["session"] == sc.name]
         utimes = np.unique(rows["utime"].to_numpy())
-        shards = [utimes[i : i + dc.shard_frames] for i in range(0, len(utimes), max(1, dc.shard_frames))]
+        shards = [
+            utimes[i : i + dc.shard_frames] for i in range(0, len(utimes), max(1, dc.shard_frames))
+        ]
         spans[sc.name] = (len(units), len(units) + len(shards))
         for si, ut in enumerate(shards):
-            build = partial(encode_shard, dc, model.path, projection.path if projection else None, fr, rows[rows["utime"].isin(ut)],
-                            f"{sc.name} [{si + 1}/{len(shards)}]")
-            key = keys.descriptor_shard(p.cfg, props[sc.name].key, model.key, [int(u) for u in ut], projection.key if projection else None)
+            build = partial(
+                encode_shard,
+                dc,
+                model.path,
+                projection.path if projection else None,
+                fr,
+                rows[rows["utime"].isin(ut)],
+                f"{sc.name} [{si + 1}/{len(shards)}]",
+            )
+            key = keys.descriptor_shard(
+                p.cfg,
+                props[sc.name].key,
+                model.key,
+                [int(u) for u in ut],
+                projection.key if projection else None,
+            )
             units.append((key, build))
     shards_done = p.units("descriptor_shards", units, gpu=True)
     out = {}
     for sc in p.cfg.sessions:
         parts = shards_done[slice(*spans[sc.name])]
         build = partial(combine_shards, dc, props[sc.name].df, [e.path for e in parts])
-        out[sc.name] = p.unit("descriptors", keys.descriptors(p.cfg, props[sc.name].key, model.key, [e.key for e in parts]), build)
+        out[sc.name] = p.unit(
+            "descriptors",
+            keys.descriptors(p.cfg, props[sc.name].key, model.key, [e.key for e in parts]),
+            build,
+        )
     return out
 
 
@@ -286,11 +349,15 @@ def ranks_device(p: Pipeline) -> str:
     import torch
 
     rc, dev = p.cfg.retrieval, p.cfg.descriptor.device
-    return "cuda" if rc.engine == "exact" and dev in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
+    return (
+        "cuda"
+        if rc.engine == "exact" and dev in ("auto", "cuda") and torch.cuda.is_available()
+        else "cpu"
+    )
 
 
 def query_ranks(p: Pipeline, frames: Table, pairs: Table, described: dict[str, Entry]) -> RankTable:
-    """pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
+    """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
 
     Units: (reference session, chunk of ``query_frames_per_shard`` pairs); one engine per
     proposal method inside each. With ``rank_import`` the ranks come from the user's file.
@@ -306,25 +373,40 @@ def query_ranks(p: Pipeline, frames: Table, pairs: Table, described: dict[str, E
         sub = pairs.df[pairs.df["r_session"] == ref].reset_index(drop=True)
         for c0 in range(0, max(len(sub), 1), step):
             chunk = sub.iloc[c0 : c0 + step]
-            build = partial(_write_ranks, rc, p.cfg.pairs.max_yaw_diff_deg, chunk, ref, paths, frames.df, device)
+            build = partial(
+                _write_ranks, rc, p.cfg.pairs.max_yaw_diff_deg, chunk, ref, paths, frames.df, device
+            )
             units.append((keys.ranks_unit(p.cfg, ref, pairs.key, dkeys, c0, len(chunk)), build))
             unit_ref.append(ref)
-    parts, counts = [], {}
+    parts: list[pd.DataFrame] = []
+    counts: dict[str, dict[str, int]] = {}
     for ref, entry in zip(unit_ref, p.units("ranks", units, gpu=True), strict=True):
         parts.append(read_cached_parquet(entry.path / "ranks.parquet"))
         c = counts.setdefault(ref, {})
         for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
             c[k] = c.get(k, 0) + v
     parts = [d for d in parts if len(d)]
-    df = pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True) if parts else pd.DataFrame()
+    df = (
+        pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
+        if parts
+        else pd.DataFrame()
+    )
     return RankTable(df, stable_hash(*keys.ranks(p.cfg, pairs.key, dkeys)), counts)
 
 
 SORT_RANKS = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
 
 
-def _write_ranks(rc: Any, max_yaw_deg: float, pairs: pd.DataFrame, ref: str, descriptors: dict[str, Path],
-                 frames: pd.DataFrame, device: str, tmp: Path) -> dict[str, int]:
+def _write_ranks(
+    rc: Any,
+    max_yaw_deg: float,
+    pairs: pd.DataFrame,
+    ref: str,
+    descriptors: dict[str, Path],
+    frames: pd.DataFrame,
+    device: str,
+    tmp: Path,
+) -> dict[str, int]:
     """One ranking unit (:func:`harness.retrieval.rank_reference`) into ``tmp/ranks.parquet``."""
     df, counts = rank_reference(rc, max_yaw_deg, pairs, ref, descriptors, frames, device)
     write_parquet(tmp / "ranks.parquet", df)
@@ -336,24 +418,43 @@ def imported_ranks(p: Pipeline, frames: Table, pairs: Table) -> RankTable:
     from .ranks_import import write_imported_ranks
 
     assert p.rank_import is not None
-    build = partial(write_imported_ranks, p.rank_import, pairs.df, frames.df, p.cfg.retrieval.gt_radius_m,
-                    p.cfg.pairs.max_yaw_diff_deg)
+    build = partial(
+        write_imported_ranks,
+        p.rank_import,
+        pairs.df,
+        frames.df,
+        p.cfg.retrieval.gt_radius_m,
+        p.cfg.pairs.max_yaw_diff_deg,
+    )
     entry = p.unit("ranks", keys.ranks_import(p.cfg, p.rank_import, pairs.key), build)
-    return RankTable(read_cached_parquet(entry.path / "ranks.parquet"), entry.key, p.cache.manifest("ranks", entry.key)["info"])
+    return RankTable(
+        read_cached_parquet(entry.path / "ranks.parquet"),
+        entry.key,
+        p.cache.manifest("ranks", entry.key)["info"],
+    )
 
 
 def fused_samples(p: Pipeline, ranks: RankTable, frames: Table, ann: Table) -> Table:
-    """ranks + annotations -> one sample per fused box with each method's LoC (SPEC sections 7-8)."""
+    """Ranks + annotations -> a sample per fused box with each method's LoC (SPEC 7-8)."""
     build = partial(write_samples, ranks.df, frames.df, ann.df, p.cfg.fusion)
     entry = p.unit("samples", keys.samples(p.cfg, ranks.key, ann.key), build)
     return Table(read_cached_parquet(entry.path / "samples.parquet"), entry.key)
 
 
-def change_tables(p: Pipeline, samples: Table, ranks: RankTable, frames: Table, ann: Table) -> Reports:
-    """samples -> Tables I, S and P, localization quality, splits and figures (SPEC sections 8-10)."""
+def change_tables(
+    p: Pipeline, samples: Table, ranks: RankTable, frames: Table, ann: Table
+) -> Reports:
+    """Samples -> Tables I, S and P, localization quality, splits and figures (SPEC 8-10)."""
     t0 = time.perf_counter()
-    reports = write_reports(p.cfg, p.out, samples.df, ranks.df, frames.df, ann.df,
-                            progress=partial(progress, desc="splits", unit="split"))
+    reports = write_reports(
+        p.cfg,
+        p.out,
+        samples.df,
+        ranks.df,
+        frames.df,
+        ann.df,
+        progress=partial(progress, desc="splits", unit="split"),
+    )
     p.timings["labels_ap_reports"] = time.perf_counter() - t0
     return reports
 
@@ -374,7 +475,9 @@ def until_pairs(p: Pipeline) -> tuple[dict[str, Entry], Table, Table, Table]:
     return ingested, frames, ann, query_pairs(p, frames, ann)
 
 
-def until_ranks(p: Pipeline, check: bool = True) -> tuple[dict[str, Entry], Table, Table, Table, RankTable]:
+def until_ranks(
+    p: Pipeline, check: bool = True
+) -> tuple[dict[str, Entry], Table, Table, Table, RankTable]:
     """Every stage up to the ranks (computed, or imported with ``rank_import``).
 
     With ``check``, inputs that can only give NaN tables are refused before any proposal work.
@@ -406,7 +509,9 @@ def run_all(p: Pipeline) -> dict[str, Any]:
         raise RetrievalError("no query subimage got a rank")
     samples = fused_samples(p, ranks, frames, ann)
     reports = change_tables(p, samples, ranks, frames, ann)
-    record = run_record(p, ingested, frames, ann, pairs, ranks, samples, reports, time.perf_counter() - t0)
+    record = run_record(
+        p, ingested, frames, ann, pairs, ranks, samples, reports, time.perf_counter() - t0
+    )
     write_json(p.out / "run.json", record)
     if p.cfg.report.html:
         from .report_html import write_html_report
@@ -423,16 +528,31 @@ def check_inputs(p: Pipeline, ann: Table, pairs: Table) -> None:
     """Refuse, before any proposal or descriptor work, inputs that can only give NaN tables."""
     if not (ann.df["status"] == "change").any():
         raise HarnessError(
-            f"{p.cfg.annotations}: no frame is annotated 'change', so no split has a positive and every AP "
+            f"{p.cfg.annotations}: no frame is annotated 'change', so no split has a "
+            "positive and every AP "
             "would be NaN; annotate at least one change box"
         )
     if not len(pairs.df):
-        raise HarnessError("no query frame found a reference frame; check [pairs] and the annotations")
+        raise HarnessError(
+            "no query frame found a reference frame; check [pairs] and the annotations"
+        )
 
 
-def run_record(p: Pipeline, ingested: dict[str, Entry], frames: Table, ann: Table, pairs: Table, ranks: RankTable, samples: Table,
-               reports: Reports, seconds: float) -> dict[str, Any]:
-    """What ``run.json`` records: config, versions, timings, counts, keys, warnings, cache entries."""
+def run_record(
+    p: Pipeline,
+    ingested: dict[str, Entry],
+    frames: Table,
+    ann: Table,
+    pairs: Table,
+    ranks: RankTable,
+    samples: Table,
+    reports: Reports,
+    seconds: float,
+) -> dict[str, Any]:
+    """What ``run.json`` records.
+
+    Config, versions, timings, counts, keys, warnings, cache entries.
+    """
     return {
         "config": asdict(p.cfg),
         "versions": _versions(),
@@ -442,13 +562,28 @@ def run_record(p: Pipeline, ingested: dict[str, Entry], frames: Table, ann: Tabl
         "total_s": round(seconds, 3),
         "stage_units_run": p.ran,
         "executor": p.executor.describe(),
-        "counts": {"frames": len(frames.df), "annotated_frames": int(ann.df[["session", "camera", "utime"]].drop_duplicates().shape[0]),
-                   "pairs": len(pairs.df),
-                   "frames_not_described": dict(sorted(p.not_described.items())), "ranked_subimages": len(ranks.df), "samples": len(samples.df), "rank_counts": ranks.counts},
-        "keys": {"frames": frames.key, "pairs": pairs.key, "ranks": ranks.key, "samples": samples.key},
+        "counts": {
+            "frames": len(frames.df),
+            "annotated_frames": int(
+                ann.df[["session", "camera", "utime"]].drop_duplicates().shape[0]
+            ),
+            "pairs": len(pairs.df),
+            "frames_not_described": dict(sorted(p.not_described.items())),
+            "ranked_subimages": len(ranks.df),
+            "samples": len(samples.df),
+            "rank_counts": ranks.counts,
+        },
+        "keys": {
+            "frames": frames.key,
+            "pairs": pairs.key,
+            "ranks": ranks.key,
+            "samples": samples.key,
+        },
         "localization": reports.localization.to_dict(orient="records"),
         "warnings": reports.warnings,
-        "ingest": {name: ingest_summary(e.path / "ingest_report.json") for name, e in ingested.items()},
+        "ingest": {
+            name: ingest_summary(e.path / "ingest_report.json") for name, e in ingested.items()
+        },
         "cache_entries": {stage: sorted(keys_) for stage, keys_ in sorted(p.used.items())},
     }
 
@@ -468,7 +603,11 @@ def file_sha(path: Path) -> str:
 def ingest_summary(path: Path) -> dict[str, Any]:
     """What run.json keeps of a session's ingest report: frames written, drops, pose frames."""
     rep = json.loads(path.read_text())
-    return {k: rep[k] for k in ("format", "frames_written", "dropped", "pose_frames", "salvaged") if k in rep}
+    return {
+        k: rep[k]
+        for k in ("format", "frames_written", "dropped", "pose_frames", "salvaged")
+        if k in rep
+    }
 
 
 def _versions() -> dict[str, str]:
@@ -483,14 +622,26 @@ def _versions() -> dict[str, str]:
         except PackageNotFoundError:
             return "?"
 
-    return {"dbl-harness": __version__, "python": platform.python_version(), "numpy": np.__version__, "pandas": pd.__version__,
-            "torch": torch.__version__, "opencv": cv2.__version__, "rosbags": ver("rosbags"), "mcap": ver("mcap"),
-            "platform": platform.platform()}
+    return {
+        "dbl-harness": __version__,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "pandas": pd.__version__,
+        "torch": torch.__version__,
+        "opencv": cv2.__version__,
+        "rosbags": ver("rosbags"),
+        "mcap": ver("mcap"),
+        "platform": platform.platform(),
+    }
 
 
-def reproduce(cfg: Config, out: Path, rank_import: Path | None = None, executor: Any = None) -> dict[str, Any]:
+def reproduce(
+    cfg: Config, out: Path, rank_import: Path | None = None, executor: Any = None
+) -> dict[str, Any]:
     """Run the whole pipeline for ``cfg`` into ``out`` (``executor``: local by default)."""
-    return Pipeline(cfg, Path(out), rank_import=rank_import, executor=executor or LocalExecutor()).run()
+    return Pipeline(
+        cfg, Path(out), rank_import=rank_import, executor=executor or LocalExecutor()
+    ).run()
 
 
 def load_run(out: Path) -> dict[str, Any]:

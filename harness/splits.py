@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,7 +36,9 @@ def _union_area_in(box: np.ndarray, rects: np.ndarray) -> float:
     return float(area[covered].sum())
 
 
-def roc_sob(boxes: np.ndarray, change_boxes: np.ndarray, width: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+def roc_sob(
+    boxes: np.ndarray, change_boxes: np.ndarray, width: float, height: float
+) -> tuple[np.ndarray, np.ndarray]:
     """RoC and SoB of sample boxes.
 
     ``RoC(b) = area(b ∩ U) / area(b)`` with U the union of the change boxes (overlaps counted
@@ -44,7 +47,8 @@ def roc_sob(boxes: np.ndarray, change_boxes: np.ndarray, width: float, height: f
     Args:
         boxes: (m, 4) x1, y1, x2, y2 with positive area.
         change_boxes: (c, 4); c = 0 for a no-change frame.
-        width, height: the image size.
+        width: the image width, pixels.
+        height: the image height, pixels.
 
     Returns:
         (roc (m,), sob (m,)) float arrays.
@@ -73,14 +77,27 @@ class Split:
 
     @property
     def roc_max(self) -> float:
+        """The split's RoC-max: the upper end of the negatives' RoC range."""
         return self.neg_roc[1]
+
+
+def _pair(bounds: Sequence[float]) -> tuple[float, float]:
+    """A config range ``[lo, hi]`` as a (lo, hi) tuple."""
+    lo, hi = bounds
+    return float(lo), float(hi)
 
 
 def paper_splits(cfg: SplitsConfig | None = None) -> list[Split]:
     """The paper's splits: one per ``RoC-max`` (Table I's columns) with the default ranges."""
     cfg = cfg or SplitsConfig()
     return [
-        Split(f"roc_max_{r:.2f}", tuple(cfg.pos_roc), tuple(cfg.pos_sob), (cfg.neg_roc_min, float(r)), tuple(cfg.neg_sob))  # type: ignore[arg-type]
+        Split(
+            f"roc_max_{r:.2f}",
+            _pair(cfg.pos_roc),
+            _pair(cfg.pos_sob),
+            (cfg.neg_roc_min, float(r)),
+            _pair(cfg.neg_sob),
+        )
         for r in cfg.roc_max
     ]
 
@@ -90,8 +107,10 @@ def _within(v: np.ndarray, rng: tuple[float, float]) -> np.ndarray:
 
 
 def label(roc: np.ndarray, sob: np.ndarray, split: Split) -> np.ndarray:
-    """+1 positive, 0 negative, -1 left out. A sample in both ranges (only with custom, overlapping
-    ranges) counts as positive."""
+    """+1 positive, 0 negative, -1 left out.
+
+    A sample in both ranges (only with custom, overlapping ranges) counts as positive.
+    """
     pos = _within(roc, split.pos_roc) & _within(sob, split.pos_sob)
     neg = _within(roc, split.neg_roc) & _within(sob, split.neg_sob)
     out = np.full(len(roc), LEFT_OUT, np.int8)

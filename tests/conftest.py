@@ -27,7 +27,10 @@ def default_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def local_run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> tuple:
-    """The whole pipeline on the default fixture with the local executor: (pipeline, record, out)."""
+    """The whole pipeline on the default fixture with the local executor.
+
+    (pipeline, record, out).
+    """
     from harness.config import load_config
     from harness.runner import Pipeline
 

@@ -5,9 +5,11 @@ name an entry (``{out}/cache/ingest/<key>/...`` in the frame table) are masked; 
 (``seconds``) are dropped from JSON; a checkpoint is digested by its tensors. Everything else is
 digested byte for byte. Regenerate the committed file after an intended change of results:
 
-    .venv/bin/python -m tests.stage_digests results/fixture datasets/fixture > tests/regression/stages.json
+    .venv/bin/python -m tests.stage_digests results/fixture datasets/fixture >
+    tests/regression/stages.json
 
-(a run of ``datasets/fixture.toml`` on the default fixture and its data root: ``make reproduce-table``.)
+(a run of ``datasets/fixture.toml`` on the default fixture and its data root: ``make
+reproduce-table``.)
 """
 
 from __future__ import annotations
@@ -92,5 +94,13 @@ def cpu_capability() -> str:
 
 
 if __name__ == "__main__":
-    json.dump({"cpu_capability": cpu_capability(), "files": digests(Path(sys.argv[1]), Path(sys.argv[2]))}, sys.stdout, indent=1, sort_keys=True)
+    json.dump(
+        {
+            "cpu_capability": cpu_capability(),
+            "files": digests(Path(sys.argv[1]), Path(sys.argv[2])),
+        },
+        sys.stdout,
+        indent=1,
+        sort_keys=True,
+    )
     print()

@@ -22,14 +22,26 @@ from harness.annotations import (
 )
 from harness.errors import AnnotationError
 
-FRAMES = pd.DataFrame({"session": ["A", "A"], "camera": ["c", "c"], "utime": [1, 2], "width": [100, 100], "height": [80, 80]})
+FRAMES = pd.DataFrame(
+    {
+        "session": ["A", "A"],
+        "camera": ["c", "c"],
+        "utime": [1, 2],
+        "width": [100, 100],
+        "height": [80, 80],
+    }
+)
 
 
 def _ann(rows: list[tuple]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=COLUMNS)
 
 
-GOOD = [("A", "c", 1, "change", 10, 10, 20, 30, "car"), ("A", "c", 1, "change", 15, 5, 40, 20, ""), ("A", "c", 2, "no-change", np.nan, np.nan, np.nan, np.nan, "")]
+GOOD = [
+    ("A", "c", 1, "change", 10, 10, 20, 30, "car"),
+    ("A", "c", 1, "change", 15, 5, 40, 20, ""),
+    ("A", "c", 2, "no-change", np.nan, np.nan, np.nan, np.nan, ""),
+]
 
 
 def test_valid_table_passes_and_groups_boxes() -> None:
@@ -48,7 +60,10 @@ def test_valid_table_passes_and_groups_boxes() -> None:
         (("A", "c", 2, "change", 10, 10, 12, 30, ""), "both change and no-change"),
         (("A", "c", 1, "moved", 10, 10, 12, 30, ""), "line 5: status must be one of"),
         (("A", "c", 1, "change", 10, 10, 20, 30, "car"), "line 5: duplicate row"),
-        (("A", "c", 1, "change", np.nan, 10, 20, 30, ""), "line 5: a change row needs a numeric box"),
+        (
+            ("A", "c", 1, "change", np.nan, 10, 20, 30, ""),
+            "line 5: a change row needs a numeric box",
+        ),
     ],
 )
 def test_bad_rows_are_named(row: tuple, message: str) -> None:
@@ -58,32 +73,54 @@ def test_bad_rows_are_named(row: tuple, message: str) -> None:
 
 def test_coco_voc_cvat_import_to_the_same_table(tmp_path: Path) -> None:
     n1, n2 = image_name("A", "c", 1), image_name("A", "c", 2)
-    coco = {"images": [{"id": 1, "file_name": n1}, {"id": 2, "file_name": n2}], "categories": [{"id": 3, "name": "car"}],
-            "annotations": [{"id": 1, "image_id": 1, "category_id": 3, "bbox": [10, 10, 10, 20]}]}
+    coco = {
+        "images": [{"id": 1, "file_name": n1}, {"id": 2, "file_name": n2}],
+        "categories": [{"id": 3, "name": "car"}],
+        "annotations": [{"id": 1, "image_id": 1, "category_id": 3, "bbox": [10, 10, 10, 20]}],
+    }
     (tmp_path / "c.json").write_text(json.dumps(coco))
     voc = tmp_path / "voc"
     voc.mkdir()
-    (voc / "1.xml").write_text(f"<annotation><filename>{n1}</filename><object><name>car</name><bndbox><xmin>10</xmin><ymin>10</ymin><xmax>20</xmax><ymax>30</ymax></bndbox></object></annotation>")
+    (voc / "1.xml").write_text(
+        f"<annotation><filename>{n1}</filename><object><name>car</name><bndbox><xmin>10</xmin><ymin>10</ymin><xmax>20</xmax><ymax>30</ymax></bndbox></object></annotation>"
+    )
     (voc / "2.xml").write_text(f"<annotation><filename>{n2}</filename></annotation>")
-    (tmp_path / "cvat.xml").write_text(f'<annotations><image id="0" name="{n1}"><box label="car" xtl="10" ytl="10" xbr="20" ybr="30"/></image><image id="1" name="{n2}"/></annotations>')
-    tables = [validate(f(p), FRAMES, str(p)) for f, p in ((import_coco, tmp_path / "c.json"), (import_voc, voc), (import_cvat, tmp_path / "cvat.xml"))]
+    (tmp_path / "cvat.xml").write_text(
+        f'<annotations><image id="0" name="{n1}"><box label="car" xtl="10" ytl="10" '
+        f'xbr="20" ybr="30"/></image><image id="1" name="{n2}"/></annotations>'
+    )
+    tables = [
+        validate(f(p), FRAMES, str(p))
+        for f, p in (
+            (import_coco, tmp_path / "c.json"),
+            (import_voc, voc),
+            (import_cvat, tmp_path / "cvat.xml"),
+        )
+    ]
     for t in tables[1:]:
         pd.testing.assert_frame_equal(tables[0], t)
-    assert tables[0]["status"].tolist() == ["no-change", "change"] or sorted(tables[0]["status"]) == ["change", "no-change"]
+    assert tables[0]["status"].tolist() == ["no-change", "change"] or sorted(
+        tables[0]["status"]
+    ) == ["change", "no-change"]
     out = tmp_path / "ann.csv"
     import_annotations("coco", tmp_path / "c.json", FRAMES, out)
     assert pd.read_csv(out).shape[0] == 2
 
 
 def test_import_rejects_foreign_file_names(tmp_path: Path) -> None:
-    (tmp_path / "c.json").write_text(json.dumps({"images": [{"id": 1, "file_name": "IMG_0001.png"}], "annotations": []}))
+    (tmp_path / "c.json").write_text(
+        json.dumps({"images": [{"id": 1, "file_name": "IMG_0001.png"}], "annotations": []})
+    )
     with pytest.raises(AnnotationError, match=r"IMG_0001\.png.*<session>__<camera>__<utime>"):
         import_coco(tmp_path / "c.json")
 
 
 def test_box_drawn_on_the_reference_half_is_rejected(tmp_path: Path) -> None:
     n1 = image_name("A", "c", 1)
-    (tmp_path / "cvat.xml").write_text(f'<annotations><image id="0" name="{n1}"><box label="x" xtl="150" ytl="10" xbr="170" ybr="30"/></image></annotations>')
+    (tmp_path / "cvat.xml").write_text(
+        f'<annotations><image id="0" name="{n1}"><box label="x" xtl="150" ytl="10" '
+        'xbr="170" ybr="30"/></image></annotations>'
+    )
     with pytest.raises(AnnotationError, match="ends outside the image"):
         import_annotations("cvat", tmp_path / "cvat.xml", FRAMES, tmp_path / "o.csv")
 
@@ -93,10 +130,29 @@ def test_exporter_writes_side_by_side_images_and_a_task(tmp_path: Path) -> None:
 
     for t in (1, 2):
         cv2.imwrite(str(tmp_path / f"{t}.png"), np.full((80, 100, 3), 40 * t, np.uint8))
-    frames = pd.DataFrame({"session": ["A", "B"], "camera": ["c", "c"], "utime": [1, 2], "image": [str(tmp_path / "1.png"), str(tmp_path / "2.png")]})
-    pairs = pd.DataFrame({"q_session": ["A"], "q_camera": ["c"], "q_utime": [1], "r_session": ["B"], "r_camera": ["c"], "r_utime": [2]})
+    frames = pd.DataFrame(
+        {
+            "session": ["A", "B"],
+            "camera": ["c", "c"],
+            "utime": [1, 2],
+            "image": [str(tmp_path / "1.png"), str(tmp_path / "2.png")],
+        }
+    )
+    pairs = pd.DataFrame(
+        {
+            "q_session": ["A"],
+            "q_camera": ["c"],
+            "q_utime": [1],
+            "r_session": ["B"],
+            "r_camera": ["c"],
+            "r_utime": [2],
+        }
+    )
     out = export_for_labelling(pairs, frames, tmp_path / "task")
     task = json.loads((out / "task.json").read_text())
-    assert task["images"][0]["file_name"] == image_name("A", "c", 1) and task["images"][0]["query_width"] == 100
+    assert (
+        task["images"][0]["file_name"] == image_name("A", "c", 1)
+        and task["images"][0]["query_width"] == 100
+    )
     img = cv2.imread(str(out / "images" / image_name("A", "c", 1)))
     assert img.shape == (80, 200, 3) and img[0, 0, 0] == 40 and img[0, 150, 0] == 80

@@ -14,7 +14,9 @@ from harness.retrieval import described_frames
 from harness.runner import Pipeline, load_run
 
 
-def _variant(local_run: tuple, tmp_path: Path, name: str, reuse: bool = True, **retrieval: float) -> tuple[dict, Path]:
+def _variant(
+    local_run: tuple, tmp_path: Path, name: str, reuse: bool = True, **retrieval: float
+) -> tuple[dict, Path]:
     p, _, out = local_run
     shutil.copytree(out / "cache", tmp_path / name / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / name / ".dbl-harness.json")
@@ -22,18 +24,30 @@ def _variant(local_run: tuple, tmp_path: Path, name: str, reuse: bool = True, **
     q = Pipeline(cfg, tmp_path / name)
     rec = q.run()
     if reuse:  # the same described frames: only ranks and what follows run again
-        assert q.ran.get("proposals", 0) == 0 and q.ran.get("descriptors", 0) == 0 and q.ran.get("model", 0) == 0
+        assert (
+            q.ran.get("proposals", 0) == 0
+            and q.ran.get("descriptors", 0) == 0
+            and q.ran.get("model", 0) == 0
+        )
     return rec, tmp_path / name
 
 
-def test_a_stride_below_the_frame_spacing_keeps_every_frame(local_run: tuple, tmp_path: Path) -> None:
+def test_a_stride_below_the_frame_spacing_keeps_every_frame(
+    local_run: tuple, tmp_path: Path
+) -> None:
     _, _, out = local_run
-    _, o = _variant(local_run, tmp_path, "fine", db_stride_m=0.01)  # fixture frames are metres apart
+    _, o = _variant(
+        local_run, tmp_path, "fine", db_stride_m=0.01
+    )  # fixture frames are metres apart
     assert (o / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
-    pd.testing.assert_frame_equal(pd.read_parquet(o / "ranks.parquet"), pd.read_parquet(out / "ranks.parquet"))
+    pd.testing.assert_frame_equal(
+        pd.read_parquet(o / "ranks.parquet"), pd.read_parquet(out / "ranks.parquet")
+    )
 
 
-def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(local_run: tuple, tmp_path: Path) -> None:
+def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(
+    local_run: tuple, tmp_path: Path
+) -> None:
     _, _, out = local_run
     full = pd.read_parquet(out / "ranks.parquet")
     rec, o = _variant(local_run, tmp_path, "thin", reuse=False, db_stride_m=9.0, gt_radius_m=5.0)
@@ -43,17 +57,26 @@ def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(lo
     lost = sum(c.get("no_rank_place_not_in_database", 0) for c in counts.values())
     assert lost >= 0 and sum(c["ranked"] for c in counts.values()) == len(thin)
     assert (thin["place_size"] >= 1).all() and np.isfinite(thin["d"]).all()
-    assert pd.read_csv(o / "table1.csv")["method"].tolist() == pd.read_csv(out / "table1.csv")["method"].tolist()
+    assert (
+        pd.read_csv(o / "table1.csv")["method"].tolist()
+        == pd.read_csv(out / "table1.csv")["method"].tolist()
+    )
 
 
-def test_a_thinned_database_proposes_and_describes_only_the_frames_ranking_reads(local_run: tuple, tmp_path: Path) -> None:
+def test_a_thinned_database_proposes_and_describes_only_the_frames_ranking_reads(
+    local_run: tuple, tmp_path: Path
+) -> None:
     rec, o = _variant(local_run, tmp_path, "thin", reuse=False, db_stride_m=9.0, gt_radius_m=5.0)
     run = load_run(o)
     frames = pd.read_parquet(o / "cache" / "frames" / run["keys"]["frames"] / "frames.parquet")
     pairs = pd.read_parquet(o / "cache" / "pairs" / run["keys"]["pairs"] / "pairs.parquet")
     not_described = rec["counts"]["frames_not_described"]
-    props = {str(t["session"].iat[0]): t for t in _entries(o, run, "proposals", "proposals.parquet")}
-    described = {str(t["session"].iat[0]): t for t in _entries(o, run, "descriptors", "index.parquet")}
+    props = {
+        str(t["session"].iat[0]): t for t in _entries(o, run, "proposals", "proposals.parquet")
+    }
+    described = {
+        str(t["session"].iat[0]): t for t in _entries(o, run, "descriptors", "index.parquet")
+    }
     assert sorted(props) == sorted(described) == sorted(frames["session"].unique())
     for name, fr in frames.groupby("session"):
         fr = fr.sort_values("utime")
@@ -69,14 +92,36 @@ def _entries(o: Path, run: dict, stage: str, file: str) -> list[pd.DataFrame]:
 
 
 def test_described_frames_by_hand() -> None:
-    frames = pd.DataFrame({"session": ["a"] * 4 + ["b"] * 3 + ["c"] * 2, "camera": ["Cam5"] * 9,
-                           "utime": [1, 2, 3, 4, 1, 2, 3, 7, 8],
-                           "x": [0.0, 1.0, 2.0, 3.0, 0.0, 5.0, 10.0, 0.0, 1.0], "y": [0.0] * 9})
-    pairs = pd.DataFrame({"q_session": ["a", "b"], "q_camera": ["Cam5", "Cam5"], "q_utime": [2, 2],
-                          "r_session": ["b", "a"], "r_camera": ["Cam5", "Cam5"], "r_utime": [1, 3]})
+    frames = pd.DataFrame(
+        {
+            "session": ["a"] * 4 + ["b"] * 3 + ["c"] * 2,
+            "camera": ["Cam5"] * 9,
+            "utime": [1, 2, 3, 4, 1, 2, 3, 7, 8],
+            "x": [0.0, 1.0, 2.0, 3.0, 0.0, 5.0, 10.0, 0.0, 1.0],
+            "y": [0.0] * 9,
+        }
+    )
+    pairs = pd.DataFrame(
+        {
+            "q_session": ["a", "b"],
+            "q_camera": ["Cam5", "Cam5"],
+            "q_utime": [2, 2],
+            "r_session": ["b", "a"],
+            "r_camera": ["Cam5", "Cam5"],
+            "r_utime": [1, 3],
+        }
+    )
     every = described_frames(frames, pairs, 0.0)
-    assert every["a"]["utime"].tolist() == [1, 2, 3, 4] and every["b"]["utime"].tolist() == [1, 2, 3]
+    assert every["a"]["utime"].tolist() == [1, 2, 3, 4] and every["b"]["utime"].tolist() == [
+        1,
+        2,
+        3,
+    ]
     assert every["c"].empty  # neither queried nor a reference: never proposed
     thin = described_frames(frames, pairs, 2.0)
-    assert thin["a"]["utime"].tolist() == [1, 2, 3]  # kept 1 (start) and 3 (2 m travelled); 2 is a query frame
+    assert thin["a"]["utime"].tolist() == [
+        1,
+        2,
+        3,
+    ]  # kept 1 (start) and 3 (2 m travelled); 2 is a query frame
     assert thin["b"]["utime"].tolist() == [1, 2, 3]  # 5 m apart: every frame kept

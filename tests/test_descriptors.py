@@ -10,7 +10,12 @@ import torch
 
 from harness.config import DescriptorConfig
 from harness.descriptors import AutoencoderDescriptor, HogDescriptor, ThumbDescriptor, normalize
-from harness.descriptors.autoencoder import ConvAutoencoder, inference_encoder, load_checkpoint, to_tensor
+from harness.descriptors.autoencoder import (
+    ConvAutoencoder,
+    inference_encoder,
+    load_checkpoint,
+    to_tensor,
+)
 
 
 def test_paper_architecture_gives_a_16384_dim_bottleneck() -> None:
@@ -59,7 +64,9 @@ def test_inference_encoder_equals_the_trained_encoder() -> None:
     """Folded batch-norm, pool-before-ReLU and micro-batches give the model's own encoding."""
     torch.manual_seed(3)
     model = ConvAutoencoder().eval()
-    for bn in (m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)):  # non-trivial statistics
+    for bn in (
+        m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)
+    ):  # non-trivial statistics
         bn.running_mean.uniform_(-0.2, 0.2)
         bn.running_var.uniform_(0.5, 2.0)
         bn.weight.data.uniform_(0.5, 1.5)
@@ -71,7 +78,9 @@ def test_inference_encoder_equals_the_trained_encoder() -> None:
     assert fused.shape == ref.shape == (6, 16 * 8 * 8)
     assert torch.allclose(fused, ref, atol=1e-5, rtol=1e-4)
     for step in (1, 2, 6):
-        d = AutoencoderDescriptor(DescriptorConfig(input_size=64, input_norm="per_crop", device="cpu", encode_batch=step))
+        d = AutoencoderDescriptor(
+            DescriptorConfig(input_size=64, input_norm="per_crop", device="cpu", encode_batch=step)
+        )
         d.model = model
         assert np.allclose(d.encode(_crops(6, 64)), ref.numpy(), atol=1e-5, rtol=1e-4)
 
@@ -86,7 +95,9 @@ def test_per_crop_normalisation_matches_its_definition() -> None:
     assert got.stride()[1] == 1  # channels-last memory
     assert torch.allclose(got.double(), want, atol=1e-6)
     flat = np.full((1, 8, 8, 3), 77, np.uint8)  # a flat crop: std clamps, no division by zero
-    assert torch.allclose(to_tensor(flat, torch.device("cpu"), per_crop=True), torch.full((1, 3, 8, 8), 0.5))
+    assert torch.allclose(
+        to_tensor(flat, torch.device("cpu"), per_crop=True), torch.full((1, 3, 8, 8), 0.5)
+    )
 
 
 def test_training_free_descriptors() -> None:
@@ -109,7 +120,9 @@ def test_hog_values_on_hand_built_edges() -> None:
     v = hog(img).reshape(7, 7, 4, 9)
     assert v.max() > 0
     assert np.abs(v[..., 1:]).max() == 0  # all energy in bin 0
-    assert np.abs(v[:, [0, 1, 5, 6]]).max() == 0  # blocks away from the edge (columns 31-32) are empty
+    assert (
+        np.abs(v[:, [0, 1, 5, 6]]).max() == 0
+    )  # blocks away from the edge (columns 31-32) are empty
     h = hog(img.T.copy()).reshape(7, 7, 4, 9)
     nz = h[h.sum(-1) > 0]
     np.testing.assert_allclose(nz[:, 4], nz[:, 5], rtol=1e-5)
@@ -136,17 +149,43 @@ def test_training_on_a_sample_budget_with_early_stopping(tmp_path: Path) -> None
     for _ in range(2):
         torch.manual_seed(0)
         model = ConvAutoencoder((8, 8, 4))
-        hist, info = train_budget(model, x, samples=40 * 8, batch_size=8, lr=3e-3, seed=0, device=torch.device("cpu"),
-                                  holdout=0.25, eval_every=5, patience=100)
+        hist, info = train_budget(
+            model,
+            x,
+            samples=40 * 8,
+            batch_size=8,
+            lr=3e-3,
+            seed=0,
+            device=torch.device("cpu"),
+            holdout=0.25,
+            eval_every=5,
+            patience=100,
+        )
         runs.append((hist, info))
     hist, info = runs[0]
-    assert info["steps"] == 40 and len(hist) == 40 and info["held_out"] == 16 and not info["stopped_early"]
+    assert (
+        info["steps"] == 40
+        and len(hist) == 40
+        and info["held_out"] == 16
+        and not info["stopped_early"]
+    )
     assert runs[0][1]["held_out_curve"] == runs[1][1]["held_out_curve"]  # reproducible
     curve = [v for _, v in info["held_out_curve"]]
     assert curve[-1] < curve[0]  # the held-out loss falls
     assert info["best_held_out_loss"] == min(curve)
-    # patience 1 with a learning rate that diverges: it stops at the first evaluation without improvement
+    # patience 1 with a learning rate that diverges: it stops at the first evaluation without
+    # improvement
     model = ConvAutoencoder((8, 8, 4))
-    _, info = train_budget(model, x, samples=200 * 8, batch_size=8, lr=5.0, seed=0, device=torch.device("cpu"),
-                           holdout=0.25, eval_every=2, patience=1)
+    _, info = train_budget(
+        model,
+        x,
+        samples=200 * 8,
+        batch_size=8,
+        lr=5.0,
+        seed=0,
+        device=torch.device("cpu"),
+        holdout=0.25,
+        eval_every=2,
+        patience=1,
+    )
     assert info["stopped_early"] and info["steps"] < 200

@@ -15,7 +15,11 @@ from .conftest import ROOT, SMALL
 
 
 def _digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_same_seed_same_bytes(tmp_path: Path) -> None:
@@ -30,7 +34,9 @@ def test_same_seed_same_bytes(tmp_path: Path) -> None:
 def test_other_seed_other_world(tmp_path: Path) -> None:
     a = generate(tmp_path / "a", SMALL)
     b = generate(tmp_path / "b", FixtureSpec(**{**SMALL.__dict__, "seed": 1}))
-    assert (a / "truth" / "frames.parquet").read_bytes() != (b / "truth" / "frames.parquet").read_bytes()
+    assert (a / "truth" / "frames.parquet").read_bytes() != (
+        b / "truth" / "frames.parquet"
+    ).read_bytes()
 
 
 def test_default_fixture_is_small_and_matches_committed_annotations(default_world: Path) -> None:
@@ -40,7 +46,9 @@ def test_default_fixture_is_small_and_matches_committed_annotations(default_worl
     assert (default_world / "annotations.csv").read_text() == committed
 
 
-def test_annotations_have_change_and_no_change_in_every_changed_session(default_world: Path) -> None:
+def test_annotations_have_change_and_no_change_in_every_changed_session(
+    default_world: Path,
+) -> None:
     import pandas as pd
 
     ann = pd.read_csv(default_world / "annotations.csv")
@@ -58,8 +66,14 @@ def test_near_views_look_alike_far_views_differ() -> None:
     t0 = traj.t0_us
     # 30 ms apart is about half a metre on this 12-second lap; 6 s is the far side of the loop
     poses = pose_at(world, traj, np.array([t0, t0 + 30_000, t0 + 6_000_000]))
-    imgs = [cv2.resize(render(world, "WI", p, "2012-01-22", np.random.default_rng(0))[0], (12, 16), interpolation=cv2.INTER_AREA).astype(float)
-            for p in poses]
+    imgs = [
+        cv2.resize(
+            render(world, "WI", p, "2012-01-22", np.random.default_rng(0))[0],
+            (12, 16),
+            interpolation=cv2.INTER_AREA,
+        ).astype(float)
+        for p in poses
+    ]
     near = np.abs(imgs[0] - imgs[1]).mean()
     far = np.abs(imgs[0] - imgs[2]).mean()
     assert near < 0.5 * far
@@ -84,8 +98,13 @@ def test_seasons_change_appearance_not_geometry() -> None:
     assert same_place > other_place + 0.2
 
 
-def test_large_frames_rendered_at_a_lower_scale_and_streamed_into_one_format(tmp_path: Path) -> None:
-    """render_scale ray-casts at 1/scale and upsamples; per-session formats; JPEG bags ingest as JPEG."""
+def test_large_frames_rendered_at_a_lower_scale_and_streamed_into_one_format(
+    tmp_path: Path,
+) -> None:
+    """render_scale ray-casts at 1/scale and upsamples; per-session formats.
+
+    JPEG bags ingest as JPEG.
+    """
     import pandas as pd
     import pytest
 
@@ -94,7 +113,13 @@ def test_large_frames_rendered_at_a_lower_scale_and_streamed_into_one_format(tmp
 
     spec = FixtureSpec(frames=6, width=240, height=320, render_scale=4, objects=1)
     world = build_world(spec)
-    img, masks = render(world, "SU", pose_at(world, trajectory(world, 2), np.array([trajectory(world, 2).t0_us]))[0], "2012-08-04", np.random.default_rng(0))
+    img, masks = render(
+        world,
+        "SU",
+        pose_at(world, trajectory(world, 2), np.array([trajectory(world, 2).t0_us]))[0],
+        "2012-08-04",
+        np.random.default_rng(0),
+    )
     assert img.shape == (320, 240, 3)
     assert all(m.shape == (320, 240) for _, m in masks)
     out = generate(tmp_path / "w", spec, formats=("ros2",) * 4)
@@ -102,7 +127,11 @@ def test_large_frames_rendered_at_a_lower_scale_and_streamed_into_one_format(tmp
     ann = pd.read_csv(out / "annotations.csv")
     boxes = ann.dropna(subset=["x1"])
     assert ((boxes.x1 >= 0) & (boxes.x2 <= 240) & (boxes.y1 >= 0) & (boxes.y2 <= 320)).all()
-    rep = ingest_session(SessionConfig(name="2012-01-22", source=str(out / "ros2" / "2012-01-22")), IngestConfig(), tmp_path / "ing")
+    rep = ingest_session(
+        SessionConfig(name="2012-01-22", source=str(out / "ros2" / "2012-01-22")),
+        IngestConfig(),
+        tmp_path / "ing",
+    )
     assert rep["frames_written"] == 6
     stored = sorted((tmp_path / "ing" / "images").rglob("*.*"))
     assert stored and all(p.suffix == ".jpg" for p in stored)

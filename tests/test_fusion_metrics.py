@@ -15,7 +15,15 @@ BOXES = np.array([[0, 0, 10, 10], [5, 5, 15, 15], [8, 0, 20, 8]], float)
 R = np.array([0.1, 0.5, 1.0])
 D = np.array([1.0, 2.0, 3.0])
 # closure: A, B, C, A∩B=[5,5,10,10], A∩C=[8,0,10,8], B∩C=[8,5,15,8], A∩B∩C=[8,5,10,8]
-CLOSURE = {(0, 0, 10, 10): "A", (5, 5, 15, 15): "B", (8, 0, 20, 8): "C", (5, 5, 10, 10): "AB", (8, 0, 10, 8): "AC", (8, 5, 15, 8): "BC", (8, 5, 10, 8): "ABC"}
+CLOSURE = {
+    (0, 0, 10, 10): "A",
+    (5, 5, 15, 15): "B",
+    (8, 0, 20, 8): "C",
+    (5, 5, 10, 10): "AB",
+    (8, 0, 10, 8): "AC",
+    (8, 5, 15, 8): "BC",
+    (8, 5, 10, 8): "ABC",
+}
 
 
 def _by_cover(boxes: np.ndarray, loc: np.ndarray) -> dict[str, float]:
@@ -27,7 +35,8 @@ def test_closure_of_three_boxes() -> None:
     assert {tuple(b) for b in fused.astype(int).tolist()} == set(CLOSURE) and not capped
 
 
-# Rank lists of length L = 10: ranks 1, 5, 10 (r = rank / L); r' = (L + 1 - rank) / L = 1.0, 0.6, 0.1
+# Rank lists of length L = 10: ranks 1, 5, 10 (r = rank / L); r' = (L + 1 - rank) / L = 1.0, 0.6,
+# 0.1
 L10 = np.array([10, 10, 10])
 INV_RD = {"A": 1.0, "B": 10 / 6, "C": 10.0}  # 1 / r'
 
@@ -35,8 +44,15 @@ INV_RD = {"A": 1.0, "B": 10 / 6, "C": 10.0}  # 1 / r'
 def test_rank_fusion_by_hand() -> None:
     """SPEC 7: LoC = N * sum 1/r' (the paper's descending order), written out per fused box."""
     got = _by_cover(*fuse(BOXES, R, D, "rank_fusion", L=L10))
-    want = {"A": 1.0, "B": 10 / 6, "C": 10.0, "AB": 2 * (1 + 10 / 6), "AC": 2 * (1 + 10), "BC": 2 * (10 / 6 + 10),
-            "ABC": 3 * (1 + 10 / 6 + 10)}
+    want = {
+        "A": 1.0,
+        "B": 10 / 6,
+        "C": 10.0,
+        "AB": 2 * (1 + 10 / 6),
+        "AC": 2 * (1 + 10),
+        "BC": 2 * (10 / 6 + 10),
+        "ABC": 3 * (1 + 10 / 6 + 10),
+    }
     assert got == pytest.approx(want)
     assert got["ABC"] == pytest.approx(38.0) and got["A"] == pytest.approx(1.0)
     with pytest.raises(ValueError, match="needs the rank-list lengths"):
@@ -46,11 +62,17 @@ def test_rank_fusion_by_hand() -> None:
 def test_paper_variants_by_hand() -> None:
     """Variant 2 (ascending): 1 / (N * sum 1/r); variant 1 (raw): N * sum 1 / (L + 1 - rank)."""
     asc = _by_cover(*fuse(BOXES, R, D, "rank_fusion_asc"))
-    assert asc["A"] == pytest.approx(0.1) and asc["AB"] == pytest.approx(1 / 24) and asc["ABC"] == pytest.approx(1 / 39)
+    assert (
+        asc["A"] == pytest.approx(0.1)
+        and asc["AB"] == pytest.approx(1 / 24)
+        and asc["ABC"] == pytest.approx(1 / 39)
+    )
     raw = _by_cover(*fuse(BOXES, R, D, "rank_fusion_raw", L=L10))
     # L + 1 - rank = 10, 6, 1
     assert raw["A"] == pytest.approx(0.1) and raw["C"] == pytest.approx(1.0)
-    assert raw["ABC"] == pytest.approx(3 * (0.1 + 1 / 6 + 1.0)) and raw["BC"] == pytest.approx(2 * (1 / 6 + 1.0))
+    assert raw["ABC"] == pytest.approx(3 * (0.1 + 1 / 6 + 1.0)) and raw["BC"] == pytest.approx(
+        2 * (1 / 6 + 1.0)
+    )
 
 
 def test_baselines_by_hand() -> None:
@@ -60,9 +82,15 @@ def test_baselines_by_hand() -> None:
     assert cc == {"A": 1, "B": 1, "C": 1, "AB": 2, "AC": 2, "BC": 2, "ABC": 3}
     fused, _ = intersection_closure(BOXES)
     sp = _by_cover(fused, image_loc(fused, "size_prior", 22, 16, seed=0))
-    assert sp["A"] == pytest.approx(1 - 100 / 352) and sp["ABC"] == pytest.approx(1 - 6 / 352) and sp["C"] == pytest.approx(1 - 96 / 352)
+    assert (
+        sp["A"] == pytest.approx(1 - 100 / 352)
+        and sp["ABC"] == pytest.approx(1 - 6 / 352)
+        and sp["C"] == pytest.approx(1 - 96 / 352)
+    )
     r1, r2 = image_loc(fused, "random", 22, 16, seed=7), image_loc(fused, "random", 22, 16, seed=7)
-    assert np.array_equal(r1, r2) and ((r1 >= 0) & (r1 < 1)).all() and len(set(r1.tolist())) == len(r1)
+    assert (
+        np.array_equal(r1, r2) and ((r1 >= 0) & (r1 < 1)).all() and len(set(r1.tolist())) == len(r1)
+    )
     assert not np.array_equal(r1, image_loc(fused, "random", 22, 16, seed=8))
     with pytest.raises(ValueError, match="image_loc"):
         fuse(BOXES, R, D, "size_prior")
@@ -70,9 +98,13 @@ def test_baselines_by_hand() -> None:
 
 def test_rank_fusion_le2_uses_two_of_three() -> None:
     got = _by_cover(*fuse(BOXES, R, D, "rank_fusion_le2", seed=3, L=L10))
-    assert any(got["ABC"] == pytest.approx(2 * (INV_RD[a] + INV_RD[b])) for a, b in ("AB", "AC", "BC"))
+    assert any(
+        got["ABC"] == pytest.approx(2 * (INV_RD[a] + INV_RD[b])) for a, b in ("AB", "AC", "BC")
+    )
     assert got["AB"] == pytest.approx(2 * (1 + 10 / 6))  # two covers: unchanged
-    assert _by_cover(*fuse(BOXES, R, D, "rank_fusion_le2", seed=3, L=L10))["ABC"] == got["ABC"]  # seeded
+    assert (
+        _by_cover(*fuse(BOXES, R, D, "rank_fusion_le2", seed=3, L=L10))["ABC"] == got["ABC"]
+    )  # seeded
     assert _by_cover(*fuse(BOXES, R, D, "rank_fusion_le3", L=L10))["ABC"] == pytest.approx(38.0)
 
 
@@ -93,13 +125,18 @@ def test_loc_map_takes_the_smallest_covering_box() -> None:
     assert np.isnan(m[14, 20]) and np.isnan(m[0, 21])
 
 
-box_st = st.tuples(st.integers(0, 30), st.integers(0, 30), st.integers(1, 20), st.integers(1, 20)).map(lambda t: (t[0], t[1], t[0] + t[2], t[1] + t[3]))
+box_st = st.tuples(
+    st.integers(0, 30), st.integers(0, 30), st.integers(1, 20), st.integers(1, 20)
+).map(lambda t: (t[0], t[1], t[0] + t[2], t[1] + t[3]))
 
 
 @settings(max_examples=50, deadline=None)
 @given(st.lists(box_st, min_size=1, max_size=6, unique=True), st.data())
 def test_rank_fusion_orders_single_covers_as_r_does(boxes: list, data: st.DataObject) -> None:
-    """Where one box covers a sample, rank fusion's LoC is 1/r' = L / (L + 1 - rank): increasing in r."""
+    """Where one box covers a sample, rank fusion's LoC is 1/r' = L / (L + 1 - rank).
+
+    Increasing in r.
+    """
     b = np.array(boxes, float)
     L = np.array(data.draw(st.lists(st.integers(1, 50), min_size=len(b), max_size=len(b))))
     rank = np.array([data.draw(st.integers(1, int(n))) for n in L])
@@ -116,27 +153,39 @@ def test_rank_fusion_orders_single_covers_as_r_does(boxes: list, data: st.DataOb
 
 def test_ap_by_hand_with_ties() -> None:
     # scores desc: 0.9(+) 0.8(-) 0.7(+) 0.1(-): P@R.5 = 1, P@R1 = 2/3
-    assert average_precision([1, 0, 1, 0], [0.9, 0.8, 0.7, 0.1]) == pytest.approx((51 * 1 + 50 * 2 / 3) / 101)
+    assert average_precision([1, 0, 1, 0], [0.9, 0.8, 0.7, 0.1]) == pytest.approx(
+        (51 * 1 + 50 * 2 / 3) / 101
+    )
     # all tied: one point, precision 2/3 at recall 1
     assert average_precision([1, 1, 0], [0.5, 0.5, 0.5]) == pytest.approx(2 / 3)
     # a tie between a positive and a negative enters together
-    assert average_precision([1, 0, 1], [0.9, 0.5, 0.5]) == pytest.approx((51 * 1 + 50 * 2 / 3) / 101)
+    assert average_precision([1, 0, 1], [0.9, 0.5, 0.5]) == pytest.approx(
+        (51 * 1 + 50 * 2 / 3) / 101
+    )
     assert np.isnan(average_precision([0, 0], [0.3, 0.2]))
     assert average_precision([1, 1], [0.3, 0.2]) == 1.0
 
 
 def test_recall_grid_tolerance() -> None:
-    """35 of 100 positives first, then a negative: recall 0.35 = 35/100 must reach R = 0.35, although
+    """35 of 100 positives first, then a negative: recall 0.35 = 35/100 must reach R = 0.35,
+    although
     np.linspace(0, 1, 101)[35] = 0.35000000000000003 > 35/100 in floating point. Without the
     tolerance, R = 0.35 would take the precision after the negative (100/101 at best)."""
     labels = np.r_[np.ones(35), np.zeros(1), np.ones(65)]
     scores = -np.arange(len(labels), dtype=float)
     assert np.linspace(0, 1, 101)[35] > 35 / 100  # the float trap this test is about
-    assert average_precision(labels, scores) == pytest.approx((36 * 1 + 65 * 100 / 101) / 101, abs=1e-12)
+    assert average_precision(labels, scores) == pytest.approx(
+        (36 * 1 + 65 * 100 / 101) / 101, abs=1e-12
+    )
 
 
 # scores on a 0.1 grid, so that the transforms below keep distinct values distinct in floating point
-labels_scores = st.integers(2, 40).flatmap(lambda n: st.tuples(st.lists(st.booleans(), min_size=n, max_size=n), st.lists(st.integers(-50, 50).map(lambda k: k / 10), min_size=n, max_size=n)))
+labels_scores = st.integers(2, 40).flatmap(
+    lambda n: st.tuples(
+        st.lists(st.booleans(), min_size=n, max_size=n),
+        st.lists(st.integers(-50, 50).map(lambda k: k / 10), min_size=n, max_size=n),
+    )
+)
 
 
 @settings(max_examples=80, deadline=None)

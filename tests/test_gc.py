@@ -13,12 +13,16 @@ from harness.cli import main
 from harness.runner import Pipeline
 
 
-def test_gc_removes_only_what_the_last_run_did_not_use(local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_gc_removes_only_what_the_last_run_did_not_use(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     p, _, out = local_run
     run_dir = tmp_path / "o"
     shutil.copytree(out, run_dir)
     # an older config leaves entries behind: another fusion seed gives other samples
-    Pipeline(dataclasses.replace(p.cfg, fusion=dataclasses.replace(p.cfg.fusion, seed=9)), run_dir).run()
+    Pipeline(
+        dataclasses.replace(p.cfg, fusion=dataclasses.replace(p.cfg.fusion, seed=9)), run_dir
+    ).run()
     Pipeline(p.cfg, run_dir).run()  # the last run: back to the config's seed
     used = json.loads((run_dir / "run.json").read_text())["cache_entries"]
     entries = {f"{s.name}/{e.name}" for s in (run_dir / "cache").iterdir() for e in s.iterdir()}

@@ -27,7 +27,11 @@ LOSSLESS = ("nclt", "ros1", "mcap", "ros2mcap", "mcaptf")
 
 
 def _ingest(world: Path, fmt: str, session: str, out: Path, **kw: object) -> pd.DataFrame:
-    ingest_session(SessionConfig(name=session, source=str(world / session_path(fmt, session)), **kw), IngestConfig(), out)  # type: ignore[arg-type]
+    ingest_session(
+        SessionConfig(name=session, source=str(world / session_path(fmt, session)), **kw),
+        IngestConfig(),
+        out,
+    )  # type: ignore[arg-type]
     return load_frames(out / "frames.parquet")
 
 
@@ -40,7 +44,9 @@ def test_round_trip_poses_and_pixels(small_world: Path, tmp_path: Path, fmt: str
         tr = truth[truth["session"] == session].reset_index(drop=True)
         assert list(df.columns) == FRAME_COLUMNS
         assert (df["utime"].to_numpy() == tr["utime"].to_numpy()).all()
-        np.testing.assert_allclose(df[POSE_COLS].to_numpy(), tr[POSE_COLS].to_numpy(), atol=1e-6, rtol=0)
+        np.testing.assert_allclose(
+            df[POSE_COLS].to_numpy(), tr[POSE_COLS].to_numpy(), atol=1e-6, rtol=0
+        )
         assert (df["width"] == SMALL.width).all() and (df["height"] == SMALL.height).all()
         for fi in (0, len(df) - 1):
             img = read_image(df["image"][fi])
@@ -53,7 +59,12 @@ def test_round_trip_poses_and_pixels(small_world: Path, tmp_path: Path, fmt: str
 
 def test_all_formats_give_the_same_frame_table(small_world: Path, tmp_path: Path) -> None:
     session = SMALL.sessions[1][0]
-    tables = [_ingest(small_world, f, session, tmp_path / f).drop(columns=["image", "pose_frame", "pose_of"]) for f in FORMATS]
+    tables = [
+        _ingest(small_world, f, session, tmp_path / f).drop(
+            columns=["image", "pose_frame", "pose_of"]
+        )
+        for f in FORMATS
+    ]
     for t in tables[1:]:
         pd.testing.assert_frame_equal(tables[0], t, check_exact=False, atol=1e-9, rtol=0)
 
@@ -68,7 +79,10 @@ def test_report_counts_what_was_read_and_dropped(small_world: Path, tmp_path: Pa
     assert rep["frames_written"] == SMALL.frames
     _ingest(small_world, "ros1", session, tmp_path / "r")
     rep = json.loads((tmp_path / "r" / "ingest_report.json").read_text())
-    assert rep["messages_read"] == {"/camera/image_raw": SMALL.frames, "/odom": SMALL.frames * SMALL.pose_rate + 1}
+    assert rep["messages_read"] == {
+        "/camera/image_raw": SMALL.frames,
+        "/odom": SMALL.frames * SMALL.pose_rate + 1,
+    }
 
 
 # ------------------------------------------------------------------ pose interpolation
@@ -108,7 +122,11 @@ def test_colour_encodings_decode_to_the_same_pixels(tmp_path: Path, encoding: st
     path = _encoding_log(tmp_path, encoding, rgb)
     df = _frames_of(path, tmp_path / "o")
     got = read_image(df["image"][0])
-    want = cv2.cvtColor(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB) if encoding == "mono8" else rgb
+    want = (
+        cv2.cvtColor(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
+        if encoding == "mono8"
+        else rgb
+    )
     assert np.array_equal(got, want)
 
 
@@ -129,7 +147,12 @@ def test_mono16_keeps_sixteen_bits_in_the_store(tmp_path: Path) -> None:
 def test_bayer_is_demosaiced(tmp_path: Path, pattern: str) -> None:
     # a flat colour mosaicked with the pattern must demosaic back to (nearly) that colour
     colour = np.array([200, 100, 40])
-    layout = {"bayer_rggb8": "RGGB", "bayer_bggr8": "BGGR", "bayer_gbrg8": "GBRG", "bayer_grbg8": "GRBG"}[pattern]
+    layout = {
+        "bayer_rggb8": "RGGB",
+        "bayer_bggr8": "BGGR",
+        "bayer_gbrg8": "GBRG",
+        "bayer_grbg8": "GRBG",
+    }[pattern]
     idx = {"R": 0, "G": 1, "B": 2}
     raw = np.empty((8, 8), np.uint8)
     for dy in range(2):
@@ -141,15 +164,29 @@ def test_bayer_is_demosaiced(tmp_path: Path, pattern: str) -> None:
 
 
 def test_compressed_png_is_stored_as_is(tmp_path: Path) -> None:
-    """A PNG CompressedImage is kept byte for byte (lossless: the pixels come back exactly); JPEG likewise as .jpg."""
+    """A PNG CompressedImage is kept byte for byte (lossless: the pixels come back exactly).
+
+    JPEG likewise as .jpg.
+    """
     rgb = np.random.default_rng(1).integers(0, 256, (10, 12, 3), dtype=np.uint8)
     poses = [Pose(t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0) for t in (1_000_000, 1_200_000)]
-    W.write_ros2(tmp_path / "png", [W.LogFrame(1_100_000, rgb)], poses, storage="sqlite3", image="compressed", compressed_format="png")
+    W.write_ros2(
+        tmp_path / "png",
+        [W.LogFrame(1_100_000, rgb)],
+        poses,
+        storage="sqlite3",
+        image="compressed",
+        compressed_format="png",
+    )
     df = _frames_of(tmp_path / "png", tmp_path / "o")
-    assert df["image"][0].endswith(".png") and Path(df["image"][0]).read_bytes().startswith(b"\x89PNG")
+    assert df["image"][0].endswith(".png") and Path(df["image"][0]).read_bytes().startswith(
+        b"\x89PNG"
+    )
     assert df["width"][0] == 12 and df["height"][0] == 10
     assert np.array_equal(read_image(df["image"][0]), rgb)
-    W.write_ros2(tmp_path / "jpg", [W.LogFrame(1_100_000, rgb)], poses, storage="sqlite3", image="compressed")
+    W.write_ros2(
+        tmp_path / "jpg", [W.LogFrame(1_100_000, rgb)], poses, storage="sqlite3", image="compressed"
+    )
     assert _frames_of(tmp_path / "jpg", tmp_path / "o2")["image"][0].endswith(".jpg")
 
 
@@ -178,7 +215,9 @@ def test_truncated_mcap_names_the_damage_and_salvages(tmp_path: Path) -> None:
     bad = tmp_path / "trunc.mcap"
     bad.write_bytes(data[: int(len(data) * 0.6)])
     out = tmp_path / "out"
-    with pytest.raises(CorruptLogError, match=r"trunc\.mcap.*messages were read before the damage.*--salvage") as ei:
+    with pytest.raises(
+        CorruptLogError, match=r"trunc\.mcap.*messages were read before the damage.*--salvage"
+    ) as ei:
         ingest_session(SessionConfig(name="s", source=str(bad)), IngestConfig(), out)
     assert not out.exists(), "nothing partial is left after a failure"
     ingest_session(SessionConfig(name="s", source=str(bad)), IngestConfig(salvage=True), out)
@@ -211,7 +250,12 @@ def test_earlier_results_survive_a_failed_rerun(tmp_path: Path) -> None:
     ingest_session(SessionConfig(name="s", source=str(good)), IngestConfig(), out)
     before = (out / "frames.parquet").read_bytes()
     with pytest.raises(TopicError):
-        ingest_session(SessionConfig(name="s", source=str(good), image_topic="/nope"), IngestConfig(), out, force=True)
+        ingest_session(
+            SessionConfig(name="s", source=str(good), image_topic="/nope"),
+            IngestConfig(),
+            out,
+            force=True,
+        )
     assert (out / "frames.parquet").read_bytes() == before
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out")] == []
 
@@ -219,7 +263,11 @@ def test_earlier_results_survive_a_failed_rerun(tmp_path: Path) -> None:
 def test_missing_topic_lists_the_topics(tmp_path: Path) -> None:
     path = _small_log(tmp_path, "mcap")
     with pytest.raises(TopicError, match=r"'/nope' is not in the log; topics: /camera/image_raw"):
-        ingest_session(SessionConfig(name="s", source=str(path), image_topic="/nope"), IngestConfig(), tmp_path / "o")
+        ingest_session(
+            SessionConfig(name="s", source=str(path), image_topic="/nope"),
+            IngestConfig(),
+            tmp_path / "o",
+        )
 
 
 def test_ambiguous_topics_ask_for_a_flag(tmp_path: Path) -> None:
@@ -251,10 +299,20 @@ def test_unknown_encoding_is_named(tmp_path: Path) -> None:
         w = Writer(fh)
         w.start(profile="ros2")
         ids = {}
-        for topic, typ in (("/camera/image_raw", "sensor_msgs/msg/Image"), ("/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")):
+        for topic, typ in (
+            ("/camera/image_raw", "sensor_msgs/msg/Image"),
+            ("/pose", "geometry_msgs/msg/PoseWithCovarianceStamped"),
+        ):
             msgdef, _ = W.ROS2.generate_msgdef(typ, ros_version=2)
-            ids[topic] = w.register_channel(topic, "cdr", w.register_schema(typ, "ros2msg", msgdef.encode()))
-        w.add_message(ids["/camera/image_raw"], 1_100_000_000, bytes(W.ROS2.serialize_cdr(msg, "sensor_msgs/msg/Image")), 1_100_000_000)
+            ids[topic] = w.register_channel(
+                topic, "cdr", w.register_schema(typ, "ros2msg", msgdef.encode())
+            )
+        w.add_message(
+            ids["/camera/image_raw"],
+            1_100_000_000,
+            bytes(W.ROS2.serialize_cdr(msg, "sensor_msgs/msg/Image")),
+            1_100_000_000,
+        )
         w.finish()
     with pytest.raises(IngestError, match=r"message 1: unsupported image encoding 'yuv422_yuy2'"):
         ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")
@@ -284,10 +342,24 @@ def test_non_monotonic_image_stamps_are_rejected(tmp_path: Path) -> None:
         ci = w.add_connection("/camera/image_raw", "sensor_msgs/msg/Image", typestore=W.ROS1)
         co = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=W.ROS1)
         for p in poses:
-            w.write(co, p.utime * 1000, W.ROS1.serialize_ros1(W.odometry_msg(W.ROS1, p, True), "nav_msgs/msg/Odometry"))
+            w.write(
+                co,
+                p.utime * 1000,
+                W.ROS1.serialize_ros1(W.odometry_msg(W.ROS1, p, True), "nav_msgs/msg/Odometry"),
+            )
         for k, f in enumerate(frames):
-            w.write(ci, 2_000_000_000 + k, W.ROS1.serialize_ros1(W.image_msg(W.ROS1, f.utime, f.image, "rgb8", True), "sensor_msgs/msg/Image"))
-    with pytest.raises(IngestError, match=r"image_raw message 3: image time stamps are not monotonic: utime 1100000 comes after utime 1200000"):
+            w.write(
+                ci,
+                2_000_000_000 + k,
+                W.ROS1.serialize_ros1(
+                    W.image_msg(W.ROS1, f.utime, f.image, "rgb8", True), "sensor_msgs/msg/Image"
+                ),
+            )
+    with pytest.raises(
+        IngestError,
+        match=r"image_raw message 3: image time stamps are not monotonic: utime 1100000 comes "
+        r"after utime 1200000",
+    ):
         ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")
 
 
@@ -300,17 +372,25 @@ def test_groundtruth_bad_row_names_the_line(small_world: Path, tmp_path: Path) -
     lines[7] = lines[7].replace(",", ",abc,", 1).rsplit(",", 1)[0]
     gt.write_text("\n".join(lines) + "\n")
     with pytest.raises(IngestError, match=r"groundtruth_.*line 8: non-numeric"):
-        ingest_session(SessionConfig(name=session, source=str(root)), IngestConfig(), tmp_path / "o")
+        ingest_session(
+            SessionConfig(name=session, source=str(root)), IngestConfig(), tmp_path / "o"
+        )
     lines[7] = "1,2,3"
     gt.write_text("\n".join(lines) + "\n")
     with pytest.raises(IngestError, match=r"line 8: expected 7 fields"):
-        ingest_session(SessionConfig(name=session, source=str(root)), IngestConfig(), tmp_path / "o")
+        ingest_session(
+            SessionConfig(name=session, source=str(root)), IngestConfig(), tmp_path / "o"
+        )
 
 
 def test_nclt_missing_camera_lists_what_exists(small_world: Path, tmp_path: Path) -> None:
     session = SMALL.sessions[0][0]
     with pytest.raises(IngestError, match=r"cameras found for .*Cam5"):
-        ingest_session(SessionConfig(name=session, source=str(small_world / "nclt"), camera="Cam2"), IngestConfig(), tmp_path / "o")
+        ingest_session(
+            SessionConfig(name=session, source=str(small_world / "nclt"), camera="Cam2"),
+            IngestConfig(),
+            tmp_path / "o",
+        )
 
 
 def test_tf_with_several_children_needs_a_choice(tmp_path: Path) -> None:
@@ -324,24 +404,55 @@ def test_tf_with_several_children_needs_a_choice(tmp_path: Path) -> None:
         w = Writer(fh)
         w.start(profile="ros2")
         ids = {}
-        for topic, typ in (("/camera/image_raw", "sensor_msgs/msg/Image"), ("/tf", "tf2_msgs/msg/TFMessage")):
+        for topic, typ in (
+            ("/camera/image_raw", "sensor_msgs/msg/Image"),
+            ("/tf", "tf2_msgs/msg/TFMessage"),
+        ):
             msgdef, _ = ROS2.generate_msgdef(typ, ros_version=2)
-            ids[topic] = w.register_channel(topic, "cdr", w.register_schema(typ, "ros2msg", msgdef.encode()))
+            ids[topic] = w.register_channel(
+                topic, "cdr", w.register_schema(typ, "ros2msg", msgdef.encode())
+            )
         for p in poses:
             for child in ("base_link", "camera"):
-                w.add_message(ids["/tf"], p.utime * 1000, bytes(ROS2.serialize_cdr(tf_msg(ROS2, p, child), "tf2_msgs/msg/TFMessage")), p.utime * 1000)
+                w.add_message(
+                    ids["/tf"],
+                    p.utime * 1000,
+                    bytes(ROS2.serialize_cdr(tf_msg(ROS2, p, child), "tf2_msgs/msg/TFMessage")),
+                    p.utime * 1000,
+                )
         img = W.image_msg(ROS2, 1_100_000, np.zeros((4, 4, 3), np.uint8), "rgb8")
-        w.add_message(ids["/camera/image_raw"], 1_100_000_000, bytes(ROS2.serialize_cdr(img, "sensor_msgs/msg/Image")), 1_100_000_000)
+        w.add_message(
+            ids["/camera/image_raw"],
+            1_100_000_000,
+            bytes(ROS2.serialize_cdr(img, "sensor_msgs/msg/Image")),
+            1_100_000_000,
+        )
         w.finish()
     # the images' header.frame_id ("camera") is in the tree: its pose is taken, no flag needed
     ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")
     df = load_frames(tmp_path / "o" / "frames.parquet")
-    assert df["x"][0] == pytest.approx(2.0) and df["pose_frame"][0] == "map" and df["pose_of"][0] == "camera"
+    assert (
+        df["x"][0] == pytest.approx(2.0)
+        and df["pose_frame"][0] == "map"
+        and df["pose_of"][0] == "camera"
+    )
     # tf_child_frame (the older name of camera_frame) picks another frame of the tree
-    ingest_session(SessionConfig(name="s", source=str(path), tf_child_frame="base_link"), IngestConfig(), tmp_path / "o2")
+    ingest_session(
+        SessionConfig(name="s", source=str(path), tf_child_frame="base_link"),
+        IngestConfig(),
+        tmp_path / "o2",
+    )
     assert load_frames(tmp_path / "o2" / "frames.parquet")["pose_of"][0] == "base_link"
-    with pytest.raises(IngestError, match=r"camera frame 'lidar' \(camera_frame\) is not in the /tf tree; frames: \['base_link', 'camera', 'map'\]"):
-        ingest_session(SessionConfig(name="s", source=str(path), camera_frame="lidar"), IngestConfig(), tmp_path / "o3")
+    with pytest.raises(
+        IngestError,
+        match=r"camera frame 'lidar' \(camera_frame\) is not in the /tf tree; frames: "
+        r"\['base_link', 'camera', 'map'\]",
+    ):
+        ingest_session(
+            SessionConfig(name="s", source=str(path), camera_frame="lidar"),
+            IngestConfig(),
+            tmp_path / "o3",
+        )
 
 
 def test_unknown_format_is_rejected(tmp_path: Path) -> None:

@@ -13,27 +13,42 @@ from harness.pairs import build_pairs, nearest_with_heading, thin_by_stride, yaw
 
 
 def _frames(rows: list[tuple]) -> pd.DataFrame:
-    return pd.DataFrame(rows, columns=["session", "camera", "utime", "x", "y", "yaw"]).assign(z=0.0, roll=0.0, pitch=0.0, image="", width=10, height=10)
+    return pd.DataFrame(rows, columns=["session", "camera", "utime", "x", "y", "yaw"]).assign(
+        z=0.0, roll=0.0, pitch=0.0, image="", width=10, height=10
+    )
 
 
 def test_yaw_difference_wraps_around() -> None:
-    assert yaw_diff_deg(np.radians(179), np.radians(-179)) == np.float64(2.0) or abs(yaw_diff_deg(np.radians(179), np.radians(-179)) - 2) < 1e-9
+    assert (
+        yaw_diff_deg(np.radians(179), np.radians(-179)) == np.float64(2.0)
+        or abs(yaw_diff_deg(np.radians(179), np.radians(-179)) - 2) < 1e-9
+    )
     assert abs(yaw_diff_deg(0.0, np.pi) - 180) < 1e-9
 
 
 def test_heading_filter_and_wraparound() -> None:
-    fr = _frames([
-        ("A", "c", 1, 0.0, 0.0, np.radians(178)),
-        ("B", "c", 10, 0.5, 0.0, np.radians(0)),  # nearest, but facing the other way
-        ("B", "c", 11, 2.0, 0.0, np.radians(-179)),  # 3 degrees away across +-180
-    ])
+    fr = _frames(
+        [
+            ("A", "c", 1, 0.0, 0.0, np.radians(178)),
+            ("B", "c", 10, 0.5, 0.0, np.radians(0)),  # nearest, but facing the other way
+            ("B", "c", 11, 2.0, 0.0, np.radians(-179)),  # 3 degrees away across +-180
+        ]
+    )
     pairs, _ = build_pairs(fr, PairsConfig(max_distance_m=None), {"A": "WI", "B": "SU"})
     ab = pairs[pairs["q_session"] == "A"].iloc[0]
-    assert ab["r_utime"] == 11 and abs(ab["yaw_diff_deg"] - 3) < 1e-9 and ab["season_pair"] == "WI->SU"
+    assert (
+        ab["r_utime"] == 11 and abs(ab["yaw_diff_deg"] - 3) < 1e-9 and ab["season_pair"] == "WI->SU"
+    )
 
 
 def test_ties_go_to_the_earlier_reference() -> None:
-    fr = _frames([("A", "c", 1, 0.0, 0.0, 0.0), ("B", "c", 30, -1.0, 0.0, 0.0), ("B", "c", 20, 1.0, 0.0, 0.0)])
+    fr = _frames(
+        [
+            ("A", "c", 1, 0.0, 0.0, 0.0),
+            ("B", "c", 30, -1.0, 0.0, 0.0),
+            ("B", "c", 20, 1.0, 0.0, 0.0),
+        ]
+    )
     pairs, _ = build_pairs(fr, PairsConfig(), {})
     assert pairs[pairs["q_session"] == "A"]["r_utime"].tolist() == [20]
 
@@ -68,14 +83,20 @@ def test_stride_thinning() -> None:
     assert thin_by_stride(xy, 0).tolist() == list(range(10))
 
 
-def test_fixture_every_annotated_query_gets_a_close_reference(default_world: Path, tmp_path: Path) -> None:
+def test_fixture_every_annotated_query_gets_a_close_reference(
+    default_world: Path, tmp_path: Path
+) -> None:
     from harness.fixture import FixtureSpec
     from harness.fixture.generate import DEFAULT_FORMATS, session_path
 
     spec = FixtureSpec()
     frames = []
     for (session, _), fmt in zip(spec.sessions, DEFAULT_FORMATS, strict=True):
-        ingest_session(SessionConfig(name=session, source=str(default_world / session_path(fmt, session))), IngestConfig(), tmp_path / session)
+        ingest_session(
+            SessionConfig(name=session, source=str(default_world / session_path(fmt, session))),
+            IngestConfig(),
+            tmp_path / session,
+        )
         frames.append(load_frames(tmp_path / session / "frames.parquet"))
     fr = pd.concat(frames, ignore_index=True)
     ann = pd.read_csv(default_world / "annotations.csv")
@@ -83,7 +104,9 @@ def test_fixture_every_annotated_query_gets_a_close_reference(default_world: Pat
     n_q = ann[["session", "camera", "utime"]].drop_duplicates().shape[0]
     assert len(pairs) == 3 * n_q  # one reference in each other session
     assert len(summary["pairs_per_season_pair"]) == 12
-    truth = pd.read_parquet(default_world / "truth" / "frames.parquet").set_index(["session", "utime"])
+    truth = pd.read_parquet(default_world / "truth" / "frames.parquet").set_index(
+        ["session", "utime"]
+    )
     q = truth.loc[list(zip(pairs["q_session"], pairs["q_utime"], strict=True))]
     r = truth.loc[list(zip(pairs["r_session"], pairs["r_utime"], strict=True))]
     dist = np.hypot(q["x"].to_numpy() - r["x"].to_numpy(), q["y"].to_numpy() - r["y"].to_numpy())

@@ -1,4 +1,7 @@
-"""The whole pipeline on the fixture: caching, resumption, determinism and the CI regression table."""
+"""The whole pipeline on the fixture.
+
+Caching, resumption, determinism and the CI regression table.
+"""
 
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ TOLERANCE = 0.011
 
 
 def _copy_cache(out: Path, dst: Path) -> None:
-    """A run directory with another run's cache (and the harness's marker, so it may be written into)."""
+    """A run directory with another run's cache (and the harness's marker, so it is writable)."""
     shutil.copytree(out / "cache", dst / "cache")
     shutil.copy(out / ".dbl-harness.json", dst / ".dbl-harness.json")
 
@@ -34,13 +37,42 @@ def run(local_run: tuple[Pipeline, dict, Path]) -> tuple[Pipeline, dict, Path]:
 
 def test_outputs_exist(run: tuple) -> None:
     _, _rec, out = run
-    for name in ("table1.md", "table1.csv", "table1.tex", "tableS.md", "tableS.csv", "tableS.tex", "tableP.md", "tableP.csv", "tableP.tex",
-                 "localization.md", "localization.csv", "localization.tex", "comparisons.md", "ranks.parquet",
-                 "run.json", "splits/summary.parquet", "splits/roc_max_0.03.parquet", "plots/pr_roc_max_0.03.png"):
+    for name in (
+        "table1.md",
+        "table1.csv",
+        "table1.tex",
+        "tableS.md",
+        "tableS.csv",
+        "tableS.tex",
+        "tableP.md",
+        "tableP.csv",
+        "tableP.tex",
+        "localization.md",
+        "localization.csv",
+        "localization.tex",
+        "comparisons.md",
+        "ranks.parquet",
+        "run.json",
+        "splits/summary.parquet",
+        "splits/roc_max_0.03.parquet",
+        "plots/pr_roc_max_0.03.png",
+    ):
         assert (out / name).exists(), name
     assert list((out / "locmaps").glob("*.png"))
     rep = pd.read_parquet(out / "splits" / "roc_max_0.01.parquet")
-    for col in ("q_session", "q_utime", "season_pair", "x1", "original", "N", "RoC", "SoB", "label", "loc_rank_fusion", "loc_score_sum"):
+    for col in (
+        "q_session",
+        "q_utime",
+        "season_pair",
+        "x1",
+        "original",
+        "N",
+        "RoC",
+        "SoB",
+        "label",
+        "loc_rank_fusion",
+        "loc_score_sum",
+    ):
         assert col in rep.columns
     summ = pd.read_parquet(out / "splits" / "summary.parquet")
     assert {"all", "grid5", "edges"} <= set(summ["proposals"])
@@ -48,16 +80,22 @@ def test_outputs_exist(run: tuple) -> None:
 
 
 def regression_diff(out: Path) -> dict[str, float]:
-    """Largest absolute difference of a run's Table I and localization table from the committed ones."""
+    """Largest absolute difference of a run's Table I and localization table from the regression."""
     got = pd.read_csv(out / "table1.csv", index_col=0)
     want = pd.read_csv(ROOT / "tests" / "regression" / "table1.csv", index_col=0)
     assert list(got.index) == list(want.index) and list(got.columns) == list(want.columns)
     loc = pd.read_csv(out / "localization.csv")
     loc = loc[loc["season_pair"] == "all"].set_index("proposals")
-    want_loc = pd.read_csv(ROOT / "tests" / "regression" / "localization.csv").set_index("proposals")
+    want_loc = pd.read_csv(ROOT / "tests" / "regression" / "localization.csv").set_index(
+        "proposals"
+    )
     cols = ["recall_at_1", "recall_at_5", "median_r", "clean_recall_at_1"]
-    return {"table1": float(np.nanmax(np.abs(got.to_numpy() - want.to_numpy()))),
-            "localization": float(np.abs(loc.loc[want_loc.index, cols].to_numpy() - want_loc[cols].to_numpy()).max())}
+    return {
+        "table1": float(np.nanmax(np.abs(got.to_numpy() - want.to_numpy()))),
+        "localization": float(
+            np.abs(loc.loc[want_loc.index, cols].to_numpy() - want_loc[cols].to_numpy()).max()
+        ),
+    }
 
 
 def test_regression_table_matches_the_committed_one(run: tuple) -> None:
@@ -70,17 +108,27 @@ def test_regression_table_matches_the_committed_one(run: tuple) -> None:
 
 
 def test_sample_counts_are_exactly_the_committed_ones(run: tuple) -> None:
-    """Counts depend on proposals, annotations and the closure only, not on floating point: exact."""
+    """Counts depend on proposals, annotations and the closure only, not on floating point.
+
+    Exact.
+    """
     _, _, out = run
     s = pd.read_parquet(out / "splits" / "summary.parquet")
-    got = s[(s["table"] == "I") & (s["proposals"] == "all") & (s["season_pair"] == "all") & s["method"].isin(["rank_fusion", "rank_no_fusion"])]
+    got = s[
+        (s["table"] == "I")
+        & (s["proposals"] == "all")
+        & (s["season_pair"] == "all")
+        & s["method"].isin(["rank_fusion", "rank_no_fusion"])
+    ]
     want = pd.read_csv(ROOT / "tests" / "regression" / "counts.csv")
     merged = want.merge(got, on=["method", "roc_max"], suffixes=("", "_got"), how="left")
     for c in ("positives", "negatives", "left_out", "query_images"):
         assert (merged[c] == merged[f"{c}_got"]).all(), merged[["method", "roc_max", c, f"{c}_got"]]
 
 
-def test_an_untrained_autoencoder_fails_the_regression(run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_an_untrained_autoencoder_fails_the_regression(
+    run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The mutant that skips training must be caught: the regression is not blind to the model."""
     import harness.descriptors.autoencoder_descriptor as ad
 
@@ -97,9 +145,14 @@ def test_the_papers_orderings_show_on_the_fixture(run: tuple) -> None:
     by a margin; AP never below the floor of interpolated AP (the positive rate)."""
     _, _, out = run
     s = pd.read_parquet(out / "splits" / "summary.parquet")
-    main = s[(s["table"] == "I") & (s["proposals"] == "all") & (s["season_pair"] == "all")].set_index(["method", "roc_max"])
+    main = s[
+        (s["table"] == "I") & (s["proposals"] == "all") & (s["season_pair"] == "all")
+    ].set_index(["method", "roc_max"])
     for r in (0.01, 0.03, 0.05):
-        ap = {m: main.loc[(m, r), "ap"] for m in ("rank_fusion", "rank_no_fusion", "rank_fusion_asc", "random", "score_max")}
+        ap = {
+            m: main.loc[(m, r), "ap"]
+            for m in ("rank_fusion", "rank_no_fusion", "rank_fusion_asc", "random", "score_max")
+        }
         assert ap["rank_fusion"] > ap["rank_no_fusion"] + 0.2, (r, ap)
         assert ap["rank_fusion_asc"] < ap["rank_fusion"] - 0.5, (r, ap)
         assert ap["score_max"] > ap["random"] + 0.5, (r, ap)
@@ -136,19 +189,43 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
                     area += (x1 - x0) * (y1 - y0)
         return area
 
-    # every method whose LoC is a formula of the ranks; le2/le3 and random also draw seeded random numbers
-    samples = {m: [] for m in ("rank_fusion", "rank_no_fusion", "score_max", "score_sum", "rank_fusion_asc", "rank_fusion_raw",
-                               "size_prior", "cover_count")}
+    # every method whose LoC is a formula of the ranks; le2/le3 and random also draw seeded random
+    # numbers
+    samples = {
+        m: []
+        for m in (
+            "rank_fusion",
+            "rank_no_fusion",
+            "score_max",
+            "score_sum",
+            "rank_fusion_asc",
+            "rank_fusion_raw",
+            "size_prior",
+            "cover_count",
+        )
+    }
     for key, g in ranks.groupby(["q_session", "q_camera", "q_utime", "r_session"]):
         qk = (key[0], key[1], int(key[2]))
         if qk not in changes:
             continue
         w, h = size[qk]
-        orig = [(tuple(b), rank, L, d) for b, rank, L, d in zip(g[["x1", "y1", "x2", "y2"]].itertuples(index=False, name=None),
-                                                                  g["rank"], g["L"], g["d"], strict=True)]
+        orig = [
+            (tuple(b), rank, L, d)
+            for b, rank, L, d in zip(
+                g[["x1", "y1", "x2", "y2"]].itertuples(index=False, name=None),
+                g["rank"],
+                g["L"],
+                g["d"],
+                strict=True,
+            )
+        ]
         closure = {o[0] for o in orig}
         while True:
-            new = {(max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3])) for a in closure for b in closure}
+            new = {
+                (max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3]))
+                for a in closure
+                for b in closure
+            }
             new = {b for b in new if b[2] > b[0] and b[3] > b[1]} - closure
             if not new:
                 break
@@ -159,12 +236,22 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
             return union_area_in(b, changes[qk]) / a, a / (w * h)
 
         for b in closure:
-            cov = [o for o in orig if o[0][0] <= b[0] and o[0][1] <= b[1] and o[0][2] >= b[2] and o[0][3] >= b[3]]
+            cov = [
+                o
+                for o in orig
+                if o[0][0] <= b[0] and o[0][1] <= b[1] and o[0][2] >= b[2] and o[0][3] >= b[3]
+            ]
             n = len(cov)
             rc, sb = roc_sob(b)
-            samples["rank_fusion"].append((rc, sb, n * sum(L / (L + 1 - rank) for _, rank, L, _ in cov)))
-            samples["rank_fusion_asc"].append((rc, sb, 1 / (n * sum(L / rank for _, rank, L, _ in cov))))
-            samples["rank_fusion_raw"].append((rc, sb, n * sum(1 / (L + 1 - rank) for _, rank, L, _ in cov)))
+            samples["rank_fusion"].append(
+                (rc, sb, n * sum(L / (L + 1 - rank) for _, rank, L, _ in cov))
+            )
+            samples["rank_fusion_asc"].append(
+                (rc, sb, 1 / (n * sum(L / rank for _, rank, L, _ in cov)))
+            )
+            samples["rank_fusion_raw"].append(
+                (rc, sb, n * sum(1 / (L + 1 - rank) for _, rank, L, _ in cov))
+            )
             samples["score_max"].append((rc, sb, max(d for *_, d in cov)))
             samples["score_sum"].append((rc, sb, sum(d for *_, d in cov)))
             samples["size_prior"].append((rc, sb, 1 - sb))
@@ -177,14 +264,30 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
         for t in sorted(set(scores), reverse=True):
             sel = [y for y, s in zip(labels, scores, strict=True) if s >= t]
             pts.append((sum(sel) / sum(labels), sum(sel) / len(sel)))
-        return sum(max([p for rec, p in pts if rec >= R - 1e-12], default=0.0) for R in [i / 100 for i in range(101)]) / 101
+        return (
+            sum(
+                max([p for rec, p in pts if rec >= R - 1e-12], default=0.0)
+                for R in [i / 100 for i in range(101)]
+            )
+            / 101
+        )
 
     table = pd.read_csv(out / "table1.csv", index_col=0)
     for m, rows in samples.items():
         for rmax in (0.01, 0.02, 0.03, 0.04, 0.05):
-            lab = [(1 if 0.9 <= rc <= 1 and sb <= 0.4 else 0) for rc, sb, _ in rows if (0.9 <= rc <= 1 and sb <= 0.4) or (rc <= rmax and 0.4 <= sb <= 1)]
-            sc = [v for rc, sb, v in rows if (0.9 <= rc <= 1 and sb <= 0.4) or (rc <= rmax and 0.4 <= sb <= 1)]
-            assert round(ap101(lab, sc), 2) == pytest.approx(table.loc[m, f"{rmax:.2f}"], abs=1e-9), (m, rmax)
+            lab = [
+                (1 if 0.9 <= rc <= 1 and sb <= 0.4 else 0)
+                for rc, sb, _ in rows
+                if (0.9 <= rc <= 1 and sb <= 0.4) or (rc <= rmax and 0.4 <= sb <= 1)
+            ]
+            sc = [
+                v
+                for rc, sb, v in rows
+                if (0.9 <= rc <= 1 and sb <= 0.4) or (rc <= rmax and 0.4 <= sb <= 1)
+            ]
+            assert round(ap101(lab, sc), 2) == pytest.approx(
+                table.loc[m, f"{rmax:.2f}"], abs=1e-9
+            ), (m, rmax)
 
 
 def test_changed_subimages_rank_worse_than_unchanged(run: tuple) -> None:
@@ -213,14 +316,21 @@ def test_changing_one_option_reruns_only_what_depends_on_it(run: tuple, tmp_path
     q = Pipeline(cfg, tmp_path)
     q.run()
     assert q.ran.get("samples") == 1
-    assert all(q.ran.get(s, 0) == 0 for s in ("ingest", "proposals", "model", "descriptors", "ranks"))
+    assert all(
+        q.ran.get(s, 0) == 0 for s in ("ingest", "proposals", "model", "descriptors", "ranks")
+    )
 
 
 def test_encoding_options_never_retrain_the_autoencoder(run: tuple, tmp_path: Path) -> None:
     """encode_batch and dtype change how descriptors are computed and stored, not the model."""
     p, _, out = run
     _copy_cache(out, tmp_path)
-    cfg = dataclasses.replace(p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, encode_batch=5, dtype="float32", num_workers=1))
+    cfg = dataclasses.replace(
+        p.cfg,
+        descriptor=dataclasses.replace(
+            p.cfg.descriptor, encode_batch=5, dtype="float32", num_workers=1
+        ),
+    )
     q = Pipeline(cfg, tmp_path)
     q.run()
     assert q.ran.get("model", 0) == 0
@@ -260,12 +370,16 @@ def test_faiss_engine_reports_its_recall_against_exact(run: tuple, tmp_path: Pat
         assert c["faiss_rank_equal_exact"] >= 0.99 * c["faiss_checked"]
 
 
-def test_descriptor_extraction_resumes_at_the_next_shard(run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_descriptor_extraction_resumes_at_the_next_shard(
+    run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     p, _, out = run
     _copy_cache(out, tmp_path)
     for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
         shutil.rmtree(tmp_path / "cache" / stage)
-    cfg = dataclasses.replace(p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, shard_frames=16))
+    cfg = dataclasses.replace(
+        p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, shard_frames=16)
+    )
     from harness.descriptors import AutoencoderDescriptor
 
     real = AutoencoderDescriptor.encode
@@ -308,6 +422,11 @@ def test_stage_files_and_tables_are_identical_to_the_regression(run: tuple) -> N
     assert len(portable) >= 5
     assert {k: got[k] for k in portable} == {k: want["files"][k] for k in portable}
     if cpu_capability() != want["cpu_capability"]:
-        pytest.skip(f"float stages written on {want['cpu_capability']}, this machine runs {cpu_capability()} kernels")
+        pytest.skip(
+            f"float stages written on {want['cpu_capability']}, this machine runs "
+            f"{cpu_capability()} kernels"
+        )
     differ = sorted(k for k in got if got[k] != want["files"][k])
-    assert not differ, f"changed: {differ}; regenerate with python -m tests.stage_digests (see its docstring)"
+    assert not differ, (
+        f"changed: {differ}; regenerate with python -m tests.stage_digests (see its docstring)"
+    )

@@ -37,7 +37,9 @@ def test_the_directions_are_the_principal_axes(tmp_path: Path, n: int) -> None:
     assert np.all(scale == 1) and info == {**info, "fitted_on": n, "input_dim": 6, "dim": 2}
     # each direction's largest coordinate is positive: the sign is fixed, the fit repeatable
     assert np.all(comp[np.abs(comp).argmax(0), [0, 1]] > 0)
-    fit_projection(ProjectionConfig(dim=2), x.astype(np.float32).copy(), tmp_path / ".." / tmp_path.name)
+    fit_projection(
+        ProjectionConfig(dim=2), x.astype(np.float32).copy(), tmp_path / ".." / tmp_path.name
+    )
     np.testing.assert_array_equal(load_projection(tmp_path)[1], comp)
 
 
@@ -48,11 +50,16 @@ def test_whitening_gives_unit_variance_before_the_renormalisation(tmp_path: Path
     z = ((x - mean) @ comp) * scale
     np.testing.assert_allclose(z.std(0, ddof=1), [1.0, 1.0], rtol=1e-3)
     out = project(x, mean, comp, scale)
-    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, rtol=1e-5)  # descriptors stay unit vectors
+    np.testing.assert_allclose(
+        np.linalg.norm(out, axis=1), 1.0, rtol=1e-5
+    )  # descriptors stay unit vectors
 
 
 def test_dim_larger_than_the_sample_is_a_config_error(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match=r"\[projection\] dim = 5 exceeds min\(input dim 6, sampled reference rows 4\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"\[projection\] dim = 5 exceeds min\(input dim 6, sampled reference rows 4\)",
+    ):
         fit_projection(ProjectionConfig(dim=5), _data(n=4)[0].astype(np.float32), tmp_path)
 
 
@@ -62,7 +69,9 @@ def test_the_config_section_as_a_user_types_it(tmp_path: Path) -> None:
     from .conftest import ROOT
 
     text = (ROOT / "datasets" / "fixture.toml").read_text()
-    (tmp_path / "c.toml").write_text(text + "\n[projection]\ndim = 64\nwhiten = true\nfit_samples = 500\n")
+    (tmp_path / "c.toml").write_text(
+        text + "\n[projection]\ndim = 64\nwhiten = true\nfit_samples = 500\n"
+    )
     cfg = load_config(tmp_path / "c.toml")
     assert cfg.projection == ProjectionConfig(dim=64, whiten=True, fit_samples=500)
     (tmp_path / "bad.toml").write_text(text + "\n[projection]\ndim = 64\nfit_samples = 10\n")
@@ -70,7 +79,9 @@ def test_the_config_section_as_a_user_types_it(tmp_path: Path) -> None:
         load_config(tmp_path / "bad.toml")
 
 
-def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(local_run: tuple, tmp_path: Path) -> None:
+def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(
+    local_run: tuple, tmp_path: Path
+) -> None:
     p, _, out = local_run
     shutil.copytree(out / "cache", tmp_path / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
@@ -83,15 +94,20 @@ def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(local_run
         assert d.shape[1] == 64 and d.dtype == np.float16
     fit = q.cache.manifest("projection", rec["cache_entries"]["projection"][0])["info"]
     assert fit["input_dim"] == 1024 and 0.5 < fit["explained_variance"] < 1
-    # the price is reported, not hidden: recall@1 of the place drops a little (fixture: 0.278 -> 0.251)
+    # the price is reported, not hidden: recall@1 of the place drops a little (fixture: 0.278 ->
+    # 0.251)
     full = pd.read_csv(out / "localization.csv").set_index(["proposals", "season_pair"])
     small = pd.read_csv(tmp_path / "localization.csv").set_index(["proposals", "season_pair"])
-    assert 0.8 * full.loc[("all", "all"), "recall_at_1"] < small.loc[("all", "all"), "recall_at_1"] <= full.loc[("all", "all"), "recall_at_1"]
+    assert (
+        0.8 * full.loc[("all", "all"), "recall_at_1"]
+        < small.loc[("all", "all"), "recall_at_1"]
+        <= full.loc[("all", "all"), "recall_at_1"]
+    )
     assert rec["config"]["projection"]["dim"] == 64
 
 
 def test_memory_mb_as_a_user_types_it(tmp_path: Path) -> None:
-    """``[retrieval] memory_mb`` is read from the TOML and a non-positive budget is refused with its value."""
+    """``[retrieval] memory_mb`` is read from the TOML; a non-positive budget is refused."""
     from harness.config import load_config
 
     from .conftest import ROOT

@@ -1,4 +1,7 @@
-"""Proposals: grid5 by hand, the unsupervised proposers, YOLO plumbing with a local random model, user tables."""
+"""Proposals.
+
+grid5 by hand, the unsupervised proposers, YOLO plumbing with a local random model, user tables.
+"""
 
 from __future__ import annotations
 
@@ -11,13 +14,26 @@ import torch
 
 from harness.config import EdgesConfig, ProposalsConfig, YoloConfig
 from harness.errors import AnnotationError, ConfigError
-from harness.proposals import YoloProposer, compute_proposals, edge_boxes, grid5, load_file_proposals, nms
+from harness.proposals import (
+    YoloProposer,
+    compute_proposals,
+    edge_boxes,
+    grid5,
+    load_file_proposals,
+    nms,
+)
 
 
 def test_grid5_by_hand() -> None:
     g = grid5(90, 60)
     assert g.shape == (5, 4)
-    assert g.tolist() == [[30, 20, 60, 40], [0, 0, 60, 40], [30, 0, 90, 40], [0, 20, 60, 60], [30, 20, 90, 60]]
+    assert g.tolist() == [
+        [30, 20, 60, 40],
+        [0, 0, 60, 40],
+        [30, 0, 90, 40],
+        [0, 20, 60, 60],
+        [30, 20, 90, 60],
+    ]
 
 
 def test_nms_keeps_the_best_of_overlapping_boxes() -> None:
@@ -29,12 +45,23 @@ def test_nms_keeps_the_best_of_overlapping_boxes() -> None:
 def test_edge_boxes_find_a_textured_object_and_are_deterministic() -> None:
     img = np.full((120, 160, 3), 120, np.uint8)
     yy, xx = np.mgrid[0:40, 0:30]
-    img[40:80, 60:90] = np.where(((xx // 5 + yy // 5) % 2)[..., None] == 1, 230, 20).astype(np.uint8)
+    img[40:80, 60:90] = np.where(((xx // 5 + yy // 5) % 2)[..., None] == 1, 230, 20).astype(
+        np.uint8
+    )
     b1, s1 = edge_boxes(img, EdgesConfig())
     b2, s2 = edge_boxes(img, EdgesConfig())
     assert np.array_equal(b1, b2) and np.array_equal(s1, s2)
-    iou = [(min(b[2], 90) - max(b[0], 60)) * (min(b[3], 80) - max(b[1], 40)) / ((b[2] - b[0]) * (b[3] - b[1]) + 1200 - (min(b[2], 90) - max(b[0], 60)) * (min(b[3], 80) - max(b[1], 40)))
-           for b in b1 if b[2] > 60 and b[0] < 90 and b[3] > 40 and b[1] < 80]
+    iou = [
+        (min(b[2], 90) - max(b[0], 60))
+        * (min(b[3], 80) - max(b[1], 40))
+        / (
+            (b[2] - b[0]) * (b[3] - b[1])
+            + 1200
+            - (min(b[2], 90) - max(b[0], 60)) * (min(b[3], 80) - max(b[1], 40))
+        )
+        for b in b1
+        if b[2] > 60 and b[0] < 90 and b[3] > 40 and b[1] < 80
+    ]
     assert max(iou) > 0.8
 
 
@@ -65,7 +92,9 @@ def tiny_weights(tmp_path: Path) -> Path:
 
 def test_yolo_plumbing_with_a_local_random_model(tiny_weights: Path) -> None:
     prop = YoloProposer(YoloConfig(weights=str(tiny_weights), imgsz=64, batch=2, conf=0.05))
-    imgs = [np.random.default_rng(i).integers(0, 256, (60, 40, 3), dtype=np.uint8) for i in range(3)]
+    imgs = [
+        np.random.default_rng(i).integers(0, 256, (60, 40, 3), dtype=np.uint8) for i in range(3)
+    ]
     out = prop(imgs)
     assert len(out) == 3
     for boxes, scores, classes in out:
@@ -84,11 +113,40 @@ def test_yolo_without_weights_says_how_to_get_them(tmp_path: Path) -> None:
 
 
 def test_file_proposals_validated(tmp_path: Path) -> None:
-    frames = pd.DataFrame({"session": ["A"], "camera": ["c"], "utime": [1], "width": [50], "height": [40], "image": [""]})
+    frames = pd.DataFrame(
+        {
+            "session": ["A"],
+            "camera": ["c"],
+            "utime": [1],
+            "width": [50],
+            "height": [40],
+            "image": [""],
+        }
+    )
     p = tmp_path / "p.csv"
-    pd.DataFrame({"session": ["A", "A"], "camera": ["c", "c"], "utime": [1, 1], "x1": [0, 5], "y1": [0, 5], "x2": [10, 60], "y2": [10, 20]}).to_csv(p, index=False)
+    pd.DataFrame(
+        {
+            "session": ["A", "A"],
+            "camera": ["c", "c"],
+            "utime": [1, 1],
+            "x1": [0, 5],
+            "y1": [0, 5],
+            "x2": [10, 60],
+            "y2": [10, 20],
+        }
+    ).to_csv(p, index=False)
     with pytest.raises(AnnotationError, match=r"row 2: box outside the image"):
         load_file_proposals(p, frames)
-    pd.DataFrame({"session": ["A"], "camera": ["c"], "utime": [1], "x1": [0], "y1": [0], "x2": [10], "y2": [10]}).to_csv(p, index=False)
+    pd.DataFrame(
+        {
+            "session": ["A"],
+            "camera": ["c"],
+            "utime": [1],
+            "x1": [0],
+            "y1": [0],
+            "x2": [10],
+            "y2": [10],
+        }
+    ).to_csv(p, index=False)
     df = compute_proposals(frames, ProposalsConfig(methods=("grid5", "file"), file=str(p)))
     assert df.groupby("method").size().to_dict() == {"file": 1, "grid5": 5}

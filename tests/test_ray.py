@@ -27,8 +27,11 @@ def executor():
 
 
 def _files(root: Path, stage: str) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted((root / "cache" / stage).rglob("*"))
-            if p.is_file() and p.suffix not in (".json", ".tiff", ".tif", ".jpg", ".png")}  # json: reports with timings
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted((root / "cache" / stage).rglob("*"))
+        if p.is_file() and p.suffix not in (".json", ".tiff", ".tif", ".jpg", ".png")
+    }  # json: reports with timings
 
 
 def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: Path) -> None:
@@ -39,7 +42,9 @@ def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: 
     # query chunks x reference sessions: a smaller chunk gives more units and the same table
     import dataclasses
 
-    cfg = dataclasses.replace(p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, query_frames_per_shard=10))
+    cfg = dataclasses.replace(
+        p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, query_frames_per_shard=10)
+    )
     chunked = Pipeline(cfg, tmp_path / "chunked", executor=executor)
     shutil.copytree(out / "cache", tmp_path / "chunked" / "cache", dirs_exist_ok=True)
     shutil.rmtree(tmp_path / "chunked" / "cache" / "ranks")
@@ -52,7 +57,9 @@ def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: 
     assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
 
 
-def test_a_worker_that_dies_mid_shard_is_retried(local_run: tuple, executor: object, tmp_path: Path) -> None:
+def test_a_worker_that_dies_mid_shard_is_retried(
+    local_run: tuple, executor: object, tmp_path: Path
+) -> None:
     from harness.executors import RayExecutor
 
     p, _, out = local_run
@@ -80,8 +87,13 @@ def test_without_ray_the_error_says_how_to_install(monkeypatch: pytest.MonkeyPat
         make_executor("ray")
 
 
-def test_the_cli_hands_the_ray_executor_to_the_pipeline(local_run: tuple, executor: object, tmp_path: Path) -> None:
-    """As a user types it: --executor ray --ray-cpus 2 runs the units on Ray and run.json says so."""
+def test_the_cli_hands_the_ray_executor_to_the_pipeline(
+    local_run: tuple, executor: object, tmp_path: Path
+) -> None:
+    """As a user types it.
+
+    --executor ray --ray-cpus 2 runs the units on Ray and run.json says so.
+    """
     import json
 
     from harness.cli import main
@@ -89,8 +101,19 @@ def test_the_cli_hands_the_ray_executor_to_the_pipeline(local_run: tuple, execut
     from .conftest import ROOT
 
     p, _, out = local_run
-    args = ["reproduce", "--config", str(ROOT / "datasets" / "fixture.toml"), "--data-root", str(p.cfg.data_root),
-            "--out", str(tmp_path / "o"), "--executor", "ray", "--ray-cpus", "2"]
+    args = [
+        "reproduce",
+        "--config",
+        str(ROOT / "datasets" / "fixture.toml"),
+        "--data-root",
+        str(p.cfg.data_root),
+        "--out",
+        str(tmp_path / "o"),
+        "--executor",
+        "ray",
+        "--ray-cpus",
+        "2",
+    ]
     assert main(args) == 0
     rec = json.loads((tmp_path / "o" / "run.json").read_text())
     assert rec["executor"]["name"] == "ray" and rec["executor"]["workers"] >= 1

@@ -8,11 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from harness.runner import Pipeline
 
 
-def test_recipe_a_toy_descriptor_in_under_30_lines(local_run: tuple, tmp_path: Path, monkeypatch) -> None:
+def test_recipe_a_toy_descriptor_in_under_30_lines(
+    local_run: tuple, tmp_path: Path, monkeypatch
+) -> None:
     # --- the recipe: subclass Descriptor, implement encode, register it, select it by name ---
     from harness.descriptors import REGISTRY, Descriptor
 
@@ -24,20 +27,192 @@ def test_recipe_a_toy_descriptor_in_under_30_lines(local_run: tuple, tmp_path: P
         def encode(self, crops: np.ndarray) -> np.ndarray:
             c = crops.astype(np.float32) / 255
             h, w = c.shape[1] // 2, c.shape[2] // 2
-            blocks = [c[:, i * h : (i + 1) * h, j * w : (j + 1) * w].mean((1, 2)) for i in (0, 1) for j in (0, 1)]
+            blocks = [
+                c[:, i * h : (i + 1) * h, j * w : (j + 1) * w].mean((1, 2))
+                for i in (0, 1)
+                for j in (0, 1)
+            ]
             return np.concatenate([c.mean((1, 2)), *blocks], axis=1)
 
     monkeypatch.setitem(REGISTRY, "mean_colour", MeanColour)
     p, _, out = local_run
-    cfg = dataclasses.replace(p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, name="mean_colour"))
+    cfg = dataclasses.replace(
+        p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, name="mean_colour")
+    )
     # --- end of the recipe (the rest checks it) ---
     shutil.copytree(out / "cache", tmp_path / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
     q = Pipeline(cfg, tmp_path)
     rec = q.run()
-    assert q.ran.get("proposals", 0) == 0 and q.ran["descriptor_shards"] > 0  # only what depends on it reran
+    assert (
+        q.ran.get("proposals", 0) == 0 and q.ran["descriptor_shards"] > 0
+    )  # only what depends on it reran
     key = rec["cache_entries"]["descriptors"][0]
     assert np.load(tmp_path / "cache" / "descriptors" / key / "desc.npy").shape[1] == 15
     loc = pd.read_csv(tmp_path / "localization.csv")
-    assert loc["subimages"].max() > 0 and 0 < loc.loc[loc["proposals"] == "all", "recall_at_1"].iloc[0] < 1
+    assert (
+        loc["subimages"].max() > 0
+        and 0 < loc.loc[loc["proposals"] == "all", "recall_at_1"].iloc[0] < 1
+    )
     assert (tmp_path / "table1.csv").exists()
+
+
+def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
+    """``cfg`` run into ``tmp_path`` from a copy of the fixture run's cache."""
+    _, _, out = local_run
+    shutil.copytree(out / "cache", tmp_path / "cache")
+    shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
+    q = Pipeline(cfg, tmp_path)
+    return q, q.run()
+
+
+def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, monkeypatch) -> None:
+    from harness import proposals
+    from harness.config import validate
+
+    monkeypatch.setattr(proposals, "IMAGE_METHODS", dict(proposals.IMAGE_METHODS))  # undo after
+    # --- the recipe: a function of the upright image, registered, listed in [proposals] ---
+
+    def centre(rgb: np.ndarray, cfg: object) -> tuple[np.ndarray, np.ndarray]:
+        """One box: the image's central quarter (x1, y1, x2, y2 pixels), score 1."""
+        h, w = rgb.shape[:2]
+        return np.array([[w / 4, h / 4, 3 * w / 4, 3 * h / 4]]), np.ones(1)
+
+    proposals.register_method("centre", centre)
+    p, _, _ = local_run
+    cfg = dataclasses.replace(
+        p.cfg, proposals=dataclasses.replace(p.cfg.proposals, methods=("grid5", "centre"))
+    )
+    # --- end of the recipe (the rest checks it) ---
+    validate(cfg, "recipe")  # the name is known to the config check
+    with pytest.raises(ValueError, match="exists"):
+        proposals.register_method("edges", centre)
+    q, rec = _rerun(local_run, tmp_path, cfg)
+    assert q.ran["proposals"] > 0 and q.ran.get("model", 0) > 0  # the training crops changed
+    props = pd.concat(
+        pd.read_parquet(tmp_path / "cache" / "proposals" / k / "proposals.parquet")
+        for k in rec["cache_entries"]["proposals"]
+    )
+    cen = props[props["method"] == "centre"]
+    frames = props[["session", "utime"]].drop_duplicates()
+    assert len(cen) == len(frames) and set(props["method"]) == {"grid5", "centre"}
+    fr = pd.read_parquet(tmp_path / "cache" / "frames" / rec["keys"]["frames"] / "frames.parquet")
+    got = cen.merge(fr, on=["session", "camera", "utime"])
+    assert np.allclose(got[["x1", "x2"]], np.c_[got["width"] / 4, 3 * got["width"] / 4])
+    assert np.allclose(got[["y1", "y2"]], np.c_[got["height"] / 4, 3 * got["height"] / 4])
+    ranks = pd.read_parquet(tmp_path / "ranks.parquet")
+    assert set(ranks["method"]) == {"grid5", "centre"}  # its own rank engine
+    loc = pd.read_csv(tmp_path / "localization.csv")
+    assert "centre" in set(loc["proposals"]) and (tmp_path / "table1.csv").exists()
+    # editing the function changes the proposals' key (its source is hashed into it)
+    assert proposals.method_fingerprints(["grid5", "centre"]).keys() == {"centre"}
+
+
+def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, monkeypatch) -> None:
+    from harness import fusion, reports
+
+    monkeypatch.setattr(fusion, "REGISTERED", {})  # undo after
+    monkeypatch.setattr(reports, "METHOD_LABELS", dict(reports.METHOD_LABELS))
+    # --- the recipe: LoC from the cover matrix, registered with a label, listed in [fusion] ---
+
+    def best_rank(cover: np.ndarray, r: np.ndarray, d: np.ndarray, L: np.ndarray) -> np.ndarray:
+        """The largest 1 / r' among the boxes covering the sample (r' = (L + 1 - rank) / L)."""
+        inv = L / (L + 1.0 - r * L)
+        return np.where(cover, inv[None, :], 0.0).max(1)
+
+    fusion.register_method("best_rank", best_rank, "best single rank")
+    p, _, out = local_run
+    methods = ("rank_fusion", "score_max", "best_rank")
+    cfg = dataclasses.replace(p.cfg, fusion=dataclasses.replace(p.cfg.fusion, methods=methods))
+    # --- end of the recipe (the rest checks it) ---
+    q, rec = _rerun(local_run, tmp_path, cfg)
+    assert q.ran.get("ranks", 0) == 0 and q.ran["samples"] > 0  # ranks reused
+    t1 = pd.read_csv(tmp_path / "table1.csv")
+    assert t1["method"].tolist() == ["rank_fusion", "score_max", "best_rank"]  # after SPEC's
+    assert "best single rank" in (tmp_path / "table1.md").read_text()
+    # one sample's LoC by hand: the originals containing the sample box, their largest 1/r'
+    key = rec["keys"]["samples"]
+    s = pd.read_parquet(tmp_path / "cache" / "samples" / key / "samples.parquet")
+    s = s[(s["proposals"] == "all") & (s["N"] >= 2)].iloc[0]
+    ranks = pd.read_parquet(tmp_path / "ranks.parquet")
+    img = ranks[
+        (ranks["q_session"] == s.q_session)
+        & (ranks["q_utime"] == s.q_utime)
+        & (ranks["r_session"] == s.r_session)
+    ]
+    covers = (img["x1"] <= s.x1) & (img["y1"] <= s.y1) & (img["x2"] >= s.x2) & (img["y2"] >= s.y2)
+    want = max(
+        1.0 / (int(L) + 1 - int(k)) * int(L) for k, L in img.loc[covers, ["rank", "L"]].values
+    )
+    assert covers.sum() == s.N and np.isclose(s.loc_best_rank, want)
+    assert (out / "table1.csv").read_text() != (tmp_path / "table1.csv").read_text()
+
+
+def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch) -> None:
+    import base64
+    import json
+
+    from rosbags.typesys import Stores, get_typestore
+
+    from harness.config import IngestConfig, SessionConfig
+    from harness.imagestore import read_image
+    from harness.ingest import ingest_session, logs
+
+    monkeypatch.setattr(logs, "READERS", {})  # undo after
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    # --- the recipe: a reader (detect, topics, messages) registered under a name ---
+
+    class CdrLines:
+        """JSON lines, one ``{"topic", "type", "t_ns", "cdr" (base64)}`` record per message."""
+
+        def detect(self, path: Path) -> bool:
+            return path.suffix == ".cdrl"
+
+        def topics(self, path: Path) -> dict[str, tuple[str, int]]:
+            out: dict[str, tuple[str, int]] = {}
+            for rec in map(json.loads, path.read_text().splitlines()):
+                out[rec["topic"]] = (rec["type"], out.get(rec["topic"], ("", 0))[1] + 1)
+            return out
+
+        def messages(self, path: Path, topics: tuple[str, ...]):
+            for rec in map(json.loads, path.read_text().splitlines()):
+                if rec["topic"] in topics:
+                    msg = store.deserialize_cdr(base64.b64decode(rec["cdr"]), rec["type"])
+                    yield logs.Message(rec["topic"], rec["type"], rec["t_ns"], msg)
+
+    logs.register_format("cdrl", CdrLines())
+    # --- end of the recipe (the rest checks it) ---
+    with pytest.raises(ValueError, match="exists"):
+        logs.register_format("mcap", CdrLines())
+    # the fixture's ROS2 bag, rewritten in the toy format with rosbags' own serializer
+    bag = sorted((small_world / "ros2").iterdir())[0]
+    topics = tuple(logs.list_topics(bag, "ros2"))
+    log = tmp_path / f"{bag.name}.cdrl"
+    log.write_text(
+        "".join(
+            json.dumps(
+                {
+                    "topic": m.topic,
+                    "type": m.msgtype,
+                    "t_ns": m.log_ns,
+                    "cdr": base64.b64encode(store.serialize_cdr(m.msg, m.msgtype)).decode(),
+                }
+            )
+            + "\n"
+            for m in logs.stream(bag, "ros2", topics)
+        )
+    )
+    assert logs.detect_format(log) == "cdrl" and logs.detect_format(bag) == "ros2"
+    ra = ingest_session(
+        SessionConfig(name=bag.name, source=str(bag)), IngestConfig(), tmp_path / "a"
+    )
+    rb = ingest_session(
+        SessionConfig(name=bag.name, source=str(log)), IngestConfig(), tmp_path / "b"
+    )
+    assert rb["format"] == "cdrl" and rb["dropped"] == ra["dropped"]
+    fa, fb = (pd.read_parquet(tmp_path / d / "frames.parquet") for d in ("a", "b"))
+    same = [c for c in fa.columns if c not in ("image", "source")]
+    assert len(fa) > 0
+    pd.testing.assert_frame_equal(fa[same], fb[same])  # poses, times, sizes: the shared path
+    for ia, ib in zip(fa["image"][:3], fb["image"][:3], strict=True):
+        assert np.array_equal(read_image(ia), read_image(ib))

@@ -40,7 +40,9 @@ def test_paper_splits_and_labels() -> None:
     assert label(roc, sob, sp).tolist() == [POSITIVE, LEFT_OUT, NEGATIVE, LEFT_OUT, LEFT_OUT]
 
 
-boxes = st.tuples(st.floats(0, 90), st.floats(0, 90), st.floats(1, 50), st.floats(1, 50)).map(lambda t: (t[0], t[1], t[0] + t[2], t[1] + t[3]))
+boxes = st.tuples(st.floats(0, 90), st.floats(0, 90), st.floats(1, 50), st.floats(1, 50)).map(
+    lambda t: (t[0], t[1], t[0] + t[2], t[1] + t[3])
+)
 
 
 @settings(max_examples=60, deadline=None)
@@ -51,8 +53,17 @@ def test_roc_and_sob_lie_in_unit_interval(samples: list, change: list) -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(boxes, st.lists(boxes, min_size=0, max_size=3), st.floats(0, 1), st.floats(0, 1), st.floats(0, 1), st.floats(0, 1))
-def test_box_inside_a_change_box_has_roc_one(outer: tuple, others: list, a: float, b: float, c: float, d: float) -> None:
+@given(
+    boxes,
+    st.lists(boxes, min_size=0, max_size=3),
+    st.floats(0, 1),
+    st.floats(0, 1),
+    st.floats(0, 1),
+    st.floats(0, 1),
+)
+def test_box_inside_a_change_box_has_roc_one(
+    outer: tuple, others: list, a: float, b: float, c: float, d: float
+) -> None:
     x1, y1, x2, y2 = outer
     w, h = x2 - x1, y2 - y1
     ix1, iy1 = x1 + a * w * 0.5, y1 + b * h * 0.5

@@ -40,10 +40,16 @@ def test_stratified_ap_by_hand() -> None:
 def test_stratified_ap_stratum_without_negative_or_positive() -> None:
     y = np.array([1, 1, 0, 1, 0], bool)
     s = np.array([0.5, 0.4, 0.3, 0.9, 0.1])
-    sob = np.array([0.01, 0.02, 0.6, 0.2, 0.2])  # [0, 0.1): positives only; [0.5, 1]: a negative only
+    sob = np.array(
+        [0.01, 0.02, 0.6, 0.2, 0.2]
+    )  # [0, 0.1): positives only; [0.5, 1]: a negative only
     ap, floor = stratified_ap(y, s, sob, EDGES)
-    assert ap == pytest.approx(1.0) and floor == pytest.approx(0.5)  # only [0.1, 0.5) counts: + 0.9 above - 0.1
-    assert np.isnan(stratified_ap(y[:2], s[:2], sob[:2], EDGES)[0])  # no stratum has both: NaN, never 0 or 1
+    assert ap == pytest.approx(1.0) and floor == pytest.approx(
+        0.5
+    )  # only [0.1, 0.5) counts: + 0.9 above - 0.1
+    assert np.isnan(
+        stratified_ap(y[:2], s[:2], sob[:2], EDGES)[0]
+    )  # no stratum has both: NaN, never 0 or 1
 
 
 def test_stratified_ap_ties_across_strata_do_not_interact() -> None:
@@ -103,29 +109,56 @@ def test_paired_bootstrap_difference_and_sign_flips() -> None:
 
 
 def _main(rows: list[tuple[str, str, float]]) -> pd.DataFrame:
-    return pd.DataFrame([{"split": sp, "roc_max": float(sp), "method": m, "ap": ap} for sp, m, ap in rows])
+    return pd.DataFrame(
+        [{"split": sp, "roc_max": float(sp), "method": m, "ap": ap} for sp, m, ap in rows]
+    )
 
 
 def test_confound_warning_triggered_and_not() -> None:
-    rows = [("0.01", "rank_fusion", 0.80), ("0.01", "score_max", 0.90), ("0.01", "size_prior", 0.89), ("0.01", "random", 0.10),
-            ("0.05", "rank_fusion", 0.80), ("0.05", "score_max", 0.90), ("0.05", "size_prior", 0.70), ("0.05", "random", 0.10)]
+    rows = [
+        ("0.01", "rank_fusion", 0.80),
+        ("0.01", "score_max", 0.90),
+        ("0.01", "size_prior", 0.89),
+        ("0.01", "random", 0.10),
+        ("0.05", "rank_fusion", 0.80),
+        ("0.05", "score_max", 0.90),
+        ("0.05", "size_prior", 0.70),
+        ("0.05", "random", 0.10),
+    ]
     w = confound_warnings(_main(rows), "Table I")
     assert len(w) == 1
-    assert "size_prior" in w[0] and "RoC-max 0.01: 0.89 vs score_max 0.90" in w[0] and "0.05" not in w[0] and "Table S" in w[0]
+    assert (
+        "size_prior" in w[0]
+        and "RoC-max 0.01: 0.89 vs score_max 0.90" in w[0]
+        and "0.05" not in w[0]
+        and "Table S" in w[0]
+    )
     rows[2] = ("0.01", "size_prior", 0.87)  # 0.03 below the best: no warning
     assert confound_warnings(_main(rows), "Table I") == []
 
 
 def test_latex_table_parses_back() -> None:
-    t = pd.DataFrame({0.01: [0.74, 0.69, np.nan, 1.0], 0.05: [0.72, 0.68, 0.5, 0.99]},
-                     index=["rank_fusion", "rank_no_fusion", "rank_fusion_asc", "size_prior"])
+    t = pd.DataFrame(
+        {0.01: [0.74, 0.69, np.nan, 1.0], 0.05: [0.72, 0.68, 0.5, 0.99]},
+        index=["rank_fusion", "rank_no_fusion", "rank_fusion_asc", "size_prior"],
+    )
     tex = table_latex(t)
     assert tex.startswith(r"\begin{tabular}{lrr}") and r"\toprule" in tex and r"\bottomrule" in tex
     body = tex.split(r"\midrule", 1)[1].split(r"\bottomrule")[0]
-    rows = [r.strip().removesuffix(r"\\").strip() for r in body.splitlines() if r.strip() and r.strip() != r"\midrule"]
-    assert len(rows) == 4 and tex.count(r"\midrule") == 2  # header rule, then the rule before the variants and baselines
+    rows = [
+        r.strip().removesuffix(r"\\").strip()
+        for r in body.splitlines()
+        if r.strip() and r.strip() != r"\midrule"
+    ]
+    assert (
+        len(rows) == 4 and tex.count(r"\midrule") == 2
+    )  # header rule, then the rule before the variants and baselines
     parsed = [[c.strip() for c in r.split(" & ")] for r in rows]
-    assert parsed[0] == ["rank fusion", "0.74", "0.72"] and parsed[1] == ["rank w/o fusion", "0.69", "0.68"]
+    assert parsed[0] == ["rank fusion", "0.74", "0.72"] and parsed[1] == [
+        "rank w/o fusion",
+        "0.69",
+        "0.68",
+    ]
     assert parsed[2][1] == "--" and parsed[3][0] == "size prior (no pixel)"
     for (_m, row), p in zip(t.iterrows(), parsed, strict=True):
         vals = [float("nan") if c == "--" else float(c) for c in p[1:]]
@@ -150,7 +183,10 @@ def test_fixture_writes_tables_s_and_p_with_intervals_and_comparisons(local_run:
     sp = pooled[pooled["table"] == "P"]
     assert set(sp["split"]) == {"pixel", "image"} and (sp["floor"] > 0).all()
     ts = pd.read_csv(out / "tableS.csv", index_col=0)
-    assert list(ts.columns) == ["0.01", "0.02", "0.03", "0.04", "0.05"] and ts.index[0] == "rank_fusion"
+    assert (
+        list(ts.columns) == ["0.01", "0.02", "0.03", "0.04", "0.05"]
+        and ts.index[0] == "rank_fusion"
+    )
     md = (out / "tableS.md").read_text()
     assert "floor (fused set)" in md and "[" in md
     cmp_ = (out / "comparisons.md").read_text()
@@ -162,7 +198,9 @@ def test_fixture_writes_tables_s_and_p_with_intervals_and_comparisons(local_run:
         assert tex.startswith(r"\begin{tabular}") and tex.rstrip().endswith(r"\end{tabular}")
 
 
-def test_reproduce_prints_the_tables_in_order(local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_reproduce_prints_the_tables_in_order(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     import shutil
 
     from harness.cli import main
@@ -171,10 +209,28 @@ def test_reproduce_prints_the_tables_in_order(local_run: tuple, tmp_path: Path, 
 
     p, _, out = local_run
     shutil.copytree(out, tmp_path / "o")
-    args = ["reproduce", "--config", str(ROOT / "datasets" / "fixture.toml"), "--data-root", str(p.cfg.data_root), "--out", str(tmp_path / "o")]
+    args = [
+        "reproduce",
+        "--config",
+        str(ROOT / "datasets" / "fixture.toml"),
+        "--data-root",
+        str(p.cfg.data_root),
+        "--out",
+        str(tmp_path / "o"),
+    ]
     assert main(args) == 0
     text = capsys.readouterr().out
-    marks = [text.index(m) for m in ("Localization quality", "Table I:", "WARNING (Table I)", "Table S:", "Table P:", "Paired comparisons")]
+    marks = [
+        text.index(m)
+        for m in (
+            "Localization quality",
+            "Table I:",
+            "WARNING (Table I)",
+            "Table S:",
+            "Table P:",
+            "Paired comparisons",
+        )
+    ]
     assert marks == sorted(marks), marks
 
 
@@ -190,8 +246,15 @@ def test_bootstrap_sorted_once_equals_each_resample_computed_alone() -> None:
     w = rng.random(n) * 5
     c = resample_counts(120, 60, 1)
     edges = np.array([0, 0.02, 0.05, 0.1, 0.2, 0.4, 1.0])
-    np.testing.assert_array_equal(bootstrap_aps(y, s, g, c, block_bytes=1 << 16),
-                                  [weighted_average_precision(y, s, cc[g]) for cc in c])
-    np.testing.assert_array_equal(bootstrap_aps(y, s, g, c, weights=w), [weighted_average_precision(y, s, w * cc[g]) for cc in c])
-    np.testing.assert_array_equal(bootstrap_aps(y, s, g, c, stat="stratified", sob=sob, edges=edges),
-                                  [stratified_ap(y, s, sob, edges, cc[g].astype(float))[0] for cc in c])
+    np.testing.assert_array_equal(
+        bootstrap_aps(y, s, g, c, block_bytes=1 << 16),
+        [weighted_average_precision(y, s, cc[g]) for cc in c],
+    )
+    np.testing.assert_array_equal(
+        bootstrap_aps(y, s, g, c, weights=w),
+        [weighted_average_precision(y, s, w * cc[g]) for cc in c],
+    )
+    np.testing.assert_array_equal(
+        bootstrap_aps(y, s, g, c, stat="stratified", sob=sob, edges=edges),
+        [stratified_ap(y, s, sob, edges, cc[g].astype(float))[0] for cc in c],
+    )

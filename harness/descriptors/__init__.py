@@ -12,4 +12,12 @@ from .base import REGISTRY, Descriptor, HogDescriptor, ThumbDescriptor, make_des
 
 REGISTRY["autoencoder"] = AutoencoderDescriptor
 
-__all__ = ["REGISTRY", "AutoencoderDescriptor", "Descriptor", "HogDescriptor", "ThumbDescriptor", "make_descriptor", "normalize"]
+__all__ = [
+    "REGISTRY",
+    "AutoencoderDescriptor",
+    "Descriptor",
+    "HogDescriptor",
+    "ThumbDescriptor",
+    "make_descriptor",
+    "normalize",
+]

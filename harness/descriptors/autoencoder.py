@@ -10,8 +10,9 @@ from __future__ import annotations
 import csv
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -24,11 +25,19 @@ log = logging.getLogger(__name__)
 
 
 def _enc_block(cin: int, cout: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True), nn.MaxPool2d(2))
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, padding=1, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+        nn.MaxPool2d(2),
+    )
 
 
 def _dec_block(cin: int, cout: int, last: bool) -> nn.Sequential:
-    layers: list[nn.Module] = [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(cin, cout, 3, padding=1, bias=last)]
+    layers: list[nn.Module] = [
+        nn.Upsample(scale_factor=2, mode="nearest"),
+        nn.Conv2d(cin, cout, 3, padding=1, bias=last),
+    ]
     layers += [nn.Sigmoid()] if last else [nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
     return nn.Sequential(*layers)
 
@@ -36,22 +45,27 @@ def _dec_block(cin: int, cout: int, last: bool) -> nn.Sequential:
 class ConvAutoencoder(nn.Module):
     """Three conv blocks down, three mirrored blocks up. ``channels`` are the encoder's widths."""
 
-    def __init__(self, channels: tuple[int, int, int] = (32, 32, 16)) -> None:
+    def __init__(self, channels: Sequence[int] = (32, 32, 16)) -> None:
         super().__init__()
         c1, c2, c3 = channels
         self.encoder = nn.Sequential(_enc_block(3, c1), _enc_block(c1, c2), _enc_block(c2, c3))
-        self.decoder = nn.Sequential(_dec_block(c3, c2, False), _dec_block(c2, c1, False), _dec_block(c1, 3, True))
+        self.decoder = nn.Sequential(
+            _dec_block(c3, c2, False), _dec_block(c2, c1, False), _dec_block(c1, 3, True)
+        )
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, S, S) float images -> (B, D) flattened bottleneck activations."""
         return self.encoder(x).flatten(1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, S, S) -> its reconstruction, the same shape."""
         return self.decoder(self.encoder(x))
 
 
 def to_tensor(crops: np.ndarray, device: torch.device, per_crop: bool = False) -> torch.Tensor:
-    """uint8 (B, S, S, 3) -> float (B, 3, S, S) in [0, 1], in channels-last memory (NHWC strides,
-    the layout oneDNN's convolutions run fastest in).
+    """uint8 (B, S, S, 3) -> float (B, 3, S, S) in [0, 1], in channels-last memory.
+
+    NHWC strides: the layout oneDNN's convolutions run fastest in.
 
     With ``per_crop`` each crop's channels are standardised (zero mean, unit variance), then
     squashed back into (0, 1) by a logistic, which removes global illumination and colour cast.
@@ -72,17 +86,27 @@ def to_tensor(crops: np.ndarray, device: torch.device, per_crop: bool = False) -
 
 
 def inference_encoder(model: ConvAutoencoder) -> nn.Sequential:
-    """The trained encoder for inference: each batch-norm folded into its convolution's weights
-    and bias, and max-pool moved before ReLU (they commute; ReLU then touches a quarter of the
-    values). Same function as ``model.encode`` up to float rounding (checked in tests)."""
+    """The trained encoder for inference, batch-norm folded into the convolutions.
+
+    Each batch-norm is folded into its convolution's weights and bias, and max-pool moved before
+    ReLU (they commute; ReLU then touches a quarter of the values). Same function as
+    ``model.encode`` up to float rounding (checked in tests).
+    """
     layers: list[nn.Module] = []
     for blk in model.encoder:
-        conv, bn = blk[0], blk[1]
-        scale = bn.weight.detach() / torch.sqrt(bn.running_var + bn.eps)
-        fused = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding, bias=True)
+        conv, bn = cast(nn.Conv2d, blk[0]), cast(nn.BatchNorm2d, blk[1])  # type: ignore[index]
+        mean, var = bn.running_mean, bn.running_var
+        if mean is None or var is None:
+            raise ValueError("inference_encoder needs batch-norm running statistics")
+        scale = bn.weight.detach() / torch.sqrt(var + bn.eps)
+        kernel, padding = (
+            cast(tuple[int, int], conv.kernel_size),
+            cast(tuple[int, int], conv.padding),
+        )
+        fused = nn.Conv2d(conv.in_channels, conv.out_channels, kernel, padding=padding, bias=True)
         fused.weight.data = conv.weight.detach() * scale[:, None, None, None]
         bias = conv.bias.detach() if conv.bias is not None else torch.zeros_like(scale)
-        fused.bias.data = (bias - bn.running_mean) * scale + bn.bias.detach()
+        fused.bias = nn.Parameter((bias - mean) * scale + bn.bias.detach())
         layers += [fused, nn.MaxPool2d(2), nn.ReLU(inplace=True)]
     layers.append(nn.Flatten(1))
     return nn.Sequential(*layers).to(next(model.parameters()).device).eval()
@@ -99,10 +123,15 @@ def train(
     progress: Callable | None = None,
     per_crop: bool = False,
 ) -> list[tuple[int, int, float]]:
-    """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE; returns (epoch, step, loss) rows."""
+    """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE.
+
+    Returns (epoch, step, loss) rows.
+    """
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    model.to(device, memory_format=torch.channels_last).train()  # 2x faster steps on CPU than NCHW
+    # channels-last: 2x faster steps on CPU than NCHW (not in torch's stubs for Module.to)
+    model.to(device, memory_format=torch.channels_last)  # type: ignore[call-overload]
+    model.train()
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     n = len(data)
     steps = math.ceil(n / batch_size)
@@ -156,7 +185,8 @@ def train_budget(
     perm = torch.randperm(n, generator=g).numpy()
     n_hold = min(max(1, round(n * holdout)), max(n - 1, 0)) if holdout > 0 and n > 1 else 0
     hold, train_idx = np.sort(perm[:n_hold]), perm[n_hold:]
-    model.to(device, memory_format=torch.channels_last).train()
+    model.to(device, memory_format=torch.channels_last)  # type: ignore[call-overload]
+    model.train()
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     steps = max(1, math.ceil(samples / batch_size))
     history: list[tuple[int, int, float]] = []
@@ -204,8 +234,14 @@ def train_budget(
     if best_state is not None:
         model.load_state_dict(best_state)
     model.eval()
-    return history, {"steps": len(history), "held_out": n_hold, "held_out_curve": curve, "best_step": best_step,
-                     "best_held_out_loss": best if curve else float("nan"), "stopped_early": stopped}
+    return history, {
+        "steps": len(history),
+        "held_out": n_hold,
+        "held_out_curve": curve,
+        "best_step": best_step,
+        "best_held_out_loss": best if curve else float("nan"),
+        "stopped_early": stopped,
+    }
 
 
 def save_checkpoint(path: Path, model: ConvAutoencoder, meta: dict) -> None:
@@ -215,6 +251,7 @@ def save_checkpoint(path: Path, model: ConvAutoencoder, meta: dict) -> None:
 
 
 def load_checkpoint(path: Path, device: torch.device) -> tuple[ConvAutoencoder, dict]:
+    """A saved autoencoder on ``device`` in eval mode, and its metadata."""
     ck = torch.load(Path(path), map_location=device, weights_only=True)
     meta = ck["meta"]
     model = ConvAutoencoder(tuple(meta["channels"]))
@@ -222,7 +259,10 @@ def load_checkpoint(path: Path, device: torch.device) -> tuple[ConvAutoencoder, 
     return model.to(device).eval(), meta
 
 
-def save_loss_curve(history: list[tuple[int, int, float]], csv_path: Path, png_path: Path | None) -> None:
+def save_loss_curve(
+    history: list[tuple[int, int, float]], csv_path: Path, png_path: Path | None
+) -> None:
+    """Write the training loss rows (epoch, step, loss) as CSV, and as a PNG plot when asked."""
     with atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["epoch", "step", "loss"])

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -33,21 +35,42 @@ class Descriptor:
 
     @property
     def input_size(self) -> int:
+        """Side of the square crops the descriptor reads, pixels."""
         return self.cfg.input_size
 
-    def fit(self, crops: np.ndarray, out_dir: Path) -> dict:  # pragma: no cover - trivial
+    def fit(
+        self,
+        crops: np.ndarray,
+        out_dir: Path,
+        progress: Callable[[int], object] | None = None,
+    ) -> dict[str, Any]:  # pragma: no cover - trivial
+        """Train on ``crops`` (N, S, S, 3) uint8 and write the model into ``out_dir``.
+
+        Args:
+            crops: Training crops (an array or a memmap).
+            out_dir: The model entry's directory.
+            progress: Called with the number of samples of each training step, when given.
+
+        Returns:
+            What the model entry's manifest records (losses, steps); empty for untrained ones.
+        """
         return {}
 
     def load(self, out_dir: Path) -> None:  # pragma: no cover - trivial
+        """Load what :meth:`fit` wrote into ``out_dir`` (nothing for untrained descriptors)."""
         return None
 
     def encode(self, crops: np.ndarray) -> np.ndarray:
+        """(N, S, S, 3) uint8 RGB crops -> (N, D) float32 descriptors."""
         raise NotImplementedError
 
 
 def hog(gray: np.ndarray, cell: int = 8, bins: int = 9) -> np.ndarray:
-    """Dalal-Triggs HOG of a grey image: unsigned orientations with linear bin interpolation,
-    2x2-cell blocks with stride one cell, L2-Hys normalisation (clip 0.2)."""
+    """Dalal-Triggs HOG of a grey image.
+
+    Unsigned orientations with linear bin interpolation, 2x2-cell blocks with stride one cell,
+    L2-Hys normalisation (clip 0.2).
+    """
     g = gray.astype(np.float32)
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1)
@@ -60,7 +83,11 @@ def hog(gray: np.ndarray, cell: int = 8, bins: int = 9) -> np.ndarray:
     hist = np.zeros((cy, cx, bins), np.float32)
     ci = (np.arange(cy * cell) // cell)[:, None].repeat(cx * cell, 1)
     cj = (np.arange(cx * cell) // cell)[None, :].repeat(cy * cell, 0)
-    m, lb, f = mag[: cy * cell, : cx * cell], lo[: cy * cell, : cx * cell], frac[: cy * cell, : cx * cell]
+    m, lb, f = (
+        mag[: cy * cell, : cx * cell],
+        lo[: cy * cell, : cx * cell],
+        frac[: cy * cell, : cx * cell],
+    )
     np.add.at(hist, (ci, cj, lb), m * (1 - f))
     np.add.at(hist, (ci, cj, (lb + 1) % bins), m * f)
     blocks = np.concatenate([hist[:-1, :-1], hist[1:, :-1], hist[:-1, 1:], hist[1:, 1:]], axis=2)
@@ -76,6 +103,7 @@ class HogDescriptor(Descriptor):
     name = "hog"
 
     def encode(self, crops: np.ndarray) -> np.ndarray:
+        """(N, S, S, 3) uint8 RGB crops -> (N, 1764) HOG descriptors."""
         out = []
         for c in crops:
             g = cv2.cvtColor(c, cv2.COLOR_RGB2GRAY)
@@ -91,9 +119,16 @@ class ThumbDescriptor(Descriptor):
     name = "thumb"
 
     def encode(self, crops: np.ndarray) -> np.ndarray:
+        """(N, S, S, 3) uint8 RGB crops -> (N, 384) thumbnail + colour histogram descriptors."""
         out = []
         for c in crops:
-            g = cv2.resize(cv2.cvtColor(c, cv2.COLOR_RGB2GRAY), (16, 16), interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
+            g = (
+                cv2.resize(
+                    cv2.cvtColor(c, cv2.COLOR_RGB2GRAY), (16, 16), interpolation=cv2.INTER_AREA
+                )
+                .astype(np.float32)
+                .ravel()
+            )
             g -= g.mean()
             g /= np.linalg.norm(g) + 1e-6
             hsv = cv2.cvtColor(c, cv2.COLOR_RGB2HSV)
@@ -107,6 +142,11 @@ REGISTRY: dict[str, type[Descriptor]] = {"hog": HogDescriptor, "thumb": ThumbDes
 
 
 def make_descriptor(cfg: DescriptorConfig) -> Descriptor:
+    """The descriptor ``[descriptor] name`` selects from :data:`REGISTRY`.
+
+    Raises:
+        ConfigError: The name is not registered.
+    """
     if cfg.name not in REGISTRY:
         raise ConfigError(f"[descriptor] unknown name {cfg.name!r}; known: {sorted(REGISTRY)}")
     return REGISTRY[cfg.name](cfg)

@@ -1,6 +1,8 @@
-"""The descriptor stages' units (SPEC section 6): training crops and the model, encoding shards,
-combining a session's shards. Each is a function of typed inputs to files in a temporary entry
-directory (the runner caches it); none reads the config beyond ``[descriptor]``.
+"""The descriptor stages' units (SPEC section 6).
+
+Training crops and the model, encoding shards, combining a session's shards. Each is a function of
+typed inputs to files in a temporary entry directory (the runner caches it); none reads the config
+beyond ``[descriptor]``.
 """
 
 from __future__ import annotations
@@ -29,8 +31,12 @@ def _images(rows: pd.DataFrame, frames: pd.DataFrame) -> pd.Series:
     return rows.merge(frames[[*FRAME_KEY, "image"]], on=FRAME_KEY, how="left")["image"]
 
 
-def train_model(dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame, tmp: Path) -> dict[str, Any]:
-    """Train the descriptor on up to ``max_train_subimages`` crops of ``rows`` (drawn with ``seed``).
+def train_model(
+    dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame, tmp: Path
+) -> dict[str, Any]:
+    """Train the descriptor on crops of ``rows``.
+
+    At most ``max_train_subimages`` crops are drawn (with ``seed``).
 
     The crops go to a memmap in ``tmp`` (removed after training), so memory does not grow with
     the sample. Descriptors that need no training write nothing.
@@ -50,14 +56,30 @@ def train_model(dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame, 
     rng = np.random.default_rng(dc.seed)
     n = min(len(rows), dc.max_train_subimages)
     rows = rows.iloc[np.sort(rng.choice(len(rows), size=n, replace=False))].reset_index(drop=True)
-    data = open_memmap_reserved(tmp / "train_crops.npy", np.uint8, (n, dc.input_size, dc.input_size, 3))
-    for idx, crops in progress(iter_crops(rows, _images(rows, frames), dc.input_size, num_workers=dc.num_workers),
-                               "training crops", "batch"):
+    data = open_memmap_reserved(
+        tmp / "train_crops.npy", np.uint8, (n, dc.input_size, dc.input_size, 3)
+    )
+    for idx, crops in progress(
+        iter_crops(rows, _images(rows, frames), dc.input_size, num_workers=dc.num_workers),
+        "training crops",
+        "batch",
+    ):
         data[idx] = crops
     data.flush()
     steps_per_epoch = int(np.ceil(n / dc.batch_size))
-    total = int(np.ceil(dc.train_samples / dc.batch_size)) if dc.train_samples > 0 else dc.epochs * steps_per_epoch
-    bar = tqdm(total=total, desc="autoencoder training", unit="step", mininterval=1.0, leave=False, disable=None)
+    total = (
+        int(np.ceil(dc.train_samples / dc.batch_size))
+        if dc.train_samples > 0
+        else dc.epochs * steps_per_epoch
+    )
+    bar = tqdm(
+        total=total,
+        desc="autoencoder training",
+        unit="step",
+        mininterval=1.0,
+        leave=False,
+        disable=None,
+    )
     info = desc.fit(data, tmp, progress=bar.update)
     bar.close()
     del data
@@ -72,20 +94,34 @@ def _loaded(dc: DescriptorConfig, model_dir: Path) -> Descriptor:
     return desc
 
 
-def _encoded(desc: Descriptor, dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame,
-             name: str) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """(row positions in ``rows``, L2-normalised float32 descriptors) batch by batch, frame by frame."""
+def _encoded(
+    desc: Descriptor, dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame, name: str
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(row positions in ``rows``, L2-normalised float32 descriptors), batch by batch."""
     img = _images(rows, frames)
     # frames must be contiguous for the loader: order by frame, remember the original row
-    order = np.lexsort((rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy()))
-    for idx, crops in progress(iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers),
-                               f"descriptors {name}", "batch"):
+    order = np.lexsort(
+        (rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy())
+    )
+    for idx, crops in progress(
+        iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers),
+        f"descriptors {name}",
+        "batch",
+    ):
         yield order[idx], normalize(desc.encode(crops))
 
 
-def fit_projection_unit(dc: DescriptorConfig, pc: ProjectionConfig, model_dir: Path, frames: pd.DataFrame,
-                        rows: pd.DataFrame, tmp: Path) -> dict[str, Any]:
-    """Fit ``[projection]`` on up to ``fit_samples`` of the reference ``rows`` (a seeded sample), encoded here.
+def fit_projection_unit(
+    dc: DescriptorConfig,
+    pc: ProjectionConfig,
+    model_dir: Path,
+    frames: pd.DataFrame,
+    rows: pd.DataFrame,
+    tmp: Path,
+) -> dict[str, Any]:
+    """Fit ``[projection]`` on a seeded sample of the reference ``rows``, encoded here.
+
+    At most ``fit_samples`` rows are drawn.
 
     Memory: the sample, ``fit_samples x D`` float32 (512 MiB at 8,192 x 16,384).
 
@@ -100,7 +136,11 @@ def fit_projection_unit(dc: DescriptorConfig, pc: ProjectionConfig, model_dir: P
     Returns:
         The fit record (rows sampled, dims, explained variance).
     """
-    pick = np.sort(np.random.default_rng(pc.seed).choice(len(rows), size=min(len(rows), pc.fit_samples), replace=False))
+    pick = np.sort(
+        np.random.default_rng(pc.seed).choice(
+            len(rows), size=min(len(rows), pc.fit_samples), replace=False
+        )
+    )
     rows = rows.iloc[pick].reset_index(drop=True)
     sample = None
     for pos, v in _encoded(_loaded(dc, model_dir), dc, frames, rows, "projection sample"):
@@ -108,18 +148,30 @@ def fit_projection_unit(dc: DescriptorConfig, pc: ProjectionConfig, model_dir: P
             sample = np.empty((len(rows), v.shape[1]), np.float32)
         sample[pos] = v
     if sample is None:
-        raise RetrievalError("[projection] the reference sessions have no subimage to fit the projection on")
+        raise RetrievalError(
+            "[projection] the reference sessions have no subimage to fit the projection on"
+        )
     return {"reference_rows": len(pick), **fit_projection(pc, sample, tmp)}
 
 
-def encode_shard(dc: DescriptorConfig, model_dir: Path, projection_dir: Path | None, frames: pd.DataFrame,
-                 rows: pd.DataFrame, name: str, tmp: Path) -> dict[str, Any]:
-    """Crop, encode, L2-normalise (and project) ``rows``; write ``desc.npy`` aligned with ``index.parquet``.
+def encode_shard(
+    dc: DescriptorConfig,
+    model_dir: Path,
+    projection_dir: Path | None,
+    frames: pd.DataFrame,
+    rows: pd.DataFrame,
+    name: str,
+    tmp: Path,
+) -> dict[str, Any]:
+    """Crop, encode, L2-normalise (and project) ``rows`` into ``desc.npy``.
+
+    ``desc.npy`` is aligned with ``index.parquet``.
 
     Args:
         dc: ``[descriptor]`` (``dtype`` is the stored type).
         model_dir: The model entry (ignored by descriptors that need no training).
-        projection_dir: A fitted projection entry, applied before storing; None: the full descriptor.
+        projection_dir: A fitted projection entry, applied before storing; None: the full
+            descriptor.
         frames: The session's frames (for image URIs).
         rows: The shard's proposal rows.
         name: What the progress bar calls the shard.
@@ -141,7 +193,9 @@ def encode_shard(dc: DescriptorConfig, model_dir: Path, projection_dir: Path | N
     return {"subimages": len(rows), "dim": int(arr.shape[1]) if arr is not None else 0}
 
 
-def combine_shards(dc: DescriptorConfig, rows: pd.DataFrame, shard_dirs: list[Path], tmp: Path) -> dict[str, Any]:
+def combine_shards(
+    dc: DescriptorConfig, rows: pd.DataFrame, shard_dirs: list[Path], tmp: Path
+) -> dict[str, Any]:
     """One session's ``desc.npy`` aligned with its proposal ``rows``, copied one shard at a time.
 
     Args:
@@ -153,7 +207,9 @@ def combine_shards(dc: DescriptorConfig, rows: pd.DataFrame, shard_dirs: list[Pa
     Returns:
         ``{"subimages", "shards", "dim"}``.
     """
-    pos = pd.Series(np.arange(len(rows)), index=pd.MultiIndex.from_frame(rows[["method", "utime", "box_id"]]))
+    pos = pd.Series(
+        np.arange(len(rows)), index=pd.MultiIndex.from_frame(rows[["method", "utime", "box_id"]])
+    )
     arr = None
     for d in shard_dirs:
         idx = read_cached_parquet(d / "index.parquet", columns=["method", "utime", "box_id"])
@@ -163,7 +219,11 @@ def combine_shards(dc: DescriptorConfig, rows: pd.DataFrame, shard_dirs: list[Pa
         arr[pos.loc[pd.MultiIndex.from_frame(idx)].to_numpy()] = v
     _finish_desc(tmp, arr, dc.dtype)
     write_parquet(tmp / "index.parquet", rows)
-    return {"subimages": len(rows), "shards": len(shard_dirs), "dim": int(arr.shape[1]) if arr is not None else 0}
+    return {
+        "subimages": len(rows),
+        "shards": len(shard_dirs),
+        "dim": int(arr.shape[1]) if arr is not None else 0,
+    }
 
 
 def _finish_desc(tmp: Path, arr: np.memmap | None, dtype: str) -> None:

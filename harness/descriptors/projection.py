@@ -9,7 +9,8 @@ is projected as it is encoded: only ``dim`` float16 values per subimage ever rea
 
 The fit: the sample's mean; the principal directions are the eigenvectors of the sample's
 covariance, from the smaller of its two Gram forms (``n x n`` when ``n < D``, else ``D x D``)
-with LAPACK's ``syevr`` for the top ``dim`` only (deterministic; each direction's sign is fixed so that its largest
+with LAPACK's ``syevr`` for the top ``dim`` only (deterministic; each direction's sign is fixed so
+that its largest
 coordinate is positive). Applying it centres, rotates onto the top ``dim`` directions,
 optionally divides each by its standard deviation (whitening), and L2-normalises again, so
 descriptors stay unit vectors as SPEC section 6 asks.
@@ -61,28 +62,45 @@ def fit_projection(pc: ProjectionConfig, sample: np.ndarray, tmp: Path) -> dict[
     """
     n, D = sample.shape
     if pc.dim > min(D, n):
-        raise ConfigError(f"[projection] dim = {pc.dim} exceeds min(input dim {D}, sampled reference rows {n})")
+        raise ConfigError(
+            f"[projection] dim = {pc.dim} exceeds min(input dim {D}, sampled reference rows {n})"
+        )
     mean = sample.mean(0, dtype=np.float64)
     sample -= mean.astype(sample.dtype)
     if n < D:  # eigenvectors of X X^T (n x n) map to the covariance's through X^T
         w, u = _top_eigh(np.asarray(sample @ sample.T, np.float64), pc.dim)
-        comp = np.asarray(sample.T @ u.astype(sample.dtype), np.float64) / np.sqrt(np.maximum(w, np.finfo(np.float64).tiny))
+        comp = np.asarray(sample.T @ u.astype(sample.dtype), np.float64) / np.sqrt(
+            np.maximum(w, np.finfo(np.float64).tiny)
+        )
     else:
         w, comp = _top_eigh(np.asarray(sample.T @ sample, np.float64), pc.dim)
     total_var = float(np.einsum("ij,ij->", sample, sample, dtype=np.float64))
     comp *= np.where(comp[np.abs(comp).argmax(0), np.arange(comp.shape[1])] < 0, -1.0, 1.0)
     var = np.maximum(w, 0) / max(n - 1, 1)
-    scale = 1 / np.sqrt(var + WHITEN_EPS * max(float(var.max()), 1e-30)) if pc.whiten else np.ones(pc.dim)
+    scale = (
+        1 / np.sqrt(var + WHITEN_EPS * max(float(var.max()), 1e-30))
+        if pc.whiten
+        else np.ones(pc.dim)
+    )
     np.save(tmp / "mean.npy", mean.astype(np.float32))
     np.save(tmp / "components.npy", comp.astype(np.float32))
     np.save(tmp / "scale.npy", scale.astype(np.float32))
-    return {"fitted_on": int(n), "input_dim": int(D), "dim": int(pc.dim),
-            "explained_variance": round(float(np.maximum(w, 0).sum()) / total_var, 6) if total_var > 0 else 1.0}
+    return {
+        "fitted_on": int(n),
+        "input_dim": int(D),
+        "dim": int(pc.dim),
+        "explained_variance": round(float(np.maximum(w, 0).sum()) / total_var, 6)
+        if total_var > 0
+        else 1.0,
+    }
 
 
 def load_projection(model_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(mean (D,), components (D, dim), scale (dim,)) of a fitted projection entry."""
-    return tuple(np.load(model_dir / f) for f in ("mean.npy", "components.npy", "scale.npy"))  # type: ignore[return-value]
+    mean, components, scale = (
+        np.load(model_dir / f) for f in ("mean.npy", "components.npy", "scale.npy")
+    )
+    return mean, components, scale
 
 
 def project(x: np.ndarray, mean: np.ndarray, comp: np.ndarray, scale: np.ndarray) -> np.ndarray:

@@ -3,4 +3,10 @@
 from .logs import detect_format
 from .session import combine_frames, ingest_session, load_frames, read_nclt_groundtruth
 
-__all__ = ["combine_frames", "detect_format", "ingest_session", "load_frames", "read_nclt_groundtruth"]
+__all__ = [
+    "combine_frames",
+    "detect_format",
+    "ingest_session",
+    "load_frames",
+    "read_nclt_groundtruth",
+]

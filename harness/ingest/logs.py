@@ -14,6 +14,7 @@ import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -62,8 +63,11 @@ except ImportError:  # pragma: no cover
 
 @contextlib.contextmanager
 def uri_safe_path(path: Path) -> Iterator[Path]:
-    """``path``, or a symbolic link to it in a temporary directory when its name holds a character
-    that breaks the ``file:`` URIs rosbags opens sqlite3 databases with (``#``, ``?``, ``%``)."""
+    """``path``, or a symbolic link to it in a temporary directory.
+
+    The link is made when the name holds a character that breaks the ``file:`` URIs rosbags opens
+    sqlite3 databases with (``#``, ``?``, ``%``).
+    """
     if not any(c in str(Path(path).resolve()) for c in "#?%"):
         yield Path(path)
         return
@@ -79,8 +83,52 @@ def uri_safe_path(path: Path) -> Iterator[Path]:
         yield link
 
 
+class LogReader(Protocol):
+    """A log format beside the built-in ones (:func:`register_format`).
+
+    Messages are rosbags-style objects (a ``sensor_msgs``/``nav_msgs``/``geometry_msgs``/
+    ``tf2_msgs`` message of the ROS2 typestore, e.g. from ``typestore.deserialize_cdr``);
+    everything after the stream (images, poses, tf, drops, the report) is shared.
+    """
+
+    def detect(self, path: Path) -> bool:
+        """Whether ``path`` is a log of this format."""
+        ...
+
+    def topics(self, path: Path) -> dict[str, tuple[str, int]]:
+        """Topic -> (message type, message count)."""
+        ...
+
+    def messages(self, path: Path, topics: tuple[str, ...]) -> Iterator[Message]:
+        """The messages of ``topics`` in log order (log time in ns)."""
+        ...
+
+
+#: Log formats registered beside nclt, ros1, ros2 and mcap, by name (``format`` of a session).
+READERS: dict[str, LogReader] = {}
+BUILTIN_FORMATS = ("nclt", "ros1", "ros2", "mcap")
+
+
+def register_format(name: str, reader: LogReader) -> None:
+    """Add a log format, named by a session's ``format`` or found by ``reader.detect``.
+
+    Registered readers are asked before the built-in layouts are looked for.
+
+    Raises:
+        ValueError: ``name`` is taken.
+    """
+    if name in known_formats():
+        raise ValueError(f"log format {name!r} exists; known: {list(known_formats())}")
+    READERS[name] = reader
+
+
+def known_formats() -> tuple[str, ...]:
+    """Every log format a session may name: the built-in ones, then registered ones."""
+    return (*BUILTIN_FORMATS, *READERS)
+
+
 def detect_format(path: Path) -> str:
-    """``nclt``, ``ros1``, ``ros2`` or ``mcap`` from what is at ``path``.
+    """``nclt``, ``ros1``, ``ros2``, ``mcap`` or a registered format from what is at ``path``.
 
     Raises:
         IngestError: The path does not exist or is of no known format.
@@ -88,29 +136,40 @@ def detect_format(path: Path) -> str:
     path = Path(path)
     if not path.exists():
         raise IngestError(f"{path}: no such file or directory")
+    registered = [name for name, r in READERS.items() if r.detect(path)]
+    if registered:
+        return registered[0]
     if path.is_dir():
         if (path / "metadata.yaml").exists():
             return "ros2"
         if (path / "images").is_dir() or (path / "ground_truth").is_dir():
             return "nclt"
         raise IngestError(
-            f"{path}: directory is neither a ROS2 bag (no metadata.yaml) nor an NCLT root (no images/ or ground_truth/)"
+            f"{path}: directory is neither a ROS2 bag (no metadata.yaml) nor an NCLT root "
+            "(no images/ or ground_truth/)"
         )
     if path.suffix == ".bag":
         return "ros1"
     if path.suffix == ".mcap":
         return "mcap"
     if path.suffix == ".db3":
-        raise IngestError(f"{path}: a bare .db3 file; pass the ROS2 bag directory that holds it and metadata.yaml")
-    raise IngestError(f"{path}: unknown log format (expected an NCLT root, a .bag, a ROS2 bag directory or an .mcap)")
+        raise IngestError(
+            f"{path}: a bare .db3 file; pass the ROS2 bag directory that holds it and metadata.yaml"
+        )
+    raise IngestError(
+        f"{path}: unknown log format (expected an NCLT root, a .bag, a ROS2 bag directory "
+        "or an .mcap)"
+    )
 
 
 @dataclass(frozen=True)
 class Message:
+    """One log message: topic, type, log time (ns) and the deserialized message."""
+
     topic: str
     msgtype: str
     log_ns: int
-    msg: object
+    msg: Any  # a deserialized rosbags message: its type is built at run time
 
 
 def _default_typestore(fmt: str):
@@ -124,6 +183,8 @@ def list_topics(path: Path, fmt: str, salvage: bool = False) -> dict[str, tuple[
     and ROS2 bags with ``salvage``); a damaged log whose topics cannot be read is a
     :class:`CorruptLogError`, never an "empty" log.
     """
+    if fmt in READERS:
+        return READERS[fmt].topics(Path(path))
     try:
         with AnyReader([Path(path)], default_typestore=_default_typestore(fmt)) as reader:
             return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
@@ -147,7 +208,8 @@ def choose_topics(
     """Pick the image and the pose topic: given ones are checked, else the only candidate is taken.
 
     Raises:
-        TopicError: A named topic is missing or of the wrong type, or none or several candidates exist.
+        TopicError: A named topic is missing or of the wrong type, or none or several candidates
+            exist.
     """
 
     def pick(name: str | None, types: tuple[str, ...], what: str, flag: str) -> str:
@@ -155,9 +217,14 @@ def choose_topics(
         listing = ", ".join(f"{t} ({topics[t][0]})" for t in sorted(topics)) or "none"
         if name is not None:
             if name not in topics:
-                raise TopicError(f"{where}: {what} topic {name!r} is not in the log; topics: {listing}")
+                raise TopicError(
+                    f"{where}: {what} topic {name!r} is not in the log; topics: {listing}"
+                )
             if topics[name][0] not in types:
-                raise TopicError(f"{where}: topic {name!r} has type {topics[name][0]}, not an {what} type {list(types)}")
+                raise TopicError(
+                    f"{where}: topic {name!r} has type {topics[name][0]}, not an {what} "
+                    f"type {list(types)}"
+                )
             return name
         if not cands:
             raise TopicError(f"{where}: no {what} topic (types {list(types)}); topics: {listing}")
@@ -178,22 +245,33 @@ def _salvage_stream(path: Path, fmt: str, topics: tuple[str, ...]) -> Iterator[M
     if fmt == "ros2" and sorted(Path(path).glob("*.mcap")):
         yield from _mcap_stream(sorted(Path(path).glob("*.mcap"))[0], topics)
         return
-    raw = salvage_mod.ros1_messages(path, topics) if fmt == "ros1" else salvage_mod.ros2_sqlite_messages(path, topics)
+    raw = (
+        salvage_mod.ros1_messages(path, topics)
+        if fmt == "ros1"
+        else salvage_mod.ros2_sqlite_messages(path, topics)
+    )
     de = salvage_mod.deserializer(fmt)
     for n, (topic, typ, t, data) in enumerate(raw):
         try:
             msg = de(data, typ)
         except _READ_ERRORS as err:
-            raise CorruptLogError(path, n, f"message {n + 1} does not deserialize: {err}", salvage=True) from None
+            raise CorruptLogError(
+                path, n, f"message {n + 1} does not deserialize: {err}", salvage=True
+            ) from None
         yield Message(topic, typ, t, msg)
 
 
-def stream(path: Path, fmt: str, topics: tuple[str, ...], salvage: bool = False) -> Iterator[Message]:
+def stream(
+    path: Path, fmt: str, topics: tuple[str, ...], salvage: bool = False
+) -> Iterator[Message]:
     """Yield the messages of ``topics`` in log order, deserialized.
 
     Raises:
         CorruptLogError: The log is damaged; ``messages_read`` says how many were yielded before.
     """
+    if fmt in READERS:
+        yield from READERS[fmt].messages(Path(path), topics)
+        return
     n = 0
     try:
         reader = AnyReader([Path(path)], default_typestore=_default_typestore(fmt))
@@ -216,7 +294,9 @@ def stream(path: Path, fmt: str, topics: tuple[str, ...], salvage: bool = False)
             except StopIteration:
                 break
             except _READ_ERRORS as err:
-                raise CorruptLogError(path, n, f"{type(err).__name__}: {err}", salvage=salvage) from None
+                raise CorruptLogError(
+                    path, n, f"{type(err).__name__}: {err}", salvage=salvage
+                ) from None
             n += 1
             yield Message(conn.topic, conn.msgtype, int(t), msg)
     finally:
@@ -267,7 +347,10 @@ def _mcap_stream(path: Path, topics: tuple[str, ...], salvage: bool = False) -> 
                 if rec.encoding == "ros2msg" and rec.name not in store.fielddefs:
                     store.register(get_types_from_msg(rec.data.decode(), rec.name))
             elif isinstance(rec, Channel):
-                chans[rec.id] = (rec.topic, schemas[rec.schema_id].name if rec.schema_id in schemas else "")
+                chans[rec.id] = (
+                    rec.topic,
+                    schemas[rec.schema_id].name if rec.schema_id in schemas else "",
+                )
             elif isinstance(rec, McapMessage):
                 topic, typ = chans.get(rec.channel_id, ("", ""))
                 if topic in topics:

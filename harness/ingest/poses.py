@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -21,8 +22,14 @@ POSE_TYPES = (
 QUAT_TOLERANCE = 1e-3
 
 
-def euler_from_quaternion(x: float, y: float, z: float, w: float, where: str = "quaternion",
-                          stats: dict[str, int] | None = None) -> tuple[float, float, float]:
+def euler_from_quaternion(
+    x: float,
+    y: float,
+    z: float,
+    w: float,
+    where: str = "quaternion",
+    stats: dict[str, int] | None = None,
+) -> tuple[float, float, float]:
     """ZYX Euler angles (roll, pitch, yaw) of a unit quaternion, radians.
 
     A non-finite quaternion gives NaN angles (the pose is then dropped and counted). A norm
@@ -38,7 +45,8 @@ def euler_from_quaternion(x: float, y: float, z: float, w: float, where: str = "
     n = math.sqrt(x * x + y * y + z * z + w * w)
     if abs(n - 1.0) > QUAT_TOLERANCE:
         raise IngestError(
-            f"{where}: orientation quaternion ({x:.6g}, {y:.6g}, {z:.6g}, {w:.6g}) has norm {n:.6g}, not 1 "
+            f"{where}: orientation quaternion ({x:.6g}, {y:.6g}, {z:.6g}, {w:.6g}) has norm "
+            f"{n:.6g}, not 1 "
             f"(tolerance {QUAT_TOLERANCE}); is it Euler angles stored in quaternion fields?"
         )
     if stats is not None and abs(n - 1.0) > 1e-6:
@@ -51,34 +59,47 @@ def euler_from_quaternion(x: float, y: float, z: float, w: float, where: str = "
     return roll, pitch, yaw
 
 
-def stamp_us(header: object) -> int:
-    st = header.stamp  # type: ignore[attr-defined]
+def stamp_us(header: Any) -> int:
+    """A ROS header's stamp in µs."""
+    st = header.stamp
     return int(st.sec) * 1_000_000 + int(st.nanosec) // 1000
 
 
-def _pose_row(t: int, pose: object, where: str, stats: dict[str, int] | None) -> tuple:
-    p, q = pose.position, pose.orientation  # type: ignore[attr-defined]
+def _pose_row(
+    t: int, pose: Any, where: str, stats: dict[str, int] | None
+) -> tuple[int, float, float, float, float, float, float]:
+    p, q = pose.position, pose.orientation
     r, pi, y = euler_from_quaternion(q.x, q.y, q.z, q.w, where, stats)
     return (t, float(p.x), float(p.y), float(p.z), r, pi, y)
 
 
-def pose_rows(msg: object, msgtype: str, log_us: int, time_source: str, tf_child: str | None,
-              where: str = "pose message", stats: dict[str, int] | None = None) -> list[tuple]:
-    """Pose rows ``(utime, x, y, z, roll, pitch, yaw)`` carried by one message (metres, radians, µs)."""
+def pose_rows(
+    msg: Any,
+    msgtype: str,
+    log_us: int,
+    time_source: str,
+    tf_child: str | None,
+    where: str = "pose message",
+    stats: dict[str, int] | None = None,
+) -> list[tuple]:
+    """Pose rows ``(utime, x, y, z, roll, pitch, yaw)`` of one message (µs, metres, radians)."""
     if msgtype == "tf2_msgs/msg/TFMessage":
         out = []
-        for tr in msg.transforms:  # type: ignore[attr-defined]
+        for tr in msg.transforms:
             if tf_child is not None and tr.child_frame_id != tf_child:
                 continue
             t = stamp_us(tr.header) if time_source == "header" else log_us
             tl, q = tr.transform.translation, tr.transform.rotation
-            r, pi, y = euler_from_quaternion(q.x, q.y, q.z, q.w, f"{where} ({tr.child_frame_id})", stats)
+            r, pi, y = euler_from_quaternion(
+                q.x, q.y, q.z, q.w, f"{where} ({tr.child_frame_id})", stats
+            )
             out.append((t, float(tl.x), float(tl.y), float(tl.z), r, pi, y))
         return out
-    t = stamp_us(msg.header) if time_source == "header" else log_us  # type: ignore[attr-defined]
+    t = stamp_us(msg.header) if time_source == "header" else log_us
     if msgtype == "geometry_msgs/msg/PoseStamped":
-        return [_pose_row(t, msg.pose, where, stats)]  # type: ignore[attr-defined]
-    return [_pose_row(t, msg.pose.pose, where, stats)]  # type: ignore[attr-defined]  # Odometry, PoseWithCovarianceStamped
+        return [_pose_row(t, msg.pose, where, stats)]
+    # Odometry, PoseWithCovarianceStamped
+    return [_pose_row(t, msg.pose.pose, where, stats)]
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -88,12 +109,16 @@ def wrap(a: np.ndarray) -> np.ndarray:
 
 @dataclass
 class InterpResult:
+    """Poses interpolated at the image times, with what was kept and why the rest was not."""
+
     poses: np.ndarray  # (n, 6) for kept images
     keep: np.ndarray  # (n_images,) bool
     dropped: dict[str, int] = field(default_factory=dict)
 
 
-def interpolate(pose_t: np.ndarray, pose_v: np.ndarray, img_t: np.ndarray, max_gap_us: int) -> InterpResult:
+def interpolate(
+    pose_t: np.ndarray, pose_v: np.ndarray, img_t: np.ndarray, max_gap_us: int
+) -> InterpResult:
     """Poses at image times: linear in position, shortest arc in each angle.
 
     An image keeps its frame only when a pose lies at most ``max_gap_us`` before it and at most
@@ -116,7 +141,7 @@ def interpolate(pose_t: np.ndarray, pose_v: np.ndarray, img_t: np.ndarray, max_g
     hi = np.clip(j, 0, len(pose_t) - 1)
     exact = pose_t[lo] == img_t
     hi = np.where(exact, lo, hi)
-    before = (j == 0)
+    before = j == 0
     after = (j >= len(pose_t)) & ~exact
     gap = ~before & ~after & ((img_t - pose_t[lo] > max_gap_us) | (pose_t[hi] - img_t > max_gap_us))
     keep = ~before & ~after & ~gap
@@ -136,11 +161,17 @@ def interpolate(pose_t: np.ndarray, pose_v: np.ndarray, img_t: np.ndarray, max_g
     return InterpResult(out, keep, dropped)
 
 
-def check_monotonic(t: np.ndarray, where: str, what: str, numbers: np.ndarray | None = None, unit: str = "message") -> None:
+def check_monotonic(
+    t: np.ndarray, where: str, what: str, numbers: np.ndarray | None = None, unit: str = "message"
+) -> None:
     """Raise if time stamps go backwards (equal stamps are allowed here and handled by the caller).
 
     Args:
-        numbers: the 1-based message or line number of each stamp (default 1..n), named in the error.
+        t: (n,) time stamps, µs.
+        where: the log (or file) named in the error.
+        what: which stamps (``image``, ``pose``, ``ground-truth``).
+        numbers: the 1-based message or line number of each stamp (default 1..n), named in the
+            error.
         unit: what ``numbers`` count (``message``, ``line``).
     """
     if len(t) > 1:
@@ -149,6 +180,8 @@ def check_monotonic(t: np.ndarray, where: str, what: str, numbers: np.ndarray | 
             i = int(back[0])
             num = np.arange(1, len(t) + 1) if numbers is None else np.asarray(numbers)
             raise IngestError(
-                f"{where}: {what} time stamps are not monotonic: {unit} {int(num[i + 1])} at utime {int(t[i + 1])} "
-                f"comes after {unit} {int(num[i])} at utime {int(t[i])} ({len(back)} backward step(s) in all)"
+                f"{where}: {what} time stamps are not monotonic: {unit} {int(num[i + 1])} "
+                f"at utime {int(t[i + 1])} "
+                f"comes after {unit} {int(num[i])} at utime {int(t[i])} ({len(back)} "
+                "backward step(s) in all)"
             )

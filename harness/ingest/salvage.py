@@ -87,8 +87,12 @@ def _ros1_type(name: str) -> str:
     return f"{pkg}/msg/{msg}"
 
 
-def ros1_messages(path: Path, topics: tuple[str, ...] | None) -> Iterator[tuple[str, str, int, bytes]]:
-    """(topic, ROS2-style type, log time in ns, raw ROS1 bytes) of every readable message, in file order.
+def ros1_messages(
+    path: Path, topics: tuple[str, ...] | None
+) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, ROS2-style type, log time in ns, raw ROS1 bytes) of every readable message.
+
+    In file order.
 
     Raises:
         CorruptLogError: at the first damaged record, with the count of messages yielded before it.
@@ -137,19 +141,31 @@ def ros1_topics(path: Path) -> dict[str, tuple[str, int]]:
 def _ros2_db(path: Path) -> Path:
     dbs = sorted(Path(path).glob("*.db3"))
     if not dbs:
-        raise IngestError(f"{path}: --salvage reads sqlite3 ROS2 bags and MCAP storage; no .db3 file found")
+        raise IngestError(
+            f"{path}: --salvage reads sqlite3 ROS2 bags and MCAP storage; no .db3 file found"
+        )
     return dbs[0]
 
 
-def ros2_sqlite_messages(path: Path, topics: tuple[str, ...] | None) -> Iterator[tuple[str, str, int, bytes]]:
-    """(topic, type, time in ns, raw CDR) of every readable row of a damaged ROS2 sqlite3 bag, in insertion order."""
+def ros2_sqlite_messages(
+    path: Path, topics: tuple[str, ...] | None
+) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, type, time in ns, raw CDR) of every readable row of a damaged ROS2 sqlite3 bag.
+
+    Rows come in insertion order.
+    """
     db = _ros2_db(path)
     n = 0
     try:
         con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
         try:
-            types = {int(i): (str(name), str(typ)) for i, name, typ in con.execute("SELECT id, name, type FROM topics")}
-            for tid, t, data in con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id"):
+            types = {
+                int(i): (str(name), str(typ))
+                for i, name, typ in con.execute("SELECT id, name, type FROM topics")
+            }
+            for tid, t, data in con.execute(
+                "SELECT topic_id, timestamp, data FROM messages ORDER BY id"
+            ):
                 topic, typ = types.get(int(tid), ("", ""))
                 if topics is None or topic in topics:
                     n += 1
@@ -161,11 +177,15 @@ def ros2_sqlite_messages(path: Path, topics: tuple[str, ...] | None) -> Iterator
 
 
 def ros2_sqlite_topics(path: Path) -> dict[str, tuple[str, int]]:
+    """Topic -> (type, message count) of a ROS2 sqlite3 bag, read from its tables."""
     db = _ros2_db(path)
     try:
         con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
         try:
-            return {str(name): (str(typ), 0) for name, typ in con.execute("SELECT name, type FROM topics")}
+            return {
+                str(name): (str(typ), 0)
+                for name, typ in con.execute("SELECT name, type FROM topics")
+            }
         finally:
             con.close()
     except sqlite3.DatabaseError:

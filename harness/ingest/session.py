@@ -18,15 +18,37 @@ from ..imagestore import make_uri, portable_uri, resolve, stored_size, upright_s
 from ..outdirs import check_replaceable, write_marker
 from ..records import FRAME_COLUMNS, FRAME_SCHEMA
 from .images import compressed_kind, compressed_size, decode_problem, raw_to_array, write_raw
-from .logs import choose_topics, detect_format, list_topics, stream, uri_safe_path
-from .poses import POSE_TYPES, check_monotonic, euler_from_quaternion, interpolate, pose_rows, stamp_us
+from .logs import (
+    choose_topics,
+    detect_format,
+    known_formats,
+    list_topics,
+    stream,
+    uri_safe_path,
+)
+from .poses import (
+    POSE_TYPES,
+    check_monotonic,
+    euler_from_quaternion,
+    interpolate,
+    pose_rows,
+    stamp_us,
+)
 from .tf import TfTree
 
 log = logging.getLogger(__name__)
 
 
-def _frames_table(session: str, camera: str, img_t: np.ndarray, poses: np.ndarray, uris: list[str], sizes: np.ndarray,
-                  pose_frame: str = "", pose_of: str = "") -> pd.DataFrame:
+def _frames_table(
+    session: str,
+    camera: str,
+    img_t: np.ndarray,
+    poses: np.ndarray,
+    uris: list[str],
+    sizes: np.ndarray,
+    pose_frame: str = "",
+    pose_of: str = "",
+) -> pd.DataFrame:
     df = pd.DataFrame(
         {
             "session": session,
@@ -50,8 +72,15 @@ def _frames_table(session: str, camera: str, img_t: np.ndarray, poses: np.ndarra
 
 
 def _finish(
-    sc: SessionConfig, ic: IngestConfig, tmp: Path, img_t: np.ndarray, uris: list[str], sizes: np.ndarray,
-    pose_t: np.ndarray, pose_v: np.ndarray, report: dict,
+    sc: SessionConfig,
+    ic: IngestConfig,
+    tmp: Path,
+    img_t: np.ndarray,
+    uris: list[str],
+    sizes: np.ndarray,
+    pose_t: np.ndarray,
+    pose_v: np.ndarray,
+    report: dict,
 ) -> pd.DataFrame:
     """Interpolate poses at image times, drop and count, write the frame table and the report."""
     finite = np.isfinite(pose_v).all(axis=1)
@@ -68,24 +97,44 @@ def _finish(
     return _write_frames(sc, tmp, img_t, uris, sizes, res.poses, res.keep, report)
 
 
-def _write_frames(sc: SessionConfig, tmp: Path, img_t: np.ndarray, uris: list[str], sizes: np.ndarray, poses: np.ndarray,
-                  keep: np.ndarray, report: dict) -> pd.DataFrame:
+def _write_frames(
+    sc: SessionConfig,
+    tmp: Path,
+    img_t: np.ndarray,
+    uris: list[str],
+    sizes: np.ndarray,
+    poses: np.ndarray,
+    keep: np.ndarray,
+    report: dict,
+) -> pd.DataFrame:
     """The frame table of the images kept (``poses``: one row per kept image) and the report."""
     pf = report.get("pose_frames", {})
-    df = _frames_table(sc.name, sc.camera, img_t[keep], poses, [u for u, k in zip(uris, keep, strict=True) if k], sizes[keep],
-                       pf.get("pose_frame", ""), pf.get("pose_of", ""))
+    df = _frames_table(
+        sc.name,
+        sc.camera,
+        img_t[keep],
+        poses,
+        [u for u, k in zip(uris, keep, strict=True) if k],
+        sizes[keep],
+        pf.get("pose_frame", ""),
+        pf.get("pose_of", ""),
+    )
     report["frames_written"] = len(df)
     if len(img_t) and not len(df):
         raise IngestError(
-            f"{sc.source}: none of the {len(img_t)} images got a pose (dropped: {report['dropped']}); "
-            "check the pose topic (or /tf frames), the time source and [ingest] max_pose_gap_s / max_tf_gap_s"
+            f"{sc.source}: none of the {len(img_t)} images got a pose (dropped: "
+            f"{report['dropped']}); "
+            "check the pose topic (or /tf frames), the time source and [ingest] "
+            "max_pose_gap_s / max_tf_gap_s"
         )
     write_parquet(tmp / "frames.parquet", df, schema=FRAME_SCHEMA)
     write_json(tmp / "ingest_report.json", report)
     return df
 
 
-def _ingest_log(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, report: dict) -> pd.DataFrame:
+def _ingest_log(
+    sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, report: dict
+) -> pd.DataFrame:
     src = Path(sc.source)
     with uri_safe_path(src) as readable:
         try:
@@ -93,7 +142,9 @@ def _ingest_log(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, report
         except CorruptLogError as err:
             if readable == src:
                 raise
-            raise CorruptLogError(src, err.messages_read, err.detail.replace(str(readable), str(src)), ic.salvage) from None
+            raise CorruptLogError(
+                src, err.messages_read, err.detail.replace(str(readable), str(src)), ic.salvage
+            ) from None
 
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -112,26 +163,43 @@ def _pose_mode(sc: SessionConfig, topics: dict[str, tuple[str, int]], where: str
         return "topic"
     if sc.fixed_frame or sc.camera_frame:
         if not tf_topics:
-            raise IngestError(f"{where}: fixed_frame / camera_frame are set, but the log has no tf2_msgs/TFMessage topic")
+            raise IngestError(
+                f"{where}: fixed_frame / camera_frame are set, but the log has no "
+                "tf2_msgs/TFMessage topic"
+            )
         return "tf"
     others = [t for t, (typ, _) in topics.items() if typ in POSE_TYPES and typ != TF_TYPE]
     return "topic" if others or not tf_topics else "tf"
 
 
-def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, report: dict, src: Path, readable: Path) -> pd.DataFrame:
+def _ingest_log_from(
+    sc: SessionConfig,
+    ic: IngestConfig,
+    fmt: str,
+    tmp: Path,
+    report: dict,
+    src: Path,
+    readable: Path,
+) -> pd.DataFrame:
     """Ingest a ROS log; ``readable`` is ``src`` or a link to it that rosbags can open."""
     topics = list_topics(readable, fmt, salvage=ic.salvage)
     mode = _pose_mode(sc, topics, str(src))
     if mode == "tf":
         no_tf = {t: v for t, v in topics.items() if v[0] != TF_TYPE}
-        image_topic, _ = choose_topics(no_tf | {"__tf__": (TF_TYPE, 0)}, sc.image_topic, "__tf__", str(src))
+        image_topic, _ = choose_topics(
+            no_tf | {"__tf__": (TF_TYPE, 0)}, sc.image_topic, "__tf__", str(src)
+        )
         pose_topics = tuple(sorted(t for t, (typ, _) in topics.items() if typ == TF_TYPE))
     else:
         no_tf = {t: v for t, v in topics.items() if v[0] != TF_TYPE or t == sc.pose_topic}
         image_topic, pose_topic = choose_topics(no_tf, sc.image_topic, sc.pose_topic, str(src))
         pose_topics = (pose_topic,)
-    report["topics"] = {"image": image_topic, "pose": list(pose_topics), "pose_source": mode,
-                        "available": {t: v[0] for t, v in sorted(topics.items())}}
+    report["topics"] = {
+        "image": image_topic,
+        "pose": list(pose_topics),
+        "pose_source": mode,
+        "available": {t: v[0] for t, v in sorted(topics.items())},
+    }
     store = tmp / "images" / sc.camera
     store.mkdir(parents=True)
     read: Counter[str] = Counter()
@@ -150,17 +218,20 @@ def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, r
             read[m.topic] += 1
             where = f"{src}: {m.topic} message {read[m.topic]}"
             if m.topic == image_topic:
-                t = stamp_us(m.msg.header) if ic.time_source == "header" else m.log_ns // 1000  # type: ignore[attr-defined]
+                t = stamp_us(m.msg.header) if ic.time_source == "header" else m.log_ns // 1000
                 if img_t and t < img_t[-1]:
-                    raise IngestError(f"{where}: image time stamps are not monotonic: utime {t} comes after utime {img_t[-1]}")
+                    raise IngestError(
+                        f"{where}: image time stamps are not monotonic: utime {t} comes "
+                        f"after utime {img_t[-1]}"
+                    )
                 if t in seen:
                     dropped["duplicate_image_time"] = dropped.get("duplicate_image_time", 0) + 1
                     continue
                 seen.add(t)
-                frame_ids[str(m.msg.header.frame_id).lstrip("/")] += 1  # type: ignore[attr-defined]
+                frame_ids[str(m.msg.header.frame_id).lstrip("/")] += 1
                 if m.msgtype.endswith("CompressedImage"):
                     kind = compressed_kind(m.msg, where)
-                    data = bytes(np.asarray(m.msg.data, dtype=np.uint8))  # type: ignore[attr-defined]
+                    data = bytes(np.asarray(m.msg.data, dtype=np.uint8))
                     w, h = compressed_size(data, where)
                     if ic.verify_images:
                         problem = decode_problem(data)
@@ -179,30 +250,59 @@ def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, r
                 sizes.append((w, h))
             elif mode == "tf":
                 static = _is_static_tf(m.topic)
-                for tr in m.msg.transforms:  # type: ignore[attr-defined]
+                for tr in m.msg.transforms:
                     tl, q = tr.transform.translation, tr.transform.rotation
                     vals = (tl.x, tl.y, tl.z, q.x, q.y, q.z, q.w)
                     if not all(math.isfinite(v) for v in vals):
                         dropped["non_finite_pose"] = dropped.get("non_finite_pose", 0) + 1
                         continue
-                    edge = f"{str(tr.header.frame_id).lstrip('/')}->{str(tr.child_frame_id).lstrip('/')}"
-                    euler_from_quaternion(q.x, q.y, q.z, q.w, f"{where} ({edge})", stats)  # the norm check
+                    parent, child = (
+                        str(tr.header.frame_id).lstrip("/"),
+                        str(tr.child_frame_id).lstrip("/"),
+                    )
+                    edge = f"{parent}->{child}"
+                    euler_from_quaternion(
+                        q.x, q.y, q.z, q.w, f"{where} ({edge})", stats
+                    )  # the norm check
                     t = stamp_us(tr.header) if ic.time_source == "header" else m.log_ns // 1000
-                    tree.add(str(tr.header.frame_id), str(tr.child_frame_id), t, (tl.x, tl.y, tl.z), (q.x, q.y, q.z, q.w), static, where)
+                    tree.add(
+                        str(tr.header.frame_id),
+                        str(tr.child_frame_id),
+                        t,
+                        (tl.x, tl.y, tl.z),
+                        (q.x, q.y, q.z, q.w),
+                        static,
+                        where,
+                    )
             else:
                 num = read[m.topic]
                 if not pose_frame:
-                    pose_frame = {"pose_frame": str(m.msg.header.frame_id).lstrip("/"),  # type: ignore[attr-defined]
-                                  "pose_of": str(getattr(m.msg, "child_frame_id", "") or m.topic).lstrip("/")}
-                rows.extend((*r, num) for r in pose_rows(m.msg, m.msgtype, m.log_ns // 1000, ic.time_source, None, where, stats))
+                    pose_frame = {
+                        "pose_frame": str(m.msg.header.frame_id).lstrip("/"),
+                        "pose_of": str(getattr(m.msg, "child_frame_id", "") or m.topic).lstrip("/"),
+                    }
+                rows.extend(
+                    (*r, num)
+                    for r in pose_rows(
+                        m.msg, m.msgtype, m.log_ns // 1000, ic.time_source, None, where, stats
+                    )
+                )
     except CorruptLogError as err:
         if not ic.salvage:
             raise
         report["salvaged"] = {"messages_read": err.messages_read, "detail": err.detail}
-        log.warning("%s: salvaging %d messages read before the damage (%s)", src, err.messages_read, err.detail)
+        log.warning(
+            "%s: salvaging %d messages read before the damage (%s)",
+            src,
+            err.messages_read,
+            err.detail,
+        )
     report["messages_read"] = dict(sorted(read.items()))
     if sum(read.values()) == 0:
-        raise IngestError(f"{src}: the log has no message on {image_topic} or {', '.join(pose_topics)} (empty log)")
+        raise IngestError(
+            f"{src}: the log has no message on {image_topic} or {', '.join(pose_topics)} "
+            "(empty log)"
+        )
     if not img_t:
         raise IngestError(f"{src}: no image message on {image_topic}")
     report["normalised"] = {"quaternion_normalised": stats.get("quaternion_normalised", 0)}
@@ -214,12 +314,24 @@ def _ingest_log_from(sc: SessionConfig, ic: IngestConfig, fmt: str, tmp: Path, r
     report["pose_frames"] = pose_frame
     pose_arr = np.array(rows, dtype=np.float64)
     pose_t = pose_arr[:, 0].astype(np.int64)
-    check_monotonic(pose_t, f"{src}: {pose_topics[0]}", "pose", numbers=pose_arr[:, 7].astype(np.int64))
+    check_monotonic(
+        pose_t, f"{src}: {pose_topics[0]}", "pose", numbers=pose_arr[:, 7].astype(np.int64)
+    )
     return _finish(sc, ic, tmp, img_arr, uris, size_arr, pose_t, pose_arr[:, 1:7], report)
 
 
-def _finish_tf(sc: SessionConfig, ic: IngestConfig, tmp: Path, img_t: np.ndarray, uris: list[str], sizes: np.ndarray, tree: TfTree,
-               frame_ids: Counter[str], report: dict, src: Path) -> pd.DataFrame:
+def _finish_tf(
+    sc: SessionConfig,
+    ic: IngestConfig,
+    tmp: Path,
+    img_t: np.ndarray,
+    uris: list[str],
+    sizes: np.ndarray,
+    tree: TfTree,
+    frame_ids: Counter[str],
+    report: dict,
+    src: Path,
+) -> pd.DataFrame:
     """Camera poses composed through the tf tree at the image times (SPEC section 3)."""
     if not tree.edges:
         raise IngestError(f"{src}: the /tf topics hold no transform")
@@ -228,46 +340,72 @@ def _finish_tf(sc: SessionConfig, ic: IngestConfig, tmp: Path, img_t: np.ndarray
     if sc.fixed_frame:
         fixed = sc.fixed_frame.lstrip("/")
         if fixed not in frames:
-            raise IngestError(f"{src}: fixed_frame {fixed!r} is not in the /tf tree; frames: {sorted(frames)}")
+            raise IngestError(
+                f"{src}: fixed_frame {fixed!r} is not in the /tf tree; frames: {sorted(frames)}"
+            )
     elif len(roots) == 1:
         fixed = roots[0]
     else:
-        raise IngestError(f"{src}: the /tf tree has several roots {roots}; choose the frame poses are expressed in with fixed_frame")
+        raise IngestError(
+            f"{src}: the /tf tree has several roots {roots}; choose the frame poses are "
+            "expressed in with fixed_frame"
+        )
     named = sc.camera_frame or sc.tf_child_frame
     if named:
         camera, why = named.lstrip("/"), "camera_frame"
     elif len(frame_ids) == 1:
         camera, why = next(iter(frame_ids)), "the images' header.frame_id"
     else:
-        raise IngestError(f"{src}: the images name several frames {sorted(frame_ids)}; choose one with camera_frame")
+        raise IngestError(
+            f"{src}: the images name several frames {sorted(frame_ids)}; choose one with "
+            "camera_frame"
+        )
     if camera not in frames:
         below = ", ".join(sorted(e.child for e in tree.edges.values() if e.parent == fixed))
-        raise IngestError(f"{src}: the camera frame {camera!r} ({why}) is not in the /tf tree; frames: {sorted(frames)}; "
-                          f"set camera_frame (children of {fixed}: {below})")
+        raise IngestError(
+            f"{src}: the camera frame {camera!r} ({why}) is not in the /tf tree; frames: "
+            f"{sorted(frames)}; "
+            f"set camera_frame (children of {fixed}: {below})"
+        )
     path = tree.path(fixed, camera)
     gaps, transforms = {}, {}
     for e in tree.edges.values():
         interval = e.median_interval_s()
         gap_s = ic.max_pose_gap_s if interval <= ic.max_pose_gap_s else ic.max_tf_gap_s
         gaps[e.name] = round(gap_s * 1e6)
-        transforms[e.name] = {"static": e.static, "transforms": len(e.times), "on_path": e in path,
-                              "median_interval_s": None if e.static or not math.isfinite(interval) else round(interval, 4),
-                              "gap_s": None if e.static else gap_s}
+        transforms[e.name] = {
+            "static": e.static,
+            "transforms": len(e.times),
+            "on_path": e in path,
+            "median_interval_s": None
+            if e.static or not math.isfinite(interval)
+            else round(interval, 4),
+            "gap_s": None if e.static else gap_s,
+        }
     trans, rot, ok, drops = tree.lookup(fixed, camera, img_t, gaps)
     for edge, reasons in drops.items():
         for reason, count in reasons.items():
             report["dropped"][f"tf {edge}: {reason}"] = count
-    report["tf"] = {"fixed_frame": fixed, "camera_frame": camera, "path": [e.name for e in path], "roots": roots, "transforms": transforms}
+    report["tf"] = {
+        "fixed_frame": fixed,
+        "camera_frame": camera,
+        "path": [e.name for e in path],
+        "roots": roots,
+        "transforms": transforms,
+    }
     report["pose_frames"] = {"pose_frame": fixed, "pose_of": camera}
     if len(img_t) and not ok.any():
-        raise IngestError(f"{src}: none of the {len(img_t)} images got a pose from /tf ({fixed} -> {camera}); dropped: {report['dropped']}; "
-                          "check the time source and [ingest] max_pose_gap_s / max_tf_gap_s")
+        raise IngestError(
+            f"{src}: none of the {len(img_t)} images got a pose from /tf ({fixed} -> "
+            f"{camera}); dropped: {report['dropped']}; "
+            "check the time source and [ingest] max_pose_gap_s / max_tf_gap_s"
+        )
     eul = np.array([euler_from_quaternion(*q) for q in rot[ok]]).reshape(-1, 3)
     poses = np.column_stack([trans[ok], eul])
     return _write_frames(sc, tmp, img_t, uris, sizes, poses, ok, report)
 
 
-def read_nclt_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
+def read_nclt_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     """NCLT ground truth ``utime, x, y, z, roll, pitch, yaw`` (no header).
 
     Returns:
@@ -287,7 +425,10 @@ def read_nclt_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
                 continue
             parts = line.split(",")
             if len(parts) != 7:
-                raise IngestError(f"{path}: line {lineno}: expected 7 fields (utime,x,y,z,roll,pitch,yaw), got {len(parts)}")
+                raise IngestError(
+                    f"{path}: line {lineno}: expected 7 fields "
+                    f"(utime,x,y,z,roll,pitch,yaw), got {len(parts)}"
+                )
             try:
                 t0 = float(parts[0])
                 t = int(t0) if math.isfinite(t0) else 0
@@ -312,12 +453,22 @@ def _ingest_nclt(sc: SessionConfig, ic: IngestConfig, tmp: Path, report: dict) -
     root = Path(sc.source)
     img_dir = root / "images" / sc.name / "lb3" / sc.camera
     if not img_dir.is_dir():
-        avail = sorted(p.name for p in (root / "images" / sc.name / "lb3").glob("Cam*")) if (root / "images" / sc.name / "lb3").is_dir() else []
-        raise IngestError(f"{img_dir}: no such NCLT image directory (cameras found for {sc.name}: {avail or 'none'})")
+        avail = (
+            sorted(p.name for p in (root / "images" / sc.name / "lb3").glob("Cam*"))
+            if (root / "images" / sc.name / "lb3").is_dir()
+            else []
+        )
+        raise IngestError(
+            f"{img_dir}: no such NCLT image directory (cameras found for {sc.name}: "
+            f"{avail or 'none'})"
+        )
     gt_path = root / "ground_truth" / f"groundtruth_{sc.name}.csv"
     pose_t, pose_v, nan_rows, _ = read_nclt_groundtruth(gt_path)
     report["dropped"]["groundtruth_non_finite_rows"] = nan_rows
-    report["pose_frames"] = {"pose_frame": "nclt_world", "pose_of": "body"}  # NCLT ground truth: the robot body, not the camera
+    report["pose_frames"] = {
+        "pose_frame": "nclt_world",
+        "pose_of": "body",
+    }  # NCLT ground truth: the robot body, not the camera
     report["messages_read"] = {"ground_truth_rows": len(pose_t) + nan_rows}
     files = []
     bad = 0
@@ -357,11 +508,17 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
     """
     src = Path(sc.source)
     fmt = detect_format(src) if sc.format == "auto" else sc.format
-    if fmt not in ("nclt", "ros1", "ros2", "mcap"):
-        raise IngestError(f"{src}: unknown format {fmt!r}")
+    if fmt not in known_formats():
+        raise IngestError(f"{src}: unknown format {fmt!r}; known: {list(known_formats())}")
     out = check_replaceable(Path(out), "ingest", force)
     t0 = time.perf_counter()
-    report: dict = {"session": sc.name, "camera": sc.camera, "source": str(src), "format": fmt, "dropped": {}}
+    report: dict = {
+        "session": sc.name,
+        "camera": sc.camera,
+        "source": str(src),
+        "format": fmt,
+        "dropped": {},
+    }
     with atomic_dir(Path(out)) as tmp:
         if fmt == "nclt":
             df = _ingest_nclt(sc, ic, tmp, report)
@@ -370,7 +527,14 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
         report["seconds"] = round(time.perf_counter() - t0, 3)
         write_json(tmp / "ingest_report.json", report)
         write_marker(tmp, "ingest")
-    log.info("ingest %s (%s): read %s, wrote %d frames, dropped %s", sc.name, fmt, report.get("messages_read"), len(df), {k: v for k, v in report["dropped"].items() if v})
+    log.info(
+        "ingest %s (%s): read %s, wrote %d frames, dropped %s",
+        sc.name,
+        fmt,
+        report.get("messages_read"),
+        len(df),
+        {k: v for k, v in report["dropped"].items() if v},
+    )
     return report
 
 
@@ -383,8 +547,12 @@ def load_frames(path: Path) -> pd.DataFrame:
     return df
 
 
-def combine_frames(ingest_dirs: list[Path], out: Path, data_root: Path, tmp: Path) -> dict[str, int]:
-    """The frame table of a run: every session's ``frames.parquet``, sorted by session, camera, utime.
+def combine_frames(
+    ingest_dirs: list[Path], out: Path, data_root: Path, tmp: Path
+) -> dict[str, int]:
+    """The frame table of a run: every session's ``frames.parquet``.
+
+    Sorted by session, camera, utime.
 
     Image URIs are stored relative to ``out`` or ``data_root`` (``{out}/...``, ``{data_root}/...``),
     so a run directory or data root can move.
@@ -400,5 +568,7 @@ def combine_frames(ingest_dirs: list[Path], out: Path, data_root: Path, tmp: Pat
     """
     df = pd.concat([load_frames(p / "frames.parquet") for p in ingest_dirs], ignore_index=True)
     df["image"] = [portable_uri(u, out, data_root) for u in df["image"]]
-    write_parquet(tmp / "frames.parquet", df.sort_values(["session", "camera", "utime"]), schema=FRAME_SCHEMA)
+    write_parquet(
+        tmp / "frames.parquet", df.sort_values(["session", "camera", "utime"]), schema=FRAME_SCHEMA
+    )
     return {"frames": len(df)}

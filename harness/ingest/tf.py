@@ -1,5 +1,7 @@
-"""Camera poses from a ``/tf`` tree (SPEC section 3): the pose of a target frame (the camera) in a
-fixed frame, composed through every transform on the path at each image time.
+"""Camera poses from a ``/tf`` tree (SPEC section 3).
+
+The pose of a target frame (the camera) in a fixed frame, composed through every transform on the
+path at each image time.
 
 Dynamic transforms (``/tf``) are interpolated at the image time, linear in translation and by
 slerp in rotation, and only between two samples each at most that transform's gap away (the
@@ -21,10 +23,15 @@ def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product of (n, 4) quaternions in (x, y, z, w) order."""
     ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
 
 
 def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -61,9 +68,11 @@ class Transform:
 
     @property
     def name(self) -> str:
+        """``parent->child``."""
         return f"{self.parent}->{self.child}"
 
     def median_interval_s(self) -> float:
+        """Median time between the edge's samples, seconds (inf with fewer than two)."""
         t = np.unique(np.asarray(self.times, np.int64))
         return float(np.median(np.diff(t))) / 1e6 if len(t) > 1 else float("inf")
 
@@ -74,23 +83,37 @@ class TfTree:
     def __init__(self) -> None:
         self.edges: dict[str, Transform] = {}
 
-    def add(self, parent: str, child: str, t_us: int, trans: tuple[float, float, float], rot: tuple[float, float, float, float],
-            static: bool, where: str) -> None:
+    def add(
+        self,
+        parent: str,
+        child: str,
+        t_us: int,
+        trans: tuple[float, float, float],
+        rot: tuple[float, float, float, float],
+        static: bool,
+        where: str,
+    ) -> None:
+        """Add one transform sample ``parent -> child`` at ``t_us`` (µs; metres, quaternion)."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
         e = self.edges.get(child)
         if e is None:
             e = self.edges[child] = Transform(parent, child, static)
         elif e.parent != parent:
-            raise IngestError(f"{where}: frame {child!r} has two parents in /tf ({e.parent!r} and {parent!r}); a tf tree allows one")
+            raise IngestError(
+                f"{where}: frame {child!r} has two parents in /tf ({e.parent!r} and "
+                f"{parent!r}); a tf tree allows one"
+            )
         e.static = e.static and static
         e.times.append(int(t_us))
         e.trans.append(trans)
         e.rot.append(rot)
 
     def frames(self) -> set[str]:
+        """Every frame named in the tree."""
         return set(self.edges) | {e.parent for e in self.edges.values()}
 
     def roots(self) -> list[str]:
+        """Frames that are nobody's child, sorted."""
         return sorted({e.parent for e in self.edges.values()} - set(self.edges))
 
     def path(self, fixed: str, target: str) -> list[Transform]:
@@ -110,17 +133,24 @@ class TfTree:
             if e is None:
                 up = " -> ".join(reversed([target, *[c.parent for c in chain]]))
                 raise IngestError(
-                    f"/tf: no path from {fixed!r} to {target!r}: the chain up from {target!r} ({up}) ends at {f!r}, "
-                    f"which has no parent transform (missing transform: ? -> {f}); roots of the tree: {self.roots()}"
+                    f"/tf: no path from {fixed!r} to {target!r}: the chain up from "
+                    f"{target!r} ({up}) ends at {f!r}, "
+                    f"which has no parent transform (missing transform: ? -> {f}); roots of "
+                    f"the tree: {self.roots()}"
                 )
             chain.append(e)
             f = e.parent
         return list(reversed(chain))
 
-    def lookup(self, fixed: str, target: str, t_us: np.ndarray, gap_us: dict[str, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, dict[str, int]]]:
+    def lookup(
+        self, fixed: str, target: str, t_us: np.ndarray, gap_us: dict[str, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, dict[str, int]]]:
         """Pose of ``target`` in ``fixed`` at times ``t_us``.
 
         Args:
+            fixed: the frame the pose is expressed in (the tree's root or ``fixed_frame``).
+            target: the frame whose pose is wanted (the camera's).
+            t_us: (n,) the image times, µs.
             gap_us: the largest allowed gap per dynamic transform (by ``parent->child``).
 
         Returns:
@@ -146,7 +176,9 @@ class TfTree:
         return trans, rot / np.linalg.norm(rot, axis=1, keepdims=True), ok, drops
 
 
-def _sample(e: Transform, t_us: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+def _sample(
+    e: Transform, t_us: np.ndarray, gap: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """One edge at the image times: (translation, rotation, ok, masks of failures by reason)."""
     times = np.asarray(e.times, np.int64)
     order = np.argsort(times, kind="stable")

@@ -9,5 +9,13 @@ from __future__ import annotations
 from .engines import Ranks, frame_min_sqdist_chunk, image_ranks, image_ranks_faiss
 from .units import RANK_COUNTS, described_frames, kept_reference_frames, rank_reference
 
-__all__ = ["RANK_COUNTS", "Ranks", "described_frames", "frame_min_sqdist_chunk", "image_ranks", "image_ranks_faiss", "kept_reference_frames",
-           "rank_reference"]
+__all__ = [
+    "RANK_COUNTS",
+    "Ranks",
+    "described_frames",
+    "frame_min_sqdist_chunk",
+    "image_ranks",
+    "image_ranks_faiss",
+    "kept_reference_frames",
+    "rank_reference",
+]

@@ -19,6 +19,7 @@ import logging
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,12 +33,15 @@ CACHE_BYTES = 64 << 20
 #: Bytes per (query, frame) cell a group holds at its peak: the float32 minima, the place mask, the
 #: masked copy and the comparison's boolean temporaries.
 CELL_BYTES = 16
-#: Database rows per chunk on a CUDA device (at least): larger than on CPU, where a chunk should stay in cache.
+# : Database rows per chunk on a CUDA device (at least): larger than on CPU, where a chunk should
+# stay in cache.
 CUDA_CHUNK_ROWS = 65536
 
 
 @dataclass(frozen=True)
 class Ranks:
+    """Per query subimage: rank of its ground-truth place, list length, distance, place size."""
+
     rank: np.ndarray  # (n,) int64
     L: np.ndarray  # (n,) int64: 1 + frames outside the ground-truth place
     dist: np.ndarray  # (n,) float64
@@ -45,8 +49,13 @@ class Ranks:
     place_size: np.ndarray  # (n,) int64: frames of the place that are in the database
 
 
-def _place_columns(frame_ids: np.ndarray, gt_frame: np.ndarray, place: Sequence[np.ndarray] | None) -> list[np.ndarray]:
-    """Per query, the database columns (sorted frame ids) of its ground-truth place; G must be present."""
+def _place_columns(
+    frame_ids: np.ndarray, gt_frame: np.ndarray, place: Sequence[np.ndarray] | None
+) -> list[np.ndarray]:
+    """Per query, the database columns (sorted frame ids) of its ground-truth place.
+
+    G must be present.
+    """
     L = len(frame_ids)
     col = np.searchsorted(frame_ids, gt_frame)
     if L == 0 or np.any(col >= L) or np.any(frame_ids[np.minimum(col, L - 1)] != gt_frame):
@@ -54,13 +63,17 @@ def _place_columns(frame_ids: np.ndarray, gt_frame: np.ndarray, place: Sequence[
     if place is None:
         return [np.array([c]) for c in col]
     if len(place) != len(gt_frame):
-        raise RetrievalError(f"place must hold one entry per query ({len(gt_frame)}), got {len(place)}")
+        raise RetrievalError(
+            f"place must hold one entry per query ({len(gt_frame)}), got {len(place)}"
+        )
     out = []
     for c, p in zip(col, place, strict=True):
         p = np.asarray(p)
         pc = np.searchsorted(frame_ids, p)
         ok = (pc < L) & (frame_ids[np.minimum(pc, L - 1)] == p)
-        out.append(np.union1d(pc[ok], [c]))  # frames of the place without subimages are not in the list
+        out.append(
+            np.union1d(pc[ok], [c])
+        )  # frames of the place without subimages are not in the list
     return out
 
 
@@ -68,12 +81,16 @@ def _frame_layout(db_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     """Order of database rows grouped by frame, the frame ids in that order, and group starts."""
     order = np.argsort(db_frame, kind="stable")
     f = db_frame[order]
-    starts = np.concatenate([[0], np.nonzero(f[1:] != f[:-1])[0] + 1]) if len(f) else np.zeros(0, np.int64)
+    starts = (
+        np.concatenate([[0], np.nonzero(f[1:] != f[:-1])[0] + 1])
+        if len(f)
+        else np.zeros(0, np.int64)
+    )
     return order, f[starts], starts
 
 
 def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]]:
-    """(first frame, end frame) ranges of about ``chunk_rows`` database rows, cut at frame boundaries."""
+    """(first frame, end frame) ranges of about ``chunk_rows`` rows, cut at frame boundaries."""
     bounds = np.concatenate([starts, [m]])
     out, f0, L = [], 0, len(starts)
     while f0 < L:
@@ -84,13 +101,19 @@ def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]
     return out
 
 
-def frame_min_sqdist_chunk(query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-    """(n, k) smallest squared L2 distance from each query to each of k frames whose rows form ``block``."""
+def frame_min_sqdist_chunk(
+    query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, lengths: torch.Tensor
+) -> torch.Tensor:
+    """(n, k) smallest squared L2 distance from each query to each of k frames in ``block``."""
     bn = torch.linalg.vector_norm(block, dim=1).square_()  # fused: no (rows x D) temporary
     d2 = torch.addmm(qn + bn[None, :], query, block.T, alpha=-2.0).clamp_min_(0)
     idx = torch.repeat_interleave(torch.arange(len(lengths), device=query.device), lengths)
-    red = torch.full((query.shape[0], len(lengths)), float("inf"), dtype=torch.float32, device=query.device)
-    return red.scatter_reduce_(1, idx[None, :].expand(query.shape[0], -1), d2, reduce="amin", include_self=True)
+    red = torch.full(
+        (query.shape[0], len(lengths)), float("inf"), dtype=torch.float32, device=query.device
+    )
+    return red.scatter_reduce_(
+        1, idx[None, :].expand(query.shape[0], -1), d2, reduce="amin", include_self=True
+    )
 
 
 def image_ranks(
@@ -126,7 +149,8 @@ def image_ranks(
         chunk_rows: Database rows per streamed chunk.
         query_batch: Queries per matrix product.
         device: ``"cpu"`` or ``"cuda"`` (float32 products; float16 rows converted on the device).
-        memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, :data:`CELL_BYTES` per cell.
+        memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, :data:`CELL_BYTES` per
+            cell.
 
     Returns:
         ``rank`` (n,) int64, ``L`` (n,) int64 (1 + frames outside the place), ``dist`` (n,)
@@ -138,7 +162,9 @@ def image_ranks(
     db_frame = np.asarray(db_frame)
     gt_frame = np.asarray(gt_frame)
     if query_desc.ndim != 2 or db_desc.ndim != 2 or query_desc.shape[1] != db_desc.shape[1]:
-        raise RetrievalError(f"descriptor shapes disagree: query {query_desc.shape}, database {db_desc.shape}")
+        raise RetrievalError(
+            f"descriptor shapes disagree: query {query_desc.shape}, database {db_desc.shape}"
+        )
     if len(db_frame) != len(db_desc) or len(gt_frame) != len(query_desc):
         raise RetrievalError("db_frame must align with db_desc and gt_frame with query_desc")
     order, frame_ids, starts = _frame_layout(db_frame)
@@ -146,22 +172,46 @@ def image_ranks(
     pcols = _place_columns(frame_ids, gt_frame, place)
     n = len(query_desc)
     group = max(1, int(memory_mb * 2**20 // (CELL_BYTES * max(L, 1))))
-    if torch.device(device).type == "cuda":  # device memory is large and the copy costs more than the product
+    if (
+        torch.device(device).type == "cuda"
+    ):  # device memory is large and the copy costs more than the product
         chunk_rows = max(chunk_rows, CUDA_CHUNK_ROWS)
     rank, Lq, dist = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.float64))
     for g0 in range(0, n, group):
         g = slice(g0, min(n, g0 + group))
-        rank[g], Lq[g], dist[g] = _rank_group(query_desc[g], db_desc, order, starts, pcols[g], chunk_rows, query_batch, torch.device(device))
+        rank[g], Lq[g], dist[g] = _rank_group(
+            query_desc[g],
+            db_desc,
+            order,
+            starts,
+            pcols[g],
+            chunk_rows,
+            query_batch,
+            torch.device(device),
+        )
     return rank, Lq, dist
 
 
-def _rank_group(query_desc: np.ndarray, db_desc: np.ndarray, order: np.ndarray, starts: np.ndarray, pcols: list[np.ndarray],
-                chunk_rows: int, query_batch: int, dev: torch.device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _rank_group(
+    query_desc: np.ndarray,
+    db_desc: np.ndarray,
+    order: np.ndarray,
+    starts: np.ndarray,
+    pcols: list[np.ndarray],
+    chunk_rows: int,
+    query_batch: int,
+    dev: torch.device,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`image_ranks` for one group of queries: one pass over the database."""
     L, n = len(starts), len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
     bounds = np.concatenate([starts, [len(order)]])
-    queries = [torch.from_numpy(np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)).to(dev) for s in range(0, n, query_batch)]
+    queries = [
+        torch.from_numpy(
+            np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)
+        ).to(dev)
+        for s in range(0, n, query_batch)
+    ]
     qnorms = [torch.linalg.vector_norm(q, dim=1, keepdim=True).square_() for q in queries]
     fm = torch.empty((n, L), dtype=torch.float32, device=dev)
     for f0, f1 in _chunks(starts, len(order), chunk_rows):
@@ -169,25 +219,40 @@ def _rank_group(query_desc: np.ndarray, db_desc: np.ndarray, order: np.ndarray, 
         rows = np.ascontiguousarray(db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]])
         with warnings.catch_warnings():  # a read-only memmap view; the tensor is only read
             warnings.simplefilter("ignore", UserWarning)
-            block = torch.from_numpy(rows).to(dev).float()  # float16 -> float32 in torch (multi-threaded)
+            block = (
+                torch.from_numpy(rows).to(dev).float()
+            )  # float16 -> float32 in torch (multi-threaded)
         lengths = torch.from_numpy(np.diff(bounds[f0 : f1 + 1])).to(dev)
         for b, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
-            fm[b * query_batch : b * query_batch + len(q), f0:f1] = frame_min_sqdist_chunk(q, qn, block, lengths)
+            fm[b * query_batch : b * query_batch + len(q), f0:f1] = frame_min_sqdist_chunk(
+                q, qn, block, lengths
+            )
     qi = np.repeat(np.arange(n), [len(c) for c in pcols])
     pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
     in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
     in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
     dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
-    rank = (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)  # place frames never count
+    rank = (
+        (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)
+    )  # place frames never count
     Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
     fm_np = fm.cpu().numpy()
     del fm, in_place
-    dist = _exact_place_dist(query_desc, db_desc, order, bounds, pcols, fm_np, dg[:, 0].cpu().numpy())
+    dist = _exact_place_dist(
+        query_desc, db_desc, order, bounds, pcols, fm_np, dg[:, 0].cpu().numpy()
+    )
     return rank, Lq, dist
 
 
-def _exact_place_dist(query_desc: np.ndarray, db_desc: np.ndarray, order: np.ndarray, bounds: np.ndarray,
-                      pcols: list[np.ndarray], fm: np.ndarray, dg: np.ndarray) -> np.ndarray:
+def _exact_place_dist(
+    query_desc: np.ndarray,
+    db_desc: np.ndarray,
+    order: np.ndarray,
+    bounds: np.ndarray,
+    pcols: list[np.ndarray],
+    fm: np.ndarray,
+    dg: np.ndarray,
+) -> np.ndarray:
     """``d`` = the exact smallest L2 distance from each query to the rows of its place.
 
     Only the place's frames whose fast-path minimum lies within the expansion's error of the
@@ -203,7 +268,9 @@ def _exact_place_dist(query_desc: np.ndarray, db_desc: np.ndarray, order: np.nda
         for c in near:
             rows = cache.get(int(c))
             if rows is None:
-                if cached_bytes > CACHE_BYTES:  # frames recur for neighbouring queries; bounded, not grown
+                if (
+                    cached_bytes > CACHE_BYTES
+                ):  # frames recur for neighbouring queries; bounded, not grown
                     cache.clear()
                     cached_bytes = 0
                 rows = np.asarray(db_desc[np.sort(order[bounds[c] : bounds[c + 1]])], np.float64)
@@ -236,11 +303,14 @@ def image_ranks_faiss(
     try:
         import faiss
     except ImportError as err:  # pragma: no cover - faiss is in the dev extra
-        raise RetrievalError("the faiss engine needs faiss: pip install 'dbl-harness[faiss]'") from err
+        raise RetrievalError(
+            "the faiss engine needs faiss: pip install 'dbl-harness[faiss]'"
+        ) from err
     q = np.ascontiguousarray(query_desc, dtype=np.float32)
     db = np.ascontiguousarray(db_desc, dtype=np.float32)
     d = db.shape[1]
     if nlist > 0:
+        index: Any
         quant = faiss.IndexFlatL2(d)
         index = faiss.IndexIVFFlat(quant, d, nlist)
         rs = np.random.default_rng(seed)

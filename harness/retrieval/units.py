@@ -21,21 +21,31 @@ from ..pairs import ground_truth_places, thin_by_stride
 from .engines import image_ranks, image_ranks_faiss
 
 #: Counters every unit reports (summed per reference session in ``run.json``).
-RANK_COUNTS = ("query_subimages", "ranked", "no_rank_reference_frame_has_no_subimage", "query_frames_without_subimages")
+RANK_COUNTS = (
+    "query_subimages",
+    "ranked",
+    "no_rank_reference_frame_has_no_subimage",
+    "query_frames_without_subimages",
+)
 
 SORT = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
 
 
 def kept_reference_frames(ref_frames: pd.DataFrame, stride_m: float) -> set[int]:
-    """The utimes of the reference frames a database thinned to one per ``stride_m`` metres keeps."""
+    """Utimes of the reference frames a database thinned to one per ``stride_m`` metres keeps."""
     kept: set[int] = set()
     for _, fr in ref_frames.groupby("camera", sort=True):
         fr = fr.sort_values("utime")
-        kept.update(int(u) for u in fr["utime"].to_numpy()[thin_by_stride(fr[["x", "y"]].to_numpy(), stride_m)])
+        kept.update(
+            int(u)
+            for u in fr["utime"].to_numpy()[thin_by_stride(fr[["x", "y"]].to_numpy(), stride_m)]
+        )
     return kept
 
 
-def described_frames(frames: pd.DataFrame, pairs: pd.DataFrame, stride_m: float) -> dict[str, pd.DataFrame]:
+def described_frames(
+    frames: pd.DataFrame, pairs: pd.DataFrame, stride_m: float
+) -> dict[str, pd.DataFrame]:
     """Each session's frames that ranking reads, the only ones proposed and described.
 
     A session's query frames (those of its pairs) and, where some pair ranks against it, the
@@ -56,15 +66,28 @@ def described_frames(frames: pd.DataFrame, pairs: pd.DataFrame, stride_m: float)
     out = {}
     for name, fr in frames.groupby("session", sort=True):
         q = pairs[pairs["q_session"] == name]
-        use = pd.MultiIndex.from_frame(fr[["camera", "utime"]]).isin(pd.MultiIndex.from_frame(q[["q_camera", "q_utime"]]))
+        use = pd.MultiIndex.from_frame(fr[["camera", "utime"]]).isin(
+            pd.MultiIndex.from_frame(q[["q_camera", "q_utime"]])
+        )
         if name in refs:
-            use |= fr["utime"].isin(kept_reference_frames(fr, stride_m)).to_numpy() if stride_m > 0 else True
+            use |= (
+                fr["utime"].isin(kept_reference_frames(fr, stride_m)).to_numpy()
+                if stride_m > 0
+                else True
+            )
         out[str(name)] = fr[use]
     return out
 
 
-def rank_reference(rc: RetrievalConfig, max_yaw_deg: float, pairs: pd.DataFrame, ref: str, descriptors: dict[str, Path],
-                   frames: pd.DataFrame, device: str) -> tuple[pd.DataFrame, dict[str, int]]:
+def rank_reference(
+    rc: RetrievalConfig,
+    max_yaw_deg: float,
+    pairs: pd.DataFrame,
+    ref: str,
+    descriptors: dict[str, Path],
+    frames: pd.DataFrame,
+    device: str,
+) -> tuple[pd.DataFrame, dict[str, int]]:
     """Rank rows of every query subimage of ``pairs`` against reference session ``ref``.
 
     Args:
@@ -83,8 +106,15 @@ def rank_reference(rc: RetrievalConfig, max_yaw_deg: float, pairs: pd.DataFrame,
     if not len(pairs):
         return pd.DataFrame(), counts
     ref_frames = frames[frames["session"] == ref]
-    places = {cam: ground_truth_places(ref_frames[ref_frames["camera"] == cam], g["r_utime"].to_numpy(), rc.gt_radius_m, max_yaw_deg)
-              for cam, g in pairs.groupby("r_camera", sort=True)}
+    places = {
+        cam: ground_truth_places(
+            ref_frames[ref_frames["camera"] == cam],
+            g["r_utime"].to_numpy(),
+            rc.gt_radius_m,
+            max_yaw_deg,
+        )
+        for cam, g in pairs.groupby("r_camera", sort=True)
+    }
     kept = kept_reference_frames(ref_frames, rc.db_stride_m) if rc.db_stride_m > 0 else None
     if kept is not None:
         counts["no_rank_place_not_in_database"] = 0
@@ -98,9 +128,15 @@ def rank_reference(rc: RetrievalConfig, max_yaw_deg: float, pairs: pd.DataFrame,
         dbm = np.nonzero(in_db)[0]
         db_frame = ref_idx["utime"].to_numpy()[dbm]
         # a memmap view when the method's rows are contiguous (they are: proposals sort by method)
-        db = ref_desc[dbm[0] : dbm[-1] + 1] if len(dbm) and dbm[-1] - dbm[0] + 1 == len(dbm) else ref_desc[dbm]
+        db = (
+            ref_desc[dbm[0] : dbm[-1] + 1]
+            if len(dbm) and dbm[-1] - dbm[0] + 1 == len(dbm)
+            else ref_desc[dbm]
+        )
         for qs, g in pairs.groupby("q_session", sort=True):
-            part = _rank_query_session(rc, method, g, descriptors[qs], db, db_frame, places, kept, device, counts)
+            part = _rank_query_session(
+                rc, method, g, descriptors[qs], db, db_frame, places, kept, device, counts
+            )
             if part is not None:
                 out.append(part)
     df = pd.concat(out, ignore_index=True) if out else pd.DataFrame()
@@ -109,9 +145,18 @@ def rank_reference(rc: RetrievalConfig, max_yaw_deg: float, pairs: pd.DataFrame,
     return df, counts
 
 
-def _rank_query_session(rc: RetrievalConfig, method: str, g: pd.DataFrame, qdir: Path, db: np.ndarray, db_frame: np.ndarray,
-                        places: dict[Any, dict[int, np.ndarray]], kept: set[int] | None, device: str,
-                        counts: dict[str, int]) -> pd.DataFrame | None:
+def _rank_query_session(
+    rc: RetrievalConfig,
+    method: str,
+    g: pd.DataFrame,
+    qdir: Path,
+    db: np.ndarray,
+    db_frame: np.ndarray,
+    places: dict[Any, dict[int, np.ndarray]],
+    kept: set[int] | None,
+    device: str,
+    counts: dict[str, int],
+) -> pd.DataFrame | None:
     """Rank rows of one query session's subimages of ``method`` (``g``: its pairs); None if none."""
     have = set(np.unique(db_frame).tolist())
     q_idx = read_cached_parquet(qdir / "index.parquet")
@@ -119,8 +164,12 @@ def _rank_query_session(rc: RetrievalConfig, method: str, g: pd.DataFrame, qdir:
     q_idx["row"] = np.arange(len(q_idx))
     qm = q_idx[q_idx["method"] == method].merge(
         g.rename(columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}),
-        on=["session", "camera", "utime"], how="inner")
-    counts["query_frames_without_subimages"] += int(len(g) - qm[["session", "camera", "utime"]].drop_duplicates().shape[0])
+        on=["session", "camera", "utime"],
+        how="inner",
+    )
+    counts["query_frames_without_subimages"] += int(
+        len(g) - qm[["session", "camera", "utime"]].drop_duplicates().shape[0]
+    )
     if not len(qm):
         return None
     counts["query_subimages"] += len(qm)
@@ -128,8 +177,17 @@ def _rank_query_session(rc: RetrievalConfig, method: str, g: pd.DataFrame, qdir:
         ok = qm["r_utime"].isin(have).to_numpy()
         counts["no_rank_reference_frame_has_no_subimage"] += int((~ok).sum())
     else:  # a thinned database: the place must keep a frame; it stands in for G
-        ok = np.array([bool(have.intersection(places[c][int(u)].tolist())) for c, u in zip(qm["r_camera"], qm["r_utime"], strict=True)],
-                      bool) if len(qm) else np.zeros(0, bool)
+        ok = (
+            np.array(
+                [
+                    bool(have.intersection(places[c][int(u)].tolist()))
+                    for c, u in zip(qm["r_camera"], qm["r_utime"], strict=True)
+                ],
+                bool,
+            )
+            if len(qm)
+            else np.zeros(0, bool)
+        )
         counts["no_rank_place_not_in_database"] += int((~ok).sum())
     qm = qm[ok].reset_index(drop=True)
     if not len(qm):
@@ -138,30 +196,82 @@ def _rank_query_session(rc: RetrievalConfig, method: str, g: pd.DataFrame, qdir:
     qd = qd[np.argsort(np.argsort(qm["row"].to_numpy(), kind="stable"), kind="stable")]
     gt = qm["r_utime"].to_numpy()
     place = [places[c][int(u)] for c, u in zip(qm["r_camera"], gt, strict=True)]
-    if kept is not None:  # G itself may be thinned away: the place's frames in the database stand for it
+    if (
+        kept is not None
+    ):  # G itself may be thinned away: the place's frames in the database stand for it
         place = [p[np.isin(p, db_frame)] for p in place]
-        gt = np.array([u if u in set(p.tolist()) else p[np.argmin(np.abs(p - u))] for u, p in zip(gt, place, strict=True)], np.int64)
+        gt = np.array(
+            [
+                u if u in set(p.tolist()) else p[np.argmin(np.abs(p - u))]
+                for u, p in zip(gt, place, strict=True)
+            ],
+            np.int64,
+        )
     if rc.engine == "faiss":
-        res = image_ranks_faiss(qd, np.asarray(db, np.float32), db_frame, gt, place, nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe)
+        res = image_ranks_faiss(
+            qd,
+            np.asarray(db, np.float32),
+            db_frame,
+            gt,
+            place,
+            nlist=rc.faiss_nlist,
+            nprobe=rc.faiss_nprobe,
+        )
         rank, L, dist, exact = res.rank, res.L, res.dist, res.exact
         # recall against the exact engine on a deterministic sample of the queries
         k = min(len(qd), rc.faiss_check)
-        ex, _, _ = image_ranks(qd[:k], db, db_frame, gt[:k], place[:k], chunk_rows=rc.chunk_rows, device=device, memory_mb=rc.memory_mb)
+        ex, _, _ = image_ranks(
+            qd[:k],
+            db,
+            db_frame,
+            gt[:k],
+            place[:k],
+            chunk_rows=rc.chunk_rows,
+            device=device,
+            memory_mb=rc.memory_mb,
+        )
         counts["faiss_checked"] = counts.get("faiss_checked", 0) + k
-        counts["faiss_rank_equal_exact"] = counts.get("faiss_rank_equal_exact", 0) + int((ex == rank[:k]).sum())
+        counts["faiss_rank_equal_exact"] = counts.get("faiss_rank_equal_exact", 0) + int(
+            (ex == rank[:k]).sum()
+        )
         counts["faiss_flagged_exact"] = counts.get("faiss_flagged_exact", 0) + int(exact.sum())
     else:
-        rank, L, dist = image_ranks(qd, db, db_frame, gt, place, chunk_rows=rc.chunk_rows, query_batch=rc.query_batch, device=device,
-                                     memory_mb=rc.memory_mb)
+        rank, L, dist = image_ranks(
+            qd,
+            db,
+            db_frame,
+            gt,
+            place,
+            chunk_rows=rc.chunk_rows,
+            query_batch=rc.query_batch,
+            device=device,
+            memory_mb=rc.memory_mb,
+        )
         exact = np.ones(len(rank), bool)
     frame_set = np.unique(db_frame)
     place_size = np.array([int(np.isin(p, frame_set).sum()) for p in place], np.int64)
     counts["ranked"] += len(rank)
-    return pd.DataFrame({
-        "q_session": qm["session"], "q_camera": qm["camera"], "q_utime": qm["utime"],
-        "r_session": qm["r_session"], "r_camera": qm["r_camera"], "r_utime": qm["r_utime"],
-        "season_pair": qm["season_pair"], "method": method, "box_id": qm["box_id"],
-        "x1": qm["x1"], "y1": qm["y1"], "x2": qm["x2"], "y2": qm["y2"],
-        "rank": rank, "L": L, "r": rank / L, "r_desc": (L + 1 - rank) / L, "d": dist, "exact": exact,
-        "place_size": place_size,
-    })
+    return pd.DataFrame(
+        {
+            "q_session": qm["session"],
+            "q_camera": qm["camera"],
+            "q_utime": qm["utime"],
+            "r_session": qm["r_session"],
+            "r_camera": qm["r_camera"],
+            "r_utime": qm["r_utime"],
+            "season_pair": qm["season_pair"],
+            "method": method,
+            "box_id": qm["box_id"],
+            "x1": qm["x1"],
+            "y1": qm["y1"],
+            "x2": qm["x2"],
+            "y2": qm["y2"],
+            "rank": rank,
+            "L": L,
+            "r": rank / L,
+            "r_desc": (L + 1 - rank) / L,
+            "d": dist,
+            "exact": exact,
+            "place_size": place_size,
+        }
+    )
