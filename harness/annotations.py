@@ -13,6 +13,7 @@ import json
 import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -146,24 +147,21 @@ def change_boxes(ann: pd.DataFrame) -> dict[tuple[str, str, int], np.ndarray]:
 # ---------------------------------------------------------------- importers
 
 
+def no_change_row(session: str, camera: str, utime: int) -> dict[str, Any]:
+    """The annotation row of a frame labelled as holding no change (box columns NaN)."""
+    nan = np.nan
+    return dict(
+        session=session, camera=camera, utime=utime, status="no-change",
+        x1=nan, y1=nan, x2=nan, y2=nan, label="",
+    )  # fmt: skip
+
+
 def _rows_for_image(
     name: str, boxes: list[tuple[float, float, float, float, str]], where: str
 ) -> list[dict]:
     s, c, t = parse_image_name(name, where)
     if not boxes:
-        return [
-            dict(
-                session=s,
-                camera=c,
-                utime=t,
-                status="no-change",
-                x1=np.nan,
-                y1=np.nan,
-                x2=np.nan,
-                y2=np.nan,
-                label="",
-            )
-        ]
+        return [no_change_row(s, c, t)]
     return [
         dict(session=s, camera=c, utime=t, status="change", x1=x1, y1=y1, x2=x2, y2=y2, label=lab)
         for x1, y1, x2, y2, lab in boxes

@@ -79,17 +79,20 @@ def nms(
     return keep[order]
 
 
+def _working_copy(rgb: np.ndarray, work_width: int) -> tuple[np.ndarray, float]:
+    """``rgb`` shrunk to at most ``work_width`` pixels wide (area interpolation), and the scale."""
+    h, w = rgb.shape[:2]
+    scale = min(1.0, work_width / w)
+    if scale >= 1:
+        return rgb, scale
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), scale
+
+
 def mser_boxes(rgb: np.ndarray, cfg: MserConfig) -> tuple[np.ndarray, np.ndarray]:
     """MSER region boxes in full-image pixels, scored by their area fraction; (k, 4), (k,)."""
     h, w = rgb.shape[:2]
-    scale = min(1.0, cfg.work_width / w)
-    small = (
-        cv2.resize(
-            rgb, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA
-        )
-        if scale < 1
-        else rgb
-    )
+    small, scale = _working_copy(rgb, cfg.work_width)
     gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
     sa = gray.shape[0] * gray.shape[1]
     mser = cv2.MSER_create(  # type: ignore[attr-defined]  # not in OpenCV's stubs
@@ -119,14 +122,7 @@ def edge_boxes(rgb: np.ndarray, cfg: EdgesConfig) -> tuple[np.ndarray, np.ndarra
     edges into larger contours, so one image gives parts and whole objects alike.
     """
     h, w = rgb.shape[:2]
-    scale = min(1.0, cfg.work_width / w)
-    small = (
-        cv2.resize(
-            rgb, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA
-        )
-        if scale < 1
-        else rgb
-    )
+    small, scale = _working_copy(rgb, cfg.work_width)
     gray = cv2.GaussianBlur(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
     med = float(np.median(gray))
     edges = cv2.Canny(gray, int(0.33 * med), int(0.66 * med) + 1)
