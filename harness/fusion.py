@@ -149,9 +149,15 @@ def loc_from_cover(
     r = np.asarray(r, np.float64)
     if method in REGISTERED:
         lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
-        return np.asarray(
+        loc = np.asarray(
             REGISTERED[method](cover, r, np.asarray(d, np.float64), lengths), np.float64
         )
+        if loc.shape != (len(cover),):
+            raise ValueError(
+                f"fusion method {method!r} returned LoC of shape {loc.shape}, expected "
+                f"({len(cover)},): one value per fused box"
+            )
+        return loc
     if method == "score_max":
         return np.asarray(np.where(cover, np.asarray(d, np.float64)[None, :], -np.inf).max(1))
     if method == "score_sum":

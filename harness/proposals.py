@@ -16,6 +16,7 @@ import logging
 from collections.abc import Callable, Iterable, Sequence
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -346,6 +347,21 @@ def method_fingerprints(methods: Sequence[str]) -> dict[str, str]:
     return source_fingerprints(IMAGE_METHODS, methods)
 
 
+def _checked(method: str, frame: Any, boxes: Any, scores: Any) -> tuple[np.ndarray, np.ndarray]:
+    """A proposer's output as float64 (k, 4) boxes and (k,) scores, or an error naming both.
+
+    Raises:
+        ConfigError: The shapes do not match or a value is not finite.
+    """
+    b, s = np.asarray(boxes, np.float64), np.asarray(scores, np.float64)
+    if b.ndim != 2 or b.shape[1] != 4 or s.shape != (len(b),) or not np.isfinite(b).all():
+        raise ConfigError(
+            f"proposal method {method!r} on frame {frame.session}/{frame.camera}/{frame.utime}: "
+            f"expected finite boxes (k, 4) and scores (k,), got {b.shape} and {s.shape}"
+        )
+    return b, s
+
+
 def compute_proposals(
     frames: pd.DataFrame,
     cfg: ProposalsConfig,
@@ -394,9 +410,8 @@ def compute_proposals(
             imgs = [read_image(f.image) for f in chunk]
             for m in per_image:
                 for f, im in zip(chunk, imgs, strict=True):
-                    b, s = IMAGE_METHODS[m](im, cfg)
-                    b = np.asarray(b, np.float64).reshape(-1, 4)
-                    out.append(rows(f, m, b, np.asarray(s, np.float64), [""] * len(b)))
+                    b, s = _checked(m, f, *IMAGE_METHODS[m](im, cfg))
+                    out.append(rows(f, m, b, s, [""] * len(b)))
             if yolo is not None:
                 for f, (b, s, c) in zip(chunk, yolo(imgs), strict=True):
                     out.append(rows(f, "yolo", b, s, [str(int(k)) for k in c]))

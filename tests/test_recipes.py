@@ -218,3 +218,20 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
         assert np.array_equal(
             read_image(str(tmp_path / "a" / ia)), read_image(str(tmp_path / "b" / ib))
         )
+
+
+def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(monkeypatch) -> None:
+    from harness import fusion, proposals
+    from harness.config import ProposalsConfig
+    from harness.errors import ConfigError
+
+    monkeypatch.setattr(proposals, "IMAGE_METHODS", dict(proposals.IMAGE_METHODS))
+    monkeypatch.setattr(fusion, "REGISTERED", {})
+    proposals.register_method("bad", lambda rgb, cfg: (np.zeros((2, 3)), np.ones(2)))
+    frame = pd.Series({"session": "s", "camera": "Cam5", "utime": 7})
+    with pytest.raises(ConfigError, match=r"'bad' on frame s/Cam5/7: .*\(2, 3\)"):
+        proposals._checked("bad", frame, *proposals.IMAGE_METHODS["bad"](None, ProposalsConfig()))
+    fusion.REGISTERED["flat"] = lambda cover, r, d, L: np.ones(1)
+    cover = np.ones((3, 2), bool)
+    with pytest.raises(ValueError, match=r"'flat' returned LoC of shape \(1,\), expected \(3,\)"):
+        fusion.loc_from_cover(cover, "flat", r=np.ones(2), d=np.ones(2), L=np.ones(2))
