@@ -324,5 +324,5 @@ def export_for_labelling(
             tmp / "task.json",
             {"images": images, "annotations": [], "categories": [{"id": 1, "name": "change"}]},
         )
-        write_marker(tmp, "labelling-task")
+        write_marker(tmp, "labelling-task", record_entries=True)
     return Path(out)

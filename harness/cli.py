@@ -73,7 +73,7 @@ def cmd_fixture(args: argparse.Namespace) -> int:
 
 def cmd_ingest(args: argparse.Namespace) -> int:
     """``harness ingest``: one log into a frame table and an ingest report."""
-    from .config import IngestConfig, SessionConfig
+    from .config import IngestConfig, SessionConfig, check_session_name
     from .ingest import ingest_session
     from .outdirs import check_replaceable, claim_dir
 
@@ -96,6 +96,8 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         return 0
     if not args.source or not args.session:
         raise HarnessError("ingest needs SOURCE and --session NAME, or --config FILE")
+    check_session_name(args.session, "--session")
+    check_session_name(args.camera, "--camera")
     if args.max_pose_gap <= 0:
         raise HarnessError(f"--max-pose-gap {args.max_pose_gap}: must be > 0 seconds")
     if args.max_tf_gap <= 0:
@@ -305,14 +307,13 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """``harness report``: (re)write ``report.html`` of an earlier run."""
-    from .outdirs import claim_dir, run_lock
+    from .outdirs import claim_dir, read_run_record, run_lock
     from .report_html import write_html_report
 
     if args.gallery is not None and args.gallery < 0:
         raise HarnessError(f"--gallery {args.gallery}: must be >= 0")
     out = Path(args.out)
-    if not (out / "run.json").exists():
-        raise HarnessError(f"{out}: no run.json here; run `harness reproduce --out {out}` first")
+    read_run_record(out)  # a finished run, its record readable
     out = claim_dir(out, "run")  # a run directory the harness wrote, nothing else
     with run_lock(out):
         path = write_html_report(out, args.gallery)
@@ -432,6 +433,8 @@ def cmd_gc(args: argparse.Namespace) -> int:
     verb = "would remove" if args.dry_run else "removed"
     for entry in res.removed:
         print(f"  {verb}: cache/{entry}")
+    for entry in res.foreign:
+        print(f"  left alone (not written by the harness): {entry}")
     print(
         f"{verb} {len(res.removed)} cache entries ({res.bytes_removed / 1e6:.1f} MB) that "
         f"the last run did not use; kept {res.kept}"

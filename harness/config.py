@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import re
 import tomllib
 import types
 import typing
@@ -414,6 +415,9 @@ def parse_config(
         src = Path(sc.source.replace("{data_root}", str(root))).expanduser()
         src = src if src.is_absolute() else base / src
         sessions.append(dataclasses.replace(sc, source=str(src)))
+    for i, sc in enumerate(sessions):
+        check_session_name(sc.name, f"{where}: sessions[{i}] name")
+        check_session_name(sc.camera, f"{where}: sessions[{i}] camera")
     names = [s.name for s in sessions]
     if len(set(names)) != len(names):
         raise ConfigError(f"{where}: session names must be unique, got {names}")
@@ -433,6 +437,26 @@ def parse_config(
     )
     validate(cfg, where)
     return cfg
+
+
+#: A session name is a directory name under ``--out``: letters, digits, ``.``, ``_``, ``-``, not
+#: starting with a dot (so never ``..``, never a path).
+SESSION_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+
+
+def check_session_name(name: object, where: str) -> str:
+    """A session (or camera) name that is safe as one directory or file name under ``--out``.
+
+    Raises:
+        ConfigError: The name is not a string, or holds a path separator, starts with a dot or
+            another character outside letters, digits, ``.``, ``_`` and ``-``.
+    """
+    if not isinstance(name, str) or not SESSION_NAME.match(name):
+        raise ConfigError(
+            f"{where} = {name!r}: it names a directory or file the harness writes under --out, "
+            "so it must be letters, digits, '.', '_' or '-', not start with '.' or '-', and hold no '/'"
+        )
+    return name
 
 
 def _check(ok: bool, where: str, key: str, value: Any, allowed: str) -> None:

@@ -15,6 +15,7 @@ import fcntl
 import json
 import logging
 import os
+import re
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,14 +34,62 @@ class OwnershipError(HarnessError):
     """An output path exists and was not written by the harness (or needs ``--force``)."""
 
 
-def marker_text(kind: str) -> str:
-    """The marker's content: deterministic, so a directory's bytes depend on its content alone."""
-    return json.dumps({"owner": OWNER, "kind": kind}, sort_keys=True) + "\n"
+def marker_text(kind: str, entries: list[str] | None = None) -> str:
+    """The marker's content: deterministic, so a directory's bytes depend on its content alone.
+
+    Args:
+        kind: The kind of output (``run``, ``ingest``, ``fixture``, ...).
+        entries: The relative paths (files and directories) the harness wrote, for an output
+            that is replaced whole with ``--force``; None for a directory written into (a run).
+    """
+    doc: dict[str, object] = {"owner": OWNER, "kind": kind}
+    if entries is not None:
+        doc["entries"] = sorted(entries)
+    return json.dumps(doc, sort_keys=True) + "\n"
 
 
-def write_marker(directory: Path, kind: str) -> None:
-    """Mark ``directory`` (which must exist) as the harness's own output of ``kind``."""
-    (Path(directory) / MARKER).write_text(marker_text(kind))
+def _entries(directory: Path) -> list[str]:
+    """Every path under ``directory`` (files and directories, not following links), relative."""
+    out = []
+    for dirpath, dirnames, filenames in os.walk(directory):
+        base = Path(dirpath).relative_to(directory)
+        out += [
+            str(base / n)
+            for n in dirnames + filenames
+            if not (dirpath == str(directory) and n in (MARKER, LOCK))
+        ]
+    return sorted(out)
+
+
+def write_marker(directory: Path, kind: str, record_entries: bool = False) -> None:
+    """Mark ``directory`` (which must exist) as the harness's own output of ``kind``.
+
+    With ``record_entries`` (call it last, when the output is complete), the marker lists every
+    path the harness wrote there, so that a later ``--force`` replaces only those and refuses
+    over anything a user added.
+    """
+    directory = Path(directory)
+    entries = _entries(directory) if record_entries else None
+    (directory / MARKER).write_text(marker_text(kind, entries))
+
+
+def marker_entries(directory: Path) -> list[str] | None:
+    """The entries a marker lists (None: no marker, or one that lists none)."""
+    try:
+        doc = json.loads((Path(directory) / MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    ent = doc.get("entries") if isinstance(doc, dict) else None
+    return [str(e) for e in ent] if isinstance(ent, list) else None
+
+
+def foreign_entries(directory: Path) -> list[str]:
+    """Paths under a marked ``directory`` that its marker does not list (a user's files)."""
+    listed = marker_entries(directory)
+    if listed is None:
+        return []
+    known = set(listed)
+    return [e for e in _entries(Path(directory)) if e not in known]
 
 
 def owner_kind(directory: Path) -> str | None:
@@ -73,6 +122,31 @@ def _legacy_run_dir(path: Path) -> bool:
         and "dbl-harness" in rec.get("versions", {})
         and (path / "cache").is_dir()
     )
+
+
+def read_run_record(out: Path) -> dict[str, object]:
+    """The ``run.json`` of a finished run in ``out``, read and checked.
+
+    Raises:
+        HarnessError: No ``run.json`` there, or one that is not a JSON object (cut short,
+            edited, not UTF-8): the message names the file and says how to rewrite it.
+    """
+    path = Path(out) / "run.json"
+    if not path.exists():
+        raise HarnessError(f"{out}: no run.json here; run `harness reproduce --out {out}` first")
+    try:
+        rec = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise HarnessError(
+            f"{path}: unreadable ({type(err).__name__}: {err}); rerun `harness reproduce` into "
+            f"{out} to rewrite it"
+        ) from None
+    if not isinstance(rec, dict) or not isinstance(rec.get("config"), dict):
+        raise HarnessError(
+            f"{path}: unreadable (not a run record: no 'config' object); rerun `harness "
+            f"reproduce` into {out} to rewrite it"
+        )
+    return rec
 
 
 def claim_dir(path: Path, kind: str, flag: str = "--out") -> Path:
@@ -147,6 +221,19 @@ def check_replaceable(path: Path, kind: str, force: bool, flag: str = "--out") -
             f"{path}: exists (a harness {kind} output); pass --force to replace it, or "
             f"choose a new {flag}"
         )
+    if marker_entries(path) is None:
+        raise OwnershipError(
+            f"{path}: a harness {kind} output written by an older version that did not list its "
+            f"files, so --force cannot tell them from yours; move what you want to keep and "
+            f"remove it yourself, or choose a new {flag}"
+        )
+    extra = foreign_entries(path)
+    if extra:
+        more = f" and {len(extra) - 1} more" if len(extra) > 1 else ""
+        raise OwnershipError(
+            f"{path}: holds {extra[0]!r}{more} that the harness did not write; --force would "
+            f"delete it with the old output, so it refuses: move it out, or choose a new {flag}"
+        )
     return path
 
 
@@ -160,12 +247,18 @@ def check_file_replaceable(path: Path, force: bool, flag: str = "--out") -> Path
     return path
 
 
-def is_temp_name(name: str) -> bool:
-    """Names of the temporaries that :mod:`harness.cache` creates.
+#: The signature in every temporary's name (see :func:`harness.cache.atomic_path`).
+TEMP_TAG = "dbl-harness"
+_TEMP = re.compile(r"^\..+\.dbl-harness-[A-Za-z0-9_]{8}\.tmp$|^\..+\.dbl-harness-old-[0-9]+$")
 
-    Those are ``.<name>.<random>.tmp`` and ``.<name>.old-<pid>``.
+
+def is_temp_name(name: str) -> bool:
+    """Names of the temporaries that :mod:`harness.cache` creates, and no others.
+
+    Those are ``.<name>.dbl-harness-<8 random>.tmp`` (``tempfile``'s random part) and
+    ``.<name>.dbl-harness-old-<pid>``: a user's ``.draft.tmp`` never matches.
     """
-    return name.startswith(".") and (name.endswith(".tmp") or ".old-" in name)
+    return bool(_TEMP.match(name))
 
 
 def sweep_temporaries(root: Path) -> int:
@@ -180,7 +273,8 @@ def sweep_temporaries(root: Path) -> int:
     for dirpath, dirnames, filenames in os.walk(root):
         for name in list(dirnames):
             if is_temp_name(name):
-                shutil.rmtree(Path(dirpath) / name, ignore_errors=True)
+                if not (Path(dirpath) / name).is_symlink():
+                    shutil.rmtree(Path(dirpath) / name, ignore_errors=True)
                 dirnames.remove(name)
                 removed += 1
         for name in filenames:

@@ -16,7 +16,6 @@ browser test reads.
 from __future__ import annotations
 
 import html
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from .config import FUSION_METHODS
 from .errors import HarnessError
 from .fusion import loc_map
 from .imagestore import local_uri, read_image
+from .outdirs import read_run_record
 from .reports import LOC_COLUMNS, METHOD_LABELS, TABLE_INTRO, pivot
 
 log = logging.getLogger(__name__)
@@ -362,9 +362,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     from .annotations import load_annotations
 
     out = Path(out)
-    if not (out / "run.json").exists():
-        raise HarnessError(f"{out}: no run.json here; run `harness reproduce --out {out}` first")
-    run = json.loads((out / "run.json").read_text())
+    run: dict[str, Any] = read_run_record(out)
     cfg = run["config"]
     n = int(cfg["report"].get("gallery", 3)) if gallery is None else gallery
     summ = pd.read_parquet(out / "splits" / "summary.parquet")

@@ -481,8 +481,8 @@ def test_6_temporaries_of_a_killed_run_are_removed_and_the_lock_refuses_a_second
 
     p, _, out = local_run
     q = Pipeline(p.cfg, tmp_path / "o")
-    debris = tmp_path / "o" / "cache" / "model" / ".abc123.x7.tmp"
-    stray = tmp_path / "o" / ".table1.csv.x1y2.tmp"
+    debris = tmp_path / "o" / "cache" / "model" / ".abc123.dbl-harness-x7y8z9ab.tmp"
+    stray = tmp_path / "o" / ".table1.csv.dbl-harness-x1y2z3w4.tmp"
     with run_lock(
         tmp_path / "o"
     ):  # another run holds the lock while a killed run's debris lies there

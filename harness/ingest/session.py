@@ -526,7 +526,7 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
             df = _ingest_log(sc, ic, fmt, tmp, report)
         report["seconds"] = round(time.perf_counter() - t0, 3)
         write_json(tmp / "ingest_report.json", report)
-        write_marker(tmp, "ingest")
+        write_marker(tmp, "ingest", record_entries=True)
     log.info(
         "ingest %s (%s): read %s, wrote %d frames, dropped %s",
         sc.name,
