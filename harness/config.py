@@ -454,7 +454,8 @@ def check_session_name(name: object, where: str) -> str:
     if not isinstance(name, str) or not SESSION_NAME.match(name):
         raise ConfigError(
             f"{where} = {name!r}: it names a directory or file the harness writes under --out, "
-            "so it must be letters, digits, '.', '_' or '-', not start with '.' or '-', and hold no '/'"
+            "so it must be letters, digits, '.', '_' or '-', not start with '.' or '-', and "
+            "hold no '/'"
         )
     return name
 
