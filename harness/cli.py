@@ -137,13 +137,20 @@ def _pipeline(args: argparse.Namespace):
     if args.ray_cpus is not None and args.ray_cpus < 1:
         raise HarnessError(f"--ray-cpus {args.ray_cpus}: must be >= 1")
     cfg = _config(args)  # validated before any executor or directory is set up
-    rank_import = Path(args.rank_import) if getattr(args, "rank_import", None) else None
-    if rank_import is not None and not rank_import.exists():
-        raise HarnessError(f"{rank_import}: --import file not found")
+    rank_import = None
+    if getattr(args, "rank_import", None):
+        from .retrieval.imported import parse_import_arg
+
+        rank_import = parse_import_arg(args.rank_import)
+        if not rank_import.path.is_file():
+            raise HarnessError(
+                f"{rank_import.path}: --import file not found (localizer {rank_import.name!r})"
+            )
     return Pipeline(
         cfg,
         Path(args.out),
         rank_import=rank_import,
+        force=bool(getattr(args, "force", False)),
         executor=make_executor(args.executor, args.address, args.ray_cpus),
     )
 
@@ -179,12 +186,13 @@ def cmd_proposals(args: argparse.Namespace) -> int:
 def cmd_rank(args: argparse.Namespace) -> int:
     """``harness rank``: run (or import) the ranks into ``ranks.parquet``."""
     from .cache import write_json, write_parquet
-    from .runner import until_ranks
+    from .runner import check_localizer_set, until_ranks
 
     p = _pipeline(args)
     with p.locked():
+        check_localizer_set(p)
         *_, ranks = until_ranks(p, check=False)
-        write_parquet(p.out / "ranks.parquet", ranks.df)
+        write_parquet(p.out / "ranks.parquet", ranks.df.assign(localizer=p.localizer["name"]))
         write_json(p.out / "rank_report.json", ranks.counts)
     print(
         f"{len(ranks.df)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: "
@@ -248,7 +256,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     console = Console(width=max(Console().width, 140))
     loc = rep.localization
     lt = Table(
-        title="Localization quality (ground truth: place within "
+        title=f"Localization quality of {rep.localizer} (ground truth: place within "
         f"{rec['config']['retrieval']['gt_radius_m']:g} m)"
     )
     lt.add_column("props")
@@ -268,7 +276,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         )
     console.print(lt)
     print("  per season pair: localization.md")
-    name = rec["config"]["name"]
+    name = f"{rec['config']['name']}, localizer {rep.localizer}"
     _print_change_table(console, rep, "I", f"Table I: AP by RoC-max, the paper's protocol ({name})")
     _print_change_table(console, rep, "S", f"Table S: size-stratified AP by RoC-max ({name})")
     _print_change_table(console, rep, "P", f"Table P: pixel AP and image AP ({name})")
@@ -543,7 +551,14 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument(
                 "--import",
                 dest="rank_import",
-                help="ranked lists from an external localizer (see docs)",
+                metavar="NAME=FILE",
+                help="ranked lists of your own localizer, named NAME (a bare FILE: its stem); "
+                "the task to rank: harness task export",
+            )
+            p.add_argument(
+                "--force",
+                action="store_true",
+                help="replace the tables of a run directory that measured another localizer",
             )
         p.set_defaults(func=func)
 

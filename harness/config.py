@@ -261,6 +261,17 @@ class FixtureConfig:
 
 
 @dataclass(frozen=True)
+class ImportConfig:
+    """``[import]``: how an imported localizer's rank file is read (SPEC section 12)."""
+
+    # what a row's ``scores`` are: "distance" (smaller = more similar) or "similarity" in [0, 1]
+    score_kind: str = "distance"
+    # a query image of the pairs without any imported row: an error (false), or left out of
+    # every table and counted (true)
+    allow_unranked_images: bool = False
+
+
+@dataclass(frozen=True)
 class Config:
     """A whole run's configuration, as loaded from TOML and checked (:func:`load_config`)."""
 
@@ -279,6 +290,7 @@ class Config:
     splits: SplitsConfig = field(default_factory=SplitsConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
     fixture: FixtureConfig = field(default_factory=FixtureConfig)
+    import_: ImportConfig = field(default_factory=ImportConfig)  # the TOML table [import]
 
     def seasons(self) -> dict[str, str]:
         """Session name -> season code (``WI``, ``SP``, ``SU``, ``AU``)."""
@@ -378,7 +390,10 @@ _SECTIONS: dict[str, type] = {
     "splits": SplitsConfig,
     "report": ReportConfig,
     "fixture": FixtureConfig,
+    "import": ImportConfig,
 }
+#: TOML tables whose field name differs (``import`` is a Python keyword).
+_FIELD = {"import": "import_"}
 
 
 def project_root(start: Path) -> Path:
@@ -426,7 +441,9 @@ def parse_config(
     kwargs: dict[str, Any] = {}
     for section, cls in _SECTIONS.items():
         if section in doc:
-            kwargs[section] = _build(cls, doc[section], f"{where}: [{section}]")
+            kwargs[_FIELD.get(section, section)] = _build(
+                cls, doc[section], f"{where}: [{section}]"
+            )
     cfg = Config(
         name=str(doc["name"]),
         data_root=root,
@@ -497,6 +514,13 @@ def validate(cfg: Config, where: str) -> None:
     )
     from .fusion import known_methods as fusion_methods  # SPEC section 7's and registered ones
 
+    c(
+        cfg.import_.score_kind in ("distance", "similarity"),
+        where,
+        "[import] score_kind",
+        cfg.import_.score_kind,
+        "'distance' or 'similarity'",
+    )
     bad = [m for m in fu.methods if m not in fusion_methods()]
     c(
         not bad and len(fu.methods) > 0,

@@ -158,9 +158,25 @@ def ranks(cfg: Config, pairs_key: str, descriptor_keys: dict[str, str]) -> Parts
     return (pairs_key, descriptor_keys, retrieval_options(cfg.retrieval))
 
 
-def ranks_import(cfg: Config, path: Path, pairs_key: str) -> Parts:
-    """Ranks imported from a user's file: the file, the pairs and the place radius."""
-    return ("import", file_fingerprint(path), pairs_key, cfg.retrieval.gt_radius_m)
+def ranks_import(
+    cfg: Config, name: str, content_sha: str, pairs_key: str, proposal_keys: list[str]
+) -> Parts:
+    """Ranks imported from a user's file.
+
+    The file's content (not its path: a moved file is the same import), the pairs, the
+    proposals the rows must match, the place and ``[import]``.
+    """
+    return (
+        "import",
+        name,
+        content_sha,
+        pairs_key,
+        sorted(proposal_keys),
+        cfg.retrieval.gt_radius_m,
+        cfg.retrieval.db_stride_m,
+        cfg.pairs.max_yaw_diff_deg,
+        dataclasses.asdict(cfg.import_),
+    )
 
 
 def samples(cfg: Config, ranks_key: str, ann_key: str) -> Parts:

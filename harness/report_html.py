@@ -108,7 +108,11 @@ def _heat(v: float, floor: float = 0.0) -> str:
 
 
 def _change_table(
-    summ: pd.DataFrame, table: str, methods: tuple[str, ...], warnings: list[str]
+    summ: pd.DataFrame,
+    table: str,
+    methods: tuple[str, ...],
+    warnings: list[str],
+    who: str = "",
 ) -> str:
     ap, lo, hi = (pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high"))
     floor = pivot(summ, table, methods, "floor")
@@ -142,14 +146,14 @@ def _change_table(
     title, intro = TABLE_INTRO[table]
     warn = "".join(f'<div class="warn">{_e(w)}</div>' for w in warnings)
     return (
-        f'<h2 id="table{table}">{_e(title)}</h2><p class="note">{_e(intro)} Cells: AP [95% '
+        f'<h2 id="table{table}">{_e(title + who)}</h2><p class="note">{_e(intro)} Cells: AP [95% '
         "bootstrap interval over query images]; colour: from the floor (red) to 1 "
         "(green).</p>"
         f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}'
     )
 
 
-def _localization(loc: pd.DataFrame, radius: float) -> str:
+def _localization(loc: pd.DataFrame, radius: float, who: str = "") -> str:
     head = "".join(f"<th>{_e(lab)}</th>" for _, lab, _ in LOC_COLUMNS)
 
     def rows(df: pd.DataFrame) -> str:
@@ -167,8 +171,8 @@ def _localization(loc: pd.DataFrame, radius: float) -> str:
 
     table = f"<tr><th>proposals</th><th>season pair</th>{head}</tr>"
     return (
-        '<h2 id="localization">Localization quality</h2><p class="note">Every change figure '
-        "rests on these ranks. Ground truth: "
+        f'<h2 id="localization">Localization quality{_e(who)}</h2><p class="note">'
+        "Every change figure rests on these ranks. Ground truth: "
         f"the reference frames within {radius:g} m of the paired frame (the place). R@k: "
         "share of query subimages whose place "
         "ranks within the first k; median r: 0.5 is chance; clean: subimages of annotated "
@@ -374,6 +378,20 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     methods = tuple(m for m in METHOD_LABELS if m in set(summ["method"]))
     warnings = run.get("warnings", {})
     counts = run["counts"]
+    locs = [x for x in run.get("localizers") or [] if isinstance(x, dict)] or [
+        {"name": cfg.get("descriptor", {}).get("name", "?"), "kind": "descriptor"}
+    ]
+    loc_name = ", ".join(str(x.get("name")) for x in locs)
+    localizer_facts = "; ".join(
+        f"{x.get('name')}: "
+        + (
+            f"imported from {x.get('file')} (sha256 {x.get('sha256')}, scores as "
+            f"{x.get('score_kind')})"
+            if x.get("kind") == "import"
+            else f"built-in descriptor {cfg.get('descriptor', {}).get('name')}"
+        )
+        for x in locs
+    )
     drops = {
         s: ", ".join(f"{k} {v}" for k, v in d.get("dropped", {}).items() if v)
         for s, d in run.get("ingest", {}).items()
@@ -399,15 +417,19 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
             ),
         ),
         ("dropped at ingest", "; ".join(f"{s}: {d}" for s, d in drops.items() if d) or "nothing"),
+        ("localizer", localizer_facts),
         (
             "ranking",
             "; ".join(
                 f"{s}: {', '.join(f'{k} {v}' for k, v in c.items() if v)}"
-                for s, c in counts.get("rank_counts", {}).items()
+                if isinstance(c, dict)
+                else f"{s} {c}"
+                for s, c in (counts.get("rank_counts") or {}).items()
             ),
         ),
     ]
     fact_rows = "".join(f"<tr><td>{_e(k)}</td><td>{_e(v)}</td></tr>" for k, v in facts)
+    who = f" (localizer: {loc_name})"
     prs = sorted((out / "plots").glob("pr_*.png"))
     pr_html = "".join(
         f'<figure><img src="{_e(p.relative_to(out))}" '
@@ -450,7 +472,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         if p.resolve() not in keep:  # thumbnails of an earlier page that this page no longer shows
             p.unlink()
     body = [
-        f"<h1>Detection-by-Localization: {_e(cfg['name'])}</h1>",
+        f"<h1>Detection-by-Localization: {_e(cfg['name'])}, localizer {_e(loc_name)}</h1>",
         (
             f"<p class='sub'>dbl-harness {_e(run['versions'].get('dbl-harness', ''))}, seed "
             f"{run['seed']}</p>"
@@ -472,8 +494,8 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         )
         + "</nav>",
         f'<h2 id="facts">Run</h2><table class="facts" data-table="facts">{fact_rows}</table>',
-        _localization(loc, float(cfg["retrieval"]["gt_radius_m"])),
-        *(_change_table(summ, t, methods, warnings.get(t, [])) for t in ("I", "S", "P")),
+        _localization(loc, float(cfg["retrieval"]["gt_radius_m"]), who),
+        *(_change_table(summ, t, methods, warnings.get(t, []), who) for t in ("I", "S", "P")),
         '<h2 id="comparisons">Paired comparisons with rank fusion</h2><p '
         'class="note">AP(method) &minus; AP(rank fusion) over the same '
         "bootstrap resamples of query images, with its 95% interval; green: better than "
@@ -490,7 +512,8 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><meta name='viewport' "
         "content='width=device-width, initial-scale=1'>"
         "<title>dbl-harness report: "
-        f"{_e(cfg['name'])}</title><style>{CSS}</style><script>{SCRIPT}</script></head><body>"
+        f"{_e(cfg['name'])}, localizer {_e(loc_name)}</title>"
+        f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
         + "\n".join(body)
         + "</body></html>\n"
     )

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import zlib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -130,7 +130,12 @@ LOC_COLUMNS = [
 ]
 
 
-def localization_markdown(loc: pd.DataFrame, gt_radius_m: float) -> str:
+def heading_suffix(localizer: str) -> str:
+    """What every table heading adds: the localizer it measured (SPEC section 11)."""
+    return f" (localizer: {localizer})" if localizer else ""
+
+
+def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str = "") -> str:
     """The localization table as markdown (recall@1/5, median r, chance rates)."""
     head = (
         "| proposals | season pair | "
@@ -157,7 +162,7 @@ def localization_markdown(loc: pd.DataFrame, gt_radius_m: float) -> str:
         "clean: subimages of "
         f"annotated frames with RoC <= {CLEAN_ROC}. R@1 by chance: mean 1/L.\n"
     )
-    return "# Localization quality\n\n" + head + body + foot
+    return f"# Localization quality{heading_suffix(localizer)}\n\n" + head + body + foot
 
 
 # ------------------------------------------------------------------ change tables (I, S, P)
@@ -564,7 +569,11 @@ TABLE_INTRO = {
 
 
 def table_markdown(
-    summ: pd.DataFrame, table: str, methods: tuple[str, ...], warnings: list[str]
+    summ: pd.DataFrame,
+    table: str,
+    methods: tuple[str, ...],
+    warnings: list[str],
+    localizer: str = "",
 ) -> str:
     """A change table as markdown: the six methods, then the variants and baselines.
 
@@ -616,7 +625,7 @@ def table_markdown(
     )
     warn = "".join(f"\n**{w}**\n" for w in warnings)
     return (
-        f"# {title}\n\n{intro}\n\n"
+        f"# {title}{heading_suffix(localizer)}\n\n{intro}\n\n"
         + head
         + "".join(lines)
         + f"\nFloor: the AP of a random ranking. Counts ({ref}): {counts}. Intervals: 95% "
@@ -637,13 +646,15 @@ def _tex_escape(s: str) -> str:
     )
 
 
-def table_latex(t: pd.DataFrame, caption_cols: str = "") -> str:
+def table_latex(t: pd.DataFrame, caption_cols: str = "", localizer: str = "") -> str:
     """A booktabs ``tabular`` of one table.
 
-    Two decimals; the variants and baselines come after a rule.
+    Two decimals; the variants and baselines come after a rule. The localizer is named in a
+    comment line above it.
     """
     cols = list(t.columns)
-    out = [
+    out = [f"% localizer: {localizer}"] if localizer else []
+    out += [
         r"\begin{tabular}{l" + "r" * len(cols) + "}",
         r"\toprule",
         " & ".join([_tex_escape(caption_cols or "Method")] + [_tex_escape(_col(c)) for c in cols])
@@ -666,10 +677,10 @@ def table_latex(t: pd.DataFrame, caption_cols: str = "") -> str:
     return "\n".join(out) + "\n"
 
 
-def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
+def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer: str = "") -> str:
     """Every method against rank fusion, in words, for every pooled column of Tables I, S and P."""
     lines = [
-        "# Paired comparisons with rank fusion",
+        f"# Paired comparisons with rank fusion{heading_suffix(localizer)}",
         "",
         (
             "Each line: AP(method) - AP(rank fusion) [95% interval of the difference over the "
@@ -702,13 +713,13 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
     return "\n".join(lines)
 
 
-def localization_latex(loc: pd.DataFrame) -> str:
+def localization_latex(loc: pd.DataFrame, localizer: str = "") -> str:
     """The localization table (all season pairs) as a booktabs ``tabular``."""
     t = loc[loc["season_pair"] == "all"].set_index("proposals")[
         ["recall_at_1", "recall_at_5", "median_r", "chance_recall_at_1", "clean_recall_at_1"]
     ]
     t.columns = ["R@1", "R@5", "median r", "R@1 by chance", "clean R@1"]
-    return table_latex(t, "Proposals")
+    return table_latex(t, "Proposals", localizer)
 
 
 # ------------------------------------------------------------------ all reports
@@ -737,6 +748,7 @@ class Reports:
     tables: dict[str, pd.DataFrame]
     warnings: dict[str, list[str]]
     methods: tuple[str, ...]
+    localizer: str = ""
 
 
 def write_reports(
@@ -747,8 +759,14 @@ def write_reports(
     frames: pd.DataFrame,
     ann: pd.DataFrame,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+    localizer: str = "",
+    notes: Sequence[str] = (),
 ) -> Reports:
-    """Write every report of a run into ``out``."""
+    """Write every report of a run into ``out``.
+
+    ``localizer`` names the localizer in every heading and in a ``localizer`` column of the split
+    reports and the summary; ``notes`` are printed under every change table.
+    """
     methods = ordered_methods(cfg.fusion.methods)
     written: set[Path] = set()
 
@@ -758,9 +776,12 @@ def write_reports(
 
     loc = localization_table(ranks, frames, ann)
     write_text(put(out / "localization.csv"), loc.to_csv(index=False, float_format="%.4f"))
-    write_text(put(out / "localization.md"), localization_markdown(loc, cfg.retrieval.gt_radius_m))
-    write_text(put(out / "localization.tex"), localization_latex(loc))
-    write_parquet(put(out / "ranks.parquet"), ranks)
+    write_text(
+        put(out / "localization.md"),
+        localization_markdown(loc, cfg.retrieval.gt_radius_m, localizer),
+    )
+    write_text(put(out / "localization.tex"), localization_latex(loc, localizer))
+    write_parquet(put(out / "ranks.parquet"), ranks.assign(localizer=localizer))
     splits = paper_splits(cfg.splits)
     allp = samples[samples["proposals"] == "all"].reset_index(drop=True)
     ids = {g: i for i, g in enumerate(sorted(set(_groups(allp))))}
@@ -771,6 +792,7 @@ def write_reports(
         rep = samples.assign(
             label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp)
         )
+        rep.insert(0, "localizer", localizer)
         write_parquet(put(out / "splits" / f"{sp.name}.parquet"), rep)
         summary += _pooled_rows(cfg, allp, methods, sp, "I", ids)
         summary += _pooled_rows(cfg, allp, methods, sp, "S", ids)
@@ -800,6 +822,7 @@ def write_reports(
                 )
     summary += _pixel_image_rows(cfg, allp, frames, ann, methods, ids)
     summ = pd.DataFrame(summary)
+    summ.insert(0, "localizer", localizer)
     write_parquet(put(out / "splits" / "summary.parquet"), summ)
     if curves:
         write_parquet(
@@ -811,12 +834,18 @@ def write_reports(
         main = summ[
             (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
         ]
-        warnings[table] = confound_warnings(main, TABLE_INTRO[table][0])
+        warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(notes)
         tables[table] = t
         write_text(put(out / f"{stem}.csv"), table_csv(t))
-        write_text(put(out / f"{stem}.md"), table_markdown(summ, table, methods, warnings[table]))
-        write_text(put(out / f"{stem}.tex"), table_latex(t, "AP" if table != "P" else "Method"))
-    write_text(put(out / "comparisons.md"), comparisons_markdown(summ, methods))
+        write_text(
+            put(out / f"{stem}.md"),
+            table_markdown(summ, table, methods, warnings[table], localizer),
+        )
+        write_text(
+            put(out / f"{stem}.tex"),
+            table_latex(t, "AP" if table != "P" else "Method", localizer),
+        )
+    write_text(put(out / "comparisons.md"), comparisons_markdown(summ, methods, localizer))
     if cfg.report.plots:
         from .plots import locmap_figures, pr_plots
 
@@ -835,4 +864,4 @@ def write_reports(
         log.info(
             "reports: removed %d file(s) of an earlier run that this run no longer writes", stale
         )
-    return Reports(summ, loc, tables, warnings, methods)
+    return Reports(summ, loc, tables, warnings, methods, localizer)

@@ -14,6 +14,7 @@ changing one option reruns only what depends on it. ``docs/architecture.md`` dra
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -47,12 +48,13 @@ from .executors import LocalExecutor
 from .fusion import write_samples
 from .imagestore import local_uri
 from .ingest import combine_frames, ingest_session
-from .outdirs import claim_dir, run_lock
+from .outdirs import claim_dir, read_run_record, run_lock
 from .pairs import write_pairs
 from .progress import progress
 from .proposals import write_proposals
 from .reports import Reports, write_reports
 from .retrieval import described_frames, rank_reference
+from .retrieval.imported import ImportSpec, parse_import_arg, unranked_images
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +93,9 @@ class Pipeline:
     Attributes:
         cfg: The validated config.
         out: The run directory (claimed: new, empty or an earlier run of the harness).
-        rank_import: A rank file to import instead of computing ranks (``harness rank --import``).
+        rank_import: A localizer's rank file to import instead of computing ranks
+            (``--import NAME=FILE``, SPEC section 12).
+        force: Replace the tables of a run directory that measured another localizer set.
         executor: Maps independent units (local or Ray).
         timings: Seconds per stage.
         ran: Entries built per stage (0 everywhere on a cached rerun).
@@ -101,14 +105,31 @@ class Pipeline:
 
     cfg: Config
     out: Path
-    rank_import: Path | None = None
+    rank_import: ImportSpec | None = None
+    force: bool = False
     executor: Any = field(default_factory=LocalExecutor)
     timings: dict[str, float] = field(default_factory=dict)
     ran: dict[str, int] = field(default_factory=dict)
     used: dict[str, set[str]] = field(default_factory=dict)
     not_described: dict[str, int] = field(default_factory=dict)
 
+    @property
+    def localizer(self) -> dict[str, Any]:
+        """The localizer this run measures: its name, kind and source (SPEC section 11)."""
+        if self.rank_import is not None:
+            path = self.rank_import.path
+            return {
+                "name": self.rank_import.name,
+                "kind": "import",
+                "file": str(Path(path).resolve()),
+                "sha256": file_sha(path) if Path(path).is_file() else None,
+                "score_kind": self.cfg.import_.score_kind,
+            }
+        return {"name": self.cfg.descriptor.name, "kind": "descriptor"}
+
     def __post_init__(self) -> None:
+        if self.rank_import is not None and not isinstance(self.rank_import, ImportSpec):
+            self.rank_import = parse_import_arg(str(self.rank_import))
         # never write into a directory the harness did not create; resolved: remote workers may
         # start elsewhere
         self.out = claim_dir(Path(self.out), "run")
@@ -362,8 +383,6 @@ def query_ranks(p: Pipeline, frames: Table, pairs: Table, described: dict[str, E
     Units: (reference session, chunk of ``query_frames_per_shard`` pairs); one engine per
     proposal method inside each. With ``rank_import`` the ranks come from the user's file.
     """
-    if p.rank_import is not None:
-        return imported_ranks(p, frames, pairs)
     rc, dkeys = p.cfg.retrieval, {s: e.key for s, e in described.items()}
     paths, device = {s: e.path for s, e in described.items()}, ranks_device(p)
     units: list[tuple[tuple[Any, ...], Build]] = []
@@ -413,25 +432,46 @@ def _write_ranks(
     return counts
 
 
-def imported_ranks(p: Pipeline, frames: Table, pairs: Table) -> RankTable:
-    """Ranks from a user's localizer (``harness rank --import``), checked against the pairs."""
-    from .ranks_import import write_imported_ranks
+def imported_ranks(p: Pipeline, frames: Table, pairs: Table, props: dict[str, Table]) -> RankTable:
+    """Ranks from a user's localizer (``--import NAME=FILE``), checked against the run (SPEC 12).
 
-    assert p.rank_import is not None
+    Every row must be a proposal of the run and match a pair; a query image of the pairs without
+    any row is an error unless ``[import] allow_unranked_images`` (then it is counted).
+    """
+    from .retrieval.imported import write_imported_ranks
+
+    spec = p.rank_import
+    assert spec is not None
+    if not Path(spec.path).is_file():
+        raise RetrievalError(f"{spec.path}: --import file not found (localizer {spec.name!r})")
+    allprops = pd.concat([t.df for t in props.values()], ignore_index=True)
     build = partial(
         write_imported_ranks,
-        p.rank_import,
+        spec,
         pairs.df,
         frames.df,
+        allprops,
         p.cfg.retrieval.gt_radius_m,
         p.cfg.pairs.max_yaw_diff_deg,
+        p.cfg.import_.score_kind,
     )
-    entry = p.unit("ranks", keys.ranks_import(p.cfg, p.rank_import, pairs.key), build)
-    return RankTable(
-        read_cached_parquet(entry.path / "ranks.parquet"),
-        entry.key,
-        p.cache.manifest("ranks", entry.key)["info"],
+    key = keys.ranks_import(
+        p.cfg, spec.name, file_sha(spec.path), pairs.key, [t.key for t in props.values()]
     )
+    entry = p.unit("ranks", key, build)
+    df = read_cached_parquet(entry.path / "ranks.parquet")
+    info = dict(p.cache.manifest("ranks", entry.key)["info"])
+    missing = unranked_images(pairs.df, df)
+    info["unranked_query_images"] = len(missing)
+    if len(missing) and not p.cfg.import_.allow_unranked_images:
+        ex = missing.iloc[0]
+        raise RetrievalError(
+            f"{spec.path}: localizer {spec.name!r} ranks no subimage of {len(missing)} of "
+            f"{len(pairs.df)} query images (e.g. {ex.q_session}/{ex.q_camera}/{ex.q_utime} -> "
+            f"{ex.r_session}); every localizer is scored on the same images: rank them, or set "
+            "[import] allow_unranked_images = true to leave them out of every table (counted)"
+        )
+    return RankTable(df, entry.key, {"import": info})
 
 
 def fused_samples(p: Pipeline, ranks: RankTable, frames: Table, ann: Table) -> Table:
@@ -442,9 +482,17 @@ def fused_samples(p: Pipeline, ranks: RankTable, frames: Table, ann: Table) -> T
 
 
 def change_tables(
-    p: Pipeline, samples: Table, ranks: RankTable, frames: Table, ann: Table
+    p: Pipeline,
+    samples: Table,
+    ranks: RankTable,
+    frames: Table,
+    ann: Table,
+    notes: list[str] | None = None,
 ) -> Reports:
-    """Samples -> Tables I, S and P, localization quality, splits and figures (SPEC 8-10)."""
+    """Samples -> Tables I, S and P, localization quality, splits and figures (SPEC 8-10).
+
+    ``notes`` are printed under every change table (what the localizer lacks or lost).
+    """
     t0 = time.perf_counter()
     reports = write_reports(
         p.cfg,
@@ -454,6 +502,8 @@ def change_tables(
         frames.df,
         ann.df,
         progress=partial(progress, desc="splits", unit="split"),
+        localizer=p.localizer["name"],
+        notes=notes or [],
     )
     p.timings["labels_ap_reports"] = time.perf_counter() - t0
     return reports
@@ -488,12 +538,12 @@ def until_ranks(
     ingested, frames, ann, pairs = until_pairs(p)
     if check:
         check_inputs(p, ann, pairs)
-    described: dict[str, Entry] = {}
-    if p.rank_import is None:
-        props = session_proposals(p, frames, pairs, ingested)
-        model = descriptor_model(p, frames, props)
-        projection = descriptor_projection(p, frames, pairs, props, model)
-        described = session_descriptors(p, frames, props, model, projection)
+    props = session_proposals(p, frames, pairs, ingested)
+    if p.rank_import is not None:
+        return ingested, frames, ann, pairs, imported_ranks(p, frames, pairs, props)
+    model = descriptor_model(p, frames, props)
+    projection = descriptor_projection(p, frames, pairs, props, model)
+    described = session_descriptors(p, frames, props, model, projection)
     return ingested, frames, ann, pairs, query_ranks(p, frames, pairs, described)
 
 
@@ -504,11 +554,13 @@ def run_all(p: Pipeline) -> dict[str, Any]:
         The run record (``run.json``'s content plus ``table`` and ``reports``).
     """
     t0 = time.perf_counter()
+    check_localizer_set(p)
     ingested, frames, ann, pairs, ranks = until_ranks(p)
     if not len(ranks.df):
         raise RetrievalError("no query subimage got a rank")
+    notes = localizer_notes(p, ranks, pairs)
     samples = fused_samples(p, ranks, frames, ann)
-    reports = change_tables(p, samples, ranks, frames, ann)
+    reports = change_tables(p, samples, ranks, frames, ann, notes)
     record = run_record(
         p, ingested, frames, ann, pairs, ranks, samples, reports, time.perf_counter() - t0
     )
@@ -522,6 +574,73 @@ def run_all(p: Pipeline) -> dict[str, Any]:
     record["table"] = reports.tables["I"]
     record["reports"] = reports
     return record
+
+
+def check_localizer_set(p: Pipeline) -> None:
+    """Refuse to replace the tables of a run that measured another localizer, unless ``force``.
+
+    Raises:
+        HarnessError: ``out/run.json`` names other localizers; the message names both sets.
+    """
+    if p.force or not (p.out / "run.json").exists():
+        return
+    try:
+        rec = read_run_record(p.out)
+    except HarnessError:
+        return  # a damaged record is rewritten by this run
+    config = rec.get("config")
+    listed = rec.get("localizers")
+    before = [
+        str(loc.get("name"))
+        for loc in (listed if isinstance(listed, list) else [])
+        if isinstance(loc, dict)
+    ]
+    if not before and isinstance(config, dict):
+        before = [str(config.get("descriptor", {}).get("name", "?"))]
+    now = [p.localizer["name"]]
+    if before != now:
+        raise HarnessError(
+            f"{p.out}: holds the tables of localizer {', '.join(before)}; this run measures "
+            f"{', '.join(now)}; pass --force to replace them, or choose another --out"
+        )
+
+
+def localizer_notes(p: Pipeline, ranks: RankTable, pairs: Table) -> list[str]:
+    """What the tables must say about the localizer: score methods it cannot have, lost images.
+
+    An imported list without ``scores`` gives no ``d``: the score-fusion methods are dropped from
+    ``[fusion] methods`` for this run (never NaN rows without a word), and the tables say so.
+    """
+    notes: list[str] = []
+    if p.rank_import is None:
+        return notes
+    info = ranks.counts.get("import", {})
+    name = p.rank_import.name
+    if not info.get("has_scores"):
+        dropped = [m for m in ("score_max", "score_sum") if m in p.cfg.fusion.methods]
+        kept = tuple(m for m in p.cfg.fusion.methods if m not in dropped)
+        if dropped and kept:
+            p.cfg = dataclasses.replace(
+                p.cfg, fusion=dataclasses.replace(p.cfg.fusion, methods=kept)
+            )
+        if dropped:
+            notes.append(
+                f"NOTE: {', '.join(dropped)} not computed: localizer {name} gives ranked lists "
+                "without scores, so it has no relevance score d (SPEC sections 11-12)."
+            )
+    lost = int(info.get("unranked_query_images", 0))
+    if lost:
+        notes.append(
+            f"NOTE: {lost} of {len(pairs.df)} query images have no row from localizer {name} "
+            "and are left out of every table ([import] allow_unranked_images = true)."
+        )
+    inexact = int(info.get("gt_missing_from_truncated_list", 0))
+    if inexact:
+        notes.append(
+            f"NOTE: {inexact} of {len(ranks.df)} query subimages of localizer {name} have a "
+            "truncated list without their place: their rank is a bound (exact = False)."
+        )
+    return notes
 
 
 def check_inputs(p: Pipeline, ann: Table, pairs: Table) -> None:
@@ -558,6 +677,7 @@ def run_record(
         "versions": _versions(),
         "seed": p.cfg.seed,
         "argv": sys.argv,
+        "localizers": [p.localizer],
         "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
         "total_s": round(seconds, 3),
         "stage_units_run": p.ran,
@@ -570,6 +690,9 @@ def run_record(
             "pairs": len(pairs.df),
             "frames_not_described": dict(sorted(p.not_described.items())),
             "ranked_subimages": len(ranks.df),
+            "unranked_query_images": int(
+                sum(int(c.get("unranked_query_images", 0)) for c in ranks.counts.values())
+            ),
             "samples": len(samples.df),
             "rank_counts": ranks.counts,
         },
@@ -636,11 +759,15 @@ def _versions() -> dict[str, str]:
 
 
 def reproduce(
-    cfg: Config, out: Path, rank_import: Path | None = None, executor: Any = None
+    cfg: Config,
+    out: Path,
+    rank_import: ImportSpec | None = None,
+    executor: Any = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Run the whole pipeline for ``cfg`` into ``out`` (``executor``: local by default)."""
     return Pipeline(
-        cfg, Path(out), rank_import=rank_import, executor=executor or LocalExecutor()
+        cfg, Path(out), rank_import=rank_import, executor=executor or LocalExecutor(), force=force
     ).run()
 
 

@@ -7,7 +7,6 @@ import pandas as pd
 import pytest
 
 from harness.errors import RetrievalError
-from harness.ranks_import import ranks_from_import
 from harness.retrieval import image_ranks, image_ranks_faiss
 
 
@@ -90,7 +89,6 @@ def test_radius_zero_reproduces_the_single_frame_rank() -> None:
 
     Places of G alone give exactly the ranks without a place (the earlier engine).
     """
-    import pandas as pd
 
     from harness.pairs import ground_truth_places
 
@@ -117,7 +115,6 @@ def test_radius_zero_reproduces_the_single_frame_rank() -> None:
 
 
 def test_places_respect_the_heading_gate() -> None:
-    import pandas as pd
 
     from harness.pairs import ground_truth_places
 
@@ -174,101 +171,6 @@ def test_faiss_is_exact_where_it_says_so() -> None:
     np.testing.assert_allclose(res.dist, dist, rtol=1e-4)
     full = image_ranks_faiss(q, db, frame, gt, k=500)
     assert full.exact.all() and np.array_equal(full.rank, exact)
-
-
-PAIRS = pd.DataFrame(
-    {
-        "q_session": ["A"],
-        "q_camera": ["c"],
-        "q_utime": [1],
-        "r_session": ["B"],
-        "r_camera": ["c"],
-        "r_utime": [30],
-        "season_pair": ["WI->SU"],
-    }
-)
-
-
-def _imp(ranked: list, L: int, **kw: object) -> pd.DataFrame:
-    return pd.DataFrame(
-        {
-            "q_session": ["A"],
-            "q_camera": ["c"],
-            "q_utime": [1],
-            "method": ["grid5"],
-            "box_id": [0],
-            "x1": [0.0],
-            "y1": [0.0],
-            "x2": [5.0],
-            "y2": [5.0],
-            "r_session": ["B"],
-            "ranked": [ranked],
-            "L": [L],
-            **{k: [v] for k, v in kw.items()},
-        }
-    )
-
-
-def test_imported_lists() -> None:
-    df, counts = ranks_from_import(_imp([10, 30, 20], 50, distance=0.7), PAIRS, "x")
-    assert df["rank"][0] == 2 and df["r"][0] == 2 / 50 and df["d"][0] == 0.7 and df["exact"][0]
-    df, counts = ranks_from_import(_imp([10, 20], 50), PAIRS, "x")
-    assert (
-        df["rank"][0] == 50 and not df["exact"][0] and counts["gt_missing_from_truncated_list"] == 1
-    )
-    df, _ = ranks_from_import(_imp([10, 20], 50), PAIRS, "x", missing="next")
-    assert df["rank"][0] == 3
-    with pytest.raises(RetrievalError, match="missing from a complete list"):
-        ranks_from_import(_imp([10, 20], 2), PAIRS, "x")
-    with pytest.raises(RetrievalError, match="repeats a frame"):
-        ranks_from_import(_imp([10, 10, 30], 9), PAIRS, "x")
-
-
-REF_FRAMES = pd.DataFrame(
-    {
-        "session": "B",
-        "camera": "c",
-        "utime": [10, 20, 30, 40, 50],
-        "x": [0.0, 5.0, 10.0, 11.0, 20.0],
-        "y": 0.0,
-        "yaw": 0.0,
-    }
-)
-
-
-def test_imported_lists_are_scored_against_the_place() -> None:
-    # G = 30 at x = 10; frame 40 at x = 11 belongs to its place (radius 2 m), the others do not
-    df, _ = ranks_from_import(
-        _imp([10, 40, 30, 20, 50], 5, distance=0.7), PAIRS, "x", REF_FRAMES, gt_radius_m=2.0
-    )
-    assert (
-        df["rank"][0] == 2 and df["L"][0] == 4 and df["place_size"][0] == 2
-    )  # 10 listed before 40; L = 1 + 3 outside
-    assert df["r"][0] == pytest.approx(2 / 4) and df["r_desc"][0] == pytest.approx(3 / 4)
-    df, _ = ranks_from_import(
-        _imp([10, 40, 30, 20, 50], 5), PAIRS, "x", REF_FRAMES, gt_radius_m=0.0
-    )
-    assert df["rank"][0] == 3 and df["L"][0] == 5  # the single frame: 10 and 40 before it
-    # truncated list without the place: 'next' counts only listed frames outside it
-    df, counts = ranks_from_import(
-        _imp([10, 20], 5), PAIRS, "x", REF_FRAMES, gt_radius_m=2.0, missing="next"
-    )
-    assert (
-        df["rank"][0] == 3 and not df["exact"][0] and counts["gt_missing_from_truncated_list"] == 1
-    )
-
-
-def test_imported_ids_that_match_no_frame_are_refused_or_counted() -> None:
-    # nanoseconds for microseconds: no id matches a frame of session B
-    with pytest.raises(
-        RetrievalError,
-        match=r"5 of 5 listed reference ids match no frame.*e\.g\. 10000 in session B",
-    ):
-        ranks_from_import(_imp([10000, 20000, 30000, 40000, 50000], 5), PAIRS, "x", REF_FRAMES)
-    df, counts = ranks_from_import(
-        _imp([10, 20, 30, 99], 5), PAIRS, "x", REF_FRAMES
-    )  # one stray id: counted
-    assert counts["unmatched_reference_ids"] == 1 and df["rank"][0] == 3
 
 
 def test_a_memory_budget_ranks_in_groups_with_the_same_result() -> None:

@@ -1,0 +1,564 @@
+"""Bring your own localizer: external ranked lists checked and scored as SPEC section 12 says.
+
+Input (parquet or CSV), one row per query subimage:
+
+| column | type | meaning |
+|---|---|---|
+| ``q_session, q_camera, q_utime`` | str, str, int | the query frame (``utime`` in microseconds) |
+| ``method`` | str | the proposal method of the subimage |
+| ``box_id`` | int | the subimage's id within the frame and method |
+| ``x1, y1, x2, y2`` | float | the subimage box in upright pixels (x2, y2 exclusive) |
+| ``r_session`` | str | the reference session searched (the pair's) |
+| ``ranked`` | list of int (parquet) or space-separated ints (CSV) | reference frame utimes, best
+first; may be truncated; never empty |
+| ``L`` | int | the length of the full ranked list (the frames in the localizer's database) |
+| ``scores`` | list of float (parquet) or space-separated floats (CSV), optional | the localizer's
+score of each listed frame, parallel to ``ranked``; ``[import] score_kind`` says whether it is a
+``distance`` (smaller = more similar) or a ``similarity`` in [0, 1] |
+
+``harness task export`` writes the task these rows answer (the query subimages with the pair's
+reference session, the reference frames with their boxes) and this schema beside it.
+
+Scoring (the built-in engine's rules, SPEC section 6). The ground-truth reference G of a query
+frame comes from the pair table and its *place* P(G) from the reference frames' poses. With
+``scores``, each listed frame F has ``dist(F)`` (the score, or ``1 - s`` for a similarity), ``d`` is
+the best ``dist`` over the listed frames of P(G), and ``rank = 1 +`` the number of listed frames
+outside P(G) with ``dist < d`` (equal scores tie in the query's favour). Without ``scores`` the
+list is a strict order: ``rank = 1 +`` the listed frames outside P(G) before the first frame of
+P(G), and the localizer has no ``d`` (the score-fusion methods are not computed). ``L' = 1 +
+L - |P(G) in the database|`` (the database: the reference frames that hold a box of the method).
+A place absent from a truncated list gets the bound ``rank = min(L', len(ranked) + 1)`` (and, with
+scores, the bound ``d`` = the last listed distance), marked ``exact = False`` and counted.
+
+Every row must match a pair and a proposal of the run. Rows that match no pair or no proposal,
+duplicate rows, ids that are not frames of the reference session, non-finite or out-of-order
+scores, a list longer than ``L`` and a complete list without the place are errors that name the
+file, the count and one example row.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ..errors import RetrievalError
+from ..pairs import ground_truth_places
+
+log = logging.getLogger(__name__)
+
+KEY = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+REQUIRED = [
+    "q_session",
+    "q_camera",
+    "q_utime",
+    "method",
+    "box_id",
+    "x1",
+    "y1",
+    "x2",
+    "y2",
+    "r_session",
+    "ranked",
+    "L",
+]
+OPTIONAL = ["scores"]
+SCORE_KINDS = ("distance", "similarity")
+#: A box that differs from the run's proposal by more than this many pixels is another box.
+BOX_TOLERANCE_PX = 0.5
+
+
+@dataclass(frozen=True)
+class ImportSpec:
+    """One ``--import NAME=FILE``: the localizer's name and its rank file."""
+
+    name: str
+    path: Path
+
+
+def parse_import_arg(text: str) -> ImportSpec:
+    """``NAME=FILE`` or a bare ``FILE`` (the name is then the file's stem).
+
+    Raises:
+        RetrievalError: An empty name or file, or a name that is not a plain word.
+    """
+    name, sep, file = text.partition("=")
+    if not sep or "/" in name or not name:
+        name, file = Path(text).stem, text
+    if not file:
+        raise RetrievalError(f"--import {text!r}: give NAME=FILE or FILE")
+    check_localizer_name(name, f"--import {text!r}")
+    return ImportSpec(name, Path(file))
+
+
+def check_localizer_name(name: str, where: str) -> str:
+    """A localizer name: shown in tables and used in file names, so a plain word.
+
+    Raises:
+        RetrievalError: It holds characters other than letters, digits, ``.``, ``_``, ``-``,
+            ``+``, or starts with ``.``, ``-`` or is longer than 64 characters.
+    """
+    ok = bool(name) and len(name) <= 64 and name[0] not in ".-"
+    ok = ok and all(c.isalnum() or c in "._-+" for c in name)
+    if not ok:
+        raise RetrievalError(
+            f"{where}: localizer name {name!r} must be 1-64 letters, digits, '.', '_', '-' or "
+            "'+', not starting with '.' or '-'"
+        )
+    return name
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+class _Rows:
+    """Row numbering for messages: CSV line numbers (header = line 1) or parquet rows (1-based)."""
+
+    def __init__(self, path: Path, csv: bool) -> None:
+        self.path, self.csv = path, csv
+
+    def name(self, i: int) -> str:
+        return f"line {i + 2}" if self.csv else f"row {i + 1}"
+
+    def fail(self, bad: np.ndarray | Sequence[int], what: str, example: str = "") -> None:
+        """Raise one error for the rows ``bad`` (indices) when there are any."""
+        idx = np.flatnonzero(bad) if isinstance(bad, np.ndarray) and bad.dtype == bool else bad
+        idx = list(idx)
+        if not idx:
+            return
+        n = len(idx)
+        ex = f" (e.g. {self.name(int(idx[0]))}{': ' + example if example else ''})"
+        raise RetrievalError(f"{self.path}: {n} row{'s' if n != 1 else ''} {what}{ex}")
+
+
+def _int_list(v: Any) -> list[int] | None:
+    """A parquet list or a CSV string of integers; None when it is anything else."""
+    if isinstance(v, str):
+        parts = v.split()
+        try:
+            return [int(p) for p in parts]
+        except ValueError:
+            return None
+    if isinstance(v, (list, tuple, np.ndarray)):
+        out = []
+        for x in v:
+            if isinstance(x, (bool, np.bool_)) or x is None:
+                return None
+            whole = isinstance(x, (float, np.floating)) and math.isfinite(x) and x.is_integer()
+            if not (isinstance(x, (int, np.integer)) or whole):
+                return None
+            out.append(int(x))
+        return out
+    return None
+
+
+def _float_list(v: Any) -> list[float] | None:
+    """A parquet list or a CSV string of numbers; None when it is anything else."""
+    items = v.split() if isinstance(v, str) else v
+    if not isinstance(items, (list, tuple, np.ndarray)):
+        return None
+    out = []
+    for x in items:
+        if x is None or isinstance(x, (bool, np.bool_)):
+            return None
+        try:
+            out.append(float(x))
+        except (TypeError, ValueError):
+            return None
+    return out
+
+
+def read_import(path: Path) -> tuple[pd.DataFrame, _Rows]:
+    """A rank file (CSV or parquet) as a typed table; every value checked.
+
+    Returns:
+        The table (``ranked`` and ``scores`` as Python lists) and its row numbering.
+
+    Raises:
+        RetrievalError: The file is missing, unreadable, lacks a column, or a value has the
+            wrong type: one message naming the file, the count and one example row.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise RetrievalError(f"{path}: rank file not found")
+    if path.is_dir():
+        raise RetrievalError(f"{path}: is a directory; give the rank file (.parquet or .csv)")
+    csv = path.suffix.lower() != ".parquet"
+    try:
+        if csv:
+            df = pd.read_csv(path, dtype=str, keep_default_na=False, encoding="utf-8")
+        else:
+            df = pd.read_parquet(path)
+    except PermissionError:
+        raise RetrievalError(f"{path}: not readable (permission denied)") from None
+    except UnicodeDecodeError as err:
+        raise RetrievalError(
+            f"{path}: not a UTF-8 CSV ({err.reason} at byte {err.start})"
+        ) from None
+    except (OSError, ValueError) as err:
+        kind = "CSV" if csv else "parquet"
+        raise RetrievalError(f"{path}: not a readable {kind} file ({err})") from None
+    rows = _Rows(path, csv)
+    if "distance" in df.columns and "scores" not in df.columns:
+        raise RetrievalError(
+            f"{path}: column 'distance' is not read (a distance to what?): give 'scores', "
+            "parallel to 'ranked', one score per listed frame, and set [import] score_kind "
+            "(SPEC section 12)"
+        )
+    miss = [c for c in REQUIRED if c not in df.columns]
+    if miss:
+        raise RetrievalError(
+            f"{path}: missing column(s) {miss}; required: {REQUIRED}, optional: {OPTIONAL}"
+        )
+    df = df.reset_index(drop=True)
+    out = pd.DataFrame(index=df.index)
+    for c in ("q_session", "q_camera", "r_session", "method"):
+        s = df[c]
+        bad = s.isna().to_numpy() | (s.astype(str).str.strip() == "").to_numpy()
+        rows.fail(bad, f"have no {c}")
+        out[c] = s.astype(str).str.strip()
+    for c in ("q_utime", "box_id", "L"):
+        num = pd.to_numeric(df[c], errors="coerce")
+        vals = num.to_numpy(np.float64)
+        bad = ~np.isfinite(vals) | (vals != np.round(vals))
+        i = int(np.flatnonzero(bad)[0]) if bad.any() else 0
+        rows.fail(bad, f"have a {c} that is not an integer", f"{c} = {df[c].iloc[i]!r}")
+        out[c] = vals.astype(np.int64)
+    rows.fail(out["L"].to_numpy() < 1, "have L < 1")
+    for c in ("x1", "y1", "x2", "y2"):
+        vals = pd.to_numeric(df[c], errors="coerce").to_numpy(np.float64)
+        bad = ~np.isfinite(vals)
+        i = int(np.flatnonzero(bad)[0]) if bad.any() else 0
+        rows.fail(bad, f"have a {c} that is not a finite number", f"{c} = {df[c].iloc[i]!r}")
+        out[c] = vals
+    flat = (out["x2"] <= out["x1"]) | (out["y2"] <= out["y1"])
+    rows.fail(flat.to_numpy(), "have a box with x2 <= x1 or y2 <= y1 (reversed or empty)")
+    ranked = [_int_list(v) for v in df["ranked"]]
+    bad_i = [i for i, v in enumerate(ranked) if v is None]
+    rows.fail(
+        bad_i,
+        "have a 'ranked' that is not a list of integer frame utimes (CSV: space-separated)",
+        f"{str(df['ranked'].iloc[bad_i[0]])[:40]!r}" if bad_i else "",
+    )
+    rows.fail([i for i, v in enumerate(ranked) if not v], "have an empty 'ranked' list")
+    rows.fail(
+        [i for i, v in enumerate(ranked) if v is not None and len(set(v)) != len(v)],
+        "have a 'ranked' list that repeats a frame",
+    )
+    out["ranked"] = ranked
+    long = out["L"].to_numpy() < np.array([len(v or []) for v in ranked])
+    rows.fail(long, "have L shorter than their 'ranked' list")
+    if "scores" in df.columns:
+        scores = [_float_list(v) for v in df["scores"]]
+        rows.fail(
+            [i for i, v in enumerate(scores) if v is None],
+            "have 'scores' that are not a list of numbers (CSV: space-separated)",
+        )
+        rows.fail(
+            [
+                i
+                for i, (s, r) in enumerate(zip(scores, ranked, strict=True))
+                if len(s or []) != len(r or [])
+            ],
+            "have 'scores' of another length than 'ranked'",
+        )
+        nonfinite = [i for i, s in enumerate(scores) if not all(math.isfinite(x) for x in s or [])]
+        rows.fail(nonfinite, "have non-finite scores (NaN or inf)")
+        out["scores"] = scores
+    return out, rows
+
+
+# ---------------------------------------------------------------------------- scoring
+
+
+def _distances(scores: list[float], kind: str) -> np.ndarray:
+    d = np.asarray(scores, np.float64)
+    return d if kind == "distance" else 1.0 - d
+
+
+def _check_against_run(
+    df: pd.DataFrame,
+    rows: _Rows,
+    pairs: pd.DataFrame,
+    proposals: pd.DataFrame | None,
+    frames: pd.DataFrame,
+) -> pd.DataFrame:
+    """Join the pair of every row; refuse rows without a pair, proposal or known frame ids."""
+    dup = df.duplicated(KEY, keep="first").to_numpy()
+    if dup.any():
+        r = df.loc[df.index[dup][0]]
+        rows.fail(
+            dup,
+            "repeat a query subimage (same frame, r_session, method, box_id)",
+            f"{r.q_session}/{r.q_camera}/{r.q_utime} -> {r.r_session}, {r.method} box {r.box_id}",
+        )
+    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    m = df.merge(
+        pairs[keys + ["r_camera", "r_utime", "season_pair"]], on=keys, how="left", sort=False
+    )
+    unpaired = m["r_utime"].isna().to_numpy()
+    if unpaired.any():
+        i = int(np.flatnonzero(unpaired)[0])
+        r = m.iloc[i]
+        rows.fail(
+            unpaired,
+            "match no pair of the run (query frame x reference session)",
+            f"{r.q_session}/{r.q_camera}/{r.q_utime} -> {r.r_session}" + _pair_hint(r, pairs),
+        )
+    m["r_utime"] = m["r_utime"].astype(np.int64)
+    if proposals is not None:
+        pk = ["session", "camera", "utime", "method", "box_id"]
+        pr = proposals[pk + ["x1", "y1", "x2", "y2"]].rename(
+            columns={
+                "session": "q_session",
+                "camera": "q_camera",
+                "utime": "q_utime",
+                "x1": "_x1",
+                "y1": "_y1",
+                "x2": "_x2",
+                "y2": "_y2",
+            }
+        )
+        j = m.merge(pr, on=["q_session", "q_camera", "q_utime", "method", "box_id"], how="left")
+        none = j["_x1"].isna().to_numpy()
+        if none.any():
+            i = int(np.flatnonzero(none)[0])
+            known = sorted(set(proposals["method"]))
+            rows.fail(
+                none,
+                "match no proposal of the run (query frame, method, box_id)",
+                f"method {j.loc[i, 'method']!r} box {j.loc[i, 'box_id']}; the run's methods: "
+                f"{known}; `harness task export` lists every query subimage",
+            )
+        off = np.zeros(len(j), bool)
+        for a in ("x1", "y1", "x2", "y2"):
+            off |= np.abs(j[a].to_numpy() - j["_" + a].to_numpy()) > BOX_TOLERANCE_PX
+        if off.any():
+            i = int(np.flatnonzero(off)[0])
+            rows.fail(
+                off,
+                "have a box that is not the run's proposal of that box_id",
+                f"({j.loc[i, 'x1']:g}, {j.loc[i, 'y1']:g}, {j.loc[i, 'x2']:g}, {j.loc[i, 'y2']:g})"
+                f" vs ({j.loc[i, '_x1']:g}, {j.loc[i, '_y1']:g}, {j.loc[i, '_x2']:g}, "
+                f"{j.loc[i, '_y2']:g}) in upright pixels",
+            )
+    known_ids = {
+        str(s): set(g["utime"].astype(np.int64).tolist())
+        for s, g in frames.groupby("session", sort=True)
+    }
+    bad_ids = []
+    example = ""
+    for i, (lst, rs) in enumerate(zip(m["ranked"], m["r_session"], strict=True)):
+        ids = known_ids.get(str(rs), set())
+        stray = [v for v in lst if v not in ids]
+        if stray:
+            bad_ids.append(i)
+            if not example:
+                hint = ""
+                if ids and stray[0] // 1000 in ids:
+                    hint = " (nanoseconds? frame ids are utimes in microseconds)"
+                example = f"{stray[0]} is no frame of session {rs}{hint}"
+    rows.fail(bad_ids, "list reference ids that are not frames of their reference session", example)
+    return m
+
+
+def _pair_hint(r: Any, pairs: pd.DataFrame) -> str:
+    """Why a row may match no pair: a unit or a spelling the user can fix."""
+    q = pairs[["q_session", "q_camera", "q_utime", "r_session"]].drop_duplicates()
+    if not (q["q_session"] == r.q_session).any():
+        return (
+            f"; no query frame of session {r.q_session!r}: sessions {sorted(set(q['q_session']))}"
+        )
+    if not (q["q_camera"] == r.q_camera).any():
+        cams = sorted(set(q["q_camera"]))
+        return f"; no camera {r.q_camera!r}: cameras {cams} (names are case-sensitive)"
+    if (q["q_utime"] == r.q_utime // 1000).any():
+        return "; q_utime looks like nanoseconds: utimes are microseconds"
+    if not (q["r_session"] == r.r_session).any() or r.r_session == r.q_session:
+        return f"; reference sessions of the pairs: {sorted(set(q['r_session']))}"
+    return ""
+
+
+def ranks_from_import(
+    df: pd.DataFrame,
+    rows: _Rows,
+    pairs: pd.DataFrame,
+    frames: pd.DataFrame,
+    proposals: pd.DataFrame | None = None,
+    gt_radius_m: float = 0.0,
+    max_yaw_deg: float = 45.0,
+    score_kind: str = "distance",
+) -> tuple[pd.DataFrame, dict[str, int]]:
+    """Validate imported lists against the run; compute ``rank, L, r, r', d`` (SPEC 6 and 12).
+
+    Args:
+        df: The table :func:`read_import` returned.
+        rows: Its row numbering (for messages).
+        pairs: The pair table (ground-truth reference frame per query frame and session).
+        frames: The frame table (reference ids are checked, places built).
+        proposals: Every session's proposals; with them each row must be a proposal of the run,
+            and a method's database is the reference frames with a box of that method.
+        gt_radius_m: The place's radius, metres (0: the frame G alone).
+        max_yaw_deg: The place's heading limit, degrees.
+        score_kind: ``distance`` or ``similarity`` (``scores`` only).
+
+    Returns:
+        The rank rows (the built-in engine's columns) and counters.
+
+    Raises:
+        RetrievalError: Any of SPEC 12's errors, naming the file, the count and an example.
+    """
+    if score_kind not in SCORE_KINDS:
+        raise RetrievalError(f"[import] score_kind = {score_kind!r}; allowed: {SCORE_KINDS}")
+    m = _check_against_run(df, rows, pairs, proposals, frames)
+    has_scores = "scores" in m.columns
+    if has_scores and score_kind == "similarity":
+        out_of = [i for i, s in enumerate(m["scores"]) if any(x < 0 or x > 1 for x in s)]
+        rows.fail(out_of, "have similarities outside [0, 1] (SPEC 11: d = 1 - s)")
+    if has_scores:
+        wrong = [
+            i for i, s in enumerate(m["scores"]) if np.any(np.diff(_distances(s, score_kind)) < 0)
+        ]
+        other = "similarity" if score_kind == "distance" else "distance"
+        rows.fail(
+            wrong,
+            f"have scores out of the order of 'ranked' (best first means {score_kind}s "
+            f"{'rise' if score_kind == 'distance' else 'fall'} along the list; "
+            f'if they are {other}s, set [import] score_kind = "{other}")',
+        )
+    places: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+    for (s, c), g in frames.groupby(["session", "camera"], sort=True):
+        sel = (m["r_session"] == s) & (m["r_camera"] == c)
+        if sel.any():
+            places[(str(s), str(c))] = ground_truth_places(
+                g, m.loc[sel, "r_utime"].to_numpy(np.int64), gt_radius_m, max_yaw_deg
+            )
+    db = _databases(proposals)
+    n = len(m)
+    rank = np.empty(n, np.int64)
+    Lq = np.empty(n, np.int64)
+    psize = np.empty(n, np.int64)
+    dval = np.full(n, np.nan)
+    exact = np.ones(n, bool)
+    incomplete = []
+    counts = {"rows": n, "gt_missing_from_truncated_list": 0}
+    it = zip(
+        m["ranked"], m["L"], m["r_utime"], m["r_session"], m["r_camera"], m["method"], strict=True
+    )
+    for i, (lst, L, g, rs, rc, meth) in enumerate(it):
+        place = places.get((str(rs), str(rc)), {}).get(int(g), np.array([g], np.int64))
+        in_db = db.get((str(rs), str(rc), str(meth)))
+        members = set(place.tolist())
+        n_place = len(members & in_db) if in_db is not None else len(members)
+        psize[i] = max(1, n_place)
+        Lq[i] = max(1, int(L) - psize[i] + 1)
+        is_member = np.fromiter((v in members for v in lst), bool, len(lst))
+        dist = _distances(m["scores"].iloc[i], score_kind) if has_scores else None
+        if is_member.any():
+            if dist is not None:
+                dval[i] = float(dist[is_member].min())
+                rank[i] = 1 + int(((dist < dval[i]) & ~is_member).sum())
+            else:
+                rank[i] = 1 + int((~is_member[: int(np.argmax(is_member))]).sum())
+        elif len(lst) >= int(L):
+            incomplete.append(i)
+        else:
+            counts["gt_missing_from_truncated_list"] += 1
+            rank[i] = min(int(Lq[i]), len(lst) + 1)
+            if dist is not None:
+                dval[i] = float(dist[-1])
+            exact[i] = False
+    rows.fail(incomplete, "have a complete list (len = L) without any frame of the place P(G)")
+    rank = np.minimum(rank, Lq)
+    cols = [
+        "q_session",
+        "q_camera",
+        "q_utime",
+        "r_session",
+        "r_camera",
+        "r_utime",
+        "season_pair",
+        "method",
+        "box_id",
+        "x1",
+        "y1",
+        "x2",
+        "y2",
+    ]
+    out = m[cols].copy()
+    out["rank"] = rank
+    out["L"] = Lq
+    out["r"] = rank / Lq
+    out["r_desc"] = (Lq + 1 - rank) / Lq
+    out["d"] = dval
+    out["exact"] = exact
+    out["place_size"] = psize
+    counts["ranked"] = n
+    return out.sort_values(
+        ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+    ).reset_index(drop=True), counts
+
+
+def _databases(proposals: pd.DataFrame | None) -> dict[tuple[str, str, str], set[int]]:
+    """(session, camera, method) -> the frames that hold a box of the method."""
+    if proposals is None or not len(proposals):
+        return {}
+    g = proposals[["session", "camera", "method", "utime"]].drop_duplicates()
+    return {
+        (str(s), str(c), str(meth)): set(x["utime"].astype(np.int64).tolist())
+        for (s, c, meth), x in g.groupby(["session", "camera", "method"], sort=True)
+    }
+
+
+def unranked_images(pairs: pd.DataFrame, ranks: pd.DataFrame) -> pd.DataFrame:
+    """The query images (query frame x reference session) of ``pairs`` without any rank row."""
+    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    have = ranks[keys].drop_duplicates() if len(ranks) else pd.DataFrame(columns=keys)
+    j = pairs[keys].merge(have, on=keys, how="left", indicator=True)
+    return j.loc[j["_merge"] == "left_only", keys].reset_index(drop=True)
+
+
+def write_imported_ranks(
+    spec: ImportSpec,
+    pairs: pd.DataFrame,
+    frames: pd.DataFrame,
+    proposals: pd.DataFrame | None,
+    radius_m: float,
+    max_yaw_deg: float,
+    score_kind: str,
+    tmp: Path,
+) -> dict[str, Any]:
+    """Read the user's rank file, score it against the run, write ``tmp/ranks.parquet``.
+
+    Args:
+        spec: The localizer's name and rank file.
+        pairs: The run's pairs.
+        frames: The frame table (the places' frames).
+        proposals: Every session's proposals (the rows must be among them).
+        radius_m: The place radius, metres.
+        max_yaw_deg: The place's heading limit, degrees.
+        score_kind: ``distance`` or ``similarity``.
+        tmp: The entry's directory.
+
+    Returns:
+        The import counters, and whether the file has scores.
+    """
+    from ..cache import write_parquet
+
+    df, rows = read_import(spec.path)
+    ranks, counts = ranks_from_import(
+        df, rows, pairs, frames, proposals, radius_m, max_yaw_deg, score_kind
+    )
+    write_parquet(tmp / "ranks.parquet", ranks)
+    return {**counts, "has_scores": int("scores" in df.columns)}
+
+
+def describe_rows(items: Iterable[tuple[str, str, int, str]]) -> str:
+    """``session/camera/utime -> reference`` of query images, for messages."""
+    return ", ".join(f"{s}/{c}/{u} -> {r}" for s, c, u, r in items)
