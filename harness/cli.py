@@ -201,6 +201,40 @@ def cmd_rank(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_task(args: argparse.Namespace) -> int:
+    """``harness task export``: the localization task for a user's localizer (SPEC 12)."""
+    from .runner import check_inputs, session_proposals, until_pairs
+    from .task_export import write_task
+
+    p = _pipeline(args)
+    with p.locked():
+        ing, frames, ann, pairs = until_pairs(p)
+        check_inputs(p, ann, pairs)
+        props = session_proposals(p, frames, pairs, ing)
+        keys = {
+            "pairs": pairs.key,
+            "proposals": {s: t.key for s, t in props.items()},
+            "config": p.cfg.name,
+        }
+        counts = write_task(
+            p.out / "task",
+            frames.df,
+            pairs.df,
+            {s: t.df for s, t in props.items()},
+            keys,
+            args.images,
+        )
+    t = p.out / "task"
+    print(
+        f"task: {counts['query_subimages']} query subimages ({counts['query_images']} query "
+        f"images) and {counts['reference_subimages']} reference subimages -> "
+        f"{t / 'queries.csv'}, {t / 'references.csv'}, {t / 'databases.csv'}; what to write "
+        f"back: {t / 'schema.md'}; then: harness reproduce --config {args.config} --out "
+        f"{args.out} --import NAME=FILE"
+    )
+    return 0
+
+
 def _print_change_table(console, rep, table: str, title: str) -> None:
     """One change table with intervals, the floor row, and its confound warnings."""
     from rich.table import Table
@@ -561,6 +595,26 @@ def build_parser() -> argparse.ArgumentParser:
                 help="replace the tables of a run directory that measured another localizer",
             )
         p.set_defaults(func=func)
+
+    p = sub.add_parser("task", help="the localization task for your own localizer")
+    tsub = p.add_subparsers(dest="action", required=True)
+    p = tsub.add_parser(
+        "export",
+        help="write OUT/task/: query subimages, reference frames with boxes, upright images, "
+        "the import schema (nothing is trained)",
+    )
+    p.add_argument("--config", required=True)
+    p.add_argument("--out", required=True, help="the run directory a later reproduce uses")
+    p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
+    p.add_argument("--seed", type=int)
+    p.add_argument(
+        "--images",
+        choices=["upright", "source"],
+        default="upright",
+        help="upright: write rotated frames upright as PNG (default); source: name the stored "
+        "files with a rotation column",
+    )
+    p.set_defaults(func=cmd_task, executor="local", address=None, ray_cpus=None)
 
     p = sub.add_parser("report", help="(re)write OUT/report.html for an existing run")
     p.add_argument("out", help="a run directory (the --out of harness reproduce)")
