@@ -22,6 +22,7 @@ import pandas as pd
 from .cache import atomic_dir, write_json
 from .errors import AnnotationError
 from .imagestore import read_image
+from .inputs import check_input, read_text
 from .outdirs import check_file_replaceable, check_replaceable, write_marker
 
 COLUMNS = ["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
@@ -114,9 +115,7 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
 
 def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataFrame:
     """Read and validate a canonical annotation CSV."""
-    path = Path(path)
-    if not path.exists():
-        raise AnnotationError(f"{path}: annotation file not found")
+    path = check_input(path, "annotation file", AnnotationError)
     try:
         df = pd.read_csv(
             path,
@@ -170,8 +169,9 @@ def _rows_for_image(
 
 def import_coco(path: Path) -> pd.DataFrame:
     """COCO JSON: ``bbox`` is ``[x, y, w, h]``; an image without annotations is no-change."""
+    text = read_text(path, "COCO annotation file", AnnotationError)
     try:
-        doc = json.loads(Path(path).read_text())
+        doc = json.loads(text)
         images = {im["id"]: im["file_name"] for im in doc["images"]}
         cats = {c["id"]: c["name"] for c in doc.get("categories", [])}
         per: dict[int, list] = {i: [] for i in images}
@@ -182,7 +182,7 @@ def import_coco(path: Path) -> pd.DataFrame:
                     f"{path}: annotation {a.get('id')} refers to unknown image_id {a['image_id']}"
                 )
             per[a["image_id"]].append((x, y, x + w, y + h, cats.get(a.get("category_id"), "")))
-    except (KeyError, TypeError, ValueError) as err:
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise AnnotationError(
             f"{path}: not a COCO annotation file: {type(err).__name__}: {err}"
         ) from None
@@ -210,6 +210,7 @@ def _cvat_box(b: ET.Element) -> tuple[float, float, float, float, str]:
 def import_voc(folder: Path) -> pd.DataFrame:
     """Pascal VOC: one XML per image in ``folder``; an image without objects is no-change."""
     rows: list[dict] = []
+    folder = check_input(folder, "VOC annotation folder", AnnotationError, directory=True)
     files = sorted(Path(folder).glob("*.xml"))
     if not files:
         raise AnnotationError(f"{folder}: no VOC .xml files")
@@ -226,7 +227,7 @@ def import_voc(folder: Path) -> pd.DataFrame:
                     _number(bb.findtext(k), k) for k in ("xmin", "ymin", "xmax", "ymax")
                 )
                 boxes.append((x1, y1, x2, y2, obj.findtext("name") or ""))
-        except (ET.ParseError, TypeError, ValueError) as err:
+        except (ET.ParseError, TypeError, ValueError, OSError) as err:
             raise AnnotationError(f"{f}: not a VOC annotation: {err}") from None
         rows += _rows_for_image(name, boxes, str(f))
     return pd.DataFrame(rows, columns=COLUMNS)
@@ -234,9 +235,10 @@ def import_voc(folder: Path) -> pd.DataFrame:
 
 def import_cvat(path: Path) -> pd.DataFrame:
     """CVAT for images 1.1 XML: ``<image name=...><box label xtl ytl xbr ybr/></image>``."""
+    check_input(path, "CVAT annotation file", AnnotationError)
     try:
         root = ET.parse(path).getroot()
-    except ET.ParseError as err:
+    except (ET.ParseError, UnicodeDecodeError) as err:
         raise AnnotationError(f"{path}: not valid XML: {err}") from None
     rows: list[dict] = []
     images = root.findall("image")

@@ -110,18 +110,47 @@ def source_fingerprints(
     return out
 
 
-def file_fingerprint(path: Path) -> dict[str, Any]:
-    """Cheap identity of a file or directory tree: relative names, sizes and mtimes."""
+def content_sha(path: Path, full: bool = False) -> str:
+    """SHA-256 of a file's content (1 MiB blocks): 16 hex digits, or all 64 with ``full``."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest() if full else h.hexdigest()[:16]
+
+
+def _summed(rel: str) -> bool:
+    """Files of a cache entry whose checksum the manifest records: all but an image store's."""
+    return not rel.startswith("images/")
+
+
+def relative_to_root(path: Path | str, root: Path | None) -> str:
+    """``{data_root}/...`` for a path under ``root``, else the absolute path (for cache keys).
+
+    Keys name inputs by their place in the data root, so a moved data root keeps its keys.
+    """
+    p = Path(path).resolve()
+    if root is not None and p.is_relative_to(Path(root).resolve()):
+        return "{data_root}/" + p.relative_to(Path(root).resolve()).as_posix()
+    return str(p)
+
+
+def file_fingerprint(path: Path, root: Path | None = None) -> dict[str, Any]:
+    """Cheap identity of a file or directory tree: relative names, sizes and mtimes.
+
+    The path itself enters relative to ``root`` (the data root) where it lies under it.
+    """
     path = Path(path)
+    name = relative_to_root(path, root)
     if path.is_file():
         st = path.stat()
-        return {"path": str(path.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+        return {"path": name, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
     entries = []
     for p in sorted(path.rglob("*")):
         if p.is_file():
             st = p.stat()
             entries.append((str(p.relative_to(path)), st.st_size, st.st_mtime_ns))
-    return {"path": str(path.resolve()), "digest": stable_hash(entries)}
+    return {"path": name, "digest": stable_hash(entries)}
 
 
 @contextlib.contextmanager
@@ -242,10 +271,19 @@ class StageCache:
 
     @staticmethod
     def _damage(path: Path) -> str | None:
+        """Why the entry at ``path`` is not whole (None: it is).
+
+        Every file's size, and every checksum the manifest records, is verified: a flipped byte
+        is damage as a cut file is. Images of an ingest entry's image store carry no checksum
+        (there can be hundreds of thousands; a damaged one fails when it is decoded).
+        """
         try:
             man = json.loads((path / "manifest.json").read_text())
         except (OSError, ValueError) as err:
             return f"manifest.json unreadable: {err}"
+        if not isinstance(man, dict):
+            return "manifest.json is not an object"
+        sums = man.get("sha256") or {}
         for rel, size in (man.get("files") or {}).items():
             f = path / rel
             try:
@@ -254,6 +292,9 @@ class StageCache:
                 return f"{rel} is missing"
             if actual != size:
                 return f"{rel} has {actual} bytes, {size} expected"
+            want = sums.get(rel)
+            if want is not None and content_sha(f, full=True) != want:
+                return f"{rel} does not match its checksum (its bytes changed)"
         return None
 
     def manifest(self, name: str, key: str) -> dict[str, Any]:
@@ -289,8 +330,10 @@ class StageCache:
                 for p in sorted(tmp.rglob("*"))
                 if p.is_file()
             }
+            sums = {rel: content_sha(tmp / rel, full=True) for rel in files if _summed(rel)}
             write_json(
-                tmp / "manifest.json", {"stage": name, "key": key, "info": info, "files": files}
+                tmp / "manifest.json",
+                {"stage": name, "key": key, "info": info, "files": files, "sha256": sums},
             )
         log.info("%s: wrote %s", name, final)
         return final, True

@@ -381,13 +381,24 @@ def cmd_annotations(args: argparse.Namespace) -> int:
     import pandas as pd
 
     from .ingest import load_frames
-
-    pairs = pd.read_parquet(args.pairs)
+    from .inputs import check_input
     from .outdirs import check_replaceable
+
+    check_replaceable(Path(args.out), "labelling-task", args.force)  # before reading anything
+    pairs_path = check_input(args.pairs, "pair table", HarnessError)
+    try:
+        pairs = pd.read_parquet(pairs_path)
+    except (OSError, ValueError) as err:
+        raise HarnessError(f"{pairs_path}: not a readable parquet pair table ({err})") from None
+    need = ["q_session", "q_camera", "q_utime", "r_session", "r_camera", "r_utime"]
+    if [c for c in need if c not in pairs.columns]:
+        raise HarnessError(
+            f"{pairs_path}: not a pair table (needs columns {need}; the run's is "
+            "OUT/cache/pairs/<key>/pairs.parquet)"
+        )
 
     if args.limit is not None and args.limit < 1:
         raise HarnessError(f"--limit {args.limit}: must be >= 1")
-    check_replaceable(Path(args.out), "labelling-task", args.force)  # before reading anything
     out = export_for_labelling(
         pairs, load_frames(Path(args.frames)), Path(args.out), args.limit, force=args.force
     )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import re
 import tomllib
 import types
@@ -69,6 +70,8 @@ class SessionConfig:
 class IngestConfig:
     """``[ingest]``: how logs become frames (times in seconds)."""
 
+    # the largest image a header may declare (width x height): larger is a decompression bomb
+    max_image_pixels: int = 100_000_000
     # pose topics and fast /tf transforms: a sample at most this before and after an image
     max_pose_gap_s: float = 0.1
     # /tf transforms published more slowly than max_pose_gap_s (map -> odom at 1-10 Hz)
@@ -165,6 +168,12 @@ class DescriptorConfig:
     num_workers: int = 0
     # frames per cached descriptor shard (the unit an interrupted run resumes at)
     shard_frames: int = 256
+    # name = "torchscript" or "onnx": a user's network from a local file (its content is keyed)
+    path: str = ""
+    mean: tuple[float, float, float] = (0.485, 0.456, 0.406)  # per RGB channel, values in [0, 1]
+    std: tuple[float, float, float] = (0.229, 0.224, 0.225)
+    pooling: str = "avg"  # of a (N, C, H, W) output: "avg", "max" or "gem"
+    gem_p: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -343,6 +352,8 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
     if hint is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}: {value!r} is not a finite number")
         return float(value)
     if hint is str:
         if not isinstance(value, str):
@@ -419,6 +430,12 @@ def parse_config(
     for required in ("name", "sessions", "annotations"):
         if required not in doc:
             raise ConfigError(f"{where}: missing required key {required!r}")
+    for key in ("name", "annotations", "data_root"):
+        if key in doc and (not isinstance(doc[key], str) or not doc[key].strip()):
+            raise ConfigError(f"{where}: {key} = {doc[key]!r}: expected a non-empty string")
+    seed = doc.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"{where}: seed = {seed!r}: expected an integer >= 0")
     root_text = data_root if data_root is not None else str(doc.get("data_root", "."))
     root = Path(root_text).expanduser()
     root = root if root.is_absolute() else (base / root)
@@ -444,12 +461,18 @@ def parse_config(
             kwargs[_FIELD.get(section, section)] = _build(
                 cls, doc[section], f"{where}: [{section}]"
             )
+    de = kwargs.get("descriptor")
+    if de is not None and de.path:  # a user's network: relative to the project, like annotations
+        net = Path(de.path.replace("{data_root}", str(root))).expanduser()
+        kwargs["descriptor"] = dataclasses.replace(
+            de, path=str(net if net.is_absolute() else base / net)
+        )
     cfg = Config(
         name=str(doc["name"]),
         data_root=root,
         annotations=ann,
         sessions=tuple(sessions),
-        seed=int(doc.get("seed", 0)),
+        seed=seed,
         **kwargs,
     )
     validate(cfg, where)
@@ -560,6 +583,7 @@ def validate(cfg: Config, where: str) -> None:
         "'annotated' or 'all'",
     )
     c(ig.max_pose_gap_s > 0, where, "[ingest] max_pose_gap_s", ig.max_pose_gap_s, "> 0 seconds")
+    c(ig.max_image_pixels >= 1, where, "[ingest] max_image_pixels", ig.max_image_pixels, ">= 1")
     c(ig.max_tf_gap_s > 0, where, "[ingest] max_tf_gap_s", ig.max_tf_gap_s, "> 0 seconds")
     c(
         ig.time_source in ("header", "log"),
@@ -672,6 +696,24 @@ def validate(cfg: Config, where: str) -> None:
     )
     c(de.lr > 0, where, "[descriptor] lr", de.lr, "> 0")
     c(
+        de.pooling in ("avg", "max", "gem"),
+        where,
+        "[descriptor] pooling",
+        de.pooling,
+        "avg, max, gem",
+    )
+    c(de.gem_p > 0, where, "[descriptor] gem_p", de.gem_p, "> 0")
+    c(all(v > 0 for v in de.std), where, "[descriptor] std", list(de.std), "three values > 0")
+    if de.name in ("torchscript", "onnx"):
+        c(bool(de.path), where, "[descriptor] path", de.path, f"the local {de.name} file")
+        c(
+            Path(de.path).is_file(),
+            where,
+            "[descriptor] path",
+            de.path,
+            "an existing file (nothing is downloaded at run time)",
+        )
+    c(
         all(ch >= 1 for ch in de.channels),
         where,
         "[descriptor] channels",
@@ -703,9 +745,41 @@ def validate(cfg: Config, where: str) -> None:
         "a local weights path (the method 'yolo' is listed)",
     )
     c(0 <= pr.yolo.conf <= 1, where, "[proposals.yolo] conf", pr.yolo.conf, "[0, 1]")
+    c(0 < pr.yolo.iou <= 1, where, "[proposals.yolo] iou", pr.yolo.iou, "(0, 1]")
+    for key in ("imgsz", "batch", "max_det"):
+        c(
+            getattr(pr.yolo, key) >= 1,
+            where,
+            f"[proposals.yolo] {key}",
+            getattr(pr.yolo, key),
+            ">= 1",
+        )
+    c(
+        pr.yolo.imgsz % 32 == 0,
+        where,
+        "[proposals.yolo] imgsz",
+        pr.yolo.imgsz,
+        "a multiple of 32 (YOLO strides)",
+    )
+    _device(pr.yolo.device, where, "[proposals.yolo] device")
+    c(
+        all(d >= 1 and d % 2 == 1 for d in pr.edges.dilations) and len(pr.edges.dilations) > 0,
+        where,
+        "[proposals.edges] dilations",
+        list(pr.edges.dilations),
+        "a non-empty list of odd kernel sizes >= 1",
+    )
     for sub_name in ("edges", "mser"):
         sub = getattr(pr, sub_name)
         c(sub.max_boxes >= 1, where, f"[proposals.{sub_name}] max_boxes", sub.max_boxes, ">= 1")
+        c(0 < sub.nms_iou <= 1, where, f"[proposals.{sub_name}] nms_iou", sub.nms_iou, "(0, 1]")
+        c(
+            sub.work_width >= 16,
+            where,
+            f"[proposals.{sub_name}] work_width",
+            sub.work_width,
+            ">= 16 pixels",
+        )
         _range(
             where,
             f"[proposals.{sub_name}] min_area_frac..max_area_frac",
@@ -781,6 +855,31 @@ def validate(cfg: Config, where: str) -> None:
         list(fx.formats),
         f"one format, or one per session ({len(cfg.sessions)})",
     )
+    c(
+        all(f in FIXTURE_FORMATS for f in fx.formats),
+        where,
+        "[fixture] formats",
+        list(fx.formats),
+        f"names from {list(FIXTURE_FORMATS)}",
+    )
+    _device(de.device, where, "[descriptor] device")
+
+
+#: The log formats the fixture generator writes (``harness.fixture.generate.FORMATS``).
+FIXTURE_FORMATS = ("nclt", "ros1", "ros2", "mcap", "ros2mcap", "mcaptf")
+
+
+def _device(device: str, where: str, key: str) -> None:
+    """A CUDA device asked for by name must exist on this machine (``auto`` falls back)."""
+    if not device.startswith("cuda"):
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        raise ConfigError(
+            f"{where}: {key} = {device!r}, but torch sees no CUDA device on this machine; use "
+            "'auto' (CUDA where there is one, else the CPU) or 'cpu'"
+        )
 
 
 def load_config(path: Path, data_root: str | None = None) -> Config:
@@ -792,8 +891,16 @@ def load_config(path: Path, data_root: str | None = None) -> Config:
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"config file {path} does not exist")
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a directory, not a config file")
     try:
-        doc = tomllib.loads(path.read_text())
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except PermissionError:
+        raise ConfigError(f"{path}: config file not readable (permission denied)") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(
+            f"{path}: not a UTF-8 text file ({err.reason} at byte {err.start}); TOML is UTF-8"
+        ) from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     return parse_config(doc, project_root(path.parent), str(path), data_root)

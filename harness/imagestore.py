@@ -9,6 +9,10 @@ or PNG bytes for compressed ones).
 
 from __future__ import annotations
 
+import contextlib
+import io
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -80,13 +84,62 @@ def upright_size(stored_w: int, stored_h: int, rotation: str) -> tuple[int, int]
     return (stored_h, stored_w) if rotation in ("cw", "ccw") else (stored_w, stored_h)
 
 
+#: The largest image (width x height) a header may declare: a larger one is a decompression bomb
+#: (a few bytes that would decode to gigabytes). ``[ingest] max_image_pixels`` sets it.
+MAX_IMAGE_PIXELS = 100_000_000
+
+
+@contextlib.contextmanager
+def pixel_limit(limit: int) -> Iterator[None]:
+    """:data:`MAX_IMAGE_PIXELS` set to ``limit`` for the block (an ingest, from its config)."""
+    global MAX_IMAGE_PIXELS
+    saved, MAX_IMAGE_PIXELS = MAX_IMAGE_PIXELS, int(limit)
+    try:
+        yield
+    finally:
+        MAX_IMAGE_PIXELS = saved
+
+
+def check_pixels(w: int, h: int, where: str) -> tuple[int, int]:
+    """``(w, h)`` when the declared size is within :data:`MAX_IMAGE_PIXELS`.
+
+    Raises:
+        IngestError: Naming the image, the declared size and the limit.
+    """
+    if int(w) * int(h) > MAX_IMAGE_PIXELS:
+        raise IngestError(
+            f"{where}: the image declares {w} x {h} = {int(w) * int(h):,} pixels, over "
+            f"[ingest] max_image_pixels = {MAX_IMAGE_PIXELS:,} (a decompression bomb, or a real "
+            "image that large: raise the limit)"
+        )
+    return int(w), int(h)
+
+
+def header_size(source: str | Path | io.BytesIO, where: str) -> tuple[int, int]:
+    """(width, height) from an image header (a file or bytes), never decoding the pixels.
+
+    Raises:
+        IngestError: The header is unreadable, or declares more than :data:`MAX_IMAGE_PIXELS`.
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+            try:
+                with Image.open(source) as im:
+                    w, h = im.size
+            finally:
+                Image.MAX_IMAGE_PIXELS = saved
+    except PermissionError:
+        raise IngestError(f"{where}: not readable (permission denied)") from None
+    except (OSError, ValueError, SyntaxError) as err:
+        raise IngestError(f"{where}: cannot read image header: {err}") from None
+    return check_pixels(w, h, where)
+
+
 def stored_size(path: str | Path) -> tuple[int, int]:
     """(width, height) of an image file, reading only its header."""
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except (OSError, ValueError) as err:
-        raise IngestError(f"{path}: cannot read image header: {err}") from None
+    return header_size(path, str(path))
 
 
 def to_rgb8(img: np.ndarray) -> np.ndarray:

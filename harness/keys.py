@@ -13,7 +13,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from .cache import file_fingerprint, stable_hash
+from .cache import content_sha, file_fingerprint, relative_to_root, stable_hash
 from .config import Config, DescriptorConfig, ProposalsConfig, RetrievalConfig, SessionConfig
 from .fusion import method_fingerprints as fusion_method_fingerprints
 from .ingest.logs import detect_format
@@ -29,25 +29,29 @@ MODEL_EXCLUDED = (*DESCRIPTOR_EXECUTION, "encode_batch", "dtype")
 RETRIEVAL_EXECUTION = ("query_frames_per_shard", "memory_mb")
 
 
-def source_fingerprint(sc: SessionConfig) -> Any:
-    """Identity of a session's source: only the files that session reads (paths, sizes, mtimes)."""
+def source_fingerprint(sc: SessionConfig, root: Path | None = None) -> Any:
+    """Identity of a session's source: only the files that session reads (paths, sizes, mtimes).
+
+    Paths enter relative to the data root ``root``, so a moved data root keeps every key.
+    """
     src = Path(sc.source)
     fmt = detect_format(src) if sc.format == "auto" else sc.format
     if fmt == "nclt":
         return {
-            "images": file_fingerprint(src / "images" / sc.name / "lb3" / sc.camera),
-            "gt": file_fingerprint(src / "ground_truth" / f"groundtruth_{sc.name}.csv"),
+            "images": file_fingerprint(src / "images" / sc.name / "lb3" / sc.camera, root),
+            "gt": file_fingerprint(src / "ground_truth" / f"groundtruth_{sc.name}.csv", root),
         }
-    return file_fingerprint(src)
+    return file_fingerprint(src, root)
 
 
 def ingest(cfg: Config, sc: SessionConfig) -> Parts:
-    """One session's ingest: its config, ``[ingest]`` and its source files."""
+    """One session's ingest: its config (source relative to the data root), ``[ingest]``, files."""
+    session = {**dataclasses.asdict(sc), "source": relative_to_root(sc.source, cfg.data_root)}
     return (
         "ingest",
-        dataclasses.asdict(sc),
+        session,
         dataclasses.asdict(cfg.ingest),
-        source_fingerprint(sc),
+        source_fingerprint(sc, cfg.data_root),
     )
 
 
@@ -88,9 +92,16 @@ def proposals(cfg: Config, ingest_key: str, frames: list[tuple[str, int]]) -> Pa
     )
 
 
+def _network(opts: dict[str, Any]) -> dict[str, Any]:
+    """A user's network enters a key by its content, not its path (a moved file is the same)."""
+    if opts.get("path"):
+        opts["path"] = content_sha(Path(opts["path"]))
+    return opts
+
+
 def model_options(dc: DescriptorConfig) -> dict[str, Any]:
     """The ``[descriptor]`` options that change the trained model."""
-    return {k: v for k, v in dataclasses.asdict(dc).items() if k not in MODEL_EXCLUDED}
+    return _network({k: v for k, v in dataclasses.asdict(dc).items() if k not in MODEL_EXCLUDED})
 
 
 def model(cfg: Config, trains: bool, proposal_keys: list[str]) -> Parts:
@@ -102,7 +113,9 @@ def model(cfg: Config, trains: bool, proposal_keys: list[str]) -> Parts:
 
 def descriptor_options(dc: DescriptorConfig) -> dict[str, Any]:
     """The ``[descriptor]`` options that change descriptor values."""
-    return {k: v for k, v in dataclasses.asdict(dc).items() if k not in DESCRIPTOR_EXECUTION}
+    return _network(
+        {k: v for k, v in dataclasses.asdict(dc).items() if k not in DESCRIPTOR_EXECUTION}
+    )
 
 
 def descriptor_shard(

@@ -24,7 +24,7 @@ import pandas as pd
 
 from .cache import source_fingerprints, write_parquet
 from .config import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
-from .errors import AnnotationError, ConfigError
+from .errors import AnnotationError, ConfigError, HarnessError
 from .imagestore import read_image
 from .progress import progress
 
@@ -152,11 +152,13 @@ def edge_boxes(rgb: np.ndarray, cfg: EdgesConfig) -> tuple[np.ndarray, np.ndarra
 
 
 class YoloProposer:
-    """A YOLO-family detector exported to TorchScript (``yolo export format=torchscript``).
+    """A YOLO-family detector exported to TorchScript or ONNX (``yolo export format=onnx``).
 
-    The model maps a float ``(B, 3, S, S)`` RGB batch in [0, 1] to either ``(B, 4 + nc, N)``
-    (YOLOv8/11 layout: cx, cy, w, h, class scores) or ``(B, N, 5 + nc)`` (YOLOv5 layout:
-    cx, cy, w, h, objectness, class scores), in input pixels. Images are letterboxed to S.
+    A ``.onnx`` file runs through OpenCV's ``cv2.dnn`` (no new runtime), any other file through
+    ``torch.jit.load``. The model maps a float ``(B, 3, S, S)`` RGB batch in [0, 1] to either
+    ``(B, 4 + nc, N)`` (YOLOv8/11 layout: cx, cy, w, h, class scores) or ``(B, N, 5 + nc)``
+    (YOLOv5 layout: cx, cy, w, h, objectness, class scores), in input pixels.
+    Images are letterboxed to S.
     """
 
     def __init__(self, cfg: YoloConfig) -> None:
@@ -179,6 +181,15 @@ class YoloProposer:
                 ".torchscript file here"
             )
         self.cfg = cfg
+        self.onnx: Any = None
+        if path.suffix.lower() == ".onnx":
+            try:
+                self.onnx = cv2.dnn.readNetFromONNX(str(path))
+            except cv2.error as err:
+                raise ConfigError(
+                    f"{path}: not an ONNX model OpenCV can read: {str(err).strip()[-200:]}"
+                ) from None
+            return
         dev = cfg.device
         self.device = torch.device(
             "cuda"
@@ -205,6 +216,14 @@ class YoloProposer:
         import torch
 
         results = []
+        if self.onnx is not None:  # cv2.dnn: one image at a time (exports often fix the batch)
+            for im in images:
+                box, r, (px, py) = self._letterbox(im)
+                blob = np.ascontiguousarray(box.transpose(2, 0, 1)[None], np.float32) / 255.0
+                self.onnx.setInput(blob)
+                y = np.asarray(self.onnx.forward(), np.float32)
+                results.append(self._decode(y[0], r, px, py, im.shape[1], im.shape[0]))
+            return results
         for i in range(0, len(images), self.cfg.batch):
             chunk = images[i : i + self.cfg.batch]
             lb = [self._letterbox(im) for im in chunk]
@@ -410,7 +429,15 @@ def compute_proposals(
             imgs = [read_image(f.image) for f in chunk]
             for m in per_image:
                 for f, im in zip(chunk, imgs, strict=True):
-                    b, s = _checked(m, f, *IMAGE_METHODS[m](im, cfg))
+                    try:
+                        found = IMAGE_METHODS[m](im, cfg)
+                    except cv2.error as err:
+                        raise ConfigError(
+                            f"proposal method {m!r} on frame {f.session}/{f.camera}/{f.utime}: "
+                            f"OpenCV refused it ({str(err).strip().splitlines()[-1][:160]}); "
+                            f"check [proposals.{m}]"
+                        ) from None
+                    b, s = _checked(m, f, *found)
                     out.append(rows(f, m, b, s, [""] * len(b)))
             if yolo is not None:
                 for f, (b, s, c) in zip(chunk, yolo(imgs), strict=True):
@@ -456,5 +483,13 @@ def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: 
     df = compute_proposals(
         frames, cfg, progress=partial(progress, desc=f"proposals {name}", unit="batch")
     )
+    counts = df.groupby("method").size()
+    empty = [m for m in cfg.methods if len(frames) and int(counts.get(m, 0)) == 0]
+    if empty:
+        raise HarnessError(
+            f"proposals ({name}): method {empty[0]!r} gives no box on any of the session's "
+            f"{len(frames)} frames, so 'all proposals' would silently mean the other methods "
+            f"alone; change [proposals.{empty[0]}] or remove it from [proposals] methods"
+        )
     write_parquet(tmp / "proposals.parquet", df)
     return {"rows": len(df), "per_method": df.groupby("method").size().to_dict()}

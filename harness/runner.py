@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import json
 import logging
 import platform
@@ -34,6 +33,7 @@ from . import __version__, keys
 from .annotations import load_annotations
 from .cache import (
     StageCache,
+    content_sha,
     read_cached_parquet,
     stable_hash,
     write_json,
@@ -43,7 +43,7 @@ from .cache import (
 from .config import Config
 from .descriptors import make_descriptor
 from .descriptors.extract import combine_shards, encode_shard, fit_projection_unit, train_model
-from .errors import ConfigError, HarnessError, RetrievalError
+from .errors import AnnotationError, ConfigError, HarnessError, IngestError, RetrievalError
 from .executors import LocalExecutor
 from .fusion import write_samples
 from .imagestore import local_uri
@@ -122,7 +122,7 @@ class Pipeline:
                 "name": self.rank_import.name,
                 "kind": "import",
                 "file": str(Path(path).resolve()),
-                "sha256": file_sha(path) if Path(path).is_file() else None,
+                "sha256": content_sha(path) if Path(path).is_file() else None,
                 "score_kind": self.cfg.import_.score_kind,
             }
         return {"name": self.cfg.descriptor.name, "kind": "descriptor"}
@@ -225,6 +225,59 @@ def generate_fixture(p: Pipeline) -> None:
         write_text(p.cfg.annotations, (root / "annotations.csv").read_text())
 
 
+def check_names(p: Pipeline) -> None:
+    """Registry names of the config, checked before the fixture is generated or anything read.
+
+    A descriptor registered at run time counts.
+
+    Raises:
+        ConfigError: An unknown descriptor or log format, naming the known ones.
+    """
+    from .descriptors import REGISTRY
+    from .ingest.logs import known_formats
+
+    cfg = p.cfg
+    if p.rank_import is None and cfg.descriptor.name not in REGISTRY:
+        raise ConfigError(
+            f"[descriptor] name = {cfg.descriptor.name!r}: unknown; known: {sorted(REGISTRY)}"
+        )
+    for sc in cfg.sessions:
+        if sc.format != "auto" and sc.format not in known_formats():
+            raise ConfigError(
+                f"sessions {sc.name}: format = {sc.format!r}: unknown; known: "
+                f"{list(known_formats())}"
+            )
+
+
+def preflight(p: Pipeline) -> None:
+    """Every input the config names checked before any stage runs (nothing half done).
+
+    Every session's log (present, readable, of a known format, an NCLT session's camera), the
+    annotation file and a proposal table.
+
+    Raises:
+        HarnessError: Naming the key or the file and what is wrong.
+    """
+    from .ingest.logs import detect_format
+    from .inputs import check_input
+
+    cfg = p.cfg
+    for sc in cfg.sessions:
+        src = Path(sc.source)
+        check_input(src, f"log of session {sc.name}", IngestError, directory=src.is_dir())
+        fmt = detect_format(src) if sc.format == "auto" else sc.format
+        cams = src / "images" / sc.name / "lb3"
+        if fmt == "nclt" and not (cams / sc.camera).is_dir():
+            found = sorted(d.name for d in cams.glob("*") if d.is_dir()) if cams.is_dir() else []
+            raise ConfigError(
+                f"sessions {sc.name}: camera = {sc.camera!r}: no {cams / sc.camera}; cameras "
+                f"found: {found or 'none'} (names are case-sensitive)"
+            )
+    check_input(cfg.annotations, "annotation file", AnnotationError)
+    if "file" in cfg.proposals.methods and cfg.proposals.file:
+        check_input(cfg.proposals.file, "[proposals] file", ConfigError)
+
+
 def ingest_logs(p: Pipeline) -> dict[str, Entry]:
     """Logs -> one ingest entry per session (``frames.parquet``, images, ``ingest_report.json``)."""
     units: list[tuple[tuple[Any, ...], Build]] = [
@@ -235,7 +288,13 @@ def ingest_logs(p: Pipeline) -> dict[str, Entry]:
 
 def frame_table(p: Pipeline, ingested: dict[str, Entry]) -> Table:
     """Ingest entries -> the run's frame table (image URIs local to this machine)."""
-    build = partial(combine_frames, [e.path for e in ingested.values()], p.out, p.cfg.data_root)
+    build = partial(
+        combine_frames,
+        [e.path for e in ingested.values()],
+        p.out,
+        p.cfg.data_root,
+        sources=[sc.source for sc in p.cfg.sessions],
+    )
     entry = p.unit("frames", keys.frames([e.key for e in ingested.values()]), build)
     df = read_cached_parquet(entry.path / "frames.parquet")
     df["image"] = [local_uri(u, p.out, p.cfg.data_root) for u in df["image"]]
@@ -244,7 +303,7 @@ def frame_table(p: Pipeline, ingested: dict[str, Entry]) -> Table:
 
 def annotation_table(p: Pipeline, frames: Table) -> Table:
     """The annotation file, checked against the frames; its key is the file's content hash."""
-    return Table(load_annotations(p.cfg.annotations, frames.df), file_sha(p.cfg.annotations))
+    return Table(load_annotations(p.cfg.annotations, frames.df), content_sha(p.cfg.annotations))
 
 
 def query_pairs(p: Pipeline, frames: Table, ann: Table) -> Table:
@@ -456,7 +515,7 @@ def imported_ranks(p: Pipeline, frames: Table, pairs: Table, props: dict[str, Ta
         p.cfg.import_.score_kind,
     )
     key = keys.ranks_import(
-        p.cfg, spec.name, file_sha(spec.path), pairs.key, [t.key for t in props.values()]
+        p.cfg, spec.name, content_sha(spec.path), pairs.key, [t.key for t in props.values()]
     )
     entry = p.unit("ranks", key, build)
     df = read_cached_parquet(entry.path / "ranks.parquet")
@@ -518,7 +577,9 @@ def until_pairs(p: Pipeline) -> tuple[dict[str, Entry], Table, Table, Table]:
     Returns:
         (ingest entries, frames, annotations, pairs).
     """
+    check_names(p)
     generate_fixture(p)
+    preflight(p)
     ingested = ingest_logs(p)
     frames = frame_table(p, ingested)
     ann = annotation_table(p, frames)
@@ -712,15 +773,6 @@ def run_record(
 
 
 # ---------------------------------------------------------------- helpers
-
-
-def file_sha(path: Path) -> str:
-    """The first 16 hex digits of the SHA-256 of a file's content (read in 1 MiB blocks)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
 
 
 def ingest_summary(path: Path) -> dict[str, Any]:

@@ -156,3 +156,61 @@ def test_exporter_writes_side_by_side_images_and_a_task(tmp_path: Path) -> None:
     )
     img = cv2.imread(str(out / "images" / image_name("A", "c", 1)))
     assert img.shape == (80, 200, 3) and img[0, 0, 0] == 40 and img[0, 150, 0] == 80
+
+
+# ------------------------------------------------------------------ inputs that are not what they
+# say (issue 26): one ERROR line about that file
+
+
+def _cli_err(capsys: pytest.CaptureFixture) -> str:
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR: ") and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def test_annotation_imports_of_missing_partial_or_wrong_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    from harness.cli import main
+
+    out = str(tmp_path / "ann.csv")
+    coco = tmp_path / "coco.json"
+    cases = [
+        (["coco", str(tmp_path / "none.json")], "COCO annotation file not found"),
+        (["coco", str(tmp_path)], "COCO annotation file is a directory"),
+        (["voc", str(tmp_path / "no_folder")], "VOC annotation folder not found"),
+        (["cvat", str(tmp_path / "none.xml")], "CVAT annotation file not found"),
+    ]
+    for argv, words in cases:
+        assert main(["annotations", "import", *argv, "--out", out]) == 1
+        assert words in _cli_err(capsys)
+    for text, words in (
+        ("[1, 2]", "not a COCO annotation file"),
+        ('{"images": [{"id": 1}]}', "not a COCO annotation file: KeyError: 'file_name'"),
+        ("{not json", "not a COCO annotation file"),
+    ):
+        coco.write_text(text)
+        assert main(["annotations", "import", "coco", str(coco), "--out", out]) == 1
+        assert words in _cli_err(capsys)
+    coco.write_text('{"images": [], "annotations": []}')
+    (tmp_path / "frames.csv").write_text("session,camera\n")
+    argv = ["annotations", "import", "coco", str(coco), "--out", out]
+    assert main([*argv, "--frames", str(tmp_path / "frames.csv")]) == 1
+    assert "not a readable parquet frame table" in _cli_err(capsys)
+    assert not Path(out).exists()
+
+
+def test_annotation_export_with_wrong_tables(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from harness.cli import main
+
+    frames = tmp_path / "frames.parquet"
+    pd.DataFrame({"session": ["a"], "camera": ["c"], "utime": [1], "image": ["x.png"]}).to_parquet(
+        frames
+    )
+    argv = ["annotations", "export", "--frames", str(frames), "--out", str(tmp_path / "t")]
+    assert main([*argv, "--pairs", str(tmp_path / "none.parquet")]) == 1
+    assert "pair table not found" in _cli_err(capsys)
+    assert main([*argv, "--pairs", str(frames)]) == 1
+    assert "not a pair table (needs columns" in _cli_err(capsys)
+    assert not (tmp_path / "t").exists()

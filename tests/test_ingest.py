@@ -460,3 +460,112 @@ def test_unknown_format_is_rejected(tmp_path: Path) -> None:
     p.write_text("hello")
     with pytest.raises(IngestError, match=r"log\.txt: unknown log format"):
         ingest_session(SessionConfig(name="s", source=str(p)), IngestConfig(), tmp_path / "o")
+
+
+# ------------------------------------------------------------------ inputs that are not what they
+# say (issue 26): one error about that file, never a traceback; duplicates and cut lines counted
+
+
+def _nclt_copy(small_world: Path, tmp: Path) -> tuple[Path, str, Path]:
+    root = tmp / "nclt"
+    shutil.copytree(small_world / "nclt", root)
+    session = SMALL.sessions[0][0]
+    return root, session, root / "ground_truth" / f"groundtruth_{session}.csv"
+
+
+def _png_bomb(path: Path, w: int = 60_000, h: int = 60_000) -> None:
+    """A PNG whose header declares ``w x h`` pixels over a few bytes of data."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(b"\0" * 16))
+        + chunk(b"IEND", b"")
+    )
+
+
+def test_nclt_ground_truth_that_is_not_text_or_not_a_file(
+    small_world: Path, tmp_path: Path
+) -> None:
+    root, session, gt = _nclt_copy(small_world, tmp_path)
+    sc = SessionConfig(name=session, source=str(root))
+    gt.write_bytes(gt.read_bytes()[:40] + b"\xff\xfe" + gt.read_bytes()[40:])
+    with pytest.raises(IngestError, match=r"ground-truth file is not UTF-8 text .*line 1"):
+        ingest_session(sc, IngestConfig(), tmp_path / "o")
+    gt.unlink()
+    gt.mkdir()
+    with pytest.raises(IngestError, match=r"ground-truth file is a directory, not a file"):
+        ingest_session(sc, IngestConfig(), tmp_path / "o")
+
+
+def test_salvage_keeps_the_rows_before_a_cut_last_ground_truth_line(
+    small_world: Path, tmp_path: Path
+) -> None:
+    root, session, gt = _nclt_copy(small_world, tmp_path)
+    sc = SessionConfig(name=session, source=str(root))
+    whole = ingest_session(sc, IngestConfig(), tmp_path / "whole")
+    text = gt.read_text()
+    gt.write_text(text + text.splitlines()[-1][:9])  # the writer died mid-line
+    with pytest.raises(
+        IngestError, match=r"line \d+: expected 7 fields .*--salvage keeps the rows"
+    ):
+        ingest_session(sc, IngestConfig(), tmp_path / "o")
+    rep = ingest_session(sc, IngestConfig(salvage=True), tmp_path / "o")
+    assert rep["dropped"]["groundtruth_cut_last_line"] == 1 and rep["salvaged"]
+    assert rep["frames_written"] == whole["frames_written"]
+
+
+def test_two_images_with_one_utime_are_one_frame_and_counted(
+    small_world: Path, tmp_path: Path
+) -> None:
+    root, session, _ = _nclt_copy(small_world, tmp_path)
+    cam = root / "images" / session / "lb3" / "Cam5"
+    first = sorted(cam.iterdir())[0]
+    cv2.imwrite(str(first.with_suffix(".png")), cv2.imread(str(first)))
+    rep = ingest_session(
+        SessionConfig(name=session, source=str(root)), IngestConfig(), tmp_path / "o"
+    )
+    assert rep["dropped"]["duplicate_image_time"] == 1
+    df = load_frames(tmp_path / "o" / "frames.parquet")
+    assert not df.duplicated(["session", "camera", "utime"]).any()
+    assert df.loc[df["utime"] == int(first.stem), "image"].iloc[0].split("#")[0].endswith(".png")
+
+
+def test_a_decompression_bomb_is_refused_by_its_header(small_world: Path, tmp_path: Path) -> None:
+    from harness.ingest.images import compressed_size
+
+    root, session, _ = _nclt_copy(small_world, tmp_path)
+    cam = root / "images" / session / "lb3" / "Cam5"
+    victim = sorted(cam.iterdir())[2]
+    victim.unlink()
+    _png_bomb(victim.with_suffix(".png"))
+    sc = SessionConfig(name=session, source=str(root))
+    with pytest.raises(IngestError, match=r"declares 60000 x 60000 = 3,600,000,000 pixels"):
+        ingest_session(sc, IngestConfig(), tmp_path / "o")
+    rep = ingest_session(sc, IngestConfig(max_image_pixels=4_000_000_000), tmp_path / "o")
+    assert rep["frames_written"] > 0  # a real image that large: raise the limit
+    _png_bomb(tmp_path / "b.png")
+    with pytest.raises(IngestError, match=r"message 3: the image declares"):
+        compressed_size((tmp_path / "b.png").read_bytes(), "message 3")
+
+
+def test_an_unreadable_log_is_called_unreadable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+
+    log = _small_log(tmp_path, "mcap")
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, m: False if Path(p) == log else real(p, m))
+    with pytest.raises(
+        IngestError, match=r"log of session S is not readable \(permission denied\)"
+    ):
+        ingest_session(SessionConfig(name="S", source=str(log)), IngestConfig(), tmp_path / "o")

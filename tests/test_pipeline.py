@@ -430,3 +430,31 @@ def test_stage_files_and_tables_are_identical_to_the_regression(run: tuple) -> N
     assert not differ, (
         f"changed: {differ}; regenerate with python -m tests.stage_digests (see its docstring)"
     )
+
+
+def test_a_moved_data_root_resumes_without_recomputing(local_run: tuple, tmp_path: Path) -> None:
+    """Keys name inputs relative to the data root: moving it (or a copy that keeps file times)
+    recomputes nothing, and the images are read from the new place."""
+    import dataclasses
+    import shutil
+
+    p, _, run = local_run
+    shutil.copytree(p.cfg.data_root, tmp_path / "a")  # keeps sizes and modification times
+    out = tmp_path / "o"
+    shutil.copytree(run / "cache", out / "cache")
+    shutil.copy(run / ".dbl-harness.json", out)
+    for root in ("a", "b"):
+        if root == "b":
+            shutil.move(str(tmp_path / "a"), str(tmp_path / "b"))
+        sessions = tuple(
+            dataclasses.replace(
+                sc, source=sc.source.replace(str(p.cfg.data_root), str(tmp_path / root))
+            )
+            for sc in p.cfg.sessions
+        )
+        cfg = dataclasses.replace(p.cfg, data_root=tmp_path / root, sessions=sessions)
+        q = Pipeline(cfg, out)
+        q.run()
+        assert sum(q.ran.values()) == 0, q.ran
+        assert (out / "table1.csv").read_bytes() == (run / "table1.csv").read_bytes()
+    assert not (tmp_path / "a").exists() and (out / "report.html").exists()  # read from b

@@ -353,7 +353,9 @@ def test_4_imported_ranks_with_foreign_ids_are_an_error(
         str(tmp_path / "ext.csv"),
     ]
     assert main(args) == 1
-    assert "200 of 200 listed reference ids match no frame" in _err(capsys)
+    assert "40 rows list reference ids that are not frames of their reference session" in _err(
+        capsys
+    )
 
 
 # ------------------------------------------------------------------ 5. non-finite poses and

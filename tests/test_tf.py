@@ -53,6 +53,7 @@ def write_robot_bag(
     slash: str = "/",
     seconds: float = 4.0,
     image_format: str | None = None,
+    map_odom: float | None = None,
 ) -> Path:
     """A ROS2 bag as a Nav2 robot records it: /tf holds map -> odom (2 Hz, from localization) and
     odom -> base_link (20 Hz, wheel odometry: x = s metres, yaw = 0.1 s radians at s seconds);
@@ -67,7 +68,23 @@ def write_robot_bag(
     for k in range(int(seconds * 2) + 1):
         t = T0 + k * 500_000
         msgs.append(
-            (t, tf_t, _tf(ts, _transform(ts, t, "map", "odom", ODOM[0], ODOM[1], 0.0, ODOM[2])))
+            (
+                t,
+                tf_t,
+                _tf(
+                    ts,
+                    _transform(
+                        ts,
+                        t,
+                        "map",
+                        "odom",
+                        ODOM[0] if map_odom is None else map_odom,
+                        ODOM[1],
+                        0.0,
+                        ODOM[2],
+                    ),
+                ),
+            )
         )
     for k in range(int(seconds * 20) + 1):
         s = k * 0.05
@@ -397,3 +414,31 @@ def test_tf_flags_as_a_user_types_them(tmp_path: Path, capsys: pytest.CaptureFix
     assert "--max-tf-gap 0.0: must be > 0 seconds" in capsys.readouterr().err
     assert main([*base, "--out", str(tmp_path / "d"), "--camera-frame", "lidar"]) == 1
     assert "camera frame 'lidar' (camera_frame) is not in the /tf tree" in capsys.readouterr().err
+
+
+def test_a_transform_that_is_all_nan_drops_its_frames_and_never_re_roots(tmp_path: Path) -> None:
+    """map -> odom of NaN everywhere: the tree keeps its root (map), no frame gets a pose."""
+    bag = write_robot_bag(tmp_path / "bag", map_odom=float("nan"))
+    with pytest.raises(IngestError, match=r"got a pose from /tf \(map -> camera_left\)") as err:
+        ingest_session(SessionConfig(name="s", source=str(bag)), IngestConfig(), tmp_path / "o")
+    assert "tf map->odom: no_finite_sample" in str(err.value)
+    assert "non_finite_transform" in str(err.value)
+
+
+def test_a_tf_loop_is_named_as_a_loop(tmp_path: Path) -> None:
+    ts = W.ROS2
+    path = tmp_path / "loop"
+    with Writer2(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=ts)
+        img = w.add_connection("/cam", "sensor_msgs/msg/Image", typestore=ts)
+        for k in range(4):
+            t = T0 + k * 100_000
+            loop = [_transform(ts, t, p, c, 0.0, 0.0, 0.0, 0.0) for p, c in ("ab", "bc", "ca")]
+            w.write(tf, t * 1000, ts.serialize_cdr(_tf(ts, *loop), "tf2_msgs/msg/TFMessage"))
+            msg = W.image_msg(ts, t + 50_000, smooth_image(), "rgb8")
+            msg.header.frame_id = "a"
+            w.write(img, (t + 50_000) * 1000, ts.serialize_cdr(msg, "sensor_msgs/msg/Image"))
+    with pytest.raises(
+        IngestError, match=r"has no root: its transforms form a loop \(a->b, b->c, c->a\)"
+    ):
+        ingest_session(SessionConfig(name="s", source=str(path)), IngestConfig(), tmp_path / "o")

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from ..cache import atomic_path
+from ..errors import HarnessError
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +149,7 @@ def train(
             loss.backward()
             opt.step()
             lv = float(loss.detach())
+            _finite_loss(lv, ep * steps + s)
             total += lv * len(idx)
             history.append((ep, ep * steps + s, lv))
             if progress:
@@ -155,6 +157,19 @@ def train(
         log.info("autoencoder epoch %d/%d: mean loss %.5f", ep + 1, epochs, total / max(n, 1))
     model.eval()
     return history
+
+
+def _finite_loss(value: float, step: int) -> None:
+    """Stop at the first training step whose loss is NaN or inf (a diverged model ranks nothing).
+
+    Raises:
+        HarnessError: Naming the stage, the step and the value, and what to change.
+    """
+    if not math.isfinite(value):
+        raise HarnessError(
+            f"model: the autoencoder's training loss is {value} at step {step + 1}: training "
+            "diverged; lower [descriptor] lr, or check the input crops"
+        )
 
 
 def train_budget(
@@ -218,6 +233,7 @@ def train_budget(
         loss.backward()
         opt.step()
         history.append((epoch, step, float(loss.detach())))
+        _finite_loss(history[-1][2], step)
         if progress:
             progress(1)
         if n_hold and ((step + 1) % eval_every == 0 or step + 1 == steps):

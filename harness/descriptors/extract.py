@@ -18,7 +18,7 @@ from tqdm import tqdm
 from ..cache import open_memmap_reserved, read_cached_parquet, write_parquet
 from ..config import DescriptorConfig, ProjectionConfig
 from ..crops import iter_crops
-from ..errors import RetrievalError
+from ..errors import HarnessError, RetrievalError
 from ..progress import progress
 from .base import Descriptor, make_descriptor, normalize
 from .projection import fit_projection, load_projection, project
@@ -185,6 +185,13 @@ def encode_shard(
     for pos, v in _encoded(_loaded(dc, model_dir), dc, frames, rows, name):
         if proj is not None:
             v = project(v, *proj)
+        bad = ~np.isfinite(v).all(axis=1)
+        if bad.any():
+            raise HarnessError(
+                f"descriptors ({name}): {int(bad.sum())} of {len(v)} subimages have NaN or inf "
+                f"descriptors ([descriptor] name = {dc.name!r}); a diverged model or a broken "
+                "network ranks nothing: retrain, or check the model"
+            )
         if arr is None:
             arr = open_memmap_reserved(tmp / "desc.npy", dc.dtype, (len(rows), v.shape[1]))
         arr[pos] = v.astype(dc.dtype)

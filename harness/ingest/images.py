@@ -11,6 +11,7 @@ import numpy as np
 from PIL import Image as PILImage
 
 from ..errors import IngestError
+from ..imagestore import check_pixels, header_size
 
 # : ROS bayer encodings -> OpenCV conversion (OpenCV names the pattern by the second row; as
 # cv_bridge does).
@@ -47,6 +48,7 @@ def raw_to_array(msg: Any, where: str) -> np.ndarray:
         )
     if h <= 0 or w <= 0:
         raise IngestError(f"{where}: image has zero size ({w}x{h})")
+    check_pixels(w, h, where)
     if data.size < h * step:
         raise IngestError(
             f"{where}: image data has {data.size} bytes, expected height*step = {h}*{step}"
@@ -92,12 +94,12 @@ def compressed_kind(msg: Any, where: str) -> str:
 
 
 def compressed_size(data: bytes, where: str) -> tuple[int, int]:
-    """(width, height) from a JPEG or PNG header, without decoding the pixels."""
-    try:
-        with PILImage.open(io.BytesIO(data)) as im:
-            return im.size
-    except (OSError, ValueError) as err:
-        raise IngestError(f"{where}: cannot read compressed image header: {err}") from None
+    """(width, height) from a JPEG or PNG header, without decoding the pixels.
+
+    Raises:
+        IngestError: An unreadable header, or a declared size over ``max_image_pixels``.
+    """
+    return header_size(io.BytesIO(data), where)
 
 
 def decode_problem(data: bytes) -> str | None:
@@ -111,7 +113,7 @@ def decode_problem(data: bytes) -> str | None:
     try:
         with PILImage.open(io.BytesIO(data)) as im:
             im.load()
-    except (OSError, ValueError, SyntaxError) as err:
+    except (OSError, ValueError, SyntaxError, PILImage.DecompressionBombError) as err:
         return f"image does not decode: {err}"
     return None
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
@@ -10,11 +11,23 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 
 from ..cache import atomic_dir, write_json, write_parquet
 from ..config import IngestConfig, SessionConfig
 from ..errors import CorruptLogError, IngestError
-from ..imagestore import make_uri, portable_uri, resolve, stored_size, upright_size
+from ..imagestore import (
+    DATA_PREFIX,
+    OUT_PREFIX,
+    local_uri,
+    make_uri,
+    pixel_limit,
+    portable_uri,
+    resolve,
+    stored_size,
+    upright_size,
+)
+from ..inputs import check_input, read_text
 from ..outdirs import check_replaceable, write_marker
 from ..records import FRAME_COLUMNS, FRAME_SCHEMA
 from .images import compressed_kind, compressed_size, decode_problem, raw_to_array, write_raw
@@ -254,7 +267,8 @@ def _ingest_log_from(
                     tl, q = tr.transform.translation, tr.transform.rotation
                     vals = (tl.x, tl.y, tl.z, q.x, q.y, q.z, q.w)
                     if not all(math.isfinite(v) for v in vals):
-                        dropped["non_finite_pose"] = dropped.get("non_finite_pose", 0) + 1
+                        dropped["non_finite_transform"] = dropped.get("non_finite_transform", 0) + 1
+                        tree.touch(str(tr.header.frame_id), str(tr.child_frame_id), static, where)
                         continue
                     parent, child = (
                         str(tr.header.frame_id).lstrip("/"),
@@ -345,6 +359,12 @@ def _finish_tf(
             )
     elif len(roots) == 1:
         fixed = roots[0]
+    elif not roots:
+        raise IngestError(
+            f"{src}: the /tf tree has no root: its transforms form a loop ("
+            + ", ".join(sorted(e.name for e in tree.edges.values()))
+            + "); a tf tree has one parent per frame and no cycle"
+        )
     else:
         raise IngestError(
             f"{src}: the /tf tree has several roots {roots}; choose the frame poses are "
@@ -405,42 +425,53 @@ def _finish_tf(
     return _write_frames(sc, tmp, img_t, uris, sizes, poses, ok, report)
 
 
-def read_nclt_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+def read_nclt_groundtruth(
+    path: Path, salvage: bool = False, cut: list[int] | None = None
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     """NCLT ground truth ``utime, x, y, z, roll, pitch, yaw`` (no header).
 
     Returns:
         (utime (n,), values (n, 6), number of rows skipped because they hold NaN or infinity,
         1-based line number of each kept row).
 
+    With ``salvage``, a damaged *last* line (a log cut while it was written) is dropped and
+    counted in ``cut[0]``; a damaged line anywhere else is still an error.
+
     Raises:
         IngestError: A row has the wrong number of fields or a non-numeric value (names the line).
     """
-    if not path.exists():
-        raise IngestError(f"{path}: ground-truth file not found")
+    cut = cut if cut is not None else [0]
+    text = read_text(path, "ground-truth file", IngestError)
     times, vals, lines, nan_rows = [], [], [], 0
-    with open(path) as fh:
-        for lineno, line in enumerate(fh, 1):
-            line = line.strip()
-            if not line:
-                continue
-            parts = line.split(",")
-            if len(parts) != 7:
-                raise IngestError(
-                    f"{path}: line {lineno}: expected 7 fields "
-                    f"(utime,x,y,z,roll,pitch,yaw), got {len(parts)}"
-                )
+    rows = text.splitlines()
+    last = max((i for i, r in enumerate(rows, 1) if r.strip()), default=0)
+    for lineno, line in enumerate(rows, 1):
+        line = line.strip()
+        if not line:
+            continue
+        parts = line.split(",")
+        problem = None
+        if len(parts) != 7:
+            problem = f"expected 7 fields (utime,x,y,z,roll,pitch,yaw), got {len(parts)}"
+        else:
             try:
                 t0 = float(parts[0])
                 t = int(t0) if math.isfinite(t0) else 0
                 v = [float(p) for p in parts[1:]]
             except ValueError:
-                raise IngestError(f"{path}: line {lineno}: non-numeric value in {line!r}") from None
-            if not all(math.isfinite(x) for x in v) or not math.isfinite(float(parts[0])):
-                nan_rows += 1
+                problem = f"non-numeric value in {line!r}"
+        if problem is not None:
+            if salvage and lineno == last:  # a log cut while it was written: keep what precedes
+                cut[0] += 1
                 continue
-            times.append(t)
-            vals.append(v)
-            lines.append(lineno)
+            hint = " (the last line: --salvage keeps the rows before it)" if lineno == last else ""
+            raise IngestError(f"{path}: line {lineno}: {problem}{hint}")
+        if not all(math.isfinite(x) for x in v) or not math.isfinite(t0):
+            nan_rows += 1
+            continue
+        times.append(t)
+        vals.append(v)
+        lines.append(lineno)
     if not times:
         raise IngestError(f"{path}: no valid ground-truth row")
     t_arr = np.array(times, np.int64)
@@ -463,8 +494,12 @@ def _ingest_nclt(sc: SessionConfig, ic: IngestConfig, tmp: Path, report: dict) -
             f"{avail or 'none'})"
         )
     gt_path = root / "ground_truth" / f"groundtruth_{sc.name}.csv"
-    pose_t, pose_v, nan_rows, _ = read_nclt_groundtruth(gt_path)
+    cut = [0]
+    pose_t, pose_v, nan_rows, _ = read_nclt_groundtruth(gt_path, ic.salvage, cut)
     report["dropped"]["groundtruth_non_finite_rows"] = nan_rows
+    if cut[0]:
+        report["dropped"]["groundtruth_cut_last_line"] = cut[0]
+        report["salvaged"] = True
     report["pose_frames"] = {
         "pose_frame": "nclt_world",
         "pose_of": "body",
@@ -482,7 +517,10 @@ def _ingest_nclt(sc: SessionConfig, ic: IngestConfig, tmp: Path, report: dict) -
     report["dropped"]["bad_image_name"] = bad
     if not files:
         raise IngestError(f"{img_dir}: no images")
-    files.sort()
+    files.sort()  # by utime, then path: of two files with one utime (.png, .tiff) the first is kept
+    uniq = [f for i, f in enumerate(files) if i == 0 or f[0] != files[i - 1][0]]
+    report["dropped"]["duplicate_image_time"] = len(files) - len(uniq)
+    files = uniq
     report["messages_read"]["images"] = len(files)
     rot = ic.nclt_rotation
     sizes, uris = [], []
@@ -507,6 +545,7 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
         IngestError: Bad input (the message names the file, message or row).
     """
     src = Path(sc.source)
+    check_input(src, f"log of session {sc.name}", IngestError, directory=src.is_dir())
     fmt = detect_format(src) if sc.format == "auto" else sc.format
     if fmt not in known_formats():
         raise IngestError(f"{src}: unknown format {fmt!r}; known: {list(known_formats())}")
@@ -519,7 +558,7 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
         "format": fmt,
         "dropped": {},
     }
-    with atomic_dir(Path(out)) as tmp:
+    with atomic_dir(Path(out)) as tmp, pixel_limit(ic.max_image_pixels):
         if fmt == "nclt":
             df = _ingest_nclt(sc, ic, tmp, report)
         else:
@@ -539,16 +578,54 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
 
 
 def load_frames(path: Path) -> pd.DataFrame:
-    """Read a ``frames.parquet`` and make its image URIs absolute."""
-    path = Path(path)
-    df = pd.read_parquet(path)
+    """Read a ``frames.parquet`` and make its image URIs absolute.
+
+    An ingest output's table holds paths relative to itself; a run's frame table
+    (``OUT/cache/frames/<key>/frames.parquet``) holds ``{out}/`` and ``{data_root}/`` URIs, resolved
+    against the run directory and the data root its ``run.json`` records.
+
+    Raises:
+        IngestError: The file is missing, not a frame table, or a run's table whose run
+            directory or data root cannot be found.
+    """
+    path = check_input(path, "frame table", IngestError)
+    try:
+        df = pd.read_parquet(path)
+    except (OSError, ValueError, pa.ArrowException) as err:
+        raise IngestError(f"{path}: not a readable parquet frame table ({err})") from None
+    miss = [c for c in ("session", "camera", "utime", "image") if c not in df.columns]
+    if miss:
+        raise IngestError(f"{path}: not a frame table (no column(s) {miss})")
     base = path.parent
-    df["image"] = [resolve(u, base) for u in df["image"]]
+    uris = [str(u) for u in df["image"]]
+    if any(u.startswith((OUT_PREFIX, DATA_PREFIX)) for u in uris):
+        out, root = _run_of(path)
+        uris = [local_uri(u, out, root) for u in uris]
+    df["image"] = [resolve(u, base) for u in uris]
     return df
 
 
+def _run_of(path: Path) -> tuple[Path, Path]:
+    """The run directory and data root of a run's cached frame table."""
+    run = next((d for d in Path(path).resolve().parents if (d / "run.json").is_file()), None)
+    if run is None:
+        raise IngestError(
+            f"{path}: a run's frame table, but no run.json above it names its data root; pass "
+            "the frame table of a finished run (OUT/cache/frames/<key>/frames.parquet)"
+        )
+    try:
+        root = json.loads((run / "run.json").read_text())["config"]["data_root"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise IngestError(f"{run / 'run.json'}: unreadable ({err})") from None
+    return run, Path(root)
+
+
 def combine_frames(
-    ingest_dirs: list[Path], out: Path, data_root: Path, tmp: Path
+    ingest_dirs: list[Path],
+    out: Path,
+    data_root: Path,
+    tmp: Path,
+    sources: list[str] | None = None,
 ) -> dict[str, int]:
     """The frame table of a run: every session's ``frames.parquet``.
 
@@ -562,11 +639,25 @@ def combine_frames(
         out: The run directory.
         data_root: The data root of the config.
         tmp: The frames entry's directory (``frames.parquet`` is written there).
+        sources: Each session's source now; an ingest entry made before the data root moved
+            (its key is the same: keys name sources relative to the data root) names images in
+            place under the old source, and those paths are moved along.
 
     Returns:
         ``{"frames": number of frames}``.
     """
-    df = pd.concat([load_frames(p / "frames.parquet") for p in ingest_dirs], ignore_index=True)
+    parts = []
+    for i, p in enumerate(ingest_dirs):
+        df = load_frames(p / "frames.parquet")
+        if sources is not None:
+            old = str(json.loads((p / "ingest_report.json").read_text()).get("source", ""))
+            new = str(Path(sources[i]).resolve())
+            if old and old != new:
+                df["image"] = [
+                    new + u[len(old) :] if u.startswith(old + "/") else u for u in df["image"]
+                ]
+        parts.append(df)
+    df = pd.concat(parts, ignore_index=True)
     df["image"] = [portable_uri(u, out, data_root) for u in df["image"]]
     write_parquet(
         tmp / "frames.parquet", df.sort_values(["session", "camera", "utime"]), schema=FRAME_SCHEMA

@@ -108,6 +108,22 @@ class TfTree:
         e.trans.append(trans)
         e.rot.append(rot)
 
+    def touch(self, parent: str, child: str, static: bool, where: str) -> None:
+        """Record the edge ``parent -> child`` without a sample (its only samples were not finite).
+
+        The tree keeps its shape: a transform whose values are all NaN still links its frames,
+        so the root stays where it is and the frames it fails are dropped and counted under it.
+        """
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        e = self.edges.get(child)
+        if e is None:
+            self.edges[child] = Transform(parent, child, static)
+        elif e.parent != parent:
+            raise IngestError(
+                f"{where}: frame {child!r} has two parents in /tf ({e.parent!r} and "
+                f"{parent!r}); a tf tree allows one"
+            )
+
     def frames(self) -> set[str]:
         """Every frame named in the tree."""
         return set(self.edges) | {e.parent for e in self.edges.values()}
@@ -180,13 +196,20 @@ def _sample(
     e: Transform, t_us: np.ndarray, gap: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """One edge at the image times: (translation, rotation, ok, masks of failures by reason)."""
+    n = len(t_us)
+    if not e.times:  # every sample was non-finite: no image gets a pose through this edge
+        return (
+            np.zeros((n, 3)),
+            np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)),
+            np.zeros(n, bool),
+            {"no_finite_sample": np.ones(n, bool)},
+        )
     times = np.asarray(e.times, np.int64)
     order = np.argsort(times, kind="stable")
     times = times[order]
     tr = np.asarray(e.trans, np.float64)[order]
     q = np.asarray(e.rot, np.float64)[order]
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    n = len(t_us)
     if e.static:  # /tf_static: the latest sample holds at every time
         return np.tile(tr[-1], (n, 1)), np.tile(q[-1], (n, 1)), np.ones(n, bool), {}
     j = np.searchsorted(times, t_us, side="right")
