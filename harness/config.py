@@ -252,6 +252,8 @@ class ReportConfig:
     plots: bool = True
     html: bool = True  # write report.html (the one page to look at) after the tables
     gallery: int = 3  # report.html: worst false positives and missed changes shown per method
+    # the RoC-max of the page's figures (PR curves, season pairs, gallery) and of Table L
+    headline_roc_max: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -836,6 +838,13 @@ def validate(cfg: Config, where: str) -> None:
     )
     c(0 < rp.ci < 1, where, "[report] ci", rp.ci, "(0, 1), e.g. 0.95")
     c(rp.gallery >= 0, where, "[report] gallery", rp.gallery, ">= 0 thumbnails per method and kind")
+    c(
+        0 <= rp.headline_roc_max <= 1,
+        where,
+        "[report] headline_roc_max",
+        rp.headline_roc_max,
+        "[0, 1] (the page falls back to the largest RoC-max written)",
+    )
     c(rp.locmap_examples >= 0, where, "[report] locmap_examples", rp.locmap_examples, ">= 0")
     c(fx.render_scale >= 1, where, "[fixture] render_scale", fx.render_scale, ">= 1")
     c(fx.frames >= 1, where, "[fixture] frames", fx.frames, ">= 1")

@@ -26,6 +26,23 @@ def _save(fig: plt.Figure, path: Path) -> None:
     plt.close(fig)
 
 
+def pr_figure(curves: pd.DataFrame, path: Path, title: str) -> Path:
+    """One PNG of the PR curves of ``curves`` (columns method, precision, recall)."""
+    fig, ax = plt.subplots(figsize=(5, 4))
+    cmap = plt.get_cmap("tab10")
+    for i, (m, gm) in enumerate(curves.groupby("method", sort=False)):
+        ax.step(gm["recall"], gm["precision"], where="post", label=m, lw=1.4, color=cmap(i % 10))
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+    return path
+
+
 def pr_plots(curves: pd.DataFrame, out: Path) -> list[Path]:
     """One PNG of PR curves per split; returns the paths written."""
     written = []

@@ -1,10 +1,14 @@
 """``OUT/report.html``: one page to look at a run.
 
-In this order: run facts (config, data, versions, time, counts and drops), localization quality,
-Tables I, S and P with intervals and the confound warnings, the paired comparisons, PR curves per
-split, a heat map of AP per season pair, and a gallery of change maps: for each of the six methods
-the highest-LoC false positives and the lowest-LoC missed changes, each as query | reference |
-LoC map with the annotated boxes drawn, linked to its row in the split report.
+It leads with the fair comparison. In this order: run facts (config, data, localizer, versions,
+time, counts and drops), localization quality, a legend, Table S (size-stratified) and Table P with
+intervals, the paired comparisons, then under Table S's labels at the headline RoC-max
+(``[report] headline_roc_max``) one PR figure, a heat map of AP per season pair and a gallery of
+change maps (for each of the six methods the highest-LoC false positives and the lowest-LoC missed
+changes, each as query | reference | LoC map with its colour bar, its size stratum named, linked to
+its row in the split report); last, the paper's protocol (Table I) with its confound warning at its
+head and, collapsed, its table, PR figure, heat map and gallery. A cell is green when its 95%
+interval lies clear above the floor, grey when it holds the floor, red when it lies clear below.
 
 Everything is read from the run directory, so ``harness report OUT`` rebuilds the page for an
 existing run. The page is one HTML file with its images beside it under ``OUT/report/``
@@ -61,6 +65,11 @@ details summary { cursor: pointer; color: #2f5fb3; margin: .4rem 0; }
 figure img { display: block; max-width: 100%; }
 figcaption { font-size: .78rem; color: #3b4456; margin-top: .3rem; max-width: 560px; }
 .pr img { width: 360px; }
+.legend { background: #fff; border: 1px solid #d9dde6; padding: .5rem .8rem; font-size: .85rem; }
+.sw { display: inline-block; width: 1.4em; height: .9em; vertical-align: middle;
+      border: 1px solid #bbb; margin: 0 .2em; }
+td.diag { color: #7a8394; text-align: center; }
+#protocol { margin-top: 3rem; }
 .note { color: #5b6475; font-size: .85rem; }
 code { background: #eef1f6; padding: 0 .25rem; border-radius: 3px; }
 nav a { margin-right: .8rem; font-size: .9rem; }
@@ -92,6 +101,53 @@ NAN = float("nan")
 def _diff_colour(lo: float, hi: float) -> str:
     """A paired difference's background: green when its interval lies above 0, red below."""
     return "#e3f4e1" if lo > 0 else "#fbe3e1" if hi < 0 else "#fff"
+
+
+#: What a change-table cell says about its AP, from its 95% interval and the floor.
+VERDICTS = {
+    "above": "its interval lies clear above the floor: better than a random ranking",
+    "holds": "its interval holds the floor: not told apart from a random ranking",
+    "below": "its interval lies clear below the floor: worse than a random ranking",
+    "none": "no interval (or no positive): the shade shows the distance from the floor only",
+}
+
+
+def verdict(ap: float, lo: float, hi: float, floor: float) -> tuple[str, str]:
+    """(verdict, background) of one AP: green above the floor, grey on it, red below it.
+
+    The decision is the interval's (``lo > floor``, ``hi < floor``, else it holds the floor); the
+    shade grows with the distance of the AP from the floor, as a share of the room there is
+    (1 - floor above it, floor below it). Without an interval the verdict is ``none`` and the
+    colour is a pale version of the same scale.
+    """
+    if ap != ap or floor != floor:
+        return "none", "#f0f0f0"
+    up = ap >= floor
+    room = (1.0 - floor) if up else floor
+    t = float(np.clip(abs(ap - floor) / room if room > 0 else 0.0, 0.0, 1.0))
+    green = (int(232 - 100 * t), int(246 - 40 * t), int(228 - 100 * t))
+    red = (int(251 - 20 * t), int(228 - 110 * t), int(225 - 110 * t))
+    if lo != lo or hi != hi:
+        r, g, b = green if up else red
+        r, g, b = (int(255 - (255 - v) * 0.5) for v in (r, g, b))
+        return "none", f"rgb({r},{g},{b})"
+    if lo > floor:
+        return "above", "rgb({},{},{})".format(*green)
+    if hi < floor:
+        return "below", "rgb({},{},{})".format(*red)
+    return "holds", "#e4e4e4"
+
+
+LEGEND = (
+    '<div class="legend" data-legend="floor"><b>How to read the colours.</b> '
+    '<span class="sw" style="background:rgb(182,226,178)"></span> green: the AP\'s 95% interval '
+    "lies clear above the table's floor (the AP of a random ranking), the darker the further; "
+    '<span class="sw" style="background:#e4e4e4"></span> grey: the interval holds the floor, so '
+    "this data cannot tell the method from chance; "
+    '<span class="sw" style="background:rgb(241,163,160)"></span> red: clear below the floor. '
+    "Paired differences: green or red when their interval is clear of 0, white when it holds 0. "
+    "A cell without an interval is paler and decides nothing.</div>"
+)
 
 
 def _heat(v: float, floor: float = 0.0) -> str:
@@ -128,7 +184,10 @@ def _change_table(
             )
             sep = True
         cells = "".join(
-            f'<td style="background:{_heat(ap.loc[m, c], floor.loc[m, c])}">{_num(ap.loc[m, c])}'
+            '<td data-verdict="{}" style="background:{}">'.format(
+                *verdict(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c], floor.loc[m, c])
+            )
+            + f"{_num(ap.loc[m, c])}"
             + (
                 f' <span class="ci">[{_num(lo.loc[m, c])}, {_num(hi.loc[m, c])}]</span>'
                 if lo.loc[m, c] == lo.loc[m, c]
@@ -145,10 +204,11 @@ def _change_table(
     )
     title, intro = TABLE_INTRO[table]
     warn = "".join(f'<div class="warn">{_e(w)}</div>' for w in warnings)
+    heading = "h3" if table == "I" else "h2"
     return (
-        f'<h2 id="table{table}">{_e(title + who)}</h2><p class="note">{_e(intro)} Cells: AP [95% '
-        "bootstrap interval over query images]; colour: from the floor (red) to 1 "
-        "(green).</p>"
+        f'<{heading} id="table{table}">{_e(title + who)}</{heading}><p class="note">{_e(intro)} '
+        "Cells: AP [95% bootstrap interval over query images]; colour: the interval against "
+        "the floor (see the legend).</p>"
         f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}'
     )
 
@@ -183,20 +243,83 @@ def _localization(loc: pd.DataFrame, radius: float, who: str = "") -> str:
     )
 
 
-def _heatmap(summ: pd.DataFrame, table: str, method: str) -> str:
-    """AP of one method per season pair (query season down, reference season across)."""
+def _heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
+    """Table I's AP of one method per season pair, at ``split``."""
     d = summ[
         (summ["table"] == "I")
         & (summ["proposals"] == "all")
         & (summ["season_pair"] != "all")
         & (summ["method"] == method)
+        & (summ["split"] == split)
     ]
     if not len(d):
         return ""
-    split = d["split"].iloc[-1]
-    d = d[d["split"] == split]
-    pairs = d.set_index("season_pair")["ap"].to_dict()
-    floors = d.set_index("season_pair")["positive_rate"].to_dict()
+    return _heat_table(
+        d.set_index("season_pair")["ap"].to_dict(),
+        d.set_index("season_pair")["positive_rate"].to_dict(),
+        "heatmapI",
+        f"{METHOD_LABELS[method]}, Table I (the paper's protocol), {split}",
+    )
+
+
+def headline_split(out: Path, headline: float) -> Path | None:
+    """The split report at the headline RoC-max (else the largest one written)."""
+    files = sorted((out / "splits").glob("roc_max_*.parquet"))
+    want = out / "splits" / f"roc_max_{headline:.2f}.parquet"
+    return want if want in files else (files[-1] if files else None)
+
+
+def _pr_figure(
+    out: Path, rep: pd.DataFrame, label: str, tag: str, title: str
+) -> tuple[str, list[Path]]:
+    """One PR figure of the six methods on ``rep``'s ``label`` column (proposals = all)."""
+    from .metrics import pr_curve
+    from .plots import pr_figure
+
+    allp = rep[(rep["proposals"] == "all") & (rep[label] >= 0)]
+    curves = []
+    for m in FUSION_METHODS:
+        col = f"loc_{m}"
+        if col not in allp.columns:
+            continue
+        sel = allp[col].notna()
+        y = allp.loc[sel, label].to_numpy() == 1
+        if y.any():
+            _, prec, rec = pr_curve(y, allp.loc[sel, col].to_numpy())
+            curves.append(pd.DataFrame({"method": m, "precision": prec, "recall": rec}))
+    if not curves:
+        return "<p class='note'>no positive in this split: no curve</p>", []
+    path = pr_figure(pd.concat(curves), out / "report" / f"pr_{tag}.png", title)
+    return (
+        f'<figure><img src="report/{_e(path.name)}" alt="{_e(title)}">'
+        f"<figcaption>{_e(title)}</figcaption></figure>",
+        [path],
+    )
+
+
+def _heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split: str) -> str:
+    """Table S's AP of one method per season pair (query season down, reference across)."""
+    from .metrics import stratified_ap
+
+    col = f"loc_{method}"
+    allp = rep[(rep["proposals"] == "all") & (rep["label_stratified"] >= 0)]
+    if col not in allp.columns or not len(allp):
+        return ""
+    pairs, floors = {}, {}
+    for pair, g in allp.groupby("season_pair", sort=True):
+        g = g[g[col].notna()]
+        pairs[pair], floors[pair] = stratified_ap(
+            g["label_stratified"].to_numpy() == 1, g[col].to_numpy(), g["SoB"].to_numpy(), edges
+        )
+    return _heat_table(
+        pairs,
+        floors,
+        "heatmap",
+        f"{METHOD_LABELS[method]}, Table S (size-stratified), {split}",
+    )
+
+
+def _heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, what: str) -> str:
     seasons = sorted(
         {p.split("->")[0] for p in pairs} | {p.split("->")[1] for p in pairs},
         key=lambda s: ["WI", "SP", "SU", "AU"].index(s) if s in ("WI", "SP", "SU", "AU") else 9,
@@ -205,19 +328,26 @@ def _heatmap(summ: pd.DataFrame, table: str, method: str) -> str:
 
     def cell(q: str, r: str) -> str:
         if q == r:
-            return "<td>&mdash;</td>"
-        ap = pairs.get(f"{q}->{r}", NAN)
-        return f'<td style="background:{_heat(ap, floors.get(f"{q}->{r}", 0.0))}">{_num(ap)}</td>'
+            return '<td class="diag">&mdash;</td>'
+        key = f"{q}->{r}"
+        if key not in pairs:
+            return '<td class="diag">no pair</td>'
+        ap, fl = pairs[key], floors.get(key, NAN)
+        colour = verdict(ap, NAN, NAN, fl)[1]
+        text = _num(ap) if ap == ap else "NaN"
+        return f'<td style="background:{colour}" title="floor {_num(fl)}">{text}</td>'
 
     rows = "".join(
         f"<tr><th>{_e(q)}</th>" + "".join(cell(q, r) for r in seasons) + "</tr>" for q in seasons
     )
     return (
-        '<h2 id="heatmap">AP per season pair</h2><p '
-        f'class="note">{_e(METHOD_LABELS[method])}, Table I, {_e(split)}; query season '
-        "down, reference season across (per-pair AP has no interval: few query images per "
-        "pair; NaN: no positive in that pair).</p>"
-        f'<table data-table="heatmap"><tr><th>query \\ reference</th>{head}</tr>{rows}</table>'
+        f'<h3 id="{anchor}">AP per season pair</h3><p class="note">{_e(what)}; query season '
+        "down, reference season across. &mdash;: a season is never paired with itself; NaN: "
+        "the pair has no positive (or no stratum with both labels); no pair: no query of that "
+        "season found a reference of the other. A per-pair AP has no interval (few query "
+        "images per pair): its colour is the pale scale of the legend and decides nothing "
+        "(hover a cell for its floor).</p>"
+        f'<table data-table="{anchor}"><tr><th>query \\ reference</th>{head}</tr>{rows}</table>'
     )
 
 
@@ -258,17 +388,51 @@ def _thumbnail(
     )
     heat = _draw_boxes(_draw_boxes(heat, change, (230, 40, 40), 2 * lw), box, (255, 215, 0), 2 * lw)
     gap = np.full((THUMB_H, 6, 3), 255, np.uint8)
-    return np.hstack([_panel(q), gap, _panel(reference), gap, _panel(heat)])
+    top = np.hstack([_panel(q), gap, _panel(reference), gap, _panel(heat)])
+    lo, hi = (float(np.nanmin(lmap)), float(np.nanmax(lmap))) if valid.any() else (NAN, NAN)
+    bar = colour_bar(_panel(heat).shape[1], lo, hi)
+    bottom = np.full((bar.shape[0], top.shape[1], 3), 255, np.uint8)
+    bottom[:, -bar.shape[1] :] = bar
+    return np.vstack([top, bottom])
+
+
+def colour_bar(width: int, lo: float, hi: float, height: int = 30) -> np.ndarray:
+    """The LoC map's colour scale: the inferno ramp from ``lo`` (left) to ``hi``, labelled.
+
+    The map is normalised per image, so the bar states that image's range of the method's LoC.
+    """
+    ramp = np.linspace(0, 255, max(width, 2)).astype(np.uint8)[None, :].repeat(12, 0)
+    bar = cv2.applyColorMap(ramp, cv2.COLORMAP_INFERNO)[..., ::-1]
+    out = np.full((height, width, 3), 255, np.uint8)
+    out[2:14] = bar[:, :width]
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.38
+    left = f"LoC {lo:.3g}" if lo == lo else "no LoC"
+    right = f"{hi:.3g} (more changed)" if hi == hi else ""
+    cv2.putText(out, left, (1, height - 4), font, scale, (40, 40, 40), 1, cv2.LINE_AA)
+    (tw, _), _ = cv2.getTextSize(right, font, scale, 1)
+    cv2.putText(out, right, (max(1, width - tw - 1), height - 4), font, scale, (40, 40, 40), 1)
+    return out
 
 
 def _gallery(
-    out: Path, run: dict, n: int, frames: pd.DataFrame, ann: pd.DataFrame, ranks: pd.DataFrame
+    out: Path,
+    split_file: Path | None,
+    n: int,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    ranks: pd.DataFrame,
+    label: str = "label_stratified",
+    edges: list[float] | None = None,
 ) -> tuple[str, list[Path]]:
-    """The highest-LoC false positives and lowest-LoC missed changes per method, as thumbnails."""
-    split_files = sorted((out / "splits").glob("roc_max_*.parquet"))
-    if n <= 0 or not split_files:
+    """The highest-LoC false positives and lowest-LoC missed changes per method, as thumbnails.
+
+    ``label``: ``label_stratified`` (Table S's labels: RoC only; each example names its size
+    stratum) or ``label`` (Table I's).
+    """
+    stratified = label == "label_stratified"
+    tag, anchor = ("S", "gallery") if stratified else ("I", "galleryI")
+    if n <= 0 or split_file is None:
         return "", []
-    split_file = split_files[-1]
     rep = pd.read_parquet(split_file)
     rep = rep.reset_index(names="row")
     rep = rep[rep["proposals"] == "all"]
@@ -288,9 +452,9 @@ def _gallery(
     (out / "report").mkdir(exist_ok=True)
     for m in [m for m in FUSION_METHODS if f"loc_{m}" in rep.columns]:
         col = f"loc_{m}"
-        lab = rep[(rep["label"] >= 0) & rep[col].notna()]
-        fps = lab[lab["label"] == 0].sort_values([col, "row"], ascending=[False, True]).head(n)
-        misses = lab[lab["label"] == 1].sort_values([col, "row"], ascending=[True, True]).head(n)
+        lab = rep[(rep[label] >= 0) & rep[col].notna()]
+        fps = lab[lab[label] == 0].sort_values([col, "row"], ascending=[False, True]).head(n)
+        misses = lab[lab[label] == 1].sort_values([col, "row"], ascending=[True, True]).head(n)
         figs = []
         for kind, rows in (
             ("false positive: the highest LoC among negatives", fps),
@@ -322,7 +486,7 @@ def _gallery(
                 thumb = _thumbnail(
                     image(qk), image(rkey), lmap, change, np.array([[r.x1, r.y1, r.x2, r.y2]])
                 )
-                name = f"{m}_{'fp' if kind.startswith('false') else 'miss'}_{r.row}.jpg"
+                name = f"{tag}_{m}_{'fp' if kind.startswith('false') else 'miss'}_{r.row}.jpg"
                 ok, buf = cv2.imencode(
                     ".jpg", cv2.cvtColor(thumb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 82]
                 )
@@ -334,8 +498,9 @@ def _gallery(
                 figs.append(
                     f'<figure><img src="report/{_e(name)}" alt="{_e(kind)}" '
                     f'loading="lazy"><figcaption><b>{_e(kind.split(":")[0])}</b>, LoC '
-                    f"{r.__getattribute__(col):.3g}, RoC {r.RoC:.2f}, SoB {r.SoB:.3f}, N "
-                    f"{r.N}<br>{_e(r.q_session)} {int(r.q_utime)} vs "
+                    f"{r.__getattribute__(col):.3g}, RoC {r.RoC:.2f}, SoB {r.SoB:.3f}"
+                    + (f" (stratum {_e(_stratum(r.SoB, edges))})" if stratified and edges else "")
+                    + f", N {r.N}<br>{_e(r.q_session)} {int(r.q_utime)} vs "
                     f"{_e(r.r_session)} ({_e(r.season_pair)}); <a "
                     f'href="{_e(split_file.relative_to(out))}">{_e(split_file.name)}</a> '
                     f"row {r.row}"
@@ -345,16 +510,33 @@ def _gallery(
             f"<h3>{_e(METHOD_LABELS[m])}</h3><div "
             f'class="grid">{"".join(figs) or "<p class=note>no labelled samples</p>"}</div>'
         )
+    labels = (
+        "Table S's labels: positive = at least RoC-min inside a change, negative = at most "
+        "RoC-max, whatever the box's size; each example names its size stratum, the only "
+        "boxes it was compared with"
+        if stratified
+        else "Table I's labels, where box size decides much of the label"
+    )
     intro = (
         "<p class='note'>Per method, the negatives it scored highest (false positives) and "
         "the positives it scored lowest "
-        f"(missed changes) under {_e(split_file.stem)} (Table I's labels). Each: query with "
+        f"(missed changes) under {_e(split_file.stem)} ({labels}). Each: query with "
         "the annotated change (red) and the sample "
-        "(yellow) | its reference | the method's LoC map over the query (brighter = more "
-        "likely changed). Rows refer to the split "
+        "(yellow) | its reference | the method's LoC map over the query, with its colour bar "
+        "(the map's range of that method's LoC in this image; brighter = more likely "
+        "changed). Rows refer to the split "
         f"report. At most {n} of each per method (<code>[report] gallery</code>).</p>"
     )
-    return '<h2 id="gallery">Change maps: worst cases</h2>' + intro + "".join(parts), written
+    heading = "h3" if not stratified else "h2"
+    title = "Change maps: worst cases" + ("" if stratified else " under Table I's labels")
+    return f'<{heading} id="{anchor}">{title}</{heading}>' + intro + "".join(parts), written
+
+
+def _stratum(sob: float, edges: list[float]) -> str:
+    """``[lo, hi)`` of the size stratum of a box of relative size ``sob`` (the last one closed)."""
+    k = int(np.clip(np.searchsorted(edges, sob, side="right") - 1, 0, len(edges) - 2))
+    close = "]" if k == len(edges) - 2 else ")"
+    return f"SoB [{edges[k]:g}, {edges[k + 1]:g}{close}"
 
 
 def write_html_report(out: Path, gallery: int | None = None) -> Path:
@@ -430,17 +612,11 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     ]
     fact_rows = "".join(f"<tr><td>{_e(k)}</td><td>{_e(v)}</td></tr>" for k, v in facts)
     who = f" (localizer: {loc_name})"
-    prs = sorted((out / "plots").glob("pr_*.png"))
-    pr_html = "".join(
-        f'<figure><img src="{_e(p.relative_to(out))}" '
-        f'alt="{_e(p.stem)}"><figcaption>{_e(p.stem[3:])}</figcaption></figure>'
-        for p in prs
-    )
     cmp_rows = summ[
         (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()
     ]
     cmp_html = ""
-    for table in ("I", "S", "P"):
+    for table in ("S", "P", "I"):  # the fair tables first, the paper's protocol last
         t = cmp_rows[cmp_rows["table"] == table]
         if not len(t):
             continue
@@ -466,16 +642,53 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
             f"<h3>{_e(TABLE_INTRO[table][0])}</h3><table "
             f'data-table="cmp{table}"><tr><th>difference</th>{head}</tr>{diffs}</table>'
         )
-    gallery_html, thumbs = _gallery(out, run, n, frames, ann, ranks)
-    keep = {p.resolve() for p in thumbs}
-    for p in (out / "report").glob("*.jpg") if (out / "report").is_dir() else []:
-        if p.resolve() not in keep:  # thumbnails of an earlier page that this page no longer shows
-            p.unlink()
+    headline = float(cfg["report"].get("headline_roc_max", 0.05))
+    split_file = headline_split(out, headline)
+    split_name = split_file.stem if split_file is not None else ""
+    edges = [float(e) for e in cfg["splits"]["sob_strata"]]
+    (out / "report").mkdir(exist_ok=True)
+    rep = pd.read_parquet(split_file) if split_file is not None else None
+    lead = "rank_fusion" if "rank_fusion" in methods else methods[0]
+    pr_s, pr_files = (
+        _pr_figure(out, rep, "label_stratified", "S", f"Table S labels (RoC only), {split_name}")
+        if rep is not None
+        else ("", [])
+    )
+    pr_i, pr_files_i = (
+        _pr_figure(out, rep, "label", "I", f"Table I labels (the paper's), {split_name}")
+        if rep is not None
+        else ("", [])
+    )
+    heat_s = _heatmap_stratified(rep, lead, edges, split_name) if rep is not None else ""
+    gallery_s, thumbs = _gallery(out, split_file, n, frames, ann, ranks, "label_stratified", edges)
+    gallery_i, thumbs_i = _gallery(out, split_file, n, frames, ann, ranks, "label", edges)
+    keep = {p.resolve() for p in [*thumbs, *thumbs_i, *pr_files, *pr_files_i]}
+    for p in (out / "report").glob("*") if (out / "report").is_dir() else []:
+        if p.suffix in (".jpg", ".png") and p.resolve() not in keep:
+            p.unlink()  # images of an earlier page that this page no longer shows
+    confound = [w for w in warnings.get("I", []) if w.startswith("WARNING")]
+    notes_i = [w for w in warnings.get("I", []) if not w.startswith("WARNING")]
+    protocol = (
+        '<h2 id="protocol">The paper\'s protocol (Table I): read it last</h2>'
+        "<p class='note'>Table I labels a box positive when it is at least 90% inside a change "
+        "<i>and</i> at most 40% of the image, negative when it is at most RoC-max changed "
+        "<i>and</i> at least 40% of the image: box size alone can separate the labels, so its "
+        "APs measure box size as much as change. It is here to compare with the paper's "
+        "numbers, not to compare detectors (Table S does that).</p>"
+        + "".join(f'<div class="warn">{_e(w)}</div>' for w in confound)
+        + "<details><summary>Table I, its PR curve, AP per season pair and worst cases "
+        "under its labels</summary>"
+        + _change_table(summ, "I", methods, notes_i, who)
+        + f'<div class="grid pr" id="prI">{pr_i}</div>'
+        + _heatmap(summ, lead, split_name)
+        + gallery_i
+        + "</details>"
+    )
     body = [
         f"<h1>Detection-by-Localization: {_e(cfg['name'])}, localizer {_e(loc_name)}</h1>",
         (
-            f"<p class='sub'>dbl-harness {_e(run['versions'].get('dbl-harness', ''))}, seed "
-            f"{run['seed']}</p>"
+            f"<p class='sub'>data: {_e(cfg['data_root'])}; dbl-harness "
+            f"{_e(run['versions'].get('dbl-harness', ''))}, seed {run['seed']}</p>"
         ),
         "<nav>"
         + "".join(
@@ -483,30 +696,35 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
             for a, t in (
                 ("facts", "run"),
                 ("localization", "localization"),
-                ("tableI", "Table I"),
                 ("tableS", "Table S"),
                 ("tableP", "Table P"),
                 ("comparisons", "comparisons"),
-                ("pr", "PR curves"),
+                ("pr", "PR curve"),
                 ("heatmap", "season pairs"),
                 ("gallery", "change maps"),
+                ("protocol", "Table I (paper's protocol)"),
             )
         )
         + "</nav>",
         f'<h2 id="facts">Run</h2><table class="facts" data-table="facts">{fact_rows}</table>',
         _localization(loc, float(cfg["retrieval"]["gt_radius_m"]), who),
-        *(_change_table(summ, t, methods, warnings.get(t, []), who) for t in ("I", "S", "P")),
+        LEGEND,
+        *(_change_table(summ, t, methods, warnings.get(t, []), who) for t in ("S", "P")),
         '<h2 id="comparisons">Paired comparisons with rank fusion</h2><p '
         'class="note">AP(method) &minus; AP(rank fusion) over the same '
         "bootstrap resamples of query images, with its 95% interval; green: better than "
         "rank fusion, red: worse, white: cannot be told apart "
         "on this data.</p>" + cmp_html,
         (
-            '<h2 id="pr">Precision-recall curves (Table I splits)</h2><div class="grid '
-            f'pr">{pr_html}</div>'
+            f'<h2 id="pr">Precision-recall curve (Table S labels, {_e(split_name)})</h2>'
+            "<p class='note'>The six methods' curves over the samples of all size strata "
+            "pooled (Table S's AP is the mean of the per-stratum APs, weighted by positives). "
+            "The other RoC-max splits: <code>plots/pr_*.png</code>.</p>"
+            f'<div class="grid pr">{pr_s}</div>'
         ),
-        _heatmap(summ, "I", "rank_fusion" if "rank_fusion" in methods else methods[0]),
-        gallery_html,
+        heat_s,
+        gallery_s,
+        protocol,
     ]
     page = (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><meta name='viewport' "

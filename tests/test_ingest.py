@@ -569,3 +569,29 @@ def test_an_unreadable_log_is_called_unreadable(
         IngestError, match=r"log of session S is not readable \(permission denied\)"
     ):
         ingest_session(SessionConfig(name="S", source=str(log)), IngestConfig(), tmp_path / "o")
+
+
+def test_salvage_of_a_sqlite_bag_damaged_in_the_middle_keeps_the_rows_beyond(
+    tmp_path: Path,
+) -> None:
+    """A 95%-intact ROS2 sqlite bag ("database disk image is malformed" mid-table): the rows on the
+    intact pages before and after the damage are kept; without --salvage, one clear error."""
+    rgb = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    n = 40
+    frames = [W.LogFrame(1_000_000 + i * 100_000, rgb) for i in range(n)]
+    poses = [Pose(1_000_000 + i * 50_000, float(i), 0.0, 0.0, 0.0, 0.0, 0.0) for i in range(2 * n)]
+    path = tmp_path / "bag"
+    W.write_ros2(path, frames, poses, storage="sqlite3", image="raw")
+    db = next(path.glob("*.db3"))
+    raw = bytearray(db.read_bytes())
+    page = int.from_bytes(raw[16:18], "big") or 65536
+    leaves = [i for i in range(1, len(raw) // page) if raw[i * page] == 0x0D]  # table b-tree leaves
+    mid = leaves[len(leaves) // 2]
+    raw[mid * page : mid * page + 12] = b"\x0d\xff\xff\xff\xff\x00\x00\xff" + b"\x00" * 4
+    db.write_bytes(bytes(raw))
+    sc = SessionConfig(name="s", source=str(path), format="ros2")
+    with pytest.raises(CorruptLogError):
+        ingest_session(sc, IngestConfig(), tmp_path / "o")
+    rep = ingest_session(sc, IngestConfig(salvage=True), tmp_path / "o")
+    assert "row(s) skipped" in rep["salvaged"]["detail"]
+    assert n // 2 < rep["frames_written"] < n  # more than the rows before the damage

@@ -12,18 +12,23 @@ import pytest
 
 from harness.cli import main
 
+#: The fair comparison first; the paper's protocol (Table I, its figures) last.
 SECTIONS = (
     "facts",
     "localization",
-    "tableI",
     "tableS",
     "tableP",
     "comparisons",
     "pr",
     "heatmap",
     "gallery",
+    "protocol",
+    "tableI",
+    "prI",
+    "heatmapI",
+    "galleryI",
 )
-TABLES = ("facts", "localization", "I", "S", "P", "cmpI", "cmpS", "cmpP", "heatmap")
+TABLES = ("facts", "localization", "S", "P", "cmpS", "cmpP", "cmpI", "heatmap", "I", "heatmapI")
 
 
 def _chromium() -> str:
@@ -48,10 +53,17 @@ def test_every_run_writes_the_report_in_order(local_run: tuple) -> None:
     assert (
         "WARNING (Table I)" in page and "http://" not in page and "https://" not in page
     )  # nothing fetched at view time
+    assert page.index('data-legend="floor"') < page.index('id="tableS"')
+    assert page.index('id="protocol"') < page.index("WARNING (Table I)") < page.index('id="tableI"')
     thumbs = sorted((out / "report").glob("*.jpg"))
-    assert (
-        len(thumbs) == 6 * 2 * 3
-    )  # six methods x (false positives, missed changes) x [report] gallery = 3
+    # six methods x (false positives, missed changes) x [report] gallery = 3, under Table S's
+    # labels and under Table I's
+    assert len(thumbs) == 6 * 2 * 3 * 2
+    assert sorted((out / "report").glob("pr_*.png")) == [
+        out / "report" / "pr_I.png",
+        out / "report" / "pr_S.png",
+    ]
+    assert "(stratum SoB [" in page
     for t in thumbs:
         assert f'src="report/{t.name}"' in page
     assert re.search(r"roc_max_0\.05\.parquet</a> row \d+", page)
@@ -68,7 +80,7 @@ def test_harness_report_rebuilds_the_page_with_a_smaller_gallery(
     assert main(["report", str(tmp_path / "o"), "--gallery", "1"]) == 0
     assert f"report: {tmp_path / 'o' / 'report.html'}" in capsys.readouterr().out
     assert (
-        len(list((tmp_path / "o" / "report").glob("*.jpg"))) == 6 * 2
+        len(list((tmp_path / "o" / "report").glob("*.jpg"))) == 6 * 2 * 2
     )  # the earlier page's extra thumbnails are gone
     assert main(["report", str(tmp_path / "nothing")]) == 1
     assert "no run.json here" in capsys.readouterr().err
@@ -96,9 +108,23 @@ def test_the_page_renders_in_a_real_browser(local_run: tuple, tmp_path: Path) ->
     body = re.search(r"<body([^>]*)>", dom)
     assert body, dom[:500]
     attrs = dict(re.findall(r'data-([a-z-]+)="([^"]*)"', body.group(1)))
-    assert int(attrs["images-total"]) >= 36 + 5  # thumbnails and PR curves
+    assert int(attrs["images-total"]) >= 72 + 2  # thumbnails and the two PR figures
     assert attrs["images-loaded"] == attrs["images-total"], attrs  # every image loads
     assert int(attrs["tables"]) >= len(TABLES)
+    # the order a reader meets: the legend and the fair tables before the paper's protocol
+    order = [
+        dom.index(k)
+        for k in (
+            'data-legend="floor"',
+            'id="tableS"',
+            'id="tableP"',
+            'id="comparisons"',
+            'id="protocol"',
+            'id="tableI"',
+        )
+    ]
+    assert order == sorted(order)
+    assert re.search(r"<details>\s*<summary>Table I", dom)  # collapsed by default
     shot = tmp_path / "report.png"
     subprocess.run(
         [chromium, *flags, "--window-size=1280,2200", f"--screenshot={shot}", url],
@@ -115,3 +141,43 @@ def test_the_page_renders_in_a_real_browser(local_run: tuple, tmp_path: Path) ->
     assert (grey < 100).mean() > 0.005 and (
         grey > 240
     ).mean() > 0.3  # text on a light page, not a blank or an error page
+
+
+def test_a_corridor_run_shows_table_s_green_and_table_i_last(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """A hand-made run directory like a real corridor's: Table I at 1.00 everywhere, Table S modest
+    (0.26 against a floor of 0.12, its interval clear of it), one method on its floor, one below."""
+    import pandas as pd
+
+    _, _, run = local_run
+    out = tmp_path / "corridor"
+    shutil.copytree(run, out)
+    summ = pd.read_parquet(out / "splits" / "summary.parquet")
+    main_rows = (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+    t1 = main_rows & (summ["table"] == "I")
+    summ.loc[t1, ["ap", "ci_low", "ci_high"]] = 1.0
+    ts = main_rows & (summ["table"] == "S")
+    summ.loc[ts, ["floor", "positive_rate"]] = 0.12
+    for method, (ap, lo, hi) in {
+        "rank_fusion": (0.26, 0.18, 0.33),
+        "score_max": (0.13, 0.07, 0.21),
+        "random": (0.05, 0.02, 0.08),
+    }.items():
+        summ.loc[ts & (summ["method"] == method), ["ap", "ci_low", "ci_high"]] = (ap, lo, hi)
+    summ.to_parquet(out / "splits" / "summary.parquet")
+    assert main(["report", str(out)]) == 0
+    page = (out / "report.html").read_text()
+    s_start, s_end = page.index('id="tableS"'), page.index('id="tableP"')
+    table_s = page[s_start:s_end]
+
+    def verdicts(block: str, label: str) -> set[str]:
+        row = block[block.index(f"<td>{label}</td>") :].split("</tr>")[0]
+        return set(re.findall(r'data-verdict="([a-z]+)"', row))
+
+    assert verdicts(table_s, "rank fusion") == {"above"}  # 0.26 [0.18, 0.33] vs 0.12: green
+    assert verdicts(table_s, "score max") == {"holds"}  # its interval holds the floor: grey
+    assert verdicts(table_s, "random") == {"below"}  # clear below: red
+    # Table I at 1.00 comes after every fair table, in the protocol section, collapsed
+    assert page.index('id="tableI"') > page.index('id="protocol"') > s_end
+    assert page.index('id="protocol"') > page.index('id="gallery"')

@@ -5,8 +5,9 @@ ROS2 bag's intact database. These readers walk the file from its start instead:
 
 - ROS1: record by record (bag header, connections, chunks with ``none``, ``bz2`` or ``lz4``
   compression, messages), stopping at the first damaged record or chunk;
-- ROS2 sqlite3: the ``messages`` table row by row in insertion order, until sqlite reports the
-  damage; ROS2 with MCAP storage: the MCAP stream reader.
+- ROS2 sqlite3: the ``messages`` table in insertion order; past the damage sqlite reports, row by
+  row by id (rows on intact pages are kept, unreadable ones skipped and counted); ROS2 with MCAP
+  storage: the MCAP stream reader.
 """
 
 from __future__ import annotations
@@ -152,28 +153,88 @@ def ros2_sqlite_messages(
 ) -> Iterator[tuple[str, str, int, bytes]]:
     """(topic, type, time in ns, raw CDR) of every readable row of a damaged ROS2 sqlite3 bag.
 
-    Rows come in insertion order.
+    Rows come in insertion order. The table is scanned whole first; where sqlite reports damage
+    ("database disk image is malformed"), the rows after the last one read are fetched one by one
+    by their id, so the rows on intact pages beyond the damage are kept too. Unreadable rows are
+    skipped; when any were, a :class:`CorruptLogError` after the last row says how many (the
+    ingest records it under ``salvaged``).
     """
     db = _ros2_db(path)
     n = 0
     try:
         con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    except sqlite3.DatabaseError as err:
+        raise CorruptLogError(path, 0, f"sqlite3: {err}", salvage=True) from None
+    try:
         try:
             types = {
                 int(i): (str(name), str(typ))
                 for i, name, typ in con.execute("SELECT id, name, type FROM topics")
             }
-            for tid, t, data in con.execute(
-                "SELECT topic_id, timestamp, data FROM messages ORDER BY id"
+        except sqlite3.DatabaseError as err:
+            raise CorruptLogError(path, 0, f"sqlite3 (topics table): {err}", salvage=True) from None
+        last_id, first_error = 0, None
+        try:
+            for rid, tid, t, data in con.execute(
+                "SELECT id, topic_id, timestamp, data FROM messages ORDER BY id"
             ):
+                last_id = int(rid)
                 topic, typ = types.get(int(tid), ("", ""))
                 if topics is None or topic in topics:
                     n += 1
                     yield topic, typ, int(t), bytes(data)
-        finally:
-            con.close()
-    except sqlite3.DatabaseError as err:
-        raise CorruptLogError(path, n, f"sqlite3: {err}", salvage=True) from None
+        except sqlite3.DatabaseError as err:
+            first_error = str(err)
+        if first_error is None:
+            return
+        skipped = 0
+        for rid in _ids_after(con, last_id):
+            try:
+                row = con.execute(
+                    "SELECT topic_id, timestamp, data FROM messages WHERE id = ?", (rid,)
+                ).fetchone()
+            except sqlite3.DatabaseError:
+                skipped += 1
+                continue
+            if row is None:
+                continue
+            topic, typ = types.get(int(row[0]), ("", ""))
+            if topics is None or topic in topics:
+                n += 1
+                yield topic, typ, int(row[1]), bytes(row[2])
+        raise CorruptLogError(
+            path,
+            n,
+            f"sqlite3: {first_error}; rows read one by one past the damage, {skipped} "
+            "unreadable row(s) skipped",
+            salvage=True,
+        )
+    finally:
+        con.close()
+
+
+def _ids_after(con: sqlite3.Connection, last_id: int, misses: int = 1000) -> Iterator[int]:
+    """Message ids after ``last_id``.
+
+    Up to ``max(id)`` when sqlite can still say it, else until ``misses`` ids in a row are absent
+    or unreadable.
+    """
+    try:
+        top = con.execute("SELECT max(id) FROM messages").fetchone()[0]
+    except sqlite3.DatabaseError:
+        top = None
+    if top is not None:
+        yield from range(last_id + 1, int(top) + 1)
+        return
+    rid, gap = last_id + 1, 0
+    while gap < misses:
+        yield rid
+        try:
+            found = con.execute("SELECT 1 FROM messages WHERE id = ?", (rid,)).fetchone()
+        except sqlite3.DatabaseError:
+            found = None
+        gap = 0 if found else gap + 1
+        rid += 1
 
 
 def ros2_sqlite_topics(path: Path) -> dict[str, tuple[str, int]]:
