@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from harness.errors import RetrievalError
 from harness.retrieval import image_ranks, image_ranks_faiss
@@ -189,3 +192,19 @@ def test_a_memory_budget_ranks_in_groups_with_the_same_result() -> None:
         got = image_ranks(q, db, frame, gt, place, chunk_rows=64, memory_mb=mb)
         for a, b in zip(whole, got, strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("lengths", [[5, 5, 5, 5], [1, 12, 3, 7, 2], [4]])
+def test_the_per_frame_minimum_equals_a_loop_over_frames(lengths: list[int]) -> None:
+    from harness.retrieval import frame_min_sqdist_chunk
+
+    rng = np.random.default_rng(len(lengths))
+    q = torch.from_numpy(rng.standard_normal((9, 6)).astype(np.float32))
+    block = torch.from_numpy(rng.standard_normal((sum(lengths), 6)).astype(np.float32))
+    got = frame_min_sqdist_chunk(
+        q, q.square().sum(1, keepdim=True), block, torch.tensor(lengths)
+    ).numpy()
+    d2 = ((q.numpy()[:, None, :] - block.numpy()[None]) ** 2).sum(-1)
+    cuts = np.cumsum([0, *lengths])
+    want = np.stack([d2[:, a:b].min(1) for a, b in itertools.pairwise(cuts)], 1)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
