@@ -28,8 +28,6 @@ from ..errors import RetrievalError
 
 log = logging.getLogger(__name__)
 
-#: Bytes of place rows (float64) kept between queries by the exact ``d`` recomputation.
-CACHE_BYTES = 64 << 20
 #: Bytes per (query, frame) cell a group holds at its peak: the float32 minima, the place mask, the
 #: masked copy and the comparison's boolean temporaries.
 CELL_BYTES = 16
@@ -267,28 +265,40 @@ def _exact_place_dist(
     """``d`` = the exact smallest L2 distance from each query to the rows of its place.
 
     Only the place's frames whose fast-path minimum lies within the expansion's error of the
-    best are recomputed (usually one frame), by differences in float64.
+    best are recomputed (usually one frame), and within such a frame only the rows whose float32
+    expansion lies within that error of the frame's best (usually one row): by differences in
+    float64, the value every such row would get on its own, so the minimum is the same as over
+    every row. The work is done frame by frame: a frame's rows are converted once and stay in
+    cache while every query that needs them is measured.
     """
-    out = np.empty(len(pcols), np.float64)
-    cache: dict[int, np.ndarray] = {}
-    cached_bytes = 0
+    n = len(pcols)
+    qi: list[np.ndarray] = []
+    ci: list[np.ndarray] = []
     for i, cols in enumerate(pcols):
         near = cols[fm[i, cols] <= dg[i] + 1e-2 + 1e-3 * abs(dg[i])] if len(cols) > 1 else cols
-        q = np.asarray(query_desc[i], np.float64)
-        best = np.inf
-        for c in near:
-            rows = cache.get(int(c))
-            if rows is None:
-                if (
-                    cached_bytes > CACHE_BYTES
-                ):  # frames recur for neighbouring queries; bounded, not grown
-                    cache.clear()
-                    cached_bytes = 0
-                rows = np.asarray(db_desc[np.sort(order[bounds[c] : bounds[c + 1]])], np.float64)
-                cache[int(c)] = rows
-                cached_bytes += rows.nbytes
-            best = min(best, float(((rows - q) ** 2).sum(1).min()))
-        out[i] = np.sqrt(best)
+        qi.append(np.full(len(near), i, np.int64))
+        ci.append(np.asarray(near, np.int64))
+    q_of = np.concatenate(qi) if qi else np.zeros(0, np.int64)
+    c_of = np.concatenate(ci) if ci else np.zeros(0, np.int64)
+    by_frame = np.argsort(c_of, kind="stable")
+    q_of, c_of = q_of[by_frame], c_of[by_frame]
+    best = np.full(n, np.inf)
+    cuts = np.flatnonzero(np.diff(c_of)) + 1
+    for part in np.split(np.arange(len(c_of)), cuts) if len(c_of) else []:
+        c = int(c_of[part[0]])
+        rows32 = np.asarray(db_desc[np.sort(order[bounds[c] : bounds[c + 1]])], np.float32)
+        qs = q_of[part]
+        q32 = np.asarray(query_desc[qs], np.float32)
+        fast = (
+            (q32 * q32).sum(1)[:, None] + (rows32 * rows32).sum(1)[None, :] - 2.0 * q32 @ rows32.T
+        )
+        lim = fast.min(1, keepdims=True)
+        near_rows = fast <= lim + 1e-2 + 1e-3 * np.abs(lim)
+        for j, i in enumerate(qs):
+            q = np.asarray(query_desc[i], np.float64)
+            sel = rows32[near_rows[j]].astype(np.float64)
+            best[i] = min(best[i], float(((sel - q) ** 2).sum(1).min()))
+    out: np.ndarray = np.sqrt(best)
     return out
 
 
