@@ -239,8 +239,8 @@ def _print_change_table(console, rep, table: str, title: str) -> None:
     """One change table with intervals, the floor row, and its confound warnings."""
     from rich.table import Table
 
-    from .config import FUSION_METHODS
-    from .reports import METHOD_LABELS, pivot
+    from .methods import FUSION_METHODS, METHOD_LABELS
+    from .reports import pivot
 
     ap, lo, hi = (pivot(rep.summary, table, rep.methods, v) for v in ("ap", "ci_low", "ci_high"))
     floor = pivot(rep.summary, table, rep.methods, "floor")

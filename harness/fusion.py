@@ -15,7 +15,9 @@ import pandas as pd
 
 from .annotations import change_boxes
 from .cache import source_fingerprints, stable_hash, write_parquet
-from .config import ALL_METHODS, FusionConfig
+from .config import FusionConfig
+from .methods import ALL_METHODS, FUSION_REGISTRY, METHOD_LABELS, known_fusion_methods
+from .methods import ordered_methods as ordered_methods
 from .progress import progress
 from .splits import roc_sob
 
@@ -28,7 +30,7 @@ IMAGE_BASELINES = ("size_prior", "random")
 #: d (n,) L2 distances, L (n,) list lengths) -> (m,) LoC, higher = more likely changed.
 CoverLoc = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 #: Fused-set methods registered beside SPEC section 7's (:func:`register_method`).
-REGISTERED: dict[str, CoverLoc] = {}
+REGISTERED: dict[str, CoverLoc] = FUSION_REGISTRY  # the catalogue's registry, one dict
 
 
 def register_method(name: str, loc: CoverLoc, label: str) -> None:
@@ -40,17 +42,13 @@ def register_method(name: str, loc: CoverLoc, label: str) -> None:
     Raises:
         ValueError: ``name`` is taken.
     """
-    from .reports import METHOD_LABELS  # reports build on fusion; the labels live there
-
     if name in known_methods():
         raise ValueError(f"fusion method {name!r} exists; known: {list(known_methods())}")
     REGISTERED[name] = loc
     METHOD_LABELS[name] = label
 
 
-def known_methods() -> tuple[str, ...]:
-    """Every method ``[fusion] methods`` may list: SPEC section 7's, then registered ones."""
-    return (*ALL_METHODS, *REGISTERED)
+known_methods = known_fusion_methods
 
 
 def method_fingerprints(methods: Iterable[str]) -> dict[str, str]:
@@ -287,12 +285,6 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
         v0, v1 = int(np.ceil(y1 - 0.5)), int(np.ceil(y2 - 0.5))
         out[max(v0, 0) : max(min(v1, height), 0), max(u0, 0) : max(min(u1, width), 0)] = loc[i]
     return out
-
-
-def ordered_methods(methods: Iterable[str]) -> tuple[str, ...]:
-    """The configured methods in SPEC section 7's order: Table I's six, variants, baselines."""
-    want = set(methods)
-    return tuple(m for m in known_methods() if m in want)
 
 
 def fuse_samples(

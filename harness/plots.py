@@ -12,9 +12,9 @@ import numpy as np
 import pandas as pd
 
 from .cache import atomic_path
-from .config import FUSION_METHODS
 from .fusion import loc_map
 from .imagestore import read_image
+from .methods import FUSION_METHODS
 
 FIG4 = ("rank_fusion", "score_sum", "score_max")
 

@@ -26,12 +26,13 @@ from .cache import source_fingerprints, write_parquet
 from .config import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
 from .errors import AnnotationError, ConfigError, HarnessError
 from .imagestore import read_image
+from .methods import PROPOSERS, SPECIAL_PROPOSALS, known_proposal_methods
 from .progress import progress
 
 log = logging.getLogger(__name__)
 
 #: Methods with their own code path: grid5 (no pixels), yolo (batched), file (a user's table).
-SPECIAL_METHODS = ("grid5", "yolo", "file")
+SPECIAL_METHODS = SPECIAL_PROPOSALS
 PROPOSAL_COLUMNS = [
     "session",
     "camera",
@@ -338,8 +339,10 @@ def _mser(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray
     return mser_boxes(rgb, cfg.mser)
 
 
-#: Proposal methods that read one image at a time, by name (``[proposals] methods``).
-IMAGE_METHODS: dict[str, ImageProposer] = {"edges": _edges, "mser": _mser}
+#: Proposal methods that read one image at a time, by name (``[proposals] methods``): the
+#: catalogue's registry (``methods.PROPOSERS``), one dict, holding the built-in ones from here on.
+IMAGE_METHODS = PROPOSERS
+IMAGE_METHODS.update({"edges": _edges, "mser": _mser})
 
 
 def register_method(name: str, proposer: ImageProposer) -> None:
@@ -356,9 +359,7 @@ def register_method(name: str, proposer: ImageProposer) -> None:
     IMAGE_METHODS[name] = proposer
 
 
-def known_methods() -> tuple[str, ...]:
-    """Every proposal method name ``[proposals] methods`` may list."""
-    return ("grid5", *IMAGE_METHODS, "yolo", "file")
+known_methods = known_proposal_methods
 
 
 def method_fingerprints(methods: Sequence[str]) -> dict[str, str]:

@@ -29,12 +29,12 @@ import numpy as np
 import pandas as pd
 
 from .cache import atomic_path, write_text
-from .config import FUSION_METHODS
 from .errors import HarnessError
 from .fusion import loc_map
 from .imagestore import local_uri, read_image
+from .methods import FUSION_METHODS, METHOD_LABELS
 from .outdirs import read_run_record
-from .reports import LOC_COLUMNS, METHOD_LABELS, TABLE_INTRO, pivot
+from .reports import LOC_COLUMNS, TABLE_INTRO, pivot
 
 log = logging.getLogger(__name__)
 

@@ -23,8 +23,9 @@ import pandas as pd
 
 from .annotations import change_boxes
 from .cache import write_parquet, write_text
-from .config import BASELINES, FUSION_METHODS, Config
-from .fusion import ordered_methods, pixel_regions
+from .config import Config
+from .fusion import pixel_regions
+from .methods import BASELINES, FUSION_METHODS, METHOD_LABELS, ordered_methods
 from .metrics import (
     average_precision,
     bootstrap_aps,
@@ -40,19 +41,6 @@ from .splits import label as split_label
 
 log = logging.getLogger(__name__)
 
-METHOD_LABELS = {
-    "rank_fusion": "rank fusion",
-    "rank_fusion_le2": "rank fusion (<=2)",
-    "rank_fusion_le3": "rank fusion (<=3)",
-    "rank_no_fusion": "rank w/o fusion",
-    "score_max": "score max",
-    "score_sum": "score sum",
-    "rank_fusion_asc": "rank fusion asc (variant 2)",
-    "rank_fusion_raw": "rank fusion raw (variant 1)",
-    "size_prior": "size prior (no pixel)",
-    "cover_count": "cover count (no pixel)",
-    "random": "random",
-}
 
 #: A query subimage is "clean" for the localization table when at most this share of it changed.
 CLEAN_ROC = 0.05

@@ -57,6 +57,20 @@ def test_recipe_a_toy_descriptor_in_under_30_lines(
     assert (tmp_path / "table1.csv").exists()
 
 
+@pytest.fixture()
+def registries():
+    """The method catalogue's registries as they were before the test (a recipe adds to them)."""
+    from harness import methods
+
+    saved = [
+        (d, dict(d)) for d in (methods.PROPOSERS, methods.FUSION_REGISTRY, methods.METHOD_LABELS)
+    ]
+    yield methods
+    for d, before in saved:
+        d.clear()
+        d.update(before)
+
+
 def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
     """``cfg`` run into ``tmp_path`` from a copy of the fixture run's cache."""
     _, _, out = local_run
@@ -66,11 +80,10 @@ def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
     return q, q.run()
 
 
-def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, monkeypatch) -> None:
+def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registries) -> None:
     from harness import proposals
     from harness.config import validate
 
-    monkeypatch.setattr(proposals, "IMAGE_METHODS", dict(proposals.IMAGE_METHODS))  # undo after
     # --- the recipe: a function of the upright image, registered, listed in [proposals] ---
 
     def centre(rgb: np.ndarray, cfg: object) -> tuple[np.ndarray, np.ndarray]:
@@ -108,11 +121,9 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, monkeypa
     assert proposals.method_fingerprints(["grid5", "centre"]).keys() == {"centre"}
 
 
-def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, monkeypatch) -> None:
-    from harness import fusion, reports
+def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries) -> None:
+    from harness import fusion
 
-    monkeypatch.setattr(fusion, "REGISTERED", {})  # undo after
-    monkeypatch.setattr(reports, "METHOD_LABELS", dict(reports.METHOD_LABELS))
     # --- the recipe: LoC from the cover matrix, registered with a label, listed in [fusion] ---
 
     def best_rank(cover: np.ndarray, r: np.ndarray, d: np.ndarray, L: np.ndarray) -> np.ndarray:
@@ -220,13 +231,11 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
         )
 
 
-def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(monkeypatch) -> None:
+def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries) -> None:
     from harness import fusion, proposals
     from harness.config import ProposalsConfig
     from harness.errors import ConfigError
 
-    monkeypatch.setattr(proposals, "IMAGE_METHODS", dict(proposals.IMAGE_METHODS))
-    monkeypatch.setattr(fusion, "REGISTERED", {})
     proposals.register_method("bad", lambda rgb, cfg: (np.zeros((2, 3)), np.ones(2)))
     frame = pd.Series({"session": "s", "camera": "Cam5", "utime": 7})
     with pytest.raises(ConfigError, match=r"'bad' on frame s/Cam5/7: .*\(2, 3\)"):
