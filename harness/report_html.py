@@ -611,7 +611,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         ),
     ]
     fact_rows = "".join(f"<tr><td>{_e(k)}</td><td>{_e(v)}</td></tr>" for k, v in facts)
-    who = f" (localizer: {loc_name}; data: {cfg['name']}, {Path(str(cfg['data_root'])).name})"
+    who = f" (localizer: {loc_name}; data: {Path(str(cfg['data_root'])).name})"
     cmp_rows = summ[
         (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()
     ]
