@@ -39,7 +39,7 @@ os.umask(_UMASK)
 #: run, and the command layer only reads arguments into the config (whose values are in the keys).
 #: Editing them never recomputes a stage; editing any other module recomputes every stage.
 NOT_IN_STAGES = frozenset(
-    {"cli.py", "reports.py", "report_html.py", "plots.py", "inspect.py", "gc.py"}
+    {"cli.py", "reports.py", "report_html.py", "plots.py", "log_inspect.py", "cache_gc.py"}
 )
 
 

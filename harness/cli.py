@@ -413,7 +413,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from .inspect import inspect_log
+    from .log_inspect import inspect_log
 
     info = inspect_log(Path(args.log))
     if args.json:
@@ -480,7 +480,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 def cmd_gc(args: argparse.Namespace) -> int:
     """``harness gc``: remove (or list, ``--dry-run``) cache entries the last run did not use."""
-    from .gc import collect_garbage
+    from .cache_gc import collect_garbage
 
     res = collect_garbage(Path(args.out), dry_run=args.dry_run)
     verb = "would remove" if args.dry_run else "removed"

@@ -48,6 +48,10 @@ class AnnotationError(HarnessError):
     """An annotation or proposal table has a bad row (names the file and row)."""
 
 
+class OwnershipError(HarnessError):
+    """An output path exists and was not written by the harness (or needs ``--force``)."""
+
+
 class CacheError(HarnessError):
     """A cached stage output is unreadable or inconsistent with its manifest."""
 

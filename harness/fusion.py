@@ -16,6 +16,7 @@ import pandas as pd
 from .annotations import change_boxes
 from .cache import source_fingerprints, stable_hash, write_parquet
 from .config import FusionConfig
+from .errors import ConfigError
 from .methods import ALL_METHODS, FUSION_REGISTRY, METHOD_LABELS, known_fusion_methods
 from .methods import ordered_methods as ordered_methods
 from .progress import progress
@@ -150,10 +151,10 @@ def loc_from_cover(
         loc = np.asarray(
             REGISTERED[method](cover, r, np.asarray(d, np.float64), lengths), np.float64
         )
-        if loc.shape != (len(cover),):
-            raise ValueError(
+        if loc.shape != (len(cover),) or not np.isfinite(loc).all():
+            raise ConfigError(
                 f"fusion method {method!r} returned LoC of shape {loc.shape}, expected "
-                f"({len(cover)},): one value per fused box"
+                f"({len(cover)},): one finite value per fused box"
             )
         return loc
     if method == "score_max":

@@ -20,7 +20,9 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-from .errors import HarnessError
+from .errors import HarnessError, OwnershipError
+
+__all__ = ["OwnershipError"]  # raised here, defined with the other errors
 
 log = logging.getLogger(__name__)
 
@@ -28,10 +30,6 @@ log = logging.getLogger(__name__)
 MARKER = ".dbl-harness.json"
 OWNER = "dbl-harness"
 LOCK = ".dbl-harness.lock"
-
-
-class OwnershipError(HarnessError):
-    """An output path exists and was not written by the harness (or needs ``--force``)."""
 
 
 def marker_text(kind: str, entries: list[str] | None = None) -> str:

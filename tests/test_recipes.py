@@ -242,5 +242,5 @@ def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries)
         proposals._checked("bad", frame, *proposals.IMAGE_METHODS["bad"](None, ProposalsConfig()))
     fusion.REGISTERED["flat"] = lambda cover, r, d, L: np.ones(1)
     cover = np.ones((3, 2), bool)
-    with pytest.raises(ValueError, match=r"'flat' returned LoC of shape \(1,\), expected \(3,\)"):
+    with pytest.raises(ConfigError, match=r"'flat' returned LoC of shape \(1,\), expected \(3,\)"):
         fusion.loc_from_cover(cover, "flat", r=np.ones(2), d=np.ones(2), L=np.ones(2))
