@@ -27,8 +27,8 @@ test: $(STAMP)  ## Run the whole test suite (CI runs exactly this)
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 lint: $(STAMP)  ## ruff (rules, line length 100, formatting) and mypy (strict on the numeric kernels)
-	$(BIN)/ruff check harness tests bench
-	$(BIN)/ruff format --check harness tests bench
+	$(BIN)/ruff check harness tests bench examples
+	$(BIN)/ruff format --check harness tests bench examples
 	$(BIN)/mypy
 
 bench: $(STAMP)  ## Run the benchmarks; results go to results/bench/

@@ -1,8 +1,7 @@
 """A localizer of your own, end to end: HSV colour histograms ranked by Hellinger distance.
 
-    harness task export --config datasets/fixture.toml --out results/byo
-    python examples/hsv_localizer.py results/byo/task results/byo-hsv.csv
-    harness reproduce --config datasets/fixture.toml --out results/byo --import hsv=results/byo-hsv.csv
+Run after ``harness task export`` (task directory, output CSV), then
+``harness reproduce ... --import hsv=<output CSV>``: see the README, *Bring your own localizer*.
 """
 
 import sys
@@ -22,7 +21,7 @@ def histogram(row) -> np.ndarray:
     """The square root of the subimage's normalised HSV histogram (Hellinger = L2 of these)."""
     if row.image not in hsv:  # image paths open upright; boxes are upright pixels
         hsv[row.image] = cv2.cvtColor(cv2.imread(row.image), cv2.COLOR_BGR2HSV)
-    x1, y1, x2, y2 = (int(round(v)) for v in (row.x1, row.y1, row.x2, row.y2))
+    x1, y1, x2, y2 = (round(v) for v in (row.x1, row.y1, row.x2, row.y2))
     crop = hsv[row.image][y1:y2, x1:x2]
     h = cv2.calcHist([crop], [0, 1, 2], None, [8, 4, 4], [0, 180, 0, 256, 0, 256]).ravel()
     return np.sqrt(h / max(h.sum(), 1.0))
@@ -31,7 +30,8 @@ def histogram(row) -> np.ndarray:
 ref_h = np.stack([histogram(r) for r in refs.itertuples()])
 rows = []
 for q in queries.itertuples():
-    db = refs[(refs.session == q.r_session) & (refs.camera == q.r_camera) & (refs.method == q.method)]
+    same = (refs.session == q.r_session) & (refs.camera == q.r_camera) & (refs.method == q.method)
+    db = refs[same]
     dist = np.linalg.norm(ref_h[db.index] - histogram(q), axis=1)
     # a frame's distance is its nearest subimage's; the list holds every frame, best first
     per_frame = pd.Series(dist, index=db.utime.to_numpy()).groupby(level=0).min()
