@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from .errors import ConfigError
+from .inputs import read_text
 
 # the method catalogue lives in ``methods`` (the bottom of the house); named here too, as before
 from .methods import ALL_METHODS as ALL_METHODS
@@ -883,18 +884,11 @@ def load_config(path: Path, data_root: str | None = None) -> Config:
         ConfigError: The file is missing, is not TOML, or has unknown or invalid keys.
     """
     path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"config file {path} does not exist")
-    if path.is_dir():
-        raise ConfigError(f"{path}: is a directory, not a config file")
+    text = read_text(
+        path, "config file", ConfigError
+    )  # missing, a directory, unreadable, not UTF-8
     try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except PermissionError:
-        raise ConfigError(f"{path}: config file not readable (permission denied)") from None
-    except UnicodeDecodeError as err:
-        raise ConfigError(
-            f"{path}: not a UTF-8 text file ({err.reason} at byte {err.start}); TOML is UTF-8"
-        ) from None
+        doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     return parse_config(doc, project_root(path.parent), str(path), data_root)

@@ -39,7 +39,7 @@ from .retrieval import imported
 log = logging.getLogger(__name__)
 
 IMAGE_MODES = ("upright", "source")
-BOX = ["x1", "y1", "x2", "y2"]
+BOX = imported.BOX
 
 
 def _image_columns(frames: pd.DataFrame, tmp: Path, final: Path, mode: str) -> pd.DataFrame:

@@ -38,3 +38,11 @@ def local_run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> 
     cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(default_world))
     p = Pipeline(cfg, out)
     return p, p.run(), out
+
+
+def one_error(capsys: pytest.CaptureFixture) -> str:
+    """What a command printed on stderr, checked to be one ``ERROR:`` line and no traceback."""
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR: ") and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    return err

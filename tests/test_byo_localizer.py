@@ -22,17 +22,13 @@ import pytest
 
 from harness.cli import main
 
-from .conftest import ROOT
+from .conftest import ROOT, one_error
 
 FIXTURE_TOML = ROOT / "datasets" / "fixture.toml"
 EXAMPLE = ROOT / "examples" / "hsv_localizer.py"
 
 
-def _err(capsys: pytest.CaptureFixture) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("ERROR: ") and "Traceback" not in err, err
-    assert len(err.strip().splitlines()) == 1, err
-    return err
+_err = one_error
 
 
 def _seeded(local_run: tuple, out: Path) -> list[str]:

@@ -13,16 +13,12 @@ import pytest
 
 from harness.cli import main
 
-from .conftest import ROOT
+from .conftest import ROOT, one_error
 
 FIXTURE_TOML = ROOT / "datasets" / "fixture.toml"
 
 
-def _err(capsys: pytest.CaptureFixture) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("ERROR: ") and "Traceback" not in err, err
-    assert len(err.strip().splitlines()) == 1, err
-    return err
+_err = one_error
 
 
 def _config(tmp: Path, old: str, new: str, extra: str = "") -> Path:
@@ -83,11 +79,11 @@ def test_config_files_that_are_not_config_files(
 ) -> None:
     out = str(tmp_path / "o")
     assert main(["pairs", "--config", str(tmp_path), "--out", out]) == 1
-    assert "is a directory, not a config file" in _err(capsys)
+    assert "config file is a directory, not a file" in _err(capsys)
     latin = tmp_path / "latin.toml"
     latin.write_bytes('name = "caf\xe9"\n'.encode("latin-1"))
     assert main(["pairs", "--config", str(latin), "--out", out]) == 1
-    assert "not a UTF-8 text file" in _err(capsys)
+    assert "config file is not UTF-8 text" in _err(capsys)
     locked = tmp_path / "locked.toml"
     locked.write_text(FIXTURE_TOML.read_text())
     locked.chmod(0)
@@ -101,7 +97,7 @@ def test_config_files_that_are_not_config_files(
     monkeypatch.setattr(Path, "read_text", denied)
     assert main(["pairs", "--config", str(locked), "--out", out]) == 1
     err = _err(capsys)
-    assert "locked.toml: config file not readable (permission denied)" in err
+    assert "locked.toml: config file is not readable (permission denied)" in err
     assert "--out" not in err
     os.chmod(locked, 0o644)
 

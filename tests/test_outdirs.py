@@ -20,17 +20,13 @@ from harness.fixture import writers as W
 from harness.outdirs import is_temp_name, run_lock
 from harness.records import Pose
 
-from .conftest import ROOT
+from .conftest import ROOT, one_error
 
 FIXTURE_TOML = ROOT / "datasets" / "fixture.toml"
 TINY = ["--frames", "6", "--width", "32", "--height", "40", "--loop-scale", "1.0"]
 
 
-def _err(capsys: pytest.CaptureFixture) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("ERROR: ") and "Traceback" not in err, err
-    assert len(err.strip().splitlines()) == 1, err
-    return err
+_err = one_error
 
 
 def _mcap(tmp: Path) -> Path:

@@ -25,17 +25,13 @@ from harness.ingest import ingest_session, load_frames
 from harness.records import Pose
 from harness.runner import Pipeline
 
-from .conftest import ROOT
+from .conftest import ROOT, one_error
 
 FIXTURE_TOML = ROOT / "datasets" / "fixture.toml"
 TINY = ["--frames", "6", "--width", "32", "--height", "40", "--loop-scale", "1.0"]
 
 
-def _err(capsys: pytest.CaptureFixture) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("ERROR: ") and "Traceback" not in err, err
-    assert len(err.strip().splitlines()) == 1, err
-    return err
+_err = one_error
 
 
 def _config(tmp: Path, text_edit: tuple[str, str] | None = None, extra: str = "") -> Path:

@@ -54,20 +54,8 @@ from ..pairs import ground_truth_places
 log = logging.getLogger(__name__)
 
 KEY = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
-REQUIRED = [
-    "q_session",
-    "q_camera",
-    "q_utime",
-    "method",
-    "box_id",
-    "x1",
-    "y1",
-    "x2",
-    "y2",
-    "r_session",
-    "ranked",
-    "L",
-]
+BOX = ["x1", "y1", "x2", "y2"]
+REQUIRED = [*KEY[:3], "method", "box_id", *BOX, "r_session", "ranked", "L"]
 OPTIONAL = ["scores"]
 SCORE_KINDS = ("distance", "similarity")
 #: A box that differs from the run's proposal by more than this many pixels is another box.
@@ -231,7 +219,7 @@ def read_import(path: Path) -> tuple[pd.DataFrame, _Rows]:
         rows.fail(bad, f"have a {c} that is not an integer", f"{c} = {df[c].iloc[i]!r}")
         out[c] = vals.astype(np.int64)
     rows.fail(out["L"].to_numpy() < 1, "have L < 1")
-    for c in ("x1", "y1", "x2", "y2"):
+    for c in BOX:
         vals = pd.to_numeric(df[c], errors="coerce").to_numpy(np.float64)
         bad = ~np.isfinite(vals)
         i = int(np.flatnonzero(bad)[0]) if bad.any() else 0
@@ -314,7 +302,7 @@ def _check_against_run(
     m["r_utime"] = m["r_utime"].astype(np.int64)
     if proposals is not None:
         pk = ["session", "camera", "utime", "method", "box_id"]
-        pr = proposals[pk + ["x1", "y1", "x2", "y2"]].rename(
+        pr = proposals[pk + BOX].rename(
             columns={
                 "session": "q_session",
                 "camera": "q_camera",
@@ -337,7 +325,7 @@ def _check_against_run(
                 f"{known}; `harness task export` lists every query subimage",
             )
         off = np.zeros(len(j), bool)
-        for a in ("x1", "y1", "x2", "y2"):
+        for a in BOX:
             off |= np.abs(j[a].to_numpy() - j["_" + a].to_numpy()) > BOX_TOLERANCE_PX
         if off.any():
             i = int(np.flatnonzero(off)[0])
@@ -476,21 +464,7 @@ def ranks_from_import(
             exact[i] = False
     rows.fail(incomplete, "have a complete list (len = L) without any frame of the place P(G)")
     rank = np.minimum(rank, Lq)
-    cols = [
-        "q_session",
-        "q_camera",
-        "q_utime",
-        "r_session",
-        "r_camera",
-        "r_utime",
-        "season_pair",
-        "method",
-        "box_id",
-        "x1",
-        "y1",
-        "x2",
-        "y2",
-    ]
+    cols = [*KEY[:4], "r_camera", "r_utime", "season_pair", "method", "box_id", *BOX]
     out = m[cols].copy()
     out["rank"] = rank
     out["L"] = Lq
