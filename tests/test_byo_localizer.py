@@ -224,3 +224,21 @@ def test_an_import_of_the_builtin_engines_lists_reproduces_its_ranks_and_tables(
     np.testing.assert_array_equal(got["d"].to_numpy(), want["d"].to_numpy())
     for stem in ("table1", "tableS", "tableP", "localization"):
         assert (out / f"{stem}.csv").read_bytes() == (run / f"{stem}.csv").read_bytes(), stem
+
+
+def test_task_export_with_images_source_names_the_stored_files_and_their_rotation(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    out = tmp_path / "run"
+    args = _seeded(local_run, out)
+    assert main(["task", "export", *args, "--images", "source"]) == 0
+    assert "task: 2232 query subimages" in capsys.readouterr().out
+    q = pd.read_parquet(out / "task" / "queries.parquet")
+    assert not (out / "task" / "images").exists()  # nothing written: the stored files are named
+    nclt = q[q["q_session"] == "2012-01-22"].iloc[0]
+    assert nclt["image"].endswith(".tiff") and nclt["rotation"] == "cw"
+    stored = cv2.imread(nclt["image"])
+    assert stored.shape[:2] == (nclt["width"], nclt["height"])  # sideways as stored
+    upright = cv2.rotate(stored, cv2.ROTATE_90_CLOCKWISE)
+    assert upright.shape[:2] == (nclt["height"], nclt["width"])
+    assert set(q.loc[q["q_session"] != "2012-01-22", "rotation"]) == {"none"}
