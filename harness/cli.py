@@ -191,13 +191,20 @@ def cmd_rank(args: argparse.Namespace) -> int:
     p = _pipeline(args)
     with p.locked():
         check_localizer_set(p)
-        *_, ranks = until_ranks(p, check=False)
-        write_parquet(p.out / "ranks.parquet", ranks.df.assign(localizer=p.localizer["name"]))
-        write_json(p.out / "rank_report.json", ranks.counts)
-    print(
-        f"{len(ranks.df)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: "
-        f"{ranks.counts}"
-    )
+        *_, measured = until_ranks(p, check=False)
+        import pandas as pd
+
+        df = pd.concat(
+            [m.ranks.df.assign(localizer=m.loc.name) for m in measured], ignore_index=True
+        )
+        counts = (
+            measured[0].ranks.counts
+            if len(measured) == 1
+            else {m.loc.name: m.ranks.counts for m in measured}
+        )
+        write_parquet(p.out / "ranks.parquet", df)
+        write_json(p.out / "rank_report.json", counts)
+    print(f"{len(df)} ranked query subimages -> {p.out / 'ranks.parquet'}; counts: {counts}")
     return 0
 
 
@@ -281,13 +288,73 @@ def _print_change_table(console, rep, table: str, title: str) -> None:
 def cmd_reproduce(args: argparse.Namespace) -> int:
     """``harness reproduce``: the whole pipeline; prints Table I and where the reports are."""
     from rich.console import Console
+
+    rec = _pipeline(args).run()
+    console = Console(width=max(Console().width, 140))
+    reports = rec["reports"]
+    blocks = reports.blocks or [reports]
+    for rep in blocks:
+        if len(rep.localization):
+            _print_localization(console, rep, rec)
+    if reports.table_l is not None:
+        _print_table_l(console, reports.table_l)
+    for rep in blocks:
+        _print_block(console, rep, rec)
+    print(
+        f"reports in {Path(args.out)}: localization.md, "
+        + ("tableL.md, " if reports.table_l is not None else "")
+        + "table1.md, tableS.md, tableP.md, comparisons.md (+ .csv, .tex), "
+        f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)"
+    )
+    if rec.get("report_html"):
+        print(f"report: {rec['report_html']}")
+    return 0
+
+
+def _print_table_l(console, t) -> None:
+    """Table L (SPEC section 11): a row per localizer and the fused row, then the floor."""
+    from rich.table import Table
+
+    from .leaderboard import AP_COLUMNS
+
+    first = str(t["localizer"].iloc[0])
+    lt = Table(title=f"Table L: localizers (Table S at RoC-max {t['roc_max'].iloc[0]:.2f})")
+    for c in ("localizer", "R@1", "R@5", *(h for *_, h in AP_COLUMNS), f"S rank fusion - {first}"):
+        lt.add_column(c, justify="left" if c == "localizer" else "right")
+
+    def ap(r, pfx: str) -> str:
+        v, lo, hi = (r[f"{pfx}_{k}"] for k in ("ap", "ci_low", "ci_high"))
+        return "-" if v != v else (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}")
+
+    for _, r in t.iterrows():
+        d = r["S_rank_fusion_diff"]
+        lt.add_row(
+            str(r["localizer"]),
+            *("" if v != v else f"{v:.2f}" for v in (r["recall_at_1"], r["recall_at_5"])),
+            *(ap(r, pfx) for pfx, *_ in AP_COLUMNS),
+            ""
+            if d != d
+            else f"{d:+.2f} [{r['S_rank_fusion_diff_ci_low']:+.2f}, "
+            f"{r['S_rank_fusion_diff_ci_high']:+.2f}]",
+        )
+    lt.add_section()
+    r0 = t.iloc[0]
+    lt.add_row(
+        f"floor ({first})",
+        "",
+        "",
+        *(f"{r0[f'{pfx}_floor']:.2f}" for pfx, *_ in AP_COLUMNS),
+        "",
+    )
+    console.print(lt)
+
+
+def _print_localization(console, rep, rec) -> None:
+    """One localizer's localization quality (all season pairs)."""
     from rich.table import Table
 
     from .reports import LOC_COLUMNS
 
-    rec = _pipeline(args).run()
-    rep = rec["reports"]
-    console = Console(width=max(Console().width, 140))
     loc = rep.localization
     lt = Table(
         title=f"Localization quality of {rep.localizer} (ground truth: place within "
@@ -310,6 +377,10 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         )
     console.print(lt)
     print("  per season pair: localization.md")
+
+
+def _print_block(console, rep, rec) -> None:
+    """One block's Tables I, S and P and its paired comparisons (Table S, last RoC-max)."""
     name = f"{rec['config']['name']}, localizer {rep.localizer}"
     _print_change_table(console, rep, "I", f"Table I: AP by RoC-max, the paper's protocol ({name})")
     _print_change_table(console, rep, "S", f"Table S: size-stratified AP by RoC-max ({name})")
@@ -337,14 +408,6 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
                     else ""
                 )
             )
-    print(
-        f"reports in {Path(args.out)}: localization.md, table1.md, tableS.md, tableP.md, "
-        "comparisons.md (+ .csv, .tex), "
-        f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)"
-    )
-    if rec.get("report_html"):
-        print(f"report: {rec['report_html']}")
-    return 0
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -269,6 +269,56 @@ class ImportConfig:
 
 
 @dataclass(frozen=True)
+class BovwConfig:
+    """A bag-of-visual-words localizer (SPEC section 11): local features, words, TF-IDF, L1.
+
+    Each subimage is resized to ``input_size`` x ``input_size`` (as the autoencoder's input);
+    features are ``sift``, ``rootsift`` or ``orb`` at a dense grid of keypoints (``dense``: every
+    ``step`` pixels, diameter ``patch``) or at the detector's own keypoints. ``k`` words are
+    learned with faiss k-means on at most ``max_train_features`` features of reference-session
+    subimages; IDF from the same subimages.
+    """
+
+    features: str = "rootsift"
+    k: int = 1024
+    dense: bool = True
+    step: int = 8
+    patch: int = 16
+    input_size: int = 128
+    max_train_subimages: int = 4000
+    max_train_features: int = 200_000
+    kmeans_iter: int = 20
+    seed: int = 0
+    num_workers: int = 0
+    # frames per cached encoding shard (the unit an interrupted run resumes at)
+    shard_frames: int = 256
+
+
+@dataclass(frozen=True)
+class LocalizerImportConfig:
+    """A localizer's ``import`` table: ranked lists from a file (SPEC section 12)."""
+
+    file: str
+    score_kind: str = "distance"
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """One ``[[localizers]]`` entry (SPEC section 11): a name, proposals and one way to rank.
+
+    ``kind`` is ``descriptor`` (with ``descriptor``), ``bovw`` (with ``bovw``) or ``import``
+    (with ``import_``); ``proposals`` are the ``[proposals] methods`` it uses (all by default).
+    """
+
+    name: str
+    kind: str
+    proposals: tuple[str, ...]
+    descriptor: DescriptorConfig | None = None
+    bovw: BovwConfig | None = None
+    import_: LocalizerImportConfig | None = None
+
+
+@dataclass(frozen=True)
 class Config:
     """A whole run's configuration, as loaded from TOML and checked (:func:`load_config`)."""
 
@@ -288,6 +338,21 @@ class Config:
     report: ReportConfig = field(default_factory=ReportConfig)
     fixture: FixtureConfig = field(default_factory=FixtureConfig)
     import_: ImportConfig = field(default_factory=ImportConfig)  # the TOML table [import]
+    # [[localizers]]; empty: one localizer named after [descriptor] (:meth:`localizer_set`)
+    localizers: tuple[LocalizerConfig, ...] = ()
+
+    def localizer_set(self) -> tuple[LocalizerConfig, ...]:
+        """The localizers of the run: ``[[localizers]]``, or the one ``[descriptor]`` defines."""
+        if self.localizers:
+            return self.localizers
+        return (
+            LocalizerConfig(
+                name=self.descriptor.name,
+                kind="descriptor",
+                proposals=self.proposals.methods,
+                descriptor=self.descriptor,
+            ),
+        )
 
     def seasons(self) -> dict[str, str]:
         """Session name -> season code (``WI``, ``SP``, ``SU``, ``AU``)."""
@@ -411,7 +476,7 @@ def parse_config(
 
     Relative paths resolve against ``base``.
     """
-    top_keys = {"name", "data_root", "annotations", "sessions", "seed", *_SECTIONS}
+    top_keys = {"name", "data_root", "annotations", "sessions", "seed", "localizers", *_SECTIONS}
     unknown = sorted(set(doc) - top_keys)
     if unknown:
         raise ConfigError(f"{where}: unknown top-level key(s) {unknown}; known: {sorted(top_keys)}")
@@ -463,8 +528,108 @@ def parse_config(
         seed=seed,
         **kwargs,
     )
+    if "localizers" in doc:
+        cfg = dataclasses.replace(
+            cfg, localizers=parse_localizers(doc["localizers"], cfg, base, root, where)
+        )
     validate(cfg, where)
+    for loc in cfg.localizers:
+        if loc.descriptor is not None:
+            validate(dataclasses.replace(cfg, descriptor=loc.descriptor, localizers=()), where)
     return cfg
+
+
+_LOCALIZER_KEYS = ("name", "proposals", "descriptor", "bovw", "import")
+
+
+def parse_localizers(
+    items: Any, cfg: Config, base: Path, root: Path, where: str
+) -> tuple[LocalizerConfig, ...]:
+    """The ``[[localizers]]`` array (SPEC section 11), each entry checked.
+
+    Raises:
+        ConfigError: naming the entry and what is wrong.
+    """
+    if not isinstance(items, list) or not items:
+        raise ConfigError(f"{where}: 'localizers' must be a non-empty array of tables")
+    out: list[LocalizerConfig] = []
+    for i, item in enumerate(items):
+        at = f"{where}: localizers[{i}]"
+        if not isinstance(item, dict):
+            raise ConfigError(f"{at}: expected a table, got {type(item).__name__}")
+        unknown = sorted(set(item) - set(_LOCALIZER_KEYS))
+        if unknown:
+            raise ConfigError(f"{at}: unknown key(s) {unknown}; known: {list(_LOCALIZER_KEYS)}")
+        name = item.get("name")
+        if not isinstance(name, str) or not LOCALIZER_NAME.match(name):
+            raise ConfigError(
+                f"{at} name = {name!r}: expected a name of letters, digits, '.', '_', '-', '+' "
+                "(it names the localizer in every table)"
+            )
+        ways = [k for k in ("descriptor", "bovw", "import") if k in item]
+        if len(ways) != 1:
+            raise ConfigError(
+                f"{at} ({name}): give exactly one of descriptor, bovw or import; got "
+                f"{ways or 'none'}"
+            )
+        props = _coerce(item.get("proposals", list(cfg.proposals.methods)), tuple[str, ...], at)
+        bad = [m for m in props if m not in cfg.proposals.methods]
+        if bad or not props:
+            raise ConfigError(
+                f"{at} ({name}) proposals = {list(props)}: each must be one of [proposals] "
+                f"methods {list(cfg.proposals.methods)} (proposals are computed once, shared)"
+            )
+        kind = ways[0]
+        de = bw = im = None
+        if kind == "descriptor":
+            de = _build(DescriptorConfig, item[kind], f"{at}.descriptor")
+            if de.path:
+                net = Path(de.path.replace("{data_root}", str(root))).expanduser()
+                de = dataclasses.replace(de, path=str(net if net.is_absolute() else base / net))
+        elif kind == "bovw":
+            bw = _build(BovwConfig, item[kind], f"{at}.bovw")
+            _check_bovw(bw, f"{at}.bovw")
+        else:
+            im = _build(LocalizerImportConfig, item[kind], f"{at}.import")
+            f = Path(im.file.replace("{data_root}", str(root))).expanduser()
+            im = dataclasses.replace(im, file=str(f if f.is_absolute() else base / f))
+            _check(
+                im.score_kind in ("distance", "similarity"),
+                at,
+                "import.score_kind",
+                im.score_kind,
+                "'distance' or 'similarity'",
+            )
+        out.append(LocalizerConfig(str(name), kind, tuple(props), de, bw, im))
+    names = [x.name for x in out]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{where}: localizer names must be unique, got {names}")
+    if ALL_LOCALIZERS in names:
+        raise ConfigError(f"{where}: {ALL_LOCALIZERS!r} names the fused block; choose another")
+    return tuple(out)
+
+
+#: A localizer's name: it heads tables and names files (never a path).
+LOCALIZER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,63}$")
+#: The name of the cross-localizer block (SPEC section 11).
+ALL_LOCALIZERS = "all localizers"
+
+
+def _check_bovw(bw: BovwConfig, where: str) -> None:
+    """Ranges of a ``bovw`` table."""
+    c = _check
+    c(bw.features in ("sift", "rootsift", "orb"), where, "features", bw.features,
+      "'sift', 'rootsift' or 'orb'")  # fmt: skip
+    c(2 <= bw.k <= 1_000_000, where, "k", bw.k, "[2, 1e6]")
+    c(bw.step >= 1, where, "step", bw.step, ">= 1")
+    c(bw.patch >= 4, where, "patch", bw.patch, ">= 4")
+    c(bw.input_size >= 16, where, "input_size", bw.input_size, ">= 16")
+    c(bw.max_train_subimages >= 1, where, "max_train_subimages", bw.max_train_subimages, ">= 1")
+    c(bw.max_train_features >= bw.k, where, "max_train_features", bw.max_train_features,
+      f">= k ({bw.k})")  # fmt: skip
+    c(bw.kmeans_iter >= 1, where, "kmeans_iter", bw.kmeans_iter, ">= 1")
+    c(bw.seed >= 0, where, "seed", bw.seed, ">= 0")
+    c(bw.shard_frames >= 1, where, "shard_frames", bw.shard_frames, ">= 1")
 
 
 #: A session name is a directory name under ``--out``: letters, digits, ``.``, ``_``, ``-``, not

@@ -14,7 +14,14 @@ from pathlib import Path
 from typing import Any
 
 from .cache import content_sha, file_fingerprint, relative_to_root, stable_hash
-from .config import Config, DescriptorConfig, ProposalsConfig, RetrievalConfig, SessionConfig
+from .config import (
+    BovwConfig,
+    Config,
+    DescriptorConfig,
+    ProposalsConfig,
+    RetrievalConfig,
+    SessionConfig,
+)
 from .fusion import method_fingerprints as fusion_method_fingerprints
 from .ingest.logs import detect_format
 from .proposals import method_fingerprints
@@ -201,3 +208,32 @@ def samples(cfg: Config, ranks_key: str, ann_key: str) -> Parts:
         dataclasses.asdict(cfg.splits),
         fusion_method_fingerprints(cfg.fusion.methods),
     )
+
+
+#: Bag-of-words options that only change how the work is cut or run.
+BOVW_EXECUTION = ("num_workers", "shard_frames")
+
+
+def bovw_options(bc: BovwConfig) -> dict[str, Any]:
+    """The ``bovw`` options that change the vocabulary and the word vectors."""
+    return {k: v for k, v in dataclasses.asdict(bc).items() if k not in BOVW_EXECUTION}
+
+
+def bovw_vocab(bc: BovwConfig, reference_proposal_keys: list[str]) -> Parts:
+    """A bag-of-words vocabulary: its options and the reference sessions' proposals it learns on."""
+    return ("bovw_vocab", bovw_options(bc), sorted(reference_proposal_keys))
+
+
+def bovw_shard(vocab_key: str, proposals_key: str, utimes: list[int]) -> Parts:
+    """One shard of a session's word vectors: vocabulary, proposals, the shard's frames."""
+    return (vocab_key, proposals_key, utimes[0], utimes[-1], len(utimes))
+
+
+def bovw_words(vocab_key: str, proposals_key: str, shard_keys: list[str]) -> Parts:
+    """A session's word vectors: the shards it stacks."""
+    return (vocab_key, proposals_key, shard_keys)
+
+
+def subset(table_key: str, methods: tuple[str, ...]) -> str:
+    """The key of a proposal table cut to a localizer's ``methods`` (SPEC section 11)."""
+    return stable_hash("proposal-subset", table_key, sorted(methods))

@@ -423,6 +423,7 @@ def _gallery(
     ranks: pd.DataFrame,
     label: str = "label_stratified",
     edges: list[float] | None = None,
+    localizer: str | None = None,
 ) -> tuple[str, list[Path]]:
     """The highest-LoC false positives and lowest-LoC missed changes per method, as thumbnails.
 
@@ -436,6 +437,8 @@ def _gallery(
     rep = pd.read_parquet(split_file)
     rep = rep.reset_index(names="row")
     rep = rep[rep["proposals"] == "all"]
+    if localizer is not None and "localizer" in rep.columns:
+        rep = rep[rep["localizer"] == localizer]
     fr = frames.set_index(["session", "camera", "utime"])
     refs = ranks.drop_duplicates(["q_session", "q_camera", "q_utime", "r_session"]).set_index(
         ["q_session", "q_camera", "q_utime", "r_session"]
@@ -539,6 +542,80 @@ def _stratum(sob: float, edges: list[float]) -> str:
     return f"SoB [{edges[k]:g}, {edges[k + 1]:g}{close}"
 
 
+def _table_l(out: Path) -> str:
+    """Table L (SPEC section 11) from ``tableL.csv``: every AP coloured against its floor."""
+    from .leaderboard import AP_COLUMNS
+
+    t = pd.read_csv(out / "tableL.csv")
+    first = str(t["localizer"].iloc[0])
+    head = "".join(
+        f"<th>{_e(h)}</th>"
+        for h in (
+            "localizer",
+            "R@1",
+            "R@5",
+            *(h for *_, h in AP_COLUMNS),
+            f"S rank fusion - {first}",
+        )
+    )
+    rows = []
+    for _, r in t.iterrows():
+        cells = [f"<td>{_e(r['localizer'])}</td>"]
+        cells += [f"<td>{_num(float(r[c]))}</td>" for c in ("recall_at_1", "recall_at_5")]
+        for pfx, *_ in AP_COLUMNS:
+            v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
+            cells.append(
+                '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, lo, hi, fl))
+                + _num(v)
+                + (f' <span class="ci">[{_num(lo)}, {_num(hi)}]</span>' if lo == lo else "")
+                + "</td>"
+            )
+        d, dl, dh = (
+            float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high")
+        )
+        cells.append(
+            "<td></td>"
+            if d != d
+            else f'<td style="background:{_diff_colour(dl, dh)}">{d:+.2f} '
+            f'<span class="ci">[{dl:+.2f}, {dh:+.2f}]</span></td>'
+        )
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    r0 = t.iloc[0]
+    rows.append(
+        f'<tr class="floor"><td>floor ({_e(first)})</td><td></td><td></td>'
+        + "".join(f"<td>{_num(float(r0[f'{p}_floor']))}</td>" for p, *_ in AP_COLUMNS)
+        + "<td></td></tr>"
+    )
+    return (
+        '<h2 id="tableL">Table L: localizers</h2><p class="note">One row per localizer and '
+        "one for all localizers fused by rank (SPEC section 11), every one scored on the same "
+        f"query images. Table S at RoC-max {float(t['roc_max'].iloc[0]):.2f}; each AP with its "
+        "95% interval, coloured against its own floor (a random ranking of the same samples); "
+        f"the last column is the paired difference from {_e(first)} in Table S rank fusion over "
+        "the same bootstrap resamples. Recall: the ground-truth place ranked first (R@1) or in "
+        f'the first five (R@5).</p><table data-table="L"><tr>{head}</tr>{"".join(rows)}</table>'
+    )
+
+
+def _other_blocks(summ: pd.DataFrame, names: list[str], warnings: dict[str, list[str]]) -> str:
+    """Tables S and P of every localizer after the first, and of ``all localizers``."""
+    parts = []
+    for name in names:
+        s = summ[summ["localizer"] == name]
+        methods = tuple(m for m in METHOD_LABELS if m in set(s["method"]))
+        pre = f"[{name}] "
+        for t in ("S", "P"):
+            notes = [w[len(pre) :] for w in warnings.get(t, []) if w.startswith(pre)]
+            html = _change_table(s, t, methods, notes, f" (localizer: {name})")
+            parts.append(html.replace(f'id="table{t}"', f'data-localizer="{_e(name)}"', 1))
+    return (
+        '<h2 id="blocks">Tables S and P of the other localizers</h2>'
+        "<p class='note'>The same tables, each localizer's boxes alone; <i>all localizers</i>: "
+        "every localizer's boxes fused by rank (no score method is defined across "
+        "localizers).</p>" + "".join(parts).replace("<h2 ", "<h3 ").replace("</h2>", "</h3>")
+    )
+
+
 def write_html_report(out: Path, gallery: int | None = None) -> Path:
     """Write ``out/report.html`` (and its images under ``out/report/``) for a finished run.
 
@@ -551,14 +628,26 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     run: dict[str, Any] = read_run_record(out)
     cfg = run["config"]
     n = int(cfg["report"].get("gallery", 3)) if gallery is None else gallery
-    summ = pd.read_parquet(out / "splits" / "summary.parquet")
+    summ_all = pd.read_parquet(out / "splits" / "summary.parquet")
     loc = pd.read_csv(out / "localization.csv")
     ranks = pd.read_parquet(out / "ranks.parquet")
+    names = list(dict.fromkeys(summ_all["localizer"].astype(str)))
+    lead_name = names[0]  # with several localizers the sections below show the first one's
+    multi = len(names) > 1
+    summ = summ_all[summ_all["localizer"] == lead_name] if multi else summ_all
+    if multi:
+        loc = loc[loc["localizer"] == lead_name]
+        ranks = ranks[ranks["localizer"] == lead_name]
     frames = pd.read_parquet(out / "cache" / "frames" / run["keys"]["frames"] / "frames.parquet")
     frames["image"] = [local_uri(u, out, Path(cfg["data_root"])) for u in frames["image"]]
     ann = load_annotations(Path(cfg["annotations"]))
     methods = tuple(m for m in METHOD_LABELS if m in set(summ["method"]))
     warnings = run.get("warnings", {})
+    if multi:  # the first block's lines (the record prefixes each with its block's name)
+        pre = f"[{lead_name}] "
+        warnings = {
+            t: [w[len(pre) :] for w in ws if w.startswith(pre)] for t, ws in warnings.items()
+        }
     counts = run["counts"]
     locs = [x for x in run.get("localizers") or [] if isinstance(x, dict)] or [
         {"name": cfg.get("descriptor", {}).get("name", "?"), "kind": "descriptor"}
@@ -570,8 +659,13 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
             f"imported from {x.get('file')} (sha256 {x.get('sha256')}, scores as "
             f"{x.get('score_kind')})"
             if x.get("kind") == "import"
-            else f"built-in descriptor {cfg.get('descriptor', {}).get('name')}"
+            else f"bag of visual words ({x.get('bovw', {}).get('features')}, k = "
+            f"{x.get('bovw', {}).get('k')})"
+            if x.get("kind") == "bovw"
+            else "built-in descriptor "
+            + str(x.get("descriptor") or cfg.get("descriptor", {}).get("name"))
         )
+        + (f", proposals {', '.join(x['proposals'])}" if x.get("proposals") else "")
         for x in locs
     )
     drops = {
@@ -611,7 +705,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         ),
     ]
     fact_rows = "".join(f"<tr><td>{_e(k)}</td><td>{_e(v)}</td></tr>" for k, v in facts)
-    who = f" (localizer: {loc_name}; data: {Path(str(cfg['data_root'])).name})"
+    who = f" (localizer: {lead_name}; data: {Path(str(cfg['data_root'])).name})"
     cmp_rows = summ[
         (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()
     ]
@@ -648,6 +742,8 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     edges = [float(e) for e in cfg["splits"]["sob_strata"]]
     (out / "report").mkdir(exist_ok=True)
     rep = pd.read_parquet(split_file) if split_file is not None else None
+    if rep is not None and multi:
+        rep = rep[rep["localizer"] == lead_name]
     lead = "rank_fusion" if "rank_fusion" in methods else methods[0]
     pr_s, pr_files = (
         _pr_figure(out, rep, "label_stratified", "S", f"Table S labels (RoC only), {split_name}")
@@ -660,8 +756,11 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         else ("", [])
     )
     heat_s = _heatmap_stratified(rep, lead, edges, split_name) if rep is not None else ""
-    gallery_s, thumbs = _gallery(out, split_file, n, frames, ann, ranks, "label_stratified", edges)
-    gallery_i, thumbs_i = _gallery(out, split_file, n, frames, ann, ranks, "label", edges)
+    only = lead_name if multi else None
+    gallery_s, thumbs = _gallery(
+        out, split_file, n, frames, ann, ranks, "label_stratified", edges, only
+    )
+    gallery_i, thumbs_i = _gallery(out, split_file, n, frames, ann, ranks, "label", edges, only)
     keep = {p.resolve() for p in [*thumbs, *thumbs_i, *pr_files, *pr_files_i]}
     for p in (out / "report").glob("*") if (out / "report").is_dir() else []:
         if p.suffix in (".jpg", ".png") and p.resolve() not in keep:
@@ -696,6 +795,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
             for a, t in (
                 ("facts", "run"),
                 ("localization", "localization"),
+                *([("tableL", "Table L"), ("blocks", "per localizer")] if multi else []),
                 ("tableS", "Table S"),
                 ("tableP", "Table P"),
                 ("comparisons", "comparisons"),
@@ -709,6 +809,15 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         f'<h2 id="facts">Run</h2><table class="facts" data-table="facts">{fact_rows}</table>',
         _localization(loc, float(cfg["retrieval"]["gt_radius_m"]), who),
         LEGEND,
+        _table_l(out) if multi else "",
+        _other_blocks(summ_all, names[1:], run.get("warnings", {})) if multi else "",
+        (
+            f"<p class='note'>The sections below show localizer {_e(lead_name)}, the first of "
+            f"{len(names) - 1}; the others' Tables S and P are above, every table of every "
+            "localizer in tableS.md, tableP.md, table1.md.</p>"
+            if multi
+            else ""
+        ),
         *(_change_table(summ, t, methods, warnings.get(t, []), who) for t in ("S", "P")),
         '<h2 id="comparisons">Paired comparisons with rank fusion</h2><p '
         'class="note">AP(method) &minus; AP(rank fusion) over the same '

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import zlib
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -38,6 +38,7 @@ from .metrics import (
 )
 from .splits import Split, paper_splits, roc_sob
 from .splits import label as split_label
+from .texfmt import tex_escape as _tex_escape
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +156,6 @@ def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str 
 
 # ------------------------------------------------------------------ change tables (I, S, P)
 
-ALL_INDEX = {m: i for i, m in enumerate(ordered_methods(METHOD_LABELS))}
 # : A baseline within this of the best of the six methods is reported under the table (SPEC section
 # 7).
 WARN_MARGIN = 0.02
@@ -274,8 +274,13 @@ def _pooled_rows(
     split: Split,
     table: str,
     ids: dict[str, int],
+    keep: dict[tuple[str, str, str], np.ndarray] | None = None,
 ) -> list[dict]:
-    """Table I (``table = "I"``) or S (``"S"``) column ``split``, all proposals and season pairs."""
+    """Table I (``table = "I"``) or S (``"S"``) column ``split``, all proposals and season pairs.
+
+    ``keep`` receives each method's bootstrap APs by (table, split, method) (Table L's paired
+    differences between localizers use the same resamples).
+    """
     df = samples
     gi = np.array([ids[g] for g in _groups(df)], np.int64)
     roc, sob = df["RoC"].to_numpy(), df["SoB"].to_numpy()
@@ -313,6 +318,8 @@ def _pooled_rows(
             },
             boot,
         )
+    if keep is not None:
+        keep.update({(table, split.name, m): b for m, b in pooled.boot.items()})
     return pooled.finish()
 
 
@@ -504,17 +511,23 @@ def pivot(
     return t
 
 
-def table_csv(table: pd.DataFrame) -> str:
-    """One row per method id (first column ``method``), one column per split, two decimals."""
-    lines = ["method," + ",".join(_col(c) for c in table.columns)]
+def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = True) -> str:
+    """One row per method id (first column ``method``), one column per split, two decimals.
+
+    With ``localizer`` a first column names it (a run of several localizers: one CSV, a block of
+    rows each; ``header`` only on the first).
+    """
+    pre = "" if localizer is None else "localizer,"
+    lines = [pre + "method," + ",".join(_col(c) for c in table.columns)] if header else []
+    cell = "" if localizer is None else (f'"{localizer}",' if "," in localizer else f"{localizer},")
     for m, row in table.iterrows():
         lines.append(
-            str(m) + "," + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy())
+            cell
+            + str(m)
+            + ","
+            + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy())
         )
     return "\n".join(lines) + "\n"
-
-
-table1_csv = table_csv
 
 
 def _col(c: Any) -> str:
@@ -622,18 +635,6 @@ def table_markdown(
     )
 
 
-def _tex_escape(s: str) -> str:
-    return (
-        s.replace("\\", r"\textbackslash{}")
-        .replace("&", r"\&")
-        .replace("%", r"\%")
-        .replace("_", r"\_")
-        .replace("#", r"\#")
-        .replace("<=", r"$\leq$")
-        .replace("@", "@")
-    )
-
-
 def table_latex(t: pd.DataFrame, caption_cols: str = "", localizer: str = "") -> str:
     """A booktabs ``tabular`` of one table.
 
@@ -728,8 +729,27 @@ def _remove_stale(directory: Path, pattern: str, keep: set[Path]) -> int:
 
 
 @dataclass
+class Block:
+    """One block of the tables: a localizer's boxes, or every localizer's (``all localizers``).
+
+    ``ranks`` is None for the cross-localizer block (it has no localization table of its own);
+    ``methods`` are the fusion methods computed for it; ``notes`` are printed under its tables.
+    """
+
+    name: str
+    samples: pd.DataFrame
+    ranks: pd.DataFrame | None
+    methods: tuple[str, ...]
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
 class Reports:
-    """What a run's reports hold, for the caller to print."""
+    """What a run's reports hold, for the caller to print.
+
+    With several localizers, ``blocks`` holds each block's own :class:`Reports` (the fields
+    above hold their concatenation, or the first block's tables) and ``table_l`` the leaderboard.
+    """
 
     summary: pd.DataFrame
     localization: pd.DataFrame
@@ -737,119 +757,218 @@ class Reports:
     warnings: dict[str, list[str]]
     methods: tuple[str, ...]
     localizer: str = ""
+    blocks: list[Reports] = field(default_factory=list)
+    table_l: pd.DataFrame | None = None
 
 
 def write_reports(
     cfg: Config,
     out: Path,
-    samples: pd.DataFrame,
-    ranks: pd.DataFrame,
-    frames: pd.DataFrame,
-    ann: pd.DataFrame,
+    samples: pd.DataFrame | Sequence[Block],
+    ranks: pd.DataFrame | None = None,
+    frames: pd.DataFrame | None = None,
+    ann: pd.DataFrame | None = None,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
     localizer: str = "",
     notes: Sequence[str] = (),
 ) -> Reports:
     """Write every report of a run into ``out``.
 
-    ``localizer`` names the localizer in every heading and in a ``localizer`` column of the split
-    reports and the summary; ``notes`` are printed under every change table.
+    ``samples`` is one localizer's sample table (with ``ranks``, ``localizer`` and ``notes``), or
+    a list of :class:`Block` (SPEC section 11: one per localizer, then ``all localizers``). A
+    localizer is named in every heading and in a ``localizer`` column of the split reports and
+    the summary; ``notes`` are printed under every change table. With one block the files are
+    those of a one-localizer run; with several, each CSV gains a ``localizer`` column, each
+    markdown/LaTeX file a section per block, and Table L (``tableL.*``) is written.
     """
-    methods = ordered_methods(cfg.fusion.methods)
+    assert frames is not None and ann is not None
+    if isinstance(samples, pd.DataFrame):
+        assert ranks is not None
+        blocks = [
+            Block(localizer, samples, ranks, ordered_methods(cfg.fusion.methods), list(notes))
+        ]
+    else:
+        blocks = list(samples)
+    multi = len(blocks) > 1
     written: set[Path] = set()
 
     def put(path: Path) -> Path:
         written.add(path.resolve())
         return path
 
-    loc = localization_table(ranks, frames, ann)
-    write_text(put(out / "localization.csv"), loc.to_csv(index=False, float_format="%.4f"))
+    def tag(df: pd.DataFrame, name: str) -> pd.DataFrame:
+        if multi and "localizer" not in df.columns:
+            df = df.copy()
+            df.insert(0, "localizer", name)
+        return df
+
+    located = [b for b in blocks if b.ranks is not None]
+    locs = {
+        b.name: localization_table(b.ranks, frames, ann) for b in located if b.ranks is not None
+    }
+    write_text(
+        put(out / "localization.csv"),
+        pd.concat([tag(v, k) for k, v in locs.items()], ignore_index=True).to_csv(
+            index=False, float_format="%.4f"
+        ),
+    )
     write_text(
         put(out / "localization.md"),
-        localization_markdown(loc, cfg.retrieval.gt_radius_m, localizer),
+        "\n".join(localization_markdown(v, cfg.retrieval.gt_radius_m, k) for k, v in locs.items()),
     )
-    write_text(put(out / "localization.tex"), localization_latex(loc, localizer))
-    write_parquet(put(out / "ranks.parquet"), ranks.assign(localizer=localizer))
+    write_text(
+        put(out / "localization.tex"),
+        "\n".join(localization_latex(v, k) for k, v in locs.items()),
+    )
+    write_parquet(
+        put(out / "ranks.parquet"),
+        pd.concat([b.ranks.assign(localizer=b.name) for b in located if b.ranks is not None]),
+    )
     splits = paper_splits(cfg.splits)
-    allp = samples[samples["proposals"] == "all"].reset_index(drop=True)
-    ids = {g: i for i, g in enumerate(sorted(set(_groups(allp))))}
-    summary: list[dict] = []
-    curves = []
+    allps = [b.samples[b.samples["proposals"] == "all"].reset_index(drop=True) for b in blocks]
+    ids = {g: i for i, g in enumerate(sorted(set().union(*(set(_groups(a)) for a in allps))))}
+    summaries: list[list[dict]] = [[] for _ in blocks]
+    curves: list[list[pd.DataFrame]] = [[] for _ in blocks]
+    boots: list[dict[tuple[str, str, str], np.ndarray]] = [{} for _ in blocks]
     for sp in progress(splits):
-        lab = split_label(samples["RoC"].to_numpy(), samples["SoB"].to_numpy(), sp)
-        rep = samples.assign(
-            label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp)
-        )
-        rep.insert(0, "localizer", localizer)
-        write_parquet(put(out / "splits" / f"{sp.name}.parquet"), rep)
-        summary += _pooled_rows(cfg, allp, methods, sp, "I", ids)
-        summary += _pooled_rows(cfg, allp, methods, sp, "S", ids)
-        for prop, g in samples.groupby("proposals", sort=True):
-            if prop != "all":
-                summary += _table_i_rows(g, sp, methods, "all", str(prop))
-            else:
-                for pair, gp in g.groupby("season_pair", sort=True):
-                    summary += _table_i_rows(gp, sp, methods, str(pair), "all")
-        allg = rep[rep["proposals"] == "all"]
-        for m in methods:
-            sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()
-            if (allg.loc[sel, "label"] == 1).any():
-                thr, p, r = pr_curve(
-                    allg.loc[sel, "label"].to_numpy() == 1, allg.loc[sel, f"loc_{m}"].to_numpy()
-                )
-                curves.append(
-                    pd.DataFrame(
-                        {
-                            "split": sp.name,
-                            "method": m,
-                            "threshold": thr,
-                            "precision": p,
-                            "recall": r,
-                        }
-                    )
-                )
-    summary += _pixel_image_rows(cfg, allp, frames, ann, methods, ids)
-    summ = pd.DataFrame(summary)
-    summ.insert(0, "localizer", localizer)
-    write_parquet(put(out / "splits" / "summary.parquet"), summ)
-    if curves:
+        reps = []
+        for bi, b in enumerate(blocks):
+            rep = _split_block(cfg, b, allps[bi], sp, ids, summaries[bi], curves[bi], boots[bi])
+            reps.append(rep)
         write_parquet(
-            put(out / "splits" / "pr_curves.parquet"), pd.concat(curves, ignore_index=True)
+            put(out / "splits" / f"{sp.name}.parquet"), pd.concat(reps, ignore_index=True)
         )
-    tables, warnings = {}, {}
+        del reps
+    results = []
+    for bi, b in enumerate(blocks):
+        summaries[bi] += _pixel_image_rows(cfg, allps[bi], frames, ann, b.methods, ids)
+        summ = pd.DataFrame(summaries[bi])
+        summ.insert(0, "localizer", b.name)
+        tables, warnings = {}, {}
+        for table in ("I", "S", "P"):
+            main = summ[
+                (summ["table"] == table)
+                & (summ["proposals"] == "all")
+                & (summ["season_pair"] == "all")
+            ]
+            warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(b.notes)
+            tables[table] = pivot(summ, table, b.methods)
+        loc_b = locs.get(b.name, pd.DataFrame())
+        results.append(Reports(summ, loc_b, tables, warnings, b.methods, b.name))
+    summ_all = pd.concat([r.summary for r in results], ignore_index=True)
+    write_parquet(put(out / "splits" / "summary.parquet"), summ_all)
+    allc = [
+        tag(pd.concat(c, ignore_index=True), b.name)
+        for b, c in zip(blocks, curves, strict=True)
+        if c
+    ]
+    if allc:
+        write_parquet(put(out / "splits" / "pr_curves.parquet"), pd.concat(allc, ignore_index=True))
     for table, stem in (("I", "table1"), ("S", "tableS"), ("P", "tableP")):
-        t = pivot(summ, table, methods)
-        main = summ[
-            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
-        ]
-        warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(notes)
-        tables[table] = t
-        write_text(put(out / f"{stem}.csv"), table_csv(t))
+        write_text(
+            put(out / f"{stem}.csv"),
+            "".join(
+                table_csv(r.tables[table], r.localizer if multi else None, header=i == 0)
+                for i, r in enumerate(results)
+            ),
+        )
         write_text(
             put(out / f"{stem}.md"),
-            table_markdown(summ, table, methods, warnings[table], localizer),
+            "\n".join(
+                table_markdown(r.summary, table, r.methods, r.warnings[table], r.localizer)
+                for r in results
+            ),
         )
         write_text(
             put(out / f"{stem}.tex"),
-            table_latex(t, "AP" if table != "P" else "Method", localizer),
+            "\n".join(
+                table_latex(r.tables[table], "AP" if table != "P" else "Method", r.localizer)
+                for r in results
+            ),
         )
-    write_text(put(out / "comparisons.md"), comparisons_markdown(summ, methods, localizer))
+    table_l = None
+    cmp_md = "\n".join(comparisons_markdown(r.summary, r.methods, r.localizer) for r in results)
+    if multi:
+        from .leaderboard import leaderboard, leaderboard_csv, leaderboard_latex, leaderboard_md
+
+        table_l = leaderboard(cfg, results, boots, splits)
+        write_text(put(out / "tableL.csv"), leaderboard_csv(table_l))
+        write_text(put(out / "tableL.md"), leaderboard_md(table_l, cfg))
+        write_text(put(out / "tableL.tex"), leaderboard_latex(table_l))
+        cmp_md = leaderboard_md(table_l, cfg, comparisons=True) + "\n" + cmp_md
+    write_text(put(out / "comparisons.md"), cmp_md)
     if cfg.report.plots:
         from .plots import locmap_figures, pr_plots
 
-        if curves:
-            for png in pr_plots(pd.concat(curves, ignore_index=True), out / "plots"):
+        if curves[0]:
+            for png in pr_plots(pd.concat(curves[0], ignore_index=True), out / "plots"):
                 put(png)
         for png in locmap_figures(
-            samples, frames, ann, out / "locmaps", cfg.report.locmap_examples
+            blocks[0].samples, frames, ann, out / "locmaps", cfg.report.locmap_examples
         ):
             put(png)
     stale = _remove_stale(out / "splits", "*.parquet", written) + _remove_stale(
         out / "plots", "pr_*.png", written
     )
     stale += _remove_stale(out / "locmaps", "*", written)
+    stale += _remove_stale(out, "tableL.*", written)
     if stale:
         log.info(
             "reports: removed %d file(s) of an earlier run that this run no longer writes", stale
         )
-    return Reports(summ, loc, tables, warnings, methods, localizer)
+    if not multi:
+        return results[0]
+    first = results[0]
+    return Reports(
+        summ_all,
+        pd.concat([tag(v, k) for k, v in locs.items()], ignore_index=True),
+        first.tables,
+        {
+            t: [f"[{r.localizer}] {w}" for r in results for w in r.warnings[t]]
+            for t in ("I", "S", "P")
+        },
+        first.methods,
+        ", ".join(r.localizer for r in results),
+        results,
+        table_l,
+    )
+
+
+def _split_block(
+    cfg: Config,
+    b: Block,
+    allp: pd.DataFrame,
+    sp: Split,
+    ids: dict[str, int],
+    summary: list[dict],
+    curves: list[pd.DataFrame],
+    boots: dict[tuple[str, str, str], np.ndarray],
+) -> pd.DataFrame:
+    """One block's split report (returned) and its summary rows and PR curves (appended)."""
+    samples, methods = b.samples, b.methods
+    lab = split_label(samples["RoC"].to_numpy(), samples["SoB"].to_numpy(), sp)
+    rep = samples.assign(
+        label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp)
+    )
+    rep.insert(0, "localizer", b.name)
+    summary += _pooled_rows(cfg, allp, methods, sp, "I", ids, boots)
+    summary += _pooled_rows(cfg, allp, methods, sp, "S", ids, boots)
+    for prop, g in samples.groupby("proposals", sort=True):
+        if prop != "all":
+            summary += _table_i_rows(g, sp, methods, "all", str(prop))
+        else:
+            for pair, gp in g.groupby("season_pair", sort=True):
+                summary += _table_i_rows(gp, sp, methods, str(pair), "all")
+    allg = rep[rep["proposals"] == "all"]
+    for m in methods:
+        sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()
+        if (allg.loc[sel, "label"] == 1).any():
+            thr, p, r = pr_curve(
+                allg.loc[sel, "label"].to_numpy() == 1, allg.loc[sel, f"loc_{m}"].to_numpy()
+            )
+            curves.append(
+                pd.DataFrame(
+                    {"split": sp.name, "method": m, "threshold": thr, "precision": p, "recall": r}
+                )
+            )
+    return rep

@@ -40,7 +40,13 @@ from .cache import (
     write_parquet,
     write_text,
 )
-from .config import Config
+from .config import (
+    ALL_LOCALIZERS,
+    Config,
+    FusionConfig,
+    LocalizerConfig,
+    LocalizerImportConfig,
+)
 from .descriptors import make_descriptor
 from .descriptors.extract import combine_shards, encode_shard, fit_projection_unit, train_model
 from .errors import AnnotationError, ConfigError, HarnessError, IngestError, RetrievalError
@@ -48,13 +54,19 @@ from .executors import LocalExecutor
 from .fusion import write_samples
 from .imagestore import local_uri
 from .ingest import combine_frames, ingest_session
+from .methods import ordered_methods
 from .outdirs import claim_dir, read_run_record, run_lock
 from .pairs import write_pairs
 from .progress import progress
 from .proposals import write_proposals
-from .reports import Reports, write_reports
+from .reports import Block, Reports, write_reports
 from .retrieval import described_frames, rank_reference
 from .retrieval.imported import ImportSpec, parse_import_arg, unranked_images
+
+#: Fusion methods that need the relevance score d (SPEC section 7).
+SCORE_ONLY = ("score_max", "score_sum")
+#: Methods not defined across localizers (SPEC section 11).
+NOT_ACROSS = ("rank_no_fusion", *SCORE_ONLY)
 
 log = logging.getLogger(__name__)
 
@@ -114,18 +126,50 @@ class Pipeline:
     not_described: dict[str, int] = field(default_factory=dict)
 
     @property
-    def localizer(self) -> dict[str, Any]:
-        """The localizer this run measures: its name, kind and source (SPEC section 11)."""
+    def localizer_list(self) -> tuple[LocalizerConfig, ...]:
+        """The localizers this run measures (SPEC section 11).
+
+        ``--import NAME=FILE`` measures that file alone; otherwise ``[[localizers]]``, or the one
+        localizer ``[descriptor]`` defines.
+        """
         if self.rank_import is not None:
-            path = self.rank_import.path
-            return {
-                "name": self.rank_import.name,
-                "kind": "import",
-                "file": str(Path(path).resolve()),
-                "sha256": content_sha(path) if Path(path).is_file() else None,
-                "score_kind": self.cfg.import_.score_kind,
-            }
-        return {"name": self.cfg.descriptor.name, "kind": "descriptor"}
+            return (
+                LocalizerConfig(
+                    self.rank_import.name,
+                    "import",
+                    self.cfg.proposals.methods,
+                    import_=LocalizerImportConfig(
+                        str(self.rank_import.path), self.cfg.import_.score_kind
+                    ),
+                ),
+            )
+        return self.cfg.localizer_set()
+
+    @property
+    def localizer(self) -> dict[str, Any]:
+        """The first localizer's record (its name, kind and source)."""
+        return localizer_record(self.localizer_list[0], len(self.localizer_list) > 1)
+
+    @contextlib.contextmanager
+    def measuring(self, loc: LocalizerConfig) -> Iterator[None]:
+        """Run the stages of ``loc``: ``cfg`` seen with its descriptor and import settings.
+
+        The stage functions read ``[descriptor]`` and ``[import]`` from ``p.cfg``; inside this
+        block they read the localizer's. A config without ``[[localizers]]`` is unchanged.
+        """
+        saved = self.cfg
+        cfg = saved
+        if loc.descriptor is not None:
+            cfg = dataclasses.replace(cfg, descriptor=loc.descriptor)
+        if loc.import_ is not None:
+            cfg = dataclasses.replace(
+                cfg, import_=dataclasses.replace(cfg.import_, score_kind=loc.import_.score_kind)
+            )
+        self.cfg = cfg
+        try:
+            yield
+        finally:
+            self.cfg = saved
 
     def __post_init__(self) -> None:
         if self.rank_import is not None and not isinstance(self.rank_import, ImportSpec):
@@ -237,10 +281,12 @@ def check_names(p: Pipeline) -> None:
     from .ingest.logs import known_formats
 
     cfg = p.cfg
-    if p.rank_import is None and cfg.descriptor.name not in REGISTRY:
-        raise ConfigError(
-            f"[descriptor] name = {cfg.descriptor.name!r}: unknown; known: {sorted(REGISTRY)}"
-        )
+    for loc in p.localizer_list:
+        if loc.descriptor is not None and loc.descriptor.name not in REGISTRY:
+            where = "[descriptor]" if not cfg.localizers else f"localizer {loc.name}: descriptor"
+            raise ConfigError(
+                f"{where} name = {loc.descriptor.name!r}: unknown; known: {sorted(REGISTRY)}"
+            )
     for sc in cfg.sessions:
         if sc.format != "auto" and sc.format not in known_formats():
             raise ConfigError(
@@ -491,16 +537,17 @@ def _write_ranks(
     return counts
 
 
-def imported_ranks(p: Pipeline, frames: Table, pairs: Table, props: dict[str, Table]) -> RankTable:
-    """Ranks from a user's localizer (``--import NAME=FILE``), checked against the run (SPEC 12).
+def imported_ranks(
+    p: Pipeline, frames: Table, pairs: Table, props: dict[str, Table], spec: ImportSpec
+) -> RankTable:
+    """Ranks from a user's localizer (``--import NAME=FILE`` or an ``import`` localizer).
 
-    Every row must be a proposal of the run and match a pair; a query image of the pairs without
-    any row is an error unless ``[import] allow_unranked_images`` (then it is counted).
+    Checked against the run (SPEC 12): every row must be a proposal of the run and match a pair;
+    a query image of the pairs without any row is an error unless ``[import]
+    allow_unranked_images`` (then it is counted).
     """
     from .retrieval.imported import write_imported_ranks
 
-    spec = p.rank_import
-    assert spec is not None
     if not Path(spec.path).is_file():
         raise RetrievalError(f"{spec.path}: --import file not found (localizer {spec.name!r})")
     allprops = pd.concat([t.df for t in props.values()], ignore_index=True)
@@ -533,39 +580,273 @@ def imported_ranks(p: Pipeline, frames: Table, pairs: Table, props: dict[str, Ta
     return RankTable(df, entry.key, {"import": info})
 
 
-def fused_samples(p: Pipeline, ranks: RankTable, frames: Table, ann: Table) -> Table:
+def fused_samples(
+    p: Pipeline, ranks: RankTable, frames: Table, ann: Table, fusion: FusionConfig | None = None
+) -> Table:
     """Ranks + annotations -> a sample per fused box with each method's LoC (SPEC 7-8)."""
-    build = partial(write_samples, ranks.df, frames.df, ann.df, p.cfg.fusion)
-    entry = p.unit("samples", keys.samples(p.cfg, ranks.key, ann.key), build)
+    fc = fusion or p.cfg.fusion
+    cfg = p.cfg if fusion is None else dataclasses.replace(p.cfg, fusion=fc)
+    build = partial(write_samples, ranks.df, frames.df, ann.df, fc)
+    entry = p.unit("samples", keys.samples(cfg, ranks.key, ann.key), build)
     return Table(read_cached_parquet(entry.path / "samples.parquet"), entry.key)
 
 
-def change_tables(
-    p: Pipeline,
-    samples: Table,
-    ranks: RankTable,
-    frames: Table,
-    ann: Table,
-    notes: list[str] | None = None,
-) -> Reports:
-    """Samples -> Tables I, S and P, localization quality, splits and figures (SPEC 8-10).
+def change_tables(p: Pipeline, blocks: list[Block], frames: Table, ann: Table) -> Reports:
+    """Samples -> Tables I, S, P (and L), localization quality, splits and figures (SPEC 8-11).
 
-    ``notes`` are printed under every change table (what the localizer lacks or lost).
+    One block per localizer (and ``all localizers`` where there are several); a block's notes
+    are printed under its change tables (what the localizer lacks or lost).
     """
     t0 = time.perf_counter()
     reports = write_reports(
         p.cfg,
         p.out,
-        samples.df,
-        ranks.df,
-        frames.df,
-        ann.df,
+        blocks,
+        frames=frames.df,
+        ann=ann.df,
         progress=partial(progress, desc="splits", unit="split"),
-        localizer=p.localizer["name"],
-        notes=notes or [],
     )
     p.timings["labels_ap_reports"] = time.perf_counter() - t0
     return reports
+
+
+# ---------------------------------------------------------------- localizers (SPEC section 11)
+
+
+@dataclass
+class Measured:
+    """One localizer's ranks, the fusion methods it can have, and what its tables must say."""
+
+    loc: LocalizerConfig
+    ranks: RankTable
+    fusion: FusionConfig
+    notes: list[str] = field(default_factory=list)
+
+
+def localizer_record(loc: LocalizerConfig, full: bool = True) -> dict[str, Any]:
+    """What ``run.json`` and the page say of a localizer: name, kind, source."""
+    if loc.import_ is not None:
+        path = Path(loc.import_.file)
+        return {
+            "name": loc.name,
+            "kind": "import",
+            "file": str(path.resolve()),
+            "sha256": content_sha(path) if path.is_file() else None,
+            "score_kind": loc.import_.score_kind,
+            **({"proposals": list(loc.proposals)} if full else {}),
+        }
+    rec: dict[str, Any] = {"name": loc.name, "kind": loc.kind}
+    if full:
+        rec["proposals"] = list(loc.proposals)
+        if loc.descriptor is not None:
+            rec["descriptor"] = loc.descriptor.name
+        if loc.bovw is not None:
+            rec["bovw"] = dataclasses.asdict(loc.bovw)
+    return rec
+
+
+def localizer_proposals(
+    p: Pipeline, loc: LocalizerConfig, props: dict[str, Table]
+) -> dict[str, Table]:
+    """Each session's proposals cut to the localizer's methods (as they are when it uses all)."""
+    if set(loc.proposals) == set(p.cfg.proposals.methods):
+        return props
+    return {
+        s: Table(
+            t.df[t.df["method"].isin(loc.proposals)].reset_index(drop=True),
+            keys.subset(t.key, loc.proposals),
+        )
+        for s, t in props.items()
+    }
+
+
+def bovw_vocabulary(
+    p: Pipeline, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
+) -> Entry:
+    """Reference-session subimages -> a bag-of-words vocabulary and its IDF (SPEC section 11)."""
+    from .retrieval.bovw import train_vocabulary
+
+    assert loc.bovw is not None
+    refs = sorted(set(pairs.df["r_session"]))
+    rows = pd.concat([props[s].df for s in refs], ignore_index=True)
+    build = partial(train_vocabulary, loc.bovw, frames.df, rows)
+    return p.unit("bovw_vocab", keys.bovw_vocab(loc.bovw, [props[s].key for s in refs]), build)
+
+
+def bovw_words(
+    p: Pipeline, loc: LocalizerConfig, frames: Table, props: dict[str, Table], vocab: Entry
+) -> tuple[dict[str, Entry], int]:
+    """Each session's word vectors (``words.npz`` + ``index.parquet``), in resumable shards.
+
+    Returns:
+        The entries, and how many subimages had no feature (no vector, counted).
+    """
+    from .retrieval.bovw import combine_word_shards, encode_words
+
+    bc = loc.bovw
+    assert bc is not None
+    units: list[tuple[tuple[Any, ...], Build]] = []
+    spans = {}
+    for sc in p.cfg.sessions:
+        rows, fr = props[sc.name].df, frames.df[frames.df["session"] == sc.name]
+        utimes = np.unique(rows["utime"].to_numpy())
+        shards = [utimes[i : i + bc.shard_frames] for i in range(0, len(utimes), bc.shard_frames)]
+        spans[sc.name] = (len(units), len(units) + len(shards))
+        for si, ut in enumerate(shards):
+            build = partial(
+                encode_words,
+                bc,
+                vocab.path,
+                fr,
+                rows[rows["utime"].isin(ut)].reset_index(drop=True),
+                f"{loc.name} {sc.name} [{si + 1}/{len(shards)}]",
+            )
+            key = keys.bovw_shard(vocab.key, props[sc.name].key, [int(u) for u in ut])
+            units.append((key, build))
+    done = p.units("bovw_shards", units)
+    nofeat = sum(
+        int(p.cache.manifest("bovw_shards", e.key)["info"].get("no_feature_subimages", 0))
+        for e in done
+    )
+    out = {}
+    for sc in p.cfg.sessions:
+        parts = done[slice(*spans[sc.name])]
+        build = partial(combine_word_shards, [e.path for e in parts])
+        out[sc.name] = p.unit(
+            "bovw_words",
+            keys.bovw_words(vocab.key, props[sc.name].key, [e.key for e in parts]),
+            build,
+        )
+    return out, nofeat
+
+
+def localizer_ranks(
+    p: Pipeline, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
+) -> RankTable:
+    """One localizer's rank rows: its engine over its proposals (SPEC sections 6, 11, 12)."""
+    mine = localizer_proposals(p, loc, props)
+    with p.measuring(loc):
+        if loc.import_ is not None:
+            spec = ImportSpec(loc.name, Path(loc.import_.file))
+            return imported_ranks(p, frames, pairs, mine, spec)
+        if loc.bovw is not None:
+            vocab = bovw_vocabulary(p, loc, frames, pairs, mine)
+            words, nofeat = bovw_words(p, loc, frames, mine, vocab)
+            ranks = query_ranks(p, frames, pairs, words)
+            ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
+            return ranks
+        model = descriptor_model(p, frames, mine)
+        projection = descriptor_projection(p, frames, pairs, mine, model)
+        described = session_descriptors(p, frames, mine, model, projection)
+        return query_ranks(p, frames, pairs, described)
+
+
+def localizer_fusion(
+    p: Pipeline, loc: LocalizerConfig, ranks: RankTable
+) -> tuple[FusionConfig, list[str]]:
+    """The fusion methods a localizer can have, and the notes its tables carry.
+
+    A localizer without a relevance score (an imported list without ``scores``) gets no score
+    method (never NaN rows without a word); lost images and truncated lists are noted.
+    """
+    notes: list[str] = []
+    fc = p.cfg.fusion
+    info = ranks.counts.get("import", {})
+    has_d = loc.import_ is None or bool(info.get("has_scores"))
+    if not has_d:
+        dropped = [m for m in SCORE_ONLY if m in fc.methods]
+        kept = tuple(m for m in fc.methods if m not in dropped)
+        if dropped and kept:
+            fc = dataclasses.replace(fc, methods=kept)
+        if dropped:
+            notes.append(
+                f"NOTE: {', '.join(dropped)} not computed: localizer {loc.name} gives ranked "
+                "lists without scores, so it has no relevance score d (SPEC sections 11-12)."
+            )
+    lost = int(info.get("unranked_query_images", 0))
+    if lost:
+        notes.append(
+            f"NOTE: {lost} query images have no row from localizer {loc.name} "
+            "and are left out of every table ([import] allow_unranked_images = true)."
+        )
+    inexact = int(info.get("gt_missing_from_truncated_list", 0))
+    if inexact:
+        notes.append(
+            f"NOTE: {inexact} of {len(ranks.df)} query subimages of localizer {loc.name} have a "
+            "truncated list without their place: their rank is a bound (exact = False)."
+        )
+    nofeat = int(ranks.counts.get("bovw", {}).get("no_feature_subimages", 0))
+    if nofeat:
+        notes.append(
+            f"NOTE: {nofeat} subimages had no local feature under localizer {loc.name}: they "
+            "are neither queries nor database rows of its engine (SPEC section 11)."
+        )
+    return fc, notes
+
+
+IMAGE_KEY = ["q_session", "q_camera", "q_utime", "r_session"]
+
+
+def common_images(p: Pipeline, measured: list[Measured], pairs: Table) -> str | None:
+    """Score every localizer on the same query images (SPEC section 11).
+
+    A query image of the pairs that some localizer did not rank is an error naming the
+    localizer and the image, unless ``[import] allow_unranked_images``: then it is left out of
+    every localizer's ranks, and the returned note says how many.
+
+    Raises:
+        RetrievalError: an unranked image (not allowed).
+    """
+    all_images = pd.MultiIndex.from_frame(pairs.df[IMAGE_KEY])
+    keep = np.ones(len(all_images), bool)
+    first_missing: tuple[str, Any] | None = None
+    for m in measured:
+        got = pd.MultiIndex.from_frame(m.ranks.df[IMAGE_KEY].drop_duplicates())
+        has = all_images.isin(got)
+        if first_missing is None and not has.all():
+            first_missing = (m.loc.name, all_images[np.flatnonzero(~has)[0]])
+        keep &= has
+    if keep.all():
+        return None
+    lost = int((~keep).sum())
+    assert first_missing is not None
+    name, ex = first_missing
+    if not p.cfg.import_.allow_unranked_images:
+        raise RetrievalError(
+            f"localizer {name!r} ranks no subimage of query image {ex[0]}/{ex[1]}/{ex[2]} -> "
+            f"{ex[3]} ({lost} of {len(all_images)} query images lack some localizer's rank); "
+            "every localizer is scored on the same images: set [import] allow_unranked_images "
+            "= true to leave them out of every table (counted)"
+        )
+    kept = pd.MultiIndex.from_frame(pairs.df[IMAGE_KEY][keep])
+    for m in measured:
+        df = m.ranks.df
+        sel = pd.MultiIndex.from_frame(df[IMAGE_KEY]).isin(kept)
+        if not sel.all():
+            m.ranks = RankTable(
+                df[sel].reset_index(drop=True),
+                stable_hash("common-images", m.ranks.key, int((~sel).sum())),
+                m.ranks.counts,
+            )
+    return (
+        f"NOTE: {lost} of {len(all_images)} query images lack a rank from at least one "
+        f"localizer (e.g. {name}: {ex[0]}/{ex[1]}/{ex[2]}) and are left out of every row "
+        "([import] allow_unranked_images = true)."
+    )
+
+
+def across_localizers(measured: list[Measured]) -> RankTable:
+    """Every localizer's rank rows as one list of original boxes (SPEC section 11).
+
+    An original box is the pair (localizer, box): its method becomes ``localizer:method``, and
+    ``d`` is dropped (scores of different localizers are not comparable).
+    """
+    parts = [
+        m.ranks.df.assign(method=m.loc.name + ":" + m.ranks.df["method"].astype(str), d=np.nan)
+        for m in measured
+    ]
+    df = pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
+    return RankTable(df, stable_hash("all-localizers", [m.ranks.key for m in measured]), {})
 
 
 # ---------------------------------------------------------------- the chain
@@ -588,24 +869,27 @@ def until_pairs(p: Pipeline) -> tuple[dict[str, Entry], Table, Table, Table]:
 
 def until_ranks(
     p: Pipeline, check: bool = True
-) -> tuple[dict[str, Entry], Table, Table, Table, RankTable]:
-    """Every stage up to the ranks (computed, or imported with ``rank_import``).
+) -> tuple[dict[str, Entry], Table, Table, Table, list[Measured]]:
+    """Every stage up to the ranks of every localizer (computed, or imported).
 
     With ``check``, inputs that can only give NaN tables are refused before any proposal work.
+    Proposals are computed once and shared by the localizers that use the same method.
 
     Returns:
-        (ingest entries, frames, annotations, pairs, ranks).
+        (ingest entries, frames, annotations, pairs, one :class:`Measured` per localizer).
     """
     ingested, frames, ann, pairs = until_pairs(p)
     if check:
         check_inputs(p, ann, pairs)
     props = session_proposals(p, frames, pairs, ingested)
-    if p.rank_import is not None:
-        return ingested, frames, ann, pairs, imported_ranks(p, frames, pairs, props)
-    model = descriptor_model(p, frames, props)
-    projection = descriptor_projection(p, frames, pairs, props, model)
-    described = session_descriptors(p, frames, props, model, projection)
-    return ingested, frames, ann, pairs, query_ranks(p, frames, pairs, described)
+    measured = []
+    for loc in p.localizer_list:
+        ranks = localizer_ranks(p, loc, frames, pairs, props)
+        if not len(ranks.df):
+            raise RetrievalError(f"localizer {loc.name}: no query subimage got a rank")
+        fusion, notes = localizer_fusion(p, loc, ranks)
+        measured.append(Measured(loc, ranks, fusion, notes))
+    return ingested, frames, ann, pairs, measured
 
 
 def run_all(p: Pipeline) -> dict[str, Any]:
@@ -616,14 +900,47 @@ def run_all(p: Pipeline) -> dict[str, Any]:
     """
     t0 = time.perf_counter()
     check_localizer_set(p)
-    ingested, frames, ann, pairs, ranks = until_ranks(p)
-    if not len(ranks.df):
-        raise RetrievalError("no query subimage got a rank")
-    notes = localizer_notes(p, ranks, pairs)
-    samples = fused_samples(p, ranks, frames, ann)
-    reports = change_tables(p, samples, ranks, frames, ann, notes)
+    ingested, frames, ann, pairs, measured = until_ranks(p)
+    blocks, keys_ = [], {}
+    shared = common_images(p, measured, pairs) if len(measured) > 1 else None
+    n_samples = 0
+    for m in measured:
+        samples = fused_samples(p, m.ranks, frames, ann, m.fusion)
+        notes = m.notes + ([shared] if shared else [])
+        blocks.append(
+            Block(m.loc.name, samples.df, m.ranks.df, ordered_methods(m.fusion.methods), notes)
+        )
+        keys_[m.loc.name] = {"ranks": m.ranks.key, "samples": samples.key}
+        n_samples += len(samples.df)
+    if len(measured) > 1:
+        ranks_all = across_localizers(measured)
+        fc = dataclasses.replace(
+            p.cfg.fusion, methods=tuple(x for x in p.cfg.fusion.methods if x not in NOT_ACROSS)
+        )
+        samples = fused_samples(p, ranks_all, frames, ann, fc)
+        blocks.append(
+            Block(
+                ALL_LOCALIZERS,
+                samples.df,
+                None,
+                ordered_methods(fc.methods),
+                [shared] if shared else [],
+            )
+        )
+        keys_[ALL_LOCALIZERS] = {"ranks": ranks_all.key, "samples": samples.key}
+        n_samples += len(samples.df)
+    reports = change_tables(p, blocks, frames, ann)
     record = run_record(
-        p, ingested, frames, ann, pairs, ranks, samples, reports, time.perf_counter() - t0
+        p,
+        ingested,
+        frames,
+        ann,
+        pairs,
+        measured,
+        keys_,
+        n_samples,
+        reports,
+        time.perf_counter() - t0,
     )
     write_json(p.out / "run.json", record)
     if p.cfg.report.html:
@@ -638,7 +955,7 @@ def run_all(p: Pipeline) -> dict[str, Any]:
 
 
 def check_localizer_set(p: Pipeline) -> None:
-    """Refuse to replace the tables of a run that measured another localizer, unless ``force``.
+    """Refuse to replace the tables of a run that measured another localizer set, unless ``force``.
 
     Raises:
         HarnessError: ``out/run.json`` names other localizers; the message names both sets.
@@ -658,50 +975,12 @@ def check_localizer_set(p: Pipeline) -> None:
     ]
     if not before and isinstance(config, dict):
         before = [str(config.get("descriptor", {}).get("name", "?"))]
-    now = [p.localizer["name"]]
+    now = [loc.name for loc in p.localizer_list]
     if before != now:
         raise HarnessError(
             f"{p.out}: holds the tables of localizer {', '.join(before)}; this run measures "
             f"{', '.join(now)}; pass --force to replace them, or choose another --out"
         )
-
-
-def localizer_notes(p: Pipeline, ranks: RankTable, pairs: Table) -> list[str]:
-    """What the tables must say about the localizer: score methods it cannot have, lost images.
-
-    An imported list without ``scores`` gives no ``d``: the score-fusion methods are dropped from
-    ``[fusion] methods`` for this run (never NaN rows without a word), and the tables say so.
-    """
-    notes: list[str] = []
-    if p.rank_import is None:
-        return notes
-    info = ranks.counts.get("import", {})
-    name = p.rank_import.name
-    if not info.get("has_scores"):
-        dropped = [m for m in ("score_max", "score_sum") if m in p.cfg.fusion.methods]
-        kept = tuple(m for m in p.cfg.fusion.methods if m not in dropped)
-        if dropped and kept:
-            p.cfg = dataclasses.replace(
-                p.cfg, fusion=dataclasses.replace(p.cfg.fusion, methods=kept)
-            )
-        if dropped:
-            notes.append(
-                f"NOTE: {', '.join(dropped)} not computed: localizer {name} gives ranked lists "
-                "without scores, so it has no relevance score d (SPEC sections 11-12)."
-            )
-    lost = int(info.get("unranked_query_images", 0))
-    if lost:
-        notes.append(
-            f"NOTE: {lost} of {len(pairs.df)} query images have no row from localizer {name} "
-            "and are left out of every table ([import] allow_unranked_images = true)."
-        )
-    inexact = int(info.get("gt_missing_from_truncated_list", 0))
-    if inexact:
-        notes.append(
-            f"NOTE: {inexact} of {len(ranks.df)} query subimages of localizer {name} have a "
-            "truncated list without their place: their rank is a bound (exact = False)."
-        )
-    return notes
 
 
 def check_inputs(p: Pipeline, ann: Table, pairs: Table) -> None:
@@ -724,21 +1003,34 @@ def run_record(
     frames: Table,
     ann: Table,
     pairs: Table,
-    ranks: RankTable,
-    samples: Table,
+    measured: list[Measured],
+    block_keys: dict[str, dict[str, str]],
+    n_samples: int,
     reports: Reports,
     seconds: float,
 ) -> dict[str, Any]:
     """What ``run.json`` records.
 
-    Config, versions, timings, counts, keys, warnings, cache entries.
+    Config, versions, timings, counts, keys, warnings, cache entries. With several localizers the
+    rank counters and keys are given per localizer (``keys.localizers``).
     """
+    multi = len(measured) > 1
+    first = measured[0]
+    rank_counts: Any = (
+        {m.loc.name: m.ranks.counts for m in measured} if multi else first.ranks.counts
+    )
+    unranked = sum(
+        int(c.get("unranked_query_images", 0))
+        for m in measured
+        for c in m.ranks.counts.values()
+        if isinstance(c, dict)
+    )
     return {
         "config": asdict(p.cfg),
         "versions": _versions(),
         "seed": p.cfg.seed,
         "argv": sys.argv,
-        "localizers": [p.localizer],
+        "localizers": [localizer_record(m.loc, multi) for m in measured],
         "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
         "total_s": round(seconds, 3),
         "stage_units_run": p.ran,
@@ -750,18 +1042,16 @@ def run_record(
             ),
             "pairs": len(pairs.df),
             "frames_not_described": dict(sorted(p.not_described.items())),
-            "ranked_subimages": len(ranks.df),
-            "unranked_query_images": int(
-                sum(int(c.get("unranked_query_images", 0)) for c in ranks.counts.values())
-            ),
-            "samples": len(samples.df),
-            "rank_counts": ranks.counts,
+            "ranked_subimages": sum(len(m.ranks.df) for m in measured),
+            "unranked_query_images": unranked,
+            "samples": n_samples,
+            "rank_counts": rank_counts,
         },
         "keys": {
             "frames": frames.key,
             "pairs": pairs.key,
-            "ranks": ranks.key,
-            "samples": samples.key,
+            **block_keys[first.loc.name],
+            **({"localizers": block_keys} if multi else {}),
         },
         "localization": reports.localization.to_dict(orient="records"),
         "warnings": reports.warnings,

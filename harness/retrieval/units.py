@@ -14,10 +14,12 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import scipy.sparse as sp
 
 from ..cache import read_cached_parquet
 from ..config import RetrievalConfig
 from ..pairs import ground_truth_places, thin_by_stride
+from .bovw import bovw_ranks, load_words
 from .engines import image_ranks, image_ranks_faiss
 
 #: Counters every unit reports (summed per reference session in ``run.json``).
@@ -119,7 +121,7 @@ def rank_reference(
     if kept is not None:
         counts["no_rank_place_not_in_database"] = 0
     ref_idx = read_cached_parquet(descriptors[ref] / "index.parquet")
-    ref_desc = np.load(descriptors[ref] / "desc.npy", mmap_mode="r")
+    ref_desc = _vectors(descriptors[ref])
     out = []
     for method in sorted(ref_idx["method"].unique()):
         in_db = (ref_idx["method"] == method).to_numpy().copy()
@@ -145,6 +147,13 @@ def rank_reference(
     return df, counts
 
 
+def _vectors(entry: Path) -> Any:
+    """An entry's subimage vectors: a descriptor memmap, or a bag-of-words CSR matrix."""
+    if (entry / "words.npz").exists():
+        return load_words(entry)
+    return np.load(entry / "desc.npy", mmap_mode="r")
+
+
 def _rank_query_session(
     rc: RetrievalConfig,
     method: str,
@@ -160,7 +169,7 @@ def _rank_query_session(
     """Rank rows of one query session's subimages of ``method`` (``g``: its pairs); None if none."""
     have = set(np.unique(db_frame).tolist())
     q_idx = read_cached_parquet(qdir / "index.parquet")
-    q_desc = np.load(qdir / "desc.npy", mmap_mode="r")
+    q_desc = _vectors(qdir)
     q_idx["row"] = np.arange(len(q_idx))
     qm = q_idx[q_idx["method"] == method].merge(
         g.rename(columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}),
@@ -192,7 +201,8 @@ def _rank_query_session(
     qm = qm[ok].reset_index(drop=True)
     if not len(qm):
         return None
-    qd = np.asarray(q_desc[np.sort(qm["row"].to_numpy())], np.float32)
+    qd = q_desc[np.sort(qm["row"].to_numpy())]
+    qd = qd if sp.issparse(qd) else np.asarray(qd, np.float32)
     qd = qd[np.argsort(np.argsort(qm["row"].to_numpy(), kind="stable"), kind="stable")]
     gt = qm["r_utime"].to_numpy()
     place = [places[c][int(u)] for c, u in zip(qm["r_camera"], gt, strict=True)]
@@ -207,7 +217,10 @@ def _rank_query_session(
             ],
             np.int64,
         )
-    if rc.engine == "faiss":
+    if sp.issparse(qd):  # a bag-of-visual-words localizer: the inverted-index engine
+        rank, L, dist = bovw_ranks(qd, db, db_frame, gt, place)
+        exact = np.ones(len(rank), bool)
+    elif rc.engine == "faiss":
         res = image_ranks_faiss(
             qd,
             np.asarray(db, np.float32),

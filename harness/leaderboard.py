@@ -1,0 +1,213 @@
+"""Table L, the leaderboard of localizers (SPEC section 11).
+
+One row per localizer and one for ``all localizers`` (their boxes fused by rank): recall@1 and
+recall@5 (blank for the fused row), Table S ``rank_fusion`` and ``score_max`` at the headline
+RoC-max (``[report] headline_roc_max``), Table P pixel and image AP of ``rank_fusion``, each AP
+with its 95% interval and floor, and each row's paired difference from the first localizer in
+Table S ``rank_fusion`` over the same bootstrap resamples of query images. Computed from the
+blocks' summaries (:func:`harness.reports.write_reports`), rendered as CSV, markdown and LaTeX.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from .config import Config
+from .metrics import paired_difference
+from .splits import Split
+from .texfmt import tex_escape as _tex_escape
+
+#: (column prefix, table, split selector, method, heading) of Table L's AP columns.
+AP_COLUMNS = (
+    ("S_rank_fusion", "S", "headline", "rank_fusion", "Table S rank fusion"),
+    ("S_score_max", "S", "headline", "score_max", "Table S score max"),
+    ("P_pixel", "P", "pixel", "rank_fusion", "pixel AP (rank fusion)"),
+    ("P_image", "P", "image", "rank_fusion", "image AP (rank fusion)"),
+)
+
+
+def headline_split(splits: Sequence[Split], roc_max: float) -> Split:
+    """The split whose RoC-max is nearest the headline's (the first of equals)."""
+    return min(splits, key=lambda s: abs(s.roc_max - roc_max))
+
+
+def _cell(summ: pd.DataFrame, table: str, split: str, method: str) -> dict[str, float]:
+    r = summ[
+        (summ["table"] == table)
+        & (summ["split"] == split)
+        & (summ["method"] == method)
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] == "all")
+    ]
+    if not len(r):
+        nan = float("nan")
+        return {"ap": nan, "ci_low": nan, "ci_high": nan, "floor": nan, "query_images": 0}
+    x = r.iloc[0]
+    return {
+        "ap": float(x["ap"]),
+        "ci_low": float(x["ci_low"]),
+        "ci_high": float(x["ci_high"]),
+        "floor": float(x["floor"]),
+        "query_images": int(x["query_images"]),
+    }
+
+
+def leaderboard(
+    cfg: Config,
+    blocks: Sequence[Any],
+    boots: Sequence[dict[tuple[str, str, str], np.ndarray]],
+    splits: Sequence[Split],
+) -> pd.DataFrame:
+    """Table L: one row per block (localizers first, ``all localizers`` last).
+
+    ``blocks`` are the blocks' :class:`harness.reports.Reports` (``summary``, ``localization``,
+    ``localizer``).
+
+    ``boots[i]`` holds block i's bootstrap APs by (table, split, method); the difference of each
+    row from the first is paired over the same resamples (the blocks share the query images).
+    """
+    head = headline_split(splits, cfg.report.headline_roc_max)
+    first = boots[0].get(("S", head.name, "rank_fusion"), np.zeros(0))
+    rows: list[dict[str, Any]] = []
+    for b, bt in zip(blocks, boots, strict=True):
+        loc = b.localization
+        la = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")] if len(loc) else loc
+        row: dict[str, Any] = {
+            "localizer": b.localizer,
+            "roc_max": head.roc_max,
+            "recall_at_1": float(la["recall_at_1"].iloc[0]) if len(la) else float("nan"),
+            "recall_at_5": float(la["recall_at_5"].iloc[0]) if len(la) else float("nan"),
+            "subimages": int(la["subimages"].iloc[0]) if len(la) else 0,
+        }
+        for prefix, table, split, method, _ in AP_COLUMNS:
+            c = _cell(b.summary, table, head.name if split == "headline" else split, method)
+            for k in ("ap", "ci_low", "ci_high", "floor"):
+                row[f"{prefix}_{k}"] = c[k]
+            if prefix == "S_rank_fusion":
+                row["query_images"] = c["query_images"]
+        mine = bt.get(("S", head.name, "rank_fusion"), np.zeros(0))
+        if rows and len(mine) and len(first) == len(mine):
+            d = paired_difference(
+                mine, first, row["S_rank_fusion_ap"], rows[0]["S_rank_fusion_ap"], cfg.report.ci
+            )
+        else:
+            nan = float("nan")
+            d = {"diff": nan, "diff_ci_low": nan, "diff_ci_high": nan, "sign_flip_share": nan}
+        row.update({f"S_rank_fusion_{k}": v for k, v in d.items()})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def leaderboard_csv(t: pd.DataFrame) -> str:
+    """Table L as CSV: every column, four decimals."""
+    out: str = t.to_csv(index=False, float_format="%.4f")
+    return out
+
+
+def _ap(r: Any, prefix: str) -> str:
+    v, lo, hi = (getattr(r, f"{prefix}_{k}") for k in ("ap", "ci_low", "ci_high"))
+    if v != v:
+        return "-"
+    return f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}"
+
+
+def _pct(v: float) -> str:
+    return "" if v != v else f"{v:.2f}"
+
+
+def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> str:
+    """Table L as markdown (``comparisons``: the differences between localizers, in words)."""
+    first = str(t["localizer"].iloc[0])
+    roc = float(t["roc_max"].iloc[0])
+    if comparisons:
+        lines = [
+            "# Paired comparisons between localizers (Table L)",
+            "",
+            f"Table S rank fusion at RoC-max {roc:.2f}: AP(localizer) - AP({first}) [95% "
+            "interval over the same bootstrap resamples of query images].",
+            "",
+        ]
+        for r in t.iloc[1:].itertuples():
+            flips = (
+                f"sign flips in {100 * r.S_rank_fusion_sign_flip_share:.0f}% of resamples"
+                if r.S_rank_fusion_sign_flip_share == r.S_rank_fusion_sign_flip_share
+                else "no difference"
+            )
+            lines.append(
+                f"- {r.localizer} - {first} = {r.S_rank_fusion_diff:+.2f} "
+                f"[{r.S_rank_fusion_diff_ci_low:+.2f}, {r.S_rank_fusion_diff_ci_high:+.2f}] "
+                f"({flips})"
+            )
+        return "\n".join(lines) + "\n"
+    heads = [h for _, _, _, _, h in AP_COLUMNS]
+    lines = [
+        "# Table L: localizers",
+        "",
+        "One row per localizer and one for all localizers fused by rank (SPEC section 11). "
+        f"Recall@1/5 of the ground-truth place over every ranked query subimage; AP [95% "
+        f"interval] of Table S at RoC-max {roc:.2f} and of Table P; the last column is each "
+        f"row's Table S rank-fusion AP minus {first}'s, paired over the same bootstrap "
+        "resamples of query images. Every localizer is scored on the same query images.",
+        "",
+        "| localizer | R@1 | R@5 | " + " | ".join(heads) + f" | Table S rank fusion - {first} |",
+        "|---|---:|---:|" + "---:|" * (len(heads) + 1),
+    ]
+    for r in t.itertuples():
+        diff = (
+            ""
+            if r.S_rank_fusion_diff != r.S_rank_fusion_diff
+            else f"{r.S_rank_fusion_diff:+.2f} [{r.S_rank_fusion_diff_ci_low:+.2f}, "
+            f"{r.S_rank_fusion_diff_ci_high:+.2f}]"
+        )
+        lines.append(
+            f"| {r.localizer} | {_pct(r.recall_at_1)} | {_pct(r.recall_at_5)} | "
+            + " | ".join(_ap(r, p) for p, _, _, _, _ in AP_COLUMNS)
+            + f" | {diff} |"
+        )
+    r0 = t.iloc[0]
+    lines.append(
+        f"| *floor ({first})* | | | "
+        + " | ".join(_pct(float(r0[f"{p}_floor"])) for p, _, _, _, _ in AP_COLUMNS)
+        + " | |"
+    )
+    other = [
+        f"{r.localizer} {float(r.S_rank_fusion_floor):.2f}"
+        for r in t.itertuples()
+        if abs(float(r.S_rank_fusion_floor) - float(r0["S_rank_fusion_floor"])) >= 0.005
+    ]
+    lines.append("")
+    lines.append(
+        "Floor: the AP of a random ranking of the same samples. "
+        + (
+            "Rows whose Table S floor differs (their boxes differ): " + ", ".join(other) + "."
+            if other
+            else "Every row's Table S floor is the same to two decimals."
+        )
+        + " A row whose interval holds its floor cannot be told from chance on this data."
+    )
+    return "\n".join(lines) + "\n"
+
+
+def leaderboard_latex(t: pd.DataFrame) -> str:
+    """Table L as a booktabs ``tabular`` (APs with two decimals, no intervals)."""
+    cols = ["R@1", "R@5", *(h for _, _, _, _, h in AP_COLUMNS)]
+    out = [
+        r"\begin{tabular}{l" + "r" * len(cols) + "}",
+        r"\toprule",
+        " & ".join(["Localizer", *(_tex_escape(c) for c in cols)]) + r" \\",
+        r"\midrule",
+    ]
+    for r in t.itertuples():
+        vals = [r.recall_at_1, r.recall_at_5, *(getattr(r, f"{p}_ap") for p, *_ in AP_COLUMNS)]
+        out.append(
+            " & ".join(
+                [_tex_escape(str(r.localizer)), *("--" if v != v else f"{v:.2f}" for v in vals)]
+            )
+            + r" \\"
+        )
+    out += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(out) + "\n"
