@@ -572,7 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=64, help="frames per session")
     p.add_argument("--width", type=int, default=120)
     p.add_argument("--height", type=int, default=160)
-    p.add_argument("--objects", type=int, default=3, help="change objects per changed session")
+    p.add_argument("--objects", type=int, default=9, help="change objects per changed session")
     p.add_argument(
         "--loop-scale", type=float, default=1.5, help="size of the loop road (1.0: 60 m x 40 m)"
     )

@@ -251,7 +251,7 @@ class FixtureConfig:
     frames: int = 64
     width: int = 120
     height: int = 160
-    objects: int = 3
+    objects: int = 9
     loop_scale: float = 1.5
     render_scale: int = 1  # ray-cast at 1/scale resolution and upsample (NCLT-sized frames cheaply)
     formats: tuple[str, ...] = ()  # log format per session; empty: nclt, ros1, ros2, mcap
@@ -533,9 +533,14 @@ def parse_config(
             cfg, localizers=parse_localizers(doc["localizers"], cfg, base, root, where)
         )
     validate(cfg, where)
-    for loc in cfg.localizers:
-        if loc.descriptor is not None:
-            validate(dataclasses.replace(cfg, descriptor=loc.descriptor, localizers=()), where)
+    for i, loc in enumerate(cfg.localizers):
+        if loc.descriptor is not None:  # the [descriptor] checks, on the localizer's table
+            try:
+                validate(dataclasses.replace(cfg, descriptor=loc.descriptor, localizers=()), where)
+            except ConfigError as err:
+                raise ConfigError(
+                    str(err).replace("[descriptor]", f"localizers[{i}] ({loc.name}) descriptor")
+                ) from None
     return cfg
 
 
@@ -603,7 +608,7 @@ def parse_localizers(
         out.append(LocalizerConfig(str(name), kind, tuple(props), de, bw, im))
     names = [x.name for x in out]
     if len(set(names)) != len(names):
-        raise ConfigError(f"{where}: localizer names must be unique, got {names}")
+        raise ConfigError(f"{where}: [[localizers]] names must be unique, got {names}")
     if ALL_LOCALIZERS in names:
         raise ConfigError(f"{where}: {ALL_LOCALIZERS!r} names the fused block; choose another")
     return tuple(out)

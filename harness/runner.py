@@ -236,7 +236,10 @@ def generate_fixture(p: Pipeline) -> None:
     is never touched: that is someone's data, and the error says so.
     """
     fx, root = p.cfg.fixture, p.cfg.data_root
-    if not fx.generate or (root / "fixture.json").exists():
+    if not fx.generate:
+        return
+    if (root / "fixture.json").exists():
+        check_fixture_spec(p)
         return
     if root.exists() and (not root.is_dir() or any(root.iterdir())):
         raise ConfigError(
@@ -267,6 +270,38 @@ def generate_fixture(p: Pipeline) -> None:
     if not p.cfg.annotations.exists():
         p.cfg.annotations.parent.mkdir(parents=True, exist_ok=True)
         write_text(p.cfg.annotations, (root / "annotations.csv").read_text())
+
+
+def check_fixture_spec(p: Pipeline) -> None:
+    """An existing generated fixture must be the one ``[fixture]`` describes.
+
+    Raises:
+        ConfigError: it was generated with other settings (naming them); it is never replaced
+            silently: the message says to remove it so that the next run generates it again.
+    """
+    from .fixture.generate import read_spec
+
+    fx, root = p.cfg.fixture, p.cfg.data_root
+    try:
+        have = read_spec(root)
+    except (OSError, ValueError, KeyError):
+        return  # an unreadable record: ingest reports what is wrong with the data
+    want = {
+        "seed": fx.seed,
+        "frames": fx.frames,
+        "width": fx.width,
+        "height": fx.height,
+        "objects": fx.objects,
+        "loop_scale": fx.loop_scale,
+        "render_scale": fx.render_scale,
+    }
+    diff = {k: (have.get(k), v) for k, v in want.items() if k in have and have.get(k) != v}
+    if diff:
+        raise ConfigError(
+            f"{root}: a fixture generated with other [fixture] settings ("
+            + ", ".join(f"{k} {a!r} there, {b!r} in the config" for k, (a, b) in diff.items())
+            + f"); remove {root} (the harness generated it) and run again to regenerate it"
+        )
 
 
 def check_names(p: Pipeline) -> None:
@@ -742,7 +777,7 @@ def localizer_ranks(
 
 
 def localizer_fusion(
-    p: Pipeline, loc: LocalizerConfig, ranks: RankTable
+    p: Pipeline, loc: LocalizerConfig, ranks: RankTable, n_images: int
 ) -> tuple[FusionConfig, list[str]]:
     """The fusion methods a localizer can have, and the notes its tables carry.
 
@@ -766,7 +801,7 @@ def localizer_fusion(
     lost = int(info.get("unranked_query_images", 0))
     if lost:
         notes.append(
-            f"NOTE: {lost} query images have no row from localizer {loc.name} "
+            f"NOTE: {lost} of {n_images} query images have no row from localizer {loc.name} "
             "and are left out of every table ([import] allow_unranked_images = true)."
         )
     inexact = int(info.get("gt_missing_from_truncated_list", 0))
@@ -887,7 +922,7 @@ def until_ranks(
         ranks = localizer_ranks(p, loc, frames, pairs, props)
         if not len(ranks.df):
             raise RetrievalError(f"localizer {loc.name}: no query subimage got a rank")
-        fusion, notes = localizer_fusion(p, loc, ranks)
+        fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
         measured.append(Measured(loc, ranks, fusion, notes))
     return ingested, frames, ann, pairs, measured
 

@@ -40,8 +40,10 @@ FRAME_KEY = ["session", "camera", "utime"]
 def _extractor(bc: BovwConfig) -> Any:
     if bc.features == "orb":
         # edgeThreshold/patchSize small enough that a dense grid keeps keypoints near the border
-        return cv2.ORB_create(nfeatures=5000, edgeThreshold=bc.patch, patchSize=bc.patch)
-    return cv2.SIFT_create()
+        return cv2.ORB_create(  # type: ignore[attr-defined]
+            nfeatures=5000, edgeThreshold=bc.patch, patchSize=bc.patch
+        )
+    return cv2.SIFT_create()  # type: ignore[attr-defined]
 
 
 def grid_keypoints(bc: BovwConfig) -> list[Any]:
@@ -156,7 +158,7 @@ def train_vocabulary(
         "kmeans_features": len(allf),
         "k": bc.k,
         "dim": int(vocab.shape[1]),
-        "kmeans_objective": float(km.obj[-1]) if len(km.obj) else float("nan"),
+        "kmeans_objective": float(km.obj[-1]) if km.obj is not None and len(km.obj) else None,
     }
 
 
