@@ -21,7 +21,17 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "bench" / ".data"
 OUT = ROOT / "results" / "bench"
 
-CASES = ["ingest", "crops", "descriptor", "ranking", "fusion", "executor", "e2e", "full-nclt"]
+CASES = [
+    "ingest",
+    "crops",
+    "descriptor",
+    "ranking",
+    "localizers",
+    "fusion",
+    "executor",
+    "e2e",
+    "full-nclt",
+]
 HIDDEN = {"case", "median", "unit", "runs", "peak_rss_mib", "notes", "group", "points"}
 
 

@@ -986,6 +986,11 @@ def main() -> None:
     if a.case == "rankjob":
         rank_job(**json.loads(a.args))
         return
+    if a.case == "localizers":  # a case of its own module (one file per new case)
+        from .case_localizers import case_localizers
+
+        case_localizers(a.quick)
+        return
     globals()[f"case_{a.case.replace('-', '_')}"](a.quick)
 
 

@@ -161,7 +161,7 @@ def test_features_rootsift_orb_and_a_featureless_crop() -> None:
 
 @pytest.fixture(scope="module")
 def multi_run(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
-    """``reproduce`` of the three-localizer config plus an imported list, as a user runs it."""
+    """``reproduce`` of the three-localizer config plus the README's imported list, as typed."""
     p, _, run = local_run
     base = tmp_path_factory.mktemp("multi")
     out = base / "run"
@@ -173,15 +173,17 @@ def multi_run(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tup
     hsv = base / "hsv.csv"
     example = str(ROOT / "examples" / "hsv_localizer.py")
     subprocess.run([sys.executable, example, str(out / "task"), str(hsv)], check=True)
-    cfg = base / "three.toml"
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Several localizers in one run") :]
+    block = re.search(r"```toml\n(.*?)```", section, re.S)
+    assert block is not None and 'name = "hsv"' in block.group(1)
+    cfg = base / "four.toml"
     cfg.write_text(
-        MULTI_TOML.read_text()
-        .replace('annotations = "annotations', f'annotations = "{ROOT}/annotations')
-        .replace(
-            '[[localizers]]\nname = "thumb"\ndescriptor = { name = "thumb", input_size = 64 }\n',
-            '[[localizers]]\nname = "hsv"\n'
-            f'import = {{ file = "{hsv}", score_kind = "distance" }}\n',
+        MULTI_TOML.read_text().replace(
+            'annotations = "annotations', f'annotations = "{ROOT}/annotations'
         )
+        + "\n"
+        + block.group(1).replace("results/hsv.csv", str(hsv))
     )
     cmd = ["reproduce", "--config", str(cfg), "--data-root", world, "--out", str(out)]
     import contextlib
@@ -193,7 +195,7 @@ def multi_run(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tup
     return out, buf.getvalue()
 
 
-NAMES = ["autoencoder", "bovw-rootsift", "hsv", "all localizers"]
+NAMES = ["autoencoder", "bovw-rootsift", "thumb", "hsv", "all localizers"]
 
 
 def test_reproduce_prints_table_l_with_a_row_per_localizer_and_the_fused_row(
