@@ -208,6 +208,58 @@ def cmd_rank(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_detect(args: argparse.Namespace) -> int:
+    """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
+    from .detect import DetectOptions, run_detect
+    from .executors import make_executor
+
+    if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
+        raise HarnessError("--address and --ray-cpus need --executor ray")
+    cfg = _config(args)
+    opt = DetectOptions(
+        method=args.method,
+        nms_iou=args.nms_iou,
+        max_boxes=args.max_boxes,
+        top=args.top,
+        seed=cfg.fusion.seed,
+    )
+    rec = run_detect(
+        cfg,
+        args.map,
+        list(args.query),
+        Path(args.out),
+        opt,
+        make_executor(args.executor, args.address, args.ray_cpus),
+    )
+    out = Path(args.out)
+    print(
+        f"detect: {rec['query_frames']} query frames of {', '.join(rec['queries'])} against the "
+        f"map {rec['map']}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
+        f"ms per query frame ({rec['total_s']:.1f} s)"
+    )
+    fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False).head(args.top)
+    print("most changed frames (session camera utime: score, top box):")
+    for r in fr.itertuples():
+        print(
+            f"  {r.session} {r.camera} {r.utime}: {r.score:.4g}, "
+            f"[{r.top_x1:.0f}, {r.top_y1:.0f}, {r.top_x2:.0f}, {r.top_y2:.0f}]"
+        )
+    if rec.get("table_d"):
+        print((out / "tableD.md").read_text())
+    print(
+        f"outputs in {out}: detections.json + images.json (COCO), frames.parquet/.csv, "
+        f"locmaps/, trajectory.png, detect.html"
+    )
+    return 0
+
+
+def pd_read(path: Path):
+    """A parquet table (pandas imported only when a command needs it)."""
+    import pandas as pd
+
+    return pd.read_parquet(path)
+
+
 def cmd_task(args: argparse.Namespace) -> int:
     """``harness task export``: the localization task for a user's localizer (SPEC 12)."""
     from .runner import check_inputs, session_proposals, until_pairs
@@ -669,6 +721,30 @@ def build_parser() -> argparse.ArgumentParser:
                 help="replace the tables of a run directory that measured another localizer",
             )
         p.set_defaults(func=func)
+
+    p = sub.add_parser(
+        "detect", help="what changed: the detector on new sessions against a map session"
+    )
+    p.add_argument("--config", required=True, help="sessions, localizer(s); annotations optional")
+    p.add_argument("--map", required=True, help="the map (reference) session")
+    p.add_argument(
+        "--query", required=True, action="append", help="a new session (repeat for several)"
+    )
+    p.add_argument("--out", required=True)
+    p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
+    p.add_argument("--seed", type=int)
+    p.add_argument(
+        "--method",
+        default="rank_fusion",
+        help="the rank method whose LoC finds the boxes (rank_fusion, rank_fusion_le2, _le3)",
+    )
+    p.add_argument("--nms-iou", type=float, default=0.5)
+    p.add_argument("--max-boxes", type=int, default=10, help="change boxes per frame at most")
+    p.add_argument("--top", type=int, default=10, help="most changed places shown")
+    p.add_argument("--executor", choices=["local", "ray"], default="local")
+    p.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
+    p.add_argument("--ray-cpus", type=int, help="workers of a local Ray cluster")
+    p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("task", help="the localization task for your own localizer")
     tsub = p.add_subparsers(dest="action", required=True)

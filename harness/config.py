@@ -324,7 +324,7 @@ class Config:
 
     name: str
     data_root: Path
-    annotations: Path
+    annotations: Path | None  # None: no annotation file (harness detect only)
     sessions: tuple[SessionConfig, ...]
     seed: int = 0
     ingest: IngestConfig = field(default_factory=IngestConfig)
@@ -480,7 +480,7 @@ def parse_config(
     unknown = sorted(set(doc) - top_keys)
     if unknown:
         raise ConfigError(f"{where}: unknown top-level key(s) {unknown}; known: {sorted(top_keys)}")
-    for required in ("name", "sessions", "annotations"):
+    for required in ("name", "sessions"):
         if required not in doc:
             raise ConfigError(f"{where}: missing required key {required!r}")
     for key in ("name", "annotations", "data_root"):
@@ -506,8 +506,10 @@ def parse_config(
     names = [s.name for s in sessions]
     if len(set(names)) != len(names):
         raise ConfigError(f"{where}: session names must be unique, got {names}")
-    ann = Path(str(doc["annotations"]).replace("{data_root}", str(root))).expanduser()
-    ann = ann if ann.is_absolute() else base / ann
+    ann: Path | None = None
+    if "annotations" in doc:
+        ann = Path(str(doc["annotations"]).replace("{data_root}", str(root))).expanduser()
+        ann = ann if ann.is_absolute() else base / ann
     kwargs: dict[str, Any] = {}
     for section, cls in _SECTIONS.items():
         if section in doc:

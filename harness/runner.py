@@ -30,7 +30,8 @@ import numpy as np
 import pandas as pd
 
 from . import __version__, keys
-from .annotations import load_annotations
+from .annotations import COLUMNS, load_annotations
+from .annotations import validate as validate_annotations
 from .cache import (
     StageCache,
     content_sha,
@@ -108,6 +109,7 @@ class Pipeline:
         rank_import: A localizer's rank file to import instead of computing ranks
             (``--import NAME=FILE``, SPEC section 12).
         force: Replace the tables of a run directory that measured another localizer set.
+        annotations_optional: A config without ``annotations`` is fine (``harness detect``).
         executor: Maps independent units (local or Ray).
         timings: Seconds per stage.
         ran: Entries built per stage (0 everywhere on a cached rerun).
@@ -120,6 +122,7 @@ class Pipeline:
     rank_import: ImportSpec | None = None
     force: bool = False
     executor: Any = field(default_factory=LocalExecutor)
+    annotations_optional: bool = False
     timings: dict[str, float] = field(default_factory=dict)
     ran: dict[str, int] = field(default_factory=dict)
     used: dict[str, set[str]] = field(default_factory=dict)
@@ -267,7 +270,7 @@ def generate_fixture(p: Pipeline) -> None:
     except ValueError as err:
         raise ConfigError(f"[fixture] {err}") from None
     p.timings["fixture"] = time.perf_counter() - t0
-    if not p.cfg.annotations.exists():
+    if p.cfg.annotations is not None and not p.cfg.annotations.exists():
         p.cfg.annotations.parent.mkdir(parents=True, exist_ok=True)
         write_text(p.cfg.annotations, (root / "annotations.csv").read_text())
 
@@ -354,7 +357,14 @@ def preflight(p: Pipeline) -> None:
                 f"sessions {sc.name}: camera = {sc.camera!r}: no {cams / sc.camera}; cameras "
                 f"found: {found or 'none'} (names are case-sensitive)"
             )
-    check_input(cfg.annotations, "annotation file", AnnotationError)
+    if cfg.annotations is None:
+        if not p.annotations_optional:
+            raise ConfigError(
+                "missing required key 'annotations': the tables measure change against an "
+                "annotation file (harness detect runs without one)"
+            )
+    else:
+        check_input(cfg.annotations, "annotation file", AnnotationError)
     if "file" in cfg.proposals.methods and cfg.proposals.file:
         check_input(cfg.proposals.file, "[proposals] file", ConfigError)
 
@@ -384,7 +394,15 @@ def frame_table(p: Pipeline, ingested: dict[str, Entry]) -> Table:
 
 def annotation_table(p: Pipeline, frames: Table) -> Table:
     """The annotation file, checked against the frames; its key is the file's content hash."""
-    return Table(load_annotations(p.cfg.annotations, frames.df), content_sha(p.cfg.annotations))
+    if p.cfg.annotations is None:  # harness detect without annotations: no frame is annotated
+        return Table(validate_annotations(pd.DataFrame(columns=COLUMNS), None, "none"), "none")
+    path = p.cfg.annotations
+    if p.annotations_optional:  # harness detect: the rows of the sessions it reads
+        every = load_annotations(path)
+        names = {s.name for s in p.cfg.sessions}
+        mine = every[every["session"].isin(names)].reset_index(drop=True)
+        return Table(validate_annotations(mine, frames.df, str(path)), content_sha(path))
+    return Table(load_annotations(path, frames.df), content_sha(path))
 
 
 def query_pairs(p: Pipeline, frames: Table, ann: Table) -> Table:

@@ -1,0 +1,161 @@
+"""``detect.html``: the change detector's page (SPEC 13), self-contained beside its images.
+
+The query trajectory over the map (``trajectory.png``), Table D where frames are annotated, and the
+most changed places, each as query frame (change boxes in yellow) | the map frame it was paired
+with | the LoC map overlay with its colour bar. Images are JPEG thumbnails under ``detect/``; the
+page fetches nothing from the network.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from .cache import write_text
+from .imagestore import read_image
+
+CSS = (
+    "body{font-family:system-ui,sans-serif;margin:1.5rem auto;max-width:1200px;color:#222}"
+    "table{border-collapse:collapse;margin:.5rem 0}td,th{border:1px solid #ccc;padding:.25rem"
+    " .5rem;text-align:right}th{background:#f4f4f4}td:first-child{text-align:left}"
+    ".place{display:flex;gap:.6rem;align-items:flex-start;margin:.8rem 0;flex-wrap:wrap}"
+    ".warn{background:#fff4d6;border-left:4px solid #e0a000;padding:.4rem .6rem}"
+    ".place figure{margin:0}.place img{max-width:360px;border:1px solid #bbb}"
+    "figcaption{font-size:.8rem;color:#555}.note{color:#555;font-size:.9rem}"
+)
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x))
+
+
+def _thumb(img: np.ndarray, path: Path, width: int = 360) -> str:
+    h, w = img.shape[:2]
+    if w > width:
+        img = cv2.resize(img, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+    elif w < 240:  # tiny frames (the fixture's): enlarged, pixels kept sharp
+        up = int(np.ceil(240 / w))
+        img = cv2.resize(img, (w * up, h * up), interpolation=cv2.INTER_NEAREST)
+    path.parent.mkdir(exist_ok=True)
+    cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return f"{path.parent.name}/{path.name}"
+
+
+def write_detect_page(
+    out: Path,
+    fr: pd.DataFrame,
+    top: pd.DataFrame,
+    dets: pd.DataFrame,
+    frames: pd.DataFrame,
+    maps: dict[tuple[str, str, int], Path],
+    table_d: pd.DataFrame | None,
+    map_session: str,
+    localizers: list[str],
+) -> Path:
+    """Write ``out/detect.html`` and its thumbnails; return the page's path."""
+    fk = frames.set_index(["session", "camera", "utime"])
+    places = []
+    for i, r in enumerate(top.itertuples(), start=1):
+        k = (str(r.session), str(r.camera), int(r.utime))
+        q = read_image(str(r.image)).copy()
+        b = dets[
+            (dets["kind"] == "detection")
+            & (dets["session"] == k[0])
+            & (dets["camera"] == k[1])
+            & (dets["utime"] == k[2])
+        ]
+        for x1, y1, x2, y2 in b[["x1", "y1", "x2", "y2"]].to_numpy():
+            cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (255, 220, 0), 2)
+        name = f"{k[0]}_{k[1]}_{k[2]}"
+        cells = [
+            (
+                "query " + f"{k[0]} {k[2]} (change boxes in yellow)",
+                _thumb(q, out / "detect" / f"{name}_q.jpg"),
+            ),
+        ]
+        mk = (map_session, str(r.r_camera), int(r.r_utime)) if r.r_utime == r.r_utime else None
+        if mk is not None and mk in fk.index:
+            mimg = read_image(str(fk.loc[mk, "image"]))
+            cells.append((f"map {mk[0]} {mk[2]}", _thumb(mimg, out / "detect" / f"{name}_m.jpg")))
+        if k in maps:
+            bgr = cv2.imread(str(maps[k]))
+            assert bgr is not None, maps[k]  # written by this run
+            over = bgr[..., ::-1]
+            cells.append(
+                (
+                    "LoC map (rank fusion) with its colour bar",
+                    _thumb(over, out / "detect" / f"{name}_l.jpg"),
+                )
+            )
+        figs = "".join(
+            f'<figure><img src="{_e(src)}" alt="{_e(cap)}">'
+            f"<figcaption>{_e(cap)}</figcaption></figure>"
+            for cap, src in cells
+        )
+        places.append(
+            f'<h3 id="place{i}">{i}. {_e(k[0])} {_e(k[1])} {k[2]}: change score {r.score:.3g}, '
+            f"{int(r.boxes)} change boxes, at ({r.x:.1f}, {r.y:.1f}) m</h3>"
+            f'<div class="place" data-place="{i}">{figs}</div>'
+        )
+    td = ""
+    if table_d is not None:
+        rows = "".join(
+            f"<tr><td>{_e(x.row)}</td><td>{x.ap50_voc_all_point:.3f}</td>"
+            f"<td>{x.coco_ap_50_95:.3f}</td><td>{x.coco_ap_50:.3f}</td>"
+            f"<td>{x.annotated_frames}</td><td>{x.change_boxes}</td><td>{x.detections}</td></tr>"
+            for x in table_d.itertuples()
+        )
+        td = (
+            '<h2 id="tableD">Table D: change boxes on the annotated frames</h2>'
+            "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation, COCO "
+            "AP@[.5:.95]; frames annotated no-change give false positives only; the floor is "
+            "the same boxes with random scores.</p>"
+            '<table data-table="D"><tr><th></th><th>AP50 (VOC all-point)</th>'
+            "<th>COCO AP@[.5:.95]</th><th>COCO AP@.5</th><th>frames</th><th>change boxes</th>"
+            f"<th>detections</th></tr>{rows}</table>"
+        )
+        td += "".join(f'<p class="warn">{_e(w)}</p>' for w in table_d_warnings(table_d))
+    qs = sorted(set(fr["session"]))
+    page = (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        f"<title>dbl-harness detect: {_e(', '.join(qs))} against {_e(map_session)}</title>"
+        f"<style>{CSS}</style></head><body>"
+        f"<h1>What changed: {_e(', '.join(qs))} against the map {_e(map_session)}</h1>"
+        f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
+        "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "
+        "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
+        '<h2 id="trajectory">Where</h2><img id="trajectory-map" src="trajectory.png" '
+        'alt="query trajectory over the map, coloured by change score" style="max-width:760px">'
+        + td
+        + f'<h2 id="places">The {len(top)} most changed places</h2>'
+        + "".join(places)
+        + "</body></html>\n"
+    )
+    write_text(out / "detect.html", page)
+    return out / "detect.html"
+
+
+def table_d_warnings(t: pd.DataFrame) -> list[str]:
+    """What Table D must say in words: a detector no better than its floor, too few frames."""
+    out = []
+    det, floor = t.iloc[0], t.iloc[1]
+    if not det["ap50_voc_all_point"] > floor["ap50_voc_all_point"] + 0.02:
+        out.append(
+            f"WARNING: the detector's AP50 ({det['ap50_voc_all_point']:.3f}) is not above the "
+            f"floor's ({floor['ap50_voc_all_point']:.3f}) by more than 0.02: its boxes locate the "
+            "annotated changes no better than random scores on the same fused qBBs. Fused qBBs "
+            "are intersections of proposals, usually smaller than a change object, so few reach "
+            "IoU 0.5 with one; the frame scores (image AP in Table P of harness reproduce) and "
+            "the LoC maps may still rank changed frames and regions first."
+        )
+    if int(det["annotated_frames"]) < 30:
+        out.append(
+            f"NOTE: {int(det['annotated_frames'])} annotated query frames: too few for these APs "
+            "to be more than an indication."
+        )
+    return out
