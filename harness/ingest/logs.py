@@ -21,6 +21,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from ..errors import CorruptLogError, IngestError, TopicError
 from . import salvage as salvage_mod
+from .folders import FOLDER_FORMATS
 from .poses import POSE_TYPES
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -106,7 +107,7 @@ class LogReader(Protocol):
 
 #: Log formats registered beside nclt, ros1, ros2 and mcap, by name (``format`` of a session).
 READERS: dict[str, LogReader] = {}
-BUILTIN_FORMATS = ("nclt", "ros1", "ros2", "mcap")
+BUILTIN_FORMATS = ("nclt", "ros1", "ros2", "mcap", *FOLDER_FORMATS)
 
 
 def register_format(name: str, reader: LogReader) -> None:
@@ -139,14 +140,19 @@ def detect_format(path: Path) -> str:
     registered = [name for name, r in READERS.items() if r.detect(path)]
     if registered:
         return registered[0]
+    folder = [name for name, r in FOLDER_FORMATS.items() if r.detect(path)]
+    if folder:
+        return folder[0]
     if path.is_dir():
         if (path / "metadata.yaml").exists():
             return "ros2"
         if (path / "images").is_dir() or (path / "ground_truth").is_dir():
             return "nclt"
         raise IngestError(
-            f"{path}: directory is neither a ROS2 bag (no metadata.yaml) nor an NCLT root "
-            "(no images/ or ground_truth/)"
+            f"{path}: directory is neither a ROS2 bag (no metadata.yaml), an NCLT root "
+            "(no images/ or ground_truth/) nor a folder of images with a TUM, KITTI or EuRoC "
+            "trajectory (groundtruth.txt + rgb/, times.txt + poses.txt, "
+            "mav0/state_groundtruth_estimate0/data.csv)"
         )
     if path.suffix == ".bag":
         return "ros1"
@@ -185,6 +191,8 @@ def list_topics(path: Path, fmt: str, salvage: bool = False) -> dict[str, tuple[
     """
     if fmt in READERS:
         return READERS[fmt].topics(Path(path))
+    if fmt in FOLDER_FORMATS:
+        return _folder_call(path, fmt, lambda: FOLDER_FORMATS[fmt].topics(Path(path)))
     try:
         with AnyReader([Path(path)], default_typestore=_default_typestore(fmt)) as reader:
             return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
@@ -240,6 +248,14 @@ def choose_topics(
     )
 
 
+def _folder_call(path: Path, fmt: str, fn: Any) -> Any:
+    """A folder reader's result; its ``ValueError`` or ``OSError`` as one :class:`IngestError`."""
+    try:
+        return fn()
+    except (ValueError, OSError) as err:
+        raise IngestError(f"{path} ({fmt} folder): {err}") from None
+
+
 def _salvage_stream(path: Path, fmt: str, topics: tuple[str, ...]) -> Iterator[Message]:
     """Sequential read of a ROS1 or ROS2 bag that rosbags cannot open (see :mod:`.salvage`)."""
     if fmt == "ros2" and sorted(Path(path).glob("*.mcap")):
@@ -271,6 +287,17 @@ def stream(
     """
     if fmt in READERS:
         yield from READERS[fmt].messages(Path(path), topics)
+        return
+    if fmt in FOLDER_FORMATS:  # one image in memory at a time
+        recs = FOLDER_FORMATS[fmt].raw(Path(path), topics)
+        while True:
+            try:
+                topic, typ, t, msg = next(recs)
+            except StopIteration:
+                break
+            except (ValueError, OSError) as err:
+                raise IngestError(f"{path} ({fmt} folder): {err}") from None
+            yield Message(topic, typ, t, msg)
         return
     n = 0
     try:

@@ -1,0 +1,270 @@
+"""Any robot's data: a folder of images with a trajectory file in TUM, KITTI or EuRoC format.
+
+The three formats the SLAM field's evaluation tool evo reads, read here with numpy (evo is
+GPL-3.0; this project is MIT) following evo's documented conventions:
+
+- **TUM** (``tum``): a text file ``timestamp x y z qx qy qz qw`` (seconds, metres; quaternion
+  x, y, z, w, Hamilton, the pose of the camera or body in the world frame), comments ``#``.
+  Layout: the trajectory ``groundtruth.txt`` (or ``trajectory.txt``, ``poses.txt``) beside an
+  image folder ``rgb/`` or ``images/``. Image times from the file names (``<seconds>.png``) or
+  from ``rgb.txt`` (``timestamp filename`` per line, as the TUM RGB-D benchmark writes it).
+- **KITTI** (``kitti``): ``poses.txt``, one row-major 3x4 matrix ``[R | t]`` per image (12
+  numbers), the left camera's pose in the first camera's frame, camera axes x right, y down,
+  z forward (the KITTI camera frame); ``times.txt``, one time in seconds per image; images
+  ``image_2/`` (or ``image_0/``, ``images/``) in name order. Poses are turned into a z-up world
+  (x forward, y left, z up of the first camera: ``x = z_cam, y = -x_cam, z = -y_cam``) and the
+  camera's optical axes into body axes (x forward), so yaw is the heading of the optical axis.
+- **EuRoC** (``euroc``): ``mav0/state_groundtruth_estimate0/data.csv`` (``timestamp`` in ns,
+  ``p_RS_R_x y z`` metres, ``q_RS_w x y z``: the quaternion's **w first**), images
+  ``mav0/cam0/data/<ns>.png`` with ``mav0/cam0/data.csv`` (``timestamp, filename``); the pose is
+  the body's (the IMU's), as evo reads it.
+
+Each folder is streamed as a log of two topics, compressed images (the files' bytes, never
+re-encoded) and ``geometry_msgs/PoseStamped`` poses, so the images, pose interpolation at image
+times, the gap rule and the drop counts are the other ingesters' own.
+"""
+
+from __future__ import annotations
+
+import decimal
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+IMAGE_TOPIC = "/camera/image/compressed"
+POSE_TOPIC = "/pose"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
+Raw = tuple[str, str, int, Any]  # (topic, type, log time ns, message)
+
+
+def seconds_to_ns(text: str, where: str) -> int:
+    """A time in seconds, written as text (``1305031102.175304``, ``6.0e-01``), as exact ns."""
+    try:
+        return int((decimal.Decimal(text.strip()) * 1_000_000_000).to_integral_value())
+    except decimal.InvalidOperation:
+        raise ValueError(f"{where}: {text.strip()!r} is not a time in seconds") from None
+
+
+def _images_in(d: Path) -> list[Path]:
+    return sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def _first(path: Path, names: tuple[str, ...]) -> Path | None:
+    return next((path / n for n in names if (path / n).exists()), None)
+
+
+def _rows(path: Path) -> list[list[str]]:
+    """Whitespace- or comma-separated rows of a text file, comments (#) and blanks skipped."""
+    out = []
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            out.append(line.replace(",", " ").split())
+    return out
+
+
+def quat_from_matrix(r: np.ndarray) -> np.ndarray:
+    """(x, y, z, w) of a rotation matrix (Shepperd's method, w >= 0)."""
+    t = np.trace(r)
+    if t > 0:
+        s = np.sqrt(t + 1.0) * 2
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
+    qa = np.asarray(q, np.float64)
+    return qa if qa[3] >= 0 else -qa
+
+
+#: KITTI camera axes (x right, y down, z forward) in the z-up world (x forward, y left, z up).
+KITTI_TO_WORLD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def kitti_pose(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,), quaternion x, y, z, w) in the z-up world of a KITTI 3x4 camera pose.
+
+    World: ``C @ p``; orientation: ``C @ R @ C.T`` (the camera's body axes, x along the optical
+    axis), with ``C`` = :data:`KITTI_TO_WORLD`.
+    """
+    c = KITTI_TO_WORLD
+    return c @ m[:, 3], quat_from_matrix(c @ m[:, :3] @ c.T)
+
+
+class _Folder:
+    """Shared streaming of (image, pose) records of one folder format."""
+
+    name = ""
+
+    def detect(self, path: Path) -> bool:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def images(self, path: Path) -> list[tuple[int, Path]]:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:  # pragma: no cover
+        raise NotImplementedError
+
+    def topics(self, path: Path) -> dict[str, tuple[str, int]]:
+        """Whether ``path`` is a folder of this format."""
+        return {
+            IMAGE_TOPIC: ("sensor_msgs/msg/CompressedImage", len(self.images(path))),
+            POSE_TOPIC: ("geometry_msgs/msg/PoseStamped", len(self.poses(path))),
+        }
+
+    def raw(self, path: Path, topics: tuple[str, ...]) -> Iterator[Raw]:
+        """Messages of ``topics`` in time order (poses before images of the same time)."""
+        from rosbags.typesys import Stores, get_typestore
+
+        ts = get_typestore(Stores.ROS2_HUMBLE)
+        T = ts.types
+        Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+        recs: list[tuple[int, int, Any]] = []
+        if POSE_TOPIC in topics:
+            recs += [(t, 0, (p, q)) for t, p, q in self.poses(path)]
+        if IMAGE_TOPIC in topics:
+            recs += [(t, 1, f) for t, f in self.images(path)]
+        recs.sort(key=lambda r: (r[0], r[1]))
+        for t, kind, item in recs:
+            header = Header(stamp=Time(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000),
+                            frame_id="world" if kind == 0 else "camera")  # fmt: skip
+            if kind == 0:
+                p, q = item
+                pose = T["geometry_msgs/msg/Pose"](
+                    position=T["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]),
+                    orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+                )
+                msg = T["geometry_msgs/msg/PoseStamped"](header=header, pose=pose)
+                yield POSE_TOPIC, "geometry_msgs/msg/PoseStamped", t, msg
+            else:
+                data = np.frombuffer(Path(item).read_bytes(), np.uint8)
+                fmt = Path(item).suffix.lower().lstrip(".").replace("jpg", "jpeg")
+                msg = T["sensor_msgs/msg/CompressedImage"](header=header, format=fmt, data=data)
+                yield IMAGE_TOPIC, "sensor_msgs/msg/CompressedImage", t, msg
+
+
+class TumFolder(_Folder):
+    """A TUM trajectory beside an image folder (see the module docstring)."""
+
+    name = "tum"
+    TRAJ = ("groundtruth.txt", "trajectory.txt", "poses.txt")
+    DIRS = ("rgb", "images")
+
+    def detect(self, path: Path) -> bool:
+        """Whether ``path`` is a folder of this format."""
+        return path.is_dir() and _first(path, self.TRAJ) is not None and any(
+            (path / d).is_dir() for d in self.DIRS
+        ) and not (path / "times.txt").exists()  # fmt: skip
+
+    def images(self, path: Path) -> list[tuple[int, Path]]:
+        """(time ns, image file) of every image, in time order."""
+        d = _first(path, self.DIRS)
+        if d is None:
+            raise ValueError(f"{path}: no image folder ({' or '.join(self.DIRS)}/)")
+        listing = path / "rgb.txt"
+        if listing.exists():
+            return [(seconds_to_ns(r[0], f"{listing}"), path / r[1]) for r in _rows(listing)]
+        return [(seconds_to_ns(f.stem, f"{f}"), f) for f in _images_in(d)]
+
+    def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(time ns, position (3,), quaternion x, y, z, w) of every pose."""
+        f = _first(path, self.TRAJ)
+        assert f is not None
+        out = []
+        for i, r in enumerate(_rows(f), start=1):
+            if len(r) != 8:
+                raise ValueError(
+                    f"{f}: line {i}: {len(r)} fields; TUM is 'timestamp x y z qx qy qz qw'"
+                )
+            v = np.array([float(x) for x in r[1:]], np.float64)
+            out.append((seconds_to_ns(r[0], f"{f}: line {i}"), v[:3], v[3:]))
+        return out
+
+
+class KittiFolder(_Folder):
+    """KITTI odometry poses and times beside an image folder (see the module docstring)."""
+
+    name = "kitti"
+    DIRS = ("image_2", "image_0", "images")
+
+    def detect(self, path: Path) -> bool:
+        """Whether ``path`` is a folder of this format."""
+        return path.is_dir() and (path / "times.txt").exists() and (path / "poses.txt").exists()
+
+    def _times(self, path: Path) -> list[int]:
+        f = path / "times.txt"
+        return [seconds_to_ns(r[0], f"{f}: line {i}") for i, r in enumerate(_rows(f), start=1)]
+
+    def images(self, path: Path) -> list[tuple[int, Path]]:
+        """(time ns, image file) of every image, in time order."""
+        d = _first(path, self.DIRS)
+        if d is None:
+            raise ValueError(f"{path}: no image folder ({' or '.join(self.DIRS)}/)")
+        files, times = _images_in(d), self._times(path)
+        if len(files) != len(times):
+            raise ValueError(
+                f"{path}: {len(files)} images in {d.name}/ but {len(times)} lines in times.txt"
+            )
+        return list(zip(times, files, strict=True))
+
+    def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(time ns, position (3,), quaternion x, y, z, w) of every pose."""
+        f, times = path / "poses.txt", self._times(path)
+        rows = _rows(f)
+        if len(rows) != len(times):
+            raise ValueError(f"{f}: {len(rows)} poses but {len(times)} lines in times.txt")
+        out = []
+        for i, (t, r) in enumerate(zip(times, rows, strict=True), start=1):
+            if len(r) != 12:
+                raise ValueError(f"{f}: line {i}: {len(r)} numbers; KITTI is a 3x4 matrix (12)")
+            p, q = kitti_pose(np.array([float(x) for x in r], np.float64).reshape(3, 4))
+            out.append((t, p, q))
+        return out
+
+
+class EurocFolder(_Folder):
+    """An EuRoC MAV sequence (``mav0/``) (see the module docstring)."""
+
+    name = "euroc"
+
+    @staticmethod
+    def _root(path: Path) -> Path:
+        return path / "mav0" if (path / "mav0").is_dir() else path
+
+    def detect(self, path: Path) -> bool:
+        """Whether ``path`` is a folder of this format."""
+        return (
+            path.is_dir()
+            and (self._root(path) / "state_groundtruth_estimate0" / "data.csv").exists()
+        )
+
+    def images(self, path: Path) -> list[tuple[int, Path]]:
+        """(time ns, image file) of every image, in time order."""
+        cam = self._root(path) / "cam0"
+        listing = cam / "data.csv"
+        if listing.exists():
+            return [(int(r[0]), cam / "data" / r[1]) for r in _rows(listing)]
+        return [(int(f.stem), f) for f in _images_in(cam / "data")]
+
+    def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(time ns, position (3,), quaternion x, y, z, w) of every pose."""
+        f = self._root(path) / "state_groundtruth_estimate0" / "data.csv"
+        out = []
+        for i, r in enumerate(_rows(f), start=1):
+            if len(r) < 8:
+                raise ValueError(f"{f}: line {i}: {len(r)} fields; EuRoC needs at least 8")
+            v = np.array([float(x) for x in r[1:8]], np.float64)
+            out.append((int(r[0]), v[:3], np.array([v[4], v[5], v[6], v[3]])))  # w first
+        return out
+
+
+FOLDER_FORMATS: dict[str, _Folder] = {
+    r.name: r for r in (TumFolder(), KittiFolder(), EurocFolder())
+}
