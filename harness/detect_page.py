@@ -18,6 +18,7 @@ import pandas as pd
 
 from .cache import write_text
 from .imagestore import read_image
+from .report_html import SCRIPT  # the page reports its own loaded images (browser test)
 
 CSS = (
     "body{font-family:system-ui,sans-serif;margin:1.5rem auto;max-width:1200px;color:#222}"
@@ -124,7 +125,7 @@ def write_detect_page(
     page = (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
         f"<title>dbl-harness detect: {_e(', '.join(qs))} against {_e(map_session)}</title>"
-        f"<style>{CSS}</style></head><body>"
+        f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
         f"<h1>What changed: {_e(', '.join(qs))} against the map {_e(map_session)}</h1>"
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
         "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "

@@ -1,0 +1,178 @@
+"""``harness detect`` (SPEC 13): the change detector on a new session, as a user runs it.
+
+The README's two commands run as typed (with ``--data-root`` pointing at the session's fixture):
+``datasets/fixture-detect.toml`` (no annotation file) writes every output; ``datasets/fixture.toml``
+(annotations named) also writes Table D, whose APs pycocotools gives again from
+``detections.json`` and a ground truth built here from the annotation CSV.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness.cli import main
+from harness.detect import _voc_all_point, change_boxes_nms
+
+ROOT = Path(__file__).resolve().parents[1]
+MAP, QUERY = "2012-01-22", "2012-03-31"
+
+
+def _run(argv: list[str]) -> str:
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(argv) == 0
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def detected(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
+    """(run without annotations, run with them, what the second printed)."""
+    p, _, run = local_run
+    base = tmp_path_factory.mktemp("detect")
+    a, b = base / "noann", base / "ann"
+    shutil.copytree(run / "cache" / "ingest", a / "cache" / "ingest")  # logs read once
+    shutil.copy(run / ".dbl-harness.json", a / ".dbl-harness.json")
+    world = ["--data-root", str(p.cfg.data_root)]
+    cmd = ["detect", "--map", MAP, "--query", QUERY]
+    _run([*cmd[:1], "--config", "datasets/fixture-detect.toml", *cmd[1:], "--out", str(a), *world])
+    shutil.copytree(a / "cache", b / "cache")  # the same pairs, proposals, model and ranks
+    shutil.copy(a / ".dbl-harness.json", b / ".dbl-harness.json")
+    printed = _run(
+        [*cmd[:1], "--config", "datasets/fixture.toml", *cmd[1:], "--out", str(b), *world]
+    )
+    return a, b, printed
+
+
+def test_detect_without_annotations_writes_every_output(detected: tuple) -> None:
+    out, _, _ = detected
+    for name in ("detections.json", "images.json", "frames.parquet", "frames.csv",
+                 "trajectory.png", "detect.html", "detect.json"):  # fmt: skip
+        assert (out / name).is_file(), name
+    assert not (out / "tableD.md").exists()
+    images = json.loads((out / "images.json").read_text())
+    dets = json.loads((out / "detections.json").read_text())
+    fr = pd.read_parquet(out / "frames.parquet")
+    assert len(images["images"]) == len(fr) == 64  # every query frame ([pairs] stride_m = 0)
+    assert set(fr["session"]) == {QUERY} and set(fr["r_session"]) == {MAP}
+    assert images["categories"] == [{"id": 1, "name": "change", "supercategory": "change"}]
+    size = {i["id"]: (i["width"], i["height"]) for i in images["images"]}
+    per = pd.Series([d["image_id"] for d in dets]).value_counts()
+    assert per.max() <= 10 and len(dets) > len(fr)  # at most max_boxes per frame
+    for d in dets:
+        x, y, w, h = d["bbox"]
+        assert d["category_id"] == 1 and w > 0 and h > 0
+        assert x >= 0 and y >= 0 and x + w <= size[d["image_id"]][0] + 1e-9
+    # the frame's score is its largest LoC, and its first box is the highest-scored detection
+    best = pd.DataFrame(dets).groupby("image_id")["score"].max()
+    np.testing.assert_allclose(fr.set_index("image_id").loc[best.index, "score"], best.to_numpy())
+    maps = sorted((out / "locmaps").glob("*.npy"))
+    assert len(maps) == 10 and np.load(maps[0]).dtype == np.float16
+    assert len(list((out / "locmaps").glob("*.png"))) == 10
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["query_frames"] == 64 and rec["table_d"] is None and rec["ms_per_query_frame"] > 0
+
+
+def test_a_rerun_does_no_work_and_writes_the_same_detections(
+    detected: tuple, local_run: tuple
+) -> None:
+    out, _, _ = detected
+    before = (out / "detections.json").read_bytes()
+    _run(["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
+          "--out", str(out), "--data-root", str(local_run[0].cfg.data_root)])  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["stage_units_run"] and not any(rec["stage_units_run"].values()), rec
+    assert (out / "detections.json").read_bytes() == before
+
+
+def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
+    detected: tuple,
+) -> None:
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    _, out, printed = detected
+    assert "# Table D" in printed
+    t = pd.read_csv(out / "tableD.csv")
+    assert t["row"].tolist() == ["detector", "floor: random scores, same boxes"]
+    images = {
+        (i["session"], i["camera"], i["utime"]): i
+        for i in json.loads((out / "images.json").read_text())["images"]
+    }
+    ann = pd.read_csv(ROOT / "annotations" / "fixture.csv")
+    ann = ann[ann["session"] == QUERY]
+    gt_images = [
+        {"id": images[k]["id"], "width": images[k]["width"], "height": images[k]["height"]}
+        for k in {(s, c, int(u)) for s, c, u in ann[["session", "camera", "utime"]].to_numpy()}
+        if k in images
+    ]
+    gt_anns = [
+        {"id": i + 1, "image_id": images[(r.session, r.camera, int(r.utime))]["id"],
+         "category_id": 1, "bbox": [r.x1, r.y1, r.x2 - r.x1, r.y2 - r.y1],
+         "area": (r.x2 - r.x1) * (r.y2 - r.y1), "iscrowd": 0}
+        for i, r in enumerate(ann[ann["status"] == "change"].itertuples())
+    ]  # fmt: skip
+    keep = {i["id"] for i in gt_images}
+    dets = [d for d in json.loads((out / "detections.json").read_text()) if d["image_id"] in keep]
+    with contextlib.redirect_stdout(io.StringIO()):
+        gt = COCO()
+        gt.dataset = {"images": gt_images, "annotations": gt_anns,
+                      "categories": [{"id": 1, "name": "change"}]}  # fmt: skip
+        gt.createIndex()
+        ev = COCOeval(gt, gt.loadRes(dets), "bbox")
+        ev.evaluate()
+        ev.accumulate()
+        ev.summarize()
+    det = t.iloc[0]
+    assert det["annotated_frames"] == len(gt_images) and det["change_boxes"] == len(gt_anns)
+    assert det["coco_ap_50_95"] == pytest.approx(ev.stats[0], abs=5e-5)
+    assert det["coco_ap_50"] == pytest.approx(ev.stats[1], abs=5e-5)
+    assert 0.0 <= det["ap50_voc_all_point"] <= 1.0
+    md = (out / "tableD.md").read_text()
+    assert "VOC all-point" in md and ("WARNING" in md or det["ap50_voc_all_point"] > 0)
+
+
+def test_the_detect_page_renders_in_a_real_browser(detected: tuple) -> None:
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("no Chromium here: install Debian's chromium package")
+    _, out, _ = detected
+    page = (out / "detect.html").read_text()
+    assert page.index('id="trajectory"') < page.index('data-table="D"') < page.index('id="places"')
+    assert len(re.findall(r'data-place="\d+"', page)) == 10
+    assert "http://" not in page and "https://" not in page
+    dom = subprocess.run(
+        [chromium, "--headless=new", "--no-sandbox", "--disable-gpu",
+         "--virtual-time-budget=15000", "--dump-dom", (out / "detect.html").resolve().as_uri()],
+        capture_output=True, text=True, timeout=120, check=True,
+    ).stdout  # fmt: skip
+    attrs = dict(re.findall(r'data-([a-z-]+)="([^"]*)"', re.search(r"<body([^>]*)>", dom)[1]))
+    # the trajectory and query | map | LoC map for each of the ten places, every one loaded
+    assert int(attrs["images-total"]) == 1 + 3 * 10
+    assert attrs["images-loaded"] == attrs["images-total"], attrs
+    assert attrs["tables"] == "1"
+
+
+def test_nms_keeps_the_highest_loc_and_drops_its_overlaps() -> None:
+    boxes = np.array([[0, 0, 10, 10], [1, 1, 10, 10], [20, 20, 30, 30], [0, 0, 9, 10]], float)
+    loc = np.array([0.5, 0.9, 0.1, np.nan])
+    # box 1 (0.9) first; box 0 overlaps it at IoU 81/100 > 0.5: dropped; box 2 kept; NaN never
+    assert change_boxes_nms(boxes, loc, 0.5, 10).tolist() == [1, 2]
+    assert change_boxes_nms(boxes, loc, 0.9, 10).tolist() == [1, 0, 2]
+    assert change_boxes_nms(boxes, loc, 0.9, 2).tolist() == [1, 0]
+
+
+def test_voc_all_point_ap_by_hand() -> None:
+    # 3 ground-truth boxes; detections by score: TP, FP, TP -> precision 1, 1/2, 2/3 at recall
+    # 1/3, 1/3, 2/3; the envelope: 1 up to recall 1/3, 2/3 up to 2/3, 0 after
+    ap = _voc_all_point(np.array([1, 0, 1]), np.array([0.9, 0.8, 0.7]), 3)
+    assert ap == pytest.approx(1 / 3 * 1 + 1 / 3 * 2 / 3)
