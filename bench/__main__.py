@@ -27,6 +27,7 @@ CASES = [
     "descriptor",
     "ranking",
     "localizers",
+    "detect",
     "fusion",
     "executor",
     "e2e",

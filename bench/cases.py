@@ -986,10 +986,15 @@ def main() -> None:
     if a.case == "rankjob":
         rank_job(**json.loads(a.args))
         return
-    if a.case == "localizers":  # a case of its own module (one file per new case)
+    if a.case == "localizers":  # cases of their own modules (one file per new case)
         from .case_localizers import case_localizers
 
         case_localizers(a.quick)
+        return
+    if a.case == "detect":
+        from .case_detect import case_detect
+
+        case_detect(a.quick)
         return
     globals()[f"case_{a.case.replace('-', '_')}"](a.quick)
 

@@ -218,7 +218,13 @@ def run_detect(
         cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
     )
     t0 = time.perf_counter()
-    p = Pipeline(dcfg, Path(out), executor=executor or LocalExecutor(), annotations_optional=True)
+    p = Pipeline(
+        dcfg,
+        Path(out),
+        executor=executor or LocalExecutor(),
+        annotations_optional=True,
+        train_sessions=(map_session,),  # the model sees the map alone, never the new session
+    )
     with p.locked():
         ingested, frames, ann, pairs_all = until_pairs(p)
         sel = (pairs_all.df["r_session"] == map_session) & pairs_all.df["q_session"].isin(

@@ -760,7 +760,10 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     gallery_s, thumbs = _gallery(
         out, split_file, n, frames, ann, ranks, "label_stratified", edges, only
     )
-    gallery_i, thumbs_i = _gallery(out, split_file, n, frames, ann, ranks, "label", edges, only)
+    # the paper's protocol is collapsed at the end: one example per method and kind is enough there
+    gallery_i, thumbs_i = _gallery(
+        out, split_file, min(n, 1), frames, ann, ranks, "label", edges, only
+    )
     keep = {p.resolve() for p in [*thumbs, *thumbs_i, *pr_files, *pr_files_i]}
     for p in (out / "report").glob("*") if (out / "report").is_dir() else []:
         if p.suffix in (".jpg", ".png") and p.resolve() not in keep:

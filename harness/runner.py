@@ -110,6 +110,8 @@ class Pipeline:
             (``--import NAME=FILE``, SPEC section 12).
         force: Replace the tables of a run directory that measured another localizer set.
         annotations_optional: A config without ``annotations`` is fine (``harness detect``).
+        train_sessions: The sessions a learned descriptor trains on (None: every session's
+            proposals; ``harness detect``: the map alone).
         executor: Maps independent units (local or Ray).
         timings: Seconds per stage.
         ran: Entries built per stage (0 everywhere on a cached rerun).
@@ -123,6 +125,7 @@ class Pipeline:
     force: bool = False
     executor: Any = field(default_factory=LocalExecutor)
     annotations_optional: bool = False
+    train_sessions: tuple[str, ...] | None = None
     timings: dict[str, float] = field(default_factory=dict)
     ran: dict[str, int] = field(default_factory=dict)
     used: dict[str, set[str]] = field(default_factory=dict)
@@ -440,6 +443,8 @@ def session_proposals(
 def descriptor_model(p: Pipeline, frames: Table, props: dict[str, Table]) -> Entry:
     """Proposals -> the trained descriptor model (empty for descriptors that do not train)."""
     trains = make_descriptor(p.cfg.descriptor).needs_training
+    if p.train_sessions is not None:
+        props = {s: t for s, t in props.items() if s in p.train_sessions}
     rows = (
         pd.concat([t.df for t in props.values()], ignore_index=True) if trains else pd.DataFrame()
     )

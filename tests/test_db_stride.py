@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from harness.pairs import thin_by_stride
 from harness.retrieval import described_frames
@@ -32,6 +33,13 @@ def _variant(
     return rec, tmp_path / name
 
 
+@pytest.fixture(scope="module")
+def thin(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
+    """The fixture run with a database of one frame per 9 m (and a 5 m place), run once."""
+    base = tmp_path_factory.mktemp("stride")
+    return _variant(local_run, base, "thin", reuse=False, db_stride_m=9.0, gt_radius_m=5.0)
+
+
 def test_a_stride_below_the_frame_spacing_keeps_every_frame(
     local_run: tuple, tmp_path: Path
 ) -> None:
@@ -46,11 +54,11 @@ def test_a_stride_below_the_frame_spacing_keeps_every_frame(
 
 
 def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(
-    local_run: tuple, tmp_path: Path
+    local_run: tuple, thin: tuple[dict, Path]
 ) -> None:
     _, _, out = local_run
     full = pd.read_parquet(out / "ranks.parquet")
-    rec, o = _variant(local_run, tmp_path, "thin", reuse=False, db_stride_m=9.0, gt_radius_m=5.0)
+    rec, o = thin
     thin = pd.read_parquet(o / "ranks.parquet")
     assert thin["L"].max() < full["L"].max() * 0.75  # about every other frame of the loop is kept
     counts = rec["counts"]["rank_counts"]
@@ -64,9 +72,9 @@ def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(
 
 
 def test_a_thinned_database_proposes_and_describes_only_the_frames_ranking_reads(
-    local_run: tuple, tmp_path: Path
+    thin: tuple[dict, Path],
 ) -> None:
-    rec, o = _variant(local_run, tmp_path, "thin", reuse=False, db_stride_m=9.0, gt_radius_m=5.0)
+    rec, o = thin
     run = load_run(o)
     frames = pd.read_parquet(o / "cache" / "frames" / run["keys"]["frames"] / "frames.parquet")
     pairs = pd.read_parquet(o / "cache" / "pairs" / run["keys"]["pairs"] / "pairs.parquet")

@@ -350,13 +350,6 @@ def test_interrupted_run_resumes(run: tuple, tmp_path: Path) -> None:
     assert (cache / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
 
 
-def test_same_config_and_seed_same_table_in_a_fresh_directory(run: tuple, tmp_path: Path) -> None:
-    p, _, out = run
-    q = Pipeline(p.cfg, tmp_path / "fresh")
-    q.run()
-    assert (tmp_path / "fresh" / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
-
-
 def test_faiss_engine_reports_its_recall_against_exact(run: tuple, tmp_path: Path) -> None:
     p, _, out = run
     _copy_cache(out, tmp_path)

@@ -35,6 +35,10 @@ def _files(root: Path, stage: str) -> dict[str, bytes]:
 
 
 def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: Path) -> None:
+    """A fresh directory, another executor, the same config and seed: the same bytes.
+
+    (Also the determinism check of a run from nothing: every stage is recomputed here.)
+    """
     p, _, out = local_run
     q = Pipeline(p.cfg, tmp_path, executor=executor)
     q.run()
@@ -101,6 +105,11 @@ def test_the_cli_hands_the_ray_executor_to_the_pipeline(
     from .conftest import ROOT
 
     p, _, out = local_run
+    # the fixture's cache but its ranks and samples: those units run on Ray here
+    shutil.copytree(out / "cache", tmp_path / "o" / "cache")
+    shutil.copy(out / ".dbl-harness.json", tmp_path / "o" / ".dbl-harness.json")
+    for stage in ("ranks", "samples"):
+        shutil.rmtree(tmp_path / "o" / "cache" / stage)
     args = [
         "reproduce",
         "--config",
@@ -117,6 +126,7 @@ def test_the_cli_hands_the_ray_executor_to_the_pipeline(
     assert main(args) == 0
     rec = json.loads((tmp_path / "o" / "run.json").read_text())
     assert rec["executor"]["name"] == "ray" and rec["executor"]["workers"] >= 1
+    assert rec["stage_units_run"]["ranks"] == 4 and rec["stage_units_run"].get("model", 0) == 0
     assert (tmp_path / "o" / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
     local = json.loads((out / "run.json").read_text())
     assert local["executor"] == {"name": "local", "workers": 1}

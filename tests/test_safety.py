@@ -196,6 +196,8 @@ def test_3_fusion_methods_are_honoured(local_run: tuple, tmp_path: Path) -> None
         p.cfg,
         fusion=dataclasses.replace(p.cfg.fusion, methods=("score_max", "rank_fusion", "random")),
     )
+    shutil.copytree(_out / "cache", tmp_path / "o" / "cache")  # only fusion and reports rerun
+    shutil.copy(_out / ".dbl-harness.json", tmp_path / "o" / ".dbl-harness.json")
     rec = Pipeline(cfg, tmp_path / "o").run()
     assert list(rec["table"].index) == [
         "rank_fusion",
