@@ -33,7 +33,7 @@ CASES = [
     "e2e",
     "full-nclt",
 ]
-HIDDEN = {"case", "median", "unit", "runs", "peak_rss_mib", "notes", "group", "points"}
+HIDDEN = {"case", "median", "unit", "runs", "peak_rss_mib", "notes", "group", "points", "table_l"}
 
 
 def run_case(name: str, quick: bool) -> list[dict]:

@@ -142,3 +142,36 @@ def case_localizers(quick: bool) -> None:
             del dbd
         emit(f"bovw rank, {m // 1000}k database subimages", br, "query subimages/s", notes=note)
     emit("localizers case peak memory", [peak_rss_mib()], "MiB", notes="whole case, ru_maxrss")
+    table_l(quick)
+
+
+def table_l(quick: bool) -> None:
+    """Table L of ``harness reproduce`` with both localizers on the NCLT-scale workload."""
+    import json
+    import shutil
+
+    from .cases import ROOT, nclt_scale_workload, reproduce_subprocess
+
+    n = 24 if quick else 48
+    root = nclt_scale_workload(n)
+    out, run, usage, wall = reproduce_subprocess(
+        ROOT / "bench" / "nclt_localizers.toml", root, "table-l-"
+    )
+    md = (out / "tableL.md").read_text()
+    t = run["timings_s"]
+    shutil.rmtree(out)
+    rows = [line for line in md.splitlines() if line.startswith("|")]
+    print(
+        json.dumps(
+            {
+                "case": f"Table L, autoencoder + BoVW [{n} frames/session, 1232x1616]",
+                "median": wall,
+                "unit": "s",
+                "runs": [wall],
+                "peak_rss_mib": usage.ru_maxrss / 1024,
+                "table_l": rows,
+                "notes": "stages s: " + ", ".join(f"{k} {float(v):.1f}" for k, v in t.items()),
+            }
+        ),
+        flush=True,
+    )

@@ -47,9 +47,10 @@ def detected(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tupl
     _run([*cmd[:1], "--config", "datasets/fixture-detect.toml", *cmd[1:], "--out", str(a), *world])
     shutil.copytree(a / "cache", b / "cache")  # the same pairs, proposals, model and ranks
     shutil.copy(a / ".dbl-harness.json", b / ".dbl-harness.json")
-    printed = _run(
-        [*cmd[:1], "--config", "datasets/fixture.toml", *cmd[1:], "--out", str(b), *world]
-    )
+    printed = _run(  # the README's second command: two new sessions, Table D
+        [*cmd[:1], "--config", "datasets/fixture.toml", *cmd[1:], "--query", "2012-08-04",
+         "--out", str(b), *world]
+    )  # fmt: skip
     return a, b, printed
 
 
@@ -109,7 +110,7 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
         for i in json.loads((out / "images.json").read_text())["images"]
     }
     ann = pd.read_csv(ROOT / "annotations" / "fixture.csv")
-    ann = ann[ann["session"] == QUERY]
+    ann = ann[ann["session"].isin([QUERY, "2012-08-04"])]
     gt_images = [
         {"id": images[k]["id"], "width": images[k]["width"], "height": images[k]["height"]}
         for k in {(s, c, int(u)) for s, c, u in ann[["session", "camera", "utime"]].to_numpy()}
@@ -136,6 +137,7 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
     assert det["annotated_frames"] == len(gt_images) and det["change_boxes"] == len(gt_anns)
     assert det["coco_ap_50_95"] == pytest.approx(ev.stats[0], abs=5e-5)
     assert det["coco_ap_50"] == pytest.approx(ev.stats[1], abs=5e-5)
+    assert ev.stats[1] > 0  # some box matches: the comparison is not of two zeros
     assert 0.0 <= det["ap50_voc_all_point"] <= 1.0
     md = (out / "tableD.md").read_text()
     assert "VOC all-point" in md and ("WARNING" in md or det["ap50_voc_all_point"] > 0)
@@ -169,6 +171,33 @@ def test_nms_keeps_the_highest_loc_and_drops_its_overlaps() -> None:
     assert change_boxes_nms(boxes, loc, 0.5, 10).tolist() == [1, 2]
     assert change_boxes_nms(boxes, loc, 0.9, 10).tolist() == [1, 0, 2]
     assert change_boxes_nms(boxes, loc, 0.9, 2).tolist() == [1, 0]
+
+
+def test_table_d_evaluator_on_boxes_whose_ap_is_known_by_hand() -> None:
+    from harness.detect import coco_eval
+
+    gt = {
+        "images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100},
+                   {"id": 3, "width": 100, "height": 100}],  # image 3: annotated no-change
+        "annotations": [
+            {"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "area": 400,
+             "iscrowd": 0},
+            {"id": 2, "image_id": 2, "category_id": 1, "bbox": [50, 50, 30, 30], "area": 900,
+             "iscrowd": 0},
+        ],
+        "categories": [{"id": 1, "name": "change"}],
+    }  # fmt: skip
+    dets = [
+        {"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.9},  # TP
+        {"image_id": 3, "category_id": 1, "bbox": [0, 0, 10, 10], "score": 0.8},  # FP
+        {"image_id": 2, "category_id": 1, "bbox": [52, 50, 30, 30], "score": 0.7},  # TP, IoU .87
+    ]
+    voc, coco, coco50 = coco_eval(gt, dets)
+    # precision 1, 1/2, 2/3 at recall 1/2, 1/2, 1: all-point area 1/2 * 1 + 1/2 * 2/3
+    assert voc == pytest.approx(0.5 + 0.5 * 2 / 3)
+    # COCO's 101-point AP@.5: p(R) = 1 for R <= .5 (51 points), 2/3 above (50 points)
+    assert coco50 == pytest.approx((51 + 50 * 2 / 3) / 101, abs=1e-6)
+    assert 0 < coco < coco50
 
 
 def test_voc_all_point_ap_by_hand() -> None:
