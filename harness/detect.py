@@ -39,6 +39,7 @@ from .config import ALL_LOCALIZERS, Config
 from .errors import ConfigError, HarnessError
 from .fusion import fuse_samples, loc_map
 from .imagestore import read_image
+from .progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +112,13 @@ def detect_chunk(
         }
     )
     samples, counts = fuse_samples(
-        ranks, frames, ann, opt.seed, max_fused, methods=(opt.method, "random")
+        ranks,
+        frames,
+        ann,
+        opt.seed,
+        max_fused,
+        methods=(opt.method, "random"),
+        progress=partial(progress, desc="detect", unit="frame"),
     )
     samples = samples[samples["proposals"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.method}"
