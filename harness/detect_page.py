@@ -160,3 +160,42 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
             "to be more than an indication."
         )
     return out
+
+
+def trajectory_figure(
+    path: Path, frames: pd.DataFrame, map_session: str, fr: pd.DataFrame, top: pd.DataFrame
+) -> Path:
+    """The map session's path in grey, the query frames coloured by change score, top numbered."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    m = frames[frames["session"] == map_session].sort_values("utime")
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.plot(m["x"], m["y"], "-", color="0.7", lw=3, label=f"map {map_session}", zorder=1)
+    sc = ax.scatter(
+        fr["x"], fr["y"], c=fr["score"], cmap="inferno", s=18, zorder=2, label="query frames"
+    )
+    for i, r in enumerate(top.itertuples(), start=1):
+        ax.annotate(
+            str(i),
+            (r.x, r.y),
+            xytext=(4, 4),
+            textcoords="offset points",
+            fontsize=9,
+            weight="bold",
+            color="#1060c0",
+        )
+    fig.colorbar(sc, ax=ax, label="change score (largest LoC of the frame)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("Query trajectory over the map; numbers: the most changed places")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.dbl-harness.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path

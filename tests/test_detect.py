@@ -21,7 +21,8 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
-from harness.detect import _voc_all_point, change_boxes_nms
+from harness.detect import change_boxes_nms
+from harness.detect_eval import _voc_all_point
 
 ROOT = Path(__file__).resolve().parents[1]
 MAP, QUERY = "2012-01-22", "2012-03-31"
@@ -174,7 +175,7 @@ def test_nms_keeps_the_highest_loc_and_drops_its_overlaps() -> None:
 
 
 def test_table_d_evaluator_on_boxes_whose_ap_is_known_by_hand() -> None:
-    from harness.detect import coco_eval
+    from harness.detect_eval import coco_eval
 
     gt = {
         "images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100},

@@ -1,0 +1,323 @@
+"""Pooled APs with bootstrap intervals and paired differences (SPEC section 9).
+
+Table I and S columns (:func:`_pooled_rows`), the per-proposal and per-season-pair breakdowns
+(:func:`_table_i_rows`) and Table P's pixel and image APs (:func:`_pixel_image_rows`).
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable
+from functools import partial
+
+import numpy as np
+import pandas as pd
+
+from .annotations import change_boxes
+from .config import Config
+from .fusion import pixel_regions
+from .metrics import (
+    average_precision,
+    bootstrap_aps,
+    interval,
+    paired_difference,
+    resample_counts,
+    stratified_ap,
+    weighted_average_precision,
+)
+from .splits import Split
+from .splits import label as split_label
+
+
+def _groups(df: pd.DataFrame) -> np.ndarray:
+    return (
+        df["q_session"].astype(str)
+        + "|"
+        + df["q_camera"].astype(str)
+        + "|"
+        + df["q_utime"].astype(str)
+        + "|"
+        + df["r_session"].astype(str)
+    ).to_numpy()
+
+
+def stratified_labels(roc: np.ndarray, split: Split) -> np.ndarray:
+    """SPEC section 8's size-stratified labels.
+
+    By RoC only (+1 positive, 0 negative, -1 left out).
+    """
+    pos = (roc >= split.pos_roc[0]) & (roc <= split.pos_roc[1])
+    neg = (roc >= split.neg_roc[0]) & (roc <= split.neg_roc[1])
+    out = np.full(len(roc), -1, np.int8)
+    out[neg] = 0
+    out[pos] = 1
+    return out
+
+
+class _Pooled:
+    """Pooled APs of one table column for every method, with bootstrap intervals.
+
+    Also the paired comparison with ``rank_fusion`` over the same resampled query images.
+    """
+
+    def __init__(self, cfg: Config, image_ids: dict[str, int], column: str) -> None:
+        self.cfg, self.ids, self.column = cfg, image_ids, column
+        self.counts = resample_counts(
+            len(image_ids), cfg.report.bootstrap, cfg.seed + (zlib.crc32(column.encode()) % 10_000)
+        )
+        self.rows: list[dict] = []
+        self.boot: dict[str, np.ndarray] = {}
+
+    def add(
+        self, method: str, row: dict, boot_fn: Callable[[np.ndarray], np.ndarray] | None
+    ) -> None:
+        """``boot_fn(counts)`` gives the method's AP in every resample (None: no interval)."""
+        b = boot_fn(self.counts) if boot_fn is not None and len(self.counts) else np.full(0, np.nan)
+        lo, hi = interval(b, self.cfg.report.ci)
+        self.boot[method] = b
+        self.rows.append({**row, "method": method, "ci_low": lo, "ci_high": hi})
+
+    def finish(self) -> list[dict]:
+        ref = next((r for r in self.rows if r["method"] == "rank_fusion"), None)
+        for r in self.rows:
+            if ref is None or r["method"] == "rank_fusion" or not len(self.boot[r["method"]]):
+                r.update(
+                    {
+                        "diff": float("nan"),
+                        "diff_ci_low": float("nan"),
+                        "diff_ci_high": float("nan"),
+                        "sign_flip_share": float("nan"),
+                    }
+                )
+            else:
+                r.update(
+                    paired_difference(
+                        self.boot[r["method"]],
+                        self.boot["rank_fusion"],
+                        r["ap"],
+                        ref["ap"],
+                        self.cfg.report.ci,
+                    )
+                )
+        return self.rows
+
+
+def _table_i_rows(
+    df: pd.DataFrame, split: Split, methods: tuple[str, ...], season_pair: str, proposals: str
+) -> list[dict]:
+    """Per-split APs without intervals (the breakdowns by proposal method and season pair)."""
+    rows = []
+    lab = split_label(df["RoC"].to_numpy(), df["SoB"].to_numpy(), split)
+    groups = _groups(df)
+    for m in methods:
+        loc = df[f"loc_{m}"].to_numpy()
+        sel = (lab >= 0) & ~np.isnan(loc)
+        y = lab[sel] == 1
+        rows.append(
+            {
+                "table": "I",
+                "split": split.name,
+                "roc_max": split.roc_max,
+                "proposals": proposals,
+                "season_pair": season_pair,
+                "method": m,
+                "ap": average_precision(y, loc[sel]),
+                "floor": float(y.mean()) if len(y) else float("nan"),
+                "ci_low": float("nan"),
+                "ci_high": float("nan"),
+                "positives": int(y.sum()),
+                "negatives": int((~y).sum()),
+                "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
+                "positive_rate": float(y.mean()) if len(y) else float("nan"),
+                "query_images": len(np.unique(groups[sel])),
+            }
+        )
+    return rows
+
+
+def _pooled_rows(
+    cfg: Config,
+    samples: pd.DataFrame,
+    methods: tuple[str, ...],
+    split: Split,
+    table: str,
+    ids: dict[str, int],
+    keep: dict[tuple[str, str, str], np.ndarray] | None = None,
+) -> list[dict]:
+    """Table I (``table = "I"``) or S (``"S"``) column ``split``, all proposals and season pairs.
+
+    ``keep`` receives each method's bootstrap APs by (table, split, method) (Table L's paired
+    differences between localizers use the same resamples).
+    """
+    df = samples
+    gi = np.array([ids[g] for g in _groups(df)], np.int64)
+    roc, sob = df["RoC"].to_numpy(), df["SoB"].to_numpy()
+    lab = split_label(roc, sob, split) if table == "I" else stratified_labels(roc, split)
+    edges = np.asarray(cfg.splits.sob_strata, np.float64)
+    pooled = _Pooled(cfg, ids, f"{table}:{split.name}")
+    for m in methods:
+        loc = df[f"loc_{m}"].to_numpy()
+        sel = (lab >= 0) & ~np.isnan(loc)
+        y, sc, g, sb = lab[sel] == 1, loc[sel], gi[sel], sob[sel]
+        if table == "I":
+            ap, floor = average_precision(y, sc), (float(y.mean()) if len(y) else float("nan"))
+
+            boot = partial(bootstrap_aps, y, sc, g)
+        else:
+            ap, floor = stratified_ap(y, sc, sb, edges)
+
+            boot = partial(bootstrap_aps, y, sc, g, stat="stratified", sob=sb, edges=edges)
+
+        pooled.add(
+            m,
+            {
+                "table": table,
+                "split": split.name,
+                "roc_max": split.roc_max,
+                "proposals": "all",
+                "season_pair": "all",
+                "ap": ap,
+                "floor": floor,
+                "positives": int(y.sum()),
+                "negatives": int((~y).sum()),
+                "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
+                "positive_rate": float(y.mean()) if len(y) else float("nan"),
+                "query_images": len(np.unique(g)),
+            },
+            boot,
+        )
+    if keep is not None:
+        keep.update({(table, split.name, m): b for m, b in pooled.boot.items()})
+    return pooled.finish()
+
+
+def _pixel_image_rows(
+    cfg: Config,
+    samples: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    methods: tuple[str, ...],
+    ids: dict[str, int],
+) -> list[dict]:
+    """Table P (SPEC section 9).
+
+    Pixel AP over exact regions and image AP, pooled, with intervals.
+    """
+    cb = change_boxes(ann)
+    size = {
+        k: (float(w), float(h))
+        for k, w, h in zip(
+            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames["width"],
+            frames["height"],
+            strict=True,
+        )
+    }
+    low = {
+        m: float(np.nanmin(samples[f"loc_{m}"].to_numpy()))
+        if samples[f"loc_{m}"].notna().any()
+        else 0.0
+        for m in methods
+    }
+    px: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "w": [], "g": []} for m in methods}
+    img: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "g": []} for m in methods}
+    groups = _groups(samples)
+    boxes = samples[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    locs = {m: samples[f"loc_{m}"].to_numpy(np.float64) for m in methods}
+    fused_methods = [m for m in methods if m != "rank_no_fusion"]
+    in_fused = (
+        np.isfinite(np.column_stack([locs[m] for m in fused_methods])).any(1)
+        if fused_methods
+        else np.zeros(len(samples), bool)
+    )
+    qs, qc, qu = (
+        samples["q_session"].to_numpy(),
+        samples["q_camera"].to_numpy(),
+        samples["q_utime"].to_numpy(),
+    )
+    for gkey, idx in pd.Series(np.arange(len(samples))).groupby(groups, sort=True).indices.items():
+        qk = (str(qs[idx[0]]), str(qc[idx[0]]), int(qu[idx[0]]))
+        w, h = size[qk]
+        change = cb.get(qk, np.zeros((0, 4)))
+        gid = ids[gkey]
+        sets = {"fused": idx[in_fused[idx]]}
+        if "rank_no_fusion" in methods:
+            o = idx[np.isfinite(locs["rank_no_fusion"][idx])]
+            sets["orig"] = o[
+                np.argsort(-locs["rank_no_fusion"][o], kind="stable")
+            ]  # identical boxes: the highest LoC owns their regions
+        regions = {}
+        for k, v in sets.items():
+            area, pos, owner = pixel_regions(boxes[v], change, w, h)
+            # regions with the same owner and label get the same LoC under every method: sum them
+            # once
+            uniq, inv = np.unique((owner + 1) * 2 + pos, return_inverse=True)
+            regions[k] = (np.bincount(inv, weights=area), (uniq % 2).astype(bool), uniq // 2 - 1)
+        for m in methods:
+            key = "orig" if m == "rank_no_fusion" else "fused"
+            area, pos, owner = regions[key]
+            vals = locs[m][sets[key]]
+            px[m]["s"].append(
+                np.where(owner >= 0, vals[np.maximum(owner, 0)] if len(vals) else low[m], low[m])
+            )
+            px[m]["y"].append(pos)
+            px[m]["w"].append(area)
+            px[m]["g"].append(np.full(len(area), gid))
+            v = locs[m][idx]
+            if np.isfinite(v).any():
+                img[m]["s"].append(float(np.nanmax(v)))
+                img[m]["y"].append(bool(len(change)))
+                img[m]["g"].append(gid)
+    rows = []
+    for name, data in (("pixel", px), ("image", img)):
+        pooled = _Pooled(cfg, ids, f"P:{name}")
+        for m in methods:
+            d = data[m]
+            if name == "pixel":
+                s_ = np.concatenate(d["s"]) if d["s"] else np.zeros(0)
+                y_ = np.concatenate(d["y"]).astype(bool) if d["y"] else np.zeros(0, bool)
+                w_ = np.concatenate(d["w"]) if d["w"] else np.zeros(0)
+                g_ = np.concatenate(d["g"]) if d["g"] else np.zeros(0, np.int64)
+                ap = weighted_average_precision(y_, s_, w_)
+                pos_w, tot_w = float(w_[y_].sum()), float(w_.sum())
+
+                boot = partial(bootstrap_aps, y_, s_, g_, weights=w_)
+
+                extra = {
+                    "positives": round(pos_w),
+                    "negatives": round(tot_w - pos_w),
+                    "positive_rate": pos_w / tot_w if tot_w else float("nan"),
+                }
+            else:
+                s_, y_, g_ = (
+                    np.asarray(d["s"], np.float64),
+                    np.asarray(d["y"], bool),
+                    np.asarray(d["g"], np.int64),
+                )
+                ap = average_precision(y_, s_)
+
+                boot = partial(bootstrap_aps, y_, s_, g_)
+
+                extra = {
+                    "positives": int(y_.sum()),
+                    "negatives": int((~y_).sum()),
+                    "positive_rate": float(y_.mean()) if len(y_) else float("nan"),
+                }
+            pooled.add(
+                m,
+                {
+                    "table": "P",
+                    "split": name,
+                    "roc_max": float("nan"),
+                    "proposals": "all",
+                    "season_pair": "all",
+                    "ap": ap,
+                    "floor": extra["positive_rate"],
+                    "left_out": 0,
+                    "query_images": len(np.unique(g_)),
+                    **extra,
+                },
+                boot,
+            )
+        rows += pooled.finish()
+    return rows

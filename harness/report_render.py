@@ -1,0 +1,287 @@
+"""How the tables read (SPEC section 10): markdown, CSV and LaTeX renderers of one table spec.
+
+The localization table, Tables I, S and P from a run's summary (:func:`pivot`), the paired
+comparisons; the console (:mod:`harness.cli`) and the page (:mod:`harness.report_html`) read the
+same pivots and intros.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from .methods import FUSION_METHODS, METHOD_LABELS
+from .texfmt import tex_escape as _tex_escape
+
+#: A query subimage is "clean" for the localization table when at most this share of it changed.
+CLEAN_ROC = 0.05
+
+
+def _fmt(v: float, digits: int = 2) -> str:
+    return "NaN" if v != v else f"{v:.{digits}f}"
+
+
+LOC_COLUMNS = [
+    ("subimages", "n", 0),
+    ("recall_at_1", "R@1", 2),
+    ("recall_at_5", "R@5", 2),
+    ("median_r", "med r", 3),
+    ("chance_recall_at_1", "chance R@1", 3),
+    ("clean_recall_at_1", "clean R@1", 2),
+    ("clean_recall_at_5", "clean R@5", 2),
+    ("clean_median_r", "clean med r", 3),
+]
+
+
+def heading_suffix(localizer: str) -> str:
+    """What every table heading adds: the localizer it measured (SPEC section 11)."""
+    return f" (localizer: {localizer})" if localizer else ""
+
+
+def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str = "") -> str:
+    """The localization table as markdown (recall@1/5, median r, chance rates)."""
+    head = (
+        "| proposals | season pair | "
+        + " | ".join(lab for _, lab, _ in LOC_COLUMNS)
+        + " |\n|---|---|"
+        + "---:|" * len(LOC_COLUMNS)
+        + "\n"
+    )
+    body = "".join(
+        f"| {r.proposals} | {r.season_pair} | "
+        + " | ".join(
+            str(int(getattr(r, c))) if d == 0 else _fmt(float(getattr(r, c)), d)
+            for c, _, d in LOC_COLUMNS
+        )
+        + " |\n"
+        for r in loc.itertuples(index=False)
+    )
+    foot = (
+        "\nLocalization quality of the engines whose ranks every change figure rests on. "
+        "Ground truth: the place of "
+        f"the reference frame (frames within {gt_radius_m:g} m, SPEC section 6). R@k: share "
+        "of query subimages whose "
+        "place ranks within the first k; median r: median normalised rank (0.5 = chance); "
+        "clean: subimages of "
+        f"annotated frames with RoC <= {CLEAN_ROC}. R@1 by chance: mean 1/L.\n"
+    )
+    return f"# Localization quality{heading_suffix(localizer)}\n\n" + head + body + foot
+
+
+# ------------------------------------------------------------------ rendering
+
+
+def pivot(
+    summ: pd.DataFrame, table: str, methods: tuple[str, ...], value: str = "ap"
+) -> pd.DataFrame:
+    """One table's ``value`` (AP by default), method x split, in SPEC order."""
+    main = summ[
+        (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+    ]
+    col = "split" if table == "P" else "roc_max"
+    t = main.pivot(index="method", columns=col, values=value).reindex(list(methods))
+    if table == "P":
+        t = t.reindex(columns=["pixel", "image"])
+    return t
+
+
+def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = True) -> str:
+    """One row per method id (first column ``method``), one column per split, two decimals.
+
+    With ``localizer`` a first column names it (a run of several localizers: one CSV, a block of
+    rows each; ``header`` only on the first).
+    """
+    pre = "" if localizer is None else "localizer,"
+    lines = [pre + "method," + ",".join(_col(c) for c in table.columns)] if header else []
+    cell = "" if localizer is None else (f'"{localizer}",' if "," in localizer else f"{localizer},")
+    for m, row in table.iterrows():
+        lines.append(
+            cell
+            + str(m)
+            + ","
+            + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy())
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _col(c: Any) -> str:
+    return f"{c:.2f}" if isinstance(c, float) else str(c)
+
+
+def _cell(v: float, lo: float, hi: float) -> str:
+    if v != v:
+        return "NaN"
+    return f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}"
+
+
+TABLE_INTRO = {
+    "I": (
+        "Table I",
+        (
+            "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): "
+            "positives are small boxes "
+            "(SoB <= 0.4), negatives large ones (SoB >= 0.4)."
+        ),
+    ),
+    "S": (
+        "Table S",
+        (
+            "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
+            "boxes of the same size, "
+            "weighted by the strata's positives. The floor is the same weighted mean of the "
+            "strata's positive rates."
+        ),
+    ),
+    "P": (
+        "Table P",
+        (
+            "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact "
+            "region areas) and image AP "
+            "(each query image scores the largest LoC of its samples), SPEC section 9."
+        ),
+    ),
+}
+
+
+def table_markdown(
+    summ: pd.DataFrame,
+    table: str,
+    methods: tuple[str, ...],
+    warnings: list[str],
+    localizer: str = "",
+) -> str:
+    """A change table as markdown: the six methods, then the variants and baselines.
+
+    Cells AP [95% interval].
+    """
+    ap, lo, hi = (pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high"))
+    floor = pivot(summ, table, methods, "floor")
+    cols = list(ap.columns)
+    title, intro = TABLE_INTRO[table]
+    head = (
+        "| AP [95% CI] | "
+        + " | ".join(_col(c) for c in cols)
+        + " |\n|---|"
+        + "---:|" * len(cols)
+        + "\n"
+    )
+    lines, first_extra = [], True
+    for m in ap.index:
+        if m not in FUSION_METHODS and first_extra:
+            lines.append("| *variants and baselines* |" + " |" * len(cols) + "\n")
+            first_extra = False
+        lines.append(
+            f"| {METHOD_LABELS[str(m)]} | "
+            + " | ".join(_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c]) for c in cols)
+            + " |\n"
+        )
+    ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
+    lines.append(
+        f"| *floor ({'fused set' if ref != 'rank_no_fusion' else 'original boxes'})* | "
+        + " | ".join(_fmt(floor.loc[ref, c]) for c in cols)
+        + " |\n"
+    )
+    if "rank_no_fusion" in floor.index and table != "P":
+        lines.append(
+            "| *floor (original boxes)* | "
+            + " | ".join(_fmt(floor.loc["rank_no_fusion", c]) for c in cols)
+            + " |\n"
+        )
+    main = summ[
+        (summ["table"] == table)
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] == "all")
+        & (summ["method"] == ref)
+    ]
+    counts = "; ".join(
+        f"{_col(r.roc_max if table != 'P' else r.split)}: {r.positives} positives / "
+        f"{r.negatives} negatives" + (" (pixels)" if table == "P" and r.split == "pixel" else "")
+        for r in main.itertuples()
+    )
+    warn = "".join(f"\n**{w}**\n" for w in warnings)
+    return (
+        f"# {title}{heading_suffix(localizer)}\n\n{intro}\n\n"
+        + head
+        + "".join(lines)
+        + f"\nFloor: the AP of a random ranking. Counts ({ref}): {counts}. Intervals: 95% "
+        "bootstrap over query images; "
+        "the paired differences with rank fusion are in comparisons.md.\n" + warn
+    )
+
+
+def table_latex(t: pd.DataFrame, caption_cols: str = "", localizer: str = "") -> str:
+    """A booktabs ``tabular`` of one table.
+
+    Two decimals; the variants and baselines come after a rule. The localizer is named in a
+    comment line above it.
+    """
+    cols = list(t.columns)
+    out = [f"% localizer: {localizer}"] if localizer else []
+    out += [
+        r"\begin{tabular}{l" + "r" * len(cols) + "}",
+        r"\toprule",
+        " & ".join([_tex_escape(caption_cols or "Method")] + [_tex_escape(_col(c)) for c in cols])
+        + r" \\",
+        r"\midrule",
+    ]
+    first_extra = True
+    for m, row in t.iterrows():
+        if m not in FUSION_METHODS and first_extra and m in METHOD_LABELS:
+            out.append(r"\midrule")
+            first_extra = False
+        label = METHOD_LABELS.get(str(m), str(m))
+        out.append(
+            " & ".join(
+                [_tex_escape(label)] + ["--" if v != v else f"{v:.2f}" for v in row.to_numpy()]
+            )
+            + r" \\"
+        )
+    out += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(out) + "\n"
+
+
+def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer: str = "") -> str:
+    """Every method against rank fusion, in words, for every pooled column of Tables I, S and P."""
+    lines = [
+        f"# Paired comparisons with rank fusion{heading_suffix(localizer)}",
+        "",
+        (
+            "Each line: AP(method) - AP(rank fusion) [95% interval of the difference over the "
+            "same bootstrap resamples of query "
+            "images]; 'sign flips' is the share of resamples in which the difference has the "
+            "other sign."
+        ),
+        "",
+    ]
+    for table in ("I", "S", "P"):
+        main = summ[
+            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+        ]
+        for split, g in main.groupby("split", sort=False):
+            lines.append(f"## {TABLE_INTRO[table][0]}, {split}")
+            lines.append("")
+            for r in g.itertuples():
+                if r.method == "rank_fusion" or r.diff != r.diff:
+                    continue
+                flips = (
+                    f"sign flips in {100 * r.sign_flip_share:.0f}% of resamples"
+                    if r.sign_flip_share == r.sign_flip_share
+                    else "no difference"
+                )
+                lines.append(
+                    f"- {METHOD_LABELS[r.method]} - rank fusion = {r.diff:+.2f} "
+                    f"[{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}] ({flips})"
+                )
+            lines.append("")
+    return "\n".join(lines)
+
+
+def localization_latex(loc: pd.DataFrame, localizer: str = "") -> str:
+    """The localization table (all season pairs) as a booktabs ``tabular``."""
+    t = loc[loc["season_pair"] == "all"].set_index("proposals")[
+        ["recall_at_1", "recall_at_5", "median_r", "chance_recall_at_1", "clean_recall_at_1"]
+    ]
+    t.columns = ["R@1", "R@5", "median r", "R@1 by chance", "clean R@1"]
+    return table_latex(t, "Proposals", localizer)
