@@ -130,3 +130,36 @@ def test_the_cli_hands_the_ray_executor_to_the_pipeline(
     assert (tmp_path / "o" / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
     local = json.loads((out / "run.json").read_text())
     assert local["executor"] == {"name": "local", "workers": 1}
+
+
+def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
+    local_run: tuple, executor: object, tmp_path: Path
+) -> None:
+    """``harness detect --executor ray``: the detect chunks (and the stages) run on Ray workers."""
+    import dataclasses
+
+    from harness.config import load_config
+    from harness.detect import DetectOptions, run_detect
+
+    from .conftest import ROOT
+
+    p, _, out = local_run
+    cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
+    opt = DetectOptions(chunk_frames=16)  # four chunks: four units mapped over the workers
+    runs = {}
+    for name, ex in (("local", None), ("ray", executor)):
+        o = tmp_path / name
+        shutil.copytree(out / "cache" / "ingest", o / "cache" / "ingest")
+        shutil.copy(out / ".dbl-harness.json", o / ".dbl-harness.json")
+        runs[name] = run_detect(cfg, "2012-01-22", ["2012-03-31"], o, opt, ex)
+    assert runs["ray"]["stage_units_run"]["detect"] == 4
+    assert dataclasses.asdict(opt)["chunk_frames"] == 16
+    for f in ("detections.json", "frames.csv"):
+        assert (tmp_path / "ray" / f).read_bytes() == (tmp_path / "local" / f).read_bytes(), f
+    import json
+
+    def images(name: str) -> list[dict]:  # file names point into each run's own image store
+        doc = json.loads((tmp_path / name / "images.json").read_text())
+        return [{k: v for k, v in i.items() if k != "file_name"} for i in doc["images"]]
+
+    assert images("ray") == images("local")
