@@ -17,22 +17,12 @@ from pathlib import Path
 
 from harness.cache import atomic_path
 
+from .cases import CASES
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "bench" / ".data"
 OUT = ROOT / "results" / "bench"
 
-CASES = [
-    "ingest",
-    "crops",
-    "descriptor",
-    "ranking",
-    "localizers",
-    "detect",
-    "fusion",
-    "executor",
-    "e2e",
-    "full-nclt",
-]
 HIDDEN = {"case", "median", "unit", "runs", "peak_rss_mib", "notes", "group", "points", "table_l"}
 
 

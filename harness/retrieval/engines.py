@@ -8,7 +8,9 @@ P(G) (the reference frames near G; P(G) = {G} when no place is given):
 ``L = 1 + #frames outside P(G)``; ``r = rank / L``; ``r' = (L + 1 - rank) / L``.
 
 The exact engine computes the per-frame minimum with batched matrix products over chunks of the
-database, so memory is bounded by ``query_batch x (chunk_rows + L)`` whatever the database size.
+database, so memory is bounded by ``query_batch x (chunk_rows + L)`` whatever the database size;
+on CPU a chunk holds at most :data:`CPU_CHUNK_BYTES` of float32 rows, in buffers kept between
+calls by the calling thread (:func:`workspace`).
 An optional faiss engine returns the same quantities from a top-k search (exact for every query
 whose ground-truth frame is found among the top k; otherwise a lower bound, flagged).
 """
@@ -16,8 +18,10 @@ whose ground-truth frame is found among the top k; otherwise a lower bound, flag
 from __future__ import annotations
 
 import logging
+import threading
 import warnings
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +38,13 @@ CELL_BYTES = 16
 # : Database rows per chunk on a CUDA device (at least): larger than on CPU, where a chunk should
 # stay in cache.
 CUDA_CHUNK_ROWS = 65536
+#: Bytes of one chunk's float32 rows on CPU (at most): 512 rows at D = 16,384. MKL's product
+#: runs at its best rate with a few hundred database rows per call (``python -m bench --only
+#: ranking``; 1,000 or more rows per call measured up to a quarter slower on this project's
+#: machines), and the buffer is small enough to keep between calls (:func:`workspace`).
+CPU_CHUNK_BYTES = 32 * 2**20
+#: (query, row) pairs per block of the exact float64 measurement of ``d``.
+EXACT_BLOCK = 32
 
 
 @dataclass(frozen=True)
@@ -99,6 +110,72 @@ def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]
     return out
 
 
+_local = threading.local()
+
+
+def workspace(name: str, numel: int, device: torch.device) -> torch.Tensor:
+    """A flat float32 buffer of at least ``numel`` elements, kept for the calling thread.
+
+    A fresh buffer of tens of megabytes pays a page fault per 4 KiB on first touch, which
+    costs a small ranking call as much as a tenth of its matrix products; reused, it costs
+    nothing. The buffer grows to the largest size asked and lives as long as the thread. Device
+    memory is not kept: a CUDA buffer is allocated per call.
+    """
+    if device.type != "cpu":
+        return torch.empty(max(numel, 1), dtype=torch.float32, device=device)[:numel]
+    bufs: dict[tuple[str, str], torch.Tensor] = _local.__dict__.setdefault("bufs", {})
+    key = (name, str(device))
+    buf = bufs.get(key)
+    if buf is None or buf.numel() < numel:
+        buf = bufs[key] = torch.empty(max(numel, 1), dtype=torch.float32, device=device)
+    return buf[:numel]
+
+
+def scratch(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """:func:`workspace` for numpy: an uninitialised array of ``shape``, kept for the thread."""
+    bufs: dict[str, np.ndarray] = _local.__dict__.setdefault("arrays", {})
+    nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    buf = bufs.get(name)
+    if buf is None or buf.nbytes < nbytes:
+        buf = bufs[name] = np.empty(max(nbytes, 1), np.uint8)
+    out: np.ndarray = buf[:nbytes].view(dtype).reshape(shape)
+    return out
+
+
+def _sqdist_into(
+    query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, bn: torch.Tensor, out: torch.Tensor
+) -> torch.Tensor:
+    """Squared L2 distances by the expansion, written into ``out`` (no allocation), clamped at 0."""
+    torch.add(qn, bn[None, :], out=out)
+    return out.addmm_(query, block.T, alpha=-2.0).clamp_min_(0)
+
+
+def _frame_min(d2: torch.Tensor, lens: np.ndarray, idx: torch.Tensor | None) -> torch.Tensor:
+    """(n, k) minimum of ``d2``'s columns over each of k frames of ``lens`` rows (in order).
+
+    ``idx``: None where every frame has the same length; otherwise :func:`_pad_index`'s columns.
+    """
+    n, k = d2.shape[0], len(lens)
+    if k == 0:
+        return torch.full((n, 0), float("inf"), dtype=torch.float32, device=d2.device)
+    width = int(lens.max())
+    if idx is None:
+        return d2.view(n, k, width).amin(2)
+    return torch.index_select(d2, 1, idx).view(n, k, width).amin(2)
+
+
+def _pad_index(lens: np.ndarray, device: torch.device) -> torch.Tensor | None:
+    """Columns padding each frame's rows to the longest with repeats of its last row.
+
+    A repeat leaves the minimum as it is. None where the frames are of one length (a reshape does).
+    """
+    if len(lens) == 0 or int(lens.min()) == int(lens.max()):
+        return None
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    offs = np.minimum(np.arange(int(lens.max()))[None, :], lens[:, None] - 1)
+    return torch.from_numpy((starts[:, None] + offs).ravel()).to(device)
+
+
 def frame_min_sqdist_chunk(
     query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, lengths: torch.Tensor
 ) -> torch.Tensor:
@@ -106,23 +183,14 @@ def frame_min_sqdist_chunk(
 
     ``block`` holds the frames' rows one frame after another (``lengths`` rows each). The minimum
     over a frame's rows is a reshape and ``amin``: frames of equal length need no copy; otherwise
-    each frame's rows are padded to the longest with repeats of its last row (a repeat leaves
-    the minimum as it is), one ``index_select`` of the product. Exact: the same minima as any
-    other order of the same values.
+    each frame's rows are padded to the longest with repeats of its last row, one
+    ``index_select`` of the product. Exact: the same minima as any other order of the same values.
     """
     bn = torch.linalg.vector_norm(block, dim=1).square_()  # fused: no (rows x D) temporary
-    d2 = torch.addmm(qn + bn[None, :], query, block.T, alpha=-2.0).clamp_min_(0)
-    n, k = query.shape[0], len(lengths)
-    if k == 0:
-        return torch.full((n, 0), float("inf"), dtype=torch.float32, device=query.device)
+    out = torch.empty((query.shape[0], block.shape[0]), dtype=torch.float32, device=query.device)
     lens = lengths.cpu().numpy().astype(np.int64)
-    width = int(lens.max())
-    if int(lens.min()) == width:
-        return d2.view(n, k, width).amin(2)
-    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
-    offs = np.minimum(np.arange(width)[None, :], lens[:, None] - 1)  # repeat each frame's last
-    idx = torch.from_numpy((starts[:, None] + offs).ravel()).to(query.device)
-    return torch.index_select(d2, 1, idx).view(n, k, width).amin(2)
+    d2 = _sqdist_into(query, qn, block, bn, out)
+    return _frame_min(d2, lens, _pad_index(lens, query.device))
 
 
 def image_ranks(
@@ -143,9 +211,10 @@ def image_ranks(
     read once and converted to float32 on the fly, so ``db_desc`` may be a float16 memmap of any
     size. Memory is bounded by ``memory_mb``, not by the data: queries are ranked in groups
     whose (group, frames) per-frame minimum and place mask fit in it (each group streams the
-    database once), plus one chunk of ``chunk_rows`` rows and its (query_batch x chunk_rows)
-    distances. Ranks compare the per-frame minima of the fast matrix-product path with each
-    other; ``d`` is then recomputed exactly from the place's own rows (differences, float64), so
+    database once), plus one chunk of ``chunk_rows`` rows (on CPU at most
+    :data:`CPU_CHUNK_BYTES`) and its (query_batch x chunk_rows) distances. Ranks compare the
+    per-frame minima of the fast matrix-product path with each other; ``d`` is then recomputed
+    exactly from the place's own rows (differences, float64), so
     a query equal to a database row gets ``d = 0``.
 
     Args:
@@ -185,6 +254,8 @@ def image_ranks(
         torch.device(device).type == "cuda"
     ):  # device memory is large and the copy costs more than the product
         chunk_rows = max(chunk_rows, CUDA_CHUNK_ROWS)
+    else:  # a chunk's float32 rows are first touched once per call: keep them few megabytes
+        chunk_rows = max(1, min(chunk_rows, CPU_CHUNK_BYTES // (4 * max(db_desc.shape[1], 1))))
     rank, Lq, dist = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.float64))
     for g0 in range(0, n, group):
         g = slice(g0, min(n, g0 + group))
@@ -211,7 +282,13 @@ def _rank_group(
     query_batch: int,
     dev: torch.device,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`image_ranks` for one group of queries: one pass over the database."""
+    """:func:`image_ranks` for one group of queries: one pass over the database.
+
+    The pass writes into buffers allocated once (a chunk's float32 rows, one batch's distances):
+    a fresh multi-megabyte tensor per chunk costs its page faults, as much as the float16
+    conversion itself. While a chunk's distances are at hand, the fast-path values of the rows
+    of every query's place are kept; :func:`_exact_place_dist` then needs no second pass.
+    """
     L, n = len(starts), len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
     bounds = np.concatenate([starts, [len(order)]])
@@ -222,22 +299,47 @@ def _rank_group(
         for s in range(0, n, query_batch)
     ]
     qnorms = [torch.linalg.vector_norm(q, dim=1, keepdim=True).square_() for q in queries]
+    qi = np.repeat(np.arange(n), [len(c) for c in pcols])
+    pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
+    by_col = np.argsort(pc, kind="stable")
+    pair_q, pair_c = qi[by_col], pc[by_col]  # (query, place column) pairs in column order
+    chunks = _chunks(starts, len(order), chunk_rows)
+    widest = max((int(bounds[f1] - bounds[f0]) for f0, f1 in chunks), default=0)
+    direct = db_desc.dtype == np.float32 and dev.type == "cpu"
+    block_buf = None if direct else workspace("block", widest * db_desc.shape[1], dev)
+    d2_buf = workspace("d2", min(query_batch, max(n, 1)) * widest, dev)
     fm = torch.empty((n, L), dtype=torch.float32, device=dev)
-    for f0, f1 in _chunks(starts, len(order), chunk_rows):
+    cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for f0, f1 in chunks:
         r0, r1 = int(bounds[f0]), int(bounds[f1])
         rows = np.ascontiguousarray(db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]])
         with warnings.catch_warnings():  # a read-only memmap view; the tensor is only read
             warnings.simplefilter("ignore", UserWarning)
-            block = (
-                torch.from_numpy(rows).to(dev).float()
-            )  # float16 -> float32 in torch (multi-threaded)
-        lengths = torch.from_numpy(np.diff(bounds[f0 : f1 + 1])).to(dev)
-        for b, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
-            fm[b * query_batch : b * query_batch + len(q), f0:f1] = frame_min_sqdist_chunk(
-                q, qn, block, lengths
-            )
-    qi = np.repeat(np.arange(n), [len(c) for c in pcols])
-    pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
+            src = torch.from_numpy(rows)
+        if block_buf is None:
+            block = src
+        else:  # float16 -> float32 in torch (multi-threaded), into the reused buffer
+            block = block_buf[: src.numel()].view(src.shape).copy_(src)
+        bn = torch.linalg.vector_norm(block, dim=1).square_()  # fused: no (rows x D) temporary
+        lens = np.diff(bounds[f0 : f1 + 1]).astype(np.int64)
+        idx = _pad_index(lens, dev)
+        # rows (chunk-local) of the place frames in this chunk, one run per (query, frame) pair
+        a, b = np.searchsorted(pair_c, [f0, f1])
+        cq, cc = pair_q[a:b], pair_c[a:b]
+        clen = bounds[cc + 1] - bounds[cc]
+        rep = np.repeat(np.arange(len(cc)), clen)
+        first = np.concatenate([[0], np.cumsum(clen)[:-1]]).astype(np.int64)
+        crow = (bounds[cc] - r0)[rep] + np.arange(len(rep)) - first[rep]
+        cqr = cq[rep]
+        for bi, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
+            q0 = bi * query_batch
+            d2 = _sqdist_into(q, qn, block, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1))
+            fm[q0 : q0 + len(q), f0:f1] = _frame_min(d2, lens, idx)
+            mine = (cqr >= q0) & (cqr < q0 + len(q))
+            if mine.any():
+                ii, rr = cqr[mine], crow[mine]
+                v = d2[torch.from_numpy(ii - q0).to(dev), torch.from_numpy(rr).to(dev)]
+                cand.append((ii, order[r0 + rr], v.cpu().numpy()))
     in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
     in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
     dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
@@ -245,60 +347,83 @@ def _rank_group(
         (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)
     )  # place frames never count
     Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
-    fm_np = fm.cpu().numpy()
     del fm, in_place
-    dist = _exact_place_dist(
-        query_desc, db_desc, order, bounds, pcols, fm_np, dg[:, 0].cpu().numpy()
-    )
+    dist = _exact_place_dist(query_desc, db_desc, cand, dg[:, 0].cpu().numpy(), n)
     return rank, Lq, dist
 
 
 def _exact_place_dist(
     query_desc: np.ndarray,
     db_desc: np.ndarray,
-    order: np.ndarray,
-    bounds: np.ndarray,
-    pcols: list[np.ndarray],
-    fm: np.ndarray,
+    cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     dg: np.ndarray,
+    n: int,
 ) -> np.ndarray:
     """``d`` = the exact smallest L2 distance from each query to the rows of its place.
 
-    Only the place's frames whose fast-path minimum lies within the expansion's error of the
-    best are recomputed (usually one frame), and within such a frame only the rows whose float32
-    expansion lies within that error of the frame's best (usually one row): by differences in
-    float64, the value every such row would get on its own, so the minimum is the same as over
-    every row. The work is done frame by frame: a frame's rows are converted once and stay in
-    cache while every query that needs them is measured.
+    ``cand`` holds (query, database row, fast-path value) for every row of every query's place.
+    Only the rows whose fast value lies within the expansion's error of the query's best ``dg``
+    can hold the exact minimum (usually one row): each is measured by differences in float64,
+    (:func:`_exact_sqdist`), and the minimum taken.
     """
-    n = len(pcols)
-    qi: list[np.ndarray] = []
-    ci: list[np.ndarray] = []
-    for i, cols in enumerate(pcols):
-        near = cols[fm[i, cols] <= dg[i] + 1e-2 + 1e-3 * abs(dg[i])] if len(cols) > 1 else cols
-        qi.append(np.full(len(near), i, np.int64))
-        ci.append(np.asarray(near, np.int64))
-    q_of = np.concatenate(qi) if qi else np.zeros(0, np.int64)
-    c_of = np.concatenate(ci) if ci else np.zeros(0, np.int64)
-    by_frame = np.argsort(c_of, kind="stable")
-    q_of, c_of = q_of[by_frame], c_of[by_frame]
+    q_of = np.concatenate([c[0] for c in cand]) if cand else np.zeros(0, np.int64)
+    row_of = np.concatenate([c[1] for c in cand]) if cand else np.zeros(0, np.int64)
+    v_of = np.concatenate([c[2] for c in cand]) if cand else np.zeros(0, np.float32)
+    lim = dg[q_of]
+    keep = v_of <= lim + 1e-2 + 1e-3 * np.abs(lim)
+    q_of, row_of = q_of[keep], row_of[keep]
+    by_query = np.argsort(q_of, kind="stable")  # queries read as slices where they can be
+    q_of, row_of = q_of[by_query], row_of[by_query]
+    exact = _exact_sqdist(query_desc, db_desc, q_of, row_of)
     best = np.full(n, np.inf)
-    cuts = np.flatnonzero(np.diff(c_of)) + 1
-    for part in np.split(np.arange(len(c_of)), cuts) if len(c_of) else []:
-        c = int(c_of[part[0]])
-        rows32 = np.asarray(db_desc[np.sort(order[bounds[c] : bounds[c + 1]])], np.float32)
-        qs = q_of[part]
-        q32 = np.asarray(query_desc[qs], np.float32)
-        fast = (
-            (q32 * q32).sum(1)[:, None] + (rows32 * rows32).sum(1)[None, :] - 2.0 * q32 @ rows32.T
-        )
-        lim = fast.min(1, keepdims=True)
-        near_rows = fast <= lim + 1e-2 + 1e-3 * np.abs(lim)
-        for j, i in enumerate(qs):
-            q = np.asarray(query_desc[i], np.float64)
-            sel = rows32[near_rows[j]].astype(np.float64)
-            best[i] = min(best[i], float(((sel - q) ** 2).sum(1).min()))
+    np.minimum.at(best, q_of, exact)
     out: np.ndarray = np.sqrt(best)
+    return out
+
+
+def _exact_sqdist(
+    query_desc: np.ndarray, db_desc: np.ndarray, q_of: np.ndarray, row_of: np.ndarray
+) -> np.ndarray:
+    """Squared L2 distance of each (query ``q_of[i]``, database row ``row_of[i]``) pair.
+
+    By differences in float64 (float16 and float32 inputs widen exactly): numpy's pairwise sum of
+    each pair's row, the value the pair gets on its own.
+
+    Blocks of :data:`EXACT_BLOCK` pairs, alternately to two threads (numpy releases the GIL),
+    each with buffers of its own kept between calls (:func:`scratch`: a fresh array per block
+    would pay its page faults every time, more than the arithmetic). ``q_of`` ascending: a block
+    of consecutive queries is read as a slice, not gathered.
+    """
+    out = np.empty(len(q_of), np.float64)
+    n_pairs, dim = len(q_of), db_desc.shape[1]
+    if n_pairs == 0:
+        return out
+    bufs = [
+        (
+            scratch(f"rows{w}", (EXACT_BLOCK, dim), db_desc.dtype),
+            scratch(f"queries{w}", (EXACT_BLOCK, dim), query_desc.dtype),
+            scratch(f"acc{w}", (EXACT_BLOCK, dim), np.float64),
+        )
+        for w in (0, 1)
+    ]
+
+    def work(w: int) -> None:
+        rows, qbuf, acc = bufs[w]
+        for s in range(w * EXACT_BLOCK, n_pairs, 2 * EXACT_BLOCK):
+            k = min(n_pairs, s + EXACT_BLOCK) - s
+            np.take(db_desc, row_of[s : s + k], axis=0, out=rows[:k])
+            q0, q1 = int(q_of[s]), int(q_of[s + k - 1]) + 1
+            if q1 - q0 == k:  # ascending and distinct: consecutive queries
+                qs = np.asarray(query_desc[q0:q1])
+            else:
+                qs = np.take(query_desc, q_of[s : s + k], axis=0, out=qbuf[:k])
+            a = acc[:k]
+            np.subtract(rows[:k], qs, out=a, dtype=np.float64)
+            np.square(a, out=a)
+            out[s : s + k] = a.sum(1)
+
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(work, [0, 1]))
     return out
 
 

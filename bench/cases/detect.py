@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .cases import DATA, ROOT, nclt_scale_workload
+from .common import DATA, ROOT, nclt_scale_workload
 
 PAPER_MS = 25.41
 PER_FRAME_STAGES = ("proposals", "descriptor_shards", "descriptors", "ranks", "detect")

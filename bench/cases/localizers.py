@@ -17,7 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .cases import emit, peak_rss_mib, timed
+from .common import emit, peak_rss_mib, timed
 
 
 def _textured(rng: np.random.Generator, n: int, size: int) -> np.ndarray:
@@ -150,7 +150,7 @@ def table_l(quick: bool) -> None:
     import json
     import shutil
 
-    from .cases import ROOT, nclt_scale_workload, reproduce_subprocess
+    from .common import ROOT, nclt_scale_workload, reproduce_subprocess
 
     n = 24 if quick else 48
     root = nclt_scale_workload(n)

@@ -1,0 +1,187 @@
+"""What every bench case shares: paths, timing, the JSON line each result prints, workloads."""
+
+from __future__ import annotations
+
+import json
+import resource
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+DATA = ROOT / "bench" / ".data"
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def emit(case: str, runs: list[float], unit: str, **extra: object) -> None:
+    print(
+        json.dumps(
+            {
+                "case": case,
+                "median": statistics.median(runs),
+                "unit": unit,
+                "runs": runs,
+                "peak_rss_mib": peak_rss_mib(),
+                **extra,
+            }
+        ),
+        flush=True,
+    )
+
+
+def timed(fn, repeat: int = 3) -> list[float]:
+    out = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def size_of(path: Path) -> int:
+    return (
+        path.stat().st_size
+        if path.is_file()
+        else sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    )
+
+
+def read_all(path: Path) -> None:
+    files = [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
+    for f in files:
+        with open(f, "rb") as fh:
+            while fh.read(1 << 22):
+                pass
+
+
+def matmul_gflops() -> float:
+    import torch
+
+    best = 0.0
+    for n in (512, 1024, 2048):  # the best square float32 matmul rate: the machine's measured peak
+        a, b = torch.randn(n, n), torch.randn(n, n)
+        a @ b
+        best = max(best, 2 * n**3 / min(timed(lambda a=a, b=b: a @ b, repeat=5)) / 1e9)
+    return best
+
+
+def fit_exponent(x: list[float], y: list[float]) -> float:
+    """Least-squares slope of log y against log x: cost ~ x ** exponent."""
+    return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
+
+
+def random_db(m: int, dim: int, rng: np.random.Generator, tag: str = "") -> Path:
+    path = DATA / f"db-{m}-{dim}{tag}.npy"
+    if not path.exists():
+        DATA.mkdir(parents=True, exist_ok=True)
+        arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(m, dim))
+        for s in range(0, m, 4096):
+            blk = rng.standard_normal((min(4096, m - s), dim), dtype=np.float32)
+            arr[s : s + len(blk)] = (blk / np.linalg.norm(blk, axis=1, keepdims=True)).astype(
+                np.float16
+            )
+        arr.flush()
+        del arr
+    return path
+
+
+STAGES = (
+    "ingest",
+    "pairs",
+    "proposals",
+    "model",
+    "descriptor_shards",
+    "ranks",
+    "samples",
+    "labels_ap_reports",
+)
+
+
+def nclt_scale_workload(frames: int) -> Path:
+    """The synthetic NCLT-scale logs.
+
+    Four ROS2 sqlite3 bags of 1,232 x 1,616 JPEG frames (generated once).
+    """
+    from harness.fixture import FixtureSpec, generate
+
+    root = DATA / f"nclt-scale-{frames}"
+    if not (root / "fixture.json").exists():
+        spec = FixtureSpec(
+            frames=frames, width=1232, height=1616, render_scale=4, loop_scale=3.0, objects=6
+        )
+        generate(root, spec, formats=("ros2",) * len(spec.sessions))
+    return root
+
+
+def reproduce_subprocess(
+    config: Path, root: Path, prefix: str
+) -> tuple[Path, dict[str, Any], Any, float]:
+    """``harness reproduce`` of ``config`` on ``root`` in its own process, into a new directory.
+
+    Returns:
+        (run directory, its run.json, ``os.wait4`` resource usage (peak RSS of the run and the
+        loader workers it waited for), wall seconds).
+    """
+    import os
+    import subprocess
+    import sys
+
+    out = Path(tempfile.mkdtemp(dir=DATA, prefix=prefix))
+    cmd = [
+        sys.executable,
+        "-m",
+        "harness.cli",
+        "reproduce",
+        "--config",
+        str(config),
+        "--data-root",
+        str(root),
+        "--out",
+        str(out),
+    ]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "TQDM_DISABLE": "1"},
+    )
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if status != 0:
+        raise SystemExit(f"reproduce {config.name} on {root} failed:\n{err[-3000:]}")
+    return out, json.loads((out / "run.json").read_text()), usage, wall
+
+
+def anon_peak_poller() -> tuple[Any, dict[str, float]]:
+    """A thread sampling this process's anonymous resident memory (RssAnon) every 20 ms.
+
+    Peak RSS (VmHWM) also counts the database's file pages mapped by the memmap, which the
+    kernel may drop at will; RssAnon is what the process itself holds.
+    """
+    import threading
+
+    peak = {"anon_mib": 0.0}
+    stop = threading.Event()
+
+    def poll() -> None:
+        while not stop.is_set():
+            for line in Path("/proc/self/status").read_text().splitlines():
+                if line.startswith("RssAnon:"):
+                    peak["anon_mib"] = max(peak["anon_mib"], int(line.split()[1]) / 1024)
+            stop.wait(0.02)
+
+    th = threading.Thread(target=poll, daemon=True)
+    th.start()
+    return stop, peak

@@ -1,0 +1,83 @@
+"""``harness``: one subcommand per stage plus ``reproduce``.
+
+Library errors become one ``ERROR:`` line and exit 1.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import sys
+
+from ..errors import HarnessError
+from .parser import build_parser
+from .runs import cmd_detect, cmd_report, cmd_reproduce
+from .stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
+from .tools import cmd_annotations, cmd_gc, cmd_inspect
+
+__all__ = [
+    "build_parser",
+    "cmd_annotations",
+    "cmd_detect",
+    "cmd_fixture",
+    "cmd_gc",
+    "cmd_ingest",
+    "cmd_inspect",
+    "cmd_pairs",
+    "cmd_proposals",
+    "cmd_rank",
+    "cmd_report",
+    "cmd_reproduce",
+    "cmd_task",
+    "main",
+]
+
+log = logging.getLogger("harness")
+
+
+_FS_ERRORS = {
+    errno.ENOSPC: "free disk space (completed stages are kept) and rerun the same command "
+    "to resume",
+    errno.EDQUOT: "free disk space within the quota and rerun the same command to resume",
+    errno.EROFS: "the file system is read-only: choose a writable --out",
+    errno.EACCES: "no permission: choose a writable --out or fix the permissions",
+    errno.EPERM: "operation not permitted: choose another --out or fix the permissions",
+}
+
+
+def _setup_logging(verbose: bool) -> None:
+    from rich.logging import RichHandler
+
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(message)s",
+        handlers=[RichHandler(show_path=False, rich_tracebacks=False, log_time_format="%H:%M:%S")],
+        force=True,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; library errors become one ``ERROR:`` line.
+
+    Returns:
+        The exit status: 0, or 1 after an error.
+    """
+    args = build_parser().parse_args(argv)
+    _setup_logging(args.verbose)
+    try:
+        return int(args.func(args))
+    except HarnessError as err:
+        print(f"ERROR: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        if err.errno not in _FS_ERRORS:
+            raise
+        where = err.filename or "an output file"
+        print(f"ERROR: {where}: {err.strerror or err}; {_FS_ERRORS[err.errno]}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(
+            "ERROR: interrupted; completed stages are cached, rerun the same command to resume",
+            file=sys.stderr,
+        )
+        return 130

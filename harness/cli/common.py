@@ -1,0 +1,54 @@
+"""What the command handlers share: the run's config, its pipeline, a parquet reader."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from ..errors import HarnessError
+
+
+def run_config(args: argparse.Namespace):
+    """The validated config of ``--config`` (with ``--data-root`` and ``--seed`` applied)."""
+    from ..config import load_config
+
+    cfg = load_config(Path(args.config), getattr(args, "data_root", None))
+    if getattr(args, "seed", None) is not None:
+        cfg = dataclasses.replace(cfg, seed=args.seed)
+    return cfg
+
+
+def pipeline_of(args: argparse.Namespace):
+    """The run's :class:`~harness.runner.Pipeline`: config, ``--out``, ``--import``, executor."""
+    from ..executors import make_executor
+    from ..runner import Pipeline
+
+    if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
+        raise HarnessError("--address and --ray-cpus need --executor ray")
+    if args.ray_cpus is not None and args.ray_cpus < 1:
+        raise HarnessError(f"--ray-cpus {args.ray_cpus}: must be >= 1")
+    cfg = run_config(args)  # validated before any executor or directory is set up
+    rank_import = None
+    if getattr(args, "rank_import", None):
+        from ..retrieval.imported import parse_import_arg
+
+        rank_import = parse_import_arg(args.rank_import)
+        if not rank_import.path.is_file():
+            raise HarnessError(
+                f"{rank_import.path}: --import file not found (localizer {rank_import.name!r})"
+            )
+    return Pipeline(
+        cfg,
+        Path(args.out),
+        rank_import=rank_import,
+        force=bool(getattr(args, "force", False)),
+        executor=make_executor(args.executor, args.address, args.ray_cpus),
+    )
+
+
+def pd_read(path: Path):
+    """A parquet table (pandas imported only when a command needs it)."""
+    import pandas as pd
+
+    return pd.read_parquet(path)

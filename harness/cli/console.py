@@ -1,0 +1,145 @@
+"""The console view of a run's tables (the same pivots as the markdown, SPEC section 10)."""
+
+from __future__ import annotations
+
+
+def print_change_table(console, rep, table: str, title: str) -> None:
+    """One change table with intervals, the floor row, and its confound warnings."""
+    from rich.table import Table
+
+    from ..methods import FUSION_METHODS, METHOD_LABELS
+    from ..reports import pivot
+
+    ap, lo, hi = (pivot(rep.summary, table, rep.methods, v) for v in ("ap", "ci_low", "ci_high"))
+    floor = pivot(rep.summary, table, rep.methods, "floor")
+    t = Table(title=title)
+    t.add_column("AP [95% CI]")
+    for c in ap.columns:
+        t.add_column(f"{c:.2f}" if isinstance(c, float) else str(c), justify="right")
+    shown_sep = False
+    for m in ap.index:
+        if m not in FUSION_METHODS and not shown_sep:
+            t.add_section()
+            shown_sep = True
+        t.add_row(
+            METHOD_LABELS[m],
+            *(
+                "NaN"
+                if ap.loc[m, c] != ap.loc[m, c]
+                else f"{ap.loc[m, c]:.2f} [{lo.loc[m, c]:.2f}, {hi.loc[m, c]:.2f}]"
+                if lo.loc[m, c] == lo.loc[m, c]
+                else f"{ap.loc[m, c]:.2f}"
+                for c in ap.columns
+            ),
+        )
+    t.add_section()
+    ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
+    t.add_row(
+        "floor (random ranking)",
+        *(
+            "NaN" if floor.loc[ref, c] != floor.loc[ref, c] else f"{floor.loc[ref, c]:.2f}"
+            for c in ap.columns
+        ),
+    )
+    console.print(t)
+    for w in rep.warnings[table]:
+        console.print(f"[bold yellow]{w}[/]")
+
+
+def print_table_l(console, t) -> None:
+    """Table L (SPEC section 11): a row per localizer and the fused row, then the floor."""
+    from rich.table import Table
+
+    from ..leaderboard import AP_COLUMNS
+
+    first = str(t["localizer"].iloc[0])
+    lt = Table(title=f"Table L: localizers (Table S at RoC-max {t['roc_max'].iloc[0]:.2f})")
+    for c in ("localizer", "R@1", "R@5", *(h for *_, h in AP_COLUMNS), f"S rank fusion - {first}"):
+        lt.add_column(c, justify="left" if c == "localizer" else "right")
+
+    def ap(r, pfx: str) -> str:
+        v, lo, hi = (r[f"{pfx}_{k}"] for k in ("ap", "ci_low", "ci_high"))
+        return "-" if v != v else (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}")
+
+    for _, r in t.iterrows():
+        d = r["S_rank_fusion_diff"]
+        lt.add_row(
+            str(r["localizer"]),
+            *("" if v != v else f"{v:.2f}" for v in (r["recall_at_1"], r["recall_at_5"])),
+            *(ap(r, pfx) for pfx, *_ in AP_COLUMNS),
+            ""
+            if d != d
+            else f"{d:+.2f} [{r['S_rank_fusion_diff_ci_low']:+.2f}, "
+            f"{r['S_rank_fusion_diff_ci_high']:+.2f}]",
+        )
+    lt.add_section()
+    r0 = t.iloc[0]
+    lt.add_row(
+        f"floor ({first})",
+        "",
+        "",
+        *(f"{r0[f'{pfx}_floor']:.2f}" for pfx, *_ in AP_COLUMNS),
+        "",
+    )
+    console.print(lt)
+
+
+def print_localization(console, rep, rec) -> None:
+    """One localizer's localization quality (all season pairs)."""
+    from rich.table import Table
+
+    from ..reports import LOC_COLUMNS
+
+    loc = rep.localization
+    lt = Table(
+        title=f"Localization quality of {rep.localizer} (ground truth: place within "
+        f"{rec['config']['retrieval']['gt_radius_m']:g} m)"
+    )
+    lt.add_column("props")
+    lt.add_column("pair")
+    for _, lab, _ in LOC_COLUMNS:
+        lt.add_column(lab, justify="right")
+    for r in loc[loc["season_pair"] == "all"].itertuples(index=False):
+        lt.add_row(
+            r.proposals,
+            r.season_pair,
+            *(
+                str(int(getattr(r, c)))
+                if d == 0
+                else ("NaN" if getattr(r, c) != getattr(r, c) else f"{getattr(r, c):.{d}f}")
+                for c, _, d in LOC_COLUMNS
+            ),
+        )
+    console.print(lt)
+    print("  per season pair: localization.md")
+
+
+def print_block(console, rep, rec) -> None:
+    """One block's Tables I, S and P and its paired comparisons (Table S, last RoC-max)."""
+    name = f"{rec['config']['name']}, localizer {rep.localizer}"
+    print_change_table(console, rep, "I", f"Table I: AP by RoC-max, the paper's protocol ({name})")
+    print_change_table(console, rep, "S", f"Table S: size-stratified AP by RoC-max ({name})")
+    print_change_table(console, rep, "P", f"Table P: pixel AP and image AP ({name})")
+    summ = rep.summary
+    cmp_ = summ[
+        (summ["table"] == "S")
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] == "all")
+        & summ["diff"].notna()
+    ]
+    if len(cmp_):
+        last = cmp_[cmp_["roc_max"] == cmp_["roc_max"].max()]
+        print(
+            "Paired comparisons with rank fusion (Table S, RoC-max "
+            f"{last['roc_max'].iloc[0]:.2f}; all tables: comparisons.md):"
+        )
+        for r in last.itertuples():
+            print(
+                f"  {r.method} - rank_fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, "
+                f"{r.diff_ci_high:+.2f}]"
+                + (
+                    f", sign flips in {100 * r.sign_flip_share:.0f}% of resamples"
+                    if r.sign_flip_share == r.sign_flip_share
+                    else ""
+                )
+            )

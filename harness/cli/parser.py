@@ -1,0 +1,216 @@
+"""The argument parser: every subcommand, its flags and its handler."""
+
+from __future__ import annotations
+
+import argparse
+
+from .runs import cmd_detect, cmd_report, cmd_reproduce
+from .stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
+from .tools import cmd_annotations, cmd_gc, cmd_inspect
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``harness`` argument parser: one subcommand per stage."""
+    ap = argparse.ArgumentParser(
+        prog="harness", description="Detection-by-Localization benchmark harness"
+    )
+    ap.add_argument("-v", "--verbose", action="store_true")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("fixture", help="generate the synthetic fixture world as real logs")
+    p.add_argument("--out", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--frames", type=int, default=64, help="frames per session")
+    p.add_argument("--width", type=int, default=120)
+    p.add_argument("--height", type=int, default=160)
+    p.add_argument("--objects", type=int, default=9, help="change objects per changed session")
+    p.add_argument(
+        "--loop-scale", type=float, default=1.5, help="size of the loop road (1.0: 60 m x 40 m)"
+    )
+    p.add_argument(
+        "--render-scale",
+        type=int,
+        default=1,
+        help="ray-cast at 1/scale resolution, then upsample (fast large frames)",
+    )
+    p.add_argument(
+        "--formats",
+        default=None,
+        help="comma-separated log format per session (one name: all sessions), e.g. ros2",
+    )
+    p.add_argument(
+        "--all-formats", action="store_true", help="write every session in every log format"
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out if it is a fixture the harness generated",
+    )
+    p.set_defaults(func=cmd_fixture)
+
+    p = sub.add_parser("ingest", help="turn a season log into frames.parquet")
+    p.add_argument("source", nargs="?")
+    p.add_argument("--session")
+    p.add_argument("--out", required=True)
+    p.add_argument("--config")
+    p.add_argument("--data-root")
+    p.add_argument("--camera", default="Cam5")
+    p.add_argument("--image-topic")
+    p.add_argument("--pose-topic")
+    p.add_argument("--tf-child-frame", help="older name of --camera-frame")
+    p.add_argument(
+        "--fixed-frame", help="/tf: the frame poses are expressed in (default: the tree's root)"
+    )
+    p.add_argument(
+        "--camera-frame", help="/tf: the camera's frame (default: the images' header.frame_id)"
+    )
+    p.add_argument(
+        "--max-tf-gap",
+        type=float,
+        default=1.0,
+        help="seconds, for /tf transforms slower than --max-pose-gap",
+    )
+    p.add_argument("--time-source", choices=["header", "log"], default="header")
+    p.add_argument("--max-pose-gap", type=float, default=0.1, help="seconds")
+    p.add_argument(
+        "--salvage", action="store_true", help="keep the frames read before a damaged part of a log"
+    )
+    p.add_argument(
+        "--verify-images",
+        action="store_true",
+        help="decode every compressed image fully; drop and count broken ones",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out if it is an earlier ingest output of the harness",
+    )
+    p.set_defaults(func=cmd_ingest)
+
+    for name, func, hlp in (
+        ("pairs", cmd_pairs, "build cross-season pairs"),
+        ("proposals", cmd_proposals, "compute object proposals"),
+        ("rank", cmd_rank, "ranks of the ground-truth reference per query subimage"),
+        ("reproduce", cmd_reproduce, "run the whole pipeline and write Table I"),
+    ):
+        p = sub.add_parser(name, help=hlp)
+        p.add_argument("--config", required=True)
+        p.add_argument("--out", required=True)
+        p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
+        p.add_argument("--seed", type=int)
+        p.add_argument(
+            "--executor",
+            choices=["local", "ray"],
+            default="local",
+            help="where stage units run (ray: pip install 'dbl-harness[ray]')",
+        )
+        p.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
+        p.add_argument("--ray-cpus", type=int, help="workers of a local Ray cluster")
+        if name in ("rank", "reproduce"):
+            p.add_argument(
+                "--import",
+                dest="rank_import",
+                metavar="NAME=FILE",
+                help="ranked lists of your own localizer, named NAME (a bare FILE: its stem); "
+                "the task to rank: harness task export",
+            )
+            p.add_argument(
+                "--force",
+                action="store_true",
+                help="replace the tables of a run directory that measured another localizer",
+            )
+        p.set_defaults(func=func)
+
+    p = sub.add_parser(
+        "detect", help="what changed: the detector on new sessions against a map session"
+    )
+    p.add_argument("--config", required=True, help="sessions, localizer(s); annotations optional")
+    p.add_argument("--map", required=True, help="the map (reference) session")
+    p.add_argument(
+        "--query", required=True, action="append", help="a new session (repeat for several)"
+    )
+    p.add_argument("--out", required=True)
+    p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
+    p.add_argument("--seed", type=int)
+    p.add_argument(
+        "--method",
+        default="rank_fusion",
+        help="the rank method whose LoC finds the boxes (rank_fusion, rank_fusion_le2, _le3)",
+    )
+    p.add_argument("--nms-iou", type=float, default=0.5)
+    p.add_argument("--max-boxes", type=int, default=10, help="change boxes per frame at most")
+    p.add_argument("--top", type=int, default=10, help="most changed places shown")
+    p.add_argument("--executor", choices=["local", "ray"], default="local")
+    p.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
+    p.add_argument("--ray-cpus", type=int, help="workers of a local Ray cluster")
+    p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("task", help="the localization task for your own localizer")
+    tsub = p.add_subparsers(dest="action", required=True)
+    p = tsub.add_parser(
+        "export",
+        help="write OUT/task/: query subimages, reference frames with boxes, upright images, "
+        "the import schema (nothing is trained)",
+    )
+    p.add_argument("--config", required=True)
+    p.add_argument("--out", required=True, help="the run directory a later reproduce uses")
+    p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
+    p.add_argument("--seed", type=int)
+    p.add_argument(
+        "--images",
+        choices=["upright", "source"],
+        default="upright",
+        help="upright: write rotated frames upright as PNG (default); source: name the stored "
+        "files with a rotation column",
+    )
+    p.set_defaults(func=cmd_task, executor="local", address=None, ray_cpus=None)
+
+    p = sub.add_parser("report", help="(re)write OUT/report.html for an existing run")
+    p.add_argument("out", help="a run directory (the --out of harness reproduce)")
+    p.add_argument(
+        "--gallery",
+        type=int,
+        help="thumbnails per method and kind (default: the run's [report] gallery)",
+    )
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("gc", help="remove the cache entries of OUT that its last run did not use")
+    p.add_argument("out", help="a run directory (the --out of harness reproduce)")
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="list what would be removed, and its size; remove nothing",
+    )
+    p.set_defaults(func=cmd_gc)
+
+    p = sub.add_parser(
+        "inspect",
+        help="what is in a log: topics, rates, images, the tf tree, and config lines to ingest it",
+    )
+    p.add_argument("log", help="an NCLT root, a .bag, a ROS2 bag directory or an .mcap")
+    p.add_argument("--json", action="store_true", help="print the description as JSON")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser(
+        "annotations", help="import annotations from labelling tools, or export a labelling task"
+    )
+    asub = p.add_subparsers(dest="action", required=True)
+    pi = asub.add_parser("import")
+    pi.add_argument("format", choices=["coco", "voc", "cvat"])
+    pi.add_argument("src")
+    pi.add_argument("--out", required=True)
+    pi.add_argument("--frames", help="frames.parquet to validate against")
+    pi.add_argument("--force", action="store_true", help="replace --out if it exists")
+    pi.set_defaults(func=cmd_annotations)
+    pe = asub.add_parser("export")
+    pe.add_argument("--pairs", required=True)
+    pe.add_argument("--frames", required=True)
+    pe.add_argument("--out", required=True)
+    pe.add_argument("--limit", type=int)
+    pe.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out if it is a labelling task the harness wrote",
+    )
+    pe.set_defaults(func=cmd_annotations)
+    return ap

@@ -1,0 +1,97 @@
+"""Handlers of the whole-run commands: reproduce, report, detect."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import HarnessError
+from .common import pd_read, pipeline_of, run_config
+from .console import print_block, print_localization, print_table_l
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    """``harness reproduce``: the whole pipeline; prints Table I and where the reports are."""
+    from rich.console import Console
+
+    rec = pipeline_of(args).run()
+    console = Console(width=max(Console().width, 140))
+    reports = rec["reports"]
+    blocks = reports.blocks or [reports]
+    for rep in blocks:
+        if len(rep.localization):
+            print_localization(console, rep, rec)
+    if reports.table_l is not None:
+        print_table_l(console, reports.table_l)
+    for rep in blocks:
+        print_block(console, rep, rec)
+    print(
+        f"reports in {Path(args.out)}: localization.md, "
+        + ("tableL.md, " if reports.table_l is not None else "")
+        + "table1.md, tableS.md, tableP.md, comparisons.md (+ .csv, .tex), "
+        f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)"
+    )
+    if rec.get("report_html"):
+        print(f"report: {rec['report_html']}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """``harness report``: (re)write ``report.html`` of an earlier run."""
+    from ..outdirs import claim_dir, read_run_record, run_lock
+    from ..report_html import write_html_report
+
+    if args.gallery is not None and args.gallery < 0:
+        raise HarnessError(f"--gallery {args.gallery}: must be >= 0")
+    out = Path(args.out)
+    read_run_record(out)  # a finished run, its record readable
+    out = claim_dir(out, "run")  # a run directory the harness wrote, nothing else
+    with run_lock(out):
+        path = write_html_report(out, args.gallery)
+    print(f"report: {path}")
+    return 0
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
+    from ..detect import DetectOptions, run_detect
+    from ..executors import make_executor
+
+    if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
+        raise HarnessError("--address and --ray-cpus need --executor ray")
+    cfg = run_config(args)
+    opt = DetectOptions(
+        method=args.method,
+        nms_iou=args.nms_iou,
+        max_boxes=args.max_boxes,
+        top=args.top,
+        seed=cfg.fusion.seed,
+    )
+    rec = run_detect(
+        cfg,
+        args.map,
+        list(args.query),
+        Path(args.out),
+        opt,
+        make_executor(args.executor, args.address, args.ray_cpus),
+    )
+    out = Path(args.out)
+    print(
+        f"detect: {rec['query_frames']} query frames of {', '.join(rec['queries'])} against the "
+        f"map {rec['map']}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
+        f"ms per query frame ({rec['total_s']:.1f} s)"
+    )
+    fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False).head(args.top)
+    print("most changed frames (session camera utime: score, top box):")
+    for r in fr.itertuples():
+        print(
+            f"  {r.session} {r.camera} {r.utime}: {r.score:.4g}, "
+            f"[{r.top_x1:.0f}, {r.top_y1:.0f}, {r.top_x2:.0f}, {r.top_y2:.0f}]"
+        )
+    if rec.get("table_d"):
+        print((out / "tableD.md").read_text())
+    print(
+        f"outputs in {out}: detections.json + images.json (COCO), frames.parquet/.csv, "
+        f"locmaps/, trajectory.png, detect.html"
+    )
+    return 0
