@@ -39,7 +39,16 @@ os.umask(_UMASK)
 #: run, and the command layer only reads arguments into the config (whose values are in the keys).
 #: Editing them never recomputes a stage; editing any other module recomputes every stage.
 NOT_IN_STAGES = frozenset(
-    {"cli.py", "reports.py", "report_html.py", "plots.py", "log_inspect.py", "cache_gc.py"}
+    {
+        "cli",  # the package: argument parsing, handlers and the console view
+        "reports.py",
+        "report_html.py",
+        "report_cells.py",
+        "report_gallery.py",
+        "plots.py",
+        "log_inspect.py",
+        "cache_gc.py",
+    }
 )
 
 
@@ -55,7 +64,7 @@ def code_fingerprint(package_dir: Path | None = None) -> str:
     root = Path(package_dir) if package_dir is not None else Path(__file__).resolve().parent
     h = hashlib.sha256(__version__.encode())
     for f in sorted(root.rglob("*.py")):
-        if f.parent == root and f.name in NOT_IN_STAGES:
+        if f.relative_to(root).parts[0] in NOT_IN_STAGES:  # a module, or a whole package
             continue
         h.update(str(f.relative_to(root)).encode())
         h.update(f.read_bytes())

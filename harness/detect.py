@@ -420,7 +420,7 @@ def locmaps(
     out: Path, top: pd.DataFrame, entries: list[Any], dets: pd.DataFrame
 ) -> dict[tuple[str, str, int], Path]:
     """LoC maps of the ``top`` frames: float16 ``.npy`` and a colour overlay with its bar."""
-    from .report_html import colour_bar
+    from .overlay import colour_bar
 
     want = set(map(tuple, top[FRAME_KEY].to_numpy().tolist()))
     d = out / "locmaps"

@@ -26,7 +26,7 @@ from .config import (
 )
 from .errors import RetrievalError
 from .pipeline import Build, Context, Entry, RankTable, Table
-from .retrieval.imported import ImportSpec
+from .retrieval.import_file import ImportSpec
 from .stages import (
     SORT_RANKS,
     descriptor_model,

@@ -29,7 +29,7 @@ from .config import (
 )
 from .executors import LocalExecutor
 from .outdirs import claim_dir, run_lock
-from .retrieval.imported import ImportSpec, parse_import_arg
+from .retrieval.import_file import ImportSpec, parse_import_arg
 
 log = logging.getLogger(__name__)
 

@@ -19,9 +19,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from . import report_tables
 from .annotations import change_boxes
 from .cache import write_parquet, write_text
 from .config import Config
+from .errors import ConfigError
 from .methods import BASELINES, FUSION_METHODS, ordered_methods
 from .metrics import (
     pr_curve,
@@ -359,6 +361,17 @@ def write_reports(
         write_text(put(out / "tableL.tex"), leaderboard_latex(table_l))
         cmp_md = leaderboard_md(table_l, cfg, comparisons=True) + "\n" + cmp_md
     write_text(put(out / "comparisons.md"), cmp_md)
+    for spec in report_tables.load_builtin().values():  # registered (harness/report_tables.py)
+        try:
+            frame = spec.compute(cfg, results)
+            if frame is None or not len(frame):
+                continue
+            frame = report_tables.check_frame(spec, frame)
+        except ValueError as err:
+            raise ConfigError(f"report table {spec.id!r}: {err}") from err
+        write_text(put(out / f"{spec.stem}.csv"), report_tables.to_csv(frame))
+        write_text(put(out / f"{spec.stem}.md"), report_tables.to_markdown(spec, frame))
+        write_text(put(out / f"{spec.stem}.tex"), report_tables.to_latex(spec, frame))
     if cfg.report.plots:
         from .plots import locmap_figures, pr_plots
 
@@ -374,6 +387,8 @@ def write_reports(
     )
     stale += _remove_stale(out / "locmaps", "*", written)
     stale += _remove_stale(out, "tableL.*", written)
+    for spec in report_tables.TABLES.values():
+        stale += _remove_stale(out, f"{spec.stem}.*", written)
     if stale:
         log.info(
             "reports: removed %d file(s) of an earlier run that this run no longer writes", stale

@@ -53,7 +53,7 @@ from .methods import ordered_methods
 from .outdirs import read_run_record
 from .pipeline import Build, Context, Entry, RankTable, Table, localizer_record
 from .reports import Block, Reports
-from .retrieval.imported import ImportSpec
+from .retrieval.import_file import ImportSpec
 from .stages import (
     SORT_RANKS,
     annotation_table,

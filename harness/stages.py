@@ -43,7 +43,8 @@ from .progress import progress
 from .proposals import write_proposals
 from .reports import Block, Reports, write_reports
 from .retrieval import described_frames, rank_reference
-from .retrieval.imported import ImportSpec, unranked_images
+from .retrieval.import_file import ImportSpec
+from .retrieval.imported import unranked_images
 
 log = logging.getLogger(__name__)
 

@@ -34,12 +34,12 @@ import pandas as pd
 from .cache import atomic_dir, write_json, write_parquet, write_text
 from .imagestore import read_image, split_uri
 from .outdirs import check_replaceable, write_marker
-from .retrieval import imported
+from .retrieval import import_file, imported
 
 log = logging.getLogger(__name__)
 
 IMAGE_MODES = ("upright", "source")
-BOX = imported.BOX
+BOX = import_file.BOX
 
 
 def _image_columns(frames: pd.DataFrame, tmp: Path, final: Path, mode: str) -> pd.DataFrame:
@@ -99,8 +99,8 @@ def write_task(
         on=["q_session", "q_camera", "q_utime"],
         how="inner",
     )
-    q = q[[*imported.KEY[:3], "method", "box_id", *BOX, "r_session", "r_camera"]]
-    q = q.sort_values(imported.KEY).reset_index(drop=True)
+    q = q[[*import_file.KEY[:3], "method", "box_id", *BOX, "r_session", "r_camera"]]
+    q = q.sort_values(import_file.KEY).reset_index(drop=True)
     refs = sorted(set(pairs["r_session"]))
     ref = props.loc[props["session"].isin(refs), pk].sort_values(pk[:5]).reset_index(drop=True)
     used = pd.concat(

@@ -206,3 +206,39 @@ def test_voc_all_point_ap_by_hand() -> None:
     # 1/3, 1/3, 2/3; the envelope: 1 up to recall 1/3, 2/3 up to 2/3, 0 after
     ap = _voc_all_point(np.array([1, 0, 1]), np.array([0.9, 0.8, 0.7]), 3)
     assert ap == pytest.approx(1 / 3 * 1 + 1 / 3 * 2 / 3)
+
+
+def test_the_detect_flags_are_honoured_as_typed(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``--method``, ``--nms-iou``, ``--max-boxes`` and ``--top`` as the README shows them."""
+    a, _, _ = detected
+    out = tmp_path / "flags"
+    shutil.copytree(a / "cache", out / "cache")  # the map, model and ranks are reused
+    shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+    flags = ["--method", "rank_fusion_le2", "--nms-iou", "0.2", "--max-boxes", "3", "--top", "4"]
+    _run(["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
+          "--out", str(out), "--data-root", str(local_run[0].cfg.data_root), *flags])  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"] | {"chunk_frames": 64, "seed": 0} == {
+        "method": "rank_fusion_le2", "nms_iou": 0.2, "max_boxes": 3, "top": 4,
+        "chunk_frames": 64, "seed": 0,
+    }  # fmt: skip
+    dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
+    assert dets.groupby("image_id").size().max() == 3  # --max-boxes
+    for _, g in dets.groupby("image_id"):  # --nms-iou: no kept pair overlaps more than 0.2
+        b = np.array(g["bbox"].tolist(), np.float64)
+        x1, y1, x2, y2 = b[:, 0], b[:, 1], b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]
+        iw = np.clip(np.minimum(x2[:, None], x2) - np.maximum(x1[:, None], x1), 0, None)
+        ih = np.clip(np.minimum(y2[:, None], y2) - np.maximum(y1[:, None], y1), 0, None)
+        inter = iw * ih
+        iou = inter / ((b[:, 2] * b[:, 3])[:, None] + b[:, 2] * b[:, 3] - inter)
+        np.fill_diagonal(iou, 0)
+        assert iou.max() <= 0.2 + 1e-9
+    assert len(list((out / "locmaps").glob("*.npy"))) == 4  # --top
+    # --method: the scores are another method's LoC than the default run's
+    before = pd.DataFrame(json.loads((a / "detections.json").read_text()))
+    assert not np.allclose(
+        before.groupby("image_id")["score"].max().to_numpy(),
+        dets.groupby("image_id")["score"].max().to_numpy(),
+    )

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from harness.fixture import FixtureSpec, build_world, generate
-from harness.fixture.world import pose_at, render, trajectory
+from harness.fixture.render import render
+from harness.fixture.world import pose_at, trajectory
 
 from .conftest import ROOT, SMALL
 

@@ -14,7 +14,8 @@ import pandas as pd
 import pytest
 
 from harness.errors import RetrievalError
-from harness.retrieval.imported import parse_import_arg, ranks_from_import, read_import
+from harness.retrieval.import_file import parse_import_arg, read_import
+from harness.retrieval.imported import ranks_from_import
 
 PAIRS = pd.DataFrame(
     {

@@ -244,3 +244,79 @@ def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries)
     cover = np.ones((3, 2), bool)
     with pytest.raises(ConfigError, match=r"'flat' returned LoC of shape \(1,\), expected \(3,\)"):
         fusion.loc_from_cover(cover, "flat", r=np.ones(2), d=np.ones(2), L=np.ones(2))
+
+
+def test_recipe_a_toy_report_table(
+    local_run: tuple, default_world: Path, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    from harness import report_tables
+    from harness.cli import main
+
+    monkeypatch.setattr(report_tables, "TABLES", dict(report_tables.TABLES))  # undone after
+    # --- the recipe: a compute function of the report blocks and a spec, registered ---
+    from harness.report_tables import Column, TableSpec
+
+    def by_roc_max(cfg: object, blocks: list) -> pd.DataFrame:
+        """Table S rank fusion of the first localizer at each RoC-max."""
+        s = blocks[0].summary
+        s = s[(s["table"] == "S") & (s["method"] == "rank_fusion") & (s["proposals"] == "all")]
+        s = s[s["split"].str.startswith("roc_max_")]
+        return pd.DataFrame(
+            {"roc_max": s["roc_max"], "query_images": s["query_images"]}
+            | {f"S_{k}": s[k] for k in ("ap", "ci_low", "ci_high", "floor")}
+        )
+
+    report_tables.register_table(
+        TableSpec(
+            "R",
+            "rank fusion against RoC-max",
+            "Table S rank fusion at each RoC-max, with its interval and floor.",
+            (
+                Column("roc_max", "RoC-max"),
+                Column("S", "rank fusion", "ap"),
+                Column("query_images", "query images", "int"),
+            ),
+            by_roc_max,
+        )
+    )
+    # --- end of the recipe (the rest checks it) ---
+    with pytest.raises(ValueError, match="exists"):
+        report_tables.register_table(report_tables.TABLES["R"])
+    with pytest.raises(ValueError, match="letters and digits"):
+        report_tables.register_table(dataclasses.replace(report_tables.TABLES["R"], id="S"))
+    _, _, out = local_run
+    shutil.copytree(out / "cache", tmp_path / "cache")
+    shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
+    config = str(Path(__file__).resolve().parents[1] / "datasets" / "fixture.toml")
+    argv = ["reproduce", "--config", config, "--data-root", str(default_world), "--out"]
+    assert main([*argv, str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    # the CSV holds what the summary says, row for row (checked against summary.parquet)
+    got = pd.read_csv(tmp_path / "tableR.csv")
+    summ = pd.read_parquet(tmp_path / "splits" / "summary.parquet")
+    want = summ[
+        (summ["table"] == "S")
+        & (summ["method"] == "rank_fusion")
+        & (summ["proposals"] == "all")
+        & summ["split"].str.startswith("roc_max_")
+    ]
+    assert got["roc_max"].tolist() == want["roc_max"].tolist() == [0.01, 0.02, 0.03, 0.04, 0.05]
+    assert np.allclose(got["S_ap"], want["ap"]) and np.allclose(got["S_floor"], want["floor"])
+    # one cell, by hand, the same in markdown, LaTeX, console and page
+    r = got.iloc[-1]
+    text = f"{r.S_ap:.2f} [{r.S_ci_low:.2f}, {r.S_ci_high:.2f}] (floor {r.S_floor:.2f})"
+    md = (tmp_path / "tableR.md").read_text()
+    assert md.startswith("## Table R: rank fusion against RoC-max")
+    assert f"| 0.05 | {text} | {int(r.query_images)} |" in md
+    assert text in (tmp_path / "tableR.tex").read_text()
+    assert "Table R: rank fusion against RoC-max" in printed and text in printed
+    assert "tableR.md" in printed
+    page = (tmp_path / "report.html").read_text()
+    assert 'data-table="R"' in page and text in page and 'href="#tableR"' in page
+    # a rerun in which the table has nothing to show removes its files (the harness wrote them)
+    spec = report_tables.TABLES["R"]
+    monkeypatch.setattr(
+        report_tables, "TABLES", {"R": dataclasses.replace(spec, compute=lambda c, b: None)}
+    )
+    assert main([*argv, str(tmp_path)]) == 0
+    assert not list(tmp_path.glob("tableR.*"))

@@ -93,7 +93,7 @@ def test_radius_zero_reproduces_the_single_frame_rank() -> None:
     Places of G alone give exactly the ranks without a place (the earlier engine).
     """
 
-    from harness.pairs import ground_truth_places
+    from harness.retrieval.places import ground_truth_places
 
     rng = np.random.default_rng(3)
     db = rng.normal(size=(200, 5)).astype(np.float32)
@@ -119,7 +119,7 @@ def test_radius_zero_reproduces_the_single_frame_rank() -> None:
 
 def test_places_respect_the_heading_gate() -> None:
 
-    from harness.pairs import ground_truth_places
+    from harness.retrieval.places import ground_truth_places
 
     ref = pd.DataFrame(
         {"utime": [1, 2, 3, 4], "x": [0.0, 0.5, 1.0, 0.2], "y": 0.0, "yaw": [0.0, 0.1, 0.0, np.pi]}

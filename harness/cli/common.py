@@ -31,7 +31,7 @@ def pipeline_of(args: argparse.Namespace):
     cfg = run_config(args)  # validated before any executor or directory is set up
     rank_import = None
     if getattr(args, "rank_import", None):
-        from ..retrieval.imported import parse_import_arg
+        from ..retrieval.import_file import parse_import_arg
 
         rank_import = parse_import_arg(args.rank_import)
         if not rank_import.path.is_file():

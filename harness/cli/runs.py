@@ -14,6 +14,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     """``harness reproduce``: the whole pipeline; prints Table I and where the reports are."""
     from rich.console import Console
 
+    from .. import report_tables
+
     rec = pipeline_of(args).run()
     console = Console(width=max(Console().width, 140))
     reports = rec["reports"]
@@ -25,9 +27,13 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         print_table_l(console, reports.table_l)
     for rep in blocks:
         print_block(console, rep, rec)
+    extra = report_tables.written(Path(args.out))  # registered tables (harness/report_tables.py)
+    for spec, frame in extra:
+        console.print(report_tables.to_console(spec, frame))
     print(
         f"reports in {Path(args.out)}: localization.md, "
         + ("tableL.md, " if reports.table_l is not None else "")
+        + "".join(f"{spec.stem}.md, " for spec, _ in extra)
         + "table1.md, tableS.md, tableP.md, comparisons.md (+ .csv, .tex), "
         f"ranks.parquet, splits/, plots/, locmaps/, run.json ({rec['total_s']:.1f} s)"
     )

@@ -39,9 +39,7 @@ file, the count and one example row.
 from __future__ import annotations
 
 import logging
-import math
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -49,217 +47,16 @@ import numpy as np
 import pandas as pd
 
 from ..errors import RetrievalError
-from ..pairs import ground_truth_places
+from .import_file import BOX, KEY, SCORE_KINDS, ImportSpec, Rows, read_import
+from .places import ground_truth_places
 
 log = logging.getLogger(__name__)
 
-KEY = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
-BOX = ["x1", "y1", "x2", "y2"]
-REQUIRED = [*KEY[:3], "method", "box_id", *BOX, "r_session", "ranked", "L"]
-OPTIONAL = ["scores"]
-SCORE_KINDS = ("distance", "similarity")
 #: A box that differs from the run's proposal by more than this many pixels is another box.
 BOX_TOLERANCE_PX = 0.5
 
 
-@dataclass(frozen=True)
-class ImportSpec:
-    """One ``--import NAME=FILE``: the localizer's name and its rank file."""
-
-    name: str
-    path: Path
-
-
-def parse_import_arg(text: str) -> ImportSpec:
-    """``NAME=FILE`` or a bare ``FILE`` (the name is then the file's stem).
-
-    Raises:
-        RetrievalError: An empty name or file, or a name that is not a plain word.
-    """
-    name, sep, file = text.partition("=")
-    if not sep or "/" in name or not name:
-        name, file = Path(text).stem, text
-    if not file:
-        raise RetrievalError(f"--import {text!r}: give NAME=FILE or FILE")
-    check_localizer_name(name, f"--import {text!r}")
-    return ImportSpec(name, Path(file))
-
-
-def check_localizer_name(name: str, where: str) -> str:
-    """A localizer name: shown in tables and used in file names, so a plain word.
-
-    Raises:
-        RetrievalError: It holds characters other than letters, digits, ``.``, ``_``, ``-``,
-            ``+``, or starts with ``.``, ``-`` or is longer than 64 characters.
-    """
-    ok = bool(name) and len(name) <= 64 and name[0] not in ".-"
-    ok = ok and all(c.isalnum() or c in "._-+" for c in name)
-    if not ok:
-        raise RetrievalError(
-            f"{where}: localizer name {name!r} must be 1-64 letters, digits, '.', '_', '-' or "
-            "'+', not starting with '.' or '-'"
-        )
-    return name
-
-
 # ---------------------------------------------------------------------------- reading
-
-
-class _Rows:
-    """Row numbering for messages: CSV line numbers (header = line 1) or parquet rows (1-based)."""
-
-    def __init__(self, path: Path, csv: bool) -> None:
-        self.path, self.csv = path, csv
-
-    def name(self, i: int) -> str:
-        return f"line {i + 2}" if self.csv else f"row {i + 1}"
-
-    def fail(self, bad: np.ndarray | Sequence[int], what: str, example: str = "") -> None:
-        """Raise one error for the rows ``bad`` (indices) when there are any."""
-        idx = np.flatnonzero(bad) if isinstance(bad, np.ndarray) and bad.dtype == bool else bad
-        idx = list(idx)
-        if not idx:
-            return
-        n = len(idx)
-        ex = f" (e.g. {self.name(int(idx[0]))}{': ' + example if example else ''})"
-        raise RetrievalError(f"{self.path}: {n} row{'s' if n != 1 else ''} {what}{ex}")
-
-
-def _int_list(v: Any) -> list[int] | None:
-    """A parquet list or a CSV string of integers; None when it is anything else."""
-    if isinstance(v, str):
-        parts = v.split()
-        try:
-            return [int(p) for p in parts]
-        except ValueError:
-            return None
-    if isinstance(v, (list, tuple, np.ndarray)):
-        out = []
-        for x in v:
-            if isinstance(x, (bool, np.bool_)) or x is None:
-                return None
-            whole = isinstance(x, (float, np.floating)) and math.isfinite(x) and x.is_integer()
-            if not (isinstance(x, (int, np.integer)) or whole):
-                return None
-            out.append(int(x))
-        return out
-    return None
-
-
-def _float_list(v: Any) -> list[float] | None:
-    """A parquet list or a CSV string of numbers; None when it is anything else."""
-    items = v.split() if isinstance(v, str) else v
-    if not isinstance(items, (list, tuple, np.ndarray)):
-        return None
-    out = []
-    for x in items:
-        if x is None or isinstance(x, (bool, np.bool_)):
-            return None
-        try:
-            out.append(float(x))
-        except (TypeError, ValueError):
-            return None
-    return out
-
-
-def read_import(path: Path) -> tuple[pd.DataFrame, _Rows]:
-    """A rank file (CSV or parquet) as a typed table; every value checked.
-
-    Returns:
-        The table (``ranked`` and ``scores`` as Python lists) and its row numbering.
-
-    Raises:
-        RetrievalError: The file is missing, unreadable, lacks a column, or a value has the
-            wrong type: one message naming the file, the count and one example row.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise RetrievalError(f"{path}: rank file not found")
-    if path.is_dir():
-        raise RetrievalError(f"{path}: is a directory; give the rank file (.parquet or .csv)")
-    csv = path.suffix.lower() != ".parquet"
-    try:
-        if csv:
-            df = pd.read_csv(path, dtype=str, keep_default_na=False, encoding="utf-8")
-        else:
-            df = pd.read_parquet(path)
-    except PermissionError:
-        raise RetrievalError(f"{path}: not readable (permission denied)") from None
-    except UnicodeDecodeError as err:
-        raise RetrievalError(
-            f"{path}: not a UTF-8 CSV ({err.reason} at byte {err.start})"
-        ) from None
-    except (OSError, ValueError) as err:
-        kind = "CSV" if csv else "parquet"
-        raise RetrievalError(f"{path}: not a readable {kind} file ({err})") from None
-    rows = _Rows(path, csv)
-    if "distance" in df.columns and "scores" not in df.columns:
-        raise RetrievalError(
-            f"{path}: column 'distance' is not read (a distance to what?): give 'scores', "
-            "parallel to 'ranked', one score per listed frame, and set [import] score_kind "
-            "(SPEC section 12)"
-        )
-    miss = [c for c in REQUIRED if c not in df.columns]
-    if miss:
-        raise RetrievalError(
-            f"{path}: missing column(s) {miss}; required: {REQUIRED}, optional: {OPTIONAL}"
-        )
-    df = df.reset_index(drop=True)
-    out = pd.DataFrame(index=df.index)
-    for c in ("q_session", "q_camera", "r_session", "method"):
-        s = df[c]
-        bad = s.isna().to_numpy() | (s.astype(str).str.strip() == "").to_numpy()
-        rows.fail(bad, f"have no {c}")
-        out[c] = s.astype(str).str.strip()
-    for c in ("q_utime", "box_id", "L"):
-        num = pd.to_numeric(df[c], errors="coerce")
-        vals = num.to_numpy(np.float64)
-        bad = ~np.isfinite(vals) | (vals != np.round(vals))
-        i = int(np.flatnonzero(bad)[0]) if bad.any() else 0
-        rows.fail(bad, f"have a {c} that is not an integer", f"{c} = {df[c].iloc[i]!r}")
-        out[c] = vals.astype(np.int64)
-    rows.fail(out["L"].to_numpy() < 1, "have L < 1")
-    for c in BOX:
-        vals = pd.to_numeric(df[c], errors="coerce").to_numpy(np.float64)
-        bad = ~np.isfinite(vals)
-        i = int(np.flatnonzero(bad)[0]) if bad.any() else 0
-        rows.fail(bad, f"have a {c} that is not a finite number", f"{c} = {df[c].iloc[i]!r}")
-        out[c] = vals
-    flat = (out["x2"] <= out["x1"]) | (out["y2"] <= out["y1"])
-    rows.fail(flat.to_numpy(), "have a box with x2 <= x1 or y2 <= y1 (reversed or empty)")
-    ranked = [_int_list(v) for v in df["ranked"]]
-    bad_i = [i for i, v in enumerate(ranked) if v is None]
-    rows.fail(
-        bad_i,
-        "have a 'ranked' that is not a list of integer frame utimes (CSV: space-separated)",
-        f"{str(df['ranked'].iloc[bad_i[0]])[:40]!r}" if bad_i else "",
-    )
-    rows.fail([i for i, v in enumerate(ranked) if not v], "have an empty 'ranked' list")
-    rows.fail(
-        [i for i, v in enumerate(ranked) if v is not None and len(set(v)) != len(v)],
-        "have a 'ranked' list that repeats a frame",
-    )
-    out["ranked"] = ranked
-    long = out["L"].to_numpy() < np.array([len(v or []) for v in ranked])
-    rows.fail(long, "have L shorter than their 'ranked' list")
-    if "scores" in df.columns:
-        scores = [_float_list(v) for v in df["scores"]]
-        rows.fail(
-            [i for i, v in enumerate(scores) if v is None],
-            "have 'scores' that are not a list of numbers (CSV: space-separated)",
-        )
-        rows.fail(
-            [
-                i
-                for i, (s, r) in enumerate(zip(scores, ranked, strict=True))
-                if len(s or []) != len(r or [])
-            ],
-            "have 'scores' of another length than 'ranked'",
-        )
-        nonfinite = [i for i, s in enumerate(scores) if not all(math.isfinite(x) for x in s or [])]
-        rows.fail(nonfinite, "have non-finite scores (NaN or inf)")
-        out["scores"] = scores
-    return out, rows
 
 
 # ---------------------------------------------------------------------------- scoring
@@ -272,7 +69,7 @@ def _distances(scores: list[float], kind: str) -> np.ndarray:
 
 def _check_against_run(
     df: pd.DataFrame,
-    rows: _Rows,
+    rows: Rows,
     pairs: pd.DataFrame,
     proposals: pd.DataFrame | None,
     frames: pd.DataFrame,
@@ -375,7 +172,7 @@ def _pair_hint(r: Any, pairs: pd.DataFrame) -> str:
 
 def ranks_from_import(
     df: pd.DataFrame,
-    rows: _Rows,
+    rows: Rows,
     pairs: pd.DataFrame,
     frames: pd.DataFrame,
     proposals: pd.DataFrame | None = None,

@@ -18,9 +18,10 @@ import scipy.sparse as sp
 
 from ..cache import read_cached_parquet
 from ..config import RetrievalConfig
-from ..pairs import ground_truth_places, thin_by_stride
+from ..pairs import thin_by_stride
 from .bovw import bovw_ranks, load_words
 from .engines import image_ranks, image_ranks_faiss
+from .places import ground_truth_places
 
 #: Counters every unit reports (summed per reference session in ``run.json``).
 RANK_COUNTS = (

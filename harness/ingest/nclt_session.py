@@ -1,0 +1,130 @@
+"""Ingest one NCLT session: its image folder and ground-truth CSV."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..config import IngestConfig, SessionConfig
+from ..errors import IngestError
+from ..imagestore import (
+    make_uri,
+    stored_size,
+    upright_size,
+)
+from ..inputs import read_text
+from .frame_table import finish
+from .poses import (
+    check_monotonic,
+)
+
+
+def read_nclt_groundtruth(
+    path: Path, salvage: bool = False, cut: list[int] | None = None
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """NCLT ground truth ``utime, x, y, z, roll, pitch, yaw`` (no header).
+
+    Returns:
+        (utime (n,), values (n, 6), number of rows skipped because they hold NaN or infinity,
+        1-based line number of each kept row).
+
+    With ``salvage``, a damaged *last* line (a log cut while it was written) is dropped and
+    counted in ``cut[0]``; a damaged line anywhere else is still an error.
+
+    Raises:
+        IngestError: A row has the wrong number of fields or a non-numeric value (names the line).
+    """
+    cut = cut if cut is not None else [0]
+    text = read_text(path, "ground-truth file", IngestError)
+    times, vals, lines, nan_rows = [], [], [], 0
+    rows = text.splitlines()
+    last = max((i for i, r in enumerate(rows, 1) if r.strip()), default=0)
+    for lineno, line in enumerate(rows, 1):
+        line = line.strip()
+        if not line:
+            continue
+        parts = line.split(",")
+        problem = None
+        if len(parts) != 7:
+            problem = f"expected 7 fields (utime,x,y,z,roll,pitch,yaw), got {len(parts)}"
+        else:
+            try:
+                t0 = float(parts[0])
+                t = int(t0) if math.isfinite(t0) else 0
+                v = [float(p) for p in parts[1:]]
+            except ValueError:
+                problem = f"non-numeric value in {line!r}"
+        if problem is not None:
+            if salvage and lineno == last:  # a log cut while it was written: keep what precedes
+                cut[0] += 1
+                continue
+            hint = " (the last line: --salvage keeps the rows before it)" if lineno == last else ""
+            raise IngestError(f"{path}: line {lineno}: {problem}{hint}")
+        if not all(math.isfinite(x) for x in v) or not math.isfinite(t0):
+            nan_rows += 1
+            continue
+        times.append(t)
+        vals.append(v)
+        lines.append(lineno)
+    if not times:
+        raise IngestError(f"{path}: no valid ground-truth row")
+    t_arr = np.array(times, np.int64)
+    line_arr = np.array(lines, np.int64)
+    check_monotonic(t_arr, str(path), "ground-truth", numbers=line_arr, unit="line")
+    return t_arr, np.array(vals, np.float64), nan_rows, line_arr
+
+
+def ingest_nclt(sc: SessionConfig, ic: IngestConfig, tmp: Path, report: dict) -> pd.DataFrame:
+    """The frame table of one NCLT session: ``images/<session>/lb3/<camera>`` and ground truth."""
+    root = Path(sc.source)
+    img_dir = root / "images" / sc.name / "lb3" / sc.camera
+    if not img_dir.is_dir():
+        avail = (
+            sorted(p.name for p in (root / "images" / sc.name / "lb3").glob("Cam*"))
+            if (root / "images" / sc.name / "lb3").is_dir()
+            else []
+        )
+        raise IngestError(
+            f"{img_dir}: no such NCLT image directory (cameras found for {sc.name}: "
+            f"{avail or 'none'})"
+        )
+    gt_path = root / "ground_truth" / f"groundtruth_{sc.name}.csv"
+    cut = [0]
+    pose_t, pose_v, nan_rows, _ = read_nclt_groundtruth(gt_path, ic.salvage, cut)
+    report["dropped"]["groundtruth_non_finite_rows"] = nan_rows
+    if cut[0]:
+        report["dropped"]["groundtruth_cut_last_line"] = cut[0]
+        report["salvaged"] = True
+    report["pose_frames"] = {
+        "pose_frame": "nclt_world",
+        "pose_of": "body",
+    }  # NCLT ground truth: the robot body, not the camera
+    report["messages_read"] = {"ground_truth_rows": len(pose_t) + nan_rows}
+    files = []
+    bad = 0
+    for p in img_dir.iterdir():
+        if p.suffix.lower() not in (".tiff", ".tif", ".png", ".jpg"):
+            continue
+        try:
+            files.append((int(p.stem), p))
+        except ValueError:
+            bad += 1
+    report["dropped"]["bad_image_name"] = bad
+    if not files:
+        raise IngestError(f"{img_dir}: no images")
+    files.sort()  # by utime, then path: of two files with one utime (.png, .tiff) the first is kept
+    uniq = [f for i, f in enumerate(files) if i == 0 or f[0] != files[i - 1][0]]
+    report["dropped"]["duplicate_image_time"] = len(files) - len(uniq)
+    files = uniq
+    report["messages_read"]["images"] = len(files)
+    rot = ic.nclt_rotation
+    sizes, uris = [], []
+    for _, p in files:
+        w, h = stored_size(p)
+        sizes.append(upright_size(w, h, rot))
+        uris.append(make_uri(p.resolve(), rot))
+    img_t = np.array([t for t, _ in files], np.int64)
+    return finish(sc, ic, tmp, img_t, uris, np.array(sizes, np.int64), pose_t, pose_v, report)

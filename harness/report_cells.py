@@ -1,0 +1,358 @@
+"""The report page's tables as HTML: verdicts, change tables, localization, heat maps, Table L.
+
+Every table reads the same pivots and intros as the markdown (:mod:`harness.report_render`); a cell
+is green when its 95% interval lies clear above the floor, grey when it holds it, red below.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from . import report_tables
+from .methods import FUSION_METHODS, METHOD_LABELS
+from .reports import LOC_COLUMNS, TABLE_INTRO, pivot
+
+
+def esc(x: Any) -> str:
+    """``x`` as HTML text."""
+    return html.escape(str(x))
+
+
+def num(v: float, d: int = 2) -> str:
+    """``v`` to ``d`` decimals; NaN as ``NaN``."""
+    return "NaN" if v != v else f"{v:.{d}f}"
+
+
+NAN = float("nan")
+
+
+def diff_colour(lo: float, hi: float) -> str:
+    """A paired difference's background: green when its interval lies above 0, red below."""
+    return "#e3f4e1" if lo > 0 else "#fbe3e1" if hi < 0 else "#fff"
+
+
+#: What a change-table cell says about its AP, from its 95% interval and the floor.
+VERDICTS = {
+    "above": "its interval lies clear above the floor: better than a random ranking",
+    "holds": "its interval holds the floor: not told apart from a random ranking",
+    "below": "its interval lies clear below the floor: worse than a random ranking",
+    "none": "no interval (or no positive): the shade shows the distance from the floor only",
+}
+
+
+def verdict(ap: float, lo: float, hi: float, floor: float) -> tuple[str, str]:
+    """(verdict, background) of one AP: green above the floor, grey on it, red below it.
+
+    The decision is the interval's (``lo > floor``, ``hi < floor``, else it holds the floor); the
+    shade grows with the distance of the AP from the floor, as a share of the room there is
+    (1 - floor above it, floor below it). Without an interval the verdict is ``none`` and the
+    colour is a pale version of the same scale.
+    """
+    if ap != ap or floor != floor:
+        return "none", "#f0f0f0"
+    up = ap >= floor
+    room = (1.0 - floor) if up else floor
+    t = float(np.clip(abs(ap - floor) / room if room > 0 else 0.0, 0.0, 1.0))
+    green = (int(232 - 100 * t), int(246 - 40 * t), int(228 - 100 * t))
+    red = (int(251 - 20 * t), int(228 - 110 * t), int(225 - 110 * t))
+    if lo != lo or hi != hi:
+        r, g, b = green if up else red
+        r, g, b = (int(255 - (255 - v) * 0.5) for v in (r, g, b))
+        return "none", f"rgb({r},{g},{b})"
+    if lo > floor:
+        return "above", "rgb({},{},{})".format(*green)
+    if hi < floor:
+        return "below", "rgb({},{},{})".format(*red)
+    return "holds", "#e4e4e4"
+
+
+LEGEND = (
+    '<div class="legend" data-legend="floor"><b>How to read the colours.</b> '
+    '<span class="sw" style="background:rgb(182,226,178)"></span> green: the AP\'s 95% interval '
+    "lies clear above the table's floor (the AP of a random ranking), the darker the further; "
+    '<span class="sw" style="background:#e4e4e4"></span> grey: the interval holds the floor, so '
+    "this data cannot tell the method from chance; "
+    '<span class="sw" style="background:rgb(241,163,160)"></span> red: clear below the floor. '
+    "Paired differences: green or red when their interval is clear of 0, white when it holds 0. "
+    "A cell without an interval is paler and decides nothing.</div>"
+)
+
+
+def heat_style(v: float, floor: float = 0.0) -> str:
+    """A background colour for AP: pale red at the floor (a random ranking) to green at 1."""
+    if v != v:
+        return "#f0f0f0"
+    v = float(np.clip((v - floor) / (1 - floor) if floor == floor and floor < 1 else v, 0, 1))
+    r, g, b = (
+        (int(255 - 90 * v), int(215 + 25 * v), int(215 - 60 * v))
+        if v >= 0.5
+        else (250, int(205 + 40 * v), int(200 + 20 * v))
+    )
+    return f"rgb({r},{g},{b})"
+
+
+def change_table(
+    summ: pd.DataFrame,
+    table: str,
+    methods: tuple[str, ...],
+    warnings: list[str],
+    who: str = "",
+) -> str:
+    """One change table (I, S or P) of a run's summary, cells coloured against their floor."""
+    ap, lo, hi = (pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high"))
+    floor = pivot(summ, table, methods, "floor")
+    cols = list(ap.columns)
+    head = "".join(f"<th>{esc(f'{c:.2f}' if isinstance(c, float) else c)}</th>" for c in cols)
+    ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
+    rows, sep = [], False
+    for m in ap.index:
+        if m not in FUSION_METHODS and not sep:
+            rows.append(
+                f'<tr class="sep"><td colspan="{len(cols) + 1}">variants and baselines (the '
+                "baselines read no pixel)</td></tr>"
+            )
+            sep = True
+        cells = "".join(
+            '<td data-verdict="{}" style="background:{}">'.format(
+                *verdict(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c], floor.loc[m, c])
+            )
+            + f"{num(ap.loc[m, c])}"
+            + (
+                f' <span class="ci">[{num(lo.loc[m, c])}, {num(hi.loc[m, c])}]</span>'
+                if lo.loc[m, c] == lo.loc[m, c]
+                else ""
+            )
+            + "</td>"
+            for c in cols
+        )
+        rows.append(f"<tr><td>{esc(METHOD_LABELS[m])}</td>{cells}</tr>")
+    rows.append(
+        '<tr class="floor"><td>floor (random ranking)</td>'
+        + "".join(f"<td>{num(floor.loc[ref, c])}</td>" for c in cols)
+        + "</tr>"
+    )
+    title, intro = TABLE_INTRO[table]
+    warn = "".join(f'<div class="warn">{esc(w)}</div>' for w in warnings)
+    heading = "h3" if table == "I" else "h2"
+    return (
+        f'<{heading} id="table{table}">{esc(title + who)}</{heading}><p class="note">{esc(intro)} '
+        "Cells: AP [95% bootstrap interval over query images]; colour: the interval against "
+        "the floor (see the legend).</p>"
+        f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}'
+    )
+
+
+def localization_table(loc: pd.DataFrame, radius: float, who: str = "") -> str:
+    """The localization-quality table (SPEC section 10) of ``who``."""
+    head = "".join(f"<th>{esc(lab)}</th>" for _, lab, _ in LOC_COLUMNS)
+
+    def rows(df: pd.DataFrame) -> str:
+        return "".join(
+            f'<tr><td>{esc(r.proposals)}</td><td class="l">{esc(r.season_pair)}</td>'
+            + "".join(
+                f"<td>{int(getattr(r, c))}</td>"
+                if d == 0
+                else f"<td>{num(float(getattr(r, c)), d)}</td>"
+                for c, _, d in LOC_COLUMNS
+            )
+            + "</tr>"
+            for r in df.itertuples(index=False)
+        )
+
+    table = f"<tr><th>proposals</th><th>season pair</th>{head}</tr>"
+    return (
+        f'<h2 id="localization">Localization quality{esc(who)}</h2><p class="note">'
+        "Every change figure rests on these ranks. Ground truth: "
+        f"the reference frames within {radius:g} m of the paired frame (the place). R@k: "
+        "share of query subimages whose place "
+        "ranks within the first k; median r: 0.5 is chance; clean: subimages of annotated "
+        "frames with RoC &le; 0.05.</p>"
+        f'<table data-table="localization">{table}{rows(loc[loc["season_pair"] == "all"])}</table>'
+        "<details><summary>per season "
+        f"pair</summary><table>{table}{rows(loc[loc['season_pair'] != 'all'])}</table></details>"
+    )
+
+
+def heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
+    """Table I's AP of one method per season pair, at ``split``."""
+    d = summ[
+        (summ["table"] == "I")
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] != "all")
+        & (summ["method"] == method)
+        & (summ["split"] == split)
+    ]
+    if not len(d):
+        return ""
+    return heat_table(
+        d.set_index("season_pair")["ap"].to_dict(),
+        d.set_index("season_pair")["positive_rate"].to_dict(),
+        "heatmapI",
+        f"{METHOD_LABELS[method]}, Table I (the paper's protocol), {split}",
+    )
+
+
+def heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split: str) -> str:
+    """Table S's AP of one method per season pair (query season down, reference across)."""
+    from .metrics import stratified_ap
+
+    col = f"loc_{method}"
+    allp = rep[(rep["proposals"] == "all") & (rep["label_stratified"] >= 0)]
+    if col not in allp.columns or not len(allp):
+        return ""
+    pairs, floors = {}, {}
+    for pair, g in allp.groupby("season_pair", sort=True):
+        g = g[g[col].notna()]
+        pairs[pair], floors[pair] = stratified_ap(
+            g["label_stratified"].to_numpy() == 1, g[col].to_numpy(), g["SoB"].to_numpy(), edges
+        )
+    return heat_table(
+        pairs,
+        floors,
+        "heatmap",
+        f"{METHOD_LABELS[method]}, Table S (size-stratified), {split}",
+    )
+
+
+def heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, what: str) -> str:
+    """A season x season table of ``what`` per pair, coloured against each pair's floor."""
+    seasons = sorted(
+        {p.split("->")[0] for p in pairs} | {p.split("->")[1] for p in pairs},
+        key=lambda s: ["WI", "SP", "SU", "AU"].index(s) if s in ("WI", "SP", "SU", "AU") else 9,
+    )
+    head = "".join(f"<th>{esc(s)}</th>" for s in seasons)
+
+    def cell(q: str, r: str) -> str:
+        if q == r:
+            return '<td class="diag">&mdash;</td>'
+        key = f"{q}->{r}"
+        if key not in pairs:
+            return '<td class="diag">no pair</td>'
+        ap, fl = pairs[key], floors.get(key, NAN)
+        colour = verdict(ap, NAN, NAN, fl)[1]
+        text = num(ap) if ap == ap else "NaN"
+        return f'<td style="background:{colour}" title="floor {num(fl)}">{text}</td>'
+
+    rows = "".join(
+        f"<tr><th>{esc(q)}</th>" + "".join(cell(q, r) for r in seasons) + "</tr>" for q in seasons
+    )
+    return (
+        f'<h3 id="{anchor}">AP per season pair</h3><p class="note">{esc(what)}; query season '
+        "down, reference season across. &mdash;: a season is never paired with itself; NaN: "
+        "the pair has no positive (or no stratum with both labels); no pair: no query of that "
+        "season found a reference of the other. A per-pair AP has no interval (few query "
+        "images per pair): its colour is the pale scale of the legend and decides nothing "
+        "(hover a cell for its floor).</p>"
+        f'<table data-table="{anchor}"><tr><th>query \\ reference</th>{head}</tr>{rows}</table>'
+    )
+
+
+def table_l(out: Path) -> str:
+    """Table L (SPEC section 11) from ``tableL.csv``: every AP coloured against its floor."""
+    from .leaderboard import AP_COLUMNS
+
+    t = pd.read_csv(out / "tableL.csv")
+    first = str(t["localizer"].iloc[0])
+    head = "".join(
+        f"<th>{esc(h)}</th>"
+        for h in (
+            "localizer",
+            "R@1",
+            "R@5",
+            *(h for *_, h in AP_COLUMNS),
+            f"S rank fusion - {first}",
+        )
+    )
+    rows = []
+    for _, r in t.iterrows():
+        cells = [f"<td>{esc(r['localizer'])}</td>"]
+        cells += [f"<td>{num(float(r[c]))}</td>" for c in ("recall_at_1", "recall_at_5")]
+        for pfx, *_ in AP_COLUMNS:
+            v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
+            cells.append(
+                '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, lo, hi, fl))
+                + num(v)
+                + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
+                + "</td>"
+            )
+        d, dl, dh = (
+            float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high")
+        )
+        cells.append(
+            "<td></td>"
+            if d != d
+            else f'<td style="background:{diff_colour(dl, dh)}">{d:+.2f} '
+            f'<span class="ci">[{dl:+.2f}, {dh:+.2f}]</span></td>'
+        )
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    r0 = t.iloc[0]
+    rows.append(
+        f'<tr class="floor"><td>floor ({esc(first)})</td><td></td><td></td>'
+        + "".join(f"<td>{num(float(r0[f'{p}_floor']))}</td>" for p, *_ in AP_COLUMNS)
+        + "<td></td></tr>"
+    )
+    return (
+        '<h2 id="tableL">Table L: localizers</h2><p class="note">One row per localizer and '
+        "one for all localizers fused by rank (SPEC section 11), every one scored on the same "
+        f"query images. Table S at RoC-max {float(t['roc_max'].iloc[0]):.2f}; each AP with its "
+        "95% interval, coloured against its own floor (a random ranking of the same samples); "
+        f"the last column is the paired difference from {esc(first)} in Table S rank fusion over "
+        "the same bootstrap resamples. Recall: the ground-truth place ranked first (R@1) or in "
+        f'the first five (R@5).</p><table data-table="L"><tr>{head}</tr>{"".join(rows)}</table>'
+    )
+
+
+def other_blocks(summ: pd.DataFrame, names: list[str], warnings: dict[str, list[str]]) -> str:
+    """Tables S and P of every localizer after the first, and of ``all localizers``."""
+    parts = []
+    for name in names:
+        s = summ[summ["localizer"] == name]
+        methods = tuple(m for m in METHOD_LABELS if m in set(s["method"]))
+        pre = f"[{name}] "
+        for t in ("S", "P"):
+            notes = [w[len(pre) :] for w in warnings.get(t, []) if w.startswith(pre)]
+            html = change_table(s, t, methods, notes, f" (localizer: {name})")
+            parts.append(html.replace(f'id="table{t}"', f'data-localizer="{esc(name)}"', 1))
+    return (
+        '<h2 id="blocks">Tables S and P of the other localizers</h2>'
+        "<p class='note'>The same tables, each localizer's boxes alone; <i>all localizers</i>: "
+        "every localizer's boxes fused by rank (no score method is defined across "
+        "localizers).</p>" + "".join(parts).replace("<h2 ", "<h3 ").replace("</h2>", "</h3>")
+    )
+
+
+def registered_table(spec: report_tables.TableSpec, frame: pd.DataFrame) -> str:
+    """A registered table (:mod:`harness.report_tables`) with the console's cells.
+
+    Each AP is coloured against its own floor, each paired difference by whether its interval
+    clears zero.
+    """
+    head = "".join(f"<th>{esc(c.header)}</th>" for c in spec.columns)
+    rows = []
+    for _, r in frame.iterrows():
+        cells = []
+        for c in spec.columns:
+            text = esc(report_tables.cell(c, r))
+            if c.kind == "ap":
+                v, lo, hi, fl = (float(r[f]) for f in c.fields())
+                cells.append(
+                    '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, lo, hi, fl))
+                    + text
+                    + "</td>"
+                )
+            elif c.kind == "diff":
+                _, lo, hi = (float(r[f]) for f in c.fields())
+                cells.append(f'<td style="background:{diff_colour(lo, hi)}">{text}</td>')
+            else:
+                cells.append(f"<td>{text}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return (
+        f'<h2 id="{esc(spec.stem)}">Table {esc(spec.id)}: {esc(spec.title)}</h2>'
+        f'<p class="note">{esc(spec.intro)}</p>'
+        f'<table data-table="{esc(spec.id)}"><tr>{head}</tr>{"".join(rows)}</table>'
+    )
