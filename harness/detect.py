@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 
 FRAME_KEY = ["session", "camera", "utime"]
 Q_KEY = ["q_session", "q_camera", "q_utime"]
+#: A frame's result after its frame key and map session: its score (the largest LoC), the kept
+#: boxes and fused samples, and the best box.
+FRAME_RESULT = ["score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_y2"]
 
 
 @dataclass(frozen=True)
@@ -152,17 +155,7 @@ def detect_chunk(
         tmp / "frames.parquet",
         pd.DataFrame(
             frow,
-            columns=[
-                *FRAME_KEY,
-                "r_session",
-                "score",
-                "boxes",
-                "samples",
-                "top_x1",
-                "top_y1",
-                "top_x2",
-                "top_y2",
-            ],
+            columns=[*FRAME_KEY, "r_session", *FRAME_RESULT],
         ),
     )
     write_parquet(
@@ -371,13 +364,7 @@ def write_outputs(
             "r_session",
             "r_camera",
             "r_utime",
-            "score",
-            "boxes",
-            "samples",
-            "top_x1",
-            "top_y1",
-            "top_x2",
-            "top_y2",
+            *FRAME_RESULT,
         ]
     ]
     write_parquet(out / "frames.parquet", table)

@@ -172,3 +172,38 @@ def test_a_broken_trajectory_is_one_ingest_error_naming_the_line(tmp_path: Path)
     (k / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
     with pytest.raises(IngestError, match=r"1 images in image_2/ but 2 lines in times.txt"):
         _ingest(k, tmp_path / "o2", "s")
+
+
+@pytest.mark.parametrize(
+    ("gt_line", "message"),
+    [
+        ("10,1,2,3,1,0,0", r"data.csv: line 3: 7 fields; EuRoC needs at least 8"),
+        ("1.5e9,1,2,3,1,0,0,0", r"data.csv: line 3: '1.5e9' is not a time in integer nanoseconds"),
+        ("10,1,2,x,1,0,0,0", r"data.csv: line 3: 'x' is not a number"),
+        ("10,1,2,nan,1,0,0,0", r"data.csv: line 3: 'nan' is not finite"),
+    ],
+)
+def test_a_malformed_euroc_file_is_one_ingest_error_naming_the_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture, gt_line: str, message: str
+) -> None:
+    """Line numbers as an editor counts them: the header is line 1, the bad row line 3."""
+    from harness.cli import main
+
+    from .conftest import one_error
+
+    root = tmp_path / "euroc" / "mav0"
+    (root / "cam0" / "data").mkdir(parents=True)
+    (root / "state_groundtruth_estimate0").mkdir()
+    (root / "cam0" / "data" / "0.png").write_bytes(b"")
+    gt = root / "state_groundtruth_estimate0" / "data.csv"
+    gt.write_text(
+        "#timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z\n0,0,0,0,1,0,0,0\n" + gt_line + "\n"
+    )
+    with pytest.raises(IngestError, match=message):
+        _ingest(tmp_path / "euroc", tmp_path / "o", "s")
+    # and through the command line: one ERROR line, exit 1, nothing written
+    out = tmp_path / "cli"
+    assert main(["ingest", str(tmp_path / "euroc"), "--session", "s", "--out", str(out)]) == 1
+    err = one_error(capsys)
+    assert "line 3" in err and str(gt) in err
+    assert not (out / "frames.parquet").exists()

@@ -55,14 +55,44 @@ def _first(path: Path, names: tuple[str, ...]) -> Path | None:
     return next((path / n for n in names if (path / n).exists()), None)
 
 
-def _rows(path: Path) -> list[list[str]]:
-    """Whitespace- or comma-separated rows of a text file, comments (#) and blanks skipped."""
+def _rows(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number as an editor counts it, fields) of each row of a text file.
+
+    Fields are separated by whitespace or commas; comments (#) and blank lines are skipped.
+    """
     out = []
-    for line in path.read_text().splitlines():
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
         line = line.split("#", 1)[0].strip()
         if line:
-            out.append(line.replace(",", " ").split())
+            out.append((n, line.replace(",", " ").split()))
     return out
+
+
+def _numbers(fields: list[str], where: str) -> np.ndarray:
+    """``fields`` as finite float64 numbers, or a ValueError naming ``where`` and the field."""
+    try:
+        v = np.array([float(x) for x in fields], np.float64)
+    except ValueError:
+        bad = next(x for x in fields if not _is_float(x))
+        raise ValueError(f"{where}: {bad!r} is not a number") from None
+    if not np.isfinite(v).all():
+        raise ValueError(f"{where}: {fields[int(np.argmin(np.isfinite(v)))]!r} is not finite")
+    return v
+
+
+def _is_float(x: str) -> bool:
+    try:
+        float(x)
+    except ValueError:
+        return False
+    return True
+
+
+def _ns(text: str, where: str) -> int:
+    """An integer time in nanoseconds (EuRoC), or a ValueError naming ``where``."""
+    if not text.isdigit():
+        raise ValueError(f"{where}: {text!r} is not a time in integer nanoseconds")
+    return int(text)
 
 
 def quat_from_matrix(r: np.ndarray) -> np.ndarray:
@@ -170,7 +200,10 @@ class TumFolder(_Folder):
             raise ValueError(f"{path}: no image folder ({' or '.join(self.DIRS)}/)")
         listing = path / "rgb.txt"
         if listing.exists():
-            return [(seconds_to_ns(r[0], f"{listing}"), path / r[1]) for r in _rows(listing)]
+            return [
+                (seconds_to_ns(r[0], f"{listing}: line {n}"), path / r[1])
+                for n, r in _rows(listing)
+            ]
         return [(seconds_to_ns(f.stem, f"{f}"), f) for f in _images_in(d)]
 
     def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -178,12 +211,12 @@ class TumFolder(_Folder):
         f = _first(path, self.TRAJ)
         assert f is not None
         out = []
-        for i, r in enumerate(_rows(f), start=1):
+        for i, r in _rows(f):
             if len(r) != 8:
                 raise ValueError(
                     f"{f}: line {i}: {len(r)} fields; TUM is 'timestamp x y z qx qy qz qw'"
                 )
-            v = np.array([float(x) for x in r[1:]], np.float64)
+            v = _numbers(r[1:], f"{f}: line {i}")
             out.append((seconds_to_ns(r[0], f"{f}: line {i}"), v[:3], v[3:]))
         return out
 
@@ -200,7 +233,7 @@ class KittiFolder(_Folder):
 
     def _times(self, path: Path) -> list[int]:
         f = path / "times.txt"
-        return [seconds_to_ns(r[0], f"{f}: line {i}") for i, r in enumerate(_rows(f), start=1)]
+        return [seconds_to_ns(r[0], f"{f}: line {i}") for i, r in _rows(f)]
 
     def images(self, path: Path) -> list[tuple[int, Path]]:
         """(time ns, image file) of every image, in time order."""
@@ -221,10 +254,10 @@ class KittiFolder(_Folder):
         if len(rows) != len(times):
             raise ValueError(f"{f}: {len(rows)} poses but {len(times)} lines in times.txt")
         out = []
-        for i, (t, r) in enumerate(zip(times, rows, strict=True), start=1):
+        for t, (i, r) in zip(times, rows, strict=True):
             if len(r) != 12:
                 raise ValueError(f"{f}: line {i}: {len(r)} numbers; KITTI is a 3x4 matrix (12)")
-            p, q = kitti_pose(np.array([float(x) for x in r], np.float64).reshape(3, 4))
+            p, q = kitti_pose(_numbers(r, f"{f}: line {i}").reshape(3, 4))
             out.append((t, p, q))
         return out
 
@@ -250,18 +283,20 @@ class EurocFolder(_Folder):
         cam = self._root(path) / "cam0"
         listing = cam / "data.csv"
         if listing.exists():
-            return [(int(r[0]), cam / "data" / r[1]) for r in _rows(listing)]
+            return [
+                (_ns(r[0], f"{listing}: line {n}"), cam / "data" / r[1]) for n, r in _rows(listing)
+            ]
         return [(int(f.stem), f) for f in _images_in(cam / "data")]
 
     def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
         """(time ns, position (3,), quaternion x, y, z, w) of every pose."""
         f = self._root(path) / "state_groundtruth_estimate0" / "data.csv"
         out = []
-        for i, r in enumerate(_rows(f), start=1):
+        for i, r in _rows(f):
             if len(r) < 8:
                 raise ValueError(f"{f}: line {i}: {len(r)} fields; EuRoC needs at least 8")
-            v = np.array([float(x) for x in r[1:8]], np.float64)
-            out.append((int(r[0]), v[:3], np.array([v[4], v[5], v[6], v[3]])))  # w first
+            v = _numbers(r[1:8], f"{f}: line {i}")
+            out.append((_ns(r[0], f"{f}: line {i}"), v[:3], np.array([v[4], v[5], v[6], v[3]])))
         return out
 
 
