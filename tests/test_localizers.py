@@ -382,3 +382,27 @@ def test_an_image_some_localizer_did_not_rank_is_an_error_unless_allowed(
         q.cfg = saved
     assert note is not None and "1 of" in note
     assert len(m[0].ranks.df) == len(hole) and m[0].ranks.key != "k1"
+
+
+def test_the_readme_command_runs_as_typed_with_its_three_localizers(
+    multi_run: tuple[Path, str], local_run: tuple, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """The README's bare command (``--data-root`` added: the fixture lives in a temporary folder),
+    from the repository root, on the four-localizer run's cache: Table L with three rows."""
+    run, _ = multi_run
+    out = tmp_path / "fixture-localizers"
+    shutil.copytree(run / "cache", out / "cache")
+    shutil.copy(run / ".dbl-harness.json", out / ".dbl-harness.json")
+    readme = (ROOT / "README.md").read_text()
+    typed = re.search(
+        r"harness reproduce --config datasets/fixture-localizers.toml --out \S+", readme
+    )
+    assert typed is not None
+    argv = typed.group(0).split()[1:-1] + [str(out), "--data-root", str(local_run[0].cfg.data_root)]
+    monkeypatch.chdir(ROOT)
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    t = pd.read_csv(out / "tableL.csv")
+    assert t["localizer"].tolist() == ["autoencoder", "bovw-rootsift", "thumb", "all localizers"]
+    assert "Table L" in printed and all(n in printed for n in t["localizer"])
+    assert 'data-table="L"' in (out / "report.html").read_text()
