@@ -192,6 +192,21 @@ def _remove_stale(directory: Path, pattern: str, keep: set[Path]) -> int:
     return n
 
 
+#: The files a table is written to (``<stem>.csv`` and so on).
+TABLE_SUFFIXES = ("csv", "md", "tex")
+
+
+def _remove_unwritten(paths: Sequence[Path], keep: set[Path]) -> int:
+    """Remove those of ``paths`` (the harness's own file names) that this run did not write.
+
+    Only these exact names: a file of the user's beside them (``tableL.notes``) is left alone.
+    """
+    gone = [p for p in paths if p.is_file() and p.resolve() not in keep]
+    for p in gone:
+        p.unlink()
+    return len(gone)
+
+
 @dataclass
 class Block:
     """One block of the tables: a localizer's boxes, or every localizer's (``all localizers``).
@@ -386,9 +401,8 @@ def write_reports(
         out / "plots", "pr_*.png", written
     )
     stale += _remove_stale(out / "locmaps", "*", written)
-    stale += _remove_stale(out, "tableL.*", written)
-    for spec in report_tables.TABLES.values():
-        stale += _remove_stale(out, f"{spec.stem}.*", written)
+    stems = ["tableL", *(spec.stem for spec in report_tables.TABLES.values())]
+    stale += _remove_unwritten([out / f"{t}.{x}" for t in stems for x in TABLE_SUFFIXES], written)
     if stale:
         log.info(
             "reports: removed %d file(s) of an earlier run that this run no longer writes", stale

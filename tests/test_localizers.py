@@ -406,3 +406,12 @@ def test_the_readme_command_runs_as_typed_with_its_three_localizers(
     assert t["localizer"].tolist() == ["autoencoder", "bovw-rootsift", "thumb", "all localizers"]
     assert "Table L" in printed and all(n in printed for n in t["localizer"])
     assert 'data-table="L"' in (out / "report.html").read_text()
+    # one localizer into the same directory: Table L's files go, a file of the user's stays
+    (out / "tableL.notes").write_text("the user's own file")
+    world = str(local_run[0].cfg.data_root)
+    argv = ["reproduce", "--config", "datasets/fixture.toml", "--data-root", world, "--out"]
+    assert main([*argv, str(out)]) == 1  # another localizer set: replaced only with --force
+    assert "pass --force" in capsys.readouterr().err
+    assert main([*argv, str(out), "--force"]) == 0
+    assert [p.name for p in out.glob("tableL.*")] == ["tableL.notes"]
+    assert 'data-table="L"' not in (out / "report.html").read_text()

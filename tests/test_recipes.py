@@ -318,5 +318,6 @@ def test_recipe_a_toy_report_table(
     monkeypatch.setattr(
         report_tables, "TABLES", {"R": dataclasses.replace(spec, compute=lambda c, b: None)}
     )
+    (tmp_path / "tableR.notes").write_text("the user's own file")  # not the harness's
     assert main([*argv, str(tmp_path)]) == 0
-    assert not list(tmp_path.glob("tableR.*"))
+    assert [p.name for p in tmp_path.glob("tableR.*")] == ["tableR.notes"]
