@@ -208,3 +208,124 @@ def test_the_per_frame_minimum_equals_a_loop_over_frames(lengths: list[int]) -> 
     cuts = np.cumsum([0, *lengths])
     want = np.stack([d2[:, a:b].min(1) for a, b in itertools.pairwise(cuts)], 1)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+def _exact_d(q: np.ndarray, db: np.ndarray, frame: np.ndarray, members: list) -> np.ndarray:
+    """SPEC 6's d: float64 differences, numpy's sum of each row, the least over the place."""
+    return np.array(
+        [
+            np.sqrt(((db[np.isin(frame, m)].astype(np.float64) - qi) ** 2).sum(1).min())
+            for qi, m in zip(q, members, strict=True)
+        ]
+    )
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+def test_d_is_bit_for_bit_the_float64_difference_with_near_ties(dtype: type) -> None:
+    """Places of 3 frames x 8 rows, all near one another: many rows within the product's error.
+
+    The rows the engine leaves unmeasured cannot hold the minimum (its error bound), so ``d``
+    is the same float64 value as measuring every row of the place, across chunk and batch cuts.
+    """
+    rng = np.random.default_rng(11)
+    dim, frames = 3000, 30
+    base = rng.standard_normal((frames // 3, dim)).astype(np.float32)
+    db = (np.repeat(base, 24, 0) + 1e-3 * rng.standard_normal((frames * 8, dim))).astype(dtype)
+    frame = np.repeat(np.arange(frames), 8)
+    gt = rng.choice(frames, 40)
+    q = (base[gt // 3] + 1e-3 * rng.standard_normal((40, dim))).astype(np.float32)
+    place = [np.array([3 * (g // 3), 3 * (g // 3) + 1, 3 * (g // 3) + 2]) for g in gt]
+    want = _exact_d(q, db, frame, place)
+    for chunk, batch in ((8192, 1024), (20, 7)):
+        _, _, d = image_ranks(q, db, frame, gt, place, chunk_rows=chunk, query_batch=batch)
+        np.testing.assert_array_equal(d, want)
+
+
+def test_d_is_exact_where_the_product_s_error_exceeds_the_distances() -> None:
+    """Descriptors of norm ~6,000 that differ by ~1: the float32 expansion is off by more than the
+    distances between a place's rows, so its best row is often not the nearest. The error bound
+    then grows with the norms and every such row is measured (a fixed tolerance of 0.01 + 0.1%
+    of the best value, the rule before, missed the nearest row here)."""
+    rng = np.random.default_rng(5)
+    dim = 4096
+    base = 100 * rng.standard_normal((6, dim)).astype(np.float32)
+    db = np.repeat(base, 16, 0) + 0.01 * rng.standard_normal((96, dim)).astype(np.float32)
+    frame = np.repeat(np.arange(6), 16)
+    gt = rng.choice(6, 30)
+    q = base[gt] + 0.01 * rng.standard_normal((30, dim)).astype(np.float32)
+    _, _, d = image_ranks(q, db, frame, gt)
+    np.testing.assert_array_equal(d, _exact_d(q, db, frame, [[g] for g in gt]))
+
+
+def test_the_expansion_error_bound_holds_and_prunes() -> None:
+    """``expansion_error_factor``: every fast value lies within its bound; the bound grows with a
+    product that may round its inputs (TF32), and is infinite where it would say nothing."""
+    from harness.retrieval.engines import _ExactPlace, expansion_error_factor
+
+    rng = np.random.default_rng(8)
+    dim = 2048
+    for scale in (1.0, 1e3):
+        q = torch.from_numpy(scale * rng.standard_normal((64, dim)).astype(np.float32))
+        noise = scale * 1e-3 * rng.standard_normal((32, dim))
+        b = torch.from_numpy((q[:32].numpy() + noise).astype(np.float16).astype(np.float32))
+        qn = torch.linalg.vector_norm(q, dim=1, keepdim=True).square_()
+        bn = torch.linalg.vector_norm(b, dim=1).square_()
+        v = (qn + bn[None]).addmm_(q, b.T, alpha=-2.0).clamp_min_(0).double().numpy()
+        exact = ((q.double()[:, None] - b.double()[None]) ** 2).sum(-1).numpy()
+        bound = (
+            expansion_error_factor(dim)
+            * (np.sqrt(qn.double().numpy()) + np.sqrt(bn.double().numpy())[None]) ** 2
+        )
+        assert (np.abs(v - exact) <= bound).all()
+    assert expansion_error_factor(2**23) == float("inf")
+    before, full = torch.get_float32_matmul_precision(), expansion_error_factor(dim)
+    try:
+        torch.set_float32_matmul_precision("high")  # TF32 inputs: 10-bit fractions
+        assert expansion_error_factor(dim) >= full + 2 * 2.0**-11
+    finally:
+        torch.set_float32_matmul_precision(before)
+    # unit vectors in 16,384 dimensions: a few rows per query measured, not the place's 16
+    q = rng.standard_normal((256, 16384)).astype(np.float32)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    db = rng.standard_normal((16 * 20, 16384)).astype(np.float32)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    frame = np.repeat(np.arange(20), 16)
+    gt = rng.choice(20, 256)
+    made: list = []
+    real_init = _ExactPlace.__init__
+
+    def spy(self: _ExactPlace, *a: object) -> None:
+        real_init(self, *a)  # type: ignore[arg-type]
+        made.append(self)
+
+    _ExactPlace.__init__ = spy  # type: ignore[method-assign]
+    try:
+        _, _, d = image_ranks(q, db.astype(np.float16), frame, gt)
+    finally:
+        _ExactPlace.__init__ = real_init  # type: ignore[method-assign]
+    assert 256 <= made[0].measured < 256 * 4
+    np.testing.assert_array_equal(d, _exact_d(q, db.astype(np.float16), frame, [[g] for g in gt]))
+
+
+def test_the_exact_step_reads_database_rows_as_a_device_pass_does() -> None:
+    """A CUDA pass measures its pairs from the host arrays (float16 rows, database order): the
+    same values as from a chunk's float32 rows."""
+    from harness.retrieval.engines import _ExactPlace
+
+    rng = np.random.default_rng(9)
+    db = rng.standard_normal((40, 500)).astype(np.float16)
+    q = rng.standard_normal((6, 500)).astype(np.float32)
+    order = rng.permutation(40)
+    ii = np.repeat(np.arange(6), 5)
+    rows = rng.integers(0, 40, 30)
+    v = np.zeros(30, np.float32)  # no pruning: every pair within every bound
+    bn = np.full(30, 1e9)
+    host, chunk = _ExactPlace(np.ones(6), 500), _ExactPlace(np.ones(6), 500)
+    host.add(ii, v, bn, q, db, order[rows])
+    block = db[order].astype(np.float32)
+    chunk.add(ii, v, bn, q, block, np.argsort(order)[order[rows]])
+    np.testing.assert_array_equal(host.best, chunk.best)
+    want = [
+        ((db[order[rows[ii == k]]].astype(np.float64) - q[k]) ** 2).sum(1).min() for k in range(6)
+    ]
+    np.testing.assert_array_equal(host.best, want)

@@ -18,6 +18,7 @@ whose ground-truth frame is found among the top k; otherwise a lower bound, flag
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import warnings
 from collections.abc import Sequence
@@ -44,7 +45,12 @@ CUDA_CHUNK_ROWS = 65536
 #: machines), and the buffer is small enough to keep between calls (:func:`workspace`).
 CPU_CHUNK_BYTES = 32 * 2**20
 #: (query, row) pairs per block of the exact float64 measurement of ``d``.
-EXACT_BLOCK = 32
+EXACT_BLOCK = 16
+#: Unit roundoff of float32 (round to nearest).
+F32_U = 2.0**-24
+#: Unit roundoff of a float32 product's inputs under ``torch.set_float32_matmul_precision``:
+#: "high" lets a product round its inputs to TF32 (10-bit fraction), "medium" to bfloat16.
+MATMUL_INPUT_U = {"highest": 0.0, "high": 2.0**-11, "medium": 2.0**-8}
 
 
 @dataclass(frozen=True)
@@ -113,8 +119,10 @@ def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]
 _local = threading.local()
 
 
-def workspace(name: str, numel: int, device: torch.device) -> torch.Tensor:
-    """A flat float32 buffer of at least ``numel`` elements, kept for the calling thread.
+def workspace(
+    name: str, numel: int, device: torch.device, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:
+    """A flat buffer of at least ``numel`` elements of ``dtype``, kept for the calling thread.
 
     A fresh buffer of tens of megabytes pays a page fault per 4 KiB on first touch, which
     costs a small ranking call as much as a tenth of its matrix products; reused, it costs
@@ -122,12 +130,12 @@ def workspace(name: str, numel: int, device: torch.device) -> torch.Tensor:
     memory is not kept: a CUDA buffer is allocated per call.
     """
     if device.type != "cpu":
-        return torch.empty(max(numel, 1), dtype=torch.float32, device=device)[:numel]
-    bufs: dict[tuple[str, str], torch.Tensor] = _local.__dict__.setdefault("bufs", {})
-    key = (name, str(device))
+        return torch.empty(max(numel, 1), dtype=dtype, device=device)[:numel]
+    bufs: dict[tuple[str, str, torch.dtype], torch.Tensor] = _local.__dict__.setdefault("bufs", {})
+    key = (name, str(device), dtype)
     buf = bufs.get(key)
     if buf is None or buf.numel() < numel:
-        buf = bufs[key] = torch.empty(max(numel, 1), dtype=torch.float32, device=device)
+        buf = bufs[key] = torch.empty(max(numel, 1), dtype=dtype, device=device)
     return buf[:numel]
 
 
@@ -140,6 +148,27 @@ def scratch(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
         buf = bufs[name] = np.empty(max(nbytes, 1), np.uint8)
     out: np.ndarray = buf[:nbytes].view(dtype).reshape(shape)
     return out
+
+
+def expansion_error_factor(dim: int) -> float:
+    """``c`` with ``|v - |q - b|^2| <= c (|q| + |b|)^2`` for the fast value ``v`` of any pair.
+
+    ``v = fl(fl(qn + bn) - 2 fl(q.b))`` (clamped at 0), where ``qn``, ``bn`` are the float32
+    squared norms. A float32 dot product of ``dim`` terms, summed in any order, is off by at most
+    ``g_dim sum |q_i b_i| <= g_dim |q||b|`` (``g_n = n u / (1 - n u)``, Higham, Accuracy and
+    Stability of Numerical Algorithms, 3.1); each norm by ``g_(dim+3) |.|^2`` (sum, square root,
+    square), and the two additions add ``u`` of their operands each. All of it is below
+    ``g_(dim+8) (|q| + |b|)^2``, with ``|q|`` taken from its float32 value (a relative ``g``
+    larger at most: the divisor ``1 - 2g`` covers it). A product whose inputs may be rounded
+    (TF32, bfloat16: :data:`MATMUL_INPUT_U`) adds ``2 u_in |q||b|``. ``inf`` where ``dim`` is so
+    large that the bound says nothing (every row of the place is then measured).
+    """
+    nu = (dim + 8) * F32_U
+    if nu >= 0.25:
+        return float("inf")
+    g = nu / (1 - nu)
+    u_in = MATMUL_INPUT_U.get(torch.get_float32_matmul_precision(), 2.0**-8)
+    return (g + 2 * u_in) / (1 - 2 * g) * (1 + 1e-6)
 
 
 def _sqdist_into(
@@ -286,8 +315,8 @@ def _rank_group(
 
     The pass writes into buffers allocated once (a chunk's float32 rows, one batch's distances):
     a fresh multi-megabyte tensor per chunk costs its page faults, as much as the float16
-    conversion itself. While a chunk's distances are at hand, the fast-path values of the rows
-    of every query's place are kept; :func:`_exact_place_dist` then needs no second pass.
+    conversion itself. While a chunk's rows and distances are at hand, the rows of each query's
+    place that may hold its exact ``d`` are measured (:class:`_ExactPlace`): no second pass.
     """
     L, n = len(starts), len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
@@ -309,7 +338,10 @@ def _rank_group(
     block_buf = None if direct else workspace("block", widest * db_desc.shape[1], dev)
     d2_buf = workspace("d2", min(query_batch, max(n, 1)) * widest, dev)
     fm = torch.empty((n, L), dtype=torch.float32, device=dev)
-    cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    exact = _ExactPlace(
+        torch.cat(qnorms)[:, 0].double().cpu().numpy() if n else np.zeros(0),
+        db_desc.shape[1],
+    )
     for f0, f1 in chunks:
         r0, r1 = int(bounds[f0]), int(bounds[f1])
         rows = np.ascontiguousarray(db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]])
@@ -321,6 +353,7 @@ def _rank_group(
         else:  # float16 -> float32 in torch (multi-threaded), into the reused buffer
             block = block_buf[: src.numel()].view(src.shape).copy_(src)
         bn = torch.linalg.vector_norm(block, dim=1).square_()  # fused: no (rows x D) temporary
+        bn_host = bn.double().cpu().numpy()
         lens = np.diff(bounds[f0 : f1 + 1]).astype(np.int64)
         idx = _pad_index(lens, dev)
         # rows (chunk-local) of the place frames in this chunk, one run per (query, frame) pair
@@ -336,10 +369,14 @@ def _rank_group(
             d2 = _sqdist_into(q, qn, block, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1))
             fm[q0 : q0 + len(q), f0:f1] = _frame_min(d2, lens, idx)
             mine = (cqr >= q0) & (cqr < q0 + len(q))
-            if mine.any():
-                ii, rr = cqr[mine], crow[mine]
-                v = d2[torch.from_numpy(ii - q0).to(dev), torch.from_numpy(rr).to(dev)]
-                cand.append((ii, order[r0 + rr], v.cpu().numpy()))
+            if not mine.any():
+                continue
+            ii, rr = cqr[mine], crow[mine]
+            v = d2[torch.from_numpy(ii - q0).to(dev), torch.from_numpy(rr).to(dev)]
+            if dev.type == "cpu":  # the chunk's rows, in memory and float32 already
+                exact.add(ii, v.numpy(), bn_host[rr], query_desc, block.numpy(), rr)
+            else:  # the device's copy is not read back: the rows are read from the database
+                exact.add(ii, v.cpu().numpy(), bn_host[rr], query_desc, db_desc, order[r0 + rr])
     in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
     in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
     dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
@@ -347,84 +384,122 @@ def _rank_group(
         (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)
     )  # place frames never count
     Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
-    del fm, in_place
-    dist = _exact_place_dist(query_desc, db_desc, cand, dg[:, 0].cpu().numpy(), n)
-    return rank, Lq, dist
+    return rank, Lq, np.sqrt(exact.best)
 
 
-def _exact_place_dist(
-    query_desc: np.ndarray,
-    db_desc: np.ndarray,
-    cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-    dg: np.ndarray,
-    n: int,
-) -> np.ndarray:
+class _ExactPlace:
     """``d`` = the exact smallest L2 distance from each query to the rows of its place.
 
-    ``cand`` holds (query, database row, fast-path value) for every row of every query's place.
-    Only the rows whose fast value lies within the expansion's error of the query's best ``dg``
-    can hold the exact minimum (usually one row): each is measured by differences in float64,
-    (:func:`_exact_sqdist`), and the minimum taken.
+    Fed, chunk by chunk, with (query, row, fast value) of every row of every query's place.
+    The fast value ``v`` of a pair is within ``E = c (|q| + |b|)^2`` of its true squared distance
+    (:func:`expansion_error_factor`), so a row can hold the minimum only if ``v - E`` is at most
+    the smallest upper bound known for the query: ``upper``, the least exact value measured so
+    far (or ``v + E`` of a row not measured). Per batch, each query's row of least ``v`` is
+    measured first, which usually leaves none of the others under the bound. Rows measured by
+    differences in float64 (:func:`_exact_pairs`), the value each pair gets on its own; the
+    minimum is taken over them. The rows never measured cannot hold it, so ``d`` is the same as
+    measuring every row of the place.
     """
-    q_of = np.concatenate([c[0] for c in cand]) if cand else np.zeros(0, np.int64)
-    row_of = np.concatenate([c[1] for c in cand]) if cand else np.zeros(0, np.int64)
-    v_of = np.concatenate([c[2] for c in cand]) if cand else np.zeros(0, np.float32)
-    lim = dg[q_of]
-    keep = v_of <= lim + 1e-2 + 1e-3 * np.abs(lim)
-    q_of, row_of = q_of[keep], row_of[keep]
-    by_query = np.argsort(q_of, kind="stable")  # queries read as slices where they can be
-    q_of, row_of = q_of[by_query], row_of[by_query]
-    exact = _exact_sqdist(query_desc, db_desc, q_of, row_of)
-    best = np.full(n, np.inf)
-    np.minimum.at(best, q_of, exact)
-    out: np.ndarray = np.sqrt(best)
-    return out
+
+    def __init__(self, qn: np.ndarray, dim: int) -> None:
+        self.qnorm = np.sqrt(qn)
+        self.factor = expansion_error_factor(dim)
+        self.best = np.full(len(qn), np.inf)  # least exact squared distance measured
+        self.upper = np.full(len(qn), np.inf)  # least known upper bound on it
+        self.measured = 0  # (query, row) pairs measured, for the tests and the bench
+
+    def _select(self, ii: np.ndarray, v: np.ndarray, bn: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Indices of the pairs to measure now: each query's least ``v``, then the rest."""
+        vv = v.astype(np.float64)
+        err = self.factor * (self.qnorm[ii] + np.sqrt(bn)) ** 2
+        np.minimum.at(self.upper, ii, vv + err)
+        by = np.lexsort((vv, ii))  # by query, then fast value
+        lead = by[np.concatenate([[True], ii[by][1:] != ii[by][:-1]])]
+        return lead, vv - err
+
+    def _after_lead(self, ii: np.ndarray, lo: np.ndarray, lead: np.ndarray) -> np.ndarray:
+        """The pairs other than the lead ones whose lower bound reaches the query's upper bound."""
+        slack = self.upper[ii] * (1 + 1e-9)  # float64 rounding of the measured values
+        rest = lo <= slack
+        rest[lead] = False
+        return np.nonzero(rest)[0]
+
+    def _record(self, ii: np.ndarray, got: np.ndarray) -> None:
+        np.minimum.at(self.best, ii, got)
+        np.minimum.at(self.upper, ii, got)
+        self.measured += len(ii)
+
+    def add(
+        self,
+        ii: np.ndarray,
+        v: np.ndarray,
+        bn: np.ndarray,
+        query_desc: np.ndarray,
+        dsrc: np.ndarray,
+        di: np.ndarray,
+    ) -> None:
+        """Pairs of query ``ii`` and row ``di`` of ``dsrc`` (a chunk's rows or the database).
+
+        ``v``: their fast values; ``bn``: the rows' fast squared norms.
+        """
+        lead, lo = self._select(ii, v, bn)
+        for sel in (lead, None):
+            if sel is None:
+                sel = self._after_lead(ii, lo, lead)
+            if len(sel):
+                self._record(ii[sel], _exact_pairs(query_desc, ii[sel], dsrc, di[sel]))
 
 
-def _exact_sqdist(
-    query_desc: np.ndarray, db_desc: np.ndarray, q_of: np.ndarray, row_of: np.ndarray
-) -> np.ndarray:
-    """Squared L2 distance of each (query ``q_of[i]``, database row ``row_of[i]``) pair.
+def _exact_pairs(qsrc: np.ndarray, qi: np.ndarray, dsrc: np.ndarray, di: np.ndarray) -> np.ndarray:
+    """Squared L2 distance of each pair (``qsrc[qi[k]]``, ``dsrc[di[k]]``).
 
-    By differences in float64 (float16 and float32 inputs widen exactly): numpy's pairwise sum of
-    each pair's row, the value the pair gets on its own.
-
-    Blocks of :data:`EXACT_BLOCK` pairs, alternately to two threads (numpy releases the GIL),
-    each with buffers of its own kept between calls (:func:`scratch`: a fresh array per block
-    would pay its page faults every time, more than the arithmetic). ``q_of`` ascending: a block
-    of consecutive queries is read as a slice, not gathered.
+    By differences in float64 (float16 and float32 rows widen exactly), squared, then numpy's
+    pairwise sum of each row: the same bits as ``((b.astype(np.float64) - q) ** 2).sum()`` for
+    the pair alone. The pairs are split between :func:`_exact_pool`'s threads (numpy releases
+    the GIL), each working in blocks of :data:`EXACT_BLOCK` pairs in buffers of its own kept
+    between calls (:func:`scratch`). Own buffers matter: when one thread writes the squares and
+    another sums them, every block's cache lines cross between cores, which measured up to three
+    times slower on this project's machines.
     """
-    out = np.empty(len(q_of), np.float64)
-    n_pairs, dim = len(q_of), db_desc.shape[1]
+    n_pairs = len(qi)
+    out = np.empty(n_pairs, np.float64)
     if n_pairs == 0:
         return out
-    bufs = [
-        (
-            scratch(f"rows{w}", (EXACT_BLOCK, dim), db_desc.dtype),
-            scratch(f"queries{w}", (EXACT_BLOCK, dim), query_desc.dtype),
-            scratch(f"acc{w}", (EXACT_BLOCK, dim), np.float64),
-        )
-        for w in (0, 1)
-    ]
+    pool, workers = _exact_pool()
+    per = -(-n_pairs // max(1, min(workers, n_pairs // EXACT_BLOCK)))
+    parts = [(s, min(n_pairs, s + per)) for s in range(0, n_pairs, per)]
 
-    def work(w: int) -> None:
-        rows, qbuf, acc = bufs[w]
-        for s in range(w * EXACT_BLOCK, n_pairs, 2 * EXACT_BLOCK):
-            k = min(n_pairs, s + EXACT_BLOCK) - s
-            np.take(db_desc, row_of[s : s + k], axis=0, out=rows[:k])
-            q0, q1 = int(q_of[s]), int(q_of[s + k - 1]) + 1
-            if q1 - q0 == k:  # ascending and distinct: consecutive queries
-                qs = np.asarray(query_desc[q0:q1])
-            else:
-                qs = np.take(query_desc, q_of[s : s + k], axis=0, out=qbuf[:k])
+    def work(part: tuple[int, int]) -> None:
+        acc = scratch("exact_acc", (EXACT_BLOCK, dsrc.shape[1]), np.float64)
+        for s in range(part[0], part[1], EXACT_BLOCK):
+            k = min(part[1], s + EXACT_BLOCK) - s
             a = acc[:k]
-            np.subtract(rows[:k], qs, out=a, dtype=np.float64)
+            a[...] = dsrc[di[s : s + k]]  # gathered, widened
+            np.subtract(a, qsrc[qi[s : s + k]], out=a)
             np.square(a, out=a)
             out[s : s + k] = a.sum(1)
 
-    with ThreadPoolExecutor(2) as pool:
-        list(pool.map(work, [0, 1]))
+    if len(parts) == 1:
+        work(parts[0])
+    else:
+        list(pool.map(work, parts))
     return out
+
+
+_POOL: list[tuple[ThreadPoolExecutor, int]] = []
+
+
+def _exact_pool() -> tuple[ThreadPoolExecutor, int]:
+    """The exact step's threads: as many as torch's (at most 8), started once per process."""
+    workers = max(1, min(8, torch.get_num_threads()))
+    if not _POOL or _POOL[0][1] != workers:
+        if _POOL:
+            _POOL.pop()[0].shutdown(wait=False)
+        _POOL.append((ThreadPoolExecutor(workers, thread_name_prefix="dbl-exact"), workers))
+    return _POOL[0]
+
+
+os.register_at_fork(after_in_child=_POOL.clear)  # a forked child has no threads of its parent
 
 
 def image_ranks_faiss(
