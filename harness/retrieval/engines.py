@@ -364,19 +364,24 @@ def _rank_group(
         first = np.concatenate([[0], np.cumsum(clen)[:-1]]).astype(np.int64)
         crow = (bounds[cc] - r0)[rep] + np.arange(len(rep)) - first[rep]
         cqr = cq[rep]
+        vals = np.empty(len(cqr), np.float32)  # fast values of those rows, batch by batch
         for bi, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
             q0 = bi * query_batch
             d2 = _sqdist_into(q, qn, block, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1))
             fm[q0 : q0 + len(q), f0:f1] = _frame_min(d2, lens, idx)
-            mine = (cqr >= q0) & (cqr < q0 + len(q))
-            if not mine.any():
-                continue
-            ii, rr = cqr[mine], crow[mine]
-            v = d2[torch.from_numpy(ii - q0).to(dev), torch.from_numpy(rr).to(dev)]
-            if dev.type == "cpu":  # the chunk's rows, in memory and float32 already
-                exact.add(ii, v.numpy(), bn_host[rr], query_desc, block.numpy(), rr)
-            else:  # the device's copy is not read back: the rows are read from the database
-                exact.add(ii, v.cpu().numpy(), bn_host[rr], query_desc, db_desc, order[r0 + rr])
+            mine = np.nonzero((cqr >= q0) & (cqr < q0 + len(q)))[0]
+            if len(mine):
+                sel = (
+                    torch.from_numpy(cqr[mine] - q0).to(dev),
+                    torch.from_numpy(crow[mine]).to(dev),
+                )
+                vals[mine] = d2[sel].cpu().numpy()
+        # Once per chunk, not per batch: the exact step's threads run while torch's OpenMP threads
+        # spin after their last product (measured: a few milliseconds each time).
+        if dev.type == "cpu":  # the chunk's rows, in memory and float32 already
+            exact.add(cqr, vals, bn_host[crow], query_desc, block.numpy(), crow)
+        else:  # the device's copy is not read back: the rows are read from the database
+            exact.add(cqr, vals, bn_host[crow], query_desc, db_desc, order[r0 + crow])
     in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
     in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
     dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
@@ -442,6 +447,8 @@ class _ExactPlace:
 
         ``v``: their fast values; ``bn``: the rows' fast squared norms.
         """
+        if not len(ii):
+            return
         lead, lo = self._select(ii, v, bn)
         for sel in (lead, None):
             if sel is None:
