@@ -417,10 +417,12 @@ class _ExactPlace:
         """Indices of the pairs to measure now: each query's least ``v``, then the rest."""
         vv = v.astype(np.float64)
         err = self.factor * (self.qnorm[ii] + np.sqrt(bn)) ** 2
-        np.minimum.at(self.upper, ii, vv + err)
         by = np.lexsort((vv, ii))  # by query, then fast value
-        lead = by[np.concatenate([[True], ii[by][1:] != ii[by][:-1]])]
-        return lead, vv - err
+        iis = ii[by]
+        first = np.flatnonzero(np.concatenate([[True], iis[1:] != iis[:-1]]))
+        own = iis[first]  # each query once
+        self.upper[own] = np.minimum(self.upper[own], np.minimum.reduceat((vv + err)[by], first))
+        return by[first], vv - err
 
     def _after_lead(self, ii: np.ndarray, lo: np.ndarray, lead: np.ndarray) -> np.ndarray:
         """The pairs other than the lead ones whose lower bound reaches the query's upper bound."""
@@ -430,8 +432,11 @@ class _ExactPlace:
         return np.nonzero(rest)[0]
 
     def _record(self, ii: np.ndarray, got: np.ndarray) -> None:
-        np.minimum.at(self.best, ii, got)
-        np.minimum.at(self.upper, ii, got)
+        if len(np.unique(ii)) == len(ii):  # the lead pairs: one per query, no ufunc.at needed
+            self.best[ii] = np.minimum(self.best[ii], got)
+        else:
+            np.minimum.at(self.best, ii, got)
+        self.upper[ii] = np.minimum(self.best[ii], self.upper[ii])
         self.measured += len(ii)
 
     def add(
