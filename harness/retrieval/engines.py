@@ -119,10 +119,8 @@ def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]
 _local = threading.local()
 
 
-def workspace(
-    name: str, numel: int, device: torch.device, dtype: torch.dtype = torch.float32
-) -> torch.Tensor:
-    """A flat buffer of at least ``numel`` elements of ``dtype``, kept for the calling thread.
+def workspace(name: str, numel: int, device: torch.device) -> torch.Tensor:
+    """A flat float32 buffer of at least ``numel`` elements, kept for the calling thread.
 
     A fresh buffer of tens of megabytes pays a page fault per 4 KiB on first touch, which
     costs a small ranking call as much as a tenth of its matrix products; reused, it costs
@@ -130,12 +128,12 @@ def workspace(
     memory is not kept: a CUDA buffer is allocated per call.
     """
     if device.type != "cpu":
-        return torch.empty(max(numel, 1), dtype=dtype, device=device)[:numel]
-    bufs: dict[tuple[str, str, torch.dtype], torch.Tensor] = _local.__dict__.setdefault("bufs", {})
-    key = (name, str(device), dtype)
+        return torch.empty(max(numel, 1), dtype=torch.float32, device=device)[:numel]
+    bufs: dict[tuple[str, str], torch.Tensor] = _local.__dict__.setdefault("bufs", {})
+    key = (name, str(device))
     buf = bufs.get(key)
     if buf is None or buf.numel() < numel:
-        buf = bufs[key] = torch.empty(max(numel, 1), dtype=dtype, device=device)
+        buf = bufs[key] = torch.empty(max(numel, 1), dtype=torch.float32, device=device)
     return buf[:numel]
 
 
@@ -399,7 +397,7 @@ class _ExactPlace:
     The fast value ``v`` of a pair is within ``E = c (|q| + |b|)^2`` of its true squared distance
     (:func:`expansion_error_factor`), so a row can hold the minimum only if ``v - E`` is at most
     the smallest upper bound known for the query: ``upper``, the least exact value measured so
-    far (or ``v + E`` of a row not measured). Per batch, each query's row of least ``v`` is
+    far (or ``v + E`` of a row not measured). Per chunk, each query's row of least ``v`` is
     measured first, which usually leaves none of the others under the bound. Rows measured by
     differences in float64 (:func:`_exact_pairs`), the value each pair gets on its own; the
     minimum is taken over them. The rows never measured cannot hold it, so ``d`` is the same as
@@ -431,13 +429,14 @@ class _ExactPlace:
         rest[lead] = False
         return np.nonzero(rest)[0]
 
-    def _record(self, ii: np.ndarray, got: np.ndarray) -> None:
-        if len(np.unique(ii)) == len(ii):  # the lead pairs: one per query, no ufunc.at needed
-            self.best[ii] = np.minimum(self.best[ii], got)
-        else:
-            np.minimum.at(self.best, ii, got)
-        self.upper[ii] = np.minimum(self.best[ii], self.upper[ii])
-        self.measured += len(ii)
+    def _measure(
+        self, ii: np.ndarray, query_desc: np.ndarray, dsrc: np.ndarray, di: np.ndarray
+    ) -> None:
+        """Measure the pairs (query ``ii``, row ``di`` of ``dsrc``) and keep each query's least."""
+        if len(ii):
+            np.minimum.at(self.best, ii, _exact_pairs(query_desc, ii, dsrc, di))
+            self.upper[ii] = np.minimum(self.best[ii], self.upper[ii])
+            self.measured += len(ii)
 
     def add(
         self,
@@ -455,11 +454,9 @@ class _ExactPlace:
         if not len(ii):
             return
         lead, lo = self._select(ii, v, bn)
-        for sel in (lead, None):
-            if sel is None:
-                sel = self._after_lead(ii, lo, lead)
-            if len(sel):
-                self._record(ii[sel], _exact_pairs(query_desc, ii[sel], dsrc, di[sel]))
+        self._measure(ii[lead], query_desc, dsrc, di[lead])
+        rest = self._after_lead(ii, lo, lead)  # bounded by the lead rows' exact values
+        self._measure(ii[rest], query_desc, dsrc, di[rest])
 
 
 def _exact_pairs(qsrc: np.ndarray, qi: np.ndarray, dsrc: np.ndarray, di: np.ndarray) -> np.ndarray:
