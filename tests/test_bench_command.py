@@ -1,0 +1,46 @@
+"""The README's bench command as a user types it: ``.venv/bin/python -m bench --quick --only CASE``.
+
+Run in a copy of ``bench/`` (the command writes ``results/bench/`` beside the package it runs
+from), so the repository's tracked figures are left as they are. The cheapest case stands for the
+rest: the command line, a case in its own subprocess, ``bench.json`` and ``bench.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_bench_command_runs_as_typed_and_keeps_other_cases_figures(tmp_path: Path) -> None:
+    shutil.copytree(ROOT / "bench", tmp_path / "bench", ignore=shutil.ignore_patterns(".data"))
+    (tmp_path / "datasets").mkdir()
+    shutil.copy(ROOT / "datasets" / "fixture.toml", tmp_path / "datasets")  # the case reads it
+    out = tmp_path / "results" / "bench"
+    out.mkdir(parents=True)
+    # a figure of another case, from an earlier run: --only keeps it
+    earlier = {"case": "rank exact db=1000", "median": 1.0, "unit": "query subimages/s"}
+    (out / "bench.json").write_text(json.dumps({"results": [{**earlier, "group": "ranking"}]}))
+    tracked = (ROOT / "results" / "bench" / "bench.json").read_bytes()
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench", "--quick", "--only", "fusion"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "fusion: " in proc.stdout
+    rows = json.loads((out / "bench.json").read_text())["results"]
+    groups = {r["group"] for r in rows}
+    assert groups == {"ranking", "fusion"}
+    assert all(r["median"] > 0 for r in rows if r["group"] == "fusion")
+    md = (out / "bench.md").read_text()
+    assert "| rank exact db=1000 |" in md
+    assert any(f"| {r['case']} |" in md for r in rows if r["group"] == "fusion")
+    assert (ROOT / "results" / "bench" / "bench.json").read_bytes() == tracked
