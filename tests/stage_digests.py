@@ -5,11 +5,18 @@ name an entry (``{out}/cache/ingest/<key>/...`` in the frame table) are masked; 
 (``seconds``) are dropped from JSON; a checkpoint is digested by its tensors. Everything else is
 digested byte for byte. Regenerate the committed file after an intended change of results:
 
-    .venv/bin/python -m tests.stage_digests results/fixture datasets/fixture >
-    tests/regression/stages.json
+    .venv/bin/python -m tests.stage_digests results/fixture datasets/fixture \
+        --values tests/regression > tests/regression/stages.json
 
 (a run of ``datasets/fixture.toml`` on the default fixture and its data root: ``make
 reproduce-table``.)
+
+Across machines, the files in :data:`TOLERANT` are compared by value, not by digest: they hold
+full-precision floats summed by numpy, whose SIMD dispatch (e.g. ``AVX512_ICL`` against
+``AVX512_SKX``) can move the last bits between two machines that report the same torch CPU
+capability. Their committed values (``tests/regression/<name>.csv``, floats written with ``%r``)
+must match within :data:`RTOL` / :data:`ATOL`, every other column exactly. On one machine a
+rerun is byte-identical (the determinism tests check that).
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 #: Stages computed without floating-point kernels whose results could depend on the CPU: their
@@ -28,6 +36,11 @@ import pandas as pd
 #: machine with the same torch CPU capability as the one that wrote the regression.
 PORTABLE = ("cache/ingest/", "cache/frames/", "cache/pairs/")
 SKIP = {"manifest.json", "run.json", "report.html"}
+#: Report files compared by value within a tolerance across machines (committed values file name).
+TOLERANT = {"splits/summary.parquet": "summary.csv"}
+#: Relative and absolute tolerance of that comparison: a few hundred ulps of an AP near 1, far
+#: below the two decimals any table prints.
+RTOL, ATOL = 1e-9, 1e-12
 _KEY = re.compile(r"cache/([a-z_]+)/[0-9a-f]{16}")
 
 
@@ -86,6 +99,40 @@ def digests(out: Path, data_root: Path | None = None) -> dict[str, list[str]]:
     return {k: sorted(v) for k, v in sorted(res.items())}
 
 
+def values_frame(path: Path) -> pd.DataFrame:
+    """A parquet report's values as written to its committed CSV (floats to full precision)."""
+    return pd.read_parquet(path).reset_index(drop=True)
+
+
+def write_values(out: Path, dst: Path) -> None:
+    """Write the committed values of every :data:`TOLERANT` file of run ``out`` into ``dst``."""
+    for rel, name in TOLERANT.items():
+        values_frame(out / rel).to_csv(dst / name, index=False, float_format="%r")
+
+
+def values_differ(got: Path, want_csv: Path) -> list[str]:
+    """What differs between a report and its committed values beyond the stated tolerance.
+
+    Float columns within ``RTOL``/``ATOL`` (NaN equals NaN), every other column exactly; an empty
+    list when they agree.
+    """
+    g = values_frame(got)
+    w = pd.read_csv(want_csv, keep_default_na=False, na_values=["NaN", "nan", ""])
+    if list(g.columns) != list(w.columns) or len(g) != len(w):
+        return [f"shape or columns: {list(g.columns)} x {len(g)} vs {list(w.columns)} x {len(w)}"]
+    bad = []
+    for c in g.columns:
+        if pd.api.types.is_float_dtype(g[c]):
+            a, b = g[c].to_numpy(float), w[c].to_numpy(float)
+            ok = np.isclose(a, b, rtol=RTOL, atol=ATOL, equal_nan=True)
+            if not ok.all():
+                i = int(np.flatnonzero(~ok)[0])
+                bad.append(f"{c}: {(~ok).sum()} values, first row {i}: {a[i]!r} vs {b[i]!r}")
+        elif not (g[c].astype(str).to_numpy() == w[c].astype(str).to_numpy()).all():
+            bad.append(f"{c}: differs")
+    return bad
+
+
 def cpu_capability() -> str:
     """torch's CPU kernel level on this machine (e.g. ``AVX512``, ``AVX2``)."""
     import torch
@@ -94,6 +141,8 @@ def cpu_capability() -> str:
 
 
 if __name__ == "__main__":
+    if "--values" in sys.argv:
+        write_values(Path(sys.argv[1]), Path(sys.argv[sys.argv.index("--values") + 1]))
     json.dump(
         {
             "cpu_capability": cpu_capability(),
