@@ -7,6 +7,7 @@ allowed.
 from __future__ import annotations
 
 import itertools
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -68,6 +69,56 @@ def _range(
         key,
         list(pair),
         f"[low, high] with {lo} <= low <= high <= {hi}",
+    )
+
+
+#: The largest seed accepted anywhere (numpy's and torch's generators take 64-bit seeds).
+MAX_SEED = 2**63 - 1
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, int | float) and math.isfinite(v)
+
+
+def check_ingest(ig: Any, where: str, flags: dict[str, str] | None = None) -> None:
+    """The ingest options' ranges, for ``[ingest]`` and for ``harness ingest``'s flags alike.
+
+    ``flags`` names each field's command-line flag, so that a flag's error names the flag.
+    """
+    name = {
+        k: (flags or {}).get(k, f"[ingest] {k}")
+        for k in ("max_pose_gap_s", "max_tf_gap_s", "max_image_pixels")
+    }
+    for key in ("max_pose_gap_s", "max_tf_gap_s"):
+        v = getattr(ig, key)
+        _check(_finite(v) and v > 0, where, name[key], v, "> 0 seconds, finite")
+    _check(
+        ig.max_image_pixels >= 1,
+        where,
+        name["max_image_pixels"],
+        ig.max_image_pixels,
+        ">= 1",
+    )
+
+
+def check_fixture(fx: Any, where: str, flags: dict[str, str] | None = None) -> None:
+    """The fixture world's ranges, for ``[fixture]`` and for ``harness fixture``'s flags alike."""
+
+    def name(k: str) -> str:
+        return (flags or {}).get(k, f"[fixture] {k}")
+
+    _check(0 <= fx.seed <= MAX_SEED, where, name("seed"), fx.seed, f"0 .. {MAX_SEED}")
+    _check(fx.render_scale >= 1, where, name("render_scale"), fx.render_scale, ">= 1")
+    _check(fx.frames >= 1, where, name("frames"), fx.frames, ">= 1")
+    for k in ("width", "height"):
+        _check(getattr(fx, k) >= 8, where, name(k), getattr(fx, k), ">= 8 pixels")
+    _check(fx.objects >= 0, where, name("objects"), fx.objects, ">= 0")
+    _check(
+        _finite(fx.loop_scale) and fx.loop_scale > 0,
+        where,
+        name("loop_scale"),
+        fx.loop_scale,
+        "> 0, finite",
     )
 
 
@@ -136,9 +187,7 @@ def validate(cfg: Config, where: str) -> None:
         pa.queries,
         "'annotated' or 'all'",
     )
-    c(ig.max_pose_gap_s > 0, where, "[ingest] max_pose_gap_s", ig.max_pose_gap_s, "> 0 seconds")
-    c(ig.max_image_pixels >= 1, where, "[ingest] max_image_pixels", ig.max_image_pixels, ">= 1")
-    c(ig.max_tf_gap_s > 0, where, "[ingest] max_tf_gap_s", ig.max_tf_gap_s, "> 0 seconds")
+    check_ingest(ig, where)
     c(
         ig.time_source in ("header", "log"),
         where,
@@ -186,6 +235,28 @@ def validate(cfg: Config, where: str) -> None:
     c(re_.memory_mb > 0, where, "[retrieval] memory_mb", re_.memory_mb, "> 0 MiB")
     for key in ("faiss_nlist", "faiss_check"):
         c(getattr(re_, key) >= 0, where, f"[retrieval] {key}", getattr(re_, key), ">= 0")
+    c(
+        re_.db_stride_m == 0 or re_.gt_radius_m >= re_.db_stride_m / 2,
+        where,
+        "[retrieval] gt_radius_m",
+        re_.gt_radius_m,
+        f"at least half of db_stride_m = {re_.db_stride_m:g} (a place must keep a frame of the "
+        "thinned database)",
+    )
+    c(0 <= cfg.seed <= MAX_SEED, where, "seed", cfg.seed, f"0 .. {MAX_SEED}")
+    for section in ("descriptor", "projection", "fusion", "proposals", "retrieval"):
+        sub = getattr(cfg, section, None)
+        if sub is not None and hasattr(sub, "seed"):
+            c(0 <= sub.seed <= MAX_SEED, where, f"[{section}] seed", sub.seed, f"0 .. {MAX_SEED}")
+    for lc in cfg.localizers:
+        if lc.descriptor is not None:
+            c(
+                0 <= lc.descriptor.seed <= MAX_SEED,
+                where,
+                f"[[localizers]] {lc.name}: [descriptor] seed",
+                lc.descriptor.seed,
+                f"0 .. {MAX_SEED}",
+            )
     pj = cfg.projection
     c(pj.dim >= 0, where, "[projection] dim", pj.dim, ">= 0 (0: the full descriptor)")
     c(
@@ -389,6 +460,13 @@ def validate(cfg: Config, where: str) -> None:
         ">= 0 resamples (0: no intervals)",
     )
     c(0 < rp.ci < 1, where, "[report] ci", rp.ci, "(0, 1), e.g. 0.95")
+    c(
+        rp.chance_draws >= 200,
+        where,
+        "[report] chance_draws",
+        rp.chance_draws,
+        ">= 200 random orders (SPEC 9: the floor is measured, not the positive rate)",
+    )
     c(rp.gallery >= 0, where, "[report] gallery", rp.gallery, ">= 0 thumbnails per method and kind")
     c(
         0 <= rp.headline_roc_max <= 1,
@@ -398,17 +476,7 @@ def validate(cfg: Config, where: str) -> None:
         "[0, 1] (the page falls back to the largest RoC-max written)",
     )
     c(rp.locmap_examples >= 0, where, "[report] locmap_examples", rp.locmap_examples, ">= 0")
-    c(fx.render_scale >= 1, where, "[fixture] render_scale", fx.render_scale, ">= 1")
-    c(fx.frames >= 1, where, "[fixture] frames", fx.frames, ">= 1")
-    c(
-        fx.width >= 8 and fx.height >= 8,
-        where,
-        "[fixture] width x height",
-        (fx.width, fx.height),
-        ">= 8 pixels each",
-    )
-    c(fx.objects >= 0, where, "[fixture] objects", fx.objects, ">= 0")
-    c(fx.loop_scale > 0, where, "[fixture] loop_scale", fx.loop_scale, "> 0")
+    check_fixture(fx, where)
     c(
         not fx.formats or len(fx.formats) in (1, len(cfg.sessions)),
         where,

@@ -221,6 +221,8 @@ class ReportConfig:
 
     bootstrap: int = 1000
     ci: float = 0.95
+    # SPEC 9: random orders of the same samples behind every floor and chance band (>= 200)
+    chance_draws: int = 200
     locmap_examples: int = 4
     plots: bool = True
     html: bool = True  # write report.html (the one page to look at) after the tables

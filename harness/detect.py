@@ -86,6 +86,11 @@ def change_boxes_nms(
     return ok[idx].astype(np.int64)
 
 
+def _nms(boxes: np.ndarray, scores: np.ndarray, nms_iou: float, max_boxes: int) -> np.ndarray:
+    """The detector's NMS as a function of (boxes, scores), for Table D's chance draws."""
+    return change_boxes_nms(boxes, scores, nms_iou, max_boxes)
+
+
 def detect_chunk(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
@@ -376,7 +381,26 @@ def write_outputs(
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
     from .detect_eval import score_detections
 
-    table_d = score_detections(out, fr, ann, dets, ids) if len(ann) else None
+    table_d = None
+    if len(ann):
+        annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
+        cands = []
+        for e in entries:  # candidates of the annotated frames only, one chunk at a time
+            sm = read_cached_parquet(e.path / "samples.parquet")
+            cands.append(sm[pd.MultiIndex.from_frame(sm[Q_KEY]).isin(annotated)])
+        table_d = score_detections(
+            out,
+            fr,
+            ann,
+            dets,
+            ids,
+            pd.concat(cands, ignore_index=True),
+            partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes),
+            cfg.report.chance_draws,
+            cfg.report.bootstrap,
+            cfg.report.ci,
+            cfg.seed,
+        )
     from .detect_page import write_detect_page
 
     page = write_detect_page(out, fr, top, dets, frames, maps, table_d, map_session, localizers)

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from .cache import write_text
+from .chance import VERDICT_WORDS
 from .imagestore import read_image
 from .report_html import SCRIPT  # the page reports its own loaded images (browser test)
 
@@ -106,19 +107,27 @@ def write_detect_page(
     td = ""
     if table_d is not None:
         rows = "".join(
-            f"<tr><td>{_e(x.row)}</td><td>{x.ap50_voc_all_point:.3f}</td>"
+            f"<tr><td>{_e(x.row)}</td><td data-verdict='{_e(x.verdict)}'>"
+            f"{x.ap50_voc_all_point:.3f} [{x.ci_low:.3f}, {x.ci_high:.3f}]</td>"
+            f"<td>{_e(VERDICT_WORDS[x.verdict])}</td>"
             f"<td>{x.coco_ap_50_95:.3f}</td><td>{x.coco_ap_50:.3f}</td>"
             f"<td>{x.annotated_frames}</td><td>{x.change_boxes}</td><td>{x.detections}</td></tr>"
             for x in table_d.itertuples()
         )
+        c = table_d.iloc[0]
         td = (
             '<h2 id="tableD">Table D: change boxes on the annotated frames</h2>'
-            "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation, COCO "
-            "AP@[.5:.95]; frames annotated no-change give false positives only; the floor is "
-            "the same boxes with random scores.</p>"
-            '<table data-table="D"><tr><th></th><th>AP50 (VOC all-point)</th>'
+            "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
+            "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
+            "no-change give false positives only. Verdict by SPEC 9: above chance only above the "
+            "chance band and clear of the random row (paired).</p>"
+            '<table data-table="D"><tr><th></th><th>AP50 (VOC all-point)</th><th>verdict</th>'
             "<th>COCO AP@[.5:.95]</th><th>COCO AP@.5</th><th>frames</th><th>change boxes</th>"
             f"<th>detections</th></tr>{rows}</table>"
+            f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {c.floor:.3f} "
+            f"(mean of random scores, same NMS), chance band {c.chance_low:.3f}-"
+            f"{c.chance_high:.3f}, ceiling {c.ceiling:.3f} (candidates scored by their best IoU), "
+            f"candidates' recall at IoU 0.5 {c.candidate_recall:.3f}.</p>"
         )
         td += "".join(f'<p class="warn">{_e(w)}</p>' for w in table_d_warnings(table_d))
     qs = sorted(set(fr["session"]))
@@ -142,17 +151,25 @@ def write_detect_page(
 
 
 def table_d_warnings(t: pd.DataFrame) -> list[str]:
-    """What Table D must say in words: a detector no better than its floor, too few frames."""
+    """What Table D must say in words, from SPEC 9's verdict and the candidates' ceiling."""
     out = []
-    det, floor = t.iloc[0], t.iloc[1]
-    if not det["ap50_voc_all_point"] > floor["ap50_voc_all_point"] + 0.02:
+    det = t.iloc[0]
+    if det["verdict"] != "above":
         out.append(
-            f"WARNING: the detector's AP50 ({det['ap50_voc_all_point']:.3f}) is not above the "
-            f"floor's ({floor['ap50_voc_all_point']:.3f}) by more than 0.02: its boxes locate the "
-            "annotated changes no better than random scores on the same fused qBBs. Fused qBBs "
-            "are intersections of proposals, usually smaller than a change object, so few reach "
-            "IoU 0.5 with one; the frame scores (image AP in Table P of harness reproduce) and "
-            "the LoC maps may still rank changed frames and regions first."
+            f"WARNING: the detector's AP50 ({det['ap50_voc_all_point']:.3f}): "
+            f"{VERDICT_WORDS[str(det['verdict'])]} (floor {det['floor']:.3f}, chance band "
+            f"{det['chance_low']:.3f}-{det['chance_high']:.3f}, paired difference from the "
+            f"random row [{det['vs_random_ci_low']:+.3f}, {det['vs_random_ci_high']:+.3f}]): its "
+            "boxes locate the annotated changes no better than random scores on the same "
+            "candidates. The frame scores (image AP in Table P of harness reproduce) and the LoC "
+            "maps may still rank changed frames and regions first."
+        )
+    if det["candidate_recall"] == det["candidate_recall"] and det["candidate_recall"] < 0.5:
+        out.append(
+            f"NOTE: only {det['candidate_recall']:.0%} of the annotated change boxes are met at "
+            "IoU 0.5 by any candidate box (fused qBBs are intersections of proposals, usually "
+            f"smaller than a change object): no score could lift AP50 above the ceiling "
+            f"{det['ceiling']:.3f}. The loss is in the boxes, not the localizer."
         )
     if int(det["annotated_frames"]) < 30:
         out.append(

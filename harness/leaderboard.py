@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from .chance import MARK_LEGEND, VERDICT_MARKS
 from .config import Config
 from .metrics import paired_difference
 from .splits import Split
@@ -35,7 +36,7 @@ def headline_split(splits: Sequence[Split], roc_max: float) -> Split:
     return min(splits, key=lambda s: abs(s.roc_max - roc_max))
 
 
-def _cell(summ: pd.DataFrame, table: str, split: str, method: str) -> dict[str, float]:
+def _cell(summ: pd.DataFrame, table: str, split: str, method: str) -> dict[str, Any]:
     r = summ[
         (summ["table"] == table)
         & (summ["split"] == split)
@@ -45,13 +46,15 @@ def _cell(summ: pd.DataFrame, table: str, split: str, method: str) -> dict[str, 
     ]
     if not len(r):
         nan = float("nan")
-        return {"ap": nan, "ci_low": nan, "ci_high": nan, "floor": nan, "query_images": 0}
+        return {
+            **dict.fromkeys(("ap", "ci_low", "ci_high", "floor", "chance_high"), nan),
+            "verdict": "undefined",
+            "query_images": 0,
+        }
     x = r.iloc[0]
     return {
-        "ap": float(x["ap"]),
-        "ci_low": float(x["ci_low"]),
-        "ci_high": float(x["ci_high"]),
-        "floor": float(x["floor"]),
+        **{k: float(x[k]) for k in ("ap", "ci_low", "ci_high", "floor", "chance_high")},
+        "verdict": str(x["verdict"]),
         "query_images": int(x["query_images"]),
     }
 
@@ -85,7 +88,7 @@ def leaderboard(
         }
         for prefix, table, split, method, _ in AP_COLUMNS:
             c = _cell(b.summary, table, head.name if split == "headline" else split, method)
-            for k in ("ap", "ci_low", "ci_high", "floor"):
+            for k in ("ap", "ci_low", "ci_high", "floor", "chance_high", "verdict"):
                 row[f"{prefix}_{k}"] = c[k]
             if prefix == "S_rank_fusion":
                 row["query_images"] = c["query_images"]
@@ -109,10 +112,13 @@ def leaderboard_csv(t: pd.DataFrame) -> str:
 
 
 def _ap(r: Any, prefix: str) -> str:
-    v, lo, hi = (getattr(r, f"{prefix}_{k}") for k in ("ap", "ci_low", "ci_high"))
+    v, lo, hi, ver = (getattr(r, f"{prefix}_{k}") for k in ("ap", "ci_low", "ci_high", "verdict"))
     if v != v:
         return "-"
-    return f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}"
+    mark = VERDICT_MARKS.get(str(ver), "")
+    return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
+        f" {mark}" if mark else ""
+    )
 
 
 def _pct(v: float) -> str:
@@ -181,13 +187,14 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
     ]
     lines.append("")
     lines.append(
-        "Floor: the AP of a random ranking of the same samples. "
+        "Floor: the mean AP of random orders of the same samples (within the same strata, "
+        "through the same pixel maps). "
         + (
             "Rows whose Table S floor differs (their boxes differ): " + ", ".join(other) + "."
             if other
             else "Every row's Table S floor is the same to two decimals."
         )
-        + " A row whose interval holds its floor cannot be told from chance on this data."
+        + f" {MARK_LEGEND}"
     )
     return "\n".join(lines) + "\n"
 

@@ -13,6 +13,7 @@ from functools import partial
 import numpy as np
 import pandas as pd
 
+from . import chance
 from .annotations import change_boxes
 from .config import Config
 from .fusion import pixel_regions
@@ -78,34 +79,69 @@ class _Pooled:
         self.rows.append({**row, "method": method, "ci_low": lo, "ci_high": hi})
 
     def finish(self) -> list[dict]:
-        ref = next((r for r in self.rows if r["method"] == "rank_fusion"), None)
+        """Each row's paired differences from ``rank_fusion`` and from ``random``, and its verdict.
+
+        Both differences use the same resamples; the verdict is SPEC 9's one rule
+        (:func:`harness.chance.verdict`).
+        """
         for r in self.rows:
-            if ref is None or r["method"] == "rank_fusion" or not len(self.boot[r["method"]]):
-                r.update(
-                    {
-                        "diff": float("nan"),
-                        "diff_ci_low": float("nan"),
-                        "diff_ci_high": float("nan"),
-                        "sign_flip_share": float("nan"),
-                    }
-                )
-            else:
-                r.update(
-                    paired_difference(
-                        self.boot[r["method"]],
-                        self.boot["rank_fusion"],
-                        r["ap"],
-                        ref["ap"],
-                        self.cfg.report.ci,
-                    )
-                )
+            r.update(self._paired(r, "rank_fusion", ""))
+            r.update(self._paired(r, "random", "vs_random_"))
+            r["verdict"] = chance.verdict(
+                r["ap"],
+                r["chance_low"],
+                r["chance_high"],
+                r["vs_random_diff_ci_low"],
+                r["vs_random_diff_ci_high"],
+            )
         return self.rows
+
+    def _paired(self, r: dict, ref_method: str, prefix: str) -> dict[str, float]:
+        """``r``'s method minus ``ref_method`` over the same resamples (NaN where undefined)."""
+        ref = next((x for x in self.rows if x["method"] == ref_method), None)
+        nan = float("nan")
+        out = {"diff": nan, "diff_ci_low": nan, "diff_ci_high": nan, "sign_flip_share": nan}
+        same = r["method"] == ref_method and prefix == ""
+        if ref is not None and not same and len(self.boot[r["method"]]):
+            out = paired_difference(
+                self.boot[r["method"]],
+                self.boot[ref_method],
+                r["ap"],
+                ref["ap"],
+                self.cfg.report.ci,
+            )
+        return {f"{prefix}{k}": v for k, v in out.items()}
+
+
+def _chance_fields(
+    floor: tuple[float, float, float], ap: float, ceiling: float = float("nan")
+) -> dict[str, float]:
+    """A row's floor, chance band, ceiling and share of the reachable gap (SPEC 9)."""
+    f, lo, hi = floor
+    return {
+        "floor": f,
+        "chance_low": lo,
+        "chance_high": hi,
+        "ceiling": ceiling,
+        "gap_closed": chance.gap_closed(ap, f, ceiling),
+    }
 
 
 def _table_i_rows(
-    df: pd.DataFrame, split: Split, methods: tuple[str, ...], season_pair: str, proposals: str
+    df: pd.DataFrame,
+    split: Split,
+    methods: tuple[str, ...],
+    season_pair: str,
+    proposals: str,
+    draws: int = chance.MIN_DRAWS,
+    seed: int = 0,
 ) -> list[dict]:
-    """Per-split APs without intervals (the breakdowns by proposal method and season pair)."""
+    """Per-split APs without intervals (the breakdowns by proposal method and season pair).
+
+    Their floors and chance bands are measured like the pooled ones; without a bootstrap their
+    verdict is ``untested``.
+    """
+    nan = float("nan")
     rows = []
     lab = split_label(df["RoC"].to_numpy(), df["SoB"].to_numpy(), split)
     groups = _groups(df)
@@ -113,6 +149,7 @@ def _table_i_rows(
         loc = df[f"loc_{m}"].to_numpy()
         sel = (lab >= 0) & ~np.isnan(loc)
         y = lab[sel] == 1
+        ap = average_precision(y, loc[sel])
         rows.append(
             {
                 "table": "I",
@@ -121,8 +158,8 @@ def _table_i_rows(
                 "proposals": proposals,
                 "season_pair": season_pair,
                 "method": m,
-                "ap": average_precision(y, loc[sel]),
-                "floor": float(y.mean()) if len(y) else float("nan"),
+                "ap": ap,
+                **_chance_fields(chance.plain_chance(y, draws, seed), ap),
                 "ci_low": float("nan"),
                 "ci_high": float("nan"),
                 "positives": int(y.sum()),
@@ -130,6 +167,7 @@ def _table_i_rows(
                 "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
                 "positive_rate": float(y.mean()) if len(y) else float("nan"),
                 "query_images": len(np.unique(groups[sel])),
+                "verdict": chance.verdict(ap, *chance.plain_chance(y, draws, seed)[1:], nan, nan),
             }
         )
     return rows
@@ -159,13 +197,13 @@ def _pooled_rows(
         loc = df[f"loc_{m}"].to_numpy()
         sel = (lab >= 0) & ~np.isnan(loc)
         y, sc, g, sb = lab[sel] == 1, loc[sel], gi[sel], sob[sel]
+        draws = cfg.report.chance_draws
         if table == "I":
-            ap, floor = average_precision(y, sc), (float(y.mean()) if len(y) else float("nan"))
-
+            ap, floor = average_precision(y, sc), chance.plain_chance(y, draws, cfg.seed)
             boot = partial(bootstrap_aps, y, sc, g)
         else:
-            ap, floor = stratified_ap(y, sc, sb, edges)
-
+            ap = stratified_ap(y, sc, sb, edges)[0]
+            floor = chance.stratified_chance(y, sb, edges, draws, cfg.seed)
             boot = partial(bootstrap_aps, y, sc, g, stat="stratified", sob=sb, edges=edges)
 
         pooled.add(
@@ -177,7 +215,7 @@ def _pooled_rows(
                 "proposals": "all",
                 "season_pair": "all",
                 "ap": ap,
-                "floor": floor,
+                **_chance_fields(floor, ap),
                 "positives": int(y.sum()),
                 "negatives": int((~y).sum()),
                 "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
@@ -235,6 +273,11 @@ def _pixel_image_rows(
         samples["q_camera"].to_numpy(),
         samples["q_utime"].to_numpy(),
     )
+    # per box set ("fused" or "orig"): its regions (owner = sample row, -1 uncovered) and its boxes
+    # by image, for the floor (random box scores) and ceiling (box RoC) through the same maps
+    maps: dict[str, dict[str, list]] = {
+        k: {"row": [], "y": [], "w": [], "units": [], "img_y": []} for k in ("fused", "orig")
+    }
     for gkey, idx in pd.Series(np.arange(len(samples))).groupby(groups, sort=True).indices.items():
         qk = (str(qs[idx[0]]), str(qc[idx[0]]), int(qu[idx[0]]))
         w, h = size[qk]
@@ -253,6 +296,13 @@ def _pixel_image_rows(
             # once
             uniq, inv = np.unique((owner + 1) * 2 + pos, return_inverse=True)
             regions[k] = (np.bincount(inv, weights=area), (uniq % 2).astype(bool), uniq // 2 - 1)
+            a, y, own = regions[k]
+            maps[k]["row"].append(np.where(own >= 0, v[np.maximum(own, 0)] if len(v) else -1, -1))
+            maps[k]["y"].append(y)
+            maps[k]["w"].append(a)
+            if len(v):
+                maps[k]["units"].append(v)
+                maps[k]["img_y"].append(bool(len(change)))
         for m in methods:
             key = "orig" if m == "rank_no_fusion" else "fused"
             area, pos, owner = regions[key]
@@ -268,6 +318,7 @@ def _pixel_image_rows(
                 img[m]["s"].append(float(np.nanmax(v)))
                 img[m]["y"].append(bool(len(change)))
                 img[m]["g"].append(gid)
+    chance_of = _map_chance(cfg, maps, samples["RoC"].to_numpy(np.float64))
     rows = []
     for name, data in (("pixel", px), ("image", img)):
         pooled = _Pooled(cfg, ids, f"P:{name}")
@@ -303,6 +354,7 @@ def _pixel_image_rows(
                     "negatives": int((~y_).sum()),
                     "positive_rate": float(y_.mean()) if len(y_) else float("nan"),
                 }
+            floor, ceiling = chance_of[(name, "orig" if m == "rank_no_fusion" else "fused")]
             pooled.add(
                 m,
                 {
@@ -312,7 +364,7 @@ def _pixel_image_rows(
                     "proposals": "all",
                     "season_pair": "all",
                     "ap": ap,
-                    "floor": extra["positive_rate"],
+                    **_chance_fields(floor, ap, ceiling),
                     "left_out": 0,
                     "query_images": len(np.unique(g_)),
                     **extra,
@@ -321,3 +373,49 @@ def _pixel_image_rows(
             )
         rows += pooled.finish()
     return rows
+
+
+def _map_chance(
+    cfg: Config, maps: dict[str, dict[str, list]], roc: np.ndarray
+) -> dict[tuple[str, str], tuple[tuple[float, float, float], float]]:
+    """Table P's floor, chance band and ceiling per (pixel or image, box set), SPEC 9.
+
+    Floor: every box of the set takes a uniform random score, pixels take the score of the box
+    that owns them in the method's map (uncovered pixels the lowest score of the draw) and each
+    image the largest score of its boxes, as the real figures do. Ceiling: every box scored by its
+    RoC through the same maps (the best any LoC could do with these boxes).
+    """
+    out = {}
+    nan3 = (float("nan"),) * 3
+    for key, mp in maps.items():
+        if not mp["units"]:
+            out[("pixel", key)] = out[("image", key)] = (nan3, float("nan"))
+            continue
+        units = np.concatenate(mp["units"])
+        unit_of = np.full(len(roc), -1, np.int64)
+        unit_of[units] = np.arange(len(units))
+        row = np.concatenate(mp["row"])
+        ru = np.where(row >= 0, unit_of[np.maximum(row, 0)], -1)
+        y, w = np.concatenate(mp["y"]).astype(bool), np.concatenate(mp["w"])
+        starts = np.cumsum([0] + [len(u) for u in mp["units"][:-1]])
+        img_y = np.asarray(mp["img_y"], bool)
+
+        def pixel_scores(s: np.ndarray, ru: np.ndarray = ru) -> np.ndarray:
+            low = s.min(axis=1, keepdims=True)
+            return np.where(ru[None, :] >= 0, s[:, np.maximum(ru, 0)], low)
+
+        def pixel(s: np.ndarray, y: np.ndarray = y, w: np.ndarray = w) -> np.ndarray:
+            return chance.aps_of_rows(y, pixel_scores(s), w)
+
+        def image(s: np.ndarray, starts: np.ndarray = starts, img_y: np.ndarray = img_y):
+            return chance.aps_of_rows(img_y, np.maximum.reduceat(s, starts, axis=1))
+
+        draws, n = cfg.report.chance_draws, len(units)
+        oracle = roc[units][None, :]
+        for name, fig in (("pixel", pixel), ("image", image)):
+            seed = chance.draw_seed(cfg.seed, "P", name, key, n)
+            out[(name, key)] = (
+                chance.summarise(chance.random_draws(fig, n, draws, seed)),
+                float(fig(oracle)[0]),
+            )
+    return out

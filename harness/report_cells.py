@@ -15,6 +15,7 @@ import pandas as pd
 
 from . import report_tables
 from .methods import FUSION_METHODS, METHOD_LABELS
+from .report_render import chance_rows, gap_line
 from .reports import LOC_COLUMNS, TABLE_INTRO, pivot
 
 
@@ -36,48 +37,53 @@ def diff_colour(lo: float, hi: float) -> str:
     return "#e3f4e1" if lo > 0 else "#fbe3e1" if hi < 0 else "#fff"
 
 
-#: What a change-table cell says about its AP, from its 95% interval and the floor.
+#: What a change-table cell says about its AP: SPEC 9's verdict (:func:`harness.chance.verdict`).
 VERDICTS = {
-    "above": "its interval lies clear above the floor: better than a random ranking",
-    "holds": "its interval holds the floor: not told apart from a random ranking",
-    "below": "its interval lies clear below the floor: worse than a random ranking",
-    "none": "no interval (or no positive): the shade shows the distance from the floor only",
+    "above": "above chance: above the chance band and clear of the random baseline (paired)",
+    "chance": "cannot be told from chance on this data",
+    "below": "below chance: under the chance band and clear below the random baseline (paired)",
+    "untested": "no interval: not tested against chance; the shade shows the distance only",
+    "undefined": "undefined (no positive)",
 }
 
 
-def verdict(ap: float, lo: float, hi: float, floor: float) -> tuple[str, str]:
-    """(verdict, background) of one AP: green above the floor, grey on it, red below it.
+def verdict(ap: float, floor: float, word: str) -> tuple[str, str]:
+    """(verdict, background) of one AP cell: the colour of SPEC 9's verdict ``word``.
 
-    The decision is the interval's (``lo > floor``, ``hi < floor``, else it holds the floor); the
-    shade grows with the distance of the AP from the floor, as a share of the room there is
-    (1 - floor above it, floor below it). Without an interval the verdict is ``none`` and the
-    colour is a pale version of the same scale.
+    Green above chance, red below, grey when it cannot be told from chance; the shade grows with
+    the distance of the AP from the floor, as a share of the room there is (1 - floor above it,
+    floor below it). Untested cells (no interval) get a pale version of the same scale and decide
+    nothing.
     """
-    if ap != ap or floor != floor:
-        return "none", "#f0f0f0"
+    if ap != ap or floor != floor or word == "undefined":
+        return "undefined", "#f0f0f0"
     up = ap >= floor
     room = (1.0 - floor) if up else floor
     t = float(np.clip(abs(ap - floor) / room if room > 0 else 0.0, 0.0, 1.0))
     green = (int(232 - 100 * t), int(246 - 40 * t), int(228 - 100 * t))
     red = (int(251 - 20 * t), int(228 - 110 * t), int(225 - 110 * t))
-    if lo != lo or hi != hi:
-        r, g, b = green if up else red
-        r, g, b = (int(255 - (255 - v) * 0.5) for v in (r, g, b))
-        return "none", f"rgb({r},{g},{b})"
-    if lo > floor:
+    if word == "above":
         return "above", "rgb({},{},{})".format(*green)
-    if hi < floor:
+    if word == "below":
         return "below", "rgb({},{},{})".format(*red)
-    return "holds", "#e4e4e4"
+    if word == "chance":
+        return "chance", "#e4e4e4"
+    r, g, b = green if up else red
+    r, g, b = (int(255 - (255 - v) * 0.5) for v in (r, g, b))
+    return "untested", f"rgb({r},{g},{b})"
 
 
 LEGEND = (
-    '<div class="legend" data-legend="floor"><b>How to read the colours.</b> '
-    '<span class="sw" style="background:rgb(182,226,178)"></span> green: the AP\'s 95% interval '
-    "lies clear above the table's floor (the AP of a random ranking), the darker the further; "
-    '<span class="sw" style="background:#e4e4e4"></span> grey: the interval holds the floor, so '
-    "this data cannot tell the method from chance; "
-    '<span class="sw" style="background:rgb(241,163,160)"></span> red: clear below the floor. '
+    '<div class="legend" data-legend="floor"><b>How to read the colours</b> (SPEC 9, one rule '
+    "for every colour). "
+    '<span class="sw" style="background:rgb(182,226,178)"></span> green: above chance, the AP '
+    "exceeds the chance band (the 95th percentile of random orders of the same samples) and its "
+    "paired bootstrap difference from the random baseline lies clear above 0, the darker the "
+    "further from the floor; "
+    '<span class="sw" style="background:#e4e4e4"></span> grey: this data cannot tell the method '
+    "from chance; "
+    '<span class="sw" style="background:rgb(241,163,160)"></span> red: below chance, '
+    "symmetrically. The floor is the mean AP of those random orders, not the positive rate. "
     "Paired differences: green or red when their interval is clear of 0, white when it holds 0. "
     "A cell without an interval is paler and decides nothing.</div>"
 )
@@ -104,11 +110,12 @@ def change_table(
     who: str = "",
 ) -> str:
     """One change table (I, S or P) of a run's summary, cells coloured against their floor."""
-    ap, lo, hi = (pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high"))
+    ap, lo, hi, ver = (
+        pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "verdict")
+    )
     floor = pivot(summ, table, methods, "floor")
     cols = list(ap.columns)
     head = "".join(f"<th>{esc(f'{c:.2f}' if isinstance(c, float) else c)}</th>" for c in cols)
-    ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
     rows, sep = [], False
     for m in ap.index:
         if m not in FUSION_METHODS and not sep:
@@ -118,8 +125,9 @@ def change_table(
             )
             sep = True
         cells = "".join(
-            '<td data-verdict="{}" style="background:{}">'.format(
-                *verdict(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c], floor.loc[m, c])
+            '<td data-verdict="{}" style="background:{}" title="{}">'.format(
+                *verdict(ap.loc[m, c], floor.loc[m, c], str(ver.loc[m, c])),
+                esc(VERDICTS.get(str(ver.loc[m, c]), "")),
             )
             + f"{num(ap.loc[m, c])}"
             + (
@@ -131,18 +139,21 @@ def change_table(
             for c in cols
         )
         rows.append(f"<tr><td>{esc(METHOD_LABELS[m])}</td>{cells}</tr>")
-    rows.append(
-        '<tr class="floor"><td>floor (random ranking)</td>'
-        + "".join(f"<td>{num(floor.loc[ref, c])}</td>" for c in cols)
+    rows += [
+        f'<tr class="floor"><td>{esc(label)}</td>'
+        + "".join(f"<td>{esc(v)}</td>" for v in vals)
         + "</tr>"
-    )
+        for label, vals in chance_rows(summ, table, methods)
+    ]
+    if table == "P":
+        warnings = [gap_line(summ, methods), *warnings]
     title, intro = TABLE_INTRO[table]
     warn = "".join(f'<div class="warn">{esc(w)}</div>' for w in warnings)
     heading = "h3" if table == "I" else "h2"
     return (
         f'<{heading} id="table{table}">{esc(title + who)}</{heading}><p class="note">{esc(intro)} '
-        "Cells: AP [95% bootstrap interval over query images]; colour: the interval against "
-        "the floor (see the legend).</p>"
+        "Cells: AP [95% bootstrap interval over query images]; colour: SPEC 9's verdict "
+        "against chance (see the legend).</p>"
         f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}'
     )
 
@@ -191,7 +202,7 @@ def heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
         return ""
     return heat_table(
         d.set_index("season_pair")["ap"].to_dict(),
-        d.set_index("season_pair")["positive_rate"].to_dict(),
+        d.set_index("season_pair")["floor"].to_dict(),
         "heatmapI",
         f"{METHOD_LABELS[method]}, Table I (the paper's protocol), {split}",
     )
@@ -199,6 +210,7 @@ def heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
 
 def heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split: str) -> str:
     """Table S's AP of one method per season pair (query season down, reference across)."""
+    from .chance import MIN_DRAWS, stratified_chance
     from .metrics import stratified_ap
 
     col = f"loc_{method}"
@@ -208,9 +220,9 @@ def heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split
     pairs, floors = {}, {}
     for pair, g in allp.groupby("season_pair", sort=True):
         g = g[g[col].notna()]
-        pairs[pair], floors[pair] = stratified_ap(
-            g["label_stratified"].to_numpy() == 1, g[col].to_numpy(), g["SoB"].to_numpy(), edges
-        )
+        y, sob = g["label_stratified"].to_numpy() == 1, g["SoB"].to_numpy()
+        pairs[pair] = stratified_ap(y, g[col].to_numpy(), sob, edges)[0]
+        floors[pair] = stratified_chance(y, sob, np.asarray(edges), MIN_DRAWS, 0)[0]
     return heat_table(
         pairs,
         floors,
@@ -234,7 +246,7 @@ def heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, w
         if key not in pairs:
             return '<td class="diag">no pair</td>'
         ap, fl = pairs[key], floors.get(key, NAN)
-        colour = verdict(ap, NAN, NAN, fl)[1]
+        colour = verdict(ap, fl, "untested")[1]
         text = num(ap) if ap == ap else "NaN"
         return f'<td style="background:{colour}" title="floor {num(fl)}">{text}</td>'
 
@@ -274,8 +286,9 @@ def table_l(out: Path) -> str:
         cells += [f"<td>{num(float(r[c]))}</td>" for c in ("recall_at_1", "recall_at_5")]
         for pfx, *_ in AP_COLUMNS:
             v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
+            word = str(r[f"{pfx}_verdict"])
             cells.append(
-                '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, lo, hi, fl))
+                '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
                 + num(v)
                 + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
                 + "</td>"
@@ -300,7 +313,8 @@ def table_l(out: Path) -> str:
         '<h2 id="tableL">Table L: localizers</h2><p class="note">One row per localizer and '
         "one for all localizers fused by rank (SPEC section 11), every one scored on the same "
         f"query images. Table S at RoC-max {float(t['roc_max'].iloc[0]):.2f}; each AP with its "
-        "95% interval, coloured against its own floor (a random ranking of the same samples); "
+        "95% interval, coloured by SPEC 9's verdict against chance (random orders of the same "
+        "samples, and the paired difference from the random baseline); "
         f"the last column is the paired difference from {esc(first)} in Table S rank fusion over "
         "the same bootstrap resamples. Recall: the ground-truth place ranked first (R@1) or in "
         f'the first five (R@5).</p><table data-table="L"><tr>{head}</tr>{"".join(rows)}</table>'
@@ -340,8 +354,9 @@ def registered_table(spec: report_tables.TableSpec, frame: pd.DataFrame) -> str:
             text = esc(report_tables.cell(c, r))
             if c.kind == "ap":
                 v, lo, hi, fl = (float(r[f]) for f in c.fields())
+                word = str(r.get(f"{c.key}_verdict", "untested"))
                 cells.append(
-                    '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, lo, hi, fl))
+                    '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
                     + text
                     + "</td>"
                 )

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from .chance import MARK_LEGEND, VERDICT_MARKS, VERDICT_TEX
 from .methods import FUSION_METHODS, METHOD_LABELS
 from .texfmt import tex_escape as _tex_escape
 
@@ -110,10 +111,87 @@ def _col(c: Any) -> str:
     return f"{c:.2f}" if isinstance(c, float) else str(c)
 
 
-def _cell(v: float, lo: float, hi: float) -> str:
+def _cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
     if v != v:
         return "NaN"
-    return f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}"
+    mark = VERDICT_MARKS.get(verdict, "")
+    return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
+        f" {mark}" if mark else ""
+    )
+
+
+def change_cells(summ: pd.DataFrame, table: str, methods: tuple[str, ...]) -> pd.DataFrame:
+    """Every AP cell of a change table as text: ``AP [interval] mark`` (the verdict's mark)."""
+    ap, lo, hi, ver = (
+        pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "verdict")
+    )
+    return pd.DataFrame(
+        {
+            c: [_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c], ver.loc[m, c]) for m in ap.index]
+            for c in ap.columns
+        },
+        index=ap.index,
+    )
+
+
+def box_sets(methods: tuple[str, ...] | list[str]) -> list[tuple[str, str]]:
+    """(label, reference method) of each sample set a change table's rows are scored on."""
+    fused = next((m for m in methods if m != "rank_no_fusion"), None)
+    out = [("fused set", fused)] if fused else []
+    if "rank_no_fusion" in methods:
+        out.append(("original boxes", "rank_no_fusion"))
+    return out
+
+
+def chance_rows(
+    summ: pd.DataFrame, table: str, methods: tuple[str, ...]
+) -> list[tuple[str, list[str]]]:
+    """The rows under a change table (SPEC 9), each as (label, cells).
+
+    Per sample set its floor, chance band and (Table P) ceiling, then the positive rate.
+    """
+    cols = list(pivot(summ, table, methods).columns)
+    piv = {
+        v: pivot(summ, table, methods, v)
+        for v in ("floor", "chance_low", "chance_high", "ceiling", "positive_rate")
+    }
+    out = []
+    sets = box_sets([m for m in methods if m in piv["floor"].index])
+    for label, ref in sets:
+        f, lo, hi = (piv[v].loc[ref] for v in ("floor", "chance_low", "chance_high"))
+        out.append((f"floor, {label} (mean AP of random orders)", [_fmt(f[c]) for c in cols]))
+        out.append(
+            (
+                f"chance band, {label} (5th-95th percentile)",
+                ["NaN" if lo[c] != lo[c] else f"{lo[c]:.2f}-{hi[c]:.2f}" for c in cols],
+            )
+        )
+        if table == "P":
+            cl = piv["ceiling"].loc[ref]
+            out.append(
+                (f"ceiling, {label} (boxes scored by their RoC)", [_fmt(cl[c]) for c in cols])
+            )
+    pr = piv["positive_rate"].loc[sets[0][1]] if sets else None
+    if pr is not None:
+        out.append(("positive rate (not the floor)", [_fmt(pr[c], 3) for c in cols]))
+    return out
+
+
+def gap_line(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
+    """Table P's share of the reachable gap, ``(AP - floor) / (ceiling - floor)``, per method."""
+    g = pivot(summ, "P", methods, "gap_closed")
+    parts = [
+        f"{METHOD_LABELS[str(m)]} "
+        + " / ".join(
+            "NaN" if g.loc[m, c] != g.loc[m, c] else f"{100 * g.loc[m, c]:.0f}%" for c in g.columns
+        )
+        for m in g.index
+    ]
+    return (
+        "Share of the reachable gap closed, (AP - floor) / (ceiling - floor), pixel / image: "
+        + "; ".join(parts)
+        + "."
+    )
 
 
 TABLE_INTRO = {
@@ -156,9 +234,8 @@ def table_markdown(
 
     Cells AP [95% interval].
     """
-    ap, lo, hi = (pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high"))
-    floor = pivot(summ, table, methods, "floor")
-    cols = list(ap.columns)
+    cells = change_cells(summ, table, methods)
+    cols = list(cells.columns)
     title, intro = TABLE_INTRO[table]
     head = (
         "| AP [95% CI] | "
@@ -168,27 +245,14 @@ def table_markdown(
         + "\n"
     )
     lines, first_extra = [], True
-    for m in ap.index:
+    for m in cells.index:
         if m not in FUSION_METHODS and first_extra:
             lines.append("| *variants and baselines* |" + " |" * len(cols) + "\n")
             first_extra = False
-        lines.append(
-            f"| {METHOD_LABELS[str(m)]} | "
-            + " | ".join(_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c]) for c in cols)
-            + " |\n"
-        )
-    ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
-    lines.append(
-        f"| *floor ({'fused set' if ref != 'rank_no_fusion' else 'original boxes'})* | "
-        + " | ".join(_fmt(floor.loc[ref, c]) for c in cols)
-        + " |\n"
-    )
-    if "rank_no_fusion" in floor.index and table != "P":
-        lines.append(
-            "| *floor (original boxes)* | "
-            + " | ".join(_fmt(floor.loc["rank_no_fusion", c]) for c in cols)
-            + " |\n"
-        )
+        lines.append(f"| {METHOD_LABELS[str(m)]} | " + " | ".join(cells.loc[m]) + " |\n")
+    for label, vals in chance_rows(summ, table, methods):
+        lines.append(f"| *{label}* | " + " | ".join(vals) + " |\n")
+    ref = box_sets(tuple(cells.index))[0][1]
     main = summ[
         (summ["table"] == table)
         & (summ["proposals"] == "all")
@@ -205,17 +269,28 @@ def table_markdown(
         f"# {title}{heading_suffix(localizer)}\n\n{intro}\n\n"
         + head
         + "".join(lines)
-        + f"\nFloor: the AP of a random ranking. Counts ({ref}): {counts}. Intervals: 95% "
-        "bootstrap over query images; "
-        "the paired differences with rank fusion are in comparisons.md.\n" + warn
+        + f"\n{MARK_LEGEND} Floor: the mean AP of random orders of the same samples"
+        + (" through the same pixel maps" if table == "P" else "")
+        + (" within the same strata" if table == "S" else "")
+        + f". Counts ({ref}): {counts}. Intervals: 95% bootstrap over query images; "
+        "the paired differences with rank fusion are in comparisons.md.\n"
+        + (f"\n{gap_line(summ, methods)}\n" if table == "P" else "")
+        + warn
     )
 
 
-def table_latex(t: pd.DataFrame, caption_cols: str = "", localizer: str = "") -> str:
+def table_latex(
+    t: pd.DataFrame,
+    caption_cols: str = "",
+    localizer: str = "",
+    verdicts: pd.DataFrame | None = None,
+    extra: list[tuple[str, list[str]]] | None = None,
+) -> str:
     """A booktabs ``tabular`` of one table.
 
     Two decimals; the variants and baselines come after a rule. The localizer is named in a
-    comment line above it.
+    comment line above it. ``verdicts`` (the same shape) add SPEC 9's marks; ``extra`` rows
+    (floor, chance band, ceiling) come after a last rule.
     """
     cols = list(t.columns)
     out = [f"% localizer: {localizer}"] if localizer else []
@@ -232,12 +307,28 @@ def table_latex(t: pd.DataFrame, caption_cols: str = "", localizer: str = "") ->
             out.append(r"\midrule")
             first_extra = False
         label = METHOD_LABELS.get(str(m), str(m))
+        marks = (
+            [VERDICT_TEX.get(str(verdicts.loc[m, c]), "") for c in cols]
+            if verdicts is not None
+            else [""] * len(cols)
+        )
         out.append(
             " & ".join(
-                [_tex_escape(label)] + ["--" if v != v else f"{v:.2f}" for v in row.to_numpy()]
+                [_tex_escape(label)]
+                + [
+                    "--" if v != v else f"{v:.2f}{mk}"
+                    for v, mk in zip(row.to_numpy(), marks, strict=True)
+                ]
             )
             + r" \\"
         )
+    if extra:
+        out.append(r"\midrule")
+        out += [
+            " & ".join([r"\emph{" + _tex_escape(lab) + "}"] + [_tex_escape(v) for v in vals])
+            + r" \\"
+            for lab, vals in extra
+        ]
     out += [r"\bottomrule", r"\end{tabular}"]
     return "\n".join(out) + "\n"
 

@@ -39,6 +39,7 @@ from .report_render import (
     CLEAN_ROC,
     LOC_COLUMNS,
     TABLE_INTRO,
+    chance_rows,
     comparisons_markdown,
     heading_suffix,
     localization_latex,
@@ -361,7 +362,13 @@ def write_reports(
         write_text(
             put(out / f"{stem}.tex"),
             "\n".join(
-                table_latex(r.tables[table], "AP" if table != "P" else "Method", r.localizer)
+                table_latex(
+                    r.tables[table],
+                    "AP" if table != "P" else "Method",
+                    r.localizer,
+                    pivot(r.summary, table, r.methods, "verdict"),
+                    chance_rows(r.summary, table, r.methods),
+                )
                 for r in results
             ),
         )
@@ -446,10 +453,14 @@ def _split_block(
     summary += _pooled_rows(cfg, allp, methods, sp, "S", ids, boots)
     for prop, g in samples.groupby("proposals", sort=True):
         if prop != "all":
-            summary += _table_i_rows(g, sp, methods, "all", str(prop))
+            summary += _table_i_rows(
+                g, sp, methods, "all", str(prop), cfg.report.chance_draws, cfg.seed
+            )
         else:
             for pair, gp in g.groupby("season_pair", sort=True):
-                summary += _table_i_rows(gp, sp, methods, str(pair), "all")
+                summary += _table_i_rows(
+                    gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed
+                )
     allg = rep[rep["proposals"] == "all"]
     for m in methods:
         sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()

@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from harness import chance
 from harness.cli import main
 from harness.detect import change_boxes_nms
 from harness.detect_eval import _voc_all_point
@@ -105,7 +106,7 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
     _, out, printed = detected
     assert "# Table D" in printed
     t = pd.read_csv(out / "tableD.csv")
-    assert t["row"].tolist() == ["detector", "floor: random scores, same boxes"]
+    assert t["row"].tolist() == ["detector", "random scores, same boxes (one draw)"]
     images = {
         (i["session"], i["camera"], i["utime"]): i
         for i in json.loads((out / "images.json").read_text())["images"]
@@ -139,9 +140,23 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
     assert det["coco_ap_50_95"] == pytest.approx(ev.stats[0], abs=5e-5)
     assert det["coco_ap_50"] == pytest.approx(ev.stats[1], abs=5e-5)
     assert ev.stats[1] > 0  # some box matches: the comparison is not of two zeros
-    assert 0.0 <= det["ap50_voc_all_point"] <= 1.0
+    # the fast matcher behind the floor's draws and the intervals gives COCOeval's AP50
+    assert t["matcher_ap50"].to_numpy() == pytest.approx(t["ap50_voc_all_point"], abs=5e-5)
+    # SPEC 9: the floor and band of random scores on the same candidates, the ceiling of oracle
+    # scores, and the verdict by the one rule
+    assert 0 < det["chance_low"] <= det["floor"] <= det["chance_high"] < det["ceiling"] <= 1
+    # no order of these candidates recalls more change boxes than the candidates meet at all
+    assert det["ceiling"] <= det["candidate_recall"] + 5e-5
+    assert det["ci_low"] <= det["ap50_voc_all_point"] <= det["ci_high"]
+    assert det["verdict"] == chance.verdict(
+        det["ap50_voc_all_point"], det["chance_low"], det["chance_high"],
+        det["vs_random_ci_low"], det["vs_random_ci_high"],
+    )  # fmt: skip
+    assert t.iloc[1]["verdict"] == "chance"  # the random row is never above chance
     md = (out / "tableD.md").read_text()
-    assert "VOC all-point" in md and ("WARNING" in md or det["ap50_voc_all_point"] > 0)
+    assert "VOC all-point" in md and "ceiling" in md and "chance band" in md
+    assert ("WARNING" in md) == (det["verdict"] != "above")
+    assert ("NOTE: only" in md) == (det["candidate_recall"] < 0.5)
 
 
 def test_the_detect_page_renders_in_a_real_browser(detected: tuple) -> None:

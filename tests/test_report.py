@@ -147,8 +147,11 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
     local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
     """A hand-made run directory like a real corridor's: Table I at 1.00 everywhere, Table S modest
-    (0.26 against a floor of 0.12, its interval clear of it), one method on its floor, one below."""
+    (0.26 against a floor of 0.12 and a band to 0.15, clear of random), one method that cannot be
+    told from chance, one below it; every verdict written by SPEC 9's rule, as the harness does."""
     import pandas as pd
+
+    from harness.chance import verdict
 
     _, _, run = local_run
     out = tmp_path / "corridor"
@@ -158,13 +161,17 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
     t1 = main_rows & (summ["table"] == "I")
     summ.loc[t1, ["ap", "ci_low", "ci_high"]] = 1.0
     ts = main_rows & (summ["table"] == "S")
-    summ.loc[ts, ["floor", "positive_rate"]] = 0.12
-    for method, (ap, lo, hi) in {
-        "rank_fusion": (0.26, 0.18, 0.33),
-        "score_max": (0.13, 0.07, 0.21),
-        "random": (0.05, 0.02, 0.08),
+    summ.loc[ts, ["floor", "chance_low", "chance_high", "positive_rate"]] = (0.12, 0.09, 0.15, 0.07)
+    for method, (ap, lo, hi, dlo, dhi) in {
+        "rank_fusion": (0.26, 0.18, 0.33, 0.08, 0.25),
+        "score_max": (0.13, 0.07, 0.21, -0.05, 0.12),
+        "size_prior": (0.05, 0.02, 0.08, -0.16, -0.02),
+        "random": (0.12, 0.08, 0.17, 0.0, 0.0),
     }.items():
-        summ.loc[ts & (summ["method"] == method), ["ap", "ci_low", "ci_high"]] = (ap, lo, hi)
+        sel = ts & (summ["method"] == method)
+        summ.loc[sel, ["ap", "ci_low", "ci_high", "vs_random_diff_ci_low"]] = (ap, lo, hi, dlo)
+        summ.loc[sel, "vs_random_diff_ci_high"] = dhi
+        summ.loc[sel, "verdict"] = verdict(ap, 0.09, 0.15, dlo, dhi)
     summ.to_parquet(out / "splits" / "summary.parquet")
     assert main(["report", str(out)]) == 0
     page = (out / "report.html").read_text()
@@ -175,9 +182,51 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
         row = block[block.index(f"<td>{label}</td>") :].split("</tr>")[0]
         return set(re.findall(r'data-verdict="([a-z]+)"', row))
 
-    assert verdicts(table_s, "rank fusion") == {"above"}  # 0.26 [0.18, 0.33] vs 0.12: green
-    assert verdicts(table_s, "score max") == {"holds"}  # its interval holds the floor: grey
-    assert verdicts(table_s, "random") == {"below"}  # clear below: red
+    assert verdicts(table_s, "rank fusion") == {"above"}  # 0.26 over the band, clear: green
+    assert verdicts(table_s, "score max") == {"chance"}  # inside the band: grey
+    assert verdicts(table_s, "size prior (no pixel)") == {"below"}  # under it, clear: red
+    assert verdicts(table_s, "random") == {"chance"}  # chance by construction, never green
     # Table I at 1.00 comes after every fair table, in the protocol section, collapsed
     assert page.index('id="tableI"') > page.index('id="protocol"') > s_end
     assert page.index('id="protocol"') > page.index('id="gallery"')
+
+
+def test_every_colour_of_the_fixture_page_is_the_rule_recomputed_from_the_summary(
+    local_run: tuple,
+) -> None:
+    """SPEC 9: each AP cell's verdict on the page (Tables I, S and P) is
+    :func:`harness.chance.verdict` of its row in ``splits/summary.parquet``; the random baseline
+    is never above chance, and no baseline is above chance in Tables S and P."""
+    import html
+
+    import pandas as pd
+
+    from harness.chance import verdict
+    from harness.methods import METHOD_LABELS
+    from harness.reports import pivot
+
+    _, rec, out = local_run
+    page = (out / "report.html").read_text()
+    summ = pd.read_parquet(out / "splits" / "summary.parquet")
+    summ = summ[summ["localizer"] == summ["localizer"].iloc[0]]
+    methods = rec["reports"].methods
+    checked = 0
+    for table in ("I", "S", "P"):
+        block = page[page.index(f'<table data-table="{table}">') :].split("</table>")[0]
+        piv = {
+            v: pivot(summ, table, methods, v)
+            for v in ("ap", "chance_low", "chance_high", "vs_random_diff_ci_low")
+        }
+        hi = pivot(summ, table, methods, "vs_random_diff_ci_high")
+        for m in methods:
+            label = html.escape(METHOD_LABELS[m])
+            row = block[block.index(f"<td>{label}</td>") :].split("</tr>")[0]
+            shown = re.findall(r'data-verdict="([a-z]+)"', row)
+            want = [
+                verdict(*(piv[v].loc[m, c] for v in piv), hi.loc[m, c]) for c in piv["ap"].columns
+            ]
+            assert shown == want, (table, m, shown, want)
+            checked += len(shown)
+            if m == "random" or (table != "I" and m in ("size_prior", "cover_count")):
+                assert "above" not in shown, (table, m, shown)
+    assert checked == len(methods) * (5 + 5 + 2)

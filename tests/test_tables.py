@@ -188,7 +188,12 @@ def test_fixture_writes_tables_s_and_p_with_intervals_and_comparisons(local_run:
         and ts.index[0] == "rank_fusion"
     )
     md = (out / "tableS.md").read_text()
-    assert "floor (fused set)" in md and "[" in md
+    assert "floor, fused set (mean AP of random orders)" in md and "[" in md
+    assert "chance band, fused set" in md and "positive rate (not the floor)" in md
+    # every row's floor lies in its own chance band, and above the positive rate (SPEC 9)
+    assert (sp["chance_low"] <= sp["floor"]).all() and (sp["floor"] <= sp["chance_high"]).all()
+    st = pooled[pooled["table"] == "S"]
+    assert (st["floor"] > st["positive_rate"]).all()
     cmp_ = (out / "comparisons.md").read_text()
     assert re.search(r"score max - rank fusion = [+-]\d\.\d\d \[[+-]\d\.\d\d, [+-]\d\.\d\d\]", cmp_)
     # the fixture shows the confound: Table I carries the warning, in the .md and in run.json

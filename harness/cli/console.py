@@ -4,44 +4,34 @@ from __future__ import annotations
 
 
 def print_change_table(console, rep, table: str, title: str) -> None:
-    """One change table with intervals, the floor row, and its confound warnings."""
+    """One change table: cells with intervals and verdict marks, then floor, band and ceiling.
+
+    The same cells as the markdown, then the table's warnings.
+    """
     from rich.table import Table
 
+    from ..chance import MARK_LEGEND
     from ..methods import FUSION_METHODS, METHOD_LABELS
-    from ..reports import pivot
+    from ..report_render import chance_rows, change_cells, gap_line
 
-    ap, lo, hi = (pivot(rep.summary, table, rep.methods, v) for v in ("ap", "ci_low", "ci_high"))
-    floor = pivot(rep.summary, table, rep.methods, "floor")
+    cells = change_cells(rep.summary, table, rep.methods)
     t = Table(title=title)
     t.add_column("AP [95% CI]")
-    for c in ap.columns:
+    for c in cells.columns:
         t.add_column(f"{c:.2f}" if isinstance(c, float) else str(c), justify="right")
     shown_sep = False
-    for m in ap.index:
+    for m in cells.index:
         if m not in FUSION_METHODS and not shown_sep:
             t.add_section()
             shown_sep = True
-        t.add_row(
-            METHOD_LABELS[m],
-            *(
-                "NaN"
-                if ap.loc[m, c] != ap.loc[m, c]
-                else f"{ap.loc[m, c]:.2f} [{lo.loc[m, c]:.2f}, {hi.loc[m, c]:.2f}]"
-                if lo.loc[m, c] == lo.loc[m, c]
-                else f"{ap.loc[m, c]:.2f}"
-                for c in ap.columns
-            ),
-        )
+        t.add_row(METHOD_LABELS[m], *cells.loc[m])
     t.add_section()
-    ref = next((m for m in ("rank_fusion", "score_max") if m in floor.index), floor.index[0])
-    t.add_row(
-        "floor (random ranking)",
-        *(
-            "NaN" if floor.loc[ref, c] != floor.loc[ref, c] else f"{floor.loc[ref, c]:.2f}"
-            for c in ap.columns
-        ),
-    )
+    for label, vals in chance_rows(rep.summary, table, rep.methods):
+        t.add_row(label, *vals)
     console.print(t)
+    console.print(MARK_LEGEND, markup=False)
+    if table == "P":
+        console.print(gap_line(rep.summary, rep.methods), markup=False)
     for w in rep.warnings[table]:
         console.print(f"[bold yellow]{w}[/]")
 
@@ -50,6 +40,7 @@ def print_table_l(console, t) -> None:
     """Table L (SPEC section 11): a row per localizer and the fused row, then the floor."""
     from rich.table import Table
 
+    from ..chance import MARK_LEGEND, VERDICT_MARKS
     from ..leaderboard import AP_COLUMNS
 
     first = str(t["localizer"].iloc[0])
@@ -59,7 +50,9 @@ def print_table_l(console, t) -> None:
 
     def ap(r, pfx: str) -> str:
         v, lo, hi = (r[f"{pfx}_{k}"] for k in ("ap", "ci_low", "ci_high"))
-        return "-" if v != v else (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}")
+        mark = VERDICT_MARKS.get(str(r[f"{pfx}_verdict"]), "")
+        text = f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}"
+        return "-" if v != v else text + (f" {mark}" if mark else "")
 
     for _, r in t.iterrows():
         d = r["S_rank_fusion_diff"]
@@ -82,6 +75,7 @@ def print_table_l(console, t) -> None:
         "",
     )
     console.print(lt)
+    console.print(MARK_LEGEND, markup=False)
 
 
 def print_localization(console, rep, rec) -> None:
