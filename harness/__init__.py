@@ -4,10 +4,11 @@ The pipeline's chain is :mod:`harness.runner`; the method contract is SPEC.md (s
 ``docs/method.md``) and the stage map ``docs/architecture.md``.
 """
 
+from importlib.metadata import PackageNotFoundError
 from importlib.metadata import version as _v
 
 __all__ = ["__version__"]
 try:
     __version__ = _v("dbl-harness")
-except Exception:  # pragma: no cover - not installed
+except PackageNotFoundError:  # pragma: no cover - not installed
     __version__ = "0.0.0"

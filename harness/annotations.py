@@ -9,6 +9,8 @@ Labelling tools know images by file name. The exporter names each image
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import re
 import xml.etree.ElementTree as ET
@@ -50,8 +52,35 @@ def parse_image_name(name: str, where: str) -> tuple[str, str, int]:
     return m["session"], m["camera"], int(m["utime"])
 
 
-def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.DataFrame:
+def _utimes(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
+    """(int64 utimes, bad) of a column: only whole numbers that fit in 64 bits are utimes.
+
+    ``1333195231000000.7`` or a 25-digit number is bad, never truncated or overflowed.
+    """
+    out = np.zeros(len(values), np.int64)
+    bad = np.zeros(len(values), bool)
+    for i, v in enumerate(values.tolist()):
+        text = str(v).strip()
+        whole = isinstance(v, float | np.floating) and float(v).is_integer()
+        if isinstance(v, int | np.integer) or whole:
+            text = str(int(v))
+        if re.fullmatch(r"-?\d{1,19}", text) and -(2**63) <= int(text) < 2**63:
+            out[i] = int(text)
+        else:
+            bad[i] = True
+    return out, bad
+
+
+def validate(
+    df: pd.DataFrame,
+    frames: pd.DataFrame | None,
+    where: str,
+    lines: np.ndarray | None = None,
+) -> pd.DataFrame:
     """Check an annotation table; return it normalised (types, sorted).
+
+    ``lines`` are the CSV lines the rows start on (default: the row index + 2, a header and no
+    blank line).
 
     Raises:
         AnnotationError: naming the row (CSV line) and what is wrong: missing columns, unknown
@@ -65,7 +94,7 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
     if "label" not in df.columns:
         df["label"] = ""
     df["label"] = df["label"].fillna("").astype(str)
-    line = df.index.to_numpy() + 2  # header is line 1
+    line = df.index.to_numpy() + 2 if lines is None else np.asarray(lines)  # header: line 1
 
     def fail(mask: np.ndarray, what: str) -> None:
         if mask.any():
@@ -74,11 +103,11 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
                 f"{where}: line {line[i]}: {what} ({int(mask.sum())} row(s) in all)"
             )
 
-    try:
-        df["utime"] = pd.to_numeric(df["utime"], errors="raise").astype(np.int64)
-    except (ValueError, TypeError):
-        bad = pd.to_numeric(df["utime"], errors="coerce").isna().to_numpy()
-        fail(bad, "utime is not an integer")
+    ut, bad = _utimes(df["utime"])
+    if bad.any():
+        first = df["utime"].iloc[int(np.nonzero(bad)[0][0])]
+        fail(bad, f"utime {str(first)!r} is not a whole number of microseconds within 64 bits")
+    df["utime"] = ut
     df["session"] = df["session"].astype(str)
     df["camera"] = df["camera"].astype(str)
     fail(~df["status"].isin(STATUSES).to_numpy(), f"status must be one of {STATUSES}")
@@ -98,7 +127,14 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
     if frames is not None:
         fk = frames[keys + ["width", "height"]].drop_duplicates(keys)
         m = df.merge(fk, on=keys, how="left", indicator=True)
-        fail((m["_merge"] == "left_only").to_numpy(), "unknown frame (not in the frame table)")
+        unknown = (m["_merge"] == "left_only").to_numpy()
+        if unknown.any():
+            r = df.iloc[int(np.nonzero(unknown)[0][0])]
+            fail(
+                unknown,
+                f"unknown frame {r['session']} {r['camera']} {r['utime']} (not in the frame "
+                "table: check the session name, camera and utime)",
+            )
         with np.errstate(invalid="ignore"):
             fail(
                 chg & ((box[:, 2] > m["width"].to_numpy()) | (box[:, 3] > m["height"].to_numpy())),
@@ -114,24 +150,45 @@ def validate(df: pd.DataFrame, frames: pd.DataFrame | None, where: str) -> pd.Da
 
 
 def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataFrame:
-    """Read and validate a canonical annotation CSV."""
+    """Read and validate a canonical annotation CSV (UTF-8; errors name the file's own line)."""
     path = check_input(path, "annotation file", AnnotationError)
+    raw = path.read_bytes()
     try:
-        df = pd.read_csv(
-            path,
-            dtype={"session": str, "camera": str, "label": str},
-            keep_default_na=True,
-            skip_blank_lines=False,
-        )
-    except (pd.errors.ParserError, UnicodeDecodeError) as err:
-        raise AnnotationError(f"{path}: not a readable CSV: {err}") from None
-    except pd.errors.EmptyDataError:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        at = raw[: err.start].count(b"\n") + 1
+        raise AnnotationError(
+            f"{path}: line {at}: not UTF-8 text (byte 0x{raw[err.start]:02x}); save the file as "
+            "UTF-8"
+        ) from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        header = next(reader, None)
+        rows, lines = [], []
+        start = reader.line_num + 1
+        for rec in reader:
+            if any(f.strip() for f in rec):  # blank lines are skipped, never renumbered
+                if len(rec) != len(header or []):
+                    raise AnnotationError(
+                        f"{path}: line {start}: {len(rec)} fields where the header has "
+                        f"{len(header or [])}"
+                    )
+                rows.append(rec)
+                lines.append(start)
+            start = reader.line_num + 1  # a quoted newline makes a record span lines
+    except csv.Error as err:
+        raise AnnotationError(
+            f"{path}: line {reader.line_num}: not a readable CSV: {err}"
+        ) from None
+    if not header or not any(h.strip() for h in header):
         raise AnnotationError(
             f"{path}: the file is empty (expected a header line {','.join(COLUMNS)})"
-        ) from None
-    # blank lines are read as empty rows and dropped here, so the index stays the file's line - 2
-    df = df[~df.isna().all(axis=1)]
-    return validate(df, frames, str(path))
+        )
+    df = pd.DataFrame(rows, columns=[h.strip() for h in header], dtype=object)
+    for c in ("x1", "y1", "x2", "y2"):
+        if c in df.columns:
+            df[c] = df[c].map(lambda v: np.nan if str(v).strip() == "" else v)
+    return validate(df, frames, str(path), np.asarray(lines, np.int64))
 
 
 def change_boxes(ann: pd.DataFrame) -> dict[tuple[str, str, int], np.ndarray]:
@@ -299,6 +356,16 @@ def export_for_labelling(
         if limit
         else pairs.drop_duplicates(["q_session", "q_camera", "q_utime"])
     )
+    for side in ("q", "r"):  # every frame a pair names must be in the frame table
+        cols = [f"{side}_session", f"{side}_camera", f"{side}_utime"]
+        missing = ~pd.MultiIndex.from_frame(q[cols]).isin(keyed.index)
+        if missing.any():
+            s_, c_, u_ = q[cols].to_numpy()[int(np.nonzero(missing)[0][0])]
+            raise AnnotationError(
+                f"the frame table lacks the {'query' if side == 'q' else 'reference'} frame "
+                f"{s_} {c_} {u_} of a pair ({int(missing.sum())} pair(s) in all): give the frame "
+                "table of the same run as the pairs"
+            )
     images = []
     with atomic_dir(Path(out)) as tmp:
         (tmp / "images").mkdir()

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from .cache import StageCache
-from .errors import ConfigError
+from .errors import ConfigError, HarnessError
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +91,14 @@ class RayExecutor:
                 kw["num_cpus"] = self.num_cpus
             else:
                 kw["address"] = self.address
-            ray.init(**kw)
+            try:
+                ray.init(**kw)
+            except (ConnectionError, TimeoutError, RuntimeError, ValueError) as err:
+                where = self.address or "a local cluster"
+                first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+                raise ConfigError(
+                    f"--executor ray: cannot start or reach {where}: {first}"
+                ) from None
         self._gpus = ray.cluster_resources().get("GPU", 0) > 0
         log.info("ray: %s", ray.cluster_resources())
 
@@ -132,7 +139,14 @@ class RayExecutor:
             task.remote(str(cache.root), name, units[i][0], units[i][1], self.fault_once)
             for i in todo
         ]
-        for i, (p, ran) in zip(todo, ray.get(refs), strict=True):
+        try:
+            got = ray.get(refs)
+        except ray.exceptions.RayTaskError as err:
+            cause = getattr(err, "cause", None)
+            if isinstance(cause, HarnessError):  # a worker's own error, as one line
+                raise cause from None
+            raise
+        for i, (p, ran) in zip(todo, got, strict=True):
             out[i] = (Path(p), ran)
         return out  # type: ignore[return-value]
 

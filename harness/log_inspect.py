@@ -45,7 +45,7 @@ def inspect_log(path: Path) -> dict[str, Any]:
         return _inspect_nclt(path)
     from rosbags.highlevel import AnyReader
 
-    from .ingest.logs import _default_typestore
+    from .ingest.logs import READ_ERRORS, _default_typestore
     from .ingest.tf import TfTree
 
     with uri_safe_path(path) as readable:
@@ -79,7 +79,7 @@ def inspect_log(path: Path) -> dict[str, Any]:
                                 f"{tr.header.frame_id.lstrip('/')}->{tr.child_frame_id.lstrip('/')}",
                                 [],
                             ).append(stamp_us(tr.header) * 1000)
-        except Exception as err:  # any reader failure is reported as damage, with the file
+        except READ_ERRORS as err:  # a reader failure is damage; the tf tree's own errors pass
             raise IngestError(
                 f"{path}: cannot read the whole log ({type(err).__name__}: {err}); try "
                 "`harness ingest --salvage`"
@@ -175,7 +175,9 @@ def _inspect_nclt(root: Path) -> dict[str, Any]:
     for sdir in sorted((root / "images").glob("*")) if (root / "images").is_dir() else []:
         cams = {c.name: sum(1 for _ in c.iterdir()) for c in sorted((sdir / "lb3").glob("Cam*"))}
         gt = root / "ground_truth" / f"groundtruth_{sdir.name}.csv"
-        rows = sum(1 for line in gt.read_text().splitlines() if line.strip()) if gt.exists() else 0
+        rows = 0
+        if gt.exists():  # counted as bytes: a non-UTF-8 byte is the ingest's to name, by line
+            rows = sum(1 for line in gt.read_bytes().splitlines() if line.strip())
         out["sessions"].append(
             {
                 "session": sdir.name,

@@ -88,7 +88,7 @@ def test_fixture_and_ingest_commands(tmp_path: Path, capsys: pytest.CaptureFixtu
         and not (tmp_path / "fx3").exists()
     )
     assert main(["fixture", "--out", str(tmp_path / "fx4"), "--render-scale", "0"]) == 1
-    assert "render_scale must be >= 1" in capsys.readouterr().err
+    assert "--render-scale = 0 is out of range; allowed: >= 1" in capsys.readouterr().err
 
 
 def test_config_rejects_unknown_keys(tmp_path: Path) -> None:

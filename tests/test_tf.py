@@ -411,7 +411,7 @@ def test_tf_flags_as_a_user_types_them(tmp_path: Path, capsys: pytest.CaptureFix
     err = capsys.readouterr().err
     assert err.startswith("ERROR: ") and "tf map->odom: pose_gap" in err
     assert main([*base, "--out", str(tmp_path / "c"), "--max-tf-gap", "0"]) == 1
-    assert "--max-tf-gap 0.0: must be > 0 seconds" in capsys.readouterr().err
+    assert "--max-tf-gap = 0.0 is out of range; allowed: > 0 seconds" in capsys.readouterr().err
     assert main([*base, "--out", str(tmp_path / "d"), "--camera-frame", "lidar"]) == 1
     assert "camera frame 'lidar' (camera_frame) is not in the /tf tree" in capsys.readouterr().err
 

@@ -1,6 +1,7 @@
 """``harness``: one subcommand per stage plus ``reproduce``.
 
-Library errors become one ``ERROR:`` line and exit 1.
+Library errors become one ``ERROR:`` line and exit 1; anything unexpected becomes one
+``ERROR: internal error ...`` line and exit 2 (``-v`` shows the traceback).
 """
 
 from __future__ import annotations
@@ -8,6 +9,7 @@ from __future__ import annotations
 import errno
 import logging
 import sys
+import traceback
 
 from ..errors import HarnessError
 from .parser import build_parser
@@ -42,6 +44,10 @@ _FS_ERRORS = {
     errno.EROFS: "the file system is read-only: choose a writable --out",
     errno.EACCES: "no permission: choose a writable --out or fix the permissions",
     errno.EPERM: "operation not permitted: choose another --out or fix the permissions",
+    errno.ENOTDIR: "a part of this path is a regular file, not a directory: choose another path",
+    errno.EEXIST: "exists and is not a directory: choose another path",
+    errno.EISDIR: "is a directory where a file is expected: choose another path",
+    errno.ENAMETOOLONG: "the path is too long: choose a shorter one",
 }
 
 
@@ -60,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI; library errors become one ``ERROR:`` line.
 
     Returns:
-        The exit status: 0, or 1 after an error.
+        The exit status: 0, 1 after an error of the input, 2 after an internal error, 130 when
+        interrupted.
     """
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
@@ -71,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except OSError as err:
         if err.errno not in _FS_ERRORS:
-            raise
+            return _internal(args, err)
         where = err.filename or "an output file"
         print(f"ERROR: {where}: {err.strerror or err}; {_FS_ERRORS[err.errno]}", file=sys.stderr)
         return 1
@@ -81,3 +88,19 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 130
+    except Exception as err:  # the last resort: a bug, said in one line (the traceback under -v)
+        return _internal(args, err)
+
+
+def _internal(args, err: BaseException) -> int:
+    """An unexpected error as one ``ERROR: internal error in <command>`` line; exit 2."""
+    if args.verbose:
+        traceback.print_exception(err, file=sys.stderr)
+    message = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    print(
+        f"ERROR: internal error in {args.cmd}: {type(err).__name__}"
+        + (f": {message}" if message else "")
+        + " (run with -v for the traceback)",
+        file=sys.stderr,
+    )
+    return 2

@@ -19,15 +19,20 @@ def run_config(args: argparse.Namespace):
     return cfg
 
 
+def check_executor_flags(args: argparse.Namespace) -> None:
+    """``--executor``, ``--address`` and ``--ray-cpus`` together, for every command with them."""
+    if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
+        raise HarnessError("--address and --ray-cpus need --executor ray")
+    if args.ray_cpus is not None and args.ray_cpus < 1:
+        raise HarnessError(f"--ray-cpus {args.ray_cpus}: must be >= 1")
+
+
 def pipeline_of(args: argparse.Namespace):
     """The run's :class:`~harness.runner.Pipeline`: config, ``--out``, ``--import``, executor."""
     from ..executors import make_executor
     from ..runner import Pipeline
 
-    if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
-        raise HarnessError("--address and --ray-cpus need --executor ray")
-    if args.ray_cpus is not None and args.ray_cpus < 1:
-        raise HarnessError(f"--ray-cpus {args.ray_cpus}: must be >= 1")
+    check_executor_flags(args)
     cfg = run_config(args)  # validated before any executor or directory is set up
     rank_import = None
     if getattr(args, "rank_import", None):

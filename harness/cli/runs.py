@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import HarnessError
-from .common import pd_read, pipeline_of, run_config
+from .common import check_executor_flags, pd_read, pipeline_of, run_config
 from .console import print_block, print_localization, print_table_l
 
 
@@ -63,8 +63,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from ..detect import DetectOptions, run_detect
     from ..executors import make_executor
 
-    if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
-        raise HarnessError("--address and --ray-cpus need --executor ray")
+    check_executor_flags(args)
+    if args.top < 0:
+        raise HarnessError(f"--top {args.top}: must be >= 0 places")
     cfg = run_config(args)
     opt = DetectOptions(
         method=args.method,

@@ -12,6 +12,7 @@ from .common import pipeline_of, run_config
 
 def cmd_fixture(args: argparse.Namespace) -> int:
     """``harness fixture``: generate the synthetic fixture world."""
+    from ..config_check import check_fixture
     from ..fixture import FixtureSpec, generate
 
     spec = FixtureSpec(
@@ -22,6 +23,11 @@ def cmd_fixture(args: argparse.Namespace) -> int:
         objects=args.objects,
         loop_scale=args.loop_scale,
         render_scale=args.render_scale,
+    )
+    check_fixture(
+        spec,
+        "harness fixture",
+        {k: "--" + k.replace("_", "-") for k in dataclasses.asdict(spec)},
     )
     formats = args.formats.split(",") if args.formats else None
     try:
@@ -37,6 +43,7 @@ def cmd_fixture(args: argparse.Namespace) -> int:
 def cmd_ingest(args: argparse.Namespace) -> int:
     """``harness ingest``: one log into a frame table and an ingest report."""
     from ..config import IngestConfig, SessionConfig, check_session_name
+    from ..config_check import check_ingest
     from ..ingest import ingest_session
     from ..outdirs import check_replaceable, claim_dir
 
@@ -61,10 +68,6 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         raise HarnessError("ingest needs SOURCE and --session NAME, or --config FILE")
     check_session_name(args.session, "--session")
     check_session_name(args.camera, "--camera")
-    if args.max_pose_gap <= 0:
-        raise HarnessError(f"--max-pose-gap {args.max_pose_gap}: must be > 0 seconds")
-    if args.max_tf_gap <= 0:
-        raise HarnessError(f"--max-tf-gap {args.max_tf_gap}: must be > 0 seconds")
     sc = SessionConfig(
         name=args.session,
         source=str(Path(args.source).resolve()),
@@ -81,6 +84,11 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         time_source=args.time_source,
         salvage=args.salvage,
         verify_images=args.verify_images,
+    )
+    check_ingest(
+        ic,
+        "harness ingest",
+        {"max_pose_gap_s": "--max-pose-gap", "max_tf_gap_s": "--max-tf-gap"},
     )
     rep = ingest_session(sc, ic, Path(args.out), force=args.force)
     print(

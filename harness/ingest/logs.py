@@ -25,7 +25,8 @@ from .folders import FOLDER_FORMATS
 from .poses import POSE_TYPES
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
-_READ_ERRORS: tuple[type[BaseException], ...] = (
+#: What a log reader raises on a damaged or truncated file (reported as damage, never a traceback).
+READ_ERRORS: tuple[type[BaseException], ...] = (
     AnyReaderError,
     struct.error,
     sqlite3.DatabaseError,
@@ -39,25 +40,25 @@ try:  # reader errors of the subpackages
     from rosbags.rosbag1 import ReaderError as _R1
     from rosbags.rosbag2 import ReaderError as _R2
 
-    _READ_ERRORS = (*_READ_ERRORS, _R1, _R2)
+    READ_ERRORS = (*READ_ERRORS, _R1, _R2)
 except ImportError:  # pragma: no cover
     pass
 try:  # a corrupt zstd-compressed MCAP chunk
     from zstandard import ZstdError
 
-    _READ_ERRORS = (*_READ_ERRORS, ZstdError)
+    READ_ERRORS = (*READ_ERRORS, ZstdError)
 except ImportError:  # pragma: no cover
     pass
 try:
     from backports.zstd import ZstdError as _BZ
 
-    _READ_ERRORS = (*_READ_ERRORS, _BZ)
+    READ_ERRORS = (*READ_ERRORS, _BZ)
 except ImportError:  # pragma: no cover
     pass
 try:
     from mcap.exceptions import McapError
 
-    _READ_ERRORS = (*_READ_ERRORS, McapError)
+    READ_ERRORS = (*READ_ERRORS, McapError)
 except ImportError:  # pragma: no cover
     pass
 
@@ -196,7 +197,7 @@ def list_topics(path: Path, fmt: str, salvage: bool = False) -> dict[str, tuple[
     try:
         with AnyReader([Path(path)], default_typestore=_default_typestore(fmt)) as reader:
             return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
-    except _READ_ERRORS as err:
+    except READ_ERRORS as err:
         found: dict[str, tuple[str, int]] = {}
         if fmt == "mcap":
             found = _mcap_stream_topics(Path(path))
@@ -270,7 +271,7 @@ def _salvage_stream(path: Path, fmt: str, topics: tuple[str, ...]) -> Iterator[M
     for n, (topic, typ, t, data) in enumerate(raw):
         try:
             msg = de(data, typ)
-        except _READ_ERRORS as err:
+        except READ_ERRORS as err:
             raise CorruptLogError(
                 path, n, f"message {n + 1} does not deserialize: {err}", salvage=True
             ) from None
@@ -303,7 +304,7 @@ def stream(
     try:
         reader = AnyReader([Path(path)], default_typestore=_default_typestore(fmt))
         reader.open()
-    except _READ_ERRORS as err:
+    except READ_ERRORS as err:
         if fmt == "mcap":
             yield from _mcap_stream(Path(path), topics, salvage)
             return
@@ -320,14 +321,14 @@ def stream(
                 msg = reader.deserialize(raw, conn.msgtype)
             except StopIteration:
                 break
-            except _READ_ERRORS as err:
+            except READ_ERRORS as err:
                 raise CorruptLogError(
                     path, n, f"{type(err).__name__}: {err}", salvage=salvage
                 ) from None
             n += 1
             yield Message(conn.topic, conn.msgtype, int(t), msg)
     finally:
-        with contextlib.suppress(*_READ_ERRORS):  # closing a damaged file may fail again
+        with contextlib.suppress(*READ_ERRORS):  # closing a damaged file may fail again
             reader.close()
 
 
@@ -353,7 +354,7 @@ def _mcap_stream_topics(path: Path) -> dict[str, tuple[str, int]]:
                 chans[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
             elif isinstance(rec, McapMessage) and rec.channel_id in chans:
                 counts[chans[rec.channel_id][0]] = counts.get(chans[rec.channel_id][0], 0) + 1
-    except _READ_ERRORS:
+    except READ_ERRORS:
         pass
     return {t: (typ, counts.get(t, 0)) for t, typ in chans.values()}
 
@@ -384,7 +385,7 @@ def _mcap_stream(path: Path, topics: tuple[str, ...], salvage: bool = False) -> 
                     msg = store.deserialize_cdr(rec.data, typ)
                     n += 1
                     yield Message(topic, typ, int(rec.log_time), msg)
-    except _READ_ERRORS as err:
+    except READ_ERRORS as err:
         raise CorruptLogError(path, n, f"{type(err).__name__}: {err}", salvage=salvage) from None
     if n == 0:
         raise CorruptLogError(path, 0, "no readable message", salvage=salvage)
