@@ -11,12 +11,13 @@ digested byte for byte. Regenerate the committed file after an intended change o
 (a run of ``datasets/fixture.toml`` on the default fixture and its data root: ``make
 reproduce-table``.)
 
-Across machines, the files in :data:`TOLERANT` are compared by value, not by digest: they hold
-full-precision floats summed by numpy, whose SIMD dispatch (e.g. ``AVX512_ICL`` against
-``AVX512_SKX``) can move the last bits between two machines that report the same torch CPU
-capability. Their committed values (``tests/regression/<name>.csv``, floats written with ``%r``)
-must match within :data:`RTOL` / :data:`ATOL`, every other column exactly. On one machine a
-rerun is byte-identical (the determinism tests check that).
+Across machines, the files in :data:`TOLERANT` are compared by value, not by digest: their float
+columns come from numpy's SIMD kernels (trigonometry and interpolation of poses in ingest, sums in
+the summary), whose last bits differ between CPUs of one kind (e.g. ``AVX512_SKX`` against
+``AVX2``: SVML's ``arctan2``). Their committed values (``tests/regression/values/``, floats written
+in full with ``repr``) must match within :data:`RTOL` / :data:`ATOL`, every other column exactly
+(a file is found by the digest of its non-float columns). On one machine a rerun is
+byte-identical (the determinism tests check that).
 """
 
 from __future__ import annotations
@@ -36,10 +37,15 @@ import pandas as pd
 #: machine with the same torch CPU capability as the one that wrote the regression.
 PORTABLE = ("cache/ingest/", "cache/frames/", "cache/pairs/")
 SKIP = {"manifest.json", "run.json", "report.html"}
-#: Report files compared by value within a tolerance across machines (committed values file name).
-TOLERANT = {"splits/summary.parquet": "summary.csv"}
-#: Relative and absolute tolerance of that comparison: a few hundred ulps of an AP near 1, far
-#: below the two decimals any table prints.
+#: Files compared by value within a tolerance across machines (see the module docstring).
+TOLERANT = (
+    "cache/ingest/*/frames.parquet",
+    "cache/frames/*/frames.parquet",
+    "cache/pairs/*/pairs.parquet",
+    "splits/summary.parquet",
+)
+#: Relative and absolute tolerance of that comparison: a few hundred ulps of an AP near 1 or of a
+#: pose in metres, far below the two decimals any table prints.
 RTOL, ATOL = 1e-9, 1e-12
 _KEY = re.compile(r"cache/([a-z_]+)/[0-9a-f]{16}")
 
@@ -90,46 +96,106 @@ def digests(out: Path, data_root: Path | None = None) -> dict[str, list[str]]:
     ``data_root`` (the config's) is masked too, so runs on fixtures in other places compare.
     """
     res: dict[str, list[str]] = {}
+    for name, p in _names(out):
+        res.setdefault(name, []).append(digest(p, data_root))
+    return {k: sorted(v) for k, v in sorted(res.items())}
+
+
+def _names(out: Path) -> list[tuple[str, Path]]:
+    """(name with entry keys masked, path) of every file of a run directory, as digests names."""
+    res = []
     for p in sorted(Path(out).rglob("*")):
         if not p.is_file() or p.name in SKIP or p.name.startswith("."):
             continue
         rel = p.relative_to(out).parts
         name = f"cache/{rel[1]}/*/{'/'.join(rel[3:])}" if rel[0] == "cache" else "/".join(rel)
-        res.setdefault(name, []).append(digest(p, data_root))
-    return {k: sorted(v) for k, v in sorted(res.items())}
+        res.append((name, p))
+    return res
 
 
-def values_frame(path: Path) -> pd.DataFrame:
-    """A parquet report's values as written to its committed CSV (floats to full precision)."""
-    return pd.read_parquet(path).reset_index(drop=True)
+def values_frame(path: Path, data_root: Path | None = None) -> pd.DataFrame:
+    """A parquet file's values with the data root masked in its strings."""
+    root = str(Path(data_root).resolve()) if data_root is not None else None
+    df = pd.read_parquet(path).reset_index(drop=True)
+    for c in df.columns:
+        if not pd.api.types.is_float_dtype(df[c]) and not pd.api.types.is_integer_dtype(df[c]):
+            df[c] = df[c].map(lambda v: _mask(v, root) if isinstance(v, str) else v).astype(str)
+    return df
 
 
-def write_values(out: Path, dst: Path) -> None:
-    """Write the committed values of every :data:`TOLERANT` file of run ``out`` into ``dst``."""
-    for rel, name in TOLERANT.items():
-        values_frame(out / rel).to_csv(dst / name, index=False, float_format="%r")
+def key_digest(df: pd.DataFrame) -> str:
+    """The digest of a frame's columns, dtypes and non-float values: which file it is."""
+    h = hashlib.sha256(str([(c, str(df[c].dtype)) for c in df.columns]).encode())
+    keep = [c for c in df.columns if not pd.api.types.is_float_dtype(df[c])]
+    h.update(df[keep].astype(str).to_csv(index=False).encode())
+    return h.hexdigest()[:16]
 
 
-def values_differ(got: Path, want_csv: Path) -> list[str]:
-    """What differs between a report and its committed values beyond the stated tolerance.
+def values_file(pattern: str) -> str:
+    """The committed values file of a :data:`TOLERANT` pattern, under ``tests/regression/``."""
+    return "values/" + pattern.replace("/*/", "__").replace("/", "__").removesuffix(".parquet")
 
-    Float columns within ``RTOL``/``ATOL`` (NaN equals NaN), every other column exactly; an empty
-    list when they agree.
+
+def write_values(out: Path, data_root: Path | None, dst: Path) -> None:
+    """Write the values of every :data:`TOLERANT` file of run ``out`` under ``dst/values/``."""
+    (dst / "values").mkdir(parents=True, exist_ok=True)
+    files = _names(out)
+    for pattern in TOLERANT:
+        frames = []
+        for name, p in files:
+            if name == pattern:
+                df = values_frame(p, data_root)
+                df.insert(0, "_file", key_digest(df))
+                frames.append(df)
+        allv = pd.concat(frames, ignore_index=True).sort_values("_file", kind="stable")
+        allv.to_csv(
+            dst / f"{values_file(pattern)}.csv",
+            index=False,
+            float_format=lambda v: repr(float(v)),
+        )
+
+
+def frame_differs(got: pd.DataFrame, want: pd.DataFrame) -> list[str]:
+    """What differs between two frames of the same file beyond the stated tolerance.
+
+    Float columns within ``RTOL``/``ATOL`` (NaN equals NaN), every other column exactly.
     """
-    g = values_frame(got)
-    w = pd.read_csv(want_csv, keep_default_na=False, na_values=["NaN", "nan", ""])
-    if list(g.columns) != list(w.columns) or len(g) != len(w):
-        return [f"shape or columns: {list(g.columns)} x {len(g)} vs {list(w.columns)} x {len(w)}"]
+    if list(got.columns) != list(want.columns) or len(got) != len(want):
+        return [f"columns or rows: {list(got.columns)} x {len(got)} vs {list(want.columns)} x "
+                f"{len(want)}"]  # fmt: skip
     bad = []
-    for c in g.columns:
-        if pd.api.types.is_float_dtype(g[c]):
-            a, b = g[c].to_numpy(float), w[c].to_numpy(float)
+    for c in got.columns:
+        if pd.api.types.is_float_dtype(got[c]):
+            a = got[c].to_numpy(float)
+            b = pd.to_numeric(want[c], errors="coerce").to_numpy(float)
             ok = np.isclose(a, b, rtol=RTOL, atol=ATOL, equal_nan=True)
             if not ok.all():
                 i = int(np.flatnonzero(~ok)[0])
                 bad.append(f"{c}: {(~ok).sum()} values, first row {i}: {a[i]!r} vs {b[i]!r}")
-        elif not (g[c].astype(str).to_numpy() == w[c].astype(str).to_numpy()).all():
+        elif not (got[c].astype(str).to_numpy() == want[c].astype(str).to_numpy()).all():
             bad.append(f"{c}: differs")
+    return bad
+
+
+def values_differ(out: Path, data_root: Path | None, committed: Path) -> list[str]:
+    """What of run ``out``'s :data:`TOLERANT` files differs from the committed values."""
+    bad = []
+    files = _names(out)
+    for pattern in TOLERANT:
+        want = pd.read_csv(
+            committed / f"{values_file(pattern)}.csv", dtype=str, keep_default_na=False
+        )
+        got = [values_frame(p, data_root) for name, p in files if name == pattern]
+        if len(got) != want["_file"].nunique():
+            bad.append(f"{pattern}: {len(got)} files, committed {want['_file'].nunique()}")
+        for df in got:
+            rows = want[want["_file"] == key_digest(df)].drop(columns="_file")
+            if not len(rows):
+                bad.append(
+                    f"{pattern}: a file whose non-float values differ from every committed one"
+                )
+                continue
+            bad += [f"{pattern}: {b}" for b in frame_differs(df, rows.reset_index(drop=True))]
     return bad
 
 
@@ -142,7 +208,9 @@ def cpu_capability() -> str:
 
 if __name__ == "__main__":
     if "--values" in sys.argv:
-        write_values(Path(sys.argv[1]), Path(sys.argv[sys.argv.index("--values") + 1]))
+        write_values(
+            Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[sys.argv.index("--values") + 1])
+        )
     json.dump(
         {
             "cpu_capability": cpu_capability(),
