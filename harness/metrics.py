@@ -73,12 +73,13 @@ def stratified_ap(
     edges: np.ndarray | list[float],
     weights: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """Size-stratified AP (SPEC section 8): (AP, floor).
+    """Size-stratified AP (SPEC section 8): (AP, weighted positive rate).
 
     Samples are binned by SoB into strata ``[edges[k], edges[k+1])`` (the last one closed). Within
     every stratum holding at least one positive and one negative the 101-point AP is computed;
-    the result is the mean of those APs weighted by each stratum's positives, and the floor is
-    the same weighted mean of the strata's positive rates (the AP of a random ranking). Strata
+    the result is the mean of those APs weighted by each stratum's positives, and the second
+    value the same weighted mean of the strata's positive rates. That is *not* the floor (random
+    orders score higher; :func:`harness.chance.stratified_chance` measures the floor). Strata
     without a positive or without a negative take no part. (NaN, NaN) when no stratum qualifies.
     ``weights`` (optional) count sample i that many times (bootstrap multiplicities).
     """

@@ -90,7 +90,7 @@ LEGEND = (
 
 
 def heat_style(v: float, floor: float = 0.0) -> str:
-    """A background colour for AP: pale red at the floor (a random ranking) to green at 1."""
+    """A background colour for AP: pale red at the floor (random orders) to green at 1."""
     if v != v:
         return "#f0f0f0"
     v = float(np.clip((v - floor) / (1 - floor) if floor == floor and floor < 1 else v, 0, 1))

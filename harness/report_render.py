@@ -208,8 +208,8 @@ TABLE_INTRO = {
         (
             "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
             "boxes of the same size, "
-            "weighted by the strata's positives. The floor is the same weighted mean of the "
-            "strata's positive rates."
+            "weighted by the strata's positives. The floor is the mean of the same figure over "
+            "random orders within the same strata (SPEC 9)."
         ),
     ),
     "P": (
