@@ -63,7 +63,11 @@ def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(
     assert thin["L"].max() < full["L"].max() * 0.75  # about every other frame of the loop is kept
     counts = rec["counts"]["rank_counts"]
     lost = sum(c.get("no_rank_place_not_in_database", 0) for c in counts.values())
-    assert lost >= 0 and sum(c["ranked"] for c in counts.values()) == len(thin)
+    ranked = sum(c["ranked"] for c in counts.values())
+    assert ranked == len(thin)
+    # every query subimage of the full run is asked for; those not ranked lost their place
+    assert sum(c["query_subimages"] for c in counts.values()) == len(full)
+    assert lost == len(full) - len(thin) > 0
     assert (thin["place_size"] >= 1).all() and np.isfinite(thin["d"]).all()
     assert (
         pd.read_csv(o / "table1.csv")["method"].tolist()
