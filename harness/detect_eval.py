@@ -30,18 +30,8 @@ FRAME_KEY = ["session", "camera", "utime"]
 
 def _voc_all_point(tp: np.ndarray, scores: np.ndarray, n_gt: int) -> float:
     """VOC all-point interpolated AP (the area under the monotone precision envelope)."""
-    if n_gt == 0:
-        return float("nan")
-    order = np.argsort(-scores, kind="stable")
-    tp = tp[order].astype(np.float64)
-    ctp, cfp = np.cumsum(tp), np.cumsum(1 - tp)
-    rec = ctp / n_gt
-    prec = ctp / np.maximum(ctp + cfp, np.finfo(np.float64).eps)
-    mrec = np.concatenate([[0.0], rec, [1.0]])
-    mpre = np.concatenate([[0.0], prec, [0.0]])
-    mpre = np.maximum.accumulate(mpre[::-1])[::-1]
-    i = np.flatnonzero(mrec[1:] != mrec[:-1])
-    return float(np.sum((mrec[i + 1] - mrec[i]) * mpre[i + 1]))
+    tp = np.asarray(tp).astype(bool)
+    return _weighted_voc(np.asarray(scores, np.float64), tp, np.ones(len(tp)), float(n_gt))
 
 
 def coco_eval(gt: dict[str, Any], dets: list[dict[str, Any]]) -> tuple[float, float, float]:

@@ -150,6 +150,7 @@ def _table_i_rows(
         sel = (lab >= 0) & ~np.isnan(loc)
         y = lab[sel] == 1
         ap = average_precision(y, loc[sel])
+        floor = chance.plain_chance(y, draws, seed)
         rows.append(
             {
                 "table": "I",
@@ -159,7 +160,7 @@ def _table_i_rows(
                 "season_pair": season_pair,
                 "method": m,
                 "ap": ap,
-                **_chance_fields(chance.plain_chance(y, draws, seed), ap),
+                **_chance_fields(floor, ap),
                 "ci_low": float("nan"),
                 "ci_high": float("nan"),
                 "positives": int(y.sum()),
@@ -167,7 +168,7 @@ def _table_i_rows(
                 "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
                 "positive_rate": float(y.mean()) if len(y) else float("nan"),
                 "query_images": len(np.unique(groups[sel])),
-                "verdict": chance.verdict(ap, *chance.plain_chance(y, draws, seed)[1:], nan, nan),
+                "verdict": chance.verdict(ap, floor[1], floor[2], nan, nan),
             }
         )
     return rows

@@ -52,6 +52,11 @@ def test_ingest_gap_flags_go_through_the_config_checks(
             "db_stride_m = 10",
         ),
         (("loop_scale = 1.5", "loop_scale = inf"), "", "[fixture] loop_scale: inf is not a finite"),
+        (
+            ("[report]\n", "[report]\nchance_draws = 100\n"),
+            "",
+            "[report] chance_draws = 100 is out",
+        ),
     ],
 )
 def test_config_values_that_were_accepted_or_failed_deep_in_a_stage(
