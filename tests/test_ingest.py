@@ -604,3 +604,38 @@ def test_salvage_of_a_sqlite_bag_damaged_in_the_middle_keeps_the_rows_beyond(
     rep = ingest_session(sc, IngestConfig(salvage=True), tmp_path / "o")
     assert "row(s) skipped" in rep["salvaged"]["detail"]
     assert n // 2 < rep["frames_written"] < n  # more than the rows before the damage
+
+
+@pytest.mark.parametrize("cut", [0.40, 0.83, 0.95])
+def test_salvage_of_a_sqlite_bag_cut_short_keeps_the_rows_before_the_cut(
+    tmp_path: Path, cut: float
+) -> None:
+    """A ROS2 sqlite bag cut while it was written (at 40%, at a page boundary near 83%, at 95%):
+    sqlite refuses the whole file ("database disk image is malformed", the header counts more
+    pages than there are), yet the rows before the cut are there. With --salvage they are kept:
+    the frames read are the first frames of the intact bag, and a longer file keeps more."""
+    from harness.ingest.session import load_frames
+
+    rgb = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    n = 40
+    frames = [W.LogFrame(1_000_000 + i * 100_000, rgb) for i in range(n)]
+    poses = [Pose(1_000_000 + i * 50_000, float(i), 0.0, 0.0, 0.0, 0.0, 0.0) for i in range(2 * n)]
+    path = tmp_path / "bag"
+    W.write_ros2(path, frames, poses, storage="sqlite3", image="raw")
+    db = next(path.glob("*.db3"))
+    raw = db.read_bytes()
+    page = int.from_bytes(raw[16:18], "big")
+    end = int(len(raw) * cut)
+    if cut == 0.83:
+        end -= end % page
+    db.write_bytes(raw[:end])
+    sc = SessionConfig(name="s", source=str(path), format="ros2")
+    with pytest.raises(CorruptLogError, match="malformed"):
+        ingest_session(sc, IngestConfig(), tmp_path / "o")
+    rep = ingest_session(sc, IngestConfig(salvage=True), tmp_path / "o")
+    kept = load_frames(tmp_path / "o" / "frames.parquet")["utime"].tolist()
+    assert rep["frames_written"] == len(kept) > 0
+    # a prefix of the bag's own frames (minus the last, whose later pose may be lost to the cut)
+    assert kept == [f.utime for f in frames[: len(kept)]]
+    assert len(kept) >= int(n * cut) - 3, (cut, len(kept))
+    assert "cut off" in rep["salvaged"]["detail"]

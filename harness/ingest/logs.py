@@ -36,6 +36,12 @@ READ_ERRORS: tuple[type[BaseException], ...] = (
     IndexError,
     OSError,
 )
+try:  # a payload that does not deserialize (a row cut short, zeros past the end of a file)
+    from rosbags.serde.errors import SerdeError
+
+    READ_ERRORS = (*READ_ERRORS, SerdeError)
+except ImportError:  # pragma: no cover
+    pass
 try:  # reader errors of the subpackages
     from rosbags.rosbag1 import ReaderError as _R1
     from rosbags.rosbag2 import ReaderError as _R2
@@ -268,14 +274,35 @@ def _salvage_stream(path: Path, fmt: str, topics: tuple[str, ...]) -> Iterator[M
         else salvage_mod.ros2_sqlite_messages(path, topics)
     )
     de = salvage_mod.deserializer(fmt)
-    for n, (topic, typ, t, data) in enumerate(raw):
-        try:
-            msg = de(data, typ)
-        except READ_ERRORS as err:
-            raise CorruptLogError(
-                path, n, f"message {n + 1} does not deserialize: {err}", salvage=True
-            ) from None
-        yield Message(topic, typ, t, msg)
+    n = undecodable = 0
+    first = ""
+    try:
+        for topic, typ, t, data in raw:
+            try:
+                msg = de(data, typ)
+            except READ_ERRORS as err:
+                if fmt == "ros1":  # a sequential read: nothing after a bad record is trusted
+                    raise CorruptLogError(
+                        path, n, f"message {n + 1} does not deserialize: {err}", salvage=True
+                    ) from None
+                undecodable += 1  # a sqlite row holding zeros: its neighbours are still good
+                first = first or f"message {n + undecodable} does not deserialize: {err}"
+                continue
+            n += 1
+            yield Message(topic, typ, t, msg)
+    except CorruptLogError as err:
+        if not undecodable:
+            raise
+        raise CorruptLogError(
+            path,
+            n,
+            f"{err.detail}; {undecodable} undecodable message(s) skipped ({first})",
+            salvage=True,
+        ) from None
+    if undecodable:
+        raise CorruptLogError(
+            path, n, f"{undecodable} undecodable message(s) skipped ({first})", salvage=True
+        )
 
 
 def stream(

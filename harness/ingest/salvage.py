@@ -148,21 +148,35 @@ def _ros2_db(path: Path) -> Path:
     return dbs[0]
 
 
+def _open_damaged(db: Path) -> sqlite3.Connection:
+    """A read-only connection to a sqlite file that may be cut short.
+
+    sqlite refuses a file shorter than the page count its header records ("database disk image
+    is malformed" on the first query), which is what a bag cut while it was written looks like.
+    ``writable_schema`` turns that check off (sqlite then takes the file's own size); the
+    connection stays read-only (``mode=ro``), so nothing is written to the user's file.
+    """
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    con.execute("PRAGMA writable_schema=ON")
+    return con
+
+
 def ros2_sqlite_messages(
     path: Path, topics: tuple[str, ...] | None
 ) -> Iterator[tuple[str, str, int, bytes]]:
     """(topic, type, time in ns, raw CDR) of every readable row of a damaged ROS2 sqlite3 bag.
 
-    Rows come in insertion order. The table is scanned whole first; where sqlite reports damage
-    ("database disk image is malformed"), the rows after the last one read are fetched one by one
-    by their id, so the rows on intact pages beyond the damage are kept too. Unreadable rows are
-    skipped; when any were, a :class:`CorruptLogError` after the last row says how many (the
+    Rows come in id (insertion) order. The table is scanned whole first, skipping rows whose cells
+    read as NULL (a leaf page past the end of a cut file reads as zeros); where sqlite reports
+    damage ("database disk image is malformed"), the rows after the last one read are fetched one
+    by one by their id, so the rows on intact pages beyond the damage are kept too. Unreadable rows
+    are skipped; when any were, a :class:`CorruptLogError` after the last row says how many (the
     ingest records it under ``salvaged``).
     """
     db = _ros2_db(path)
     n = 0
     try:
-        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        con = _open_damaged(db)
     except sqlite3.DatabaseError as err:
         raise CorruptLogError(path, 0, f"sqlite3: {err}", salvage=True) from None
     try:
@@ -173,58 +187,87 @@ def ros2_sqlite_messages(
             }
         except sqlite3.DatabaseError as err:
             raise CorruptLogError(path, 0, f"sqlite3 (topics table): {err}", salvage=True) from None
-        last_id, first_error = 0, None
+        last_id, error, nulls = 0, "", 0
         try:
-            for rid, tid, t, data in con.execute(
+            for rid, *cells in con.execute(
                 "SELECT id, topic_id, timestamp, data FROM messages ORDER BY id"
             ):
+                row = _message_row(cells)
+                if row is None:  # a page read past the cut: zeros where the rows were
+                    nulls += 1
+                    continue
                 last_id = int(rid)
-                topic, typ = types.get(int(tid), ("", ""))
+                topic, typ = types.get(row[0], ("", ""))
                 if topics is None or topic in topics:
                     n += 1
-                    yield topic, typ, int(t), bytes(data)
+                    yield topic, typ, row[1], row[2]
         except sqlite3.DatabaseError as err:
-            first_error = str(err)
-        if first_error is None:
+            error = str(err)
+        if not error and not nulls:
             return
-        skipped = 0
-        for rid in _ids_after(con, last_id):
-            try:
-                row = con.execute(
-                    "SELECT topic_id, timestamp, data FROM messages WHERE id = ?", (rid,)
-                ).fetchone()
-            except sqlite3.DatabaseError:
-                skipped += 1
-                continue
-            if row is None:
-                continue
-            topic, typ = types.get(int(row[0]), ("", ""))
-            if topics is None or topic in topics:
-                n += 1
-                yield topic, typ, int(row[1]), bytes(row[2])
-        raise CorruptLogError(
-            path,
-            n,
-            f"sqlite3: {first_error}; rows read one by one past the damage, {skipped} "
-            "unreadable row(s) skipped",
-            salvage=True,
-        )
+        lost = [f"{nulls} row(s) read as zeros skipped"] if nulls else []
+        if error:
+            top = _max_id(con)
+            skipped = pending = 0  # unreadable ids: before a later readable row, and since it
+            for rid in _ids_after(con, last_id, top):
+                try:
+                    cells = con.execute(
+                        "SELECT topic_id, timestamp, data FROM messages WHERE id = ?", (rid,)
+                    ).fetchone()
+                except sqlite3.DatabaseError:
+                    pending += 1
+                    continue
+                if cells is None:
+                    continue
+                row = _message_row(cells)
+                if row is None:
+                    pending += 1
+                    continue
+                skipped, pending = skipped + pending, 0
+                topic, typ = types.get(row[0], ("", ""))
+                if topics is None or topic in topics:
+                    n += 1
+                    yield topic, typ, row[1], row[2]
+            lost.append(f"{error}; rows read one by one past it")
+            if top is not None:  # the table's last id is known: every unreadable id was a row
+                lost.append(f"{skipped + pending} unreadable row(s) skipped")
+            else:  # a cut file: the ids probed past the last readable row may never have existed
+                lost.append(
+                    f"{skipped} unreadable row(s) skipped; the table's end is cut off (no "
+                    f"readable row in the {pending} ids after the last one read)"
+                )
+        raise CorruptLogError(path, n, "sqlite3: " + "; ".join(lost), salvage=True)
     finally:
         con.close()
 
 
-def _ids_after(con: sqlite3.Connection, last_id: int, misses: int = 1000) -> Iterator[int]:
-    """Message ids after ``last_id``.
+def _message_row(cells) -> tuple[int, int, bytes] | None:
+    """(topic id, time, data) of a messages row, or None where its cells are not those types."""
+    tid, t, data = cells
+    if isinstance(tid, int) and isinstance(t, int) and isinstance(data, bytes | memoryview):
+        return tid, t, bytes(data)
+    return None
 
-    Up to ``max(id)`` when sqlite can still say it, else until ``misses`` ids in a row are absent
-    or unreadable.
-    """
+
+def _max_id(con: sqlite3.Connection) -> int | None:
+    """The messages table's largest id, or None where sqlite cannot read it (a cut file)."""
     try:
         top = con.execute("SELECT max(id) FROM messages").fetchone()[0]
     except sqlite3.DatabaseError:
-        top = None
+        return None
+    return None if top is None else int(top)
+
+
+def _ids_after(
+    con: sqlite3.Connection, last_id: int, top: int | None, misses: int = 1000
+) -> Iterator[int]:
+    """Message ids after ``last_id``.
+
+    Up to ``top`` (the table's largest id) when sqlite can still say it, else until ``misses``
+    ids in a row are absent or unreadable.
+    """
     if top is not None:
-        yield from range(last_id + 1, int(top) + 1)
+        yield from range(last_id + 1, top + 1)
         return
     rid, gap = last_id + 1, 0
     while gap < misses:
@@ -241,7 +284,7 @@ def ros2_sqlite_topics(path: Path) -> dict[str, tuple[str, int]]:
     """Topic -> (type, message count) of a ROS2 sqlite3 bag, read from its tables."""
     db = _ros2_db(path)
     try:
-        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        con = _open_damaged(db)
         try:
             return {
                 str(name): (str(typ), 0)
