@@ -283,6 +283,21 @@ def sweep_temporaries(root: Path) -> int:
     return removed
 
 
+def _lock_holder(text: bytes) -> str:
+    """Who holds a run lock, in words, from the pid its holder wrote into the lock file."""
+    word = text.decode(errors="replace").strip()
+    if not word.isdigit():  # between the holder's flock and its write of its pid
+        return "another harness run (starting up: its pid is not written yet)"
+    pid = int(word)
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return f"a process started by harness run pid {pid} (which has exited)"
+    except PermissionError:  # alive, another user's
+        pass
+    return f"another harness run (pid {pid})"
+
+
 @contextlib.contextmanager
 def run_lock(directory: Path) -> Iterator[None]:
     """Hold ``directory``'s run lock (exclusive, non-blocking) for the block.
@@ -299,10 +314,9 @@ def run_lock(directory: Path) -> Iterator[None]:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
             raise HarnessError(
-                f"{directory}: another harness run (pid {holder}) is writing into this directory; "
-                "wait for it to finish, or choose another --out"
+                f"{directory}: {_lock_holder(os.pread(fd, 64, 0))} is writing into this "
+                "directory; wait for it to finish, or choose another --out"
             ) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
@@ -316,6 +330,6 @@ def run_lock(directory: Path) -> Iterator[None]:
             )
         yield
     finally:
-        with contextlib.suppress(OSError):
-            os.ftruncate(fd, 0)
-        os.close(fd)  # releases the flock
+        # The pid stays in the file: the flock, not the file's text, says whether a run holds it,
+        # and a process a run started (a pool worker) may hold the lock after the run has exited.
+        os.close(fd)  # releases the flock (unless a child inherited it)

@@ -214,3 +214,48 @@ def test_outputs_take_their_mode_from_the_umask(local_run: tuple) -> None:
     assert (out / "splits").stat().st_mode & 0o777 == 0o777 & ~_UMASK
     entry = next((out / "cache" / "ranks").iterdir())
     assert entry.stat().st_mode & 0o777 == 0o777 & ~_UMASK
+
+
+def test_a_held_lock_names_its_holder_in_words_never_pid_unknown(tmp_path: Path) -> None:
+    """A lock taken but with no pid written yet (the holder is starting), and a lock whose writer
+    has exited while a process it started still holds it: each said as such, not "pid unknown"."""
+    import subprocess
+    import sys
+
+    from harness.outdirs import LOCK, run_lock
+
+    holder = (
+        "import fcntl, os, sys, time\n"
+        "fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)\n"
+        "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+        "os.ftruncate(fd, 0)\n"
+        "if len(sys.argv) > 2: os.pwrite(fd, (sys.argv[2] + '\\n').encode(), 0)\n"
+        "print('held', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        text=True,
+        capture_output=True,
+        check=True,
+    )
+    dead_pid = gone.stdout.strip()  # a pid that has exited (reuse within the test: negligible)
+    for extra, words in (
+        ([], r"another harness run \(starting up: its pid is not written yet\)"),
+        ([dead_pid], rf"a process started by harness run pid {dead_pid} \(which has exited\)"),
+    ):
+        d = tmp_path / f"o{len(extra)}"
+        d.mkdir()
+        proc = subprocess.Popen(
+            [sys.executable, "-c", holder, str(d / LOCK), *extra], stdout=subprocess.PIPE, text=True
+        )
+        try:
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+            with pytest.raises(HarnessError, match=words) as ei, run_lock(d):
+                pass
+            assert "unknown" not in str(ei.value)
+        finally:
+            proc.kill()
+            proc.wait()
+    with run_lock(tmp_path / "o0"):  # the holder gone, the lock is free again, and ours
+        assert (tmp_path / "o0" / LOCK).read_text() == f"{os.getpid()}\n"
