@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +61,27 @@ class LocalExecutor:
         ]
 
 
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Refuse a Ray ``--address`` whose host:port takes no TCP connection within ``timeout_s``.
+
+    ``ray.init`` retries an unreachable head for minutes before it fails with a traceback; a
+    plain connection says the same in seconds. ``auto`` (a cluster found on this machine) and an
+    address without a port are left to Ray.
+    """
+    hostport = address.split("://", 1)[-1].rstrip("/")
+    host, sep, port = hostport.rpartition(":")
+    if address == "auto" or not sep or not port.isdigit():
+        return
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as err:
+        raise ConfigError(
+            f"--executor ray: cannot reach the Ray cluster at --address {address}: "
+            f"{err.strerror or type(err).__name__} (is its head node running, and the port open?)"
+        ) from None
+
+
 @dataclass
 class RayExecutor:
     """Map units over a Ray cluster.
@@ -86,6 +108,8 @@ class RayExecutor:
         except ImportError:
             raise ConfigError("--executor ray needs Ray: pip install 'dbl-harness[ray]'") from None
         if not ray.is_initialized():
+            if self.address is not None:
+                _check_reachable(self.address)
             kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
             if self.address is None:
                 kw["num_cpus"] = self.num_cpus

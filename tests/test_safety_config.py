@@ -66,6 +66,24 @@ def test_ray_flags_need_the_ray_executor(tmp_path: Path, capsys: pytest.CaptureF
     assert not (tmp_path / "o").exists()
 
 
+def test_an_unreachable_ray_address_is_one_error_line_in_seconds(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """`--executor ray --address HOST:PORT` where nothing listens: ray.init would retry for
+    minutes and end in a ConnectionError traceback; the harness says it in one line."""
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on: bound, never listened
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        argv = ["reproduce", "--config", str(FIXTURE_TOML), "--out", str(tmp_path / "o")]
+        argv += ["--executor", "ray", "--address", f"ray://127.0.0.1:{port}"]
+        assert main(argv) == 1
+    err = _err(capsys)
+    assert f"cannot reach the Ray cluster at --address ray://127.0.0.1:{port}" in err, err
+    assert "refused" in err.lower(), err
+
+
 @pytest.mark.parametrize(
     ("edit", "extra", "message"),
     [
