@@ -17,13 +17,28 @@ from pathlib import Path
 
 from harness.cache import atomic_path
 
-from .cases import CASES
+from .cases import CASES, MEASURES
+from .provenance import staleness, stamp
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "bench" / ".data"
 OUT = ROOT / "results" / "bench"
 
-HIDDEN = {"case", "median", "unit", "runs", "peak_rss_mib", "notes", "group", "points", "table_l"}
+HIDDEN = {
+    "case",
+    "median",
+    "unit",
+    "runs",
+    "peak_rss_mib",
+    "notes",
+    "group",
+    "points",
+    "table_l",
+    "commit",
+    "dirty",
+    "date",
+    "cpu",
+}
 
 
 def run_case(name: str, quick: bool) -> list[dict]:
@@ -32,11 +47,20 @@ def run_case(name: str, quick: bool) -> list[dict]:
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"bench case {name} failed")
+    prov = stamp(MEASURES[name])
     return [
-        {**json.loads(line), "group": name}
+        {**json.loads(line), "group": name, **prov}
         for line in proc.stdout.splitlines()
         if line.startswith("{")
     ]
+
+
+def measured(r: dict) -> str:
+    """A row's provenance cell: commit (+dirty), date and CPU, or what it lacks."""
+    if not r.get("commit"):
+        return "not recorded"
+    dirty = "+dirty" if r.get("dirty") else ""
+    return f"{r['commit'][:8]}{dirty}, {str(r.get('date', '?'))[:10]}, {r.get('cpu', '?')}"
 
 
 def plot_scaling(rows: list[dict], path: Path) -> None:
@@ -73,15 +97,20 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--only", nargs="*", choices=CASES)
+    ap.add_argument(
+        "--render", action="store_true", help="rewrite bench.md from bench.json, running nothing"
+    )
     args = ap.parse_args()
     rows = []
-    if args.only and (OUT / "bench.json").exists():  # keep the other cases' latest figures
+    if args.render:
+        rows = json.loads((OUT / "bench.json").read_text())["results"]
+    elif args.only and (OUT / "bench.json").exists():  # keep the other cases' latest figures
         rows = [
             r
             for r in json.loads((OUT / "bench.json").read_text())["results"]
             if r.get("group") not in args.only
         ]
-    for case in args.only or CASES:
+    for case in [] if args.render else args.only or CASES:
         t0 = time.perf_counter()
         got = run_case(case, args.quick)
         rows += got
@@ -89,6 +118,13 @@ def main() -> int:
         for r in got:
             print("   ", r["case"], {k: v for k, v in r.items() if k not in ("case", "runs")})
     OUT.mkdir(parents=True, exist_ok=True)
+    if not args.render:
+        write_json(rows)
+    write_md(rows)
+    return 0
+
+
+def write_json(rows: list[dict]) -> None:
     meta = {
         "python": platform.python_version(),
         "platform": platform.platform(),
@@ -96,15 +132,27 @@ def main() -> int:
     }
     with atomic_path(OUT / "bench.json") as tmp:
         tmp.write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
-    lines = ["| case | median | unit | peak RSS MiB | notes |", "|---|---|---|---|---|"]
+
+
+def write_md(rows: list[dict]) -> None:
+    lines = [
+        "Each row says where it was measured (commit, date, CPU) and whether the code its case",
+        "measures (`bench/cases/__init__.py` MEASURES) changed after that commit: a **stale**",
+        "row is a figure of older code, kept until its case runs again (`python -m bench --only",
+        "CASE`).",
+        "",
+        "| case | median | unit | peak RSS MiB | measured at | stale | notes |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         if r["unit"] == "exponent":
             continue
         extra = "; ".join(f"{k} {v}" for k, v in r.items() if k not in HIDDEN)
         notes = "; ".join(x for x in (r.get("notes", ""), extra) if x)
+        stale = staleness(r, MEASURES.get(r.get("group", ""), ("harness",)))
         lines.append(
             f"| {r['case']} | {r['median']:.4g} | {r['unit']} | "
-            f"{r.get('peak_rss_mib', float('nan')):.0f} | {notes} |"
+            f"{r.get('peak_rss_mib', float('nan')):.0f} | {measured(r)} | {stale} | {notes} |"
         )
     scaling = [r for r in rows if r["unit"] == "exponent"]
     if scaling:
@@ -171,7 +219,6 @@ def main() -> int:
     with atomic_path(OUT / "bench.md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     print((OUT / "bench.md").read_text())
-    return 0
 
 
 if __name__ == "__main__":

@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -44,3 +46,28 @@ def test_the_bench_command_runs_as_typed_and_keeps_other_cases_figures(tmp_path:
     assert "| rank exact db=1000 |" in md
     assert any(f"| {r['case']} |" in md for r in rows if r["group"] == "fusion")
     assert (ROOT / "results" / "bench" / "bench.json").read_bytes() == tracked
+    fresh = [r for r in rows if r["group"] == "fusion"]
+    assert all(r["date"][:4] >= "2026" and ("AVX" in r["cpu"]) for r in fresh), fresh[0]
+    # the copy is not a git checkout: its rows say so rather than claim a commit
+    assert all(r["commit"] is None for r in fresh)
+    assert "| rank exact db=1000 |" in md and "no commit recorded" in md
+
+
+def test_a_bench_row_is_stale_once_the_code_it_measures_changes_after_its_commit() -> None:
+    """Rows from the repository's own history: measured at HEAD (current unless the measured code
+    is dirty), at the first commit (stale, naming the paths and the commit that changed them), and
+    with no commit (said so)."""
+    from bench.provenance import _git, staleness
+
+    head = _git("rev-parse", "HEAD")
+    first = (_git("rev-list", "--max-parents=0", "HEAD") or "").splitlines()
+    if head is None or not first or _git("rev-parse", "--is-shallow-repository") == "true":
+        pytest.skip("needs the repository's git history (a full clone)")
+    measures = ("harness/metrics.py",)
+    last = _git("log", "-1", "--format=%H", "--", *measures)
+    assert last and last != first[0]
+    assert staleness({"commit": head, "dirty": False}, measures) == ""
+    assert staleness({"commit": head, "dirty": True}, measures).startswith("dirty")
+    old = staleness({"commit": first[0]}, measures)
+    assert old.startswith("stale: harness/metrics.py changed in " + last[:8]), old
+    assert staleness({}, measures).startswith("stale? no commit recorded")

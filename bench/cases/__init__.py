@@ -24,6 +24,28 @@ CASES = {
 }
 
 
+#: Case name -> the code it measures (paths for ``git log``): a row is stale once a later commit
+#: touches one of them (``bench/provenance.py``).
+MEASURES: dict[str, tuple[str, ...]] = {
+    "ingest": ("harness/ingest", "bench/cases/ingest.py"),
+    "crops": ("harness/crops.py", "harness/imagestore.py", "bench/cases/crops.py"),
+    "descriptor": ("harness/descriptors", "bench/cases/descriptor.py"),
+    "ranking": ("harness/retrieval", "bench/cases/ranking.py"),
+    "localizers": ("harness", "bench/cases/localizers.py", "bench/nclt_localizers.toml"),
+    "detect": ("harness", "bench/cases/detect.py", "bench/nclt_detect.toml"),
+    "fusion": (
+        "harness/fusion.py",
+        "harness/metrics.py",
+        "harness/splits.py",
+        "harness/reports.py",
+        "bench/cases/fusion.py",
+    ),
+    "executor": ("harness/executors.py", "harness/cache.py", "bench/cases/executor.py"),
+    "e2e": ("harness", "bench/cases/e2e.py", "bench/nclt_scale.toml"),
+    "full-nclt": ("harness", "bench/cases/full_nclt.py", "bench/nclt_full.toml"),
+}
+
+
 def run(name: str, quick: bool) -> None:
     """Run case ``name``: its module's ``case_<module>(quick)``."""
     module = CASES[name]

@@ -1,0 +1,69 @@
+"""Where a bench row comes from, and whether the code it measured has changed since.
+
+Every row ``python -m bench`` records carries ``commit`` (the checkout's HEAD), ``dirty`` (whether
+the files the case measures had uncommitted changes), ``date`` (UTC, ISO 8601) and ``cpu`` (the
+model name and the widest SIMD the CPU has: figures of one machine kind differ between AVX-512 and
+AVX2-only instances). ``bench.md`` marks a row *stale* when a commit after the row's own touched
+the code its case measures (:data:`bench.cases.MEASURES`), and says so where a row records no
+commit at all (rows from before this record).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _git(*args: str) -> str | None:
+    """``git args`` in the repository, its stdout stripped; None where git or history is missing."""
+    try:
+        proc = subprocess.run(
+            ["git", *args], cwd=ROOT, capture_output=True, text=True, check=False, timeout=30
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return proc.stdout.strip() if proc.returncode == 0 else None
+
+
+def cpu() -> str:
+    """The CPU's model name and its widest SIMD (``AVX-512``, ``AVX2`` or ``no AVX2``)."""
+    model, flags = "unknown CPU", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and model == "unknown CPU":
+                model = value.strip()
+            elif key.strip() == "flags" and not flags:
+                flags = set(value.split())
+    except OSError:
+        pass
+    simd = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
+    return f"{model} ({simd})"
+
+
+def stamp(measures: tuple[str, ...]) -> dict[str, object]:
+    """The provenance fields of a row measured now of code under ``measures``."""
+    dirty = _git("status", "--porcelain", "--", *measures)
+    return {
+        "commit": _git("rev-parse", "HEAD"),
+        "dirty": bool(dirty) if dirty is not None else None,
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "cpu": cpu(),
+    }
+
+
+def staleness(row: dict, measures: tuple[str, ...]) -> str:
+    """ "" for a row measured at the last change of its code, else what makes it stale, in words."""
+    commit = row.get("commit")
+    if not commit:
+        return "stale? no commit recorded (measured before rows carried one)"
+    last = _git("log", "-1", "--format=%H", "--", *measures)
+    if last is None:
+        return "not checked: no git history here"
+    if last and _git("merge-base", "--is-ancestor", last, commit) is None:
+        when = _git("log", "-1", "--format=%cs", last) or "?"
+        return f"stale: {', '.join(measures)} changed in {last[:8]} ({when}) after this row"
+    return "dirty: measured with uncommitted changes" if row.get("dirty") else ""
