@@ -21,6 +21,7 @@ CASES = {
     "executor": "executor",
     "e2e": "e2e",
     "full-nclt": "full_nclt",
+    "fixture-figures": "fixture_figures",
 }
 
 
@@ -43,6 +44,12 @@ MEASURES: dict[str, tuple[str, ...]] = {
     "executor": ("harness/executors.py", "harness/cache.py", "bench/cases/executor.py"),
     "e2e": ("harness", "bench/cases/e2e.py", "bench/nclt_scale.toml"),
     "full-nclt": ("harness", "bench/cases/full_nclt.py", "bench/nclt_full.toml"),
+    "fixture-figures": (
+        "harness",
+        "bench/cases/fixture_figures.py",
+        "datasets/fixture.toml",
+        "annotations",
+    ),
 }
 
 

@@ -1,0 +1,125 @@
+"""Bench case ``fixture-figures``: the figures README and ``docs/`` quote from fixture variants.
+
+The fixture run of ``datasets/fixture.toml`` (what ``make reproduce-table`` prints), then the same
+run with one setting changed, each in a directory of its own that starts from the default run's
+cache (so only what the setting changes runs again):
+
+- ``[descriptor] train_samples = 6000`` (a training budget instead of 6 epochs),
+- ``[projection] dim`` = 256, 128, 64, 32 and 64 with whitening,
+- ``[retrieval] db_stride_m = 9`` with ``gt_radius_m = 5``.
+
+One row per variant: ``median`` is its R@1, ``figures`` every figure the text quotes (R@1 over all
+and clean subimages, median r, Table I at RoC-max 0.03 and 0.05, Table S at 0.05, query
+subimages, places lost, the wall time of the run). ``tests/test_doc_figures.py`` fails when the
+README or ``docs/method.md`` quotes a figure these rows do not hold; it also checks the default
+row against the suite's own fixture run, so the record cannot drift from the code unseen.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from .common import ROOT, emit
+
+VARIANTS: dict[str, dict[str, dict[str, Any]]] = {
+    "default": {},
+    "train_samples=6000": {"descriptor": {"train_samples": 6000}},
+    "dim=256": {"projection": {"dim": 256}},
+    "dim=128": {"projection": {"dim": 128}},
+    "dim=64": {"projection": {"dim": 64}},
+    "dim=32": {"projection": {"dim": 32}},
+    "dim=64 whiten": {"projection": {"dim": 64, "whiten": True}},
+    "db_stride_m=9": {"retrieval": {"db_stride_m": 9.0, "gt_radius_m": 5.0}},
+}
+
+
+def figures(out: Path) -> dict[str, float]:
+    """The quoted figures of one finished run directory, at full precision."""
+    import pandas as pd
+
+    loc = pd.read_csv(out / "localization.csv")
+    row = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")].iloc[0]
+    t1 = pd.read_csv(out / "table1.csv").set_index("method")
+    summ = pd.read_parquet(out / "splits" / "summary.parquet")
+    ts = summ[(summ["table"] == "S") & (summ["roc_max"].round(6) == 0.05)].set_index("method")
+    run = json.loads((out / "run.json").read_text())
+    rf = ts.loc["rank_fusion"]
+    return {
+        "recall_at_1": float(row["recall_at_1"]),
+        "clean_recall_at_1": float(row["clean_recall_at_1"]),
+        "median_r": float(row["median_r"]),
+        "subimages": int(row["subimages"]),
+        "t1_rank_fusion_003": float(t1.loc["rank_fusion", "0.03"]),
+        "t1_rank_no_fusion_003": float(t1.loc["rank_no_fusion", "0.03"]),
+        "t1_rank_fusion_005": float(t1.loc["rank_fusion", "0.05"]),
+        "t1_rank_no_fusion_005": float(t1.loc["rank_no_fusion", "0.05"]),
+        "t1_score_max_005": float(t1.loc["score_max", "0.05"]),
+        "ts_rank_fusion_005": float(ts.loc["rank_fusion", "ap"]),
+        "ts_score_max_005": float(ts.loc["score_max", "ap"]),
+        "ts_rank_fusion_ci_low_005": float(rf["ci_low"]),
+        "ts_rank_fusion_ci_high_005": float(rf["ci_high"]),
+        "ts_rank_fusion_vs_random_ci_low_005": float(rf["vs_random_diff_ci_low"]),
+        "ts_random_005": float(ts.loc["random", "ap"]),
+        "ts_floor_005": float(rf["floor"]),
+        "ts_chance_low_005": float(rf["chance_low"]),
+        "ts_chance_high_005": float(rf["chance_high"]),
+        "ts_positive_rate_005": float(rf["positive_rate"]),
+        "places_lost": _lost(run.get("counts", {})),
+    }
+
+
+def _lost(counts: Any) -> int:
+    """``no_rank_place_not_in_database`` summed over every localizer and session of run.json."""
+    if isinstance(counts, dict):
+        return sum(
+            int(v) if k == "no_rank_place_not_in_database" else _lost(v)
+            for k, v in counts.items()
+            if isinstance(v, dict | int) and not isinstance(v, bool)
+        )
+    return 0
+
+
+def run_variant(base: Path, default_out: Path | None, name: str) -> tuple[Path, float]:
+    """Run one variant into ``base/<name>`` (from the default run's cache); (out, wall s)."""
+    from harness.config import load_config
+    from harness.runner import Pipeline
+
+    cfg = load_config(ROOT / "datasets" / "fixture.toml")
+    for section, values in VARIANTS[name].items():
+        cfg = dataclasses.replace(
+            cfg, **{section: dataclasses.replace(getattr(cfg, section), **values)}
+        )
+    out = base / name.replace(" ", "_").replace("=", "-")
+    if default_out is not None:
+        shutil.copytree(default_out / "cache", out / "cache")
+        shutil.copy(default_out / ".dbl-harness.json", out / ".dbl-harness.json")
+    t0 = time.perf_counter()
+    Pipeline(cfg, out).run()
+    return out, time.perf_counter() - t0
+
+
+def case_fixture_figures(quick: bool) -> None:
+    """Each variant's figures (``--quick``: the default run and one projection)."""
+    names = ["default", "dim=64"] if quick else list(VARIANTS)
+    with tempfile.TemporaryDirectory(prefix="fixture-figures-") as tmp:
+        base = Path(tmp)
+        default_out: Path | None = None
+        for name in names:
+            out, wall = run_variant(base, default_out, name)
+            if name == "default":
+                default_out = out
+            fig = figures(out)
+            emit(
+                f"fixture figures [{name}]",
+                [fig["recall_at_1"]],
+                "R@1",
+                figures=fig,
+                wall_s=round(wall, 1),
+                notes=f"datasets/fixture.toml{'' if name == 'default' else ' with ' + name}",
+            )
