@@ -97,7 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--config", required=True)
         p.add_argument("--out", required=True)
         p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
-        p.add_argument("--seed", type=int)
+        if name == "reproduce":  # the stages before the tables draw nothing from the run's seed
+            p.add_argument(
+                "--seed",
+                type=int,
+                help="the run's seed (config `seed`): bootstrap resamples and chance draws",
+            )
         p.add_argument(
             "--executor",
             choices=["local", "ray"],
@@ -131,7 +136,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True)
     p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
-    p.add_argument("--seed", type=int)
     p.add_argument(
         "--method",
         default="rank_fusion",
@@ -155,7 +159,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, help="the run directory a later reproduce uses")
     p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
-    p.add_argument("--seed", type=int)
     p.add_argument(
         "--images",
         choices=["upright", "source"],
