@@ -98,6 +98,12 @@ def test_import_a_users_localizer_through_the_report_page(
     )
     assert run.returncode == 0, run.stderr
     capsys.readouterr()
+    # the README's `harness rank --config FILE --out DIR --import NAME=FILE` first: the ranks alone
+    assert main(["rank", *args, "--import", f"hsv={ranks_csv}"]) == 0
+    said = capsys.readouterr().out
+    ranked = pd.read_parquet(out / "ranks.parquet")
+    assert f"{len(ranked)} ranked query subimages -> {out / 'ranks.parquet'}" in said
+    assert set(ranked["localizer"]) == {"hsv"} and ranked["rank"].between(1, ranked["L"]).all()
     assert main(["reproduce", *args, "--import", f"hsv={ranks_csv}"]) == 0
     printed = capsys.readouterr().out
     assert "Localization quality of hsv" in printed and "localizer hsv" in printed
