@@ -257,3 +257,19 @@ def test_the_detect_flags_are_honoured_as_typed(
         before.groupby("image_id")["score"].max().to_numpy(),
         dets.groupby("image_id")["score"].max().to_numpy(),
     )
+
+
+def test_the_readme_quotes_table_d_as_the_command_prints_it(detected: tuple) -> None:
+    """The README's Table D rows and figures are this run's (issue 34 item 7)."""
+    from .readme_text import README, table_rows_after
+
+    _, out, _ = detected
+    md = (out / "tableD.md").read_text()
+    for row in table_rows_after("as the second command prints it:", tables=2):
+        assert row in md, row
+    t = pd.read_csv(out / "tableD.csv").set_index("row")
+    det = t.loc["detector"]
+    met = round(float(det["candidate_recall"]) * int(det["change_boxes"]))
+    text = README.read_text()
+    assert f"only {met} of the {int(det['change_boxes'])} change boxes are met" in text
+    assert f"AP50 above {float(det['ceiling']):.2f}" in text

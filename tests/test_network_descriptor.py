@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from harness.cli import main
-from harness.config import DescriptorConfig, ProposalsConfig, YoloConfig
+from harness.config import DescriptorConfig, YoloConfig
 from harness.descriptors import make_descriptor
 from harness.descriptors.network import pool
 from harness.errors import ConfigError
@@ -124,7 +124,10 @@ def test_a_run_with_an_onnx_descriptor_as_a_user_types_it(
     assert "localizer onnx" in capsys.readouterr().out
     loc = pd.read_csv(out / "localization.csv")
     row = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")].iloc[0]
-    assert row["subimages"] > 1000 and 0 < row["recall_at_1"] <= 1
+    ranks = pd.read_parquet(out / "ranks.parquet")
+    assert row["subimages"] == len(ranks)  # every ranked subimage counted
+    assert row["recall_at_1"] == pytest.approx((ranks["rank"] == 1).mean(), abs=5e-5)
+    assert row["recall_at_1"] > 2 * row["chance_recall_at_1"]  # the network localizes
     assert (out / "report.html").exists()
 
 
@@ -143,4 +146,3 @@ def test_yolo_weights_as_onnx_give_the_torchscript_boxes(tmp_path: Path) -> None
         np.testing.assert_allclose(b1, b2, atol=1e-3)
         np.testing.assert_allclose(s1, s2, atol=1e-5)
         np.testing.assert_array_equal(c1, c2)
-    assert ProposalsConfig(methods=("yolo",), yolo=YoloConfig(weights="y.onnx")).yolo.weights

@@ -118,7 +118,19 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
     loc = pd.read_csv(tmp_path / "localization.csv")
     assert "centre" in set(loc["proposals"]) and (tmp_path / "table1.csv").exists()
     # editing the function changes the proposals' key (its source is hashed into it)
-    assert proposals.method_fingerprints(["grid5", "centre"]).keys() == {"centre"}
+    before = proposals.method_fingerprints(["grid5", "centre"])
+    assert before.keys() == {"centre"}  # built-ins are covered by the package's own code key
+
+    def centre_edited(rgb: np.ndarray, cfg: object) -> tuple[np.ndarray, np.ndarray]:
+        """One box: the image's central half."""
+        h, w = rgb.shape[:2]
+        return np.array([[w / 8, h / 8, 7 * w / 8, 7 * h / 8]]), np.ones(1)
+
+    proposals.IMAGE_METHODS["centre"] = centre_edited  # an edit (the registries fixture undoes it)
+    after = proposals.method_fingerprints(["grid5", "centre"])
+    assert after["centre"] != before["centre"]
+    proposals.IMAGE_METHODS["centre"] = centre
+    assert proposals.method_fingerprints(["centre"]) == before  # the same source, the same key
 
 
 def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries) -> None:

@@ -87,3 +87,51 @@ def test_stage_keys_change_with_the_code(tmp_path: Path, monkeypatch: pytest.Mon
     k1 = sc.key("samples", "x")
     monkeypatch.setattr(cache, "CODE_FINGERPRINT", after)
     assert sc.key("samples", "x") != k1
+
+
+def test_a_real_full_disk_mid_stage_is_one_error_line_and_the_rerun_resumes_to_the_same_tables(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """A small tmpfs as --out: the finished stages (ingest up to the model) fit, the descriptors do
+    not. The run stops with one ERROR line; with space made (the tmpfs grown), the same command
+    resumes and writes the local run's tables, byte for byte, with no temporary left."""
+    import subprocess
+
+    from .conftest import one_error
+
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("a real full disk needs a tmpfs mount: run as root (CI runs as root)")
+    p, _, run = local_run
+    kept = ("ingest", "frames", "pairs", "proposals", "model")
+    need = sum(
+        f.stat().st_size for s in kept for f in (run / "cache" / s).rglob("*") if f.is_file()
+    )
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    size_kb = need // 1024 + 2048  # the finished stages and 2 MB: not the descriptors (7 MB)
+    got = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", str(mnt)],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    if got.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {got.stderr.strip()}")
+    try:
+        out = mnt / "run"
+        for s in kept:
+            shutil.copytree(run / "cache" / s, out / "cache" / s)
+        shutil.copy(run / ".dbl-harness.json", out / ".dbl-harness.json")
+        argv = ["reproduce", "--config", str(FIXTURE_TOML), "--data-root", str(p.cfg.data_root)]
+        argv += ["--out", str(out)]
+        capsys.readouterr()
+        assert main(argv) == 1
+        err = one_error(capsys)
+        assert "free disk space" in err, err
+        assert not (out / "table1.csv").exists()
+        subprocess.run(["mount", "-o", "remount,size=256m", str(mnt)], check=True)
+        assert main(argv) == 0
+        assert (out / "table1.csv").read_bytes() == (run / "table1.csv").read_bytes()
+        assert (out / "tableS.csv").read_bytes() == (run / "tableS.csv").read_bytes()
+        left = [f for f in out.rglob("*") if ".dbl-harness-" in f.name and f.name.endswith(".tmp")]
+        assert not left, left
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)

@@ -60,6 +60,14 @@ def figures(out: Path) -> dict[str, float]:
         "t1_rank_fusion_005": float(t1.loc["rank_fusion", "0.05"]),
         "t1_rank_no_fusion_005": float(t1.loc["rank_no_fusion", "0.05"]),
         "t1_score_max_005": float(t1.loc["score_max", "0.05"]),
+        "t1_rank_fusion_asc_005": float(t1.loc["rank_fusion_asc", "0.05"]),
+        "t1_cover_count_005": float(t1.loc["cover_count", "0.05"]),
+        "t1_size_prior_005": float(t1.loc["size_prior", "0.05"]),
+        "t1_positive_rate_005": float(
+            summ[(summ["table"] == "I") & (summ["roc_max"].round(6) == 0.05)]["positive_rate"].iloc[
+                0
+            ]
+        ),
         "ts_rank_fusion_005": float(ts.loc["rank_fusion", "ap"]),
         "ts_score_max_005": float(ts.loc["score_max", "ap"]),
         "ts_rank_fusion_ci_low_005": float(rf["ci_low"]),
@@ -71,6 +79,20 @@ def figures(out: Path) -> dict[str, float]:
         "ts_chance_high_005": float(rf["chance_high"]),
         "ts_positive_rate_005": float(rf["positive_rate"]),
         "places_lost": _lost(run.get("counts", {})),
+        "frames_not_described_min": min(run["counts"]["frames_not_described"].values()),
+        "frames_not_described_max": max(run["counts"]["frames_not_described"].values()),
+        "train_s": float(run["timings_s"].get("model", 0.0)),
+        **_model_info(out, run),
+    }
+
+
+def _model_info(out: Path, run: dict) -> dict[str, Any]:
+    """The trained model's steps and whether it stopped early (its cache entry's manifest)."""
+    (key,) = run["cache_entries"]["model"]
+    info = json.loads((out / "cache" / "model" / key / "manifest.json").read_text())["info"]
+    return {  # an epoch-trained model records neither: its steps are epochs x batches
+        "train_steps": int(info.get("steps", -1)),
+        "stopped_early": bool(info.get("stopped_early", False)),
     }
 
 
