@@ -214,3 +214,37 @@ def test_annotation_export_with_wrong_tables(tmp_path: Path, capsys: pytest.Capt
     assert main([*argv, "--pairs", str(frames)]) == 1
     assert "not a pair table (needs columns" in _cli_err(capsys)
     assert not (tmp_path / "t").exists()
+
+
+def test_annotations_import_as_typed_with_frames_and_force(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``harness annotations import coco SRC --out CSV --frames F [--force]``: the CSV written, a
+    second import refused without --force (the user's CSV kept), replaced with it."""
+    from harness.cli import main
+
+    n1, n2 = image_name("A", "c", 1), image_name("A", "c", 2)
+    coco = {
+        "images": [{"id": 1, "file_name": n1}, {"id": 2, "file_name": n2}],
+        "categories": [{"id": 3, "name": "car"}],
+        "annotations": [{"id": 1, "image_id": 1, "category_id": 3, "bbox": [10, 10, 10, 20]}],
+    }
+    src, out, frames = tmp_path / "c.json", tmp_path / "ann.csv", tmp_path / "frames.parquet"
+    src.write_text(json.dumps(coco))
+    FRAMES.assign(image=["a.png", "b.png"]).to_parquet(frames)
+    argv = ["annotations", "import", "coco", str(src), "--out", str(out), "--frames", str(frames)]
+    assert main(argv) == 0
+    assert f"2 annotation rows -> {out}" in capsys.readouterr().out
+    first = pd.read_csv(out)
+    assert first[["utime", "status", "x1", "y1", "x2", "y2"]].values.tolist()[0] == [
+        1, "change", 10, 10, 20, 30,
+    ]  # fmt: skip
+    coco["annotations"].append(
+        {"id": 2, "image_id": 2, "category_id": 3, "bbox": [0, 0, 5, 5]}
+    )  # a second change box, on frame 2
+    src.write_text(json.dumps(coco))
+    assert main(argv) == 1
+    assert "--force" in _cli_err(capsys)
+    assert pd.read_csv(out).equals(first)  # the user's CSV is kept
+    assert main([*argv, "--force"]) == 0
+    assert sorted(pd.read_csv(out)["status"]) == ["change", "change"]
