@@ -273,3 +273,37 @@ def test_the_readme_quotes_table_d_as_the_command_prints_it(detected: tuple) -> 
     text = README.read_text()
     assert f"only {met} of the {int(det['change_boxes'])} change boxes are met" in text
     assert f"AP50 above {float(det['ceiling']):.2f}" in text
+
+
+def test_detect_resumes_after_a_kill_at_the_next_chunk(
+    detected: tuple, local_run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Killed in its third chunk of 16 query frames, a rerun builds only the chunks not finished
+    and writes the boxes the uninterrupted run wrote (one chunk of 64), byte for byte."""
+    from harness import detect
+    from harness.config import load_config
+
+    a, _, _ = detected
+    p, _, _ = local_run
+    o = tmp_path / "o"
+    shutil.copytree(a / "cache", o / "cache", ignore=shutil.ignore_patterns("detect"))
+    shutil.copy(a / ".dbl-harness.json", o / ".dbl-harness.json")
+    cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
+    opt = detect.DetectOptions(chunk_frames=16)
+    real, calls = detect.detect_chunk, {"n": 0}
+
+    def dying(*args: object, **kw: object) -> dict[str, int]:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt  # as a kill in the middle of the third chunk
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(detect, "detect_chunk", dying)
+    with pytest.raises(KeyboardInterrupt):
+        detect.run_detect(cfg, MAP, [QUERY], o, opt, None)
+    assert not (o / "detections.json").exists()
+    monkeypatch.setattr(detect, "detect_chunk", real)
+    rec = detect.run_detect(cfg, MAP, [QUERY], o, opt, None)
+    assert rec["stage_units_run"]["detect"] == 4 - 2  # the two chunks finished before the kill
+    assert (o / "detections.json").read_bytes() == (a / "detections.json").read_bytes()
+    assert (o / "frames.csv").read_bytes() == (a / "frames.csv").read_bytes()

@@ -29,7 +29,7 @@ METHOD = ROOT / "docs" / "method.md"
 
 NAMES = {
     "d": "default",
-    "t": "train_samples=6000",
+    "e": "epochs=6",
     "p256": "dim=256",
     "p128": "dim=128",
     "p64": "dim=64",

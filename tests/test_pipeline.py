@@ -133,7 +133,8 @@ def test_an_untrained_autoencoder_fails_the_regression(
     import harness.descriptors.autoencoder_descriptor as ad
 
     p, _, _ = run
-    monkeypatch.setattr(ad, "train", lambda *a, **k: [])
+    monkeypatch.setattr(ad, "train", lambda *a, **k: [])  # epochs
+    monkeypatch.setattr(ad, "train_budget", lambda *a, **k: ([], {}))  # train_samples (fixture)
     Pipeline(p.cfg, tmp_path / "mutant").run()
     diff = regression_diff(tmp_path / "mutant")
     assert max(diff.values()) > 5 * TOLERANCE, diff

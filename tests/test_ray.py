@@ -39,15 +39,23 @@ def _without_times(doc: object) -> object:
     return doc
 
 
+def _json(path: Path) -> object:
+    """A JSON file without durations; a manifest also without the sizes and digests of its JSON
+    files (a report holds its timing, so its digest moves with it: its content is compared)."""
+    import json
+
+    doc = _without_times(json.loads(path.read_text()))
+    if path.name == "manifest.json" and isinstance(doc, dict):
+        for k in ("files", "sha256"):
+            doc[k] = {f: v for f, v in doc.get(k, {}).items() if not f.endswith(".json")}
+    return doc
+
+
 def _files(root: Path, stage: str) -> dict[str, object]:
     """Every file of a stage's cache entries: its bytes (images included), or for JSON its content
     without durations."""
-    import json
-
     return {
-        str(p.relative_to(root)): (
-            _without_times(json.loads(p.read_text())) if p.suffix == ".json" else p.read_bytes()
-        )
+        str(p.relative_to(root)): _json(p) if p.suffix == ".json" else p.read_bytes()
         for p in sorted((root / "cache" / stage).rglob("*"))
         if p.is_file()
     }
