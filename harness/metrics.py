@@ -42,6 +42,36 @@ def _interp_ap(precision: np.ndarray, recall: np.ndarray) -> float:
     return float(interp.mean())
 
 
+def _interp_ap_rows(tp: np.ndarray, fp: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """:func:`_interp_ap` of every row of cumulative (B, m) true/false positive weights at once.
+
+    Row b's precision is ``tp / (tp + fp)`` (0 where both are 0) and its recall ``tp / pos[b]``,
+    nondecreasing along the row; NaN where ``pos[b]`` is 0. The rows are laid end to end with
+    row b's recall shifted by ``2 b`` (recall lies in [0, 1], so the whole stays sorted), and one
+    ``searchsorted`` finds every row's first recall >= R for every R of the grid: the loop of
+    :func:`_interp_ap` over rows without a Python step per row.
+    """
+    B, m = tp.shape
+    out = np.full(B, np.nan)
+    ok = pos > 0
+    if m == 0 or not ok.any():
+        return out
+    tp, fp, p = tp[ok], fp[ok], pos[ok]
+    n = len(p)
+    tot = tp + fp
+    prec = np.divide(tp, tot, out=np.zeros_like(tot), where=tot > 0)
+    pmax = np.maximum.accumulate(prec[:, ::-1], axis=1)[:, ::-1]
+    shift = 2.0 * np.arange(n)[:, None]
+    keys = (tp / p[:, None] + shift).ravel()
+    grid = (RECALL_GRID[None, :] - 1e-12 + shift).ravel()
+    idx = np.searchsorted(keys, grid, side="left").reshape(n, -1)
+    local = idx - (np.arange(n) * m)[:, None]
+    found = local < m
+    interp = np.where(found, pmax.ravel()[np.minimum(idx, n * m - 1)], 0.0)
+    out[ok] = interp.mean(axis=1)
+    return out
+
+
 def weighted_average_precision(
     labels: np.ndarray, scores: np.ndarray, weights: np.ndarray
 ) -> float:
@@ -182,13 +212,8 @@ class _Ranked:
         ws = w[:, self.idx]
         tp = np.cumsum(ws * self.y, axis=1)[:, self.last]
         fp = np.cumsum(ws * ~self.y, axis=1)[:, self.last]
-        out = np.full(len(w), np.nan)
         pos = tp[:, -1] if tp.shape[1] else np.zeros(len(w))
-        for b in np.nonzero(pos > 0)[0]:
-            tot = tp[b] + fp[b]
-            prec = np.divide(tp[b], tot, out=np.zeros_like(tot), where=tot > 0)
-            out[b] = _interp_ap(prec, tp[b] / pos[b])
-        return out, pos
+        return _interp_ap_rows(tp, fp, pos), pos
 
 
 def bootstrap_aps(

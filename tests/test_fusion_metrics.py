@@ -210,3 +210,27 @@ def test_bootstrap_interval_brackets_ap() -> None:
     ap = average_precision(y, s)
     assert lo < ap < hi and hi - lo < 0.4
     assert bootstrap_ap(y, s, groups, 200, 0.95, 0) == (lo, hi)
+
+
+def test_resampled_aps_all_rows_at_once_equal_the_weighted_ap_of_each_row() -> None:
+    """The bootstrap's AP of every resample (one searchsorted over all rows) equals
+    weighted_average_precision of that resample exactly: ties, zero weights, rows without a
+    positive (NaN)."""
+    from harness.metrics import _Ranked, weighted_average_precision
+
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        n, rows = int(rng.integers(1, 200)), int(rng.integers(1, 30))
+        labels = rng.random(n) < rng.uniform(0.02, 0.6)
+        scores = np.round(rng.random(n), int(rng.integers(1, 4)))  # ties
+        w = rng.poisson(1.0, (rows, n)).astype(float)
+        if trial % 5 == 0:  # one sample only: most rows without a positive
+            w[:] = 0
+            w[:, rng.integers(0, n)] = 1
+        got, pos = _Ranked(labels, scores, np.arange(n)).aps(w)
+        for b in range(rows):
+            if (w[b] * labels).sum() > 0:
+                assert got[b] == weighted_average_precision(labels, scores, w[b]), (trial, b)
+                assert pos[b] == (w[b] * labels).sum()
+            else:
+                assert np.isnan(got[b])
