@@ -178,11 +178,14 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
     cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
     opt = DetectOptions(chunk_frames=16)  # four chunks: four units mapped over the workers
     runs = {}
-    for name, ex in (("local", None), ("ray", executor)):
-        o = tmp_path / name
-        shutil.copytree(out / "cache" / "ingest", o / "cache" / "ingest")
-        shutil.copy(out / ".dbl-harness.json", o / ".dbl-harness.json")
-        runs[name] = run_detect(cfg, "2012-01-22", ["2012-03-31"], o, opt, ex)
+    local, ray_out = tmp_path / "local", tmp_path / "ray"
+    shutil.copytree(out / "cache" / "ingest", local / "cache" / "ingest")
+    shutil.copy(out / ".dbl-harness.json", local / ".dbl-harness.json")
+    runs["local"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], local, opt, None)
+    # the stages before detect's chunks from the local run (their Ray runs are test_ray_run_...)
+    shutil.copytree(local / "cache", ray_out / "cache", ignore=shutil.ignore_patterns("detect"))
+    shutil.copy(out / ".dbl-harness.json", ray_out / ".dbl-harness.json")
+    runs["ray"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], ray_out, opt, executor)
     query_frames = len(pd.read_parquet(tmp_path / "local" / "frames.parquet"))
     chunks = -(-query_frames // 16)  # the query frames in chunks of chunk_frames = 16
     assert runs["ray"]["stage_units_run"]["detect"] == runs["local"]["stage_units_run"]["detect"]
