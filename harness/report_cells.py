@@ -281,12 +281,34 @@ def table_l(out: Path) -> str:
         )
     )
     rows = []
+    notes: dict[str, str] = {}  # footnote mark -> why a cell is undefined
+
+    def undefined(mark: str, why: str) -> str:
+        notes[mark] = why
+        return f'<td title="{esc(why)}">-<sup>{mark}</sup></td>'
+
+    fused = {str(t["localizer"].iloc[-1])} if len(t) > 1 else set()
     for _, r in t.iterrows():
         cells = [f"<td>{esc(r['localizer'])}</td>"]
-        cells += [f"<td>{num(float(r[c]))}</td>" for c in ("recall_at_1", "recall_at_5")]
+        for c in ("recall_at_1", "recall_at_5"):
+            x = float(r[c])
+            cells.append(
+                f"<td>{num(x)}</td>"
+                if x == x
+                else undefined("a", "the fused row ranks nothing itself: no recall of its own")
+            )
         for pfx, *_ in AP_COLUMNS:
             v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
             word = str(r[f"{pfx}_verdict"])
+            if v != v:
+                why = (
+                    "scores of different localizers are not comparable: no score method across "
+                    "localizers"
+                    if str(r["localizer"]) in fused
+                    else "no positive sample in this split"
+                )
+                cells.append(undefined("b" if str(r["localizer"]) in fused else "c", why))
+                continue
             cells.append(
                 '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
                 + num(v)
@@ -318,6 +340,9 @@ def table_l(out: Path) -> str:
         f"the last column is the paired difference from {esc(first)} in Table S rank fusion over "
         "the same bootstrap resamples. Recall: the ground-truth place ranked first (R@1) or in "
         f'the first five (R@5).</p><table data-table="L"><tr>{head}</tr>{"".join(rows)}</table>'
+        + "".join(
+            f'<p class="note"><sup>{m}</sup> -: {esc(why)}.</p>' for m, why in sorted(notes.items())
+        )
     )
 
 

@@ -105,6 +105,31 @@ def headline_split(out: Path, headline: float) -> Path | None:
     return want if want in files else (files[-1] if files else None)
 
 
+def rank_counts_table(rank_counts: object) -> str:
+    """The ranking counts of run.json as a small table.
+
+    A row per session (per localizer and session in a run of several), a column per count:
+    ``{session: {count: n}}`` or ``{localizer: {session: {count: n}}}``.
+    """
+    if not isinstance(rank_counts, dict) or not rank_counts:
+        return "-"
+    rows: list[tuple[str, dict]] = []
+    for name, c in rank_counts.items():
+        if isinstance(c, dict) and c and all(isinstance(v, dict) for v in c.values()):
+            rows += [(f"{name} / {s}", cc) for s, cc in c.items()]  # per localizer
+        elif isinstance(c, dict):
+            rows.append((str(name), c))
+    cols = list(dict.fromkeys(k for _, c in rows for k in c))
+    head = "".join(f"<th>{esc(k.replace('_', ' '))}</th>" for k in ["session", *cols])
+    body = "".join(
+        f"<tr><td>{esc(who)}</td>"
+        + "".join(f"<td>{esc(c.get(k, ''))}</td>" for k in cols)
+        + "</tr>"
+        for who, c in rows
+    )
+    return f'<table class="counts" data-table="rank-counts"><tr>{head}</tr>{body}</table>'
+
+
 def write_html_report(out: Path, gallery: int | None = None) -> Path:
     """Write ``out/report.html`` (and its images under ``out/report/``) for a finished run.
 
@@ -184,17 +209,9 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         ),
         ("dropped at ingest", "; ".join(f"{s}: {d}" for s, d in drops.items() if d) or "nothing"),
         ("localizer", localizer_facts),
-        (
-            "ranking",
-            "; ".join(
-                f"{s}: {', '.join(f'{k} {v}' for k, v in c.items() if v)}"
-                if isinstance(c, dict)
-                else f"{s} {c}"
-                for s, c in (counts.get("rank_counts") or {}).items()
-            ),
-        ),
     ]
     fact_rows = "".join(f"<tr><td>{esc(k)}</td><td>{esc(v)}</td></tr>" for k, v in facts)
+    fact_rows += f"<tr><td>ranking</td><td>{rank_counts_table(counts.get('rank_counts'))}</td></tr>"
     who = f" (localizer: {lead_name}; data: {Path(str(cfg['data_root'])).name})"
     cmp_rows = summ[
         (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()

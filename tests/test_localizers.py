@@ -339,6 +339,19 @@ def test_the_page_leads_with_table_l_and_shows_every_localizer(multi_run: tuple[
     )  # the head and a row each
     assert "bag of visual words (rootsift, k = 256)" in page
     assert "imported from" in page
+    # cells a row cannot have are "-" with their reason, never NaN; counts are a table, not dicts
+    assert "NaN" not in row.group(1) and "-<sup>a</sup>" in row.group(1)
+    assert "the fused row ranks nothing itself" in page
+    assert "scores of different localizers are not comparable" in page
+    facts = re.search(r'data-table="facts">(.*?)</table></td></tr></table>', page, re.S)
+    assert facts is not None and "{" not in facts.group(1), "raw dicts in the run facts"
+    counts = re.search(r'data-table="rank-counts">(.*?)</table>', page, re.S)
+    assert counts is not None
+    for name in NAMES[:-1]:  # a row per localizer and reference session (and the engine's own)
+        assert counts.group(1).count(f"<td>{name} / ") >= 1, name
+    for name in NAMES[:2]:  # the built-in engines rank against each of the 4 sessions
+        for session in ("2012-01-22", "2012-03-31", "2012-08-04", "2012-11-17"):
+            assert f"<td>{name} / {session}</td>" in counts.group(1), (name, session)
 
 
 def test_positive_control_the_fixture_localizer_is_above_chance(local_run: tuple) -> None:
