@@ -17,7 +17,7 @@ from pathlib import Path
 
 from harness.cache import atomic_path
 
-from .cases import CASES, MEASURES
+from .cases import CASES, measures
 from .provenance import staleness, stamp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,7 +47,7 @@ def run_case(name: str, quick: bool) -> list[dict]:
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
         raise SystemExit(f"bench case {name} failed")
-    prov = stamp(MEASURES[name])
+    prov = stamp(measures(name))
     return [
         {**json.loads(line), "group": name, **prov}
         for line in proc.stdout.splitlines()
@@ -137,7 +137,7 @@ def write_json(rows: list[dict]) -> None:
 def write_md(rows: list[dict]) -> None:
     lines = [
         "Each row says where it was measured (commit, date, CPU) and whether the code its case",
-        "measures (`bench/cases/__init__.py` MEASURES) changed after that commit: a **stale**",
+        "measures (`CASES` in `bench/cases/__init__.py`) changed after that commit: a **stale**",
         "row is a figure of older code, kept until its case runs again (`python -m bench --only",
         "CASE`).",
         "",
@@ -149,7 +149,7 @@ def write_md(rows: list[dict]) -> None:
             continue
         extra = "; ".join(f"{k} {v}" for k, v in r.items() if k not in HIDDEN)
         notes = "; ".join(x for x in (r.get("notes", ""), extra) if x)
-        stale = staleness(r, MEASURES.get(r.get("group", ""), ("harness",)))
+        stale = staleness(r, measures(r.get("group", "")))
         lines.append(
             f"| {r['case']} | {r['median']:.4g} | {r['unit']} | "
             f"{r.get('peak_rss_mib', float('nan')):.0f} | {measured(r)} | {stale} | {notes} |"

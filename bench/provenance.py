@@ -4,7 +4,7 @@ Every row ``python -m bench`` records carries ``commit`` (the checkout's HEAD), 
 the files the case measures had uncommitted changes), ``date`` (UTC, ISO 8601) and ``cpu`` (the
 model name and the widest SIMD the CPU has: figures of one machine kind differ between AVX-512 and
 AVX2-only instances). ``bench.md`` marks a row *stale* when a commit after the row's own touched
-the code its case measures (:data:`bench.cases.MEASURES`), and says so where a row records no
+the code its case measures (:func:`bench.cases.measures`), and says so where a row records no
 commit at all (rows from before this record).
 """
 

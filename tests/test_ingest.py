@@ -580,18 +580,23 @@ def test_an_unreadable_log_is_called_unreadable(
         ingest_session(SessionConfig(name="S", source=str(log)), IngestConfig(), tmp_path / "o")
 
 
+def _sqlite_bag(tmp_path: Path, n: int) -> tuple[Path, list, Path]:
+    """A ROS2 sqlite3 bag of ``n`` raw 48x64 frames and 2n poses: (bag, frames, its .db3)."""
+    rgb = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    frames = [W.LogFrame(1_000_000 + i * 100_000, rgb) for i in range(n)]
+    poses = [Pose(1_000_000 + i * 50_000, float(i), 0.0, 0.0, 0.0, 0.0, 0.0) for i in range(2 * n)]
+    path = tmp_path / "bag"
+    W.write_ros2(path, frames, poses, storage="sqlite3", image="raw")
+    return path, frames, next(path.glob("*.db3"))
+
+
 def test_salvage_of_a_sqlite_bag_damaged_in_the_middle_keeps_the_rows_beyond(
     tmp_path: Path,
 ) -> None:
     """A 95%-intact ROS2 sqlite bag ("database disk image is malformed" mid-table): the rows on the
     intact pages before and after the damage are kept; without --salvage, one clear error."""
-    rgb = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
     n = 40
-    frames = [W.LogFrame(1_000_000 + i * 100_000, rgb) for i in range(n)]
-    poses = [Pose(1_000_000 + i * 50_000, float(i), 0.0, 0.0, 0.0, 0.0, 0.0) for i in range(2 * n)]
-    path = tmp_path / "bag"
-    W.write_ros2(path, frames, poses, storage="sqlite3", image="raw")
-    db = next(path.glob("*.db3"))
+    path, _, db = _sqlite_bag(tmp_path, n)
     raw = bytearray(db.read_bytes())
     page = int.from_bytes(raw[16:18], "big") or 65536
     leaves = [i for i in range(1, len(raw) // page) if raw[i * page] == 0x0D]  # table b-tree leaves
@@ -616,13 +621,8 @@ def test_salvage_of_a_sqlite_bag_cut_short_keeps_the_rows_before_the_cut(
     the frames read are the first frames of the intact bag, and a longer file keeps more."""
     from harness.ingest.session import load_frames
 
-    rgb = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
     n = 40
-    frames = [W.LogFrame(1_000_000 + i * 100_000, rgb) for i in range(n)]
-    poses = [Pose(1_000_000 + i * 50_000, float(i), 0.0, 0.0, 0.0, 0.0, 0.0) for i in range(2 * n)]
-    path = tmp_path / "bag"
-    W.write_ros2(path, frames, poses, storage="sqlite3", image="raw")
-    db = next(path.glob("*.db3"))
+    path, frames, db = _sqlite_bag(tmp_path, n)
     raw = db.read_bytes()
     page = int.from_bytes(raw[16:18], "big")
     end = int(len(raw) * cut)

@@ -9,51 +9,34 @@ from __future__ import annotations
 
 import importlib
 
-#: Case name (as ``--only`` takes it) -> its module, in the order ``python -m bench`` runs them.
-CASES = {
-    "ingest": "ingest",
-    "crops": "crops",
-    "descriptor": "descriptor",
-    "ranking": "ranking",
-    "localizers": "localizers",
-    "detect": "detect",
-    "fusion": "fusion",
-    "executor": "executor",
-    "e2e": "e2e",
-    "full-nclt": "full_nclt",
-    "fixture-figures": "fixture_figures",
-}
-
-
-#: Case name -> the code it measures (paths for ``git log``): a row is stale once a later commit
-#: touches one of them (``bench/provenance.py``).
-MEASURES: dict[str, tuple[str, ...]] = {
-    "ingest": ("harness/ingest", "bench/cases/ingest.py"),
-    "crops": ("harness/crops.py", "harness/imagestore.py", "bench/cases/crops.py"),
-    "descriptor": ("harness/descriptors", "bench/cases/descriptor.py"),
-    "ranking": ("harness/retrieval", "bench/cases/ranking.py"),
-    "localizers": ("harness", "bench/cases/localizers.py", "bench/nclt_localizers.toml"),
-    "detect": ("harness", "bench/cases/detect.py", "bench/nclt_detect.toml"),
+#: Case name (as ``--only`` takes it) -> (its module, the code it measures beyond that module), in
+#: the order ``python -m bench`` runs them. A row is stale once a later commit touches one of the
+#: measured paths (``bench/provenance.py``).
+CASES: dict[str, tuple[str, tuple[str, ...]]] = {
+    "ingest": ("ingest", ("harness/ingest",)),
+    "crops": ("crops", ("harness/crops.py", "harness/imagestore.py")),
+    "descriptor": ("descriptor", ("harness/descriptors",)),
+    "ranking": ("ranking", ("harness/retrieval",)),
+    "localizers": ("localizers", ("harness", "bench/nclt_localizers.toml")),
+    "detect": ("detect", ("harness", "bench/nclt_detect.toml")),
     "fusion": (
-        "harness/fusion.py",
-        "harness/metrics.py",
-        "harness/splits.py",
-        "harness/reports.py",
-        "bench/cases/fusion.py",
+        "fusion",
+        ("harness/fusion.py", "harness/metrics.py", "harness/splits.py", "harness/reports.py"),
     ),
-    "executor": ("harness/executors.py", "harness/cache.py", "bench/cases/executor.py"),
-    "e2e": ("harness", "bench/cases/e2e.py", "bench/nclt_scale.toml"),
-    "full-nclt": ("harness", "bench/cases/full_nclt.py", "bench/nclt_full.toml"),
-    "fixture-figures": (
-        "harness",
-        "bench/cases/fixture_figures.py",
-        "datasets/fixture.toml",
-        "annotations",
-    ),
+    "executor": ("executor", ("harness/executors.py", "harness/cache.py")),
+    "e2e": ("e2e", ("harness", "bench/nclt_scale.toml")),
+    "full-nclt": ("full_nclt", ("harness", "bench/nclt_full.toml")),
+    "fixture-figures": ("fixture_figures", ("harness", "datasets/fixture.toml", "annotations")),
 }
+
+
+def measures(name: str) -> tuple[str, ...]:
+    """The paths case ``name`` measures: its own module and the code listed in :data:`CASES`."""
+    module, paths = CASES.get(name, ("", ("harness",)))
+    return (*paths, f"bench/cases/{module}.py") if module else paths
 
 
 def run(name: str, quick: bool) -> None:
     """Run case ``name``: its module's ``case_<module>(quick)``."""
-    module = CASES[name]
+    module = CASES[name][0]
     getattr(importlib.import_module(f"{__name__}.{module}"), f"case_{module}")(quick)
