@@ -51,6 +51,20 @@ def test_the_bench_command_runs_as_typed_and_keeps_other_cases_figures(tmp_path:
     # the copy is not a git checkout: its rows say so rather than claim a commit
     assert all(r["commit"] is None for r in fresh)
     assert "| rank exact db=1000 |" in md and "no commit recorded" in md
+    # `python -m bench --render` as typed: bench.md again from bench.json, nothing run or written
+    before = (out / "bench.json").read_bytes()
+    (out / "bench.md").write_text("old")
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench", "--render"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (out / "bench.md").read_text() == md and (out / "bench.json").read_bytes() == before
+    assert "result(s) in" not in proc.stdout  # no case ran
 
 
 def test_a_bench_row_is_stale_once_the_code_it_measures_changes_after_its_commit() -> None:
