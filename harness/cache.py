@@ -16,6 +16,7 @@ import logging
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
@@ -338,7 +339,9 @@ class StageCache:
             log.info("%s: cached (%s), skipping", name, final)
             return final, False
         with atomic_dir(final) as tmp:
+            t0 = time.perf_counter()
             info = build(tmp) or {}
+            build_s = time.perf_counter() - t0
             files = {
                 str(p.relative_to(tmp)): p.stat().st_size
                 for p in sorted(tmp.rglob("*"))
@@ -347,7 +350,15 @@ class StageCache:
             sums = {rel: content_sha(tmp / rel, full=True) for rel in files if _summed(rel)}
             write_json(
                 tmp / "manifest.json",
-                {"stage": name, "key": key, "info": info, "files": files, "sha256": sums},
+                {
+                    "stage": name,
+                    "key": key,
+                    "info": info,
+                    "files": files,
+                    "sha256": sums,
+                    # what building it took here (Table L's cost columns); never part of a key
+                    "build_s": round(build_s, 4),
+                },
             )
         log.info("%s: wrote %s", name, final)
         return final, True

@@ -165,6 +165,7 @@ def validate(cfg: Config, where: str) -> None:
         "each method once",
     )
     c(fu.max_fused_boxes >= 1, where, "[fusion] max_fused_boxes", fu.max_fused_boxes, ">= 1")
+    c(fu.rrf_c >= 0, where, "[fusion] rrf_c", fu.rrf_c, "a number >= 0")
     c(
         0 < pa.max_yaw_diff_deg <= 180,
         where,
@@ -476,6 +477,15 @@ def validate(cfg: Config, where: str) -> None:
         "[0, 1] (the page falls back to the largest RoC-max written)",
     )
     c(rp.locmap_examples >= 0, where, "[report] locmap_examples", rp.locmap_examples, ">= 0")
+    c(
+        len(rp.recall_at) > 0
+        and all(n >= 1 for n in rp.recall_at)
+        and list(rp.recall_at) == sorted(set(rp.recall_at)),
+        where,
+        "[report] recall_at",
+        list(rp.recall_at),
+        "a non-empty increasing list of list positions >= 1, e.g. [1, 5, 10, 20]",
+    )
     check_fixture(fx, where)
     c(
         not fx.formats or len(fx.formats) in (1, len(cfg.sessions)),

@@ -193,6 +193,7 @@ class FusionConfig:
     methods: tuple[str, ...] = ALL_METHODS
     seed: int = 0
     max_fused_boxes: int = 4096
+    rrf_c: float = 60.0  # RRF's constant c (SPEC section 14; Cormack et al. 2009 use 60)
 
 
 @dataclass(frozen=True)
@@ -229,6 +230,8 @@ class ReportConfig:
     gallery: int = 3  # report.html: worst false positives and missed changes shown per method
     # the RoC-max of the page's figures (PR curves, season pairs, gallery) and of Table L
     headline_roc_max: float = 0.05
+    # recall@N of the localization table and Table L, as the VPR benchmarks report it
+    recall_at: tuple[int, ...] = (1, 5, 10, 20)
 
 
 @dataclass(frozen=True)

@@ -96,6 +96,7 @@ def detect_chunk(
     frames: pd.DataFrame,
     opt: DetectOptions,
     max_fused: int,
+    rrf_c: float,
     tmp: Path,
 ) -> dict[str, int]:
     """Fusion, change boxes and frame scores of one chunk of query frames into ``tmp``.
@@ -127,6 +128,7 @@ def detect_chunk(
         max_fused,
         methods=(opt.method, "random"),
         progress=partial(progress, desc="detect", unit="frame"),
+        rrf_c=rrf_c,
     )
     samples = samples[samples["proposals"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.method}"
@@ -177,14 +179,17 @@ def run_detect(
     out: Path,
     opt: DetectOptions | None = None,
     executor: Any = None,
+    rerun: Path | None = None,
 ) -> dict[str, Any]:
     """The detector on ``query_sessions`` against ``map_session`` into ``out`` (SPEC 13).
+
+    With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.rerun_export`).
 
     Raises:
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
     from .executors import LocalExecutor
-    from .methods import FUSION_METHODS
+    from .methods import DETECT_METHODS
     from .runner import (
         Measured,
         Pipeline,
@@ -206,14 +211,10 @@ def run_detect(
             f"detect: --map {map_session} and --query {query_sessions}: each session once, the "
             "map not among the queries"
         )
-    if opt.method not in FUSION_METHODS or opt.method in (
-        "score_max",
-        "score_sum",
-        "rank_no_fusion",
-    ):
-        raise ConfigError(
-            f"detect: method {opt.method!r}: one of rank_fusion, rank_fusion_le2, rank_fusion_le3"
-        )
+    if opt.method not in DETECT_METHODS:
+        raise ConfigError(f"detect: method {opt.method!r}: one of {', '.join(DETECT_METHODS)}")
+    if rerun is not None:
+        check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
     if not 0 < opt.nms_iou <= 1 or opt.max_boxes < 1:
         raise ConfigError(
             f"detect: nms_iou {opt.nms_iou} must be in (0, 1] and max_boxes {opt.max_boxes} >= 1"
@@ -263,6 +264,7 @@ def run_detect(
                 frames.df,
                 opt,
                 dcfg.fusion.max_fused_boxes,
+                dcfg.fusion.rrf_c,
             )
             key = (
                 "detect",
@@ -271,6 +273,7 @@ def run_detect(
                 c0,
                 len(part),
                 keys.fusion_method_fingerprints((opt.method,)),
+                *((dcfg.fusion.rrf_c,) if opt.method == "rrf" else ()),
             )
             chunk_units.append((key, build))
         entries = p.units("detect", chunk_units)
@@ -294,10 +297,77 @@ def run_detect(
             opt,
             names_l,
         )
+        if rerun is not None:
+            record["rerun"] = write_rerun(
+                Path(rerun), p.out, frames.df, map_session, fr, dets, entries, opt
+            )
         record["total_s"] = round(time.perf_counter() - t0, 3)
         record["ms_per_query_frame"] = round(1000 * record["total_s"] / max(len(fr), 1), 2)
         write_json(p.out / "detect.json", record)
     return record
+
+
+def check_rerun_target(path: Path) -> None:
+    """Refuse a ``--rerun`` path that exists and is not a recording ``harness detect`` wrote.
+
+    Raises:
+        ConfigError: the path is a folder, or a file of someone else's (never replaced).
+    """
+    from .rerun_export import APPLICATION, _sdk
+
+    if path.is_dir():
+        raise ConfigError(f"--rerun {path}: is a folder; give the .rrd file to write")
+    if not path.exists():
+        if not path.parent.is_dir():
+            raise ConfigError(f"--rerun {path}: its folder {path.parent} does not exist")
+        return
+    rr = _sdk()
+    from rerun.chunk import RrdReader
+
+    try:
+        apps = {s.application_id for s in RrdReader(path).recordings()}
+    except Exception:  # an unreadable or foreign file: not ours to replace
+        apps = set()
+    del rr
+    if apps != {APPLICATION}:
+        raise ConfigError(
+            f"--rerun {path}: exists and is not a recording harness detect wrote; it is never "
+            "replaced: remove it or choose another path"
+        )
+
+
+def write_rerun(
+    path: Path,
+    out: Path,
+    frames: pd.DataFrame,
+    map_session: str,
+    fr: pd.DataFrame,
+    dets: pd.DataFrame,
+    entries: list[Any],
+    opt: DetectOptions,
+) -> dict[str, Any]:
+    """The run's Rerun recording at ``path``, written beside it and moved into place whole."""
+    import os
+
+    from .rerun_export import recording_id, write_recording
+
+    check_rerun_target(path)
+    fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "image"]], on=FRAME_KEY)
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        counts = write_recording(
+            tmp,
+            frames,
+            map_session,
+            fr,
+            dets,
+            entries,
+            recording_id(out, dataclasses.asdict(opt)),
+        )
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return {"path": str(path), **counts}
 
 
 def _frame_name(s: str, c: str, u: int) -> str:

@@ -17,7 +17,13 @@ from .annotations import change_boxes
 from .cache import source_fingerprints, stable_hash, write_parquet
 from .config import FusionConfig
 from .errors import ConfigError
-from .methods import ALL_METHODS, FUSION_REGISTRY, METHOD_LABELS, known_fusion_methods
+from .methods import (
+    ALL_METHODS,
+    FUSION_REGISTRY,
+    METHOD_LABELS,
+    STANDARD_RULES,
+    known_fusion_methods,
+)
 from .methods import ordered_methods as ordered_methods
 from .progress import progress
 from .splits import roc_sob
@@ -123,6 +129,39 @@ def r_desc_of(r: np.ndarray, L: np.ndarray) -> np.ndarray:
     return np.asarray((L + 1.0) / L - r, np.float64)
 
 
+def standard_rule(
+    cover: np.ndarray, rule: str, rank: np.ndarray, L: np.ndarray, c: float = 60.0
+) -> np.ndarray:
+    """LoC of the fused boxes by one of the field's rank-fusion rules (SPEC section 14).
+
+    Each original box k is one ranked list of ``L_k`` places; ``rank_k`` is its true place's
+    position sorted most similar first, so ``rank'_k = L_k + 1 - rank_k`` is its position sorted
+    least similar first (1 = the strongest sign of change). A fused box fuses the lists of the
+    originals that cover it (``N`` of them). The formulas are ranx's (``rrf``, ``combmnz``
+    over rank-normalised scores, ``borda``, ``isr``), written here from their definitions.
+
+    Args:
+        cover: (m, n) bool: original k contains fused box i.
+        rule: ``rrf``, ``combmnz``, ``borda`` or ``isr``.
+        rank: (n,) the true place's rank in each list, most similar first (1..L).
+        L: (n,) the lists' lengths.
+        c: RRF's constant (``[fusion] rrf_c``).
+    """
+    rank, L = np.asarray(rank, np.float64), np.asarray(L, np.float64)
+    cov = cover.astype(np.float64)
+    n = cov.sum(1)
+    rank_d = L + 1.0 - rank
+    if rule == "rrf":
+        return np.asarray(cov @ (1.0 / (c + rank_d)), np.float64)
+    if rule == "combmnz":
+        return np.asarray(n * (cov @ (rank / L)), np.float64)
+    if rule == "borda":
+        return np.asarray((cov @ ((rank - 1.0) / L)) / np.maximum(n, 1.0), np.float64)
+    if rule == "isr":
+        return np.asarray(n * (cov @ (1.0 / rank_d**2)), np.float64)
+    raise ValueError(f"unknown rank-fusion rule {rule!r}; known: {STANDARD_RULES}")
+
+
 def loc_from_cover(
     cover: np.ndarray,
     method: str,
@@ -131,6 +170,7 @@ def loc_from_cover(
     d: np.ndarray,
     L: np.ndarray | None = None,
     seed: int = 0,
+    rrf_c: float = 60.0,
 ) -> np.ndarray:
     """LoC of the fused boxes (rows of ``cover``) for one method of SPEC section 7.
 
@@ -144,6 +184,7 @@ def loc_from_cover(
         d: (n,) exact L2 distances of the originals to their ground-truth place.
         L: (n,) rank-list lengths; needed by every rank-fusion method except ``rank_fusion_asc``.
         seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
+        rrf_c: the constant of ``rrf`` (SPEC section 14).
     """
     r = np.asarray(r, np.float64)
     if method in REGISTERED:
@@ -166,10 +207,14 @@ def loc_from_cover(
     # the paper's variant 2: ascending order (SPEC's earlier formula)
     if method == "rank_fusion_asc":
         return np.asarray(1.0 / (cover.sum(1) * (cover * (1.0 / r)[None, :]).sum(1)), np.float64)
-    if method not in ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", "rank_fusion_raw"):
+    known = ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", "rank_fusion_raw")
+    if method not in (*known, *STANDARD_RULES):
         raise ValueError(f"unknown fused-set method {method!r}; known: {FUSED_METHODS}")
     if L is None:
         raise ValueError(f"{method} needs the rank-list lengths L (r' = (L + 1 - rank) / L)")
+    if method in STANDARD_RULES:
+        lengths = np.asarray(L, np.float64)
+        return standard_rule(cover, method, np.rint(r * lengths), lengths, rrf_c)
     rd = r_desc_of(r, L)
     if method in ("rank_fusion_le2", "rank_fusion_le3"):
         cover = _subset_cover(cover, 2 if method.endswith("2") else 3, np.random.default_rng(seed))
@@ -296,6 +341,7 @@ def fuse_samples(
     max_boxes: int,
     methods: Sequence[str] = ALL_METHODS,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+    rrf_c: float = 60.0,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Samples of every annotated query image (one per pair) with the LoC of each method.
 
@@ -377,7 +423,7 @@ def fuse_samples(
                 if m in IMAGE_BASELINES:
                     locs[m] = image_loc(fused, m, w, h, img_seed)
                 elif m != "rank_no_fusion":
-                    locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed)
+                    locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c)
             # rank_no_fusion: one sample per original box; merged into the fused row of the same box
             fidx = {tuple(bx): i for i, bx in enumerate(fused)}
             nof = np.full(len(fused), np.nan)
@@ -429,6 +475,7 @@ def write_samples(
         fc.max_fused_boxes,
         methods=ordered_methods(fc.methods),
         progress=partial(progress, desc="fusion", unit="image"),
+        rrf_c=fc.rrf_c,
     )
     write_parquet(tmp / "samples.parquet", df)
     return counts

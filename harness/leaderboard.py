@@ -1,11 +1,14 @@
 """Table L, the leaderboard of localizers (SPEC section 11).
 
-One row per localizer and one for ``all localizers`` (their boxes fused by rank): recall@1 and
-recall@5 (blank for the fused row), Table S ``rank_fusion`` and ``score_max`` at the headline
-RoC-max (``[report] headline_roc_max``), Table P pixel and image AP of ``rank_fusion``, each AP
-with its 95% interval and floor, and each row's paired difference from the first localizer in
-Table S ``rank_fusion`` over the same bootstrap resamples of query images. Computed from the
-blocks' summaries (:func:`harness.reports.write_reports`), rendered as CSV, markdown and LaTeX.
+One row per localizer and one for ``all localizers`` (their boxes fused by rank): recall@N for
+each N of ``[report] recall_at`` (undefined for the fused row), Table S ``rank_fusion`` and
+``score_max`` at the headline RoC-max (``[report] headline_roc_max``), Table P pixel and image
+AP of ``rank_fusion``, each AP with its 95% interval and floor, and each row's paired difference
+from the first localizer in Table S ``rank_fusion`` over the same bootstrap resamples of query
+images. Computed from the blocks' summaries (:func:`harness.reports.write_reports`), rendered as
+CSV, markdown and LaTeX. Then what each localizer costs (:mod:`harness.costs`): bytes per
+subimage, map storage per reference frame, encode and rank time, build time. An undefined cell
+is ``-`` with its reason in a footnote (:func:`undefined`), in every rendering alike.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import pandas as pd
 
 from .chance import MARK_LEGEND, VERDICT_MARKS
 from .config import Config
+from .costs import COST_COLUMNS, IMPORTED_WHY
 from .metrics import paired_difference
 from .splits import Split
 from .texfmt import tex_escape as _tex_escape
@@ -29,6 +33,39 @@ AP_COLUMNS = (
     ("P_pixel", "P", "pixel", "rank_fusion", "pixel AP (rank fusion)"),
     ("P_image", "P", "image", "rank_fusion", "image AP (rank fusion)"),
 )
+
+
+#: Footnote mark -> why a Table L cell is undefined (:func:`undefined`).
+WHY = {
+    "a": "the fused row ranks nothing itself: no recall of its own",
+    "b": "scores of different localizers are not comparable: no score method across localizers",
+    "c": "no positive sample in this split",
+    "d": "the fused row keeps no descriptor of its own: its cost is its localizers' together",
+    "e": IMPORTED_WHY,
+    "f": "not measured in this run (its entries were built before costs were recorded)",
+}
+
+
+def recall_columns(t: pd.DataFrame) -> list[tuple[str, str]]:
+    """(column, heading) of Table L's recall@N columns, N from ``[report] recall_at``."""
+    ns = sorted(int(c[10:]) for c in t.columns if c.startswith("recall_at_") and c[10:].isdigit())
+    return [(f"recall_at_{n}", f"R@{n}") for n in ns]
+
+
+def undefined(t: pd.DataFrame, r: Any, column: str) -> str | None:
+    """The footnote mark of a NaN cell of Table L (None where the cell has a value)."""
+    v = r[column] if isinstance(r, pd.Series) else getattr(r, column)
+    if v == v:
+        return None
+    fused = len(t) > 1 and str(r["localizer"] if isinstance(r, pd.Series) else r.localizer) == str(
+        t["localizer"].iloc[-1]
+    )
+    if column.startswith("recall_at_"):
+        return "a"
+    if column in {c for c, *_ in COST_COLUMNS}:
+        imported = bool(r["imported"] if isinstance(r, pd.Series) else r.imported)
+        return "d" if fused else "e" if imported else "f"
+    return "b" if fused else "c"
 
 
 def headline_split(splits: Sequence[Split], roc_max: float) -> Split:
@@ -82,8 +119,10 @@ def leaderboard(
         row: dict[str, Any] = {
             "localizer": b.localizer,
             "roc_max": head.roc_max,
-            "recall_at_1": float(la["recall_at_1"].iloc[0]) if len(la) else float("nan"),
-            "recall_at_5": float(la["recall_at_5"].iloc[0]) if len(la) else float("nan"),
+            **{
+                f"recall_at_{n}": float(la[f"recall_at_{n}"].iloc[0]) if len(la) else float("nan")
+                for n in cfg.report.recall_at
+            },
             "subimages": int(la["subimages"].iloc[0]) if len(la) else 0,
         }
         for prefix, table, split, method, _ in AP_COLUMNS:
@@ -99,8 +138,13 @@ def leaderboard(
             )
         else:
             nan = float("nan")
-            d = {"diff": nan, "diff_ci_low": nan, "diff_ci_high": nan, "sign_flip_share": nan}
+            d = dict.fromkeys(
+                ("diff", "diff_ci_low", "diff_ci_high", "sign_flip_share", "p_value"), nan
+            )
         row.update({f"S_rank_fusion_{k}": v for k, v in d.items()})
+        nan = float("nan")
+        row.update({c: float(b.costs.get(c, nan)) for c, *_ in COST_COLUMNS})
+        row["imported"] = bool(b.costs.get("imported", 0.0))
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -125,8 +169,21 @@ def _pct(v: float) -> str:
     return "" if v != v else f"{v:.2f}"
 
 
+def cost_text(v: float, digits: int) -> str:
+    """A cost cell's number (bytes as an integer)."""
+    return f"{v:,.0f}" if digits == 0 else f"{v:.{digits}f}"
+
+
+def _footnotes(marks: set[str]) -> list[str]:
+    return [f"{m}) -: {WHY[m]}." for m in sorted(marks)]
+
+
 def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> str:
-    """Table L as markdown (``comparisons``: the differences between localizers, in words)."""
+    """Table L as markdown (``comparisons``: the differences between localizers, in words).
+
+    The accuracy table, its floor and its footnotes; then the cost table (:mod:`harness.costs`)
+    with the machine it was measured on.
+    """
     first = str(t["localizer"].iloc[0])
     roc = float(t["roc_max"].iloc[0])
     if comparisons:
@@ -150,17 +207,31 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
             )
         return "\n".join(lines) + "\n"
     heads = [h for _, _, _, _, h in AP_COLUMNS]
+    rec = recall_columns(t)
+    marks: set[str] = set()
+
+    def dash(r: Any, column: str) -> str:
+        m = undefined(t, r, column)
+        assert m is not None
+        marks.add(m)
+        return f"-{m})"
+
     lines = [
         "# Table L: localizers",
         "",
         "One row per localizer and one for all localizers fused by rank (SPEC section 11). "
-        f"Recall@1/5 of the ground-truth place over every ranked query subimage; AP [95% "
-        f"interval] of Table S at RoC-max {roc:.2f} and of Table P; the last column is each "
-        f"row's Table S rank-fusion AP minus {first}'s, paired over the same bootstrap "
-        "resamples of query images. Every localizer is scored on the same query images.",
+        f"Recall@N ({', '.join(h for _, h in rec)}) of the ground-truth place over every ranked "
+        f"query subimage; AP [95% interval] of Table S at RoC-max {roc:.2f} and of Table P; the "
+        f"last column is each row's Table S rank-fusion AP minus {first}'s, paired over the same "
+        "bootstrap resamples of query images. Every localizer is scored on the same query "
+        "images.",
         "",
-        "| localizer | R@1 | R@5 | " + " | ".join(heads) + f" | Table S rank fusion - {first} |",
-        "|---|---:|---:|" + "---:|" * (len(heads) + 1),
+        "| localizer | "
+        + " | ".join(h for _, h in rec)
+        + " | "
+        + " | ".join(heads)
+        + f" | Table S rank fusion - {first} |",
+        "|---|" + "---:|" * (len(rec) + len(heads) + 1),
     ]
     for r in t.itertuples():
         diff = (
@@ -169,14 +240,18 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
             else f"{r.S_rank_fusion_diff:+.2f} [{r.S_rank_fusion_diff_ci_low:+.2f}, "
             f"{r.S_rank_fusion_diff_ci_high:+.2f}]"
         )
-        lines.append(
-            f"| {r.localizer} | {_pct(r.recall_at_1)} | {_pct(r.recall_at_5)} | "
-            + " | ".join(_ap(r, p) for p, _, _, _, _ in AP_COLUMNS)
-            + f" | {diff} |"
-        )
+        recs = [
+            _pct(getattr(r, c)) if getattr(r, c) == getattr(r, c) else dash(r, c) for c, _ in rec
+        ]
+        aps = [
+            _ap(r, p) if getattr(r, f"{p}_ap") == getattr(r, f"{p}_ap") else dash(r, f"{p}_ap")
+            for p, _, _, _, _ in AP_COLUMNS
+        ]
+        lines.append(f"| {r.localizer} | " + " | ".join(recs + aps) + f" | {diff} |")
     r0 = t.iloc[0]
     lines.append(
-        f"| *floor ({first})* | | | "
+        f"| *floor ({first})* | "
+        + " | " * len(rec)
         + " | ".join(_pct(float(r0[f"{p}_floor"])) for p, _, _, _, _ in AP_COLUMNS)
         + " | |"
     )
@@ -196,25 +271,78 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
         )
         + f" {MARK_LEGEND}"
     )
+    lines += ["", *_footnotes(marks)] if marks else []
+    lines += ["", *cost_md(t)]
     return "\n".join(lines) + "\n"
 
 
+def cost_md(t: pd.DataFrame) -> list[str]:
+    """Table L's cost table as markdown lines (heading, table, footnotes, machine)."""
+    marks: set[str] = set()
+    lines = [
+        "## What each localizer costs",
+        "",
+        "| localizer | " + " | ".join(h for _, h, _ in COST_COLUMNS) + " |",
+        "|---|" + "---:|" * len(COST_COLUMNS),
+    ]
+    for r in t.itertuples():
+        cells = []
+        for c, _, d in COST_COLUMNS:
+            v = float(getattr(r, c))
+            if v == v:
+                cells.append(cost_text(v, d))
+            else:
+                m = undefined(t, r, c)
+                assert m is not None
+                marks.add(m)
+                cells.append(f"-{m})")
+        lines.append(f"| {r.localizer} | " + " | ".join(cells) + " |")
+    return [
+        *lines,
+        "",
+        COST_NOTE,
+        *(["", *_footnotes(marks)] if marks else []),
+    ]
+
+
+#: What the cost columns measure (under the cost table in every rendering).
+COST_NOTE = (
+    "Bytes per subimage and map KiB per reference frame: the descriptors a robot keeps (as "
+    "stored by the run; bag-of-words vectors sparse). Encode ms per subimage: decoding, cropping "
+    "and describing, over every subimage encoded; rank ms per query subimage: the engine's "
+    "ranking of the place lists; build s: training or vocabulary. Times are this run's on the "
+    "machine in run.json (costs.machine) and vary across machines; a cached entry keeps the time "
+    "of the run that built it."
+)
+
+
 def leaderboard_latex(t: pd.DataFrame) -> str:
-    """Table L as a booktabs ``tabular`` (APs with two decimals, no intervals)."""
-    cols = ["R@1", "R@5", *(h for _, _, _, _, h in AP_COLUMNS)]
+    """Table L as a booktabs ``tabular`` (APs with two decimals, no intervals; ``--`` undefined).
+
+    Undefined cells carry their footnote mark, explained under the table.
+    """
+    rec = recall_columns(t)
+    cols = [*(h for _, h in rec), *(h for _, _, _, _, h in AP_COLUMNS)]
     out = [
         r"\begin{tabular}{l" + "r" * len(cols) + "}",
         r"\toprule",
         " & ".join(["Localizer", *(_tex_escape(c) for c in cols)]) + r" \\",
         r"\midrule",
     ]
+    marks: set[str] = set()
+
+    def cell(r: Any, column: str) -> str:
+        v = getattr(r, column)
+        if v == v:
+            return f"{v:.2f}"
+        m = undefined(t, r, column)
+        assert m is not None
+        marks.add(m)
+        return f"--$^{m}$"
+
     for r in t.itertuples():
-        vals = [r.recall_at_1, r.recall_at_5, *(getattr(r, f"{p}_ap") for p, *_ in AP_COLUMNS)]
-        out.append(
-            " & ".join(
-                [_tex_escape(str(r.localizer)), *("--" if v != v else f"{v:.2f}" for v in vals)]
-            )
-            + r" \\"
-        )
+        vals = [cell(r, c) for c, _ in rec] + [cell(r, f"{p}_ap") for p, *_ in AP_COLUMNS]
+        out.append(" & ".join([_tex_escape(str(r.localizer)), *vals]) + r" \\")
     out += [r"\bottomrule", r"\end{tabular}"]
+    out += [rf"\par{{\footnotesize $^{m}$ --: {_tex_escape(WHY[m])}.}}" for m in sorted(marks)]
     return "\n".join(out) + "\n"

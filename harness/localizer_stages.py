@@ -55,6 +55,7 @@ class Measured:
     ranks: RankTable
     fusion: FusionConfig
     notes: list[str] = field(default_factory=list)
+    costs: dict[str, float] = field(default_factory=dict)  # Table L's cost cells (harness.costs)
 
 
 def localizer_proposals(
@@ -151,6 +152,27 @@ def localizer_ranks(
         projection = descriptor_projection(p, frames, pairs, mine, model)
         described = session_descriptors(p, frames, mine, model, projection)
         return query_ranks(p, frames, pairs, described)
+
+
+def measured_costs(
+    p: Context,
+    loc: LocalizerConfig,
+    trail: list[tuple[str, Path]],
+    ranks: RankTable,
+    pairs: Table,
+    props: dict[str, Table],
+) -> dict[str, float]:
+    """Table L's cost cells of a localizer from the entries its stages used (``trail``)."""
+    from .costs import localizer_costs
+
+    mine = localizer_proposals(p, loc, props)
+    refs = sorted(set(pairs.df["r_session"]))
+    ref_rows = [mine[s].df for s in refs if s in mine]
+    ref_sub = sum(len(df) for df in ref_rows)
+    ref_frames = sum(len(df[["camera", "utime"]].drop_duplicates()) for df in ref_rows)
+    return localizer_costs(
+        trail, len(ranks.df), ref_sub, ref_frames, imported=loc.import_ is not None
+    )
 
 
 def localizer_fusion(

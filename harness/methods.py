@@ -25,10 +25,20 @@ FUSION_METHODS = (
 EXTRA_METHODS = (
     "rank_fusion_asc",
     "rank_fusion_raw",
+    "rrf",
+    "combmnz",
+    "borda",
+    "isr",
     "size_prior",
     "cover_count",
     "random",
 )
+#: The field's standard rank-fusion rules (SPEC section 14): ranks alone, so every localizer
+#: (imported lists without scores too) and every pair of localizers can have them.
+STANDARD_RULES = ("rrf", "combmnz", "borda", "isr")
+#: The methods whose LoC ``harness detect`` can threshold into boxes: fused-set rules of ranks
+#: alone (no relevance score, not a baseline).
+DETECT_METHODS = ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", *STANDARD_RULES)
 #: Baselines that read no pixel: SPEC section 7's confound warning compares them with the six.
 BASELINES = ("size_prior", "cover_count", "random")
 ALL_METHODS = FUSION_METHODS + EXTRA_METHODS
@@ -45,6 +55,10 @@ METHOD_LABELS = {
     "score_sum": "score sum",
     "rank_fusion_asc": "rank fusion asc (variant 2)",
     "rank_fusion_raw": "rank fusion raw (variant 1)",
+    "rrf": "RRF (reciprocal rank)",
+    "combmnz": "CombMNZ",
+    "borda": "Borda count",
+    "isr": "ISR (inverse square rank)",
     "size_prior": "size prior (no pixel)",
     "cover_count": "cover count (no pixel)",
     "random": "random",

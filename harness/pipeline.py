@@ -93,6 +93,8 @@ class Context:
     timings: dict[str, float] = field(default_factory=dict)
     ran: dict[str, int] = field(default_factory=dict)
     used: dict[str, set[str]] = field(default_factory=dict)
+    # every entry the run used, in order (stage, entry directory): what a localizer cost
+    trail: list[tuple[str, Path]] = field(default_factory=list)
     not_described: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -185,6 +187,7 @@ class Context:
     def _count(self, stage: str, res: list[tuple[Path, bool]], t0: float) -> None:
         self.ran[stage] = self.ran.get(stage, 0) + sum(int(r) for _, r in res)
         self.used.setdefault(stage, set()).update(Path(p).name for p, _ in res)
+        self.trail.extend((stage, Path(p)) for p, _ in res)
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
 
 

@@ -100,7 +100,9 @@ class _Pooled:
         """``r``'s method minus ``ref_method`` over the same resamples (NaN where undefined)."""
         ref = next((x for x in self.rows if x["method"] == ref_method), None)
         nan = float("nan")
-        out = {"diff": nan, "diff_ci_low": nan, "diff_ci_high": nan, "sign_flip_share": nan}
+        out = dict.fromkeys(
+            ("diff", "diff_ci_low", "diff_ci_high", "sign_flip_share", "p_value"), nan
+        )
         same = r["method"] == ref_method and prefix == ""
         if ref is not None and not same and len(self.boot[r["method"]]):
             out = paired_difference(

@@ -16,7 +16,7 @@ import pandas as pd
 from . import report_tables
 from .methods import FUSION_METHODS, METHOD_LABELS
 from .report_render import chance_rows, gap_line
-from .reports import LOC_COLUMNS, TABLE_INTRO, pivot
+from .reports import TABLE_INTRO, loc_columns, pivot
 
 
 def esc(x: Any) -> str:
@@ -160,7 +160,8 @@ def change_table(
 
 def localization_table(loc: pd.DataFrame, radius: float, who: str = "") -> str:
     """The localization-quality table (SPEC section 10) of ``who``."""
-    head = "".join(f"<th>{esc(lab)}</th>" for _, lab, _ in LOC_COLUMNS)
+    cols = loc_columns(loc)
+    head = "".join(f"<th>{esc(lab)}</th>" for _, lab, _ in cols)
 
     def rows(df: pd.DataFrame) -> str:
         return "".join(
@@ -169,7 +170,7 @@ def localization_table(loc: pd.DataFrame, radius: float, who: str = "") -> str:
                 f"<td>{int(getattr(r, c))}</td>"
                 if d == 0
                 else f"<td>{num(float(getattr(r, c)), d)}</td>"
-                for c, _, d in LOC_COLUMNS
+                for c, _, d in cols
             )
             + "</tr>"
             for r in df.itertuples(index=False)
@@ -264,50 +265,44 @@ def heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, w
     )
 
 
-def table_l(out: Path) -> str:
-    """Table L (SPEC section 11) from ``tableL.csv``: every AP coloured against its floor."""
-    from .leaderboard import AP_COLUMNS
+def table_l(out: Path, machine: str = "") -> str:
+    """Table L (SPEC section 11) from ``tableL.csv``: every AP coloured against its floor.
+
+    Then what each localizer costs; an undefined cell is ``-`` with its reason in a footnote.
+    """
+    from .costs import COST_COLUMNS
+    from .leaderboard import AP_COLUMNS, COST_NOTE, WHY, cost_text, recall_columns, undefined
 
     t = pd.read_csv(out / "tableL.csv")
     first = str(t["localizer"].iloc[0])
+    rec = recall_columns(t)
     head = "".join(
         f"<th>{esc(h)}</th>"
         for h in (
             "localizer",
-            "R@1",
-            "R@5",
+            *(h for _, h in rec),
             *(h for *_, h in AP_COLUMNS),
             f"S rank fusion - {first}",
         )
     )
     rows = []
-    notes: dict[str, str] = {}  # footnote mark -> why a cell is undefined
+    marks: set[str] = set()
 
-    def undefined(mark: str, why: str) -> str:
-        notes[mark] = why
-        return f'<td title="{esc(why)}">-<sup>{mark}</sup></td>'
+    def dash(r: pd.Series, column: str) -> str:
+        m = undefined(t, r, column) or "f"
+        marks.add(m)
+        return f'<td title="{esc(WHY[m])}">-<sup>{m}</sup></td>'
 
-    fused = {str(t["localizer"].iloc[-1])} if len(t) > 1 else set()
     for _, r in t.iterrows():
         cells = [f"<td>{esc(r['localizer'])}</td>"]
-        for c in ("recall_at_1", "recall_at_5"):
+        for c, _ in rec:
             x = float(r[c])
-            cells.append(
-                f"<td>{num(x)}</td>"
-                if x == x
-                else undefined("a", "the fused row ranks nothing itself: no recall of its own")
-            )
+            cells.append(f"<td>{num(x)}</td>" if x == x else dash(r, c))
         for pfx, *_ in AP_COLUMNS:
             v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
             word = str(r[f"{pfx}_verdict"])
             if v != v:
-                why = (
-                    "scores of different localizers are not comparable: no score method across "
-                    "localizers"
-                    if str(r["localizer"]) in fused
-                    else "no positive sample in this split"
-                )
-                cells.append(undefined("b" if str(r["localizer"]) in fused else "c", why))
+                cells.append(dash(r, f"{pfx}_ap"))
                 continue
             cells.append(
                 '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
@@ -327,9 +322,23 @@ def table_l(out: Path) -> str:
         rows.append("<tr>" + "".join(cells) + "</tr>")
     r0 = t.iloc[0]
     rows.append(
-        f'<tr class="floor"><td>floor ({esc(first)})</td><td></td><td></td>'
+        f'<tr class="floor"><td>floor ({esc(first)})</td>'
+        + "<td></td>" * len(rec)
         + "".join(f"<td>{num(float(r0[f'{p}_floor']))}</td>" for p, *_ in AP_COLUMNS)
         + "<td></td></tr>"
+    )
+    cost_rows = []
+    for _, r in t.iterrows():
+        cost_rows.append(
+            f"<tr><td>{esc(r['localizer'])}</td>"
+            + "".join(
+                f"<td>{cost_text(float(r[c]), dg)}</td>" if r[c] == r[c] else dash(r, c)
+                for c, _, dg in COST_COLUMNS
+            )
+            + "</tr>"
+        )
+    cost_head = "".join(
+        f"<th>{esc(h)}</th>" for h in ("localizer", *(h for _, h, _ in COST_COLUMNS))
     )
     return (
         '<h2 id="tableL">Table L: localizers</h2><p class="note">One row per localizer and '
@@ -338,11 +347,14 @@ def table_l(out: Path) -> str:
         "95% interval, coloured by SPEC 9's verdict against chance (random orders of the same "
         "samples, and the paired difference from the random baseline); "
         f"the last column is the paired difference from {esc(first)} in Table S rank fusion over "
-        "the same bootstrap resamples. Recall: the ground-truth place ranked first (R@1) or in "
-        f'the first five (R@5).</p><table data-table="L"><tr>{head}</tr>{"".join(rows)}</table>'
-        + "".join(
-            f'<p class="note"><sup>{m}</sup> -: {esc(why)}.</p>' for m, why in sorted(notes.items())
-        )
+        "the same bootstrap resamples. Recall: the ground-truth place ranked within the first N "
+        f'({esc(", ".join(h for _, h in rec))}).</p><table data-table="L"><tr>{head}</tr>'
+        f"{''.join(rows)}</table>"
+        f'<h3>What each localizer costs</h3><table data-table="L-cost"><tr>{cost_head}</tr>'
+        f'{"".join(cost_rows)}</table><p class="note">{esc(COST_NOTE)}'
+        + (f" Measured on: {esc(machine)}." if machine else "")
+        + "</p>"
+        + "".join(f'<p class="note"><sup>{m}</sup> -: {esc(WHY[m])}.</p>' for m in sorted(marks))
     )
 
 

@@ -43,6 +43,7 @@ from .report_cells import (
     table_l,
 )
 from .report_gallery import gallery_html, pr_figure_html
+from .report_render import HOLM_MARK, holm_sentence
 from .reports import TABLE_INTRO
 
 log = logging.getLogger(__name__)
@@ -226,21 +227,33 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         )
         lo = t.pivot(index="method", columns="split", values="diff_ci_low").reindex(d.index)
         hi = t.pivot(index="method", columns="split", values="diff_ci_high").reindex(d.index)
+        kept = (
+            t.pivot(index="method", columns="split", values="holm_survives")
+            .reindex(d.index)
+            .fillna(False)
+            .astype(bool)
+            if "holm_survives" in t.columns
+            else d.notna() & False
+        )
         cols = [c for c in t["split"].drop_duplicates()]
         head = "".join(f"<th>{esc(c)}</th>" for c in cols)
         diffs = "".join(
             f"<tr><td>{esc(METHOD_LABELS[m])} &minus; rank fusion</td>"
             + "".join(
-                f'<td style="background:{diff_colour(lo.loc[m, c], hi.loc[m, c])}">'
-                f"{d.loc[m, c]:+.2f} "
-                f'<span class="ci">[{lo.loc[m, c]:+.2f}, {hi.loc[m, c]:+.2f}]</span></td>'
+                f'<td style="background:{diff_colour(lo.loc[m, c], hi.loc[m, c])}"'
+                + (' data-holm="1"' if kept.loc[m, c] else "")
+                + f">{d.loc[m, c]:+.2f} "
+                f'<span class="ci">[{lo.loc[m, c]:+.2f}, {hi.loc[m, c]:+.2f}]</span>'
+                + (f" <b>{esc(HOLM_MARK)}</b>" if kept.loc[m, c] else "")
+                + "</td>"
                 for c in cols
             )
             + "</tr>"
             for m in d.index
         )
         cmp_html += (
-            f"<h3>{esc(TABLE_INTRO[table][0])}</h3><table "
+            f"<h3>{esc(TABLE_INTRO[table][0])}</h3>"
+            f'<p class="note">{esc(holm_sentence(t, TABLE_INTRO[table][0]))}</p><table '
             f'data-table="cmp{table}"><tr><th>difference</th>{head}</tr>{diffs}</table>'
         )
     headline = float(cfg["report"].get("headline_roc_max", 0.05))
@@ -322,7 +335,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         f'<h2 id="facts">Run</h2><table class="facts" data-table="facts">{fact_rows}</table>',
         localization_table(loc, float(cfg["retrieval"]["gt_radius_m"]), who),
         LEGEND,
-        table_l(out) if multi else "",
+        table_l(out, str(run.get("costs", {}).get("machine", ""))) if multi else "",
         other_blocks(summ_all, names[1:], run.get("warnings", {})) if multi else "",
         (
             f"<p class='note'>The sections below show localizer {esc(lead_name)}, the first of "

@@ -7,6 +7,7 @@ same pivots and intros.
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import numpy as np
@@ -24,16 +25,22 @@ def _fmt(v: float, digits: int = 2) -> str:
     return "NaN" if v != v else f"{v:.{digits}f}"
 
 
-LOC_COLUMNS = [
-    ("subimages", "n", 0),
-    ("recall_at_1", "R@1", 2),
-    ("recall_at_5", "R@5", 2),
-    ("median_r", "med r", 3),
-    ("chance_recall_at_1", "chance R@1", 3),
-    ("clean_recall_at_1", "clean R@1", 2),
-    ("clean_recall_at_5", "clean R@5", 2),
-    ("clean_median_r", "clean med r", 3),
-]
+def recall_ns(loc: pd.DataFrame) -> list[int]:
+    """The N of every ``recall_at_N`` column of a localization table (``[report] recall_at``)."""
+    return sorted(int(c[10:]) for c in loc.columns if re.fullmatch(r"recall_at_\d+", c))
+
+
+def loc_columns(loc: pd.DataFrame) -> list[tuple[str, str, int]]:
+    """(column, heading, decimals) of a localization table: R@N for each ``[report] recall_at``."""
+    ns = recall_ns(loc)
+    return [
+        ("subimages", "n", 0),
+        *((f"recall_at_{n}", f"R@{n}", 2) for n in ns),
+        ("median_r", "med r", 3),
+        ("chance_recall_at_1", "chance R@1", 3),
+        *((f"clean_recall_at_{n}", f"clean R@{n}", 2) for n in ns),
+        ("clean_median_r", "clean med r", 3),
+    ]
 
 
 def heading_suffix(localizer: str) -> str:
@@ -42,19 +49,19 @@ def heading_suffix(localizer: str) -> str:
 
 
 def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str = "") -> str:
-    """The localization table as markdown (recall@1/5, median r, chance rates)."""
+    """The localization table as markdown (recall@N, median r, chance rates)."""
+    cols = loc_columns(loc)
     head = (
         "| proposals | season pair | "
-        + " | ".join(lab for _, lab, _ in LOC_COLUMNS)
+        + " | ".join(lab for _, lab, _ in cols)
         + " |\n|---|---|"
-        + "---:|" * len(LOC_COLUMNS)
+        + "---:|" * len(cols)
         + "\n"
     )
     body = "".join(
         f"| {r.proposals} | {r.season_pair} | "
         + " | ".join(
-            str(int(getattr(r, c))) if d == 0 else _fmt(float(getattr(r, c)), d)
-            for c, _, d in LOC_COLUMNS
+            str(int(getattr(r, c))) if d == 0 else _fmt(float(getattr(r, c)), d) for c, _, d in cols
         )
         + " |\n"
         for r in loc.itertuples(index=False)
@@ -333,8 +340,29 @@ def table_latex(
     return "\n".join(out) + "\n"
 
 
+#: How the comparisons mark a difference that survives Holm's correction over its table.
+HOLM_MARK = "[Holm]"
+
+
+def holm_sentence(main: pd.DataFrame, table_title: str) -> str:
+    """How many of a table's paired differences were tested and how many survive Holm."""
+    tested = int(main["holm_tested"].max()) if "holm_tested" in main and len(main) else 0
+    kept = int(main["holm_survives"].sum()) if "holm_survives" in main else 0
+    if not tested:
+        return f"{table_title}: no paired difference to test."
+    return (
+        f"{table_title}: {kept} of the {tested} differences from rank fusion tested in this "
+        f"table survive a Holm correction over those {tested} (family-wise error 5%); they are "
+        f"marked {HOLM_MARK}. The others' intervals may clear 0 by chance among so many."
+    )
+
+
 def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer: str = "") -> str:
-    """Every method against rank fusion, in words, for every pooled column of Tables I, S and P."""
+    """Every method against rank fusion, in words, for every pooled column of Tables I, S and P.
+
+    Each table's differences are one family for Holm's correction (:func:`harness.metrics.holm`):
+    the survivors are marked, and the table's heading says how many were tested.
+    """
     lines = [
         f"# Paired comparisons with rank fusion{heading_suffix(localizer)}",
         "",
@@ -342,7 +370,11 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
             "Each line: AP(method) - AP(rank fusion) [95% interval of the difference over the "
             "same bootstrap resamples of query "
             "images]; 'sign flips' is the share of resamples in which the difference has the "
-            "other sign."
+            "other sign; p: two-sided, from the bootstrap standard error of the difference (normal "
+            "approximation; where the resampled differences are skewed it can exceed 0.05 while "
+            "the percentile interval excludes 0). "
+            f"{HOLM_MARK}: the difference survives Holm's correction over every difference of "
+            "its table (Tables I, S and P are three families)."
         ),
         "",
     ]
@@ -350,6 +382,9 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
         main = summ[
             (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
         ]
+        if not len(main):
+            continue
+        lines += [holm_sentence(main, TABLE_INTRO[table][0]), ""]
         for split, g in main.groupby("split", sort=False):
             lines.append(f"## {TABLE_INTRO[table][0]}, {split}")
             lines.append("")
@@ -361,9 +396,12 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
                     if r.sign_flip_share == r.sign_flip_share
                     else "no difference"
                 )
+                p = getattr(r, "p_value", float("nan"))
+                ptxt = "" if p != p else ", p < 0.001" if p < 0.001 else f", p = {p:.3f}"
+                mark = f" {HOLM_MARK}" if getattr(r, "holm_survives", False) else ""
                 lines.append(
                     f"- {METHOD_LABELS[r.method]} - rank fusion = {r.diff:+.2f} "
-                    f"[{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}] ({flips})"
+                    f"[{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}] ({flips}{ptxt}){mark}"
                 )
             lines.append("")
     return "\n".join(lines)
@@ -371,8 +409,9 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
 
 def localization_latex(loc: pd.DataFrame, localizer: str = "") -> str:
     """The localization table (all season pairs) as a booktabs ``tabular``."""
+    ns = recall_ns(loc)
     t = loc[loc["season_pair"] == "all"].set_index("proposals")[
-        ["recall_at_1", "recall_at_5", "median_r", "chance_recall_at_1", "clean_recall_at_1"]
+        [*(f"recall_at_{n}" for n in ns), "median_r", "chance_recall_at_1", "clean_recall_at_1"]
     ]
-    t.columns = ["R@1", "R@5", "median r", "R@1 by chance", "clean R@1"]
+    t.columns = [*(f"R@{n}" for n in ns), "median r", "R@1 by chance", "clean R@1"]
     return table_latex(t, "Proposals", localizer)

@@ -26,6 +26,7 @@ from .config import Config
 from .errors import ConfigError
 from .methods import BASELINES, FUSION_METHODS, ordered_methods
 from .metrics import (
+    holm,
     pr_curve,
 )
 from .report_aps import (
@@ -37,11 +38,11 @@ from .report_aps import (
 )
 from .report_render import (
     CLEAN_ROC,
-    LOC_COLUMNS,
     TABLE_INTRO,
     chance_rows,
     comparisons_markdown,
     heading_suffix,
+    loc_columns,
     localization_latex,
     localization_markdown,
     pivot,
@@ -55,7 +56,6 @@ from .splits import label as split_label
 #: Names callers read from here (the renderers and AP helpers live in their own modules).
 __all__ = [
     "CLEAN_ROC",
-    "LOC_COLUMNS",
     "TABLE_INTRO",
     "WARN_MARGIN",
     "Block",
@@ -63,6 +63,7 @@ __all__ = [
     "comparisons_markdown",
     "confound_warnings",
     "heading_suffix",
+    "loc_columns",
     "localization_latex",
     "localization_markdown",
     "localization_table",
@@ -78,9 +79,14 @@ log = logging.getLogger(__name__)
 
 
 def localization_table(
-    ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame
+    ranks: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    recall_at: Sequence[int] = (1, 5, 10, 20),
 ) -> pd.DataFrame:
-    """Recall@1, recall@5 and median r per proposal method x season pair (and over all pairs).
+    """Recall@N (``[report] recall_at``) and median r per proposal method x season pair.
+
+    Also over all pairs and all proposal methods (``all``).
 
     Each statistic is given over all ranked query subimages and over the clean ones (annotated
     query frames, RoC <= 0.05), next to its chance level: the mean of 1/L (recall@1 of a random
@@ -114,13 +120,16 @@ def localization_table(
                     "proposals": str(prop),
                     "season_pair": str(pair),
                     "subimages": len(g),
-                    "recall_at_1": float((g["rank"] == 1).mean()),
-                    "recall_at_5": float((g["rank"] <= 5).mean()),
+                    **{f"recall_at_{n}": float((g["rank"] <= n).mean()) for n in recall_at},
                     "median_r": float(g["r"].median()),
                     "chance_recall_at_1": float((1.0 / g["L"]).mean()),
                     "clean_subimages": len(c),
-                    "clean_recall_at_1": float((c["rank"] == 1).mean()) if len(c) else float("nan"),
-                    "clean_recall_at_5": float((c["rank"] <= 5).mean()) if len(c) else float("nan"),
+                    **{
+                        f"clean_recall_at_{n}": float((c["rank"] <= n).mean())
+                        if len(c)
+                        else float("nan")
+                        for n in recall_at
+                    },
                     "clean_median_r": float(c["r"].median()) if len(c) else float("nan"),
                     "median_place_size": float(g["place_size"].median())
                     if "place_size" in g.columns
@@ -176,6 +185,30 @@ def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
     ]
 
 
+def holm_columns(summ: pd.DataFrame, alpha: float) -> pd.DataFrame:
+    """Mark the paired differences from rank fusion that survive Holm's correction.
+
+    The family is one table's differences (every method but rank fusion, every pooled column:
+    proposals ``all``, season pair ``all``), ``holm_tested`` of them; ``holm_survives`` marks those
+    rejected at ``alpha`` (``1 - [report] ci``). Rows outside a family are never marked.
+    """
+    out = summ.copy()
+    out["holm_tested"] = 0
+    out["holm_survives"] = False
+    if not len(out) or "p_value" not in out.columns:
+        return out
+    for _, g in out.groupby("table", sort=False):
+        fam = g[
+            (g["proposals"] == "all")
+            & (g["season_pair"] == "all")
+            & (g["method"] != "rank_fusion")
+            & np.isfinite(g["p_value"].to_numpy(np.float64))
+        ]
+        out.loc[fam.index, "holm_tested"] = len(fam)
+        out.loc[fam.index, "holm_survives"] = holm(fam["p_value"].to_numpy(np.float64), alpha)
+    return out
+
+
 # ------------------------------------------------------------------ all reports
 
 
@@ -221,6 +254,7 @@ class Block:
     ranks: pd.DataFrame | None
     methods: tuple[str, ...]
     notes: list[str] = field(default_factory=list)
+    costs: dict[str, float] = field(default_factory=dict)  # Table L's cost cells (harness.costs)
 
 
 @dataclass
@@ -239,6 +273,7 @@ class Reports:
     localizer: str = ""
     blocks: list[Reports] = field(default_factory=list)
     table_l: pd.DataFrame | None = None
+    costs: dict[str, float] = field(default_factory=dict)
 
 
 def write_reports(
@@ -284,7 +319,9 @@ def write_reports(
 
     located = [b for b in blocks if b.ranks is not None]
     locs = {
-        b.name: localization_table(b.ranks, frames, ann) for b in located if b.ranks is not None
+        b.name: localization_table(b.ranks, frames, ann, cfg.report.recall_at)
+        for b in located
+        if b.ranks is not None
     }
     write_text(
         put(out / "localization.csv"),
@@ -322,7 +359,7 @@ def write_reports(
     results = []
     for bi, b in enumerate(blocks):
         summaries[bi] += _pixel_image_rows(cfg, allps[bi], frames, ann, b.methods, ids)
-        summ = pd.DataFrame(summaries[bi])
+        summ = holm_columns(pd.DataFrame(summaries[bi]), 1.0 - cfg.report.ci)
         summ.insert(0, "localizer", b.name)
         tables, warnings = {}, {}
         for table in ("I", "S", "P"):
@@ -334,7 +371,9 @@ def write_reports(
             warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(b.notes)
             tables[table] = pivot(summ, table, b.methods)
         loc_b = locs.get(b.name, pd.DataFrame())
-        results.append(Reports(summ, loc_b, tables, warnings, b.methods, b.name))
+        results.append(
+            Reports(summ, loc_b, tables, warnings, b.methods, b.name, costs=dict(b.costs))
+        )
     summ_all = pd.concat([r.summary for r in results], ignore_index=True)
     write_parquet(put(out / "splits" / "summary.parquet"), summ_all)
     allc = [

@@ -34,6 +34,7 @@ from .config import (
     ALL_LOCALIZERS,
     Config,
 )
+from .costs import cost_record, machine
 from .errors import HarnessError, RetrievalError
 from .executors import LocalExecutor
 from .localizer_stages import (
@@ -48,6 +49,7 @@ from .localizer_stages import (
     localizer_fusion,
     localizer_proposals,
     localizer_ranks,
+    measured_costs,
 )
 from .methods import ordered_methods
 from .outdirs import read_run_record
@@ -173,11 +175,13 @@ def until_ranks(
     props = session_proposals(p, frames, pairs, ingested)
     measured = []
     for loc in p.localizer_list:
+        start = len(p.trail)
         ranks = localizer_ranks(p, loc, frames, pairs, props)
         if not len(ranks.df):
             raise RetrievalError(f"localizer {loc.name}: no query subimage got a rank")
         fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
-        measured.append(Measured(loc, ranks, fusion, notes))
+        costs = measured_costs(p, loc, p.trail[start:], ranks, pairs, props)
+        measured.append(Measured(loc, ranks, fusion, notes, costs))
     return ingested, frames, ann, pairs, measured
 
 
@@ -197,7 +201,14 @@ def run_all(p: Context) -> dict[str, Any]:
         samples = fused_samples(p, m.ranks, frames, ann, m.fusion)
         notes = m.notes + ([shared] if shared else [])
         blocks.append(
-            Block(m.loc.name, samples.df, m.ranks.df, ordered_methods(m.fusion.methods), notes)
+            Block(
+                m.loc.name,
+                samples.df,
+                m.ranks.df,
+                ordered_methods(m.fusion.methods),
+                notes,
+                m.costs,
+            )
         )
         keys_[m.loc.name] = {"ranks": m.ranks.key, "samples": samples.key}
         n_samples += len(samples.df)
@@ -343,6 +354,11 @@ def run_record(
             **({"localizers": block_keys} if multi else {}),
         },
         "localization": reports.localization.to_dict(orient="records"),
+        # Table L's cost columns, and the machine they were measured on
+        "costs": {
+            "machine": machine(),
+            "localizers": {m.loc.name: cost_record(m.costs) for m in measured},
+        },
         "warnings": reports.warnings,
         "ingest": {
             name: ingest_summary(e.path / "ingest_report.json") for name, e in ingested.items()

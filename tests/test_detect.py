@@ -307,3 +307,64 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
     assert rec["stage_units_run"]["detect"] == 4 - 2  # the two chunks finished before the kill
     assert (o / "detections.json").read_bytes() == (a / "detections.json").read_bytes()
     assert (o / "frames.csv").read_bytes() == (a / "frames.csv").read_bytes()
+
+
+def test_rerun_recording_reads_back_with_the_sdk(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``harness detect ... --method rrf --rerun OUT.rrd`` as the README shows it (issue 38): the
+    recording, read back with the Rerun SDK, holds the map trajectory, every query frame on the
+    ``utime`` timeline with its image, its change boxes (those of ``detections.json``), its LoC map
+    and its score; a file that is not a recording of ours is never replaced."""
+    rerun_chunk = pytest.importorskip("rerun.chunk")
+    a, _, _ = detected
+    out = tmp_path / "rr"
+    shutil.copytree(a / "cache", out / "cache")
+    shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+    rrd = tmp_path / "detect.rrd"
+    readme = (ROOT / "README.md").read_text()
+    typed = re.search(r"^harness detect .* --rerun \S+$", readme, re.M)
+    assert typed is not None, "the README's --rerun command"
+    argv = typed.group(0).split()[1:]
+    argv[argv.index("--out") + 1] = str(out)
+    argv[argv.index("--rerun") + 1] = str(rrd)
+    assert argv[argv.index("--method") + 1] == "rrf"
+    argv += ["--data-root", str(local_run[0].cfg.data_root)]
+    assert f"rerun {typed.group(0).split()[-1]}" in readme  # how to open it
+    printed = _run(argv)
+    assert f"rerun recording: {rrd}" in printed
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"]["method"] == "rrf"
+    frames = pd.read_parquet(out / "frames.parquet")
+    dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
+    reader = rerun_chunk.RrdReader(rrd)
+    assert [s.application_id for s in reader.recordings()] == ["dbl-harness detect"]
+    rows: dict[str, int] = {}
+    boxes = 0
+    utimes: set[int] = set()
+    for ch in reader.stream():
+        path = str(ch.entity_path)
+        rows[path] = rows.get(path, 0) + ch.num_rows
+        batch = ch.to_record_batch()
+        names = batch.schema.names
+        if path.endswith("/image/changes"):
+            col = next(n for n in names if n.endswith("half_sizes"))
+            boxes += sum(len(v) for v in batch.column(col).to_pylist() if v)
+        if path.endswith("/image") and "utime" in names:
+            utimes.update(int(u) for u in batch.column("utime").to_pylist())
+    n = len(frames)
+    cam = f"/camera/{frames['camera'].iloc[0]}"
+    assert rows["/world/map"] == 1
+    assert rows[f"/world/query/{QUERY}/trajectory"] == 1
+    assert rows[f"/world/query/{QUERY}/frame"] == n
+    assert rows[f"{cam}/image"] == rows[f"{cam}/loc"] == rows["/detect/score"] == n
+    assert utimes == set(frames["utime"].astype(int))
+    assert boxes == len(dets)
+    # ours is replaced by the same command; a file of the user's is not
+    assert "rerun recording" in _run(argv)
+    mine = tmp_path / "notes.rrd"
+    mine.write_text("the user's own file")
+    theirs = list(argv)
+    theirs[theirs.index("--rerun") + 1] = str(mine)
+    assert main(theirs) == 1
+    assert mine.read_text() == "the user's own file"

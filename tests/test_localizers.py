@@ -9,6 +9,7 @@ and 11 (the fusion written out again here, box by box) and the annotations.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -457,3 +458,65 @@ def test_the_readme_quotes_table_l_as_the_command_prints_it(multi_run: tuple[Pat
     md = (out / "tableL.md").read_text()
     for row in table_rows_after("first on the report page):"):
         assert row in md, row
+
+
+def test_table_l_costs_as_the_readme_quotes_them(multi_run: tuple[Path, str]) -> None:
+    """Table L's cost table (issue 38): the README's storage columns are this run's, its rows
+    are the run's localizers, ``run.json`` holds the same cells and the machine, and every
+    undefined cell is ``-`` with its reason."""
+    from .readme_text import table_rows_after
+
+    out, printed = multi_run
+    md = (out / "tableL.md").read_text()
+    t = pd.read_csv(out / "tableL.csv").set_index("localizer")
+    rows = table_rows_after("and under it, what each localizer costs")
+    assert rows[0].startswith("| localizer | bytes/subimage | map KiB/frame |")
+    for row in rows[1:]:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        mine = next(x for x in md.splitlines() if x.startswith(f"| {cells[0]} |"))
+        assert [c.strip() for c in mine.strip("|").split("|")][:3] == cells[:3], row
+    assert t.loc["hsv", ["descriptor_bytes", "encode_ms", "build_s"]].isna().all()
+    assert "e) -: an imported ranked list" in md and "e) -: an imported ranked list" in printed
+    rec = json.loads((out / "run.json").read_text())
+    assert "cores" in rec["costs"]["machine"]
+    for name, cells in rec["costs"]["localizers"].items():
+        for c, v in cells.items():
+            if c != "imported":
+                want = t.loc[name, c]
+                assert (v is None and want != want) or v == pytest.approx(want, abs=6e-4), (name, c)
+    for name in ("autoencoder", "bovw-rootsift", "thumb"):
+        assert (t.loc[name, ["encode_ms", "rank_ms", "descriptor_bytes"]] > 0).all(), name
+
+
+def test_localizer_costs_from_entries_written_by_hand(tmp_path: Path) -> None:
+    """Every cost cell from files and manifests whose numbers are known: 3 + 5 rows of 8 float16
+    dims (16 bytes each), shards built in 0.2 + 0.6 s, ranks in 0.05 s for 10 query subimages, a
+    model in 4 s; 30 reference subimages on 6 frames."""
+    from harness.costs import localizer_costs
+
+    def entry(name: str, build_s: float, rows: int = 0) -> Path:
+        d = tmp_path / name
+        d.mkdir()
+        (d / "manifest.json").write_text(json.dumps({"build_s": build_s}))
+        if rows:
+            np.save(d / "desc.npy", np.zeros((rows, 8), np.float16))
+        return d
+
+    trail = [
+        ("model", entry("m", 4.0)),
+        ("descriptor_shards", entry("s1", 0.2)),
+        ("descriptor_shards", entry("s2", 0.6)),
+        ("descriptors", entry("d1", 0.01, rows=3)),
+        ("descriptors", entry("d2", 0.01, rows=5)),
+        ("ranks", entry("r", 0.05)),
+        ("ranks", tmp_path / "r"),  # an entry used twice counts once
+    ]
+    got = localizer_costs(trail, query_subimages=10, ref_subimages=30, ref_frames=6)
+    assert got["descriptor_bytes"] == 16.0
+    assert got["map_kib_per_frame"] == pytest.approx(16 * 30 / 6 / 1024)
+    assert got["encode_ms"] == pytest.approx(1000 * 0.8 / 8)
+    assert got["rank_ms"] == pytest.approx(1000 * 0.05 / 10)
+    assert got["build_s"] == pytest.approx(4.0)
+    imported = localizer_costs(trail, 10, 30, 6, imported=True)
+    assert imported["imported"] == 1.0
+    assert all(v != v for k, v in imported.items() if k != "imported")

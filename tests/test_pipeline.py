@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -203,6 +204,10 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
             "rank_fusion_raw",
             "size_prior",
             "cover_count",
+            "rrf",
+            "combmnz",
+            "borda",
+            "isr",
         )
     }
     for key, g in ranks.groupby(["q_session", "q_camera", "q_utime", "r_session"]):
@@ -257,6 +262,13 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
             samples["score_sum"].append((rc, sb, sum(d for *_, d in cov)))
             samples["size_prior"].append((rc, sb, 1 - sb))
             samples["cover_count"].append((rc, sb, float(n)))
+            # SPEC 14, with rank' = L + 1 - rank
+            samples["rrf"].append((rc, sb, sum(1 / (60 + L + 1 - rank) for _, rank, L, _ in cov)))
+            samples["combmnz"].append((rc, sb, n * sum(rank / L for _, rank, L, _ in cov)))
+            samples["borda"].append((rc, sb, sum((rank - 1) / L for _, rank, L, _ in cov) / n))
+            samples["isr"].append(
+                (rc, sb, n * sum(1 / (L + 1 - rank) ** 2 for _, rank, L, _ in cov))
+            )
         for b, rank, L, _ in orig:
             samples["rank_no_fusion"].append((*roc_sob(b), rank / L))
 
@@ -488,3 +500,23 @@ def test_a_moved_data_root_resumes_without_recomputing(local_run: tuple, tmp_pat
         assert sum(q.ran.values()) == 0, q.ran
         assert (out / "table1.csv").read_bytes() == (run / "table1.csv").read_bytes()
     assert not (tmp_path / "a").exists() and (out / "report.html").exists()  # read from b
+
+
+def test_the_readme_quotes_the_holm_counts_as_comparisons_md_prints_them(run: tuple) -> None:
+    """README's *Reading the tables* item 5 (issue 38): its example difference, its Holm counts
+    per table and its sentence are what this run's ``comparisons.md`` says."""
+    _, _, out = run
+    cmp = (out / "comparisons.md").read_text()
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    example = re.search(r"`(rank w/o fusion - rank fusion = [^`]+)`", readme)
+    assert example is not None
+    line = next(x for x in cmp.splitlines() if example.group(1) in x)
+    assert "[Holm]" not in line  # "The difference above ... is not among them"
+    sentence = re.search(r'"(Table I: \d+ of the \d+ differences [^"]+)"', readme)
+    assert sentence is not None and sentence.group(1) in cmp
+    for table, kept, tested in re.findall(r"Table ([SP]): (\d+) of (\d+)", readme):
+        assert f"Table {table}: {kept} of the {tested} differences" in cmp
+    summ = pd.read_parquet(out / "splits" / "summary.parquet")
+    for table in ("I", "S", "P"):  # the counts are the summary's columns
+        t = summ[(summ["table"] == table) & (summ["holm_tested"] > 0)]
+        assert f"Table {table}: {int(t['holm_survives'].sum())} of the {len(t)} " in cmp

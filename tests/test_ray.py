@@ -28,7 +28,7 @@ def executor():
 
 
 #: JSON keys that hold a duration (a report's timing): the one thing a rerun may change.
-TIMES = {"seconds", "timings_s", "total_s", "wall_s", "elapsed_s"}
+TIMES = {"seconds", "timings_s", "total_s", "wall_s", "elapsed_s", "build_s"}
 
 
 def _without_times(doc: object) -> object:

@@ -37,28 +37,41 @@ def print_change_table(console, rep, table: str, title: str) -> None:
 
 
 def print_table_l(console, t) -> None:
-    """Table L (SPEC section 11): a row per localizer and the fused row, then the floor."""
+    """Table L (SPEC section 11): a row per localizer and the fused row, then the floor.
+
+    Then its cost table; every undefined cell is ``-`` with its reason as a footnote.
+    """
     from rich.table import Table
 
     from ..chance import MARK_LEGEND, VERDICT_MARKS
-    from ..leaderboard import AP_COLUMNS
+    from ..costs import COST_COLUMNS
+    from ..leaderboard import AP_COLUMNS, COST_NOTE, WHY, cost_text, recall_columns, undefined
 
     first = str(t["localizer"].iloc[0])
+    rec = recall_columns(t)
+    marks: set[str] = set()
+
+    def dash(r, column: str) -> str:
+        m = undefined(t, r, column) or "f"
+        marks.add(m)
+        return f"-{m})"
+
     lt = Table(title=f"Table L: localizers (Table S at RoC-max {t['roc_max'].iloc[0]:.2f})")
-    for c in ("localizer", "R@1", "R@5", *(h for *_, h in AP_COLUMNS), f"S rank fusion - {first}"):
+    heads = ("localizer", *(h for _, h in rec), *(h for *_, h in AP_COLUMNS))
+    for c in (*heads, f"S rank fusion - {first}"):
         lt.add_column(c, justify="left" if c == "localizer" else "right")
 
     def ap(r, pfx: str) -> str:
         v, lo, hi = (r[f"{pfx}_{k}"] for k in ("ap", "ci_low", "ci_high"))
         mark = VERDICT_MARKS.get(str(r[f"{pfx}_verdict"]), "")
         text = f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}"
-        return "-" if v != v else text + (f" {mark}" if mark else "")
+        return dash(r, f"{pfx}_ap") if v != v else text + (f" {mark}" if mark else "")
 
     for _, r in t.iterrows():
         d = r["S_rank_fusion_diff"]
         lt.add_row(
             str(r["localizer"]),
-            *("" if v != v else f"{v:.2f}" for v in (r["recall_at_1"], r["recall_at_5"])),
+            *(dash(r, c) if r[c] != r[c] else f"{r[c]:.2f}" for c, _ in rec),
             *(ap(r, pfx) for pfx, *_ in AP_COLUMNS),
             ""
             if d != d
@@ -69,29 +82,45 @@ def print_table_l(console, t) -> None:
     r0 = t.iloc[0]
     lt.add_row(
         f"floor ({first})",
-        "",
-        "",
+        *([""] * len(rec)),
         *(f"{r0[f'{pfx}_floor']:.2f}" for pfx, *_ in AP_COLUMNS),
         "",
     )
     console.print(lt)
     console.print(MARK_LEGEND, markup=False)
+    ct = Table(title="Table L: what each localizer costs")
+    ct.add_column("localizer")
+    for _, h, _ in COST_COLUMNS:
+        ct.add_column(h, justify="right")
+    for _, r in t.iterrows():
+        ct.add_row(
+            str(r["localizer"]),
+            *(
+                cost_text(float(r[c]), dg) if r[c] == r[c] else dash(r, c)
+                for c, _, dg in COST_COLUMNS
+            ),
+        )
+    console.print(ct)
+    console.print(COST_NOTE, markup=False)
+    for m in sorted(marks):
+        console.print(f"{m}) -: {WHY[m]}.", markup=False)
 
 
 def print_localization(console, rep, rec) -> None:
     """One localizer's localization quality (all season pairs)."""
     from rich.table import Table
 
-    from ..reports import LOC_COLUMNS
+    from ..reports import loc_columns
 
     loc = rep.localization
+    cols = loc_columns(loc)
     lt = Table(
         title=f"Localization quality of {rep.localizer} (ground truth: place within "
         f"{rec['config']['retrieval']['gt_radius_m']:g} m)"
     )
     lt.add_column("props")
     lt.add_column("pair")
-    for _, lab, _ in LOC_COLUMNS:
+    for _, lab, _ in cols:
         lt.add_column(lab, justify="right")
     for r in loc[loc["season_pair"] == "all"].itertuples(index=False):
         lt.add_row(
@@ -101,7 +130,7 @@ def print_localization(console, rep, rec) -> None:
                 str(int(getattr(r, c)))
                 if d == 0
                 else ("NaN" if getattr(r, c) != getattr(r, c) else f"{getattr(r, c):.{d}f}")
-                for c, _, d in LOC_COLUMNS
+                for c, _, d in cols
             ),
         )
     console.print(lt)
@@ -122,11 +151,14 @@ def print_block(console, rep, rec) -> None:
         & summ["diff"].notna()
     ]
     if len(cmp_):
+        from ..report_render import HOLM_MARK, holm_sentence
+
         last = cmp_[cmp_["roc_max"] == cmp_["roc_max"].max()]
         print(
             "Paired comparisons with rank fusion (Table S, RoC-max "
             f"{last['roc_max'].iloc[0]:.2f}; all tables: comparisons.md):"
         )
+        print("  " + holm_sentence(cmp_, "Table S"))
         for r in last.itertuples():
             print(
                 f"  {r.method} - rank_fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, "
@@ -136,4 +168,5 @@ def print_block(console, rep, rec) -> None:
                     if r.sign_flip_share == r.sign_flip_share
                     else ""
                 )
+                + (f" {HOLM_MARK}" if getattr(r, "holm_survives", False) else "")
             )

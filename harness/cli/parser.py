@@ -139,11 +139,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         default="rank_fusion",
-        help="the rank method whose LoC finds the boxes (rank_fusion, rank_fusion_le2, _le3)",
+        help="the rank method whose LoC finds the boxes: rank_fusion, rank_fusion_le2, "
+        "rank_fusion_le3, or one of the field's rules rrf, combmnz, borda, isr (SPEC 14)",
     )
     p.add_argument("--nms-iou", type=float, default=0.5)
     p.add_argument("--max-boxes", type=int, default=10, help="change boxes per frame at most")
     p.add_argument("--top", type=int, default=10, help="most changed places shown")
+    p.add_argument(
+        "--rerun",
+        metavar="OUT.rrd",
+        help="also write a recording for the Rerun viewer (needs dbl-harness[rerun])",
+    )
     p.add_argument("--executor", choices=["local", "ray"], default="local")
     p.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
     p.add_argument("--ray-cpus", type=int, help="workers of a local Ray cluster")

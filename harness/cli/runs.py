@@ -81,6 +81,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         Path(args.out),
         opt,
         make_executor(args.executor, args.address, args.ray_cpus),
+        rerun=Path(args.rerun) if args.rerun else None,
     )
     out = Path(args.out)
     print(
@@ -101,4 +102,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
         f"outputs in {out}: detections.json + images.json (COCO), frames.parquet/.csv, "
         f"locmaps/, trajectory.png, detect.html"
     )
+    if rec.get("rerun"):
+        rr_ = rec["rerun"]
+        print(
+            f"rerun recording: {rr_['path']} ({rr_['query_frames']} query frames, "
+            f"{rr_['change_boxes']} change boxes; open it with: rerun {rr_['path']})"
+        )
     return 0
