@@ -29,6 +29,7 @@ from .config_schema import (
     BovwConfig,
     Config,
     DescriptorConfig,
+    DetectConfig,
     EdgesConfig,
     FixtureConfig,
     FusionConfig,
@@ -67,6 +68,7 @@ __all__ = [
     "BovwConfig",
     "Config",
     "DescriptorConfig",
+    "DetectConfig",
     "EdgesConfig",
     "FixtureConfig",
     "FusionConfig",
@@ -186,6 +188,7 @@ _SECTIONS: dict[str, type] = {
     "fusion": FusionConfig,
     "splits": SplitsConfig,
     "report": ReportConfig,
+    "detect": DetectConfig,
     "fixture": FixtureConfig,
     "import": ImportConfig,
 }

@@ -478,6 +478,32 @@ def validate(cfg: Config, where: str) -> None:
     )
     c(rp.locmap_examples >= 0, where, "[report] locmap_examples", rp.locmap_examples, ">= 0")
     c(
+        rp.gt_radius_also >= 0
+        and rp.gt_radius_also != cfg.retrieval.gt_radius_m
+        and (rp.gt_radius_also == 0 or rp.gt_radius_also >= cfg.retrieval.db_stride_m / 2),
+        where,
+        "[report] gt_radius_also",
+        rp.gt_radius_also,
+        "0 (off) or a second place radius in metres, other than [retrieval] gt_radius_m and at "
+        "least half of [retrieval] db_stride_m",
+    )
+    dt = cfg.detect
+    c(
+        dt.boxes in ("fused", "locmap", "proposals"),
+        where,
+        "[detect] boxes",
+        dt.boxes,
+        "fused, locmap or proposals (SPEC 13.1)",
+    )
+    c(dt.box_score in ("max", "mean"), where, "[detect] box_score", dt.box_score, "max or mean")
+    c(
+        0 < dt.locmap_level < 1,
+        where,
+        "[detect] locmap_level",
+        dt.locmap_level,
+        "(0, 1): a share of each frame's LoC range",
+    )
+    c(
         len(rp.recall_at) > 0
         and all(n >= 1 for n in rp.recall_at)
         and list(rp.recall_at) == sorted(set(rp.recall_at)),

@@ -232,6 +232,21 @@ class ReportConfig:
     headline_roc_max: float = 0.05
     # recall@N of the localization table and Table L, as the VPR benchmarks report it
     recall_at: tuple[int, ...] = (1, 5, 10, 20)
+    # > 0: the localization table again with the place this many metres wide (ranks re-ranked
+    # with [retrieval] gt_radius_m replaced; nothing else changes); 0: off
+    gt_radius_also: float = 0.0
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """``[detect]``: how ``harness detect`` turns LoC into change boxes (SPEC 13.1)."""
+
+    # the box generator: "fused" (the fused qBBs, SPEC 13), "locmap" (connected regions of the
+    # thresholded LoC map) or "proposals" (the original proposals scored by the LoC inside)
+    boxes: str = "fused"
+    box_score: str = "max"  # locmap / proposals: the LoC inside a box, "max" or "mean"
+    # locmap: the level, as a share of the frame's LoC range (lo + level * (hi - lo))
+    locmap_level: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -328,6 +343,7 @@ class Config:
     fusion: FusionConfig = field(default_factory=FusionConfig)
     splits: SplitsConfig = field(default_factory=SplitsConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
+    detect: DetectConfig = field(default_factory=DetectConfig)
     fixture: FixtureConfig = field(default_factory=FixtureConfig)
     import_: ImportConfig = field(default_factory=ImportConfig)  # the TOML table [import]
     # [[localizers]]; empty: one localizer named after [descriptor] (:meth:`localizer_set`)

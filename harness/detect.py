@@ -60,6 +60,9 @@ class DetectOptions:
     chunk_frames: int = 64  # query frames per cached unit (the unit a killed run resumes at)
     top: int = 10  # most changed places on the map and the page
     seed: int = 0
+    boxes: str = "fused"  # the box generator (SPEC 13.1, [detect] boxes)
+    box_score: str = "max"  # locmap / proposals: the LoC inside a box, max or mean
+    locmap_level: float = 0.5  # locmap: the level, a share of the frame's LoC range
 
 
 def change_boxes_nms(
@@ -84,6 +87,65 @@ def change_boxes_nms(
     idx = np.asarray(keep, np.int64).reshape(-1)
     idx = idx[np.argsort(-rank_score[idx], kind="stable")][:max_boxes]
     return ok[idx].astype(np.int64)
+
+
+def _inside(m: np.ndarray, box: np.ndarray, how: str) -> float:
+    """The LoC map's ``max`` or ``mean`` over the pixels centred in ``box`` (NaN: none)."""
+    h, w = m.shape
+    x1, y1, x2, y2 = box
+    u0, u1 = max(int(np.ceil(x1 - 0.5)), 0), min(int(np.ceil(x2 - 0.5)), w)
+    v0, v1 = max(int(np.ceil(y1 - 0.5)), 0), min(int(np.ceil(y2 - 0.5)), h)
+    part = m[v0:v1, u0:u1]
+    if not part.size or not np.isfinite(part).any():
+        return float("nan")
+    return float(np.nanmax(part) if how == "max" else np.nanmean(part))
+
+
+def candidate_boxes(
+    generator: str,
+    fused: np.ndarray,
+    loc: np.ndarray,
+    originals: np.ndarray,
+    width: int,
+    height: int,
+    how: str = "max",
+    level: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's candidate change boxes and their scores under a box generator (SPEC 13.1).
+
+    ``fused``: the fused qBBs and their LoC. ``proposals``: the original proposals (``originals``,
+    duplicates merged), each scored by the ``how`` (max or mean) of the pixel-wise LoC map inside
+    it. ``locmap``: the LoC map thresholded at ``lo + level * (hi - lo)`` of the frame's range,
+    the bounding boxes of its 8-connected regions (``cv2.connectedComponentsWithStats``), each
+    scored by the ``how`` of the LoC over the region's own pixels.
+
+    Returns:
+        (boxes (k, 4) in pixels, scores (k,), NaN where a box holds no mapped pixel).
+    """
+    fused = np.asarray(fused, np.float64).reshape(-1, 4)
+    loc = np.asarray(loc, np.float64)
+    if generator == "fused":
+        return fused, loc
+    m = loc_map(fused, loc, width, height)
+    if generator == "proposals":
+        boxes = np.unique(np.asarray(originals, np.float64).reshape(-1, 4), axis=0)
+        return boxes, np.array([_inside(m, b, how) for b in boxes], np.float64)
+    if generator != "locmap":
+        raise ConfigError(f"[detect] boxes = {generator!r}: fused, locmap or proposals")
+    ok = np.isfinite(m)
+    if not ok.any():
+        return np.zeros((0, 4)), np.zeros(0)
+    lo, hi = float(m[ok].min()), float(m[ok].max())
+    mask = (ok & (m >= lo + level * (hi - lo))).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    found: list[tuple[int, int, int, int]] = []
+    scores: list[float] = []
+    for i in range(1, n):
+        x, y, w, h = (int(v) for v in stats[i, :4])
+        vals = m[labels == i]
+        found.append((x, y, x + w, y + h))
+        scores.append(float(vals.max() if how == "max" else vals.mean()))
+    return np.asarray(found, np.float64).reshape(-1, 4), np.asarray(scores, np.float64)
 
 
 def _nms(boxes: np.ndarray, scores: np.ndarray, nms_iou: float, max_boxes: int) -> np.ndarray:
@@ -132,28 +194,61 @@ def detect_chunk(
     )
     samples = samples[samples["proposals"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.method}"
-    rows, frow = [], []
+    size = {
+        (str(s), str(c), int(u)): (int(w), int(h))
+        for s, c, u, w, h in frames[[*FRAME_KEY, "width", "height"]].itertuples(index=False)
+    }
+    orig = {
+        (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        for k, g in ranks.groupby(Q_KEY, sort=False)
+    }
+    rows, frow, cand_parts = [], [], []
     for key, g in samples.groupby([*Q_KEY, "r_session"], sort=True):
-        boxes = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-        loc = g[col].to_numpy(np.float64)
+        fk = (str(key[0]), str(key[1]), int(key[2]))
+        fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        floc = g[col].to_numpy(np.float64)
+        if opt.boxes == "fused":
+            boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
+        else:
+            boxes, loc = candidate_boxes(
+                opt.boxes, fused, floc, orig[fk], *size[fk], opt.box_score, opt.locmap_level
+            )
+            # the random row: uniform scores on the same candidates, seeded by the frame
+            rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(
+                len(boxes)
+            )
         keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
-        rand = change_boxes_nms(
-            boxes, g["loc_random"].to_numpy(np.float64), opt.nms_iou, opt.max_boxes
-        )
-        for kind, idx, score in (("detection", keep, loc), ("random", rand, g["loc_random"])):
-            sc = np.asarray(score, np.float64)
+        rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
+        for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
             for j, i in enumerate(idx):
                 rows.append((*key[:3], kind, j, *boxes[i], float(sc[i])))
+        cand_parts.append(
+            pd.DataFrame(
+                {
+                    "q_session": fk[0],
+                    "q_camera": fk[1],
+                    "q_utime": np.full(len(boxes), fk[2], np.int64),
+                    **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
+                    "loc": loc,
+                }
+            )
+        )
         top = boxes[keep[0]] if len(keep) else np.full(4, np.nan)
         frow.append(
             (
                 *key,
-                float(np.nanmax(loc)) if np.isfinite(loc).any() else np.nan,
+                float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan,
                 len(keep),
                 len(g),
                 *top,
             )
         )
+    cands = (
+        pd.concat(cand_parts, ignore_index=True)
+        if cand_parts
+        else pd.DataFrame(columns=[*Q_KEY, "x1", "y1", "x2", "y2", "loc"])
+    )
+    write_parquet(tmp / "candidates.parquet", cands)
     write_parquet(
         tmp / "boxes.parquet",
         pd.DataFrame(rows, columns=[*FRAME_KEY, "kind", "rank", "x1", "y1", "x2", "y2", "score"]),
@@ -215,6 +310,8 @@ def run_detect(
         raise ConfigError(f"detect: method {opt.method!r}: one of {', '.join(DETECT_METHODS)}")
     if rerun is not None:
         check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
+    if opt.boxes not in ("fused", "locmap", "proposals"):
+        raise ConfigError(f"detect: --boxes {opt.boxes!r}: one of fused, locmap, proposals")
     if not 0 < opt.nms_iou <= 1 or opt.max_boxes < 1:
         raise ConfigError(
             f"detect: nms_iou {opt.nms_iou} must be in (0, 1] and max_boxes {opt.max_boxes} >= 1"
@@ -456,7 +553,7 @@ def write_outputs(
         annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
         cands = []
         for e in entries:  # candidates of the annotated frames only, one chunk at a time
-            sm = read_cached_parquet(e.path / "samples.parquet")
+            sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
             cands.append(sm[pd.MultiIndex.from_frame(sm[Q_KEY]).isin(annotated)])
         table_d = score_detections(
             out,
@@ -470,6 +567,7 @@ def write_outputs(
             cfg.report.bootstrap,
             cfg.report.ci,
             cfg.seed,
+            opt.boxes,
         )
     from .detect_page import write_detect_page
 

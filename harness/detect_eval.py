@@ -304,6 +304,7 @@ def score_detections(
     n_boot: int = 1000,
     ci: float = 0.95,
     seed: int = 0,
+    boxes: str = "fused",
 ) -> pd.DataFrame | None:
     """Table D: the detector's box APs on the annotated query frames, with SPEC 9's floor.
 
@@ -371,6 +372,7 @@ def score_detections(
             }
         )
     t = pd.DataFrame(rows)
+    t.insert(1, "boxes", boxes)
     write_text(out / "tableD.csv", t.to_csv(index=False, float_format="%.4f"))
     write_text(out / "tableD.md", table_d_markdown(t))
     return t
@@ -380,7 +382,8 @@ def table_d_markdown(t: pd.DataFrame) -> str:
     """Table D as markdown, with what each column measures and SPEC 9's floor, band, ceiling."""
     c = t.iloc[0]
     lines = [
-        "# Table D: change boxes on the annotated query frames",
+        "# Table D: change boxes on the annotated query frames"
+        + (f" (boxes: {c.boxes})" if "boxes" in t.columns else ""),
         "",
         "Box AP of the detector's change boxes (SPEC 13) against the annotated change boxes, by "
         "pycocotools' COCOeval: AP at IoU 0.5 with VOC all-point interpolation (the metric of "

@@ -56,6 +56,7 @@ class Measured:
     fusion: FusionConfig
     notes: list[str] = field(default_factory=list)
     costs: dict[str, float] = field(default_factory=dict)  # Table L's cost cells (harness.costs)
+    ranks_also: RankTable | None = None  # at [report] gt_radius_also (the localization table)
 
 
 def localizer_proposals(
@@ -152,6 +153,28 @@ def localizer_ranks(
         projection = descriptor_projection(p, frames, pairs, mine, model)
         described = session_descriptors(p, frames, mine, model, projection)
         return query_ranks(p, frames, pairs, described)
+
+
+def ranks_at_radius(
+    p: Context,
+    radius_m: float,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    props: dict[str, Table],
+) -> RankTable:
+    """A localizer's ranks with the ground-truth place ``radius_m`` wide (``gt_radius_also``).
+
+    The same descriptors (their keys do not hold the radius), ranked again under the other place.
+    """
+    saved = p.cfg
+    p.cfg = dataclasses.replace(
+        saved, retrieval=dataclasses.replace(saved.retrieval, gt_radius_m=radius_m)
+    )
+    try:
+        return localizer_ranks(p, loc, frames, pairs, props)
+    finally:
+        p.cfg = saved
 
 
 def measured_costs(

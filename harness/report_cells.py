@@ -158,8 +158,10 @@ def change_table(
     )
 
 
-def localization_table(loc: pd.DataFrame, radius: float, who: str = "") -> str:
-    """The localization-quality table (SPEC section 10) of ``who``."""
+def localization_table(
+    loc: pd.DataFrame, radius: float, who: str = "", anchor: str = "localization"
+) -> str:
+    """The localization-quality table (SPEC section 10) of ``who`` (``anchor``: its id)."""
     cols = loc_columns(loc)
     head = "".join(f"<th>{esc(lab)}</th>" for _, lab, _ in cols)
 
@@ -178,13 +180,13 @@ def localization_table(loc: pd.DataFrame, radius: float, who: str = "") -> str:
 
     table = f"<tr><th>proposals</th><th>season pair</th>{head}</tr>"
     return (
-        f'<h2 id="localization">Localization quality{esc(who)}</h2><p class="note">'
+        f'<h2 id="{anchor}">Localization quality{esc(who)}</h2><p class="note">'
         "Every change figure rests on these ranks. Ground truth: "
         f"the reference frames within {radius:g} m of the paired frame (the place). R@k: "
         "share of query subimages whose place "
         "ranks within the first k; median r: 0.5 is chance; clean: subimages of annotated "
         "frames with RoC &le; 0.05.</p>"
-        f'<table data-table="localization">{table}{rows(loc[loc["season_pair"] == "all"])}</table>'
+        f'<table data-table="{anchor}">{table}{rows(loc[loc["season_pair"] == "all"])}</table>'
         "<details><summary>per season "
         f"pair</summary><table>{table}{rows(loc[loc['season_pair'] != 'all'])}</table></details>"
     )

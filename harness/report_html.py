@@ -131,6 +131,18 @@ def rank_counts_table(rank_counts: object) -> str:
     return f'<table class="counts" data-table="rank-counts"><tr>{head}</tr>{body}</table>'
 
 
+def localization_also(out: Path, cfg: dict[str, Any], lead: str, who: str) -> str:
+    """The localization table at ``[report] gt_radius_also`` where the run wrote one."""
+    path = out / "localization_also.csv"
+    if not path.is_file():
+        return ""
+    loc = pd.read_csv(path)
+    if lead:
+        loc = loc[loc["localizer"] == lead]
+    radius = float(cfg["report"].get("gt_radius_also", 0.0))
+    return localization_table(loc, radius, f"{who}, place {radius:g} m", "localization-also")
+
+
 def write_html_report(out: Path, gallery: int | None = None) -> Path:
     """Write ``out/report.html`` (and its images under ``out/report/``) for a finished run.
 
@@ -334,6 +346,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         + "</nav>",
         f'<h2 id="facts">Run</h2><table class="facts" data-table="facts">{fact_rows}</table>',
         localization_table(loc, float(cfg["retrieval"]["gt_radius_m"]), who),
+        localization_also(out, cfg, lead_name if multi else "", who),
         LEGEND,
         table_l(out, str(run.get("costs", {}).get("machine", ""))) if multi else "",
         other_blocks(summ_all, names[1:], run.get("warnings", {})) if multi else "",

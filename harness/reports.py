@@ -255,6 +255,7 @@ class Block:
     methods: tuple[str, ...]
     notes: list[str] = field(default_factory=list)
     costs: dict[str, float] = field(default_factory=dict)  # Table L's cost cells (harness.costs)
+    ranks_also: pd.DataFrame | None = None  # the ranks at [report] gt_radius_also
 
 
 @dataclass
@@ -274,6 +275,7 @@ class Reports:
     blocks: list[Reports] = field(default_factory=list)
     table_l: pd.DataFrame | None = None
     costs: dict[str, float] = field(default_factory=dict)
+    localization_also: pd.DataFrame | None = None  # at [report] gt_radius_also
 
 
 def write_reports(
@@ -337,6 +339,28 @@ def write_reports(
         put(out / "localization.tex"),
         "\n".join(localization_latex(v, k) for k, v in locs.items()),
     )
+    also = cfg.report.gt_radius_also
+    locs_also = {
+        b.name: localization_table(b.ranks_also, frames, ann, cfg.report.recall_at)
+        for b in located
+        if b.ranks_also is not None
+    }
+    if locs_also:  # the same table with the place gt_radius_also wide
+        write_text(
+            put(out / "localization_also.csv"),
+            pd.concat(
+                [tag(v, k).assign(gt_radius_m=also) for k, v in locs_also.items()],
+                ignore_index=True,
+            ).to_csv(index=False, float_format="%.4f"),
+        )
+        write_text(
+            put(out / "localization_also.md"),
+            "\n".join(localization_markdown(v, also, k) for k, v in locs_also.items()),
+        )
+        write_text(
+            put(out / "localization_also.tex"),
+            "\n".join(localization_latex(v, k) for k, v in locs_also.items()),
+        )
     write_parquet(
         put(out / "ranks.parquet"),
         pd.concat([b.ranks.assign(localizer=b.name) for b in located if b.ranks is not None]),
@@ -372,7 +396,16 @@ def write_reports(
             tables[table] = pivot(summ, table, b.methods)
         loc_b = locs.get(b.name, pd.DataFrame())
         results.append(
-            Reports(summ, loc_b, tables, warnings, b.methods, b.name, costs=dict(b.costs))
+            Reports(
+                summ,
+                loc_b,
+                tables,
+                warnings,
+                b.methods,
+                b.name,
+                costs=dict(b.costs),
+                localization_also=locs_also.get(b.name),
+            )
         )
     summ_all = pd.concat([r.summary for r in results], ignore_index=True)
     write_parquet(put(out / "splits" / "summary.parquet"), summ_all)
@@ -447,7 +480,7 @@ def write_reports(
         out / "plots", "pr_*.png", written
     )
     stale += _remove_stale(out / "locmaps", "*", written)
-    stems = ["tableL", *(spec.stem for spec in report_tables.TABLES.values())]
+    stems = ["tableL", "localization_also", *(spec.stem for spec in report_tables.TABLES.values())]
     stale += _remove_unwritten([out / f"{t}.{x}" for t in stems for x in TABLE_SUFFIXES], written)
     if stale:
         log.info(

@@ -50,6 +50,7 @@ from .localizer_stages import (
     localizer_proposals,
     localizer_ranks,
     measured_costs,
+    ranks_at_radius,
 )
 from .methods import ordered_methods
 from .outdirs import read_run_record
@@ -181,7 +182,9 @@ def until_ranks(
             raise RetrievalError(f"localizer {loc.name}: no query subimage got a rank")
         fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
         costs = measured_costs(p, loc, p.trail[start:], ranks, pairs, props)
-        measured.append(Measured(loc, ranks, fusion, notes, costs))
+        also = p.cfg.report.gt_radius_also
+        ranks_also = ranks_at_radius(p, also, loc, frames, pairs, props) if also > 0 else None
+        measured.append(Measured(loc, ranks, fusion, notes, costs, ranks_also))
     return ingested, frames, ann, pairs, measured
 
 
@@ -208,6 +211,7 @@ def run_all(p: Context) -> dict[str, Any]:
                 ordered_methods(m.fusion.methods),
                 notes,
                 m.costs,
+                m.ranks_also.df if m.ranks_also is not None else None,
             )
         )
         keys_[m.loc.name] = {"ranks": m.ranks.key, "samples": samples.key}

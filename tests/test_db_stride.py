@@ -137,3 +137,33 @@ def test_described_frames_by_hand() -> None:
         3,
     ]  # kept 1 (start) and 3 (2 m travelled); 2 is a query frame
     assert thin["b"]["utime"].tolist() == [1, 2, 3]  # 5 m apart: every frame kept
+
+
+def test_gt_radius_also_repeats_the_localization_table_at_the_second_radius(
+    local_run: tuple, tmp_path: Path
+) -> None:
+    """``[report] gt_radius_also = 5`` (issue 38): ``localization_also.*`` is the localization
+    table of a run whose place is 5 m wide, while every other table stays the 2 m run's; a wider
+    place can only raise recall@N."""
+    p, _, out = local_run
+    name = "also"
+    shutil.copytree(out / "cache", tmp_path / name / "cache")
+    shutil.copy(out / ".dbl-harness.json", tmp_path / name / ".dbl-harness.json")
+    cfg = dataclasses.replace(p.cfg, report=dataclasses.replace(p.cfg.report, gt_radius_also=5.0))
+    q = Pipeline(cfg, tmp_path / name)
+    q.run()
+    o = tmp_path / name
+    assert q.ran.get("descriptors", 0) == 0 and q.ran.get("model", 0) == 0  # ranked again only
+    assert (o / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
+    assert (o / "localization.csv").read_bytes() == (out / "localization.csv").read_bytes()
+    also = pd.read_csv(o / "localization_also.csv")
+    assert (also["gt_radius_m"] == 5.0).all()
+    assert "within 5 m" in (o / "localization_also.md").read_text()
+    _, wide = _variant(local_run, tmp_path, "wide", gt_radius_m=5.0)
+    want = pd.read_csv(wide / "localization.csv")
+    pd.testing.assert_frame_equal(also.drop(columns="gt_radius_m"), want)
+    base = pd.read_csv(out / "localization.csv")
+    for n in (1, 5, 10, 20):
+        assert (also[f"recall_at_{n}"] >= base[f"recall_at_{n}"] - 1e-9).all(), n
+    assert (also["recall_at_1"] > base["recall_at_1"]).any()
+    assert 'id="localization-also"' in (o / "report.html").read_text()

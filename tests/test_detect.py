@@ -237,7 +237,7 @@ def test_the_detect_flags_are_honoured_as_typed(
     rec = json.loads((out / "detect.json").read_text())
     assert rec["options"] == {
         "method": "rank_fusion_le2", "nms_iou": 0.2, "max_boxes": 3, "top": 4,
-        "chunk_frames": 64, "seed": 0,
+        "chunk_frames": 64, "seed": 0, "boxes": "fused", "box_score": "max", "locmap_level": 0.5,
     }  # fmt: skip
     dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
     assert dets.groupby("image_id").size().max() == 3  # --max-boxes
@@ -368,3 +368,65 @@ def test_rerun_recording_reads_back_with_the_sdk(
     theirs[theirs.index("--rerun") + 1] = str(mine)
     assert main(theirs) == 1
     assert mine.read_text() == "the user's own file"
+
+
+def test_box_generators_on_a_loc_map_known_by_hand() -> None:
+    """SPEC 13.1's generators on a 20 x 10 frame whose left half has LoC 1 and right half 5."""
+    from harness.detect import candidate_boxes
+
+    fused = np.array([[0, 0, 10, 10], [10, 0, 20, 10]], np.float64)
+    loc = np.array([1.0, 5.0])
+    b, s = candidate_boxes("fused", fused, loc, fused, 20, 10)
+    assert b.tolist() == fused.tolist() and s.tolist() == [1.0, 5.0]
+    # locmap at half the range (3): the right half alone, scored by its LoC
+    b, s = candidate_boxes("locmap", fused, loc, fused, 20, 10, "max", 0.5)
+    assert b.tolist() == [[10, 0, 20, 10]] and s.tolist() == [5.0]
+    # proposals: the originals (duplicates merged) scored by the LoC inside, max or mean
+    orig = np.array([[0, 0, 20, 10], [0, 0, 10, 10], [0, 0, 10, 10], [5, 0, 15, 10]], np.float64)
+    b, s = candidate_boxes("proposals", fused, loc, orig, 20, 10, "max")
+    assert b.tolist() == [[0, 0, 10, 10], [0, 0, 20, 10], [5, 0, 15, 10]]
+    assert s.tolist() == [1.0, 5.0, 5.0]
+    _, s = candidate_boxes("proposals", fused, loc, orig, 20, 10, "mean")
+    assert s.tolist() == [1.0, 3.0, 3.0]
+    # two separate changed blobs are two boxes (8-connected regions)
+    fused3 = np.array([[0, 0, 4, 10], [4, 0, 16, 10], [16, 0, 20, 10]], np.float64)
+    b, s = candidate_boxes("locmap", fused3, np.array([9.0, 0.0, 7.0]), fused3, 20, 10)
+    assert b.tolist() == [[0, 0, 4, 10], [16, 0, 20, 10]] and s.tolist() == [9.0, 7.0]
+
+
+def test_boxes_proposals_as_typed_scores_the_original_proposals(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``--boxes proposals`` (SPEC 13.1): every change box is an original proposal of its frame,
+    Table D names the generator and its candidates are those proposals."""
+    _, b, _ = detected
+    out = tmp_path / "props"
+    shutil.copytree(b / "cache", out / "cache")
+    shutil.copy(b / ".dbl-harness.json", out / ".dbl-harness.json")
+    _run(["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
+          "--query", "2012-08-04", "--out", str(out), "--data-root",
+          str(local_run[0].cfg.data_root), "--boxes", "proposals"])  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"]["boxes"] == "proposals"
+    t = pd.read_csv(out / "tableD.csv")
+    assert (t["boxes"] == "proposals").all()
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    d = t.iloc[0]
+    assert (
+        f"`proposals` reaches AP50 {d.ap50_voc_all_point:.3f} against a floor of {d.floor:.3f} and "
+        f"a chance band up to {d.chance_high:.3f} (ceiling {d.ceiling:.3f})"
+    ) in readme
+    assert d.verdict == "chance"
+    assert "(boxes: proposals)" in (out / "tableD.md").read_text()
+    images = {i["id"]: i for i in json.loads((out / "images.json").read_text())["images"]}
+    ranks = pd.concat(pd.read_parquet(f) for f in (out / "cache" / "ranks").glob("*/ranks.parquet"))
+    boxes = {
+        (s, c, int(u)): set(map(tuple, g[["x1", "y1", "x2", "y2"]].to_numpy().tolist()))
+        for (s, c, u), g in ranks.groupby(["q_session", "q_camera", "q_utime"])
+    }
+    dets = json.loads((out / "detections.json").read_text())
+    assert dets
+    for d in dets:
+        i = images[d["image_id"]]
+        x, y, w, h = d["bbox"]
+        assert (x, y, x + w, y + h) in boxes[(i["session"], i["camera"], i["utime"])]

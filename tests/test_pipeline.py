@@ -520,3 +520,25 @@ def test_the_readme_quotes_the_holm_counts_as_comparisons_md_prints_them(run: tu
     for table in ("I", "S", "P"):  # the counts are the summary's columns
         t = summ[(summ["table"] == table) & (summ["holm_tested"] > 0)]
         assert f"Table {table}: {int(t['holm_survives'].sum())} of the {len(t)} " in cmp
+
+
+def test_recall_at_is_the_share_ranked_within_n(run: tuple) -> None:
+    """``[report] recall_at``: one ``recall_at_N`` (and ``clean_``) column per N, each the share of
+    query subimages whose place ranks within the first N; the defaults are 1, 5, 10, 20."""
+    from harness.annotations import load_annotations
+    from harness.reports import localization_table
+
+    p, _, out = run
+    assert p.cfg.report.recall_at == (1, 5, 10, 20)
+    loc = pd.read_csv(out / "localization.csv")
+    assert [c for c in loc.columns if c.startswith("recall_at_")] == [
+        "recall_at_1", "recall_at_5", "recall_at_10", "recall_at_20"
+    ]  # fmt: skip
+    ranks = pd.read_parquet(out / "ranks.parquet")
+    frames = pd.read_parquet(next((out / "cache" / "frames").glob("*/frames.parquet")))
+    ann = load_annotations(p.cfg.annotations, frames)
+    mine = localization_table(ranks, frames, ann, (1, 3, 7))
+    row = mine[(mine["proposals"] == "all") & (mine["season_pair"] == "all")].iloc[0]
+    for n in (1, 3, 7):
+        assert row[f"recall_at_{n}"] == pytest.approx((ranks["rank"] <= n).mean())
+    assert "recall_at_5" not in mine.columns and "clean_recall_at_7" in mine.columns

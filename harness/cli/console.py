@@ -106,17 +106,21 @@ def print_table_l(console, t) -> None:
         console.print(f"{m}) -: {WHY[m]}.", markup=False)
 
 
-def print_localization(console, rep, rec) -> None:
-    """One localizer's localization quality (all season pairs)."""
+def print_localization(console, rep, rec, also: bool = False) -> None:
+    """One localizer's localization quality (all season pairs); ``also``: at the second radius."""
     from rich.table import Table
 
     from ..reports import loc_columns
 
-    loc = rep.localization
+    loc = rep.localization_also if also else rep.localization
+    radius = (
+        rec["config"]["report"]["gt_radius_also"]
+        if also
+        else rec["config"]["retrieval"]["gt_radius_m"]
+    )
     cols = loc_columns(loc)
     lt = Table(
-        title=f"Localization quality of {rep.localizer} (ground truth: place within "
-        f"{rec['config']['retrieval']['gt_radius_m']:g} m)"
+        title=f"Localization quality of {rep.localizer} (ground truth: place within {radius:g} m)"
     )
     lt.add_column("props")
     lt.add_column("pair")
@@ -134,7 +138,7 @@ def print_localization(console, rep, rec) -> None:
             ),
         )
     console.print(lt)
-    print("  per season pair: localization.md")
+    print(f"  per season pair: localization{'_also' if also else ''}.md")
 
 
 def print_block(console, rep, rec) -> None:

@@ -142,6 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="the rank method whose LoC finds the boxes: rank_fusion, rank_fusion_le2, "
         "rank_fusion_le3, or one of the field's rules rrf, combmnz, borda, isr (SPEC 14)",
     )
+    p.add_argument(
+        "--boxes",
+        help="the box generator (SPEC 13.1): fused, locmap or proposals (default: [detect] boxes)",
+    )
     p.add_argument("--nms-iou", type=float, default=0.5)
     p.add_argument("--max-boxes", type=int, default=10, help="change boxes per frame at most")
     p.add_argument("--top", type=int, default=10, help="most changed places shown")

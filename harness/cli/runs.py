@@ -23,6 +23,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     for rep in blocks:
         if len(rep.localization):
             print_localization(console, rep, rec)
+        if rep.localization_also is not None and len(rep.localization_also):
+            print_localization(console, rep, rec, also=True)
     if reports.table_l is not None:
         print_table_l(console, reports.table_l)
     for rep in blocks:
@@ -73,6 +75,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
         max_boxes=args.max_boxes,
         top=args.top,
         seed=cfg.fusion.seed,
+        boxes=args.boxes or cfg.detect.boxes,
+        box_score=cfg.detect.box_score,
+        locmap_level=cfg.detect.locmap_level,
     )
     rec = run_detect(
         cfg,
