@@ -496,6 +496,7 @@ def validate(cfg: Config, where: str) -> None:
         "fused, locmap or proposals (SPEC 13.1)",
     )
     c(dt.box_score in ("max", "mean"), where, "[detect] box_score", dt.box_score, "max or mean")
+    c(0 < dt.alarm < 1, where, "[detect] alarm", dt.alarm, "(0, 1): a false-alarm rate")
     c(
         0 < dt.locmap_level < 1,
         where,

@@ -247,6 +247,9 @@ class DetectConfig:
     box_score: str = "max"  # locmap / proposals: the LoC inside a box, "max" or "mean"
     # locmap: the level, as a share of the frame's LoC range (lo + level * (hi - lo))
     locmap_level: float = 0.5
+    # the nominal false-alarm rate: boxes and frames whose calibrated score (exceedance) is at
+    # most this are alarms (alarms.csv; harness detect --alarm overrides it)
+    alarm: float = 0.01
 
 
 @dataclass(frozen=True)

@@ -275,6 +275,7 @@ def run_detect(
     opt: DetectOptions | None = None,
     executor: Any = None,
     rerun: Path | None = None,
+    alarm: float | None = None,
 ) -> dict[str, Any]:
     """The detector on ``query_sessions`` against ``map_session`` into ``out`` (SPEC 13).
 
@@ -310,6 +311,9 @@ def run_detect(
         raise ConfigError(f"detect: method {opt.method!r}: one of {', '.join(DETECT_METHODS)}")
     if rerun is not None:
         check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
+    alarm = cfg.detect.alarm if alarm is None else alarm
+    if not 0 < alarm < 1:
+        raise ConfigError(f"detect: --alarm {alarm}: a false-alarm rate in (0, 1), e.g. 0.01")
     if opt.boxes not in ("fused", "locmap", "proposals"):
         raise ConfigError(f"detect: --boxes {opt.boxes!r}: one of fused, locmap, proposals")
     if not 0 < opt.nms_iou <= 1 or opt.max_boxes < 1:
@@ -393,7 +397,9 @@ def run_detect(
             entries,
             opt,
             names_l,
+            alarm,
         )
+        record["cache_entries"] = {"detect": [e.path.name for e in entries]}
         if rerun is not None:
             record["rerun"] = write_rerun(
                 Path(rerun), p.out, frames.df, map_session, fr, dets, entries, opt
@@ -484,8 +490,12 @@ def write_outputs(
     entries: list[Any],
     opt: DetectOptions,
     localizers: list[str],
+    alarm: float = 0.01,
 ) -> dict[str, Any]:
-    """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page."""
+    """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
+
+    Also the alarms at the nominal false-alarm rate ``alarm`` (``alarms.csv``, SPEC 13.1).
+    """
     out = p.out
     fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "yaw", "image", "width", "height"]], on=FRAME_KEY)
     fr = fr.merge(
@@ -515,6 +525,20 @@ def write_outputs(
         out / "images.json",
         {"images": images, "categories": [{"id": 1, "name": "change", "supercategory": "change"}]},
     )
+    # calibrated scores (SPEC 13.1): each box against every candidate box of the run, each
+    # frame against every frame, one chunk's candidates at a time
+    from .calibrate import exceedance
+
+    null = np.concatenate(
+        [read_cached_parquet(e.path / "candidates.parquet")["loc"].to_numpy() for e in entries]
+        or [np.zeros(0)]
+    )
+    dets = dets.assign(
+        exceedance=np.where(
+            dets["kind"] == "detection", exceedance(null, dets["score"].to_numpy()), np.nan
+        )
+    )
+    fr = fr.assign(exceedance=exceedance(fr["score"].to_numpy(), fr["score"].to_numpy()))
     det = dets[dets["kind"] == "detection"]
     results = [
         {
@@ -522,6 +546,7 @@ def write_outputs(
             "category_id": 1,
             "bbox": [float(r.x1), float(r.y1), float(r.x2 - r.x1), float(r.y2 - r.y1)],
             "score": float(r.score),
+            "exceedance": float(r.exceedance),
         }
         for r in det.itertuples()
     ]
@@ -537,10 +562,23 @@ def write_outputs(
             "r_camera",
             "r_utime",
             *FRAME_RESULT,
+            "exceedance",
         ]
     ]
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
+    flagged_f = fr[fr["exceedance"] <= alarm]
+    flagged_b = det[det["exceedance"] <= alarm]
+    alarms = pd.concat(
+        [
+            flagged_f.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
+            flagged_b.assign(kind="box")[
+                ["kind", *FRAME_KEY, "x1", "y1", "x2", "y2", "score", "exceedance"]
+            ],
+        ],
+        ignore_index=True,
+    ).sort_values(["kind", "exceedance", *FRAME_KEY, "x1", "y1"], kind="stable")
+    write_text(out / "alarms.csv", alarms.to_csv(index=False, float_format="%.6g"))
     top = fr.sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
     maps = locmaps(out, top, entries, dets)
     from .detect_page import trajectory_figure
@@ -568,6 +606,7 @@ def write_outputs(
             cfg.report.ci,
             cfg.seed,
             opt.boxes,
+            alarm,
         )
     from .detect_page import write_detect_page
 
@@ -581,6 +620,8 @@ def write_outputs(
         "options": dataclasses.asdict(opt),
         "query_frames": len(fr),
         "detections": len(results),
+        # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)
+        "alarm": {"rate": alarm, "frames": len(flagged_f), "boxes": len(flagged_b)},
         "outputs": {
             "detections": str(out / "detections.json"),
             "images": str(out / "images.json"),

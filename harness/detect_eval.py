@@ -305,6 +305,7 @@ def score_detections(
     ci: float = 0.95,
     seed: int = 0,
     boxes: str = "fused",
+    alarm: float = 0.01,
 ) -> pd.DataFrame | None:
     """Table D: the detector's box APs on the annotated query frames, with SPEC 9's floor.
 
@@ -373,6 +374,13 @@ def score_detections(
         )
     t = pd.DataFrame(rows)
     t.insert(1, "boxes", boxes)
+    # SPEC 13.1: the false-alarm rate measured on frames annotated no-change, at the nominal one
+    quiet = ann[ann["status"] == "no-change"][["session", "camera", "utime"]].drop_duplicates()
+    if "exceedance" in fr.columns and len(quiet):
+        q = fr.merge(quiet, on=["session", "camera", "utime"])
+        t["alarm_nominal"] = alarm
+        t["no_change_frames"] = len(q)
+        t["alarm_measured"] = float((q["exceedance"] <= alarm).mean()) if len(q) else np.nan
     write_text(out / "tableD.csv", t.to_csv(index=False, float_format="%.4f"))
     write_text(out / "tableD.md", table_d_markdown(t))
     return t
@@ -414,6 +422,16 @@ def table_d_markdown(t: pd.DataFrame) -> str:
         f"{c.candidate_recall:.3f} |",
         f"| share of the reachable gap the detector closes, (AP - floor) / (ceiling - floor) | "
         f"{_pct(c.gap_closed)} |",
+        *(
+            [
+                f"| nominal false-alarm rate (frames whose calibrated score is at most it) | "
+                f"{c.alarm_nominal:g} |",
+                f"| false-alarm rate measured on the {int(c.no_change_frames)} frames annotated "
+                f"no-change | {c.alarm_measured:.3f} |",
+            ]
+            if "alarm_measured" in t.columns and int(c.no_change_frames)
+            else []
+        ),
         "",
         f"Verdict (SPEC 9): {chance.MARK_LEGEND}",
     ]

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from .cache import write_text
+from .calibrate import in_words
 from .chance import VERDICT_WORDS
 from .imagestore import read_image
 from .report_html import SCRIPT  # the page reports its own loaded images (browser test)
@@ -46,6 +47,19 @@ def _thumb(img: np.ndarray, path: Path, width: int = 360) -> str:
     path.parent.mkdir(exist_ok=True)
     cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
     return f"{path.parent.name}/{path.name}"
+
+
+def _top_box_exceedance(dets: pd.DataFrame, k: tuple[str, str, int]) -> float:
+    """The calibrated score of a frame's first change box (NaN: none)."""
+    b = dets[
+        (dets["kind"] == "detection")
+        & (dets["session"] == k[0])
+        & (dets["camera"] == k[1])
+        & (dets["utime"] == k[2])
+    ]
+    if not len(b) or "exceedance" not in b.columns:
+        return float("nan")
+    return float(b["exceedance"].min())
 
 
 def write_detect_page(
@@ -102,7 +116,14 @@ def write_detect_page(
         places.append(
             f'<h3 id="place{i}">{i}. {_e(k[0])} {_e(k[1])} {k[2]}: change score {r.score:.3g}, '
             f"{int(r.boxes)} change boxes, at ({r.x:.1f}, {r.y:.1f}) m</h3>"
-            f'<div class="place" data-place="{i}">{figs}</div>'
+            + (
+                f'<p class="note" data-calibrated="{r.exceedance:.6g}">Calibrated: '
+                f"{_e(in_words(r.exceedance, 'frames of this run'))}; its top box: "
+                f"{_e(in_words(_top_box_exceedance(dets, k), 'candidate boxes'))}.</p>"
+                if hasattr(r, "exceedance")
+                else ""
+            )
+            + f'<div class="place" data-place="{i}">{figs}</div>'
         )
     td = ""
     if table_d is not None:
@@ -129,6 +150,13 @@ def write_detect_page(
             f"{c.chance_high:.3f}, ceiling {c.ceiling:.3f} (candidates scored by their best IoU), "
             f"candidates' recall at IoU 0.5 {c.candidate_recall:.3f}.</p>"
         )
+        if "alarm_measured" in table_d.columns and int(c.no_change_frames):
+            td += (
+                f"<p class='note' data-alarm='{c.alarm_nominal:g}'>Calibrated scores: at a "
+                f"nominal false-alarm rate of {c.alarm_nominal:g}, "
+                f"{c.alarm_measured:.3f} of the {int(c.no_change_frames)} frames annotated "
+                "no-change are flagged.</p>"
+            )
         td += "".join(f'<p class="warn">{_e(w)}</p>' for w in table_d_warnings(table_d))
     qs = sorted(set(fr["session"]))
     page = (

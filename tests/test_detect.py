@@ -405,9 +405,11 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
     shutil.copy(b / ".dbl-harness.json", out / ".dbl-harness.json")
     _run(["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
           "--query", "2012-08-04", "--out", str(out), "--data-root",
-          str(local_run[0].cfg.data_root), "--boxes", "proposals"])  # fmt: skip
+          str(local_run[0].cfg.data_root), "--boxes", "proposals", "--alarm", "0.2"])  # fmt: skip
     rec = json.loads((out / "detect.json").read_text())
     assert rec["options"]["boxes"] == "proposals"
+    assert rec["alarm"]["rate"] == 0.2  # --alarm: the README's "still 0 at 0.2"
+    assert (pd.read_csv(out / "alarms.csv")["exceedance"] <= 0.2).all()
     t = pd.read_csv(out / "tableD.csv")
     assert (t["boxes"] == "proposals").all()
     readme = " ".join((ROOT / "README.md").read_text().split())
@@ -417,6 +419,7 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
         f"a chance band up to {d.chance_high:.3f} (ceiling {d.ceiling:.3f})"
     ) in readme
     assert d.verdict == "chance"
+    assert d.alarm_nominal == 0.2 and d.alarm_measured == 0.0
     assert "(boxes: proposals)" in (out / "tableD.md").read_text()
     images = {i["id"]: i for i in json.loads((out / "images.json").read_text())["images"]}
     ranks = pd.concat(pd.read_parquet(f) for f in (out / "cache" / "ranks").glob("*/ranks.parquet"))
@@ -430,3 +433,58 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
         i = images[d["image_id"]]
         x, y, w, h = d["bbox"]
         assert (x, y, x + w, y + h) in boxes[(i["session"], i["camera"], i["utime"])]
+
+
+def test_exceedance_and_its_words_by_hand() -> None:
+    from harness.calibrate import exceedance, in_words
+
+    got = exceedance(np.array([1.0, 2.0, 3.0, 4.0, np.nan]), np.array([4.0, 2.5, 0.0, np.nan]))
+    assert got[:3].tolist() == [2 / 5, 3 / 5, 5 / 5] and np.isnan(got[3])
+    assert exceedance(np.zeros(0), np.array([1.0])).tolist() == [1.0]
+    assert in_words(0.001, "candidate boxes") == "1 in 1,000 candidate boxes scores this high"
+
+
+def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None:
+    """SPEC 13.1 on the README's second command: every frame's and box's exceedance recomputes
+    from the run's own frames and candidates, ``alarms.csv`` holds exactly what the default
+    nominal rate flags, Table D measures the rate on the no-change frames, and the README's and
+    the page's words are this run's."""
+    from harness.calibrate import in_words
+
+    _, out, printed = detected
+    fr = pd.read_csv(out / "frames.csv")
+    s = fr["score"].to_numpy()
+    want = np.array([(1 + (s >= v).sum()) / (1 + len(s)) for v in s])
+    np.testing.assert_allclose(fr["exceedance"], want, rtol=1e-5)
+    rec = json.loads((out / "detect.json").read_text())
+    cands = pd.concat(  # this run's chunks (the cache also holds the first command's)
+        pd.read_parquet(out / "cache" / "detect" / k / "candidates.parquet")
+        for k in rec["cache_entries"]["detect"]
+    )
+    null = cands["loc"].to_numpy()
+    dets = json.loads((out / "detections.json").read_text())
+    for d in dets[:50]:
+        assert d["exceedance"] == pytest.approx((1 + (null >= d["score"]).sum()) / (1 + len(null)))
+    alarms = pd.read_csv(out / "alarms.csv")
+    rate = rec["alarm"]["rate"]
+    assert rate == 0.01
+    assert (alarms["exceedance"] <= rate).all()
+    assert (alarms["kind"] == "box").sum() == sum(d["exceedance"] <= rate for d in dets)
+    assert (alarms["kind"] == "frame").sum() == int((fr["exceedance"] <= rate).sum())
+    t = pd.read_csv(out / "tableD.csv").iloc[0]
+    ann = pd.read_csv(ROOT / "annotations" / "fixture.csv")
+    quiet = ann[ann["status"] == "no-change"].merge(fr, on=["session", "camera", "utime"])
+    assert int(t["no_change_frames"]) == len(quiet) > 0
+    assert t["alarm_measured"] == pytest.approx((quiet["exceedance"] <= rate).mean())
+    top = fr.sort_values("score", ascending=False).iloc[0]
+    words = in_words(float(top["exceedance"]), "frames")
+    assert f"({words})" in printed
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert f'("{in_words(float(top["exceedance"]), "frames of this run")}")' in readme
+    assert (
+        in_words(float(top["exceedance"]), "frames of this run")
+        in (out / "detect.html").read_text()
+    )
+    assert (
+        f"on the fixture, {int((quiet['exceedance'] <= rate).sum())} of {len(quiet)} at {rate:g}"
+    ) in readme

@@ -146,6 +146,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--boxes",
         help="the box generator (SPEC 13.1): fused, locmap or proposals (default: [detect] boxes)",
     )
+    p.add_argument(
+        "--alarm",
+        type=float,
+        metavar="RATE",
+        help="the nominal false-alarm rate: boxes and frames whose calibrated score is at most "
+        "it go to alarms.csv (default: [detect] alarm, 0.01)",
+    )
     p.add_argument("--nms-iou", type=float, default=0.5)
     p.add_argument("--max-boxes", type=int, default=10, help="change boxes per frame at most")
     p.add_argument("--top", type=int, default=10, help="most changed places shown")

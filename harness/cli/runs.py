@@ -62,6 +62,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
+    from ..calibrate import in_words
     from ..detect import DetectOptions, run_detect
     from ..executors import make_executor
 
@@ -87,6 +88,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         opt,
         make_executor(args.executor, args.address, args.ray_cpus),
         rerun=Path(args.rerun) if args.rerun else None,
+        alarm=args.alarm,
     )
     out = Path(args.out)
     print(
@@ -95,12 +97,18 @@ def cmd_detect(args: argparse.Namespace) -> int:
         f"ms per query frame ({rec['total_s']:.1f} s)"
     )
     fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False).head(args.top)
-    print("most changed frames (session camera utime: score, top box):")
+    print("most changed frames (session camera utime: score, calibrated, top box):")
     for r in fr.itertuples():
+        words = in_words(r.exceedance, "frames")
         print(
-            f"  {r.session} {r.camera} {r.utime}: {r.score:.4g}, "
+            f"  {r.session} {r.camera} {r.utime}: {r.score:.4g} ({words}), "
             f"[{r.top_x1:.0f}, {r.top_y1:.0f}, {r.top_x2:.0f}, {r.top_y2:.0f}]"
         )
+    al = rec["alarm"]
+    print(
+        f"alarms at a nominal false-alarm rate of {al['rate']:g}: {al['frames']} frames, "
+        f"{al['boxes']} change boxes (alarms.csv)"
+    )
     if rec.get("table_d"):
         print((out / "tableD.md").read_text())
     print(
