@@ -610,7 +610,9 @@ def write_outputs(
         )
     from .detect_page import write_detect_page
 
-    page = write_detect_page(out, fr, top, dets, frames, maps, table_d, map_session, localizers)
+    page = write_detect_page(
+        out, fr, top, dets, frames, maps, table_d, map_session, localizers, ann=ann
+    )
     return {
         "config": cfg.name,
         "map": map_session,

@@ -62,6 +62,22 @@ def _top_box_exceedance(dets: pd.DataFrame, k: tuple[str, str, int]) -> float:
     return float(b["exceedance"].min())
 
 
+#: Annotated change frames shown on the page (detections in yellow, annotations in red).
+ANNOTATED_SHOWN = 6
+
+
+def _truth_boxes(ann: pd.DataFrame | None) -> dict[tuple[str, str, int], list[tuple]]:
+    """The annotated change boxes of each frame."""
+    out: dict[tuple[str, str, int], list[tuple]] = {}
+    if ann is None or not len(ann):
+        return out
+    for r in ann[ann["status"] == "change"].itertuples():
+        out.setdefault((str(r.session), str(r.camera), int(r.utime)), []).append(
+            (r.x1, r.y1, r.x2, r.y2)
+        )
+    return out
+
+
 def write_detect_page(
     out: Path,
     fr: pd.DataFrame,
@@ -72,13 +88,18 @@ def write_detect_page(
     table_d: pd.DataFrame | None,
     map_session: str,
     localizers: list[str],
+    ann: pd.DataFrame | None = None,
 ) -> Path:
-    """Write ``out/detect.html`` and its thumbnails; return the page's path."""
+    """Write ``out/detect.html`` and its thumbnails; return the page's path.
+
+    Where a frame is annotated, its annotated change boxes are drawn in red beside the detections
+    (yellow), and a section shows the annotated change frames (up to ``ANNOTATED_SHOWN``).
+    """
     fk = frames.set_index(["session", "camera", "utime"])
-    places = []
-    for i, r in enumerate(top.itertuples(), start=1):
-        k = (str(r.session), str(r.camera), int(r.utime))
-        q = read_image(str(r.image)).copy()
+    truth = _truth_boxes(ann)
+
+    def query_thumb(k: tuple[str, str, int], image: str, name: str) -> tuple[str, str]:
+        q = read_image(image).copy()
         b = dets[
             (dets["kind"] == "detection")
             & (dets["session"] == k[0])
@@ -87,13 +108,16 @@ def write_detect_page(
         ]
         for x1, y1, x2, y2 in b[["x1", "y1", "x2", "y2"]].to_numpy():
             cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (255, 220, 0), 2)
+        for x1, y1, x2, y2 in truth.get(k, []):
+            cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (230, 30, 30), 1)
+        what = "change boxes in yellow" + (", annotated changes in red" if k in truth else "")
+        return (f"query {k[0]} {k[2]} ({what})", _thumb(q, out / "detect" / f"{name}_q.jpg"))
+
+    places = []
+    for i, r in enumerate(top.itertuples(), start=1):
+        k = (str(r.session), str(r.camera), int(r.utime))
         name = f"{k[0]}_{k[1]}_{k[2]}"
-        cells = [
-            (
-                "query " + f"{k[0]} {k[2]} (change boxes in yellow)",
-                _thumb(q, out / "detect" / f"{name}_q.jpg"),
-            ),
-        ]
+        cells = [query_thumb(k, str(r.image), name)]
         mk = (map_session, str(r.r_camera), int(r.r_utime)) if r.r_utime == r.r_utime else None
         if mk is not None and mk in fk.index:
             mimg = read_image(str(fk.loc[mk, "image"]))
@@ -125,6 +149,20 @@ def write_detect_page(
             )
             + f'<div class="place" data-place="{i}">{figs}</div>'
         )
+    in_truth = [
+        r for r in fr.sort_values(["score", "image_id"], ascending=[False, True]).itertuples()
+        if (str(r.session), str(r.camera), int(r.utime)) in truth
+    ]  # fmt: skip
+    shown = in_truth[:ANNOTATED_SHOWN]
+    annotated = "".join(
+        "<figure><img src='{1}' alt='{0}'><figcaption>{0}</figcaption></figure>".format(
+            *(_e(x) for x in query_thumb(
+                (str(r.session), str(r.camera), int(r.utime)), str(r.image),
+                f"{r.session}_{r.camera}_{r.utime}",
+            ))
+        )
+        for r in shown
+    )  # fmt: skip
     td = ""
     if table_d is not None:
         rows = "".join(
@@ -170,6 +208,14 @@ def write_detect_page(
         '<h2 id="trajectory">Where</h2><img id="trajectory-map" src="trajectory.png" '
         'alt="query trajectory over the map, coloured by change score" style="max-width:760px">'
         + td
+        + (
+            f'<h2 id="annotated">Annotated changes: {len(shown)} of the {len(in_truth)} annotated '
+            "change frames, most changed first</h2><p class='note'>Detections in yellow, the "
+            "annotated change boxes in red: where they meet, the boxes found the change.</p>"
+            f'<div class="place" data-annotated="{len(shown)}">{annotated}</div>'
+            if shown
+            else ""
+        )
         + f'<h2 id="places">The {len(top)} most changed places</h2>'
         + "".join(places)
         + "</body></html>\n"

@@ -174,8 +174,9 @@ def test_the_detect_page_renders_in_a_real_browser(detected: tuple) -> None:
         capture_output=True, text=True, timeout=120, check=True,
     ).stdout  # fmt: skip
     attrs = dict(re.findall(r'data-([a-z-]+)="([^"]*)"', re.search(r"<body([^>]*)>", dom)[1]))
-    # the trajectory and query | map | LoC map for each of the ten places, every one loaded
-    assert int(attrs["images-total"]) == 1 + 3 * 10
+    # the trajectory, query | map | LoC map for each of the ten places and the six annotated
+    # change frames, every one loaded
+    assert int(attrs["images-total"]) == 1 + 3 * 10 + 6
     assert attrs["images-loaded"] == attrs["images-total"], attrs
     assert attrs["tables"] == "1"
 
@@ -488,3 +489,20 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
     assert (
         f"on the fixture, {int((quiet['exceedance'] <= rate).sum())} of {len(quiet)} at {rate:g}"
     ) in readme
+
+
+def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected: tuple) -> None:
+    """Issue 36's page: with annotations, the annotated change frames (most changed first) show
+    their annotated boxes in red beside the detections in yellow; without, no such section."""
+    from harness.detect_page import ANNOTATED_SHOWN
+
+    a, out, _ = detected
+    page = (out / "detect.html").read_text()
+    fr = pd.read_csv(out / "frames.csv")
+    ann = pd.read_csv(ROOT / "annotations" / "fixture.csv")
+    changed = ann[ann["status"] == "change"][["session", "camera", "utime"]].drop_duplicates()
+    n = len(fr.merge(changed, on=["session", "camera", "utime"]))
+    assert f'data-annotated="{min(n, ANNOTATED_SHOWN)}"' in page
+    assert f"of the {n} annotated change frames" in page
+    assert "annotated changes in red" in page
+    assert 'id="annotated"' not in (a / "detect.html").read_text()
