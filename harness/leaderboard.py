@@ -22,7 +22,7 @@ import pandas as pd
 from .chance import MARK_LEGEND, VERDICT_MARKS
 from .config import Config
 from .costs import COST_COLUMNS, IMPORTED_WHY
-from .metrics import paired_difference
+from .metrics import holm, paired_difference
 from .splits import Split
 from .texfmt import tex_escape as _tex_escape
 
@@ -146,7 +146,12 @@ def leaderboard(
         row.update({c: float(b.costs.get(c, nan)) for c, *_ in COST_COLUMNS})
         row["imported"] = bool(b.costs.get("imported", 0.0))
         rows.append(row)
-    return pd.DataFrame(rows)
+    t = pd.DataFrame(rows)
+    # the localizers' differences from the first are one family for Holm's correction
+    t["S_rank_fusion_holm_survives"] = holm(
+        t["S_rank_fusion_p_value"].to_numpy(np.float64), 1.0 - cfg.report.ci
+    )
+    return t
 
 
 def leaderboard_csv(t: pd.DataFrame) -> str:
@@ -194,16 +199,25 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
             "interval over the same bootstrap resamples of query images].",
             "",
         ]
+        tested = int(np.isfinite(t["S_rank_fusion_p_value"].to_numpy(np.float64)).sum())
+        kept = int(t["S_rank_fusion_holm_survives"].sum())
+        lines += [
+            f"Table L: {kept} of the {tested} differences from {first} tested survive a Holm "
+            f"correction over those {tested} (family-wise error 5%); they are marked [Holm].",
+            "",
+        ]
         for r in t.iloc[1:].itertuples():
             flips = (
                 f"sign flips in {100 * r.S_rank_fusion_sign_flip_share:.0f}% of resamples"
                 if r.S_rank_fusion_sign_flip_share == r.S_rank_fusion_sign_flip_share
                 else "no difference"
             )
+            p = r.S_rank_fusion_p_value
+            ptxt = "" if p != p else ", p < 0.001" if p < 0.001 else f", p = {p:.3f}"
             lines.append(
                 f"- {r.localizer} - {first} = {r.S_rank_fusion_diff:+.2f} "
                 f"[{r.S_rank_fusion_diff_ci_low:+.2f}, {r.S_rank_fusion_diff_ci_high:+.2f}] "
-                f"({flips})"
+                f"({flips}{ptxt})" + (" [Holm]" if r.S_rank_fusion_holm_survives else "")
             )
         return "\n".join(lines) + "\n"
     heads = [h for _, _, _, _, h in AP_COLUMNS]

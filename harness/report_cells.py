@@ -315,11 +315,15 @@ def table_l(out: Path, machine: str = "") -> str:
         d, dl, dh = (
             float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high")
         )
+        holm_ok = bool(r.get("S_rank_fusion_holm_survives", False))
         cells.append(
             "<td></td>"
             if d != d
-            else f'<td style="background:{diff_colour(dl, dh)}">{d:+.2f} '
-            f'<span class="ci">[{dl:+.2f}, {dh:+.2f}]</span></td>'
+            else f'<td style="background:{diff_colour(dl, dh)}"'
+            + (' data-holm="1"' if holm_ok else "")
+            + f'>{d:+.2f} <span class="ci">[{dl:+.2f}, {dh:+.2f}]</span>'
+            + (" <b>[Holm]</b>" if holm_ok else "")
+            + "</td>"
         )
         rows.append("<tr>" + "".join(cells) + "</tr>")
     r0 = t.iloc[0]
@@ -349,7 +353,8 @@ def table_l(out: Path, machine: str = "") -> str:
         "95% interval, coloured by SPEC 9's verdict against chance (random orders of the same "
         "samples, and the paired difference from the random baseline); "
         f"the last column is the paired difference from {esc(first)} in Table S rank fusion over "
-        "the same bootstrap resamples. Recall: the ground-truth place ranked within the first N "
+        "the same bootstrap resamples ([Holm]: it survives Holm's correction over the "
+        "localizers' differences). Recall: the ground-truth place ranked within the first N "
         f'({esc(", ".join(h for _, h in rec))}).</p><table data-table="L"><tr>{head}</tr>'
         f"{''.join(rows)}</table>"
         f'<h3>What each localizer costs</h3><table data-table="L-cost"><tr>{cost_head}</tr>'

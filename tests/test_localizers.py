@@ -521,3 +521,29 @@ def test_localizer_costs_from_entries_written_by_hand(tmp_path: Path) -> None:
     imported = localizer_costs(trail, 10, 30, 6, imported=True)
     assert imported["imported"] == 1.0
     assert all(v != v for k, v in imported.items() if k != "imported")
+
+
+def test_comparisons_between_localizers_say_which_survive_holm(
+    multi_run: tuple[Path, str],
+) -> None:
+    """comparisons.md's Table L section (issue 38): each localizer's difference from the first
+    with its p-value, the survivors of Holm's correction over those differences marked, and the
+    count the README quotes."""
+    from harness.metrics import holm
+
+    out, _ = multi_run
+    t = pd.read_csv(out / "tableL.csv")
+    cmp = (out / "comparisons.md").read_text().split("# Paired comparisons with rank fusion")[0]
+    p = t["S_rank_fusion_p_value"].to_numpy(np.float64)
+    kept = holm(p, 0.05)
+    assert kept.tolist() == t["S_rank_fusion_holm_survives"].tolist()
+    sentence = (
+        f"Table L: {int(kept.sum())} of the {int(np.isfinite(p).sum())} differences from "
+        "autoencoder tested survive a Holm correction"
+    )
+    assert sentence in cmp
+    for r in t.iloc[1:].itertuples():
+        line = next(x for x in cmp.splitlines() if x.startswith(f"- {r.localizer} - "))
+        assert line.endswith("[Holm]") == bool(r.S_rank_fusion_holm_survives), line
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert sentence.replace("Table L: ", "") in readme
