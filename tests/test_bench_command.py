@@ -18,6 +18,20 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _bench(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``python -m bench ARGS`` as a user types it in ``cwd``; it must succeed."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc
+
+
 def test_the_bench_command_runs_as_typed_and_keeps_other_cases_figures(tmp_path: Path) -> None:
     shutil.copytree(ROOT / "bench", tmp_path / "bench", ignore=shutil.ignore_patterns(".data"))
     (tmp_path / "datasets").mkdir()
@@ -28,15 +42,7 @@ def test_the_bench_command_runs_as_typed_and_keeps_other_cases_figures(tmp_path:
     earlier = {"case": "rank exact db=1000", "median": 1.0, "unit": "query subimages/s"}
     (out / "bench.json").write_text(json.dumps({"results": [{**earlier, "group": "ranking"}]}))
     tracked = (ROOT / "results" / "bench" / "bench.json").read_bytes()
-    proc = subprocess.run(
-        [sys.executable, "-m", "bench", "--quick", "--only", "fusion"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _bench(tmp_path, "--quick", "--only", "fusion")
     assert "fusion: " in proc.stdout
     rows = json.loads((out / "bench.json").read_text())["results"]
     groups = {r["group"] for r in rows}
@@ -54,15 +60,7 @@ def test_the_bench_command_runs_as_typed_and_keeps_other_cases_figures(tmp_path:
     # `python -m bench --render` as typed: bench.md again from bench.json, nothing run or written
     before = (out / "bench.json").read_bytes()
     (out / "bench.md").write_text("old")
-    proc = subprocess.run(
-        [sys.executable, "-m", "bench", "--render"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _bench(tmp_path, "--render")
     assert (out / "bench.md").read_text() == md and (out / "bench.json").read_bytes() == before
     assert "result(s) in" not in proc.stdout  # no case ran
 
