@@ -380,10 +380,24 @@ def score_detections(
         q = fr.merge(quiet, on=["session", "camera", "utime"])
         t["alarm_nominal"] = alarm
         t["no_change_frames"] = len(q)
-        t["alarm_measured"] = float((q["exceedance"] <= alarm).mean()) if len(q) else np.nan
+        k = int((q["exceedance"] <= alarm).sum())
+        t["alarm_measured"] = k / len(q) if len(q) else np.nan
+        t["alarm_ci_low"], t["alarm_ci_high"] = clopper_pearson(k, len(q), ci)
     write_text(out / "tableD.csv", t.to_csv(index=False, float_format="%.4f"))
     write_text(out / "tableD.md", table_d_markdown(t))
     return t
+
+
+def clopper_pearson(k: int, n: int, ci: float = 0.95) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) interval of a rate of ``k`` in ``n`` at level ``ci``."""
+    from scipy.stats import beta
+
+    if n == 0:
+        return float("nan"), float("nan")
+    a = (1.0 - ci) / 2.0
+    lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1.0 - a, k + 1, n - k))
+    return lo, hi
 
 
 def table_d_markdown(t: pd.DataFrame) -> str:
@@ -427,7 +441,8 @@ def table_d_markdown(t: pd.DataFrame) -> str:
                 f"| nominal false-alarm rate (frames whose calibrated score is at most it) | "
                 f"{c.alarm_nominal:g} |",
                 f"| false-alarm rate measured on the {int(c.no_change_frames)} frames annotated "
-                f"no-change | {c.alarm_measured:.3f} |",
+                f"no-change [95% exact interval] | {c.alarm_measured:.3f} "
+                f"[{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] |",
             ]
             if "alarm_measured" in t.columns and int(c.no_change_frames)
             else []

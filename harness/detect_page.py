@@ -192,8 +192,9 @@ def write_detect_page(
             td += (
                 f"<p class='note' data-alarm='{c.alarm_nominal:g}'>Calibrated scores: at a "
                 f"nominal false-alarm rate of {c.alarm_nominal:g}, "
-                f"{c.alarm_measured:.3f} of the {int(c.no_change_frames)} frames annotated "
-                "no-change are flagged.</p>"
+                f"{c.alarm_measured:.3f} [{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] (95% exact "
+                f"interval) of the {int(c.no_change_frames)} frames annotated no-change are "
+                "flagged.</p>"
             )
         td += "".join(f'<p class="warn">{_e(w)}</p>' for w in table_d_warnings(table_d))
     qs = sorted(set(fr["session"]))

@@ -331,7 +331,7 @@ def test_rerun_recording_reads_back_with_the_sdk(
     argv[argv.index("--rerun") + 1] = str(rrd)
     assert argv[argv.index("--method") + 1] == "rrf"
     argv += ["--data-root", str(local_run[0].cfg.data_root)]
-    assert f"rerun {typed.group(0).split()[-1]}" in readme  # how to open it
+    assert f"rerun {typed.group(0).split()[-1]}" in " ".join(readme.split())  # how to open it
     printed = _run(argv)
     assert f"rerun recording: {rrd}" in printed
     rec = json.loads((out / "detect.json").read_text())
@@ -443,6 +443,11 @@ def test_exceedance_and_its_words_by_hand() -> None:
     assert got[:3].tolist() == [2 / 5, 3 / 5, 5 / 5] and np.isnan(got[3])
     assert exceedance(np.zeros(0), np.array([1.0])).tolist() == [1.0]
     assert in_words(0.001, "candidate boxes") == "1 in 1,000 candidate boxes scores this high"
+    from harness.detect_eval import clopper_pearson
+
+    lo, hi = clopper_pearson(3, 10)  # the textbook interval of 3 in 10
+    assert (round(lo, 4), round(hi, 4)) == (0.0667, 0.6525)
+    assert clopper_pearson(0, 4)[1] == pytest.approx(1 - 0.025**0.25)
 
 
 def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None:
@@ -477,6 +482,12 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
     quiet = ann[ann["status"] == "no-change"].merge(fr, on=["session", "camera", "utime"])
     assert int(t["no_change_frames"]) == len(quiet) > 0
     assert t["alarm_measured"] == pytest.approx((quiet["exceedance"] <= rate).mean())
+    # the exact interval of 0 in n: [0, 1 - 0.025 ** (1 / n)]
+    if t["alarm_measured"] == 0:
+        assert t["alarm_ci_low"] == 0 and t["alarm_ci_high"] == pytest.approx(
+            1 - 0.025 ** (1 / len(quiet)),
+            abs=5e-5,  # tableD.csv keeps four decimals
+        )
     top = fr.sort_values("score", ascending=False).iloc[0]
     words = in_words(float(top["exceedance"]), "frames")
     assert f"({words})" in printed
@@ -506,3 +517,44 @@ def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected:
     assert f"of the {n} annotated change frames" in page
     assert "annotated changes in red" in page
     assert 'id="annotated"' not in (a / "detect.html").read_text()
+
+
+@pytest.mark.parametrize(
+    ("flags", "says"),
+    [
+        (["--alarm", "0"], "--alarm 0.0: a false-alarm rate in (0, 1)"),
+        (["--alarm", "1.5"], "--alarm 1.5"),
+        (["--boxes", "pixels"], "--boxes 'pixels': one of fused, locmap, proposals"),
+        (["--method", "score_max"], "method 'score_max': one of rank_fusion"),
+        (["--rerun", "/nonexistent-folder/x.rrd"], "does not exist"),
+    ],
+)
+def test_bad_detect_flags_are_one_error_line_before_any_work(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture, flags: list, says: str
+) -> None:
+    out = tmp_path / "o"
+    argv = ["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
+            "--out", str(out), "--data-root", str(local_run[0].cfg.data_root), *flags]  # fmt: skip
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.startswith("ERROR:")]
+    assert len(lines) == 1 and says in lines[0], err
+    assert not out.exists()
+
+
+def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) -> None:
+    """``[detect]`` is passed through: a flag as typed wins, the table fills what is not typed."""
+    from harness.cli.parser import build_parser
+    from harness.cli.runs import detect_options
+    from harness.config import load_config
+
+    text = (ROOT / "datasets" / "fixture.toml").read_text()
+    (tmp_path / "c.toml").write_text(
+        text + '\n[detect]\nboxes = "locmap"\nbox_score = "mean"\nlocmap_level = 0.3\n'
+    )
+    cfg = load_config(tmp_path / "c.toml")
+    base = ["detect", "--config", "c.toml", "--map", MAP, "--query", QUERY, "--out", "o"]
+    opt = detect_options(build_parser().parse_args(base), cfg)
+    assert (opt.boxes, opt.box_score, opt.locmap_level) == ("locmap", "mean", 0.3)
+    opt = detect_options(build_parser().parse_args([*base, "--boxes", "proposals"]), cfg)
+    assert opt.boxes == "proposals"

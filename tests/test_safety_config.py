@@ -129,6 +129,28 @@ def test_an_unreachable_ray_address_is_one_error_line_in_seconds(
             "\n[retrieval]\ngt_radius_m = -1.0\n",
             r"\[retrieval\] gt_radius_m = -1.0 is out of range",
         ),
+        # issue 38's and 36's keys
+        (None, "\n[fusion]\nrrf_c = -1\n", r"\[fusion\] rrf_c = -1.0 is out of range"),
+        (
+            ("bootstrap = 200", "bootstrap = 200\nrecall_at = [5, 1]"),
+            "",
+            r"\[report\] recall_at = \[5, 1\] is out of range; allowed: a non-empty increasing",
+        ),
+        (
+            ("bootstrap = 200", "bootstrap = 200\nrecall_at = [0, 5]"),
+            "",
+            r"\[report\] recall_at = \[0, 5\] is out of range",
+        ),
+        (
+            ("bootstrap = 200", "bootstrap = 200\ngt_radius_also = 2.0"),
+            "",
+            r"\[report\] gt_radius_also = 2.0 is out of range; allowed: 0 \(off\) or a second",
+        ),
+        (None, '\n[detect]\nboxes = "pixels"\n', r"\[detect\] boxes = 'pixels' is out of range"),
+        (None, '\n[detect]\nbox_score = "median"\n', r"\[detect\] box_score = 'median'"),
+        (None, "\n[detect]\nlocmap_level = 1.0\n", r"\[detect\] locmap_level = 1.0 is out"),
+        (None, "\n[detect]\nalarm = 0\n", r"\[detect\] alarm = 0.0 is out of range"),
+        (None, "\n[detect]\ncolour = 1\n", r"unknown key"),
     ],
 )
 def test_bad_config_values_fail_at_load(
@@ -136,6 +158,21 @@ def test_bad_config_values_fail_at_load(
 ) -> None:
     with pytest.raises(ConfigError, match=message):
         load_config(_config(tmp_path, edit, extra))
+
+
+def test_the_new_keys_load_as_typed(tmp_path: Path) -> None:
+    """``[fusion] rrf_c``, ``[report] recall_at`` / ``gt_radius_also`` and ``[detect]`` as the
+    README writes them."""
+    extra = (
+        "\n[fusion]\nrrf_c = 30\n"
+        '\n[detect]\nboxes = "proposals"\nbox_score = "mean"\nlocmap_level = 0.4\nalarm = 0.05\n'
+    )
+    edit = ("bootstrap = 200", "bootstrap = 200\nrecall_at = [1, 3]\ngt_radius_also = 5")
+    cfg = load_config(_config(tmp_path, edit, extra))
+    assert cfg.fusion.rrf_c == 30.0
+    assert cfg.report.recall_at == (1, 3) and cfg.report.gt_radius_also == 5.0
+    d = cfg.detect
+    assert (d.boxes, d.box_score, d.locmap_level, d.alarm) == ("proposals", "mean", 0.4, 0.05)
 
 
 def test_bad_config_is_one_error_line_before_any_work(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from ..errors import HarnessError
 from .common import check_executor_flags, pd_read, pipeline_of, run_config
@@ -60,17 +61,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_detect(args: argparse.Namespace) -> int:
-    """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
-    from ..calibrate import in_words
-    from ..detect import DetectOptions, run_detect
-    from ..executors import make_executor
+def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
+    """``harness detect``'s options: the flags as typed, ``[detect]`` where a flag is not given."""
+    from ..detect import DetectOptions
 
-    check_executor_flags(args)
-    if args.top < 0:
-        raise HarnessError(f"--top {args.top}: must be >= 0 places")
-    cfg = run_config(args)
-    opt = DetectOptions(
+    return DetectOptions(
         method=args.method,
         nms_iou=args.nms_iou,
         max_boxes=args.max_boxes,
@@ -80,6 +75,19 @@ def cmd_detect(args: argparse.Namespace) -> int:
         box_score=cfg.detect.box_score,
         locmap_level=cfg.detect.locmap_level,
     )
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
+    from ..calibrate import in_words
+    from ..detect import run_detect
+    from ..executors import make_executor
+
+    check_executor_flags(args)
+    if args.top < 0:
+        raise HarnessError(f"--top {args.top}: must be >= 0 places")
+    cfg = run_config(args)
+    opt = detect_options(args, cfg)
     rec = run_detect(
         cfg,
         args.map,
@@ -88,7 +96,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         opt,
         make_executor(args.executor, args.address, args.ray_cpus),
         rerun=Path(args.rerun) if args.rerun else None,
-        alarm=args.alarm,
+        alarm=cfg.detect.alarm if args.alarm is None else args.alarm,
     )
     out = Path(args.out)
     print(
