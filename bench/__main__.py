@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from harness.cache import atomic_path
+from harness.runtime.cache import atomic_path
 
 from .cases import CASES, measures
 from .provenance import staleness, stamp

@@ -1,6 +1,6 @@
 """dbl-harness: a batch benchmark of self-localization as change detection on NCLT logs.
 
-The pipeline's chain is :mod:`harness.runner`; the method contract is SPEC.md (see
+The pipeline's chain is :mod:`harness.pipeline.chain`; the method contract is SPEC.md (see
 ``docs/method.md``) and the stage map ``docs/architecture.md``.
 """
 

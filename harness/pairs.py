@@ -14,8 +14,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .cache import write_json, write_parquet
-from .config import PairsConfig
+from harness.config.load import PairsConfig
+from harness.runtime.cache import write_json, write_parquet
 
 log = logging.getLogger(__name__)
 

@@ -31,8 +31,8 @@ def local_run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> 
 
     (pipeline, record, out).
     """
-    from harness.config import load_config
-    from harness.runner import Pipeline
+    from harness.config.load import load_config
+    from harness.pipeline.chain import Pipeline
 
     out = tmp_path_factory.mktemp("run")
     cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(default_world))

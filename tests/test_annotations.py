@@ -9,7 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.annotations import (
+from harness.errors import AnnotationError
+from harness.ingest.annotations import (
     COLUMNS,
     change_boxes,
     export_for_labelling,
@@ -20,7 +21,6 @@ from harness.annotations import (
     import_voc,
     validate,
 )
-from harness.errors import AnnotationError
 
 FRAMES = pd.DataFrame(
     {

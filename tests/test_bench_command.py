@@ -75,11 +75,11 @@ def test_a_bench_row_is_stale_once_the_code_it_measures_changes_after_its_commit
     first = (_git("rev-list", "--max-parents=0", "HEAD") or "").splitlines()
     if head is None or not first or _git("rev-parse", "--is-shallow-repository") == "true":
         pytest.skip("needs the repository's git history (a full clone)")
-    measures = ("harness/metrics.py",)
+    measures = ("harness/evaluate/metrics.py",)
     last = _git("log", "-1", "--format=%H", "--", *measures)
     assert last and last != first[0]
     assert staleness({"commit": head, "dirty": False}, measures) == ""
     assert staleness({"commit": head, "dirty": True}, measures).startswith("dirty")
     old = staleness({"commit": first[0]}, measures)
-    assert old.startswith("stale: harness/metrics.py changed in " + last[:8]), old
+    assert old.startswith("stale: harness/evaluate/metrics.py changed in " + last[:8]), old
     assert staleness({}, measures).startswith("stale? no commit recorded")

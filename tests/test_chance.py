@@ -1,4 +1,4 @@
-"""SPEC 9's floor, chance band, ceiling and verdict (:mod:`harness.chance`)."""
+"""SPEC 9's floor, chance band, ceiling and verdict (:mod:`harness.evaluate.chance`)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import chance
-from harness.metrics import average_precision, stratified_ap, weighted_average_precision
+from harness.evaluate import chance
+from harness.evaluate.metrics import average_precision, stratified_ap, weighted_average_precision
 
 from .conftest import ROOT
 
@@ -97,7 +97,7 @@ def _samples(seed: int, n_images: int = 40, per: int = 30) -> pd.DataFrame:
 
 
 def _cfg() -> object:
-    from harness.config import load_config
+    from harness.config.load import load_config
 
     cfg = load_config(ROOT / "datasets" / "fixture.toml")
     return dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, bootstrap=300))
@@ -109,8 +109,8 @@ def test_random_is_never_above_chance_and_other_noise_rarely_is() -> None:
     above chance in at most 6 of 60 seeds (the band alone lets 5% through, i.e. 3 expected;
     P(X >= 7 | Binomial(60, 0.05)) < 0.04, and the paired condition only lowers the rate); the
     informative method is above chance in at least 55."""
-    from harness.report_aps import _groups, _pooled_rows
-    from harness.splits import paper_splits
+    from harness.evaluate.aps import _groups, _pooled_rows
+    from harness.evaluate.splits import paper_splits
 
     cfg = _cfg()
     split = paper_splits()[-1]
@@ -141,7 +141,7 @@ def test_random_is_never_above_chance_and_other_noise_rarely_is() -> None:
 
 def test_match50_is_cocoeval_s_matching() -> None:
     """Table D's fast matcher gives pycocotools' VOC all-point AP50 exactly on random boxes."""
-    from harness.detect_eval import _weighted_voc, coco_eval, iou_matrix, match50
+    from harness.detect.evaluate import _weighted_voc, coco_eval, iou_matrix, match50
 
     rng = np.random.default_rng(5)
     for _ in range(15):

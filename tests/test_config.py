@@ -1,4 +1,5 @@
-"""``harness.config``: every value checked (type, range, finiteness, known names) before any work.
+"""``harness.config.load``: every value checked (type, range, finiteness, known names) before any
+work.
 
 Each case goes through the CLI as a user types it (issue 26, items 2-4): one ``ERROR:`` line that
 names the key and the value, exit 1, and no stage run (the output directory stays empty).

@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 
 from harness.pairs import thin_by_stride
+from harness.pipeline.chain import Pipeline, load_run
 from harness.retrieval import described_frames
-from harness.runner import Pipeline, load_run
 
 
 def _variant(

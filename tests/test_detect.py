@@ -20,10 +20,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import chance
 from harness.cli import main
-from harness.detect import change_boxes_nms
-from harness.detect_eval import _voc_all_point
+from harness.detect.evaluate import _voc_all_point
+from harness.detect.run import change_boxes_nms
+from harness.evaluate import chance
 
 ROOT = Path(__file__).resolve().parents[1]
 MAP, QUERY = "2012-01-22", "2012-03-31"
@@ -191,7 +191,7 @@ def test_nms_keeps_the_highest_loc_and_drops_its_overlaps() -> None:
 
 
 def test_table_d_evaluator_on_boxes_whose_ap_is_known_by_hand() -> None:
-    from harness.detect_eval import coco_eval
+    from harness.detect.evaluate import coco_eval
 
     gt = {
         "images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100},
@@ -281,8 +281,8 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
 ) -> None:
     """Killed in its third chunk of 16 query frames, a rerun builds only the chunks not finished
     and writes the boxes the uninterrupted run wrote (one chunk of 64), byte for byte."""
-    from harness import detect
-    from harness.config import load_config
+    from harness.config.load import load_config
+    from harness.detect import run as detect
 
     a, _, _ = detected
     p, _, _ = local_run
@@ -373,7 +373,7 @@ def test_rerun_recording_reads_back_with_the_sdk(
 
 def test_box_generators_on_a_loc_map_known_by_hand() -> None:
     """SPEC 13.1's generators on a 20 x 10 frame whose left half has LoC 1 and right half 5."""
-    from harness.detect import candidate_boxes
+    from harness.detect.run import candidate_boxes
 
     fused = np.array([[0, 0, 10, 10], [10, 0, 20, 10]], np.float64)
     loc = np.array([1.0, 5.0])
@@ -437,13 +437,13 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
 
 
 def test_exceedance_and_its_words_by_hand() -> None:
-    from harness.calibrate import exceedance, in_words
+    from harness.detect.calibrate import exceedance, in_words
 
     got = exceedance(np.array([1.0, 2.0, 3.0, 4.0, np.nan]), np.array([4.0, 2.5, 0.0, np.nan]))
     assert got[:3].tolist() == [2 / 5, 3 / 5, 5 / 5] and np.isnan(got[3])
     assert exceedance(np.zeros(0), np.array([1.0])).tolist() == [1.0]
     assert in_words(0.001, "candidate boxes") == "1 in 1,000 candidate boxes scores this high"
-    from harness.detect_eval import clopper_pearson
+    from harness.detect.evaluate import clopper_pearson
 
     lo, hi = clopper_pearson(3, 10)  # the textbook interval of 3 in 10
     assert (round(lo, 4), round(hi, 4)) == (0.0667, 0.6525)
@@ -455,7 +455,7 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
     from the run's own frames and candidates, ``alarms.csv`` holds exactly what the default
     nominal rate flags, Table D measures the rate on the no-change frames, and the README's and
     the page's words are this run's."""
-    from harness.calibrate import in_words
+    from harness.detect.calibrate import in_words
 
     _, out, printed = detected
     fr = pd.read_csv(out / "frames.csv")
@@ -505,7 +505,7 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
 def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected: tuple) -> None:
     """Issue 36's page: with annotations, the annotated change frames (most changed first) show
     their annotated boxes in red beside the detections in yellow; without, no such section."""
-    from harness.detect_page import ANNOTATED_SHOWN
+    from harness.detect.page import ANNOTATED_SHOWN
 
     a, out, _ = detected
     page = (out / "detect.html").read_text()
@@ -546,7 +546,7 @@ def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) ->
     """``[detect]`` is passed through: a flag as typed wins, the table fills what is not typed."""
     from harness.cli.parser import build_parser
     from harness.cli.runs import detect_options
-    from harness.config import load_config
+    from harness.config.load import load_config
 
     text = (ROOT / "datasets" / "fixture.toml").read_text()
     (tmp_path / "c.toml").write_text(

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from harness.fusion import fuse, intersection_closure, loc_map
-from harness.metrics import average_precision, bootstrap_ap
+from harness.evaluate.metrics import average_precision, bootstrap_ap
+from harness.fusion.fuse import fuse, intersection_closure, loc_map
 
 # Three boxes: A=[0,10]x[0,10], B=[5,15]x[5,15], C=[8,20]x[0,8]
 BOXES = np.array([[0, 0, 10, 10], [5, 5, 15, 15], [8, 0, 20, 8]], float)
@@ -76,7 +76,7 @@ def test_paper_variants_by_hand() -> None:
 
 
 def test_baselines_by_hand() -> None:
-    from harness.fusion import image_loc
+    from harness.fusion.fuse import image_loc
 
     cc = _by_cover(*fuse(BOXES, R, D, "cover_count"))
     assert cc == {"A": 1, "B": 1, "C": 1, "AB": 2, "AC": 2, "BC": 2, "ABC": 3}
@@ -142,7 +142,7 @@ def test_rank_fusion_orders_single_covers_as_r_does(boxes: list, data: st.DataOb
     rank = np.array([data.draw(st.integers(1, int(n))) for n in L])
     r = rank / L
     fused, loc = fuse(b, r, np.ones(len(b)), "rank_fusion", L=L)
-    from harness.fusion import cover_matrix
+    from harness.fusion.fuse import cover_matrix
 
     cov = cover_matrix(fused, b)
     one = cov.sum(1) == 1
@@ -216,7 +216,7 @@ def test_resampled_aps_all_rows_at_once_equal_the_weighted_ap_of_each_row() -> N
     """The bootstrap's AP of every resample (one searchsorted over all rows) equals
     weighted_average_precision of that resample exactly: ties, zero weights, rows without a
     positive (NaN)."""
-    from harness.metrics import _Ranked, weighted_average_precision
+    from harness.evaluate.metrics import _Ranked, weighted_average_precision
 
     rng = np.random.default_rng(0)
     for trial in range(200):

@@ -13,7 +13,7 @@ import os
 import numpy as np
 import pytest
 
-from harness.fusion import loc_from_cover, standard_rule
+from harness.fusion.fuse import loc_from_cover, standard_rule
 
 # ranx's kernels are numba functions: compiled, they cost a minute and a half of a fresh venv's CI
 # for lists of a few dozen places; interpreted, they are the same Python source in milliseconds.
@@ -101,7 +101,7 @@ def test_holm_marks_what_the_adjusted_p_values_reject():
     """Holm's step-down test against its adjusted p-values, written out again:
     ``p_adj(i) = max_{j <= i} min(1, (m - j + 1) p_(j))``, rejected where ``p_adj <= alpha``;
     untested differences (NaN) are neither counted nor marked."""
-    from harness.metrics import holm
+    from harness.evaluate.metrics import holm
 
     rng = np.random.default_rng(38)
     for _ in range(300):
@@ -119,7 +119,7 @@ def test_holm_marks_what_the_adjusted_p_values_reject():
 
 
 def test_the_paired_p_value_is_the_normal_tail_of_the_bootstrap_difference():
-    from harness.metrics import paired_difference
+    from harness.evaluate.metrics import paired_difference
 
     rng = np.random.default_rng(1)
     a = rng.normal(0.30, 0.05, 4000)

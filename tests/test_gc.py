@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from harness.cli import main
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 
 def test_gc_removes_only_what_the_last_run_did_not_use(

@@ -21,14 +21,14 @@ import pandas as pd
 import pytest
 import scipy.sparse as sp
 
-from harness.annotations import change_boxes, load_annotations
-from harness.chance import stratified_chance
 from harness.cli import main
-from harness.config import BovwConfig, load_config
+from harness.config.load import BovwConfig, load_config
 from harness.errors import ConfigError
-from harness.metrics import average_precision, stratified_ap
+from harness.evaluate.chance import stratified_chance
+from harness.evaluate.metrics import average_precision, stratified_ap
+from harness.evaluate.splits import roc_sob
+from harness.ingest.annotations import change_boxes, load_annotations
 from harness.retrieval.bovw import bovw_ranks, bow_vectors, features, frame_similarity
-from harness.splits import roc_sob
 
 ROOT = Path(__file__).resolve().parents[1]
 MULTI_TOML = ROOT / "datasets" / "fixture-localizers.toml"
@@ -386,7 +386,7 @@ def test_an_image_some_localizer_did_not_rank_is_an_error_unless_allowed(
     import dataclasses
 
     from harness.errors import RetrievalError
-    from harness.runner import Measured, RankTable, Table, common_images
+    from harness.pipeline.chain import Measured, RankTable, Table, common_images
 
     p, _, run = local_run
     ranks = pd.read_parquet(run / "ranks.parquet").drop(columns="localizer")
@@ -493,7 +493,7 @@ def test_localizer_costs_from_entries_written_by_hand(tmp_path: Path) -> None:
     """Every cost cell from files and manifests whose numbers are known: 3 + 5 rows of 8 float16
     dims (16 bytes each), shards built in 0.2 + 0.6 s, ranks in 0.05 s for 10 query subimages, a
     model in 4 s; 30 reference subimages on 6 frames."""
-    from harness.costs import localizer_costs
+    from harness.runtime.costs import localizer_costs
 
     def entry(name: str, build_s: float, rows: int = 0) -> Path:
         d = tmp_path / name
@@ -529,7 +529,7 @@ def test_comparisons_between_localizers_say_which_survive_holm(
     """comparisons.md's Table L section (issue 38): each localizer's difference from the first
     with its p-value, the survivors of Holm's correction over those differences marked, and the
     count the README quotes."""
-    from harness.metrics import holm
+    from harness.evaluate.metrics import holm
 
     out, _ = multi_run
     t = pd.read_csv(out / "tableL.csv")

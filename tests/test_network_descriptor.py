@@ -16,11 +16,11 @@ import pytest
 import torch
 
 from harness.cli import main
-from harness.config import DescriptorConfig, YoloConfig
+from harness.config.load import DescriptorConfig, YoloConfig
 from harness.descriptors import make_descriptor
 from harness.descriptors.network import pool
 from harness.errors import ConfigError
-from harness.proposals import YoloProposer
+from harness.proposals.proposers import YoloProposer
 
 from .conftest import ROOT
 from .test_proposals import TinyYolo
@@ -101,7 +101,7 @@ def test_a_missing_or_foreign_network_file_is_one_error(tmp_path: Path) -> None:
             np.zeros((1, 32, 32, 3), np.uint8)
         )
     (tmp_path / "c.toml").write_text(descriptor_config('name = "onnx"\npath = "missing.onnx"'))
-    from harness.config import load_config
+    from harness.config.load import load_config
 
     with pytest.raises(ConfigError, match=r"\[descriptor\] path = .*missing.onnx.*existing file"):
         load_config(tmp_path / "c.toml")

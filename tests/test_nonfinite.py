@@ -1,8 +1,8 @@
 """Non-finite values and damaged cache entries stop or rebuild, never give silent tables (issue 26).
 
 Grouped by the module they exercise: ``harness.descriptors`` (a diverged training, NaN
-descriptors), ``harness.cache`` (a flipped byte in an entry), ``harness.proposals`` (a method
-that proposes nothing for a whole session).
+descriptors), ``harness.runtime.cache`` (a flipped byte in an entry),
+``harness.proposals.proposers`` (a method that proposes nothing for a whole session).
 """
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import torch
 
-from harness.cache import StageCache
-from harness.config import ProposalsConfig
+from harness.config.load import ProposalsConfig
 from harness.descriptors.autoencoder import ConvAutoencoder, train
 from harness.errors import ConfigError, HarnessError
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
+from harness.runtime.cache import StageCache
 
 # ------------------------------------------------------------------ harness.descriptors
 
@@ -65,7 +65,7 @@ def test_nan_descriptors_stop_the_descriptor_stage(
     assert after == before
 
 
-# ------------------------------------------------------------------ harness.cache
+# ------------------------------------------------------------------ harness.runtime.cache
 
 
 def test_a_flipped_byte_in_a_cache_entry_rebuilds_it_with_a_warning(
@@ -93,13 +93,13 @@ def test_a_flipped_byte_in_a_cache_entry_rebuilds_it_with_a_warning(
     assert cache.is_done("samples", entry.name)
 
 
-# ------------------------------------------------------------------ harness.proposals
+# ------------------------------------------------------------------ harness.proposals.proposers
 
 
 def test_a_method_without_any_box_in_a_session_is_an_error(
     local_run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import harness.proposals as P
+    import harness.proposals.proposers as P
 
     monkeypatch.setitem(P.IMAGE_METHODS, "edges", lambda im, cfg: (np.zeros((0, 4)), np.zeros(0)))
     p, _, _ = local_run
@@ -112,7 +112,7 @@ def test_an_opencv_refusal_names_the_method_and_frame(
 ) -> None:
     import cv2
 
-    import harness.proposals as P
+    import harness.proposals.proposers as P
 
     def refuses(im: np.ndarray, cfg: ProposalsConfig) -> tuple:
         raise cv2.error("OpenCV(5.0) error: (-215:Assertion failed) ksize > 0 in function 'x'")

@@ -17,8 +17,8 @@ import pytest
 
 from harness.cli import main
 from harness.fixture import writers as W
-from harness.outdirs import is_temp_name, run_lock
 from harness.records import Pose
+from harness.runtime.outdirs import is_temp_name, run_lock
 
 from .conftest import ROOT, one_error
 

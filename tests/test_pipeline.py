@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 from .conftest import ROOT
 
@@ -168,7 +168,7 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
     implementation of SPEC sections 7-9 (brute-force closure, the LoC formulas, labels, AP)."""
     import itertools
 
-    from harness.annotations import load_annotations
+    from harness.ingest.annotations import load_annotations
 
     p, _, out = run
     ranks = pd.read_parquet(out / "ranks.parquet")
@@ -525,8 +525,8 @@ def test_the_readme_quotes_the_holm_counts_as_comparisons_md_prints_them(run: tu
 def test_recall_at_is_the_share_ranked_within_n(run: tuple) -> None:
     """``[report] recall_at``: one ``recall_at_N`` (and ``clean_``) column per N, each the share of
     query subimages whose place ranks within the first N; the defaults are 1, 5, 10, 20."""
-    from harness.annotations import load_annotations
-    from harness.reports import localization_table
+    from harness.ingest.annotations import load_annotations
+    from harness.reports.write import localization_table
 
     p, _, out = run
     assert p.cfg.report.recall_at == (1, 5, 10, 20)

@@ -10,10 +10,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.config import ProjectionConfig
+from harness.config.load import ProjectionConfig
 from harness.descriptors.projection import fit_projection, load_projection, project
 from harness.errors import ConfigError
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 
 def _data(n: int = 400, D: int = 6, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -64,7 +64,7 @@ def test_dim_larger_than_the_sample_is_a_config_error(tmp_path: Path) -> None:
 
 
 def test_the_config_section_as_a_user_types_it(tmp_path: Path) -> None:
-    from harness.config import load_config
+    from harness.config.load import load_config
 
     from .conftest import ROOT
 
@@ -108,7 +108,7 @@ def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(
 
 def test_memory_mb_as_a_user_types_it(tmp_path: Path) -> None:
     """``[retrieval] memory_mb`` is read from the TOML; a non-positive budget is refused."""
-    from harness.config import load_config
+    from harness.config.load import load_config
 
     from .conftest import ROOT
 

@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 import torch
 
-from harness.config import EdgesConfig, ProposalsConfig, YoloConfig
+from harness.config.load import EdgesConfig, ProposalsConfig, YoloConfig
 from harness.errors import AnnotationError, ConfigError
-from harness.proposals import (
+from harness.proposals.proposers import (
     YoloProposer,
     compute_proposals,
     edge_boxes,

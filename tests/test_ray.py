@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from harness.errors import ConfigError
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 ray = pytest.importorskip("ray")
 
@@ -20,7 +20,7 @@ MAPPED = ("ingest", "descriptor_shards", "descriptors", "ranks")
 
 @pytest.fixture(scope="module")
 def executor():
-    from harness.executors import RayExecutor
+    from harness.runtime.executors import RayExecutor
 
     ex = RayExecutor(num_cpus=2)
     yield ex
@@ -96,7 +96,7 @@ def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: 
 def test_a_worker_that_dies_mid_shard_is_retried(
     local_run: tuple, executor: object, tmp_path: Path
 ) -> None:
-    from harness.executors import RayExecutor
+    from harness.runtime.executors import RayExecutor
 
     p, _, out = local_run
     shutil.copytree(out / "cache", tmp_path / "cache")
@@ -116,7 +116,7 @@ def test_a_worker_that_dies_mid_shard_is_retried(
 
 
 def test_without_ray_the_error_says_how_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
-    from harness.executors import make_executor
+    from harness.runtime.executors import make_executor
 
     monkeypatch.setitem(sys.modules, "ray", None)
     with pytest.raises(ConfigError, match=r"pip install 'dbl-harness\[ray\]'"):
@@ -169,8 +169,8 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
 ) -> None:
     """``harness detect --executor ray``: the detect chunks (and the stages) run on Ray workers."""
 
-    from harness.config import load_config
-    from harness.detect import DetectOptions, run_detect
+    from harness.config.load import load_config
+    from harness.detect.run import DetectOptions, run_detect
 
     from .conftest import ROOT
 

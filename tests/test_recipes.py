@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 
 def test_recipe_a_toy_descriptor_in_under_30_lines(
@@ -81,8 +81,8 @@ def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
 
 
 def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registries) -> None:
-    from harness import proposals
-    from harness.config import validate
+    from harness.config.load import validate
+    from harness.proposals import proposers as proposals
 
     # --- the recipe: a function of the upright image, registered, listed in [proposals] ---
 
@@ -134,7 +134,7 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
 
 
 def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries) -> None:
-    from harness import fusion
+    from harness.fusion import fuse as fusion
 
     # --- the recipe: LoC from the cover matrix, registered with a label, listed in [fusion] ---
 
@@ -177,7 +177,7 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
 
     from rosbags.typesys import Stores, get_typestore
 
-    from harness.config import IngestConfig, SessionConfig
+    from harness.config.load import IngestConfig, SessionConfig
     from harness.imagestore import read_image
     from harness.ingest import ingest_session, logs
 
@@ -244,9 +244,10 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
 
 
 def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries) -> None:
-    from harness import fusion, proposals
-    from harness.config import ProposalsConfig
+    from harness.config.load import ProposalsConfig
     from harness.errors import ConfigError
+    from harness.fusion import fuse as fusion
+    from harness.proposals import proposers as proposals
 
     proposals.register_method("bad", lambda rgb, cfg: (np.zeros((2, 3)), np.ones(2)))
     frame = pd.Series({"session": "s", "camera": "Cam5", "utime": 7})
@@ -261,12 +262,12 @@ def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries)
 def test_recipe_a_toy_report_table(
     local_run: tuple, default_world: Path, tmp_path: Path, monkeypatch, capsys
 ) -> None:
-    from harness import report_tables
     from harness.cli import main
+    from harness.reports import tables as report_tables
 
     monkeypatch.setattr(report_tables, "TABLES", dict(report_tables.TABLES))  # undone after
     # --- the recipe: a compute function of the report blocks and a spec, registered ---
-    from harness.report_tables import Column, TableSpec
+    from harness.reports.tables import Column, TableSpec
 
     def by_roc_max(cfg: object, blocks: list) -> pd.DataFrame:
         """Table S rank fusion of the first localizer at each RoC-max."""

@@ -151,7 +151,7 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
     told from chance, one below it; every verdict written by SPEC 9's rule, as the harness does."""
     import pandas as pd
 
-    from harness.chance import verdict
+    from harness.evaluate.chance import verdict
 
     _, _, run = local_run
     out = tmp_path / "corridor"
@@ -195,15 +195,15 @@ def test_every_colour_of_the_fixture_page_is_the_rule_recomputed_from_the_summar
     local_run: tuple,
 ) -> None:
     """SPEC 9: each AP cell's verdict on the page (Tables I, S and P) is
-    :func:`harness.chance.verdict` of its row in ``splits/summary.parquet``; the random baseline
-    is never above chance, and no baseline is above chance in Tables S and P."""
+    :func:`harness.evaluate.chance.verdict` of its row in ``splits/summary.parquet``; the random
+    baseline is never above chance, and no baseline is above chance in Tables S and P."""
     import html
 
     import pandas as pd
 
-    from harness.chance import verdict
+    from harness.evaluate.chance import verdict
     from harness.methods import METHOD_LABELS
-    from harness.reports import pivot
+    from harness.reports.write import pivot
 
     _, rec, out = local_run
     page = (out / "report.html").read_text()

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from harness.cli import main
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 from .safety_common import FIXTURE_TOML, _err
 
@@ -43,7 +43,7 @@ def test_disk_full_and_read_only_are_one_error_line(
 
 def test_memmaps_reserve_their_blocks(tmp_path: Path) -> None:
     """A training-crop or descriptor memmap is allocated up front (ENOSPC, not SIGBUS later)."""
-    from harness.cache import open_memmap_reserved
+    from harness.runtime.cache import open_memmap_reserved
 
     arr = open_memmap_reserved(tmp_path / "a.npy", np.uint8, (64, 64, 64, 3))
     assert os.stat(tmp_path / "a.npy").st_blocks * 512 >= 64 * 64 * 64 * 3
@@ -63,13 +63,13 @@ def test_a_damaged_cache_entry_is_rebuilt(local_run: tuple, tmp_path: Path) -> N
 
 def test_stage_keys_change_with_the_code(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import harness
-    import harness.cache as cache
+    import harness.runtime.cache as cache
 
     pkg = Path(harness.__file__).parent
     shutil.copytree(pkg, tmp_path / "harness", ignore=shutil.ignore_patterns("__pycache__"))
     before = cache.code_fingerprint(tmp_path / "harness")
     assert before == cache.CODE_FINGERPRINT  # the copy hashes like the installed package
-    fusion = tmp_path / "harness" / "fusion.py"
+    fusion = tmp_path / "harness" / "fusion" / "fuse.py"
     fusion.write_text(
         fusion.read_text().replace(
             "cover.sum(1) * (cover * inv[None, :]).sum(1)",
@@ -78,9 +78,8 @@ def test_stage_keys_change_with_the_code(tmp_path: Path, monkeypatch: pytest.Mon
     )
     after = cache.code_fingerprint(tmp_path / "harness")
     assert after != before
-    html = (
-        tmp_path / "harness" / "report_html.py"
-    )  # the report page is rebuilt on every run: no stage depends on it
+    # the report page is rebuilt on every run: no stage depends on it
+    html = tmp_path / "harness" / "reports" / "html" / "page.py"
     html.write_text(html.read_text() + "\n# an edit\n")
     assert cache.code_fingerprint(tmp_path / "harness") == after
     sc = cache.StageCache(tmp_path / "c")

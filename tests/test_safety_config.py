@@ -14,9 +14,9 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
-from harness.config import load_config
+from harness.config.load import load_config
 from harness.errors import ConfigError, HarnessError
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 from .conftest import ROOT
 from .safety_common import FIXTURE_TOML, _config, _err

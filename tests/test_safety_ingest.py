@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from harness.cli import main
-from harness.config import IngestConfig, SessionConfig
+from harness.config.load import IngestConfig, SessionConfig
 from harness.errors import CorruptLogError, IngestError
 from harness.fixture import writers as W
 from harness.ingest import ingest_session, load_frames
@@ -199,8 +199,8 @@ def test_a_truncated_mcap_is_called_damaged_not_empty(tmp_path: Path) -> None:
 
 
 def test_annotation_errors_count_blank_lines(tmp_path: Path) -> None:
-    from harness.annotations import load_annotations
     from harness.errors import AnnotationError
+    from harness.ingest.annotations import load_annotations
 
     p = tmp_path / "a.csv"
     p.write_text(

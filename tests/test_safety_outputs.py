@@ -16,7 +16,7 @@ import pytest
 
 from harness.cli import main
 from harness.errors import HarnessError
-from harness.runner import Pipeline
+from harness.pipeline.chain import Pipeline
 
 from .safety_common import FIXTURE_TOML, TINY, _config, _err, _log
 
@@ -140,7 +140,7 @@ def test_fixture_export_and_reproduce_refuse_foreign_directories(
 def test_temporaries_of_a_killed_run_are_removed_and_the_lock_refuses_a_second_run(
     local_run: tuple, tmp_path: Path
 ) -> None:
-    from harness.outdirs import run_lock
+    from harness.runtime.outdirs import run_lock
 
     p, _, out = local_run
     q = Pipeline(p.cfg, tmp_path / "o")
@@ -206,7 +206,7 @@ def test_a_rerun_with_fewer_splits_removes_stale_split_files(
 
 
 def test_outputs_take_their_mode_from_the_umask(local_run: tuple) -> None:
-    from harness.cache import _UMASK
+    from harness.runtime.cache import _UMASK
 
     _, _, out = local_run
     for f in ("table1.csv", "splits/summary.parquet", "run.json"):
@@ -222,7 +222,7 @@ def test_a_held_lock_names_its_holder_in_words_never_pid_unknown(tmp_path: Path)
     import subprocess
     import sys
 
-    from harness.outdirs import LOCK, run_lock
+    from harness.runtime.outdirs import LOCK, run_lock
 
     holder = (
         "import fcntl, os, sys, time\n"

@@ -184,8 +184,8 @@ def _annotations(tmp_path: Path, body: bytes) -> Path:
 def test_annotation_csv_errors_name_the_file_s_own_line(
     tmp_path: Path, body: bytes, needle: str
 ) -> None:
-    from harness.annotations import load_annotations
     from harness.errors import AnnotationError
+    from harness.ingest.annotations import load_annotations
 
     p = _annotations(tmp_path, body)
     with pytest.raises(AnnotationError) as e:
@@ -196,8 +196,8 @@ def test_annotation_csv_errors_name_the_file_s_own_line(
 def test_an_unknown_frame_is_named(tmp_path: Path) -> None:
     import pandas as pd
 
-    from harness.annotations import load_annotations
     from harness.errors import AnnotationError
+    from harness.ingest.annotations import load_annotations
 
     p = _annotations(tmp_path, b"2012-03-31,Cam5,1333195299000000,no-change,,,,,\n")
     frames = pd.DataFrame(
@@ -280,7 +280,7 @@ def test_inspect_of_an_nclt_folder_whose_ground_truth_has_a_non_utf8_byte(
     it), and ingest names the file and line."""
     import shutil
 
-    from harness.config import IngestConfig, SessionConfig
+    from harness.config.load import IngestConfig, SessionConfig
     from harness.errors import IngestError
     from harness.ingest import ingest_session
 

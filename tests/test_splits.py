@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from harness.config import SplitsConfig
-from harness.splits import LEFT_OUT, NEGATIVE, POSITIVE, label, paper_splits, roc_sob
+from harness.config.load import SplitsConfig
+from harness.evaluate.splits import LEFT_OUT, NEGATIVE, POSITIVE, label, paper_splits, roc_sob
 
 
 def test_overlapping_change_boxes_are_not_double_counted() -> None:

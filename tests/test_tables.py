@@ -10,8 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.fusion import pixel_regions
-from harness.metrics import (
+from harness.evaluate.metrics import (
     average_precision,
     bootstrap_aps,
     paired_difference,
@@ -19,7 +18,8 @@ from harness.metrics import (
     stratified_ap,
     weighted_average_precision,
 )
-from harness.reports import confound_warnings, table_latex
+from harness.fusion.fuse import pixel_regions
+from harness.reports.write import confound_warnings, table_latex
 
 EDGES = [0.0, 0.1, 0.5, 1.0]
 

@@ -14,16 +14,21 @@ import importlib
 #: measured paths (``bench/provenance.py``).
 CASES: dict[str, tuple[str, tuple[str, ...]]] = {
     "ingest": ("ingest", ("harness/ingest",)),
-    "crops": ("crops", ("harness/crops.py", "harness/imagestore.py")),
+    "crops": ("crops", ("harness/descriptors/crops.py", "harness/imagestore.py")),
     "descriptor": ("descriptor", ("harness/descriptors",)),
     "ranking": ("ranking", ("harness/retrieval",)),
     "localizers": ("localizers", ("harness", "bench/nclt_localizers.toml")),
     "detect": ("detect", ("harness", "bench/nclt_detect.toml")),
     "fusion": (
         "fusion",
-        ("harness/fusion.py", "harness/metrics.py", "harness/splits.py", "harness/reports.py"),
+        (
+            "harness/fusion/fuse.py",
+            "harness/evaluate/metrics.py",
+            "harness/evaluate/splits.py",
+            "harness/reports/write.py",
+        ),
     ),
-    "executor": ("executor", ("harness/executors.py", "harness/cache.py")),
+    "executor": ("executor", ("harness/runtime/executors.py", "harness/runtime/cache.py")),
     "e2e": ("e2e", ("harness", "bench/nclt_scale.toml")),
     "full-nclt": ("full_nclt", ("harness", "bench/nclt_full.toml")),
     "fixture-figures": ("fixture_figures", ("harness", "datasets/fixture.toml", "annotations")),

@@ -12,7 +12,7 @@ def case_crops(quick: bool) -> None:
     import cv2
     import pandas as pd
 
-    from harness.crops import iter_crops
+    from harness.descriptors.crops import iter_crops
 
     n = 8 if quick else 32
     d = DATA / "crops"

@@ -20,10 +20,10 @@ def case_executor(quick: bool) -> None:
     """
     import dataclasses
 
-    from harness.config import load_config
-    from harness.executors import LocalExecutor, RayExecutor
+    from harness.config.load import load_config
     from harness.fixture import FixtureSpec, generate
-    from harness.runner import Pipeline
+    from harness.pipeline.chain import Pipeline
+    from harness.runtime.executors import LocalExecutor, RayExecutor
 
     world = DATA / "fixture"
     if not (world / "fixture.json").exists():

@@ -14,12 +14,12 @@ def case_fusion(quick: bool) -> None:
 
     import pandas as pd
 
-    from harness.config import SplitsConfig, load_config
-    from harness.fusion import fuse_samples
-    from harness.metrics import average_precision
-    from harness.proposals import grid5
-    from harness.reports import _groups, _pixel_image_rows
-    from harness.splits import label, paper_splits
+    from harness.config.load import SplitsConfig, load_config
+    from harness.evaluate.metrics import average_precision
+    from harness.evaluate.splits import label, paper_splits
+    from harness.fusion.fuse import fuse_samples
+    from harness.proposals.proposers import grid5
+    from harness.reports.write import _groups, _pixel_image_rows
 
     rng = np.random.default_rng(0)
     n_img = 50 if quick else 200

@@ -11,11 +11,11 @@ import logging
 import sys
 import traceback
 
-from ..errors import HarnessError
-from .parser import build_parser
-from .runs import cmd_detect, cmd_report, cmd_reproduce
-from .stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
-from .tools import cmd_annotations, cmd_gc, cmd_inspect
+from harness.cli.parser import build_parser
+from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
+from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
+from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
+from harness.errors import HarnessError
 
 __all__ = [
     "build_parser",

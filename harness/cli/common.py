@@ -6,12 +6,12 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from ..errors import HarnessError
+from harness.errors import HarnessError
 
 
 def run_config(args: argparse.Namespace):
     """The validated config of ``--config`` (with ``--data-root`` and ``--seed`` applied)."""
-    from ..config import load_config
+    from harness.config.load import load_config
 
     cfg = load_config(Path(args.config), getattr(args, "data_root", None))
     if getattr(args, "seed", None) is not None:
@@ -28,15 +28,15 @@ def check_executor_flags(args: argparse.Namespace) -> None:
 
 
 def pipeline_of(args: argparse.Namespace):
-    """The run's :class:`~harness.runner.Pipeline`: config, ``--out``, ``--import``, executor."""
-    from ..executors import make_executor
-    from ..runner import Pipeline
+    """The run's :class:`~harness.pipeline.chain.Pipeline`: config, --out, --import, executor."""
+    from harness.pipeline.chain import Pipeline
+    from harness.runtime.executors import make_executor
 
     check_executor_flags(args)
     cfg = run_config(args)  # validated before any executor or directory is set up
     rank_import = None
     if getattr(args, "rank_import", None):
-        from ..retrieval.import_file import parse_import_arg
+        from harness.retrieval.import_file import parse_import_arg
 
         rank_import = parse_import_arg(args.rank_import)
         if not rank_import.path.is_file():

@@ -10,9 +10,9 @@ def print_change_table(console, rep, table: str, title: str) -> None:
     """
     from rich.table import Table
 
-    from ..chance import MARK_LEGEND
-    from ..methods import FUSION_METHODS, METHOD_LABELS
-    from ..report_render import chance_rows, change_cells, gap_line
+    from harness.evaluate.chance import MARK_LEGEND
+    from harness.methods import FUSION_METHODS, METHOD_LABELS
+    from harness.reports.render import chance_rows, change_cells, gap_line
 
     cells = change_cells(rep.summary, table, rep.methods)
     t = Table(title=title)
@@ -43,9 +43,16 @@ def print_table_l(console, t) -> None:
     """
     from rich.table import Table
 
-    from ..chance import MARK_LEGEND, VERDICT_MARKS
-    from ..costs import COST_COLUMNS
-    from ..leaderboard import AP_COLUMNS, COST_NOTE, WHY, cost_text, recall_columns, undefined
+    from harness.evaluate.chance import MARK_LEGEND, VERDICT_MARKS
+    from harness.reports.leaderboard import (
+        AP_COLUMNS,
+        COST_NOTE,
+        WHY,
+        cost_text,
+        recall_columns,
+        undefined,
+    )
+    from harness.runtime.costs import COST_COLUMNS
 
     first = str(t["localizer"].iloc[0])
     rec = recall_columns(t)
@@ -110,7 +117,7 @@ def print_localization(console, rep, rec, also: bool = False) -> None:
     """One localizer's localization quality (all season pairs); ``also``: at the second radius."""
     from rich.table import Table
 
-    from ..reports import loc_columns
+    from harness.reports.write import loc_columns
 
     loc = rep.localization_also if also else rep.localization
     radius = (
@@ -155,7 +162,7 @@ def print_block(console, rep, rec) -> None:
         & summ["diff"].notna()
     ]
     if len(cmp_):
-        from ..report_render import HOLM_MARK, holm_sentence
+        from harness.reports.render import HOLM_MARK, holm_sentence
 
         last = cmp_[cmp_["roc_max"] == cmp_["roc_max"].max()]
         print(

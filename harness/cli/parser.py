@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from .runs import cmd_detect, cmd_report, cmd_reproduce
-from .stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
-from .tools import cmd_annotations, cmd_gc, cmd_inspect
+from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
+from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
+from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,16 +6,16 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from ..errors import HarnessError
-from .common import check_executor_flags, pd_read, pipeline_of, run_config
-from .console import print_block, print_localization, print_table_l
+from harness.cli.common import check_executor_flags, pd_read, pipeline_of, run_config
+from harness.cli.console import print_block, print_localization, print_table_l
+from harness.errors import HarnessError
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
     """``harness reproduce``: the whole pipeline; prints Table I and where the reports are."""
     from rich.console import Console
 
-    from .. import report_tables
+    from harness.reports import tables as report_tables
 
     rec = pipeline_of(args).run()
     console = Console(width=max(Console().width, 140))
@@ -30,7 +30,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         print_table_l(console, reports.table_l)
     for rep in blocks:
         print_block(console, rep, rec)
-    extra = report_tables.written(Path(args.out))  # registered tables (harness/report_tables.py)
+    extra = report_tables.written(Path(args.out))  # registered tables (harness/reports/tables.py)
     for spec, frame in extra:
         console.print(report_tables.to_console(spec, frame))
     print(
@@ -47,8 +47,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """``harness report``: (re)write ``report.html`` of an earlier run."""
-    from ..outdirs import claim_dir, read_run_record, run_lock
-    from ..report_html import write_html_report
+    from harness.reports.html.page import write_html_report
+    from harness.runtime.outdirs import claim_dir, read_run_record, run_lock
 
     if args.gallery is not None and args.gallery < 0:
         raise HarnessError(f"--gallery {args.gallery}: must be >= 0")
@@ -63,7 +63,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
     """``harness detect``'s options: the flags as typed, ``[detect]`` where a flag is not given."""
-    from ..detect import DetectOptions
+    from harness.detect.run import DetectOptions
 
     return DetectOptions(
         method=args.method,
@@ -79,9 +79,9 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
-    from ..calibrate import in_words
-    from ..detect import run_detect
-    from ..executors import make_executor
+    from harness.detect.calibrate import in_words
+    from harness.detect.run import run_detect
+    from harness.runtime.executors import make_executor
 
     check_executor_flags(args)
     if args.top < 0:

@@ -6,14 +6,14 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from ..errors import HarnessError
-from .common import pipeline_of, run_config
+from harness.cli.common import pipeline_of, run_config
+from harness.errors import HarnessError
 
 
 def cmd_fixture(args: argparse.Namespace) -> int:
     """``harness fixture``: generate the synthetic fixture world."""
-    from ..config_check import check_fixture
-    from ..fixture import FixtureSpec, generate
+    from harness.config.check import check_fixture
+    from harness.fixture import FixtureSpec, generate
 
     spec = FixtureSpec(
         seed=args.seed,
@@ -42,10 +42,10 @@ def cmd_fixture(args: argparse.Namespace) -> int:
 
 def cmd_ingest(args: argparse.Namespace) -> int:
     """``harness ingest``: one log into a frame table and an ingest report."""
-    from ..config import IngestConfig, SessionConfig, check_session_name
-    from ..config_check import check_ingest
-    from ..ingest import ingest_session
-    from ..outdirs import check_replaceable, claim_dir
+    from harness.config.check import check_ingest
+    from harness.config.load import IngestConfig, SessionConfig, check_session_name
+    from harness.ingest import ingest_session
+    from harness.runtime.outdirs import check_replaceable, claim_dir
 
     if args.config:
         cfg = run_config(args)
@@ -101,7 +101,7 @@ def cmd_ingest(args: argparse.Namespace) -> int:
 
 def cmd_pairs(args: argparse.Namespace) -> int:
     """``harness pairs``: run up to the pairs and say where they are."""
-    from ..runner import until_pairs
+    from harness.pipeline.chain import until_pairs
 
     p = pipeline_of(args)
     with p.locked():
@@ -113,7 +113,7 @@ def cmd_pairs(args: argparse.Namespace) -> int:
 
 def cmd_proposals(args: argparse.Namespace) -> int:
     """``harness proposals``: run up to the proposals and say where they are."""
-    from ..runner import session_proposals, until_pairs
+    from harness.pipeline.chain import session_proposals, until_pairs
 
     p = pipeline_of(args)
     with p.locked():
@@ -129,8 +129,8 @@ def cmd_proposals(args: argparse.Namespace) -> int:
 
 def cmd_rank(args: argparse.Namespace) -> int:
     """``harness rank``: run (or import) the ranks into ``ranks.parquet``."""
-    from ..cache import write_json, write_parquet
-    from ..runner import check_localizer_set, until_ranks
+    from harness.pipeline.chain import check_localizer_set, until_ranks
+    from harness.runtime.cache import write_json, write_parquet
 
     p = pipeline_of(args)
     with p.locked():
@@ -154,8 +154,8 @@ def cmd_rank(args: argparse.Namespace) -> int:
 
 def cmd_task(args: argparse.Namespace) -> int:
     """``harness task export``: the localization task for a user's localizer (SPEC 12)."""
-    from ..runner import check_inputs, session_proposals, until_pairs
-    from ..task_export import write_task
+    from harness.localizers.task_export import write_task
+    from harness.pipeline.chain import check_inputs, session_proposals, until_pairs
 
     p = pipeline_of(args)
     with p.locked():

@@ -6,19 +6,19 @@ import argparse
 import logging
 from pathlib import Path
 
-from ..errors import HarnessError
+from harness.errors import HarnessError
 
 log = logging.getLogger("harness")
 
 
 def cmd_annotations(args: argparse.Namespace) -> int:
     """``harness annotations``: export frames for labelling or import a labelled set."""
-    from ..annotations import export_for_labelling, import_annotations
+    from harness.ingest.annotations import export_for_labelling, import_annotations
 
     if args.action == "import":
         frames = None
         if args.frames:
-            from ..ingest import load_frames
+            from harness.ingest import load_frames
 
             frames = load_frames(Path(args.frames))
         df = import_annotations(
@@ -28,9 +28,9 @@ def cmd_annotations(args: argparse.Namespace) -> int:
         return 0
     import pandas as pd
 
-    from ..ingest import load_frames
-    from ..inputs import check_input
-    from ..outdirs import check_replaceable
+    from harness.ingest import load_frames
+    from harness.inputs import check_input
+    from harness.runtime.outdirs import check_replaceable
 
     check_replaceable(Path(args.out), "labelling-task", args.force)  # before reading anything
     pairs_path = check_input(args.pairs, "pair table", HarnessError)
@@ -61,7 +61,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from ..log_inspect import inspect_log
+    from harness.ingest.inspect import inspect_log
 
     info = inspect_log(Path(args.log))
     if args.json:
@@ -128,7 +128,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 def cmd_gc(args: argparse.Namespace) -> int:
     """``harness gc``: remove (or list, ``--dry-run``) cache entries the last run did not use."""
-    from ..cache_gc import collect_garbage
+    from harness.runtime.gc import collect_garbage
 
     res = collect_garbage(Path(args.out), dry_run=args.dry_run)
     verb = "would remove" if args.dry_run else "removed"

@@ -8,9 +8,16 @@ implement ``encode`` (and ``fit`` if it learns), and add it to ``REGISTRY``.
 
 from __future__ import annotations
 
-from .autoencoder_descriptor import AutoencoderDescriptor
-from .base import REGISTRY, Descriptor, HogDescriptor, ThumbDescriptor, make_descriptor, normalize
-from .network import OnnxDescriptor, TorchScriptDescriptor
+from harness.descriptors.autoencoder_descriptor import AutoencoderDescriptor
+from harness.descriptors.base import (
+    REGISTRY,
+    Descriptor,
+    HogDescriptor,
+    ThumbDescriptor,
+    make_descriptor,
+    normalize,
+)
+from harness.descriptors.network import OnnxDescriptor, TorchScriptDescriptor
 
 REGISTRY["autoencoder"] = AutoencoderDescriptor
 REGISTRY["torchscript"] = TorchScriptDescriptor

@@ -19,8 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..cache import atomic_path
-from ..errors import HarnessError
+from harness.errors import HarnessError
+from harness.runtime.cache import atomic_path
 
 log = logging.getLogger(__name__)
 

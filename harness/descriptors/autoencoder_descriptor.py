@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import DescriptorConfig
-from .autoencoder import (
+from harness.config.load import DescriptorConfig
+from harness.descriptors.autoencoder import (
     ConvAutoencoder,
     inference_encoder,
     load_checkpoint,
@@ -20,7 +20,7 @@ from .autoencoder import (
     train,
     train_budget,
 )
-from .base import Descriptor
+from harness.descriptors.base import Descriptor
 
 
 def pick_device(name: str) -> torch.device:

@@ -9,8 +9,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..config import DescriptorConfig
-from ..errors import ConfigError
+from harness.config.load import DescriptorConfig
+from harness.errors import ConfigError
 
 
 def normalize(x: np.ndarray) -> np.ndarray:

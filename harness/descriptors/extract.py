@@ -15,13 +15,13 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from ..cache import open_memmap_reserved, read_cached_parquet, write_parquet
-from ..config import DescriptorConfig, ProjectionConfig
-from ..crops import iter_crops
-from ..errors import HarnessError, RetrievalError
-from ..progress import progress
-from .base import Descriptor, make_descriptor, normalize
-from .projection import fit_projection, load_projection, project
+from harness.config.load import DescriptorConfig, ProjectionConfig
+from harness.descriptors.base import Descriptor, make_descriptor, normalize
+from harness.descriptors.crops import iter_crops
+from harness.descriptors.projection import fit_projection, load_projection, project
+from harness.errors import HarnessError, RetrievalError
+from harness.runtime.cache import open_memmap_reserved, read_cached_parquet, write_parquet
+from harness.runtime.progress import progress
 
 FRAME_KEY = ["session", "camera", "utime"]
 

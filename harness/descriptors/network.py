@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from ..config import DescriptorConfig
-from ..errors import ConfigError, HarnessError
-from .base import Descriptor
+from harness.config.load import DescriptorConfig
+from harness.descriptors.base import Descriptor
+from harness.errors import ConfigError, HarnessError
 
 POOLINGS = ("avg", "max", "gem")
 

@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ProjectionConfig
-from ..errors import ConfigError
-from .base import normalize
+from harness.config.load import ProjectionConfig
+from harness.descriptors.base import normalize
+from harness.errors import ConfigError
 
 #: Variance floor for whitening, relative to the largest component's variance.
 WHITEN_EPS = 1e-6

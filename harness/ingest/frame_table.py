@@ -7,13 +7,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..cache import write_json, write_parquet
-from ..config import IngestConfig, SessionConfig
-from ..errors import IngestError
-from ..records import FRAME_COLUMNS, FRAME_SCHEMA
-from .poses import (
-    interpolate,
-)
+from harness.config.load import IngestConfig, SessionConfig
+from harness.errors import IngestError
+from harness.ingest.poses import interpolate
+from harness.records import FRAME_COLUMNS, FRAME_SCHEMA
+from harness.runtime.cache import write_json, write_parquet
 
 
 def build_frame_table(

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 from PIL import Image as PILImage
 
-from ..errors import IngestError
-from ..imagestore import check_pixels, header_size
+from harness.errors import IngestError
+from harness.imagestore import check_pixels, header_size
 
 # : ROS bayer encodings -> OpenCV conversion (OpenCV names the pattern by the second row; as
 # cv_bridge does).

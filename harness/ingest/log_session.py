@@ -10,24 +10,25 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..config import IngestConfig, SessionConfig
-from ..errors import CorruptLogError, IngestError
-from .frame_table import finish, write_frames
-from .images import compressed_kind, compressed_size, decode_problem, raw_to_array, write_raw
-from .logs import (
-    choose_topics,
-    list_topics,
-    stream,
-    uri_safe_path,
+from harness.config.load import IngestConfig, SessionConfig
+from harness.errors import CorruptLogError, IngestError
+from harness.ingest.frame_table import finish, write_frames
+from harness.ingest.images import (
+    compressed_kind,
+    compressed_size,
+    decode_problem,
+    raw_to_array,
+    write_raw,
 )
-from .poses import (
+from harness.ingest.logs import choose_topics, list_topics, stream, uri_safe_path
+from harness.ingest.poses import (
     POSE_TYPES,
     check_monotonic,
     euler_from_quaternion,
     pose_rows,
     stamp_us,
 )
-from .tf import TfTree
+from harness.ingest.tf import TfTree
 
 log = logging.getLogger(__name__)
 

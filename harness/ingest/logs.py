@@ -19,10 +19,10 @@ from typing import Any, Protocol
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from ..errors import CorruptLogError, IngestError, TopicError
-from . import salvage as salvage_mod
-from .folders import FOLDER_FORMATS
-from .poses import POSE_TYPES
+from harness.errors import CorruptLogError, IngestError, TopicError
+from harness.ingest import salvage as salvage_mod
+from harness.ingest.folders import FOLDER_FORMATS
+from harness.ingest.poses import POSE_TYPES
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 #: What a log reader raises on a damaged or truncated file (reported as damage, never a traceback).

@@ -8,18 +8,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..config import IngestConfig, SessionConfig
-from ..errors import IngestError
-from ..imagestore import (
-    make_uri,
-    stored_size,
-    upright_size,
-)
-from ..inputs import read_text
-from .frame_table import finish
-from .poses import (
-    check_monotonic,
-)
+from harness.config.load import IngestConfig, SessionConfig
+from harness.errors import IngestError
+from harness.imagestore import make_uri, stored_size, upright_size
+from harness.ingest.frame_table import finish
+from harness.ingest.poses import check_monotonic
+from harness.inputs import read_text
 
 
 def read_nclt_groundtruth(

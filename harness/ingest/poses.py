@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import IngestError
+from harness.errors import IngestError
 
 POSE_TYPES = (
     "nav_msgs/msg/Odometry",

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from rosbags.typesys import Stores, get_typestore
 
-from ..errors import CorruptLogError, IngestError
+from harness.errors import CorruptLogError, IngestError
 
 ROS1_MAGIC = b"#ROSBAG V2.0\n"
 OP_MSG, OP_CONN, OP_CHUNK = 0x02, 0x07, 0x05

@@ -10,10 +10,9 @@ from pathlib import Path
 import pandas as pd
 import pyarrow as pa
 
-from ..cache import atomic_dir, write_json, write_parquet
-from ..config import IngestConfig, SessionConfig
-from ..errors import IngestError
-from ..imagestore import (
+from harness.config.load import IngestConfig, SessionConfig
+from harness.errors import IngestError
+from harness.imagestore import (
     DATA_PREFIX,
     OUT_PREFIX,
     local_uri,
@@ -21,15 +20,13 @@ from ..imagestore import (
     portable_uri,
     resolve,
 )
-from ..inputs import check_input
-from ..outdirs import check_replaceable, write_marker
-from ..records import FRAME_SCHEMA
-from .log_session import ingest_log
-from .logs import (
-    detect_format,
-    known_formats,
-)
-from .nclt_session import ingest_nclt
+from harness.ingest.log_session import ingest_log
+from harness.ingest.logs import detect_format, known_formats
+from harness.ingest.nclt_session import ingest_nclt
+from harness.inputs import check_input
+from harness.records import FRAME_SCHEMA
+from harness.runtime.cache import atomic_dir, write_json, write_parquet
+from harness.runtime.outdirs import check_replaceable, write_marker
 
 log = logging.getLogger(__name__)
 

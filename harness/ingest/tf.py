@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import IngestError
+from harness.errors import IngestError
 
 
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:

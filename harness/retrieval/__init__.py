@@ -6,8 +6,13 @@
 
 from __future__ import annotations
 
-from .engines import Ranks, frame_min_sqdist_chunk, image_ranks, image_ranks_faiss
-from .units import RANK_COUNTS, described_frames, kept_reference_frames, rank_reference
+from harness.retrieval.engines import Ranks, frame_min_sqdist_chunk, image_ranks, image_ranks_faiss
+from harness.retrieval.units import (
+    RANK_COUNTS,
+    described_frames,
+    kept_reference_frames,
+    rank_reference,
+)
 
 __all__ = [
     "RANK_COUNTS",

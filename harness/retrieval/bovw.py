@@ -26,11 +26,11 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from ..cache import read_cached_parquet, write_parquet
-from ..config import BovwConfig
-from ..crops import iter_crops
-from ..errors import RetrievalError
-from ..progress import progress
+from harness.config.load import BovwConfig
+from harness.descriptors.crops import iter_crops
+from harness.errors import RetrievalError
+from harness.runtime.cache import read_cached_parquet, write_parquet
+from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -284,7 +284,7 @@ def bovw_ranks(
     Returns:
         ``rank`` (n,) int64, ``L`` (n,) int64, ``dist`` (n,) float64 (= ``d``).
     """
-    from .engines import _frame_layout, _place_columns
+    from harness.retrieval.engines import _frame_layout, _place_columns
 
     db_frame, gt_frame = np.asarray(db_frame), np.asarray(gt_frame)
     if query.shape[1] != db.shape[1]:

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import RetrievalError
+from harness.errors import RetrievalError
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..errors import RetrievalError
+from harness.errors import RetrievalError
 
 KEY = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
 

@@ -46,9 +46,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..errors import RetrievalError
-from .import_file import BOX, KEY, SCORE_KINDS, ImportSpec, Rows, read_import
-from .places import ground_truth_places
+from harness.errors import RetrievalError
+from harness.retrieval.import_file import BOX, KEY, SCORE_KINDS, ImportSpec, Rows, read_import
+from harness.retrieval.places import ground_truth_places
 
 log = logging.getLogger(__name__)
 
@@ -320,7 +320,7 @@ def write_imported_ranks(
     Returns:
         The import counters, and whether the file has scores.
     """
-    from ..cache import write_parquet
+    from harness.runtime.cache import write_parquet
 
     df, rows = read_import(spec.path)
     ranks, counts = ranks_from_import(

@@ -16,12 +16,12 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from ..cache import read_cached_parquet
-from ..config import RetrievalConfig
-from ..pairs import thin_by_stride
-from .bovw import bovw_ranks, load_words
-from .engines import image_ranks, image_ranks_faiss
-from .places import ground_truth_places
+from harness.config.load import RetrievalConfig
+from harness.pairs import thin_by_stride
+from harness.retrieval.bovw import bovw_ranks, load_words
+from harness.retrieval.engines import image_ranks, image_ranks_faiss
+from harness.retrieval.places import ground_truth_places
+from harness.runtime.cache import read_cached_parquet
 
 #: Counters every unit reports (summed per reference session in ``run.json``).
 RANK_COUNTS = (

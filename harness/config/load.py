@@ -1,0 +1,369 @@
+"""Configuration: one frozen dataclass per stage, loaded from TOML with unknown keys rejected.
+
+A config file is a TOML document; ``load_config`` resolves relative paths against the file's
+directory's project root (the directory holding ``pyproject.toml`` above it, else the file's
+directory) and substitutes ``{data_root}`` in session sources.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+from harness.config.check import (
+    FIXTURE_FORMATS,
+    SESSION_NAME,
+    _check,
+    _check_bovw,
+    check_session_name,
+    validate,
+)
+from harness.config.schema import (
+    ALL_LOCALIZERS,
+    LOCALIZER_NAME,
+    BovwConfig,
+    Config,
+    DescriptorConfig,
+    DetectConfig,
+    EdgesConfig,
+    FixtureConfig,
+    FusionConfig,
+    ImportConfig,
+    IngestConfig,
+    LocalizerConfig,
+    LocalizerImportConfig,
+    MserConfig,
+    PairsConfig,
+    ProjectionConfig,
+    ProposalsConfig,
+    ReportConfig,
+    RetrievalConfig,
+    SessionConfig,
+    SplitsConfig,
+    YoloConfig,
+)
+from harness.errors import ConfigError
+from harness.inputs import read_text
+
+# the method catalogue lives in ``methods`` (the bottom of the house); named here too, as before
+from harness.methods import ALL_METHODS as ALL_METHODS
+from harness.methods import BASELINES as BASELINES
+from harness.methods import EXTRA_METHODS as EXTRA_METHODS
+from harness.methods import FUSION_METHODS as FUSION_METHODS
+
+__all__ = [
+    "ALL_LOCALIZERS",
+    "ALL_METHODS",
+    "BASELINES",
+    "EXTRA_METHODS",
+    "FIXTURE_FORMATS",
+    "FUSION_METHODS",
+    "LOCALIZER_NAME",
+    "SESSION_NAME",
+    "BovwConfig",
+    "Config",
+    "DescriptorConfig",
+    "DetectConfig",
+    "EdgesConfig",
+    "FixtureConfig",
+    "FusionConfig",
+    "ImportConfig",
+    "IngestConfig",
+    "LocalizerConfig",
+    "LocalizerImportConfig",
+    "MserConfig",
+    "PairsConfig",
+    "ProjectionConfig",
+    "ProposalsConfig",
+    "ReportConfig",
+    "RetrievalConfig",
+    "SessionConfig",
+    "SplitsConfig",
+    "YoloConfig",
+    "check_session_name",
+    "load_config",
+    "parse_config",
+    "parse_localizers",
+    "project_root",
+    "validate",
+]
+
+T = TypeVar("T")
+
+
+def _type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def _coerce(value: Any, hint: Any, where: str) -> Any:
+    """Check ``value`` (from TOML) against the field's type hint; lists become tuples, ints floats.
+
+    Raises:
+        ConfigError: naming the key, the value and the expected type.
+    """
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (types.UnionType, typing.Union):
+        last: ConfigError | None = None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, where)
+            except ConfigError as err:
+                last = err
+        raise last or ConfigError(f"{where}: unexpected value {value!r}")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(
+                f"{where}: expected a list of {len(args)} values, got {list(value)!r}"
+            )
+        return tuple(
+            _coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
+        )
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}: {value!r} is not a finite number")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _build(cls: type[T], data: Any, where: str) -> T:
+    """Build dataclass ``cls`` from a dict, rejecting unknown keys and values of the wrong type."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    hints = typing.get_type_hints(cls)
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
+    kwargs: dict[str, Any] = {}
+    for name, value in data.items():
+        sub = _NESTED.get((cls.__name__, name))
+        if sub is not None:
+            kwargs[name] = _build(sub, value, f"{where}.{name}")
+        else:
+            kwargs[name] = _coerce(value, hints[name], f"{where} {name}")
+    try:
+        return cls(**kwargs)
+    except TypeError as err:
+        raise ConfigError(f"{where}: {err}") from None
+
+
+_NESTED: dict[tuple[str, str], type] = {
+    ("ProposalsConfig", "yolo"): YoloConfig,
+    ("ProposalsConfig", "mser"): MserConfig,
+    ("ProposalsConfig", "edges"): EdgesConfig,
+}
+
+_SECTIONS: dict[str, type] = {
+    "ingest": IngestConfig,
+    "pairs": PairsConfig,
+    "proposals": ProposalsConfig,
+    "descriptor": DescriptorConfig,
+    "retrieval": RetrievalConfig,
+    "projection": ProjectionConfig,
+    "fusion": FusionConfig,
+    "splits": SplitsConfig,
+    "report": ReportConfig,
+    "detect": DetectConfig,
+    "fixture": FixtureConfig,
+    "import": ImportConfig,
+}
+#: TOML tables whose field name differs (``import`` is a Python keyword).
+_FIELD = {"import": "import_"}
+
+
+def project_root(start: Path) -> Path:
+    """The nearest directory at or above ``start`` holding ``pyproject.toml`` (else ``start``)."""
+    start = start.resolve()
+    for d in (start, *start.parents):
+        if (d / "pyproject.toml").exists():
+            return d
+    return start
+
+
+def parse_config(
+    doc: dict[str, Any], base: Path, where: str, data_root: str | None = None
+) -> Config:
+    """Build a :class:`Config` from a parsed TOML document.
+
+    Relative paths resolve against ``base``.
+    """
+    top_keys = {"name", "data_root", "annotations", "sessions", "seed", "localizers", *_SECTIONS}
+    unknown = sorted(set(doc) - top_keys)
+    if unknown:
+        raise ConfigError(f"{where}: unknown top-level key(s) {unknown}; known: {sorted(top_keys)}")
+    for required in ("name", "sessions"):
+        if required not in doc:
+            raise ConfigError(f"{where}: missing required key {required!r}")
+    for key in ("name", "annotations", "data_root"):
+        if key in doc and (not isinstance(doc[key], str) or not doc[key].strip()):
+            raise ConfigError(f"{where}: {key} = {doc[key]!r}: expected a non-empty string")
+    seed = doc.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"{where}: seed = {seed!r}: expected an integer >= 0")
+    root_text = data_root if data_root is not None else str(doc.get("data_root", "."))
+    root = Path(root_text).expanduser()
+    root = root if root.is_absolute() else (base / root)
+    sessions = []
+    if not isinstance(doc["sessions"], list) or not doc["sessions"]:
+        raise ConfigError(f"{where}: 'sessions' must be a non-empty array of tables")
+    for i, s in enumerate(doc["sessions"]):
+        sc = _build(SessionConfig, s, f"{where}: sessions[{i}]")
+        src = Path(sc.source.replace("{data_root}", str(root))).expanduser()
+        src = src if src.is_absolute() else base / src
+        sessions.append(dataclasses.replace(sc, source=str(src)))
+    for i, sc in enumerate(sessions):
+        check_session_name(sc.name, f"{where}: sessions[{i}] name")
+        check_session_name(sc.camera, f"{where}: sessions[{i}] camera")
+    names = [s.name for s in sessions]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{where}: session names must be unique, got {names}")
+    ann: Path | None = None
+    if "annotations" in doc:
+        ann = Path(str(doc["annotations"]).replace("{data_root}", str(root))).expanduser()
+        ann = ann if ann.is_absolute() else base / ann
+    kwargs: dict[str, Any] = {}
+    for section, cls in _SECTIONS.items():
+        if section in doc:
+            kwargs[_FIELD.get(section, section)] = _build(
+                cls, doc[section], f"{where}: [{section}]"
+            )
+    de = kwargs.get("descriptor")
+    if de is not None and de.path:  # a user's network: relative to the project, like annotations
+        net = Path(de.path.replace("{data_root}", str(root))).expanduser()
+        kwargs["descriptor"] = dataclasses.replace(
+            de, path=str(net if net.is_absolute() else base / net)
+        )
+    cfg = Config(
+        name=str(doc["name"]),
+        data_root=root,
+        annotations=ann,
+        sessions=tuple(sessions),
+        seed=seed,
+        **kwargs,
+    )
+    if "localizers" in doc:
+        cfg = dataclasses.replace(
+            cfg, localizers=parse_localizers(doc["localizers"], cfg, base, root, where)
+        )
+    validate(cfg, where)
+    for i, loc in enumerate(cfg.localizers):
+        if loc.descriptor is not None:  # the [descriptor] checks, on the localizer's table
+            try:
+                validate(dataclasses.replace(cfg, descriptor=loc.descriptor, localizers=()), where)
+            except ConfigError as err:
+                raise ConfigError(
+                    str(err).replace("[descriptor]", f"localizers[{i}] ({loc.name}) descriptor")
+                ) from None
+    return cfg
+
+
+_LOCALIZER_KEYS = ("name", "proposals", "descriptor", "bovw", "import")
+
+
+def parse_localizers(
+    items: Any, cfg: Config, base: Path, root: Path, where: str
+) -> tuple[LocalizerConfig, ...]:
+    """The ``[[localizers]]`` array (SPEC section 11), each entry checked.
+
+    Raises:
+        ConfigError: naming the entry and what is wrong.
+    """
+    if not isinstance(items, list) or not items:
+        raise ConfigError(f"{where}: 'localizers' must be a non-empty array of tables")
+    out: list[LocalizerConfig] = []
+    for i, item in enumerate(items):
+        at = f"{where}: localizers[{i}]"
+        if not isinstance(item, dict):
+            raise ConfigError(f"{at}: expected a table, got {type(item).__name__}")
+        unknown = sorted(set(item) - set(_LOCALIZER_KEYS))
+        if unknown:
+            raise ConfigError(f"{at}: unknown key(s) {unknown}; known: {list(_LOCALIZER_KEYS)}")
+        name = item.get("name")
+        if not isinstance(name, str) or not LOCALIZER_NAME.match(name):
+            raise ConfigError(
+                f"{at} name = {name!r}: expected a name of letters, digits, '.', '_', '-', '+' "
+                "(it names the localizer in every table)"
+            )
+        ways = [k for k in ("descriptor", "bovw", "import") if k in item]
+        if len(ways) != 1:
+            raise ConfigError(
+                f"{at} ({name}): give exactly one of descriptor, bovw or import; got "
+                f"{ways or 'none'}"
+            )
+        props = _coerce(item.get("proposals", list(cfg.proposals.methods)), tuple[str, ...], at)
+        bad = [m for m in props if m not in cfg.proposals.methods]
+        if bad or not props:
+            raise ConfigError(
+                f"{at} ({name}) proposals = {list(props)}: each must be one of [proposals] "
+                f"methods {list(cfg.proposals.methods)} (proposals are computed once, shared)"
+            )
+        kind = ways[0]
+        de = bw = im = None
+        if kind == "descriptor":
+            de = _build(DescriptorConfig, item[kind], f"{at}.descriptor")
+            if de.path:
+                net = Path(de.path.replace("{data_root}", str(root))).expanduser()
+                de = dataclasses.replace(de, path=str(net if net.is_absolute() else base / net))
+        elif kind == "bovw":
+            bw = _build(BovwConfig, item[kind], f"{at}.bovw")
+            _check_bovw(bw, f"{at}.bovw")
+        else:
+            im = _build(LocalizerImportConfig, item[kind], f"{at}.import")
+            f = Path(im.file.replace("{data_root}", str(root))).expanduser()
+            im = dataclasses.replace(im, file=str(f if f.is_absolute() else base / f))
+            _check(
+                im.score_kind in ("distance", "similarity"),
+                at,
+                "import.score_kind",
+                im.score_kind,
+                "'distance' or 'similarity'",
+            )
+        out.append(LocalizerConfig(str(name), kind, tuple(props), de, bw, im))
+    names = [x.name for x in out]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{where}: [[localizers]] names must be unique, got {names}")
+    if ALL_LOCALIZERS in names:
+        raise ConfigError(f"{where}: {ALL_LOCALIZERS!r} names the fused block; choose another")
+    return tuple(out)
+
+
+def load_config(path: Path, data_root: str | None = None) -> Config:
+    """Read and validate a TOML config file.
+
+    Raises:
+        ConfigError: The file is missing, is not TOML, or has unknown or invalid keys.
+    """
+    path = Path(path)
+    text = read_text(
+        path, "config file", ConfigError
+    )  # missing, a directory, unreadable, not UTF-8
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}") from None
+    return parse_config(doc, project_root(path.parent), str(path), data_root)

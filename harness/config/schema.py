@@ -1,0 +1,372 @@
+"""The configuration's schema: one frozen dataclass per stage and the run's localizers.
+
+Loaded and checked by :mod:`harness.config.load` (TOML, unknown keys rejected) and
+:mod:`harness.config.check` (ranges, at load time).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from harness.methods import ALL_METHODS
+
+#: A localizer's name: it heads tables and names files (never a path).
+LOCALIZER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,63}$")
+#: The name of the cross-localizer block (SPEC section 11).
+ALL_LOCALIZERS = "all localizers"
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """One season log.
+
+    ``source`` is an NCLT root, a ``.bag``, a ROS2 bag directory or an ``.mcap``.
+    """
+
+    name: str
+    source: str
+    season: str = ""
+    format: str = "auto"
+    camera: str = "Cam5"
+    image_topic: str | None = None
+    pose_topic: str | None = None
+    tf_child_frame: str | None = None  # older name of camera_frame: the frame whose pose /tf gives
+    # /tf: the frame poses are expressed in (default: the tree's root)
+    fixed_frame: str | None = None
+    # /tf: the camera's frame (default: the images' header.frame_id)
+    camera_frame: str | None = None
+
+
+@dataclass(frozen=True)
+class IngestConfig:
+    """``[ingest]``: how logs become frames (times in seconds)."""
+
+    # the largest image a header may declare (width x height): larger is a decompression bomb
+    max_image_pixels: int = 100_000_000
+    # pose topics and fast /tf transforms: a sample at most this before and after an image
+    max_pose_gap_s: float = 0.1
+    # /tf transforms published more slowly than max_pose_gap_s (map -> odom at 1-10 Hz)
+    max_tf_gap_s: float = 1.0
+    time_source: str = "header"  # header stamp of the image message, or "log" (bag receive time)
+    nclt_rotation: str = "cw"  # how NCLT's stored images are turned upright: cw, ccw, none
+    salvage: bool = False  # keep the messages read before a truncated or corrupt part
+    # lossless image store for raw images from logs: tiff (fast) or png (smaller)
+    store_format: str = "tiff"
+    # decode every compressed image in full at ingest; drop and count broken ones
+    verify_images: bool = False
+
+
+@dataclass(frozen=True)
+class PairsConfig:
+    """``[pairs]``: cross-season pairing (SPEC section 4; degrees, metres)."""
+
+    max_yaw_diff_deg: float = 45.0
+    max_distance_m: float | None = 10.0
+    stride_m: float = 0.0
+    queries: str = "annotated"  # "annotated": only annotated query frames; "all": every frame
+
+
+@dataclass(frozen=True)
+class YoloConfig:
+    """``[proposals.yolo]``: the supervised proposer (a local TorchScript weights file)."""
+
+    weights: str | None = None
+    conf: float = 0.05
+    iou: float = 0.7
+    imgsz: int = 640
+    batch: int = 8
+    device: str = "auto"
+    max_det: int = 100
+
+
+@dataclass(frozen=True)
+class MserConfig:
+    """``[proposals.mser]``: MSER region proposals (areas as fractions of the image)."""
+
+    max_boxes: int = 12
+    min_area_frac: float = 0.01
+    max_area_frac: float = 0.4
+    nms_iou: float = 0.5
+    work_width: int = 320
+
+
+@dataclass(frozen=True)
+class EdgesConfig:
+    """``[proposals.edges]``: edge-contour proposals (areas as fractions of the image)."""
+
+    max_boxes: int = 12
+    min_area_frac: float = 0.005
+    max_area_frac: float = 0.4
+    nms_iou: float = 0.5
+    work_width: int = 480
+    dilations: tuple[int, ...] = (3, 5, 9)
+
+
+@dataclass(frozen=True)
+class ProposalsConfig:
+    """``[proposals]``: the proposal methods (SPEC section 5) and their sections."""
+
+    methods: tuple[str, ...] = ("grid5", "edges")
+    edges: EdgesConfig = field(default_factory=EdgesConfig)
+    yolo: YoloConfig = field(default_factory=YoloConfig)
+    mser: MserConfig = field(default_factory=MserConfig)
+    file: str | None = None
+
+
+@dataclass(frozen=True)
+class DescriptorConfig:
+    """``[descriptor]``: the subimage descriptor, its training and encoding (SPEC section 6)."""
+
+    name: str = "autoencoder"
+    input_size: int = 256
+    channels: tuple[int, int, int] = (32, 32, 16)
+    input_norm: str = "none"  # "none" (the paper) or "per_crop": standardise each crop's channels
+    epochs: int = 4
+    batch_size: int = 32  # training batch
+    # subimages per encoder call; 0: 2 on CPU (keeps activations in cache), batch_size on GPU
+    encode_batch: int = 0
+    lr: float = 1e-3
+    max_train_subimages: int = 4000
+    # > 0: train on this many sample-steps (not epochs) with early stopping on held-out crops
+    train_samples: int = 0
+    # share of the training crops held out for early stopping (train_samples > 0)
+    holdout: float = 0.1
+    eval_every: int = 50  # steps between held-out evaluations
+    patience: int = 4  # evaluations without improvement before training stops
+    dtype: str = "float16"
+    device: str = "auto"
+    seed: int = 0
+    num_workers: int = 0
+    # frames per cached descriptor shard (the unit an interrupted run resumes at)
+    shard_frames: int = 256
+    # name = "torchscript" or "onnx": a user's network from a local file (its content is keyed)
+    path: str = ""
+    mean: tuple[float, float, float] = (0.485, 0.456, 0.406)  # per RGB channel, values in [0, 1]
+    std: tuple[float, float, float] = (0.229, 0.224, 0.225)
+    pooling: str = "avg"  # of a (N, C, H, W) output: "avg", "max" or "gem"
+    gem_p: float = 3.0
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """``[retrieval]``: the rank engine, the ground-truth place and the database (metres)."""
+
+    engine: str = "exact"  # exact or faiss
+    # ground-truth place: reference frames within this radius of G (SPEC 6); 0: G alone
+    gt_radius_m: float = 2.0
+    # reference database by place: one frame per this many metres of trajectory; 0: every frame
+    db_stride_m: float = 0.0
+    chunk_rows: int = 8192
+    query_batch: int = 1024
+    # exact engine: budget (MiB) of the (queries x frames) matrices per database pass; bounds memory
+    # whatever the data size
+    memory_mb: float = 1024.0
+    faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
+    faiss_nprobe: int = 8
+    query_frames_per_shard: int = 512  # pairs per ranking unit (the unit mapped over executors)
+    faiss_check: int = 256  # queries per engine also ranked exactly, to report faiss's recall
+
+
+@dataclass(frozen=True)
+class ProjectionConfig:
+    """Compact descriptors (docs/method.md).
+
+    PCA or PCA-whitening to ``dim``, fitted on the reference sessions.
+    """
+
+    # 0: off, rank with the full descriptor (SPEC 6); > 0: project to this many dimensions
+    dim: int = 0
+    whiten: bool = False  # divide each component by its standard deviation before re-normalising
+    # reference subimages (a seeded sample) encoded to fit the directions; memory fit_samples x D x
+    # 4 bytes
+    fit_samples: int = 8192
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """``[fusion]``: the methods of SPEC section 7 that are computed and reported."""
+
+    # computed and reported; SPEC order is kept whatever the order here
+    methods: tuple[str, ...] = ALL_METHODS
+    seed: int = 0
+    max_fused_boxes: int = 4096
+    rrf_c: float = 60.0  # RRF's constant c (SPEC section 14; Cormack et al. 2009 use 60)
+
+
+@dataclass(frozen=True)
+class SplitsConfig:
+    """``[splits]``: RoC/SoB ranges of the difficulty splits and Table S strata (SPEC 8)."""
+
+    roc_max: tuple[float, ...] = (0.01, 0.02, 0.03, 0.04, 0.05)
+    pos_roc: tuple[float, float] = (0.9, 1.0)
+    pos_sob: tuple[float, float] = (0.0, 0.4)
+    neg_roc_min: float = 0.0
+    neg_sob: tuple[float, float] = (0.4, 1.0)
+    sob_strata: tuple[float, ...] = (
+        0.0,
+        0.02,
+        0.05,
+        0.1,
+        0.2,
+        0.4,
+        1.0,
+    )  # Table S: SoB strata edges, [lo, hi), the last closed
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """``[report]``: bootstrap, plots, ``report.html`` and its gallery."""
+
+    bootstrap: int = 1000
+    ci: float = 0.95
+    # SPEC 9: random orders of the same samples behind every floor and chance band (>= 200)
+    chance_draws: int = 200
+    locmap_examples: int = 4
+    plots: bool = True
+    html: bool = True  # write report.html (the one page to look at) after the tables
+    gallery: int = 3  # report.html: worst false positives and missed changes shown per method
+    # the RoC-max of the page's figures (PR curves, season pairs, gallery) and of Table L
+    headline_roc_max: float = 0.05
+    # recall@N of the localization table and Table L, as the VPR benchmarks report it
+    recall_at: tuple[int, ...] = (1, 5, 10, 20)
+    # > 0: the localization table again with the place this many metres wide (ranks re-ranked
+    # with [retrieval] gt_radius_m replaced; nothing else changes); 0: off
+    gt_radius_also: float = 0.0
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """``[detect]``: how ``harness detect`` turns LoC into change boxes (SPEC 13.1)."""
+
+    # the box generator: "fused" (the fused qBBs, SPEC 13), "locmap" (connected regions of the
+    # thresholded LoC map) or "proposals" (the original proposals scored by the LoC inside)
+    boxes: str = "fused"
+    box_score: str = "max"  # locmap / proposals: the LoC inside a box, "max" or "mean"
+    # locmap: the level, as a share of the frame's LoC range (lo + level * (hi - lo))
+    locmap_level: float = 0.5
+    # the nominal false-alarm rate: boxes and frames whose calibrated score (exceedance) is at
+    # most this are alarms (alarms.csv; harness detect --alarm overrides it)
+    alarm: float = 0.01
+
+
+@dataclass(frozen=True)
+class FixtureConfig:
+    """Generate the fixture into ``data_root`` when it is absent."""
+
+    generate: bool = False
+    seed: int = 0
+    frames: int = 64
+    width: int = 120
+    height: int = 160
+    objects: int = 9
+    loop_scale: float = 1.5
+    render_scale: int = 1  # ray-cast at 1/scale resolution and upsample (NCLT-sized frames cheaply)
+    formats: tuple[str, ...] = ()  # log format per session; empty: nclt, ros1, ros2, mcap
+
+
+@dataclass(frozen=True)
+class ImportConfig:
+    """``[import]``: how an imported localizer's rank file is read (SPEC section 12)."""
+
+    # what a row's ``scores`` are: "distance" (smaller = more similar) or "similarity" in [0, 1]
+    score_kind: str = "distance"
+    # a query image of the pairs without any imported row: an error (false), or left out of
+    # every table and counted (true)
+    allow_unranked_images: bool = False
+
+
+@dataclass(frozen=True)
+class BovwConfig:
+    """A bag-of-visual-words localizer (SPEC section 11): local features, words, TF-IDF, L1.
+
+    Each subimage is resized to ``input_size`` x ``input_size`` (as the autoencoder's input);
+    features are ``sift``, ``rootsift`` or ``orb`` at a dense grid of keypoints (``dense``: every
+    ``step`` pixels, diameter ``patch``) or at the detector's own keypoints. ``k`` words are
+    learned with faiss k-means on at most ``max_train_features`` features of reference-session
+    subimages; IDF from the same subimages.
+    """
+
+    features: str = "rootsift"
+    k: int = 1024
+    dense: bool = True
+    step: int = 8
+    patch: int = 16
+    input_size: int = 128
+    max_train_subimages: int = 4000
+    max_train_features: int = 200_000
+    kmeans_iter: int = 20
+    seed: int = 0
+    num_workers: int = 0
+    # frames per cached encoding shard (the unit an interrupted run resumes at)
+    shard_frames: int = 256
+
+
+@dataclass(frozen=True)
+class LocalizerImportConfig:
+    """A localizer's ``import`` table: ranked lists from a file (SPEC section 12)."""
+
+    file: str
+    score_kind: str = "distance"
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """One ``[[localizers]]`` entry (SPEC section 11): a name, proposals and one way to rank.
+
+    ``kind`` is ``descriptor`` (with ``descriptor``), ``bovw`` (with ``bovw``) or ``import``
+    (with ``import_``); ``proposals`` are the ``[proposals] methods`` it uses (all by default).
+    """
+
+    name: str
+    kind: str
+    proposals: tuple[str, ...]
+    descriptor: DescriptorConfig | None = None
+    bovw: BovwConfig | None = None
+    import_: LocalizerImportConfig | None = None
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole run's configuration, as loaded from TOML and checked (:func:`load_config`)."""
+
+    name: str
+    data_root: Path
+    annotations: Path | None  # None: no annotation file (harness detect only)
+    sessions: tuple[SessionConfig, ...]
+    seed: int = 0
+    ingest: IngestConfig = field(default_factory=IngestConfig)
+    pairs: PairsConfig = field(default_factory=PairsConfig)
+    proposals: ProposalsConfig = field(default_factory=ProposalsConfig)
+    descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    projection: ProjectionConfig = field(default_factory=ProjectionConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    splits: SplitsConfig = field(default_factory=SplitsConfig)
+    report: ReportConfig = field(default_factory=ReportConfig)
+    detect: DetectConfig = field(default_factory=DetectConfig)
+    fixture: FixtureConfig = field(default_factory=FixtureConfig)
+    import_: ImportConfig = field(default_factory=ImportConfig)  # the TOML table [import]
+    # [[localizers]]; empty: one localizer named after [descriptor] (:meth:`localizer_set`)
+    localizers: tuple[LocalizerConfig, ...] = ()
+
+    def localizer_set(self) -> tuple[LocalizerConfig, ...]:
+        """The localizers of the run: ``[[localizers]]``, or the one ``[descriptor]`` defines."""
+        if self.localizers:
+            return self.localizers
+        return (
+            LocalizerConfig(
+                name=self.descriptor.name,
+                kind="descriptor",
+                proposals=self.proposals.methods,
+                descriptor=self.descriptor,
+            ),
+        )
+
+    def seasons(self) -> dict[str, str]:
+        """Session name -> season code (``WI``, ``SP``, ``SU``, ``AU``)."""
+        from harness.records import season_of
+
+        return {s.name: s.season or season_of(s.name) for s in self.sessions}

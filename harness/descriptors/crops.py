@@ -1,0 +1,92 @@
+"""Cropping proposal boxes out of frames and resizing them, in batches, through a torch DataLoader.
+
+One dataset item is one frame: it is decoded once and all its boxes are cropped and resized with
+OpenCV. With ``num_workers > 0`` decoding overlaps the consumer's compute. Order is preserved, so
+results do not depend on the number of workers.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterator
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from harness.imagestore import read_image
+
+
+def crop_resize(rgb: np.ndarray, boxes: np.ndarray, size: int) -> np.ndarray:
+    """Crop ``boxes`` (k, 4; float pixels, x2/y2 exclusive) and resize each to ``size`` x ``size``.
+
+    The crop covers every pixel the box touches (floor of the start, ceil of the end), at least
+    one pixel. Returns uint8 (k, size, size, 3).
+    """
+    h, w = rgb.shape[:2]
+    out = np.empty((len(boxes), size, size, 3), np.uint8)
+    for i, (x1, y1, x2, y2) in enumerate(np.asarray(boxes, np.float64)):
+        a, b = int(np.clip(np.floor(x1), 0, w - 1)), int(np.clip(np.floor(y1), 0, h - 1))
+        c, d = int(np.clip(np.ceil(x2), a + 1, w)), int(np.clip(np.ceil(y2), b + 1, h))
+        patch = rgb[b:d, a:c]
+        interp = (
+            cv2.INTER_AREA if (patch.shape[0] > size or patch.shape[1] > size) else cv2.INTER_LINEAR
+        )
+        out[i] = cv2.resize(patch, (size, size), interpolation=interp)
+    return out
+
+
+class _FrameCrops(Dataset):
+    def __init__(self, groups: list[tuple[str, np.ndarray, np.ndarray]], size: int) -> None:
+        self.groups = groups
+        self.size = size
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        uri, rows, boxes = self.groups[i]
+        return rows, crop_resize(read_image(uri), boxes, self.size)
+
+
+def _collate(items: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    return np.concatenate([r for r, _ in items]), np.concatenate([c for _, c in items])
+
+
+def iter_crops(
+    boxes: pd.DataFrame,
+    images: pd.Series,
+    size: int,
+    frames_per_batch: int = 8,
+    num_workers: int = 0,
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Yield ``(row positions, crops uint8 (b, size, size, 3))`` for the rows of ``boxes``.
+
+    Args:
+        boxes: rows with ``x1, y1, x2, y2`` and a frame key; rows of one frame must be contiguous.
+        images: image URI per row of ``boxes`` (aligned).
+        size: output side in pixels.
+        frames_per_batch: frames decoded per batch (rows of one frame are never split).
+        num_workers: DataLoader processes decoding and cropping (0: in this process).
+    """
+    uris = images.to_numpy()
+    b = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    starts = (
+        np.concatenate([[0], np.nonzero(uris[1:] != uris[:-1])[0] + 1, [len(uris)]])
+        if len(uris)
+        else np.zeros(1, int)
+    )
+    groups = [(str(uris[s]), np.arange(s, e), b[s:e]) for s, e in itertools.pairwise(starts)]
+    loader = DataLoader(
+        _FrameCrops(groups, size),
+        batch_size=frames_per_batch,
+        shuffle=False,
+        num_workers=num_workers,
+        collate_fn=_collate,
+        persistent_workers=False,
+        prefetch_factor=2 if num_workers else None,
+        generator=torch.Generator().manual_seed(0),
+    )
+    yield from loader

@@ -1,0 +1,1 @@
+"""``harness detect``: change boxes and frames with calibrated scores, Table D and its page."""

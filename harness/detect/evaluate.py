@@ -1,0 +1,460 @@
+"""Table D (SPEC 13): ``harness detect``'s change boxes scored on the annotated query frames.
+
+pycocotools' COCOeval does the matching; COCO AP@[.5:.95] and AP@.5 are its statistics, and the
+AP at IoU 0.5 with VOC all-point interpolation (the metric of "The Change You Want to See", WACV
+2023) is integrated from its matches.
+
+SPEC 9 for Table D (:func:`table_d_chance`): the floor is the mean AP50 of ``[report]
+chance_draws`` draws of random scores on the same candidate boxes (the fused qBBs of every
+annotated frame) through the same NMS, the chance band the draws' 5th-95th percentiles; the ceiling
+the same candidates scored by their best IoU with an annotated change box, through the same NMS;
+the candidates' recall is the share of annotated change boxes that some candidate meets at IoU 0.5.
+The draws are matched by :func:`match50`, COCOeval's greedy matching at IoU 0.5 (tested equal to
+pycocotools on the run's own detections), so that 200 draws cost seconds, not 200 COCOevals.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.evaluate import chance
+from harness.evaluate.metrics import interval, resample_counts
+from harness.runtime.cache import write_json, write_text
+
+FRAME_KEY = ["session", "camera", "utime"]
+
+
+def _voc_all_point(tp: np.ndarray, scores: np.ndarray, n_gt: int) -> float:
+    """VOC all-point interpolated AP (the area under the monotone precision envelope)."""
+    tp = np.asarray(tp).astype(bool)
+    return _weighted_voc(np.asarray(scores, np.float64), tp, np.ones(len(tp)), float(n_gt))
+
+
+def coco_eval(gt: dict[str, Any], dets: list[dict[str, Any]]) -> tuple[float, float, float]:
+    """(VOC all-point AP at IoU 0.5, COCO AP@[.5:.95], COCO AP@.5) by pycocotools' COCOeval.
+
+    The matching (greedy by score, crowd-free, at IoU 0.5) is COCOeval's; the all-point area is
+    integrated from its per-detection matches at IoU 0.5. Frames without a change box count as
+    images with no ground truth: their detections are false positives only.
+    """
+    import contextlib
+    import io
+
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    n_gt = len(gt["annotations"])
+    if n_gt == 0:
+        return float("nan"), float("nan"), float("nan")
+    with contextlib.redirect_stdout(io.StringIO()):
+        cg = COCO()
+        cg.dataset = gt
+        cg.createIndex()
+        if not dets:
+            return 0.0, 0.0, 0.0
+        cd = cg.loadRes(dets)
+        ev = COCOeval(cg, cd, "bbox")
+        ev.params.maxDets = [1, 10, 100]
+        ev.evaluate()
+        ev.accumulate()
+        ev.summarize()
+    tps, scs = [], []
+    t50 = 0  # iouThrs[0] = 0.5
+    for e in ev.evalImgs:
+        if e is None or e["aRng"] != ev.params.areaRng[0]:
+            continue
+        m = np.asarray(e["dtMatches"])[t50]
+        ign = np.asarray(e["dtIgnore"])[t50].astype(bool)
+        tps.append((m > 0)[~ign])
+        scs.append(np.asarray(e["dtScores"])[~ign])
+    tp = np.concatenate(tps) if tps else np.zeros(0)
+    sc = np.concatenate(scs) if scs else np.zeros(0)
+    return _voc_all_point(tp, sc, n_gt), float(ev.stats[0]), float(ev.stats[1])
+
+
+def coco_ground_truth(
+    fr: pd.DataFrame, ann: pd.DataFrame, ids: dict[tuple[str, str, int], int]
+) -> dict[str, Any]:
+    """The annotated query frames as a COCO ground truth (category 1 = change)."""
+    annotated = ann[["session", "camera", "utime"]].drop_duplicates()
+    keyset = {(str(s), str(c), int(u)) for s, c, u in annotated.to_numpy()}
+    imgs = [
+        {"id": ids[k], "width": int(w), "height": int(h)}
+        for k, w, h in zip(
+            map(tuple, fr[FRAME_KEY].to_numpy().tolist()), fr["width"], fr["height"], strict=True
+        )
+        if (str(k[0]), str(k[1]), int(k[2])) in keyset
+    ]
+    anns: list[dict[str, Any]] = []
+    chg = ann[ann["status"] == "change"]
+    for r in chg.itertuples():
+        k = (str(r.session), str(r.camera), int(r.utime))
+        if k not in ids:
+            continue
+        w, h = float(r.x2 - r.x1), float(r.y2 - r.y1)
+        anns.append(
+            {
+                "id": len(anns) + 1,
+                "image_id": ids[k],
+                "category_id": 1,
+                "bbox": [float(r.x1), float(r.y1), w, h],
+                "area": w * h,
+                "iscrowd": 0,
+            }
+        )
+    return {"images": imgs, "annotations": anns, "categories": [{"id": 1, "name": "change"}]}
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of every box of ``a`` (n, 4: x1 y1 x2 y2) with every box of ``b`` (m, 4), as COCO's."""
+    if not len(a) or not len(b):
+        return np.zeros((len(a), len(b)))
+    iw = np.clip(
+        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
+    )
+    ih = np.clip(
+        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
+    )
+    inter = iw * ih
+    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    union = area_a[:, None] + area_b[None, :] - inter
+    return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
+
+
+def match50(iou: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """COCOeval's greedy matching at IoU 0.5 of one image's detections, in score order.
+
+    Each detection (rows of ``iou``, taken in ``order``) takes the not yet matched ground-truth box
+    of largest IoU >= 0.5 (the last of equals, as COCOeval's loop does). Returns the true-positive
+    flag of each detection in ``order``.
+    """
+    taken = np.zeros(iou.shape[1], bool)
+    tp = np.zeros(len(order), bool)
+    for j, d in enumerate(order):
+        best, m = 0.5, -1
+        for g in range(iou.shape[1]):
+            if taken[g] or iou[d, g] < best:
+                continue
+            best, m = iou[d, g], g
+        if m >= 0:
+            taken[m] = tp[j] = True
+    return tp
+
+
+def _weighted_voc(scores: np.ndarray, tp: np.ndarray, w: np.ndarray, n_gt: float) -> float:
+    """VOC all-point AP where detection i counts ``w[i]`` times (bootstrap multiplicities)."""
+    if n_gt <= 0:
+        return float("nan")
+    order = np.argsort(-scores, kind="stable")
+    ww, t = w[order], tp[order]
+    ctp, cfp = np.cumsum(ww * t), np.cumsum(ww * ~t)
+    rec = ctp / n_gt
+    prec = ctp / np.maximum(ctp + cfp, np.finfo(np.float64).eps)
+    mrec = np.concatenate([[0.0], rec, [1.0]])
+    mpre = np.maximum.accumulate(np.concatenate([[0.0], prec, [0.0]])[::-1])[::-1]
+    i = np.flatnonzero(mrec[1:] != mrec[:-1])
+    return float(np.sum((mrec[i + 1] - mrec[i]) * mpre[i + 1]))
+
+
+def _frame_dets(
+    boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, nms: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """(scores, true-positive flags) of one frame's detections: ``nms`` keeps, COCO matches."""
+    keep = np.asarray(nms(boxes, scores), np.int64)
+    if not len(keep):
+        return np.zeros(0), np.zeros(0, bool)
+    sc = scores[keep]
+    order = np.argsort(-sc, kind="stable")
+    tp = np.zeros(len(keep), bool)
+    tp[order] = match50(iou_matrix(boxes[keep], gt), order)
+    return sc, tp
+
+
+def table_d_chance(
+    cands: dict[int, np.ndarray],
+    gts: dict[int, np.ndarray],
+    dets: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
+    nms: Any,
+    draws: int,
+    n_boot: int,
+    ci: float,
+    seed: int,
+) -> dict[str, dict[str, Any]]:
+    """SPEC 9 for Table D's AP50: floor, band, ceiling, recall, intervals and verdicts.
+
+    Args:
+        cands: the candidate boxes (x1 y1 x2 y2) of each annotated image id.
+        gts: the annotated change boxes of each annotated image id (empty: no-change).
+        dets: per row (``detector``, ``random``) and image id, the (boxes, scores) it kept.
+        nms: ``nms(boxes, scores) -> kept indices`` (the detector's own NMS and cap).
+        draws: random score draws for the floor.
+        n_boot: bootstrap resamples of annotated frames for the intervals.
+        ci: interval level.
+        seed: seeds the draws and the resamples.
+
+    Returns:
+        per row: ``ap50`` (this matcher's; equal to COCOeval's), ``ci_low``/``ci_high``,
+        ``vs_random_ci_low``/``_high``, ``verdict``; under ``"chance"``: ``floor``, ``chance_low``,
+        ``chance_high``, ``ceiling``, ``candidate_recall``.
+    """
+    ids = sorted(gts)
+    n_gt = sum(len(gts[i]) for i in ids)
+    rng = np.random.default_rng(chance.draw_seed(seed, "D", n_gt, len(ids)))
+    aps = np.empty(draws)
+    for b in range(draws):
+        sc, tp = [], []
+        for i in ids:
+            s_, t_ = _frame_dets(cands[i], rng.random(len(cands[i])), gts[i], nms)
+            sc.append(s_)
+            tp.append(t_)
+        s_all, t_all = np.concatenate(sc), np.concatenate(tp)
+        aps[b] = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
+    floor, lo, hi = chance.summarise(aps)
+    sc, tp = [], []
+    matched = 0
+    for i in ids:
+        iou = iou_matrix(cands[i], gts[i])
+        best = iou.max(axis=1) if iou.shape[1] else np.zeros(len(cands[i]))
+        matched += int((iou.max(axis=0) >= 0.5).sum()) if len(cands[i]) else 0
+        s_, t_ = _frame_dets(cands[i], best, gts[i], nms)
+        sc.append(s_)
+        tp.append(t_)
+    ceiling = _weighted_voc(
+        np.concatenate(sc), np.concatenate(tp), np.ones(sum(map(len, sc))), n_gt
+    )
+    out: dict[str, dict[str, Any]] = {
+        "chance": {
+            "floor": floor,
+            "chance_low": lo,
+            "chance_high": hi,
+            "ceiling": ceiling,
+            "candidate_recall": matched / n_gt if n_gt else float("nan"),
+        }
+    }
+    counts = resample_counts(len(ids), n_boot, chance.draw_seed(seed, "D-boot", len(ids)))
+    gt_n = np.array([len(gts[i]) for i in ids], np.float64)
+    boots = {}
+    for row, per in dets.items():
+        sc, tp, img = [], [], []
+        for k, i in enumerate(ids):
+            boxes, scores = per.get(i, (np.zeros((0, 4)), np.zeros(0)))
+            order = np.argsort(-scores, kind="stable")
+            t_ = np.zeros(len(scores), bool)
+            t_[order] = match50(iou_matrix(boxes, gts[i]), order)
+            sc.append(scores)
+            tp.append(t_)
+            img.append(np.full(len(scores), k))
+        s_all, t_all, g_all = np.concatenate(sc), np.concatenate(tp), np.concatenate(img)
+        ap = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
+        boots[row] = np.array(
+            [
+                _weighted_voc(s_all, t_all, c[g_all].astype(np.float64), float(c @ gt_n))
+                for c in counts
+            ]
+        )
+        bl, bh = interval(boots[row], ci)
+        out[row] = {"ap50": ap, "ci_low": bl, "ci_high": bh}
+    for row in dets:
+        d = boots[row] - boots.get("random", np.full(len(counts), np.nan))
+        dl, dh = interval(d, ci)
+        out[row].update({"vs_random_ci_low": dl, "vs_random_ci_high": dh})
+        out[row]["verdict"] = chance.verdict(out[row]["ap50"], lo, hi, dl, dh)
+    return out
+
+
+def _by_image(
+    d: pd.DataFrame, ids: dict[tuple[str, str, int], int], on: set[int], score: str
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """(boxes x1 y1 x2 y2, scores) of each image id in ``on``, from rows keyed by frame."""
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    keycols = [c for c in d.columns if c in ("session", "q_session")]
+    cols = (
+        ["session", "camera", "utime"]
+        if keycols == ["session"]
+        else ["q_session", "q_camera", "q_utime"]
+    )
+    for k, g in d.groupby(cols, sort=True):
+        i = ids.get((str(k[0]), str(k[1]), int(k[2])))
+        if i in on:
+            out[i] = (
+                g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
+                g[score].to_numpy(np.float64),
+            )
+    return out
+
+
+#: Table D's rows: the detector and the random baseline (one draw of random scores, same NMS).
+D_ROWS = {"detection": "detector", "random": "random scores, same boxes (one draw)"}
+
+
+def score_detections(
+    out: Path,
+    fr: pd.DataFrame,
+    ann: pd.DataFrame,
+    dets: pd.DataFrame,
+    ids: dict[tuple[str, str, int], int],
+    cands: pd.DataFrame,
+    nms: Any,
+    draws: int = chance.MIN_DRAWS,
+    n_boot: int = 1000,
+    ci: float = 0.95,
+    seed: int = 0,
+    boxes: str = "fused",
+    alarm: float = 0.01,
+) -> pd.DataFrame | None:
+    """Table D: the detector's box APs on the annotated query frames, with SPEC 9's floor.
+
+    ``cands`` are the candidate boxes (every fused qBB of the annotated frames, keyed by
+    ``q_session, q_camera, q_utime``); ``nms`` the detector's NMS (see :func:`table_d_chance`).
+    """
+    gt = coco_ground_truth(fr, ann, ids)
+    if not gt["images"]:
+        return None
+    on = {i["id"] for i in gt["images"]}
+    write_json(out / "ground_truth.json", gt)
+    gts = {i: np.zeros((0, 4)) for i in on}
+    for a in gt["annotations"]:
+        x, y, w, h = a["bbox"]
+        gts[a["image_id"]] = np.vstack([gts[a["image_id"]], [x, y, x + w, y + h]])
+    cand = {i: b for i, (b, _) in _by_image(cands, ids, on, "loc").items()}
+    cand.update({i: np.zeros((0, 4)) for i in on - set(cand)})
+    per_row = {kind: _by_image(dets[dets["kind"] == kind], ids, on, "score") for kind in D_ROWS}
+    ch = table_d_chance(
+        cand, gts, {"detector": per_row["detection"], "random": per_row["random"]}, nms,
+        draws, n_boot, ci, seed,
+    )  # fmt: skip
+    rows = []
+    for kind, label in D_ROWS.items():
+        d = dets[dets["kind"] == kind]
+        res = [
+            {
+                "image_id": ids[k],
+                "category_id": 1,
+                "score": float(s),
+                "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)],
+            }
+            for k, x1, y1, x2, y2, s in zip(
+                map(tuple, d[FRAME_KEY].to_numpy().tolist()),
+                d["x1"],
+                d["y1"],
+                d["x2"],
+                d["y2"],
+                d["score"],
+                strict=True,
+            )
+            if ids.get((str(k[0]), str(k[1]), int(k[2]))) in on
+        ]
+        voc, coco, coco50 = coco_eval(gt, res)
+        c = ch["detector" if kind == "detection" else "random"]
+        rows.append(
+            {
+                "row": label,
+                "ap50_voc_all_point": voc,
+                "ci_low": c["ci_low"],
+                "ci_high": c["ci_high"],
+                **ch["chance"],
+                "gap_closed": chance.gap_closed(
+                    voc, ch["chance"]["floor"], ch["chance"]["ceiling"]
+                ),
+                "vs_random_ci_low": c["vs_random_ci_low"],
+                "vs_random_ci_high": c["vs_random_ci_high"],
+                "verdict": c["verdict"],
+                "coco_ap_50_95": coco,
+                "coco_ap_50": coco50,
+                "annotated_frames": len(gt["images"]),
+                "change_boxes": len(gt["annotations"]),
+                "detections": len(res),
+                "matcher_ap50": c["ap50"],
+            }
+        )
+    t = pd.DataFrame(rows)
+    t.insert(1, "boxes", boxes)
+    # SPEC 13.1: the false-alarm rate measured on frames annotated no-change, at the nominal one
+    quiet = ann[ann["status"] == "no-change"][["session", "camera", "utime"]].drop_duplicates()
+    if "exceedance" in fr.columns and len(quiet):
+        q = fr.merge(quiet, on=["session", "camera", "utime"])
+        t["alarm_nominal"] = alarm
+        t["no_change_frames"] = len(q)
+        k = int((q["exceedance"] <= alarm).sum())
+        t["alarm_measured"] = k / len(q) if len(q) else np.nan
+        t["alarm_ci_low"], t["alarm_ci_high"] = clopper_pearson(k, len(q), ci)
+    write_text(out / "tableD.csv", t.to_csv(index=False, float_format="%.4f"))
+    write_text(out / "tableD.md", table_d_markdown(t))
+    return t
+
+
+def clopper_pearson(k: int, n: int, ci: float = 0.95) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) interval of a rate of ``k`` in ``n`` at level ``ci``."""
+    from scipy.stats import beta
+
+    if n == 0:
+        return float("nan"), float("nan")
+    a = (1.0 - ci) / 2.0
+    lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1.0 - a, k + 1, n - k))
+    return lo, hi
+
+
+def table_d_markdown(t: pd.DataFrame) -> str:
+    """Table D as markdown, with what each column measures and SPEC 9's floor, band, ceiling."""
+    c = t.iloc[0]
+    lines = [
+        "# Table D: change boxes on the annotated query frames"
+        + (f" (boxes: {c.boxes})" if "boxes" in t.columns else ""),
+        "",
+        "Box AP of the detector's change boxes (SPEC 13) against the annotated change boxes, by "
+        "pycocotools' COCOeval: AP at IoU 0.5 with VOC all-point interpolation (the metric of "
+        "'The Change You Want to See', WACV 2023) with its 95% bootstrap interval over annotated "
+        "frames, COCO AP@[.5:.95] and COCO AP@.5 (101-point). Frames annotated no-change "
+        "contribute false positives only.",
+        "",
+        "| | AP50 (VOC all-point) [95% CI] | verdict | COCO AP@[.5:.95] | COCO AP@.5 | frames | "
+        "change boxes | detections |",
+        "|---|---:|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in t.itertuples():
+        lines.append(
+            f"| {r.row} | {r.ap50_voc_all_point:.3f} [{r.ci_low:.3f}, {r.ci_high:.3f}] | "
+            f"{chance.VERDICT_WORDS[r.verdict]} | {r.coco_ap_50_95:.3f} | {r.coco_ap_50:.3f} | "
+            f"{r.annotated_frames} | {r.change_boxes} | {r.detections} |"
+        )
+    lines += [
+        "",
+        "| AP50 of the candidate boxes | value |",
+        "|---|---:|",
+        f"| floor (mean AP50 of random scores on the same candidates, same NMS) | {c.floor:.3f} |",
+        f"| chance band (5th-95th percentile of those draws) | {c.chance_low:.3f}-"
+        f"{c.chance_high:.3f} |",
+        f"| ceiling (candidates scored by their best IoU with a change box, same NMS) | "
+        f"{c.ceiling:.3f} |",
+        f"| candidates' recall at IoU 0.5 (change boxes some candidate meets) | "
+        f"{c.candidate_recall:.3f} |",
+        f"| share of the reachable gap the detector closes, (AP - floor) / (ceiling - floor) | "
+        f"{_pct(c.gap_closed)} |",
+        *(
+            [
+                f"| nominal false-alarm rate (frames whose calibrated score is at most it) | "
+                f"{c.alarm_nominal:g} |",
+                f"| false-alarm rate measured on the {int(c.no_change_frames)} frames annotated "
+                f"no-change [95% exact interval] | {c.alarm_measured:.3f} "
+                f"[{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] |",
+            ]
+            if "alarm_measured" in t.columns and int(c.no_change_frames)
+            else []
+        ),
+        "",
+        f"Verdict (SPEC 9): {chance.MARK_LEGEND}",
+    ]
+    from harness.detect.page import table_d_warnings
+
+    lines += ["", *table_d_warnings(t)]
+    return "\n".join(lines) + "\n"
+
+
+def _pct(v: float) -> str:
+    return "NaN" if v != v else f"{100 * v:.0f}%"

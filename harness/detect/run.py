@@ -1,0 +1,694 @@
+"""``harness detect``: the maintenance-free change detector on a robot's new session (SPEC 13).
+
+Given a map (reference) session and one or more new (query) sessions of a config, every query
+frame (thinned by ``[pairs] stride_m``) is paired with the map by pose (SPEC section 4), its
+subimages are ranked by the config's localizer(s) (SPEC sections 6 and 11), and the ranks are
+fused (SPEC section 7, ``[detect] method``, default ``rank_fusion``; across localizers when there
+are several) into:
+
+- change boxes: the fused qBBs in descending LoC after greedy non-maximum suppression at IoU
+  ``[detect] nms_iou`` (OpenCV's ``dnn.NMSBoxes``), at most ``max_boxes`` per frame;
+- the frame's change score: the largest LoC of its samples;
+- the pixel-wise LoC map of the frames shown (float16 arrays and colour overlays).
+
+Annotations are optional; where some query frames are annotated, the detections are scored
+(Table D) with pycocotools: box AP at IoU 0.5 with VOC all-point interpolation (the metric of "The
+Change You Want to See", WACV 2023) and COCO AP@[.5:.95], beside a floor (random scores on the
+same fused qBBs, through the same NMS). Work is cached per chunk of query frames (an interrupted
+run resumes at the next chunk) and mapped through the run's executor (local or Ray).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from harness.config.load import ALL_LOCALIZERS, Config
+from harness.errors import ConfigError, HarnessError
+from harness.fusion.fuse import fuse_samples, loc_map
+from harness.imagestore import read_image
+from harness.pipeline import keys
+from harness.runtime.cache import (
+    read_cached_parquet,
+    stable_hash,
+    write_json,
+    write_parquet,
+    write_text,
+)
+from harness.runtime.progress import progress
+
+log = logging.getLogger(__name__)
+
+FRAME_KEY = ["session", "camera", "utime"]
+Q_KEY = ["q_session", "q_camera", "q_utime"]
+#: A frame's result after its frame key and map session: its score (the largest LoC), the kept
+#: boxes and fused samples, and the best box.
+FRAME_RESULT = ["score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_y2"]
+
+
+@dataclass(frozen=True)
+class DetectOptions:
+    """``harness detect``'s choices (SPEC 13); defaults are SPEC's."""
+
+    method: str = "rank_fusion"
+    nms_iou: float = 0.5
+    max_boxes: int = 10
+    chunk_frames: int = 64  # query frames per cached unit (the unit a killed run resumes at)
+    top: int = 10  # most changed places on the map and the page
+    seed: int = 0
+    boxes: str = "fused"  # the box generator (SPEC 13.1, [detect] boxes)
+    box_score: str = "max"  # locmap / proposals: the LoC inside a box, max or mean
+    locmap_level: float = 0.5  # locmap: the level, a share of the frame's LoC range
+
+
+def change_boxes_nms(
+    boxes: np.ndarray, loc: np.ndarray, nms_iou: float, max_boxes: int
+) -> np.ndarray:
+    """Indices of the kept boxes: descending LoC, greedy NMS at ``nms_iou``, at most ``max_boxes``.
+
+    OpenCV's ``dnn.NMSBoxes`` on (x, y, w, h); boxes without a finite LoC never enter.
+    """
+    ok = np.flatnonzero(np.isfinite(loc))
+    if not len(ok):
+        return np.zeros(0, np.int64)
+    b = boxes[ok]
+    xywh = np.column_stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]])
+    order = np.argsort(-loc[ok], kind="stable")  # ties: the earlier box first, every run
+    xywh, sc, ok = xywh[order], loc[ok][order], ok[order]
+    # scores are shifted to [0, 1] order-preservingly: NMSBoxes' threshold is on raw scores
+    rank_score = (np.arange(len(sc), 0, -1) / len(sc)).astype(np.float32)
+    keep = cv2.dnn.NMSBoxes(
+        [tuple(map(float, r)) for r in xywh], rank_score.tolist(), 0.0, nms_iou, top_k=max_boxes
+    )
+    idx = np.asarray(keep, np.int64).reshape(-1)
+    idx = idx[np.argsort(-rank_score[idx], kind="stable")][:max_boxes]
+    return ok[idx].astype(np.int64)
+
+
+def _inside(m: np.ndarray, box: np.ndarray, how: str) -> float:
+    """The LoC map's ``max`` or ``mean`` over the pixels centred in ``box`` (NaN: none)."""
+    h, w = m.shape
+    x1, y1, x2, y2 = box
+    u0, u1 = max(int(np.ceil(x1 - 0.5)), 0), min(int(np.ceil(x2 - 0.5)), w)
+    v0, v1 = max(int(np.ceil(y1 - 0.5)), 0), min(int(np.ceil(y2 - 0.5)), h)
+    part = m[v0:v1, u0:u1]
+    if not part.size or not np.isfinite(part).any():
+        return float("nan")
+    return float(np.nanmax(part) if how == "max" else np.nanmean(part))
+
+
+def candidate_boxes(
+    generator: str,
+    fused: np.ndarray,
+    loc: np.ndarray,
+    originals: np.ndarray,
+    width: int,
+    height: int,
+    how: str = "max",
+    level: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's candidate change boxes and their scores under a box generator (SPEC 13.1).
+
+    ``fused``: the fused qBBs and their LoC. ``proposals``: the original proposals (``originals``,
+    duplicates merged), each scored by the ``how`` (max or mean) of the pixel-wise LoC map inside
+    it. ``locmap``: the LoC map thresholded at ``lo + level * (hi - lo)`` of the frame's range,
+    the bounding boxes of its 8-connected regions (``cv2.connectedComponentsWithStats``), each
+    scored by the ``how`` of the LoC over the region's own pixels.
+
+    Returns:
+        (boxes (k, 4) in pixels, scores (k,), NaN where a box holds no mapped pixel).
+    """
+    fused = np.asarray(fused, np.float64).reshape(-1, 4)
+    loc = np.asarray(loc, np.float64)
+    if generator == "fused":
+        return fused, loc
+    m = loc_map(fused, loc, width, height)
+    if generator == "proposals":
+        boxes = np.unique(np.asarray(originals, np.float64).reshape(-1, 4), axis=0)
+        return boxes, np.array([_inside(m, b, how) for b in boxes], np.float64)
+    if generator != "locmap":
+        raise ConfigError(f"[detect] boxes = {generator!r}: fused, locmap or proposals")
+    ok = np.isfinite(m)
+    if not ok.any():
+        return np.zeros((0, 4)), np.zeros(0)
+    lo, hi = float(m[ok].min()), float(m[ok].max())
+    mask = (ok & (m >= lo + level * (hi - lo))).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    found: list[tuple[int, int, int, int]] = []
+    scores: list[float] = []
+    for i in range(1, n):
+        x, y, w, h = (int(v) for v in stats[i, :4])
+        vals = m[labels == i]
+        found.append((x, y, x + w, y + h))
+        scores.append(float(vals.max() if how == "max" else vals.mean()))
+    return np.asarray(found, np.float64).reshape(-1, 4), np.asarray(scores, np.float64)
+
+
+def _nms(boxes: np.ndarray, scores: np.ndarray, nms_iou: float, max_boxes: int) -> np.ndarray:
+    """The detector's NMS as a function of (boxes, scores), for Table D's chance draws."""
+    return change_boxes_nms(boxes, scores, nms_iou, max_boxes)
+
+
+def detect_chunk(
+    ranks: pd.DataFrame,
+    frames: pd.DataFrame,
+    opt: DetectOptions,
+    max_fused: int,
+    rrf_c: float,
+    tmp: Path,
+) -> dict[str, int]:
+    """Fusion, change boxes and frame scores of one chunk of query frames into ``tmp``.
+
+    ``boxes.parquet``: every change box (frame key, rank within the frame, box, LoC);
+    ``frames.parquet``: one row per frame (key, map frame, score, boxes, samples); and, for the
+    LoC maps drawn later, ``samples.parquet`` (every fused qBB with its LoC).
+    """
+    qk = ranks[Q_KEY].drop_duplicates()
+    # every query frame of the chunk as "annotated, no change": fusion then covers them all
+    ann = pd.DataFrame(
+        {
+            "session": qk["q_session"].to_numpy(),
+            "camera": qk["q_camera"].to_numpy(),
+            "utime": qk["q_utime"].to_numpy(),
+            "status": "no-change",
+            "x1": np.nan,
+            "y1": np.nan,
+            "x2": np.nan,
+            "y2": np.nan,
+            "label": "",
+        }
+    )
+    samples, counts = fuse_samples(
+        ranks,
+        frames,
+        ann,
+        opt.seed,
+        max_fused,
+        methods=(opt.method, "random"),
+        progress=partial(progress, desc="detect", unit="frame"),
+        rrf_c=rrf_c,
+    )
+    samples = samples[samples["proposals"] == "all"].reset_index(drop=True)
+    col = f"loc_{opt.method}"
+    size = {
+        (str(s), str(c), int(u)): (int(w), int(h))
+        for s, c, u, w, h in frames[[*FRAME_KEY, "width", "height"]].itertuples(index=False)
+    }
+    orig = {
+        (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        for k, g in ranks.groupby(Q_KEY, sort=False)
+    }
+    rows, frow, cand_parts = [], [], []
+    for key, g in samples.groupby([*Q_KEY, "r_session"], sort=True):
+        fk = (str(key[0]), str(key[1]), int(key[2]))
+        fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        floc = g[col].to_numpy(np.float64)
+        if opt.boxes == "fused":
+            boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
+        else:
+            boxes, loc = candidate_boxes(
+                opt.boxes, fused, floc, orig[fk], *size[fk], opt.box_score, opt.locmap_level
+            )
+            # the random row: uniform scores on the same candidates, seeded by the frame
+            rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(
+                len(boxes)
+            )
+        keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
+        rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
+        for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
+            for j, i in enumerate(idx):
+                rows.append((*key[:3], kind, j, *boxes[i], float(sc[i])))
+        cand_parts.append(
+            pd.DataFrame(
+                {
+                    "q_session": fk[0],
+                    "q_camera": fk[1],
+                    "q_utime": np.full(len(boxes), fk[2], np.int64),
+                    **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
+                    "loc": loc,
+                }
+            )
+        )
+        top = boxes[keep[0]] if len(keep) else np.full(4, np.nan)
+        frow.append(
+            (
+                *key,
+                float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan,
+                len(keep),
+                len(g),
+                *top,
+            )
+        )
+    cands = (
+        pd.concat(cand_parts, ignore_index=True)
+        if cand_parts
+        else pd.DataFrame(columns=[*Q_KEY, "x1", "y1", "x2", "y2", "loc"])
+    )
+    write_parquet(tmp / "candidates.parquet", cands)
+    write_parquet(
+        tmp / "boxes.parquet",
+        pd.DataFrame(rows, columns=[*FRAME_KEY, "kind", "rank", "x1", "y1", "x2", "y2", "score"]),
+    )
+    write_parquet(
+        tmp / "frames.parquet",
+        pd.DataFrame(
+            frow,
+            columns=[*FRAME_KEY, "r_session", *FRAME_RESULT],
+        ),
+    )
+    write_parquet(
+        tmp / "samples.parquet",
+        samples[[*Q_KEY, "x1", "y1", "x2", "y2", "N", col]].rename(columns={col: "loc"}),
+    )
+    return {"frames": len(frow), "capped_closures": int(counts.get("capped_closures", 0))}
+
+
+def run_detect(
+    cfg: Config,
+    map_session: str,
+    query_sessions: list[str],
+    out: Path,
+    opt: DetectOptions | None = None,
+    executor: Any = None,
+    rerun: Path | None = None,
+    alarm: float | None = None,
+) -> dict[str, Any]:
+    """The detector on ``query_sessions`` against ``map_session`` into ``out`` (SPEC 13).
+
+    With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.detect.rerun`).
+
+    Raises:
+        ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
+    """
+    from harness.methods import DETECT_METHODS
+    from harness.pipeline.chain import (
+        Measured,
+        Pipeline,
+        Table,
+        across_localizers,
+        localizer_fusion,
+        localizer_ranks,
+        session_proposals,
+        until_pairs,
+    )
+    from harness.runtime.executors import LocalExecutor
+
+    opt = opt or DetectOptions()
+    names = [s.name for s in cfg.sessions]
+    for s in [map_session, *query_sessions]:
+        if s not in names:
+            raise ConfigError(f"detect: session {s!r} is not in the config; sessions: {names}")
+    if map_session in query_sessions or len(set(query_sessions)) != len(query_sessions):
+        raise ConfigError(
+            f"detect: --map {map_session} and --query {query_sessions}: each session once, the "
+            "map not among the queries"
+        )
+    if opt.method not in DETECT_METHODS:
+        raise ConfigError(f"detect: method {opt.method!r}: one of {', '.join(DETECT_METHODS)}")
+    if rerun is not None:
+        check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
+    alarm = cfg.detect.alarm if alarm is None else alarm
+    if not 0 < alarm < 1:
+        raise ConfigError(f"detect: --alarm {alarm}: a false-alarm rate in (0, 1), e.g. 0.01")
+    if opt.boxes not in ("fused", "locmap", "proposals"):
+        raise ConfigError(f"detect: --boxes {opt.boxes!r}: one of fused, locmap, proposals")
+    if not 0 < opt.nms_iou <= 1 or opt.max_boxes < 1:
+        raise ConfigError(
+            f"detect: nms_iou {opt.nms_iou} must be in (0, 1] and max_boxes {opt.max_boxes} >= 1"
+        )
+    keep = [s for s in cfg.sessions if s.name in (map_session, *query_sessions)]
+    dcfg = dataclasses.replace(
+        cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
+    )
+    t0 = time.perf_counter()
+    p = Pipeline(
+        dcfg,
+        Path(out),
+        executor=executor or LocalExecutor(),
+        annotations_optional=True,
+        train_sessions=(map_session,),  # the model sees the map alone, never the new session
+    )
+    with p.locked():
+        ingested, frames, ann, pairs_all = until_pairs(p)
+        sel = (pairs_all.df["r_session"] == map_session) & pairs_all.df["q_session"].isin(
+            query_sessions
+        )
+        pairs = Table(
+            pairs_all.df[sel].reset_index(drop=True),
+            stable_hash("detect-pairs", pairs_all.key, map_session, sorted(query_sessions)),
+        )
+        if not len(pairs.df):
+            raise HarnessError(
+                f"detect: no frame of {query_sessions} found a map frame of {map_session} within "
+                "[pairs] max_distance_m and max_yaw_diff_deg"
+            )
+        props = session_proposals(p, frames, pairs, ingested)
+        measured = []
+        for loc in p.localizer_list:
+            ranks = localizer_ranks(p, loc, frames, pairs, props)
+            fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
+            measured.append(Measured(loc, ranks, fusion, notes))
+        ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
+        names_l = [m.loc.name for m in measured]
+        chunk_units: list[tuple[tuple[Any, ...], Any]] = []
+        qframes = ranks.df[Q_KEY].drop_duplicates().sort_values(Q_KEY).reset_index(drop=True)
+        for c0 in range(0, len(qframes), opt.chunk_frames):
+            part = qframes.iloc[c0 : c0 + opt.chunk_frames]
+            mask = pd.MultiIndex.from_frame(ranks.df[Q_KEY]).isin(pd.MultiIndex.from_frame(part))
+            build = partial(
+                detect_chunk,
+                ranks.df[mask].reset_index(drop=True),
+                frames.df,
+                opt,
+                dcfg.fusion.max_fused_boxes,
+                dcfg.fusion.rrf_c,
+            )
+            key = (
+                "detect",
+                ranks.key,
+                dataclasses.asdict(opt) | {"chunk_frames": None},
+                c0,
+                len(part),
+                keys.fusion_method_fingerprints((opt.method,)),
+                *((dcfg.fusion.rrf_c,) if opt.method == "rrf" else ()),
+            )
+            chunk_units.append((key, build))
+        entries = p.units("detect", chunk_units)
+        dets = pd.concat(
+            [read_cached_parquet(e.path / "boxes.parquet") for e in entries], ignore_index=True
+        )
+        fr = pd.concat(
+            [read_cached_parquet(e.path / "frames.parquet") for e in entries], ignore_index=True
+        )
+        record = write_outputs(
+            p,
+            dcfg,
+            map_session,
+            query_sessions,
+            frames.df,
+            pairs.df,
+            ann.df,
+            dets,
+            fr,
+            entries,
+            opt,
+            names_l,
+            alarm,
+        )
+        record["cache_entries"] = {"detect": [e.path.name for e in entries]}
+        if rerun is not None:
+            record["rerun"] = write_rerun(
+                Path(rerun), p.out, frames.df, map_session, fr, dets, entries, opt
+            )
+        record["total_s"] = round(time.perf_counter() - t0, 3)
+        record["ms_per_query_frame"] = round(1000 * record["total_s"] / max(len(fr), 1), 2)
+        write_json(p.out / "detect.json", record)
+    return record
+
+
+def check_rerun_target(path: Path) -> None:
+    """Refuse a ``--rerun`` path that exists and is not a recording ``harness detect`` wrote.
+
+    Raises:
+        ConfigError: the path is a folder, or a file of someone else's (never replaced).
+    """
+    from harness.detect.rerun import APPLICATION, _sdk
+
+    if path.is_dir():
+        raise ConfigError(f"--rerun {path}: is a folder; give the .rrd file to write")
+    if not path.exists():
+        if not path.parent.is_dir():
+            raise ConfigError(f"--rerun {path}: its folder {path.parent} does not exist")
+        return
+    rr = _sdk()
+    from rerun.chunk import RrdReader
+
+    try:
+        apps = {s.application_id for s in RrdReader(path).recordings()}
+    except Exception:  # an unreadable or foreign file: not ours to replace
+        apps = set()
+    del rr
+    if apps != {APPLICATION}:
+        raise ConfigError(
+            f"--rerun {path}: exists and is not a recording harness detect wrote; it is never "
+            "replaced: remove it or choose another path"
+        )
+
+
+def write_rerun(
+    path: Path,
+    out: Path,
+    frames: pd.DataFrame,
+    map_session: str,
+    fr: pd.DataFrame,
+    dets: pd.DataFrame,
+    entries: list[Any],
+    opt: DetectOptions,
+) -> dict[str, Any]:
+    """The run's Rerun recording at ``path``, written beside it and moved into place whole."""
+    import os
+
+    from harness.detect.rerun import recording_id, write_recording
+
+    check_rerun_target(path)
+    fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "image"]], on=FRAME_KEY)
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        counts = write_recording(
+            tmp,
+            frames,
+            map_session,
+            fr,
+            dets,
+            entries,
+            recording_id(out, dataclasses.asdict(opt)),
+        )
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return {"path": str(path), **counts}
+
+
+def _frame_name(s: str, c: str, u: int) -> str:
+    return f"{s}_{c}_{u}"
+
+
+def write_outputs(
+    p: Any,
+    cfg: Config,
+    map_session: str,
+    queries: list[str],
+    frames: pd.DataFrame,
+    pairs: pd.DataFrame,
+    ann: pd.DataFrame,
+    dets: pd.DataFrame,
+    fr: pd.DataFrame,
+    entries: list[Any],
+    opt: DetectOptions,
+    localizers: list[str],
+    alarm: float = 0.01,
+) -> dict[str, Any]:
+    """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
+
+    Also the alarms at the nominal false-alarm rate ``alarm`` (``alarms.csv``, SPEC 13.1).
+    """
+    out = p.out
+    fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "yaw", "image", "width", "height"]], on=FRAME_KEY)
+    fr = fr.merge(
+        pairs[[*Q_KEY, "r_camera", "r_utime"]].rename(
+            columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}
+        ),
+        on=FRAME_KEY,
+        how="left",
+    )
+    fr = fr.sort_values(FRAME_KEY).reset_index(drop=True)
+    fr.insert(0, "image_id", np.arange(1, len(fr) + 1))
+    ids = {(s, c, int(u)): int(i) for i, s, c, u in fr[["image_id", *FRAME_KEY]].to_numpy()}
+    images = [
+        {
+            "id": int(r.image_id),
+            "file_name": str(r.image).split("#")[0],
+            "width": int(r.width),
+            "height": int(r.height),
+            "session": str(r.session),
+            "camera": str(r.camera),
+            "utime": int(r.utime),
+            "rotation": str(r.image).split("#rot=")[1] if "#rot=" in str(r.image) else "none",
+        }
+        for r in fr.itertuples()
+    ]
+    write_json(
+        out / "images.json",
+        {"images": images, "categories": [{"id": 1, "name": "change", "supercategory": "change"}]},
+    )
+    # calibrated scores (SPEC 13.1): each box against every candidate box of the run, each
+    # frame against every frame, one chunk's candidates at a time
+    from harness.detect.calibrate import exceedance
+
+    null = np.concatenate(
+        [read_cached_parquet(e.path / "candidates.parquet")["loc"].to_numpy() for e in entries]
+        or [np.zeros(0)]
+    )
+    dets = dets.assign(
+        exceedance=np.where(
+            dets["kind"] == "detection", exceedance(null, dets["score"].to_numpy()), np.nan
+        )
+    )
+    fr = fr.assign(exceedance=exceedance(fr["score"].to_numpy(), fr["score"].to_numpy()))
+    det = dets[dets["kind"] == "detection"]
+    results = [
+        {
+            "image_id": ids[(str(r.session), str(r.camera), int(r.utime))],
+            "category_id": 1,
+            "bbox": [float(r.x1), float(r.y1), float(r.x2 - r.x1), float(r.y2 - r.y1)],
+            "score": float(r.score),
+            "exceedance": float(r.exceedance),
+        }
+        for r in det.itertuples()
+    ]
+    write_text(out / "detections.json", json.dumps(results))
+    table = fr[
+        [
+            "image_id",
+            *FRAME_KEY,
+            "x",
+            "y",
+            "yaw",
+            "r_session",
+            "r_camera",
+            "r_utime",
+            *FRAME_RESULT,
+            "exceedance",
+        ]
+    ]
+    write_parquet(out / "frames.parquet", table)
+    write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
+    flagged_f = fr[fr["exceedance"] <= alarm]
+    flagged_b = det[det["exceedance"] <= alarm]
+    alarms = pd.concat(
+        [
+            flagged_f.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
+            flagged_b.assign(kind="box")[
+                ["kind", *FRAME_KEY, "x1", "y1", "x2", "y2", "score", "exceedance"]
+            ],
+        ],
+        ignore_index=True,
+    ).sort_values(["kind", "exceedance", *FRAME_KEY, "x1", "y1"], kind="stable")
+    write_text(out / "alarms.csv", alarms.to_csv(index=False, float_format="%.6g"))
+    top = fr.sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
+    maps = locmaps(out, top, entries, dets)
+    from harness.detect.page import trajectory_figure
+
+    traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
+    from harness.detect.evaluate import score_detections
+
+    table_d = None
+    if len(ann):
+        annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
+        cands = []
+        for e in entries:  # candidates of the annotated frames only, one chunk at a time
+            sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
+            cands.append(sm[pd.MultiIndex.from_frame(sm[Q_KEY]).isin(annotated)])
+        table_d = score_detections(
+            out,
+            fr,
+            ann,
+            dets,
+            ids,
+            pd.concat(cands, ignore_index=True),
+            partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes),
+            cfg.report.chance_draws,
+            cfg.report.bootstrap,
+            cfg.report.ci,
+            cfg.seed,
+            opt.boxes,
+            alarm,
+        )
+    from harness.detect.page import write_detect_page
+
+    page = write_detect_page(
+        out, fr, top, dets, frames, maps, table_d, map_session, localizers, ann=ann
+    )
+    return {
+        "config": cfg.name,
+        "map": map_session,
+        "queries": queries,
+        "localizers": localizers,
+        "fused_across": ALL_LOCALIZERS if len(localizers) > 1 else None,
+        "options": dataclasses.asdict(opt),
+        "query_frames": len(fr),
+        "detections": len(results),
+        # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)
+        "alarm": {"rate": alarm, "frames": len(flagged_f), "boxes": len(flagged_b)},
+        "outputs": {
+            "detections": str(out / "detections.json"),
+            "images": str(out / "images.json"),
+            "frames": str(out / "frames.parquet"),
+            "trajectory": str(traj),
+            "page": str(page),
+            "locmaps": [str(m) for m in maps.values()],
+        },
+        "table_d": table_d.to_dict(orient="records") if table_d is not None else None,
+        "stage_units_run": p.ran,
+        "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
+    }
+
+
+def locmaps(
+    out: Path, top: pd.DataFrame, entries: list[Any], dets: pd.DataFrame
+) -> dict[tuple[str, str, int], Path]:
+    """LoC maps of the ``top`` frames: float16 ``.npy`` and a colour overlay with its bar."""
+    from harness.reports.overlay import colour_bar
+
+    want = set(map(tuple, top[FRAME_KEY].to_numpy().tolist()))
+    d = out / "locmaps"
+    d.mkdir(exist_ok=True)
+    written: dict[tuple[str, str, int], Path] = {}
+    for e in entries:
+        s = read_cached_parquet(e.path / "samples.parquet")
+        for key, g in s.groupby(Q_KEY, sort=True):
+            k = (str(key[0]), str(key[1]), int(key[2]))
+            if k not in want:
+                continue
+            r = top[(top["session"] == k[0]) & (top["camera"] == k[1]) & (top["utime"] == k[2])]
+            img = read_image(str(r["image"].iloc[0]))
+            h, w = img.shape[:2]
+            m = loc_map(
+                g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
+                g["loc"].to_numpy(np.float64),
+                w,
+                h,
+            )
+            name = _frame_name(*k)
+            np.save(d / f"{name}.npy", m.astype(np.float16))
+            lo, hi = float(np.nanmin(m)), float(np.nanmax(m))
+            norm = np.nan_to_num((m - lo) / (hi - lo) if hi > lo else np.zeros_like(m))
+            heat = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
+            over = (0.45 * img + 0.55 * heat).astype(np.uint8)
+            over[~np.isfinite(m)] = img[~np.isfinite(m)]
+            b = dets[
+                (dets["kind"] == "detection")
+                & (dets["session"] == k[0])
+                & (dets["camera"] == k[1])
+                & (dets["utime"] == k[2])
+            ]
+            for x1, y1, x2, y2 in b[["x1", "y1", "x2", "y2"]].to_numpy():
+                cv2.rectangle(
+                    over, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (0, 255, 255), 1
+                )
+            up = max(1, int(np.ceil(240 / w)))  # small frames: enlarged so the bar is legible
+            big = cv2.resize(over, (w * up, h * up), interpolation=cv2.INTER_NEAREST)
+            panel = np.vstack([big, colour_bar(w * up, lo, hi)])
+            cv2.imwrite(str(d / f"{name}.png"), panel[..., ::-1])
+            written[k] = d / f"{name}.png"
+    return written

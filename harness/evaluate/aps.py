@@ -1,0 +1,424 @@
+"""Pooled APs with bootstrap intervals and paired differences (SPEC section 9).
+
+Table I and S columns (:func:`_pooled_rows`), the per-proposal and per-season-pair breakdowns
+(:func:`_table_i_rows`) and Table P's pixel and image APs (:func:`_pixel_image_rows`).
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable
+from functools import partial
+
+import numpy as np
+import pandas as pd
+
+from harness.config.load import Config
+from harness.evaluate import chance
+from harness.evaluate.metrics import (
+    average_precision,
+    bootstrap_aps,
+    interval,
+    paired_difference,
+    resample_counts,
+    stratified_ap,
+    weighted_average_precision,
+)
+from harness.evaluate.splits import Split
+from harness.evaluate.splits import label as split_label
+from harness.fusion.fuse import pixel_regions
+from harness.ingest.annotations import change_boxes
+
+
+def _groups(df: pd.DataFrame) -> np.ndarray:
+    return (
+        df["q_session"].astype(str)
+        + "|"
+        + df["q_camera"].astype(str)
+        + "|"
+        + df["q_utime"].astype(str)
+        + "|"
+        + df["r_session"].astype(str)
+    ).to_numpy()
+
+
+def stratified_labels(roc: np.ndarray, split: Split) -> np.ndarray:
+    """SPEC section 8's size-stratified labels.
+
+    By RoC only (+1 positive, 0 negative, -1 left out).
+    """
+    pos = (roc >= split.pos_roc[0]) & (roc <= split.pos_roc[1])
+    neg = (roc >= split.neg_roc[0]) & (roc <= split.neg_roc[1])
+    out = np.full(len(roc), -1, np.int8)
+    out[neg] = 0
+    out[pos] = 1
+    return out
+
+
+class _Pooled:
+    """Pooled APs of one table column for every method, with bootstrap intervals.
+
+    Also the paired comparison with ``rank_fusion`` over the same resampled query images.
+    """
+
+    def __init__(self, cfg: Config, image_ids: dict[str, int], column: str) -> None:
+        self.cfg, self.ids, self.column = cfg, image_ids, column
+        self.counts = resample_counts(
+            len(image_ids), cfg.report.bootstrap, cfg.seed + (zlib.crc32(column.encode()) % 10_000)
+        )
+        self.rows: list[dict] = []
+        self.boot: dict[str, np.ndarray] = {}
+
+    def add(
+        self, method: str, row: dict, boot_fn: Callable[[np.ndarray], np.ndarray] | None
+    ) -> None:
+        """``boot_fn(counts)`` gives the method's AP in every resample (None: no interval)."""
+        b = boot_fn(self.counts) if boot_fn is not None and len(self.counts) else np.full(0, np.nan)
+        lo, hi = interval(b, self.cfg.report.ci)
+        self.boot[method] = b
+        self.rows.append({**row, "method": method, "ci_low": lo, "ci_high": hi})
+
+    def finish(self) -> list[dict]:
+        """Each row's paired differences from ``rank_fusion`` and from ``random``, and its verdict.
+
+        Both differences use the same resamples; the verdict is SPEC 9's one rule
+        (:func:`harness.evaluate.chance.verdict`).
+        """
+        for r in self.rows:
+            r.update(self._paired(r, "rank_fusion", ""))
+            r.update(self._paired(r, "random", "vs_random_"))
+            r["verdict"] = chance.verdict(
+                r["ap"],
+                r["chance_low"],
+                r["chance_high"],
+                r["vs_random_diff_ci_low"],
+                r["vs_random_diff_ci_high"],
+            )
+        return self.rows
+
+    def _paired(self, r: dict, ref_method: str, prefix: str) -> dict[str, float]:
+        """``r``'s method minus ``ref_method`` over the same resamples (NaN where undefined)."""
+        ref = next((x for x in self.rows if x["method"] == ref_method), None)
+        nan = float("nan")
+        out = dict.fromkeys(
+            ("diff", "diff_ci_low", "diff_ci_high", "sign_flip_share", "p_value"), nan
+        )
+        same = r["method"] == ref_method and prefix == ""
+        if ref is not None and not same and len(self.boot[r["method"]]):
+            out = paired_difference(
+                self.boot[r["method"]],
+                self.boot[ref_method],
+                r["ap"],
+                ref["ap"],
+                self.cfg.report.ci,
+            )
+        return {f"{prefix}{k}": v for k, v in out.items()}
+
+
+def _chance_fields(
+    floor: tuple[float, float, float], ap: float, ceiling: float = float("nan")
+) -> dict[str, float]:
+    """A row's floor, chance band, ceiling and share of the reachable gap (SPEC 9)."""
+    f, lo, hi = floor
+    return {
+        "floor": f,
+        "chance_low": lo,
+        "chance_high": hi,
+        "ceiling": ceiling,
+        "gap_closed": chance.gap_closed(ap, f, ceiling),
+    }
+
+
+def _table_i_rows(
+    df: pd.DataFrame,
+    split: Split,
+    methods: tuple[str, ...],
+    season_pair: str,
+    proposals: str,
+    draws: int = chance.MIN_DRAWS,
+    seed: int = 0,
+) -> list[dict]:
+    """Per-split APs without intervals (the breakdowns by proposal method and season pair).
+
+    Their floors and chance bands are measured like the pooled ones; without a bootstrap their
+    verdict is ``untested``.
+    """
+    nan = float("nan")
+    rows = []
+    lab = split_label(df["RoC"].to_numpy(), df["SoB"].to_numpy(), split)
+    groups = _groups(df)
+    for m in methods:
+        loc = df[f"loc_{m}"].to_numpy()
+        sel = (lab >= 0) & ~np.isnan(loc)
+        y = lab[sel] == 1
+        ap = average_precision(y, loc[sel])
+        floor = chance.plain_chance(y, draws, seed)
+        rows.append(
+            {
+                "table": "I",
+                "split": split.name,
+                "roc_max": split.roc_max,
+                "proposals": proposals,
+                "season_pair": season_pair,
+                "method": m,
+                "ap": ap,
+                **_chance_fields(floor, ap),
+                "ci_low": float("nan"),
+                "ci_high": float("nan"),
+                "positives": int(y.sum()),
+                "negatives": int((~y).sum()),
+                "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
+                "positive_rate": float(y.mean()) if len(y) else float("nan"),
+                "query_images": len(np.unique(groups[sel])),
+                "verdict": chance.verdict(ap, floor[1], floor[2], nan, nan),
+            }
+        )
+    return rows
+
+
+def _pooled_rows(
+    cfg: Config,
+    samples: pd.DataFrame,
+    methods: tuple[str, ...],
+    split: Split,
+    table: str,
+    ids: dict[str, int],
+    keep: dict[tuple[str, str, str], np.ndarray] | None = None,
+) -> list[dict]:
+    """Table I (``table = "I"``) or S (``"S"``) column ``split``, all proposals and season pairs.
+
+    ``keep`` receives each method's bootstrap APs by (table, split, method) (Table L's paired
+    differences between localizers use the same resamples).
+    """
+    df = samples
+    gi = np.array([ids[g] for g in _groups(df)], np.int64)
+    roc, sob = df["RoC"].to_numpy(), df["SoB"].to_numpy()
+    lab = split_label(roc, sob, split) if table == "I" else stratified_labels(roc, split)
+    edges = np.asarray(cfg.splits.sob_strata, np.float64)
+    pooled = _Pooled(cfg, ids, f"{table}:{split.name}")
+    for m in methods:
+        loc = df[f"loc_{m}"].to_numpy()
+        sel = (lab >= 0) & ~np.isnan(loc)
+        y, sc, g, sb = lab[sel] == 1, loc[sel], gi[sel], sob[sel]
+        draws = cfg.report.chance_draws
+        if table == "I":
+            ap, floor = average_precision(y, sc), chance.plain_chance(y, draws, cfg.seed)
+            boot = partial(bootstrap_aps, y, sc, g)
+        else:
+            ap = stratified_ap(y, sc, sb, edges)[0]
+            floor = chance.stratified_chance(y, sb, edges, draws, cfg.seed)
+            boot = partial(bootstrap_aps, y, sc, g, stat="stratified", sob=sb, edges=edges)
+
+        pooled.add(
+            m,
+            {
+                "table": table,
+                "split": split.name,
+                "roc_max": split.roc_max,
+                "proposals": "all",
+                "season_pair": "all",
+                "ap": ap,
+                **_chance_fields(floor, ap),
+                "positives": int(y.sum()),
+                "negatives": int((~y).sum()),
+                "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
+                "positive_rate": float(y.mean()) if len(y) else float("nan"),
+                "query_images": len(np.unique(g)),
+            },
+            boot,
+        )
+    if keep is not None:
+        keep.update({(table, split.name, m): b for m, b in pooled.boot.items()})
+    return pooled.finish()
+
+
+def _pixel_image_rows(
+    cfg: Config,
+    samples: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    methods: tuple[str, ...],
+    ids: dict[str, int],
+) -> list[dict]:
+    """Table P (SPEC section 9).
+
+    Pixel AP over exact regions and image AP, pooled, with intervals.
+    """
+    cb = change_boxes(ann)
+    size = {
+        k: (float(w), float(h))
+        for k, w, h in zip(
+            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames["width"],
+            frames["height"],
+            strict=True,
+        )
+    }
+    low = {
+        m: float(np.nanmin(samples[f"loc_{m}"].to_numpy()))
+        if samples[f"loc_{m}"].notna().any()
+        else 0.0
+        for m in methods
+    }
+    px: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "w": [], "g": []} for m in methods}
+    img: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "g": []} for m in methods}
+    groups = _groups(samples)
+    boxes = samples[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    locs = {m: samples[f"loc_{m}"].to_numpy(np.float64) for m in methods}
+    fused_methods = [m for m in methods if m != "rank_no_fusion"]
+    in_fused = (
+        np.isfinite(np.column_stack([locs[m] for m in fused_methods])).any(1)
+        if fused_methods
+        else np.zeros(len(samples), bool)
+    )
+    qs, qc, qu = (
+        samples["q_session"].to_numpy(),
+        samples["q_camera"].to_numpy(),
+        samples["q_utime"].to_numpy(),
+    )
+    # per box set ("fused" or "orig"): its regions (owner = sample row, -1 uncovered) and its boxes
+    # by image, for the floor (random box scores) and ceiling (box RoC) through the same maps
+    maps: dict[str, dict[str, list]] = {
+        k: {"row": [], "y": [], "w": [], "units": [], "img_y": []} for k in ("fused", "orig")
+    }
+    for gkey, idx in pd.Series(np.arange(len(samples))).groupby(groups, sort=True).indices.items():
+        qk = (str(qs[idx[0]]), str(qc[idx[0]]), int(qu[idx[0]]))
+        w, h = size[qk]
+        change = cb.get(qk, np.zeros((0, 4)))
+        gid = ids[gkey]
+        sets = {"fused": idx[in_fused[idx]]}
+        if "rank_no_fusion" in methods:
+            o = idx[np.isfinite(locs["rank_no_fusion"][idx])]
+            sets["orig"] = o[
+                np.argsort(-locs["rank_no_fusion"][o], kind="stable")
+            ]  # identical boxes: the highest LoC owns their regions
+        regions = {}
+        for k, v in sets.items():
+            area, pos, owner = pixel_regions(boxes[v], change, w, h)
+            # regions with the same owner and label get the same LoC under every method: sum them
+            # once
+            uniq, inv = np.unique((owner + 1) * 2 + pos, return_inverse=True)
+            regions[k] = (np.bincount(inv, weights=area), (uniq % 2).astype(bool), uniq // 2 - 1)
+            a, y, own = regions[k]
+            maps[k]["row"].append(np.where(own >= 0, v[np.maximum(own, 0)] if len(v) else -1, -1))
+            maps[k]["y"].append(y)
+            maps[k]["w"].append(a)
+            if len(v):
+                maps[k]["units"].append(v)
+                maps[k]["img_y"].append(bool(len(change)))
+        for m in methods:
+            key = "orig" if m == "rank_no_fusion" else "fused"
+            area, pos, owner = regions[key]
+            vals = locs[m][sets[key]]
+            px[m]["s"].append(
+                np.where(owner >= 0, vals[np.maximum(owner, 0)] if len(vals) else low[m], low[m])
+            )
+            px[m]["y"].append(pos)
+            px[m]["w"].append(area)
+            px[m]["g"].append(np.full(len(area), gid))
+            v = locs[m][idx]
+            if np.isfinite(v).any():
+                img[m]["s"].append(float(np.nanmax(v)))
+                img[m]["y"].append(bool(len(change)))
+                img[m]["g"].append(gid)
+    chance_of = _map_chance(cfg, maps, samples["RoC"].to_numpy(np.float64))
+    rows = []
+    for name, data in (("pixel", px), ("image", img)):
+        pooled = _Pooled(cfg, ids, f"P:{name}")
+        for m in methods:
+            d = data[m]
+            if name == "pixel":
+                s_ = np.concatenate(d["s"]) if d["s"] else np.zeros(0)
+                y_ = np.concatenate(d["y"]).astype(bool) if d["y"] else np.zeros(0, bool)
+                w_ = np.concatenate(d["w"]) if d["w"] else np.zeros(0)
+                g_ = np.concatenate(d["g"]) if d["g"] else np.zeros(0, np.int64)
+                ap = weighted_average_precision(y_, s_, w_)
+                pos_w, tot_w = float(w_[y_].sum()), float(w_.sum())
+
+                boot = partial(bootstrap_aps, y_, s_, g_, weights=w_)
+
+                extra = {
+                    "positives": round(pos_w),
+                    "negatives": round(tot_w - pos_w),
+                    "positive_rate": pos_w / tot_w if tot_w else float("nan"),
+                }
+            else:
+                s_, y_, g_ = (
+                    np.asarray(d["s"], np.float64),
+                    np.asarray(d["y"], bool),
+                    np.asarray(d["g"], np.int64),
+                )
+                ap = average_precision(y_, s_)
+
+                boot = partial(bootstrap_aps, y_, s_, g_)
+
+                extra = {
+                    "positives": int(y_.sum()),
+                    "negatives": int((~y_).sum()),
+                    "positive_rate": float(y_.mean()) if len(y_) else float("nan"),
+                }
+            floor, ceiling = chance_of[(name, "orig" if m == "rank_no_fusion" else "fused")]
+            pooled.add(
+                m,
+                {
+                    "table": "P",
+                    "split": name,
+                    "roc_max": float("nan"),
+                    "proposals": "all",
+                    "season_pair": "all",
+                    "ap": ap,
+                    **_chance_fields(floor, ap, ceiling),
+                    "left_out": 0,
+                    "query_images": len(np.unique(g_)),
+                    **extra,
+                },
+                boot,
+            )
+        rows += pooled.finish()
+    return rows
+
+
+def _map_chance(
+    cfg: Config, maps: dict[str, dict[str, list]], roc: np.ndarray
+) -> dict[tuple[str, str], tuple[tuple[float, float, float], float]]:
+    """Table P's floor, chance band and ceiling per (pixel or image, box set), SPEC 9.
+
+    Floor: every box of the set takes a uniform random score, pixels take the score of the box
+    that owns them in the method's map (uncovered pixels the lowest score of the draw) and each
+    image the largest score of its boxes, as the real figures do. Ceiling: every box scored by its
+    RoC through the same maps (the best any LoC could do with these boxes).
+    """
+    out = {}
+    nan3 = (float("nan"),) * 3
+    for key, mp in maps.items():
+        if not mp["units"]:
+            out[("pixel", key)] = out[("image", key)] = (nan3, float("nan"))
+            continue
+        units = np.concatenate(mp["units"])
+        unit_of = np.full(len(roc), -1, np.int64)
+        unit_of[units] = np.arange(len(units))
+        row = np.concatenate(mp["row"])
+        ru = np.where(row >= 0, unit_of[np.maximum(row, 0)], -1)
+        y, w = np.concatenate(mp["y"]).astype(bool), np.concatenate(mp["w"])
+        starts = np.cumsum([0] + [len(u) for u in mp["units"][:-1]])
+        img_y = np.asarray(mp["img_y"], bool)
+
+        def pixel_scores(s: np.ndarray, ru: np.ndarray = ru) -> np.ndarray:
+            low = s.min(axis=1, keepdims=True)
+            return np.where(ru[None, :] >= 0, s[:, np.maximum(ru, 0)], low)
+
+        def pixel(s: np.ndarray, y: np.ndarray = y, w: np.ndarray = w) -> np.ndarray:
+            return chance.aps_of_rows(y, pixel_scores(s), w)
+
+        def image(s: np.ndarray, starts: np.ndarray = starts, img_y: np.ndarray = img_y):
+            return chance.aps_of_rows(img_y, np.maximum.reduceat(s, starts, axis=1))
+
+        draws, n = cfg.report.chance_draws, len(units)
+        oracle = roc[units][None, :]
+        for name, fig in (("pixel", pixel), ("image", image)):
+            seed = chance.draw_seed(cfg.seed, "P", name, key, n)
+            out[(name, key)] = (
+                chance.summarise(chance.random_draws(fig, n, draws, seed)),
+                float(fig(oracle)[0]),
+            )
+    return out

@@ -1,0 +1,1 @@
+"""Fusion of ranks into likelihood of change (SPEC 5 and 14)."""

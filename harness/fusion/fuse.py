@@ -1,0 +1,481 @@
+"""Fusion of subimage ranks into sample LoC values (SPEC section 7).
+
+Also the per-image sample table and pixel-wise LoC maps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.config.load import FusionConfig
+from harness.errors import ConfigError
+from harness.evaluate.splits import roc_sob
+from harness.ingest.annotations import change_boxes
+from harness.methods import (
+    ALL_METHODS,
+    FUSION_REGISTRY,
+    METHOD_LABELS,
+    STANDARD_RULES,
+    known_fusion_methods,
+)
+from harness.methods import ordered_methods as ordered_methods
+from harness.runtime.cache import source_fingerprints, stable_hash, write_parquet
+from harness.runtime.progress import progress
+
+#: Methods whose samples are the fused qBB set (every method but rank_no_fusion).
+FUSED_METHODS = tuple(m for m in ALL_METHODS if m != "rank_no_fusion")
+#: Baselines computed from the image rather than the ranks.
+IMAGE_BASELINES = ("size_prior", "random")
+
+#: A fused-set method's LoC from the cover matrix: (cover (m, n) bool, r (n,) = rank / L,
+#: d (n,) L2 distances, L (n,) list lengths) -> (m,) LoC, higher = more likely changed.
+CoverLoc = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+#: Fused-set methods registered beside SPEC section 7's (:func:`register_method`).
+REGISTERED: dict[str, CoverLoc] = FUSION_REGISTRY  # the catalogue's registry, one dict
+
+
+def register_method(name: str, loc: CoverLoc, label: str) -> None:
+    """Add a fused-set fusion method, computed and reported when ``[fusion] methods`` lists it.
+
+    It is reported after SPEC section 7's methods under ``label``; its source is part of the
+    samples' cache key, so editing it recomputes them.
+
+    Raises:
+        ValueError: ``name`` is taken.
+    """
+    if name in known_methods():
+        raise ValueError(f"fusion method {name!r} exists; known: {list(known_methods())}")
+    REGISTERED[name] = loc
+    METHOD_LABELS[name] = label
+
+
+known_methods = known_fusion_methods
+
+
+def method_fingerprints(methods: Iterable[str]) -> dict[str, str]:
+    """The source hash of each listed method registered from outside the package."""
+    return source_fingerprints(REGISTERED, methods)
+
+
+def intersection_closure(
+    boxes: np.ndarray, max_boxes: int | None = None
+) -> tuple[np.ndarray, bool]:
+    """The closure of ``boxes`` under pairwise intersection (positive area, duplicates merged).
+
+    Semi-naive fixed point: each round intersects only the boxes found in the previous round
+    with the originals, since every intersection of a subset is reachable one original at a
+    time. Cost is O(|closure| x n) instead of re-scanning all pairs every round.
+
+    Returns:
+        (unique boxes sorted lexicographically (m, 4), capped) where ``capped`` says the closure
+        was cut at ``max_boxes``.
+    """
+    orig = np.unique(np.asarray(boxes, np.float64).reshape(-1, 4), axis=0)
+    orig = orig[(orig[:, 2] > orig[:, 0]) & (orig[:, 3] > orig[:, 1])]
+    seen = {tuple(b) for b in orig}
+    frontier = orig
+    capped = False
+    while len(frontier):
+        x1 = np.maximum(frontier[:, None, 0], orig[None, :, 0])
+        y1 = np.maximum(frontier[:, None, 1], orig[None, :, 1])
+        x2 = np.minimum(frontier[:, None, 2], orig[None, :, 2])
+        y2 = np.minimum(frontier[:, None, 3], orig[None, :, 3])
+        cand = np.stack([x1, y1, x2, y2], -1).reshape(-1, 4)
+        cand = cand[(cand[:, 2] > cand[:, 0]) & (cand[:, 3] > cand[:, 1])]
+        cand = np.unique(cand, axis=0)
+        new = [b for b in map(tuple, cand) if b not in seen]
+        if max_boxes is not None and len(seen) + len(new) > max_boxes:
+            new = new[: max(0, max_boxes - len(seen))]
+            capped = True
+        seen.update(new)
+        frontier = np.array(new, np.float64).reshape(-1, 4)
+        if capped:
+            break
+    out = np.array(sorted(seen), np.float64).reshape(-1, 4)
+    return out, capped
+
+
+def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
+    """(m, n) bool: original k contains fused box i."""
+    f, o = fused[:, None, :], originals[None, :, :]
+    return (
+        (o[..., 0] <= f[..., 0])
+        & (o[..., 1] <= f[..., 1])
+        & (o[..., 2] >= f[..., 2])
+        & (o[..., 3] >= f[..., 3])
+    )
+
+
+def _subset_cover(cover: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """Where a row covers more than k originals, keep a random k of them (in row order)."""
+    out = cover.copy()
+    for i in np.nonzero(cover.sum(1) > k)[0]:
+        idx = np.nonzero(cover[i])[0]
+        keep = rng.choice(idx, size=k, replace=False)
+        out[i] = False
+        out[i, keep] = True
+    return out
+
+
+def r_desc_of(r: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """``r' = (L + 1 - rank) / L`` from ``r = rank / L`` (SPEC section 6)."""
+    r, L = np.asarray(r, np.float64), np.asarray(L, np.float64)
+    return np.asarray((L + 1.0) / L - r, np.float64)
+
+
+def standard_rule(
+    cover: np.ndarray, rule: str, rank: np.ndarray, L: np.ndarray, c: float = 60.0
+) -> np.ndarray:
+    """LoC of the fused boxes by one of the field's rank-fusion rules (SPEC section 14).
+
+    Each original box k is one ranked list of ``L_k`` places; ``rank_k`` is its true place's
+    position sorted most similar first, so ``rank'_k = L_k + 1 - rank_k`` is its position sorted
+    least similar first (1 = the strongest sign of change). A fused box fuses the lists of the
+    originals that cover it (``N`` of them). The formulas are ranx's (``rrf``, ``combmnz``
+    over rank-normalised scores, ``borda``, ``isr``), written here from their definitions.
+
+    Args:
+        cover: (m, n) bool: original k contains fused box i.
+        rule: ``rrf``, ``combmnz``, ``borda`` or ``isr``.
+        rank: (n,) the true place's rank in each list, most similar first (1..L).
+        L: (n,) the lists' lengths.
+        c: RRF's constant (``[fusion] rrf_c``).
+    """
+    rank, L = np.asarray(rank, np.float64), np.asarray(L, np.float64)
+    cov = cover.astype(np.float64)
+    n = cov.sum(1)
+    rank_d = L + 1.0 - rank
+    if rule == "rrf":
+        return np.asarray(cov @ (1.0 / (c + rank_d)), np.float64)
+    if rule == "combmnz":
+        return np.asarray(n * (cov @ (rank / L)), np.float64)
+    if rule == "borda":
+        return np.asarray((cov @ ((rank - 1.0) / L)) / np.maximum(n, 1.0), np.float64)
+    if rule == "isr":
+        return np.asarray(n * (cov @ (1.0 / rank_d**2)), np.float64)
+    raise ValueError(f"unknown rank-fusion rule {rule!r}; known: {STANDARD_RULES}")
+
+
+def loc_from_cover(
+    cover: np.ndarray,
+    method: str,
+    *,
+    r: np.ndarray,
+    d: np.ndarray,
+    L: np.ndarray | None = None,
+    seed: int = 0,
+    rrf_c: float = 60.0,
+) -> np.ndarray:
+    """LoC of the fused boxes (rows of ``cover``) for one method of SPEC section 7.
+
+    Higher is more likely changed.
+
+    Args:
+        cover: (m, n) bool: original box k contains fused box i.
+        method: a fused-set method id other than ``size_prior`` and ``random`` (see
+            :func:`image_loc`).
+        r: (n,) normalised ranks ``rank / L`` of the originals.
+        d: (n,) exact L2 distances of the originals to their ground-truth place.
+        L: (n,) rank-list lengths; needed by every rank-fusion method except ``rank_fusion_asc``.
+        seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
+        rrf_c: the constant of ``rrf`` (SPEC section 14).
+    """
+    r = np.asarray(r, np.float64)
+    if method in REGISTERED:
+        lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
+        loc = np.asarray(
+            REGISTERED[method](cover, r, np.asarray(d, np.float64), lengths), np.float64
+        )
+        if loc.shape != (len(cover),) or not np.isfinite(loc).all():
+            raise ConfigError(
+                f"fusion method {method!r} returned LoC of shape {loc.shape}, expected "
+                f"({len(cover)},): one finite value per fused box"
+            )
+        return loc
+    if method == "score_max":
+        return np.asarray(np.where(cover, np.asarray(d, np.float64)[None, :], -np.inf).max(1))
+    if method == "score_sum":
+        return np.asarray((cover * np.asarray(d, np.float64)[None, :]).sum(1), np.float64)
+    if method == "cover_count":
+        return np.asarray(cover.sum(1), np.float64)
+    # the paper's variant 2: ascending order (SPEC's earlier formula)
+    if method == "rank_fusion_asc":
+        return np.asarray(1.0 / (cover.sum(1) * (cover * (1.0 / r)[None, :]).sum(1)), np.float64)
+    known = ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", "rank_fusion_raw")
+    if method not in (*known, *STANDARD_RULES):
+        raise ValueError(f"unknown fused-set method {method!r}; known: {FUSED_METHODS}")
+    if L is None:
+        raise ValueError(f"{method} needs the rank-list lengths L (r' = (L + 1 - rank) / L)")
+    if method in STANDARD_RULES:
+        lengths = np.asarray(L, np.float64)
+        return standard_rule(cover, method, np.rint(r * lengths), lengths, rrf_c)
+    rd = r_desc_of(r, L)
+    if method in ("rank_fusion_le2", "rank_fusion_le3"):
+        cover = _subset_cover(cover, 2 if method.endswith("2") else 3, np.random.default_rng(seed))
+    # raw: 1 / (L + 1 - rank)
+    inv = 1.0 / (rd * np.asarray(L, np.float64)) if method == "rank_fusion_raw" else 1.0 / rd
+    return np.asarray(cover.sum(1) * (cover * inv[None, :]).sum(1), np.float64)
+
+
+def image_loc(fused: np.ndarray, method: str, width: float, height: float, seed: int) -> np.ndarray:
+    """The baselines that need the image rather than ranks: ``size_prior`` (1 - SoB) and ``random``.
+
+    Args:
+        fused: (m, 4) sample boxes.
+        method: ``size_prior`` or ``random``.
+        width: the image width in pixels.
+        height: the image height in pixels.
+        seed: the query image's seed (``random``: uniform in [0, 1), reproducible per image).
+    """
+    if method == "size_prior":
+        area = (fused[:, 2] - fused[:, 0]) * (fused[:, 3] - fused[:, 1])
+        return np.asarray(1.0 - area / float(width * height), np.float64)
+    if method == "random":
+        return np.random.default_rng(seed).random(len(fused))
+    raise ValueError(f"{method!r} is not an image baseline (size_prior, random)")
+
+
+def fuse(
+    boxes: np.ndarray,
+    r: np.ndarray,
+    d: np.ndarray,
+    method: str,
+    seed: int = 0,
+    max_boxes: int | None = None,
+    *,
+    L: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Samples and their LoC for one query image (SPEC section 7).
+
+    Args:
+        boxes: (n, 4) original boxes of all proposal methods.
+        r: (n,) normalised ranks in (0, 1].
+        d: (n,) L2 distances to the ground-truth place.
+        method: any method id of SPEC section 7 except ``size_prior`` and ``random``
+            (:func:`image_loc`).
+        seed: seeds the random cover subsets of the ``le`` methods.
+        max_boxes: cap on the intersection closure (:func:`intersection_closure`); None: none.
+        L: (n,) rank-list lengths, for ``r'`` (every rank-fusion method except ``rank_fusion_asc``).
+
+    Returns:
+        (sample_boxes (m, 4), loc (m,)).
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    r = np.asarray(r, np.float64)
+    d = np.asarray(d, np.float64)
+    if method == "rank_no_fusion":
+        return boxes.copy(), r.copy()
+    if method not in (*FUSED_METHODS, *REGISTERED) or method in IMAGE_BASELINES:
+        raise ValueError(
+            f"fuse() computes {[m for m in known_methods() if m not in IMAGE_BASELINES]}, got "
+            f"{method!r} (size_prior, random: image_loc)"
+        )
+    fused, _ = intersection_closure(boxes, max_boxes)
+    cover = cover_matrix(fused, boxes)
+    return fused, loc_from_cover(cover, method, r=r, d=d, L=L, seed=seed)
+
+
+def pixel_regions(
+    boxes: np.ndarray, change: np.ndarray, width: float, height: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The image cut into rectangular regions by every box edge (exact areas, SPEC section 9).
+
+    Returns:
+        (area (c,), positive (c,) bool: inside the union of the change boxes, owner (c,) int: the
+        index of the smallest box of ``boxes`` holding the region, -1 where none does).
+        Ties in area (identical boxes) go to the lowest index; callers order boxes so that this
+        is the box they want.
+    """
+    b = np.clip(np.asarray(boxes, np.float64).reshape(-1, 4), 0, [width, height, width, height])
+    ch = np.clip(np.asarray(change, np.float64).reshape(-1, 4), 0, [width, height, width, height])
+    xs = np.unique(np.concatenate([[0.0, width], b[:, 0], b[:, 2], ch[:, 0], ch[:, 2]]))
+    ys = np.unique(np.concatenate([[0.0, height], b[:, 1], b[:, 3], ch[:, 1], ch[:, 3]]))
+    area = np.outer(np.diff(ys), np.diff(xs))  # (rows, cols) of the region grid
+    owner = np.full(area.shape, -1, np.int64)
+    # paint boxes from the largest to the smallest, so each region keeps the smallest box holding it
+    barea = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    order = np.lexsort((-np.arange(len(b)), -barea))  # equal areas: the lowest index painted last
+    cx0, cx1 = np.searchsorted(xs, b[:, 0]), np.searchsorted(xs, b[:, 2])
+    cy0, cy1 = np.searchsorted(ys, b[:, 1]), np.searchsorted(ys, b[:, 3])
+    for i in order:
+        owner[cy0[i] : cy1[i], cx0[i] : cx1[i]] = i
+    positive = np.zeros(area.shape, bool)
+    for x0, y0, x1, y1 in ch:
+        positive[
+            np.searchsorted(ys, y0) : np.searchsorted(ys, y1),
+            np.searchsorted(xs, x0) : np.searchsorted(xs, x1),
+        ] = True
+    return area.ravel(), positive.ravel(), owner.ravel()
+
+
+def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Pixel-wise LoC.
+
+    Each pixel (by its centre) takes the LoC of the smallest sample box holding it.
+
+    For a fused set, the smallest box holding a pixel is the intersection of all boxes covering
+    it. Pixels that no box covers are NaN.
+    """
+    out = np.full((height, width), np.nan, np.float32)
+    area = (sample_boxes[:, 2] - sample_boxes[:, 0]) * (sample_boxes[:, 3] - sample_boxes[:, 1])
+    for i in np.argsort(-area, kind="stable"):
+        x1, y1, x2, y2 = sample_boxes[i]
+        # pixel u is inside when x1 <= u + 0.5 < x2
+        u0, u1 = int(np.ceil(x1 - 0.5)), int(np.ceil(x2 - 0.5))
+        v0, v1 = int(np.ceil(y1 - 0.5)), int(np.ceil(y2 - 0.5))
+        out[max(v0, 0) : max(min(v1, height), 0), max(u0, 0) : max(min(u1, width), 0)] = loc[i]
+    return out
+
+
+def fuse_samples(
+    ranks: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    seed: int,
+    max_boxes: int,
+    methods: Sequence[str] = ALL_METHODS,
+    progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+    rrf_c: float = 60.0,
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Samples of every annotated query image (one per pair) with the LoC of each method.
+
+    Samples are built for all proposal methods together (``proposals = all``) and, where there
+    are several, for each alone. Columns: the query image's key, ``season_pair``, ``proposals``,
+    the box, ``original`` (an original box rather than only an intersection), ``N``, ``RoC``,
+    ``SoB`` and ``loc_<method>`` for each of ``methods``. ``rank_no_fusion`` has values on
+    original boxes only (an original box that is also another's fused box shares its row; a
+    duplicate original gets a row of its own), the fused-set methods on fused boxes only.
+
+    Works on numpy columns of ``ranks`` sorted once by query image (stable, so each image's rows
+    keep their order) and builds one table at the end: no per-image pandas objects.
+    """
+    cb = change_boxes(ann)
+    size = dict(
+        zip(
+            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames[["width", "height"]].to_numpy(),
+            strict=True,
+        )
+    )
+    counts = {"query_images": 0, "capped_closures": 0}
+    methods = ordered_methods(methods)
+    props = sorted(ranks["method"].unique())
+    subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
+    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    srt = ranks.sort_values(keys, kind="stable")
+    kcols = [srt[k].to_numpy() for k in keys]
+    method = srt["method"].to_numpy()
+    season_pair = srt["season_pair"].to_numpy()
+    box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
+    L_all = srt["L"].to_numpy(np.float64)
+    n = len(srt)
+    change = np.zeros(n, bool)
+    for kc in kcols:
+        change[1:] |= kc[1:] != kc[:-1]
+    starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
+    ends = np.append(starts[1:], n)
+    cols: dict[str, list[Any]] = {
+        c: []
+        for c in (
+            "q_session",
+            "q_camera",
+            "q_utime",
+            "r_session",
+            "season_pair",
+            "proposals",
+            "x1",
+            "y1",
+            "x2",
+            "y2",
+            "original",
+            "N",
+            "RoC",
+            "SoB",
+            *(f"loc_{m}" for m in methods),
+        )
+    }
+    for a, b in progress(list(zip(starts, ends, strict=True))):
+        key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
+        qkey = key[:3]
+        if qkey not in cb:
+            continue
+        counts["query_images"] += 1
+        w, h = size[qkey]
+        for name, ms in subsets:
+            sel = np.isin(method[a:b], ms)
+            if not sel.any():
+                continue
+            boxes = box_all[a:b][sel]
+            r, d, L = r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]
+            fused, capped = intersection_closure(boxes, max_boxes)
+            counts["capped_closures"] += int(capped)
+            cover = cover_matrix(fused, boxes)
+            img_seed = int(stable_hash(seed, key, name, length=8), 16)
+            locs = {}
+            for m in methods:
+                if m in IMAGE_BASELINES:
+                    locs[m] = image_loc(fused, m, w, h, img_seed)
+                elif m != "rank_no_fusion":
+                    locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c)
+            # rank_no_fusion: one sample per original box; merged into the fused row of the same box
+            fidx = {tuple(bx): i for i, bx in enumerate(fused)}
+            nof = np.full(len(fused), np.nan)
+            extra = []
+            for k, bx in enumerate(map(tuple, boxes)):
+                i = fidx[bx]
+                if np.isnan(nof[i]):
+                    nof[i] = r[k]
+                else:
+                    extra.append((bx, r[k]))
+            all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
+            roc, sob = roc_sob(all_boxes, cb[qkey], w, h)
+            n_rows, n_x = len(all_boxes), len(extra)
+            for c, v in zip(("q_session", "q_camera", "q_utime", "r_session"), key, strict=True):
+                cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
+            cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
+            cols["proposals"].append(np.full(n_rows, name, dtype=object))
+            for j, c in enumerate(("x1", "y1", "x2", "y2")):
+                cols[c].append(all_boxes[:, j])
+            cols["original"].append(np.concatenate([~np.isnan(nof), np.ones(n_x, bool)]))
+            cols["N"].append(
+                np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64)
+            )
+            cols["RoC"].append(np.asarray(roc, np.float64))
+            cols["SoB"].append(np.asarray(sob, np.float64))
+            if "rank_no_fusion" in methods:
+                cols["loc_rank_no_fusion"].append(np.concatenate([nof, [v for _, v in extra]]))
+            for m, v in locs.items():
+                cols[f"loc_{m}"].append(np.concatenate([v, np.full(n_x, np.nan)]))
+    if not cols["x1"]:
+        return pd.DataFrame(), counts
+    df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})
+    return df, counts
+
+
+def write_samples(
+    ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, fc: FusionConfig, tmp: Path
+) -> dict[str, int]:
+    """Build the samples (:func:`fuse_samples` with ``[fusion]``) into ``tmp/samples.parquet``.
+
+    Returns:
+        The fusion counters (query images, capped closures).
+    """
+    df, counts = fuse_samples(
+        ranks,
+        frames,
+        ann,
+        fc.seed,
+        fc.max_fused_boxes,
+        methods=ordered_methods(fc.methods),
+        progress=partial(progress, desc="fusion", unit="image"),
+        rrf_c=fc.rrf_c,
+    )
+    write_parquet(tmp / "samples.parquet", df)
+    return counts

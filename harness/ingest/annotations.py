@@ -1,0 +1,397 @@
+"""Annotation tables (SPEC section 2): loading, validation, importers and a labelling exporter.
+
+The canonical table is a CSV with columns ``session, camera, utime, status, x1, y1, x2, y2, label``:
+one row per change box, and one row with empty box fields for a ``no-change`` frame.
+
+Labelling tools know images by file name. The exporter names each image
+``<session>__<camera>__<utime>.png``; the importers map names of that form back to frame keys.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from harness.errors import AnnotationError
+from harness.imagestore import read_image
+from harness.inputs import check_input, read_text
+from harness.runtime.cache import atomic_dir, write_json
+from harness.runtime.outdirs import check_file_replaceable, check_replaceable, write_marker
+
+COLUMNS = ["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
+STATUSES = ("change", "no-change")
+_NAME = re.compile(r"^(?P<session>.+?)__(?P<camera>.+?)__(?P<utime>-?\d+)(\.[A-Za-z0-9]+)?$")
+
+
+def image_name(session: str, camera: str, utime: int, ext: str = ".png") -> str:
+    """The labelling file name of a frame: ``<session>__<camera>__<utime><ext>``."""
+    return f"{session}__{camera}__{int(utime)}{ext}"
+
+
+def parse_image_name(name: str, where: str) -> tuple[str, str, int]:
+    """(session, camera, utime) of a labelling file name.
+
+    Raises:
+        AnnotationError: The name is not ``<session>__<camera>__<utime>.<ext>`` (``where``
+            names the file).
+    """
+    m = _NAME.match(Path(name).name)
+    if not m:
+        raise AnnotationError(
+            f"{where}: image name {name!r} is not of the form <session>__<camera>__<utime>.<ext>"
+        )
+    return m["session"], m["camera"], int(m["utime"])
+
+
+def _utimes(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
+    """(int64 utimes, bad) of a column: only whole numbers that fit in 64 bits are utimes.
+
+    ``1333195231000000.7`` or a 25-digit number is bad, never truncated or overflowed.
+    """
+    out = np.zeros(len(values), np.int64)
+    bad = np.zeros(len(values), bool)
+    for i, v in enumerate(values.tolist()):
+        text = str(v).strip()
+        whole = isinstance(v, float | np.floating) and float(v).is_integer()
+        if isinstance(v, int | np.integer) or whole:
+            text = str(int(v))
+        if re.fullmatch(r"-?\d{1,19}", text) and -(2**63) <= int(text) < 2**63:
+            out[i] = int(text)
+        else:
+            bad[i] = True
+    return out, bad
+
+
+def validate(
+    df: pd.DataFrame,
+    frames: pd.DataFrame | None,
+    where: str,
+    lines: np.ndarray | None = None,
+) -> pd.DataFrame:
+    """Check an annotation table; return it normalised (types, sorted).
+
+    ``lines`` are the CSV lines the rows start on (default: the row index + 2, a header and no
+    blank line).
+
+    Raises:
+        AnnotationError: naming the row (CSV line) and what is wrong: missing columns, unknown
+            status, a change box that is missing, of zero area or outside the image, an unknown
+            frame, a frame both change and no-change, duplicate rows.
+    """
+    missing = [c for c in COLUMNS[:8] if c not in df.columns]
+    if missing:
+        raise AnnotationError(f"{where}: missing column(s) {missing}; expected {COLUMNS}")
+    df = df.copy()
+    if "label" not in df.columns:
+        df["label"] = ""
+    df["label"] = df["label"].fillna("").astype(str)
+    line = df.index.to_numpy() + 2 if lines is None else np.asarray(lines)  # header: line 1
+
+    def fail(mask: np.ndarray, what: str) -> None:
+        if mask.any():
+            i = int(np.nonzero(mask)[0][0])
+            raise AnnotationError(
+                f"{where}: line {line[i]}: {what} ({int(mask.sum())} row(s) in all)"
+            )
+
+    ut, bad = _utimes(df["utime"])
+    if bad.any():
+        first = df["utime"].iloc[int(np.nonzero(bad)[0][0])]
+        fail(bad, f"utime {str(first)!r} is not a whole number of microseconds within 64 bits")
+    df["utime"] = ut
+    df["session"] = df["session"].astype(str)
+    df["camera"] = df["camera"].astype(str)
+    fail(~df["status"].isin(STATUSES).to_numpy(), f"status must be one of {STATUSES}")
+    for c in ("x1", "y1", "x2", "y2"):
+        df[c] = pd.to_numeric(df[c], errors="coerce")
+    box = df[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    chg = (df["status"] == "change").to_numpy()
+    fail(chg & ~np.isfinite(box).all(axis=1), "a change row needs a numeric box x1, y1, x2, y2")
+    fail(~chg & np.isfinite(box).any(axis=1), "a no-change row must leave the box empty")
+    with np.errstate(invalid="ignore"):
+        fail(
+            chg & ((box[:, 2] <= box[:, 0]) | (box[:, 3] <= box[:, 1])),
+            "box has zero or negative area",
+        )
+        fail(chg & ((box[:, 0] < 0) | (box[:, 1] < 0)), "box starts outside the image")
+    keys = ["session", "camera", "utime"]
+    if frames is not None:
+        fk = frames[keys + ["width", "height"]].drop_duplicates(keys)
+        m = df.merge(fk, on=keys, how="left", indicator=True)
+        unknown = (m["_merge"] == "left_only").to_numpy()
+        if unknown.any():
+            r = df.iloc[int(np.nonzero(unknown)[0][0])]
+            fail(
+                unknown,
+                f"unknown frame {r['session']} {r['camera']} {r['utime']} (not in the frame "
+                "table: check the session name, camera and utime)",
+            )
+        with np.errstate(invalid="ignore"):
+            fail(
+                chg & ((box[:, 2] > m["width"].to_numpy()) | (box[:, 3] > m["height"].to_numpy())),
+                "box ends outside the image",
+            )
+    both = df.groupby(keys)["status"].transform("nunique").to_numpy() > 1
+    fail(both, "frame is annotated both change and no-change")
+    fail(df.duplicated(keep="first").to_numpy(), "duplicate row")
+    fail(
+        (~chg) & df.duplicated(keys, keep="first").to_numpy(), "duplicate no-change row for a frame"
+    )
+    return df[COLUMNS].sort_values(keys + ["x1", "y1"], na_position="first").reset_index(drop=True)
+
+
+def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Read and validate a canonical annotation CSV (UTF-8; errors name the file's own line)."""
+    path = check_input(path, "annotation file", AnnotationError)
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        at = raw[: err.start].count(b"\n") + 1
+        raise AnnotationError(
+            f"{path}: line {at}: not UTF-8 text (byte 0x{raw[err.start]:02x}); save the file as "
+            "UTF-8"
+        ) from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        header = next(reader, None)
+        rows, lines = [], []
+        start = reader.line_num + 1
+        for rec in reader:
+            if any(f.strip() for f in rec):  # blank lines are skipped, never renumbered
+                if len(rec) != len(header or []):
+                    raise AnnotationError(
+                        f"{path}: line {start}: {len(rec)} fields where the header has "
+                        f"{len(header or [])}"
+                    )
+                rows.append(rec)
+                lines.append(start)
+            start = reader.line_num + 1  # a quoted newline makes a record span lines
+    except csv.Error as err:
+        raise AnnotationError(
+            f"{path}: line {reader.line_num}: not a readable CSV: {err}"
+        ) from None
+    if not header or not any(h.strip() for h in header):
+        raise AnnotationError(
+            f"{path}: the file is empty (expected a header line {','.join(COLUMNS)})"
+        )
+    df = pd.DataFrame(rows, columns=[h.strip() for h in header], dtype=object)
+    for c in ("x1", "y1", "x2", "y2"):
+        if c in df.columns:
+            df[c] = df[c].map(lambda v: np.nan if str(v).strip() == "" else v)
+    return validate(df, frames, str(path), np.asarray(lines, np.int64))
+
+
+def change_boxes(ann: pd.DataFrame) -> dict[tuple[str, str, int], np.ndarray]:
+    """Frame key -> (c, 4) change boxes (c = 0 for no-change frames), for every annotated frame."""
+    out: dict[tuple[str, str, int], np.ndarray] = {}
+    for key, g in ann.groupby(["session", "camera", "utime"], sort=True):
+        b = g.loc[g["status"] == "change", ["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        out[(str(key[0]), str(key[1]), int(key[2]))] = b.reshape(-1, 4)
+    return out
+
+
+# ---------------------------------------------------------------- importers
+
+
+def no_change_row(session: str, camera: str, utime: int) -> dict[str, Any]:
+    """The annotation row of a frame labelled as holding no change (box columns NaN)."""
+    nan = np.nan
+    return dict(
+        session=session, camera=camera, utime=utime, status="no-change",
+        x1=nan, y1=nan, x2=nan, y2=nan, label="",
+    )  # fmt: skip
+
+
+def _rows_for_image(
+    name: str, boxes: list[tuple[float, float, float, float, str]], where: str
+) -> list[dict]:
+    s, c, t = parse_image_name(name, where)
+    if not boxes:
+        return [no_change_row(s, c, t)]
+    return [
+        dict(session=s, camera=c, utime=t, status="change", x1=x1, y1=y1, x2=x2, y2=y2, label=lab)
+        for x1, y1, x2, y2, lab in boxes
+    ]
+
+
+def import_coco(path: Path) -> pd.DataFrame:
+    """COCO JSON: ``bbox`` is ``[x, y, w, h]``; an image without annotations is no-change."""
+    text = read_text(path, "COCO annotation file", AnnotationError)
+    try:
+        doc = json.loads(text)
+        images = {im["id"]: im["file_name"] for im in doc["images"]}
+        cats = {c["id"]: c["name"] for c in doc.get("categories", [])}
+        per: dict[int, list] = {i: [] for i in images}
+        for a in doc.get("annotations", []):
+            x, y, w, h = (float(v) for v in a["bbox"])
+            if a["image_id"] not in per:
+                raise AnnotationError(
+                    f"{path}: annotation {a.get('id')} refers to unknown image_id {a['image_id']}"
+                )
+            per[a["image_id"]].append((x, y, x + w, y + h, cats.get(a.get("category_id"), "")))
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise AnnotationError(
+            f"{path}: not a COCO annotation file: {type(err).__name__}: {err}"
+        ) from None
+    rows = [
+        r
+        for i, name in sorted(images.items())
+        for r in _rows_for_image(name, per[i], f"{path}: image {i}")
+    ]
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def _number(text: str | None, name: str) -> float:
+    """An XML attribute or element text as a float; a missing one is a ValueError naming it."""
+    if text is None:
+        raise ValueError(f"no {name}")
+    return float(text)
+
+
+def _cvat_box(b: ET.Element) -> tuple[float, float, float, float, str]:
+    """A CVAT ``<box>``: (xtl, ytl, xbr, ybr, label)."""
+    x1, y1, x2, y2 = (_number(b.get(k), k) for k in ("xtl", "ytl", "xbr", "ybr"))
+    return x1, y1, x2, y2, b.get("label", "")
+
+
+def import_voc(folder: Path) -> pd.DataFrame:
+    """Pascal VOC: one XML per image in ``folder``; an image without objects is no-change."""
+    rows: list[dict] = []
+    folder = check_input(folder, "VOC annotation folder", AnnotationError, directory=True)
+    files = sorted(Path(folder).glob("*.xml"))
+    if not files:
+        raise AnnotationError(f"{folder}: no VOC .xml files")
+    for f in files:
+        try:
+            root = ET.parse(f).getroot()
+            name = root.findtext("filename") or f.stem
+            boxes = []
+            for obj in root.findall("object"):
+                bb = obj.find("bndbox")
+                if bb is None:
+                    raise AnnotationError(f"{f}: object without bndbox")
+                x1, y1, x2, y2 = (
+                    _number(bb.findtext(k), k) for k in ("xmin", "ymin", "xmax", "ymax")
+                )
+                boxes.append((x1, y1, x2, y2, obj.findtext("name") or ""))
+        except (ET.ParseError, TypeError, ValueError, OSError) as err:
+            raise AnnotationError(f"{f}: not a VOC annotation: {err}") from None
+        rows += _rows_for_image(name, boxes, str(f))
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def import_cvat(path: Path) -> pd.DataFrame:
+    """CVAT for images 1.1 XML: ``<image name=...><box label xtl ytl xbr ybr/></image>``."""
+    check_input(path, "CVAT annotation file", AnnotationError)
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, UnicodeDecodeError) as err:
+        raise AnnotationError(f"{path}: not valid XML: {err}") from None
+    rows: list[dict] = []
+    images = root.findall("image")
+    if not images:
+        raise AnnotationError(
+            f"{path}: no <image> elements (is this a CVAT for images 1.1 export?)"
+        )
+    for im in images:
+        try:
+            boxes = [_cvat_box(b) for b in im.findall("box")]
+        except (TypeError, ValueError) as err:
+            raise AnnotationError(
+                f"{path}: image {im.get('name')}: bad box attribute: {err}"
+            ) from None
+        rows += _rows_for_image(im.get("name", ""), boxes, f"{path}: image {im.get('id')}")
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+IMPORTERS = {"coco": import_coco, "voc": import_voc, "cvat": import_cvat}
+
+
+def import_annotations(
+    fmt: str, src: Path, frames: pd.DataFrame | None, out: Path, force: bool = False
+) -> pd.DataFrame:
+    """Import, validate and write the canonical CSV.
+
+    Written atomically; an existing ``out`` is replaced only with ``force``.
+    """
+    out = check_file_replaceable(Path(out), force)
+    if fmt not in IMPORTERS:
+        raise AnnotationError(f"unknown annotation format {fmt!r}; known: {sorted(IMPORTERS)}")
+    df = validate(IMPORTERS[fmt](Path(src)).reset_index(drop=True), frames, str(src))
+    from harness.runtime.cache import atomic_path
+
+    with atomic_path(Path(out)) as tmp:
+        df.to_csv(tmp, index=False, float_format="%.2f")
+    return df
+
+
+def export_for_labelling(
+    pairs: pd.DataFrame,
+    frames: pd.DataFrame,
+    out: Path,
+    limit: int | None = None,
+    force: bool = False,
+) -> Path:
+    """Write chosen query frames beside their references for a labelling tool.
+
+    Each image is ``query | reference`` side by side with the query on the left, so a box drawn
+    on the query keeps the query's pixel coordinates (the importers reject boxes beyond the
+    query's width). A COCO task file (``task.json``, images only, one category ``change``)
+    lists them; CVAT, Label Studio and most tools import it.
+    """
+    out = check_replaceable(Path(out), "labelling-task", force)
+    keyed = frames.set_index(["session", "camera", "utime"])
+    q = (
+        pairs.drop_duplicates(["q_session", "q_camera", "q_utime"]).head(limit)
+        if limit
+        else pairs.drop_duplicates(["q_session", "q_camera", "q_utime"])
+    )
+    for side in ("q", "r"):  # every frame a pair names must be in the frame table
+        cols = [f"{side}_session", f"{side}_camera", f"{side}_utime"]
+        missing = ~pd.MultiIndex.from_frame(q[cols]).isin(keyed.index)
+        if missing.any():
+            s_, c_, u_ = q[cols].to_numpy()[int(np.nonzero(missing)[0][0])]
+            raise AnnotationError(
+                f"the frame table lacks the {'query' if side == 'q' else 'reference'} frame "
+                f"{s_} {c_} {u_} of a pair ({int(missing.sum())} pair(s) in all): give the frame "
+                "table of the same run as the pairs"
+            )
+    images = []
+    with atomic_dir(Path(out)) as tmp:
+        (tmp / "images").mkdir()
+        for i, row in enumerate(q.itertuples(index=False), 1):
+            qf = keyed.loc[(row.q_session, row.q_camera, row.q_utime)]
+            rf = keyed.loc[(row.r_session, row.r_camera, row.r_utime)]
+            qi, ri = read_image(qf["image"]), read_image(rf["image"])
+            if ri.shape[0] != qi.shape[0]:
+                ri = cv2.resize(ri, (int(ri.shape[1] * qi.shape[0] / ri.shape[0]), qi.shape[0]))
+            name = image_name(row.q_session, row.q_camera, row.q_utime)
+            cv2.imwrite(
+                str(tmp / "images" / name), cv2.cvtColor(np.hstack([qi, ri]), cv2.COLOR_RGB2BGR)
+            )
+            images.append(
+                {
+                    "id": i,
+                    "file_name": name,
+                    "width": int(qi.shape[1] + ri.shape[1]),
+                    "height": int(qi.shape[0]),
+                    "query_width": int(qi.shape[1]),
+                    "reference": image_name(row.r_session, row.r_camera, row.r_utime),
+                }
+            )
+        write_json(
+            tmp / "task.json",
+            {"images": images, "annotations": [], "categories": [{"id": 1, "name": "change"}]},
+        )
+        write_marker(tmp, "labelling-task", record_entries=True)
+    return Path(out)

@@ -1,0 +1,302 @@
+"""The stages of a run's localizers (SPEC section 11).
+
+Each localizer's ranks, the fusion methods it can have, the same query images for all, and the
+``all localizers`` box list.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.config.load import FusionConfig, LocalizerConfig
+from harness.errors import RetrievalError
+from harness.pipeline import keys
+from harness.pipeline.context import Build, Context, Entry, RankTable, Table
+from harness.pipeline.stages import (
+    SORT_RANKS,
+    descriptor_model,
+    descriptor_projection,
+    imported_ranks,
+    query_ranks,
+    session_descriptors,
+)
+from harness.retrieval.import_file import ImportSpec
+from harness.runtime.cache import stable_hash
+
+log = logging.getLogger(__name__)
+
+#: Fusion methods that need the relevance score d (SPEC section 7).
+SCORE_ONLY = ("score_max", "score_sum")
+#: Methods not defined across localizers (SPEC section 11).
+NOT_ACROSS = ("rank_no_fusion", *SCORE_ONLY)
+
+
+# ---------------------------------------------------------------- localizers (SPEC section 11)
+
+
+@dataclass
+class Measured:
+    """One localizer's ranks, the fusion methods it can have, and what its tables must say."""
+
+    loc: LocalizerConfig
+    ranks: RankTable
+    fusion: FusionConfig
+    notes: list[str] = field(default_factory=list)
+    # Table L's cost cells (harness.runtime.costs)
+    costs: dict[str, float] = field(default_factory=dict)
+    ranks_also: RankTable | None = None  # at [report] gt_radius_also (the localization table)
+
+
+def localizer_proposals(
+    p: Context, loc: LocalizerConfig, props: dict[str, Table]
+) -> dict[str, Table]:
+    """Each session's proposals cut to the localizer's methods (as they are when it uses all)."""
+    if set(loc.proposals) == set(p.cfg.proposals.methods):
+        return props
+    return {
+        s: Table(
+            t.df[t.df["method"].isin(loc.proposals)].reset_index(drop=True),
+            keys.subset(t.key, loc.proposals),
+        )
+        for s, t in props.items()
+    }
+
+
+def bovw_vocabulary(
+    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
+) -> Entry:
+    """Reference-session subimages -> a bag-of-words vocabulary and its IDF (SPEC section 11)."""
+    from harness.retrieval.bovw import train_vocabulary
+
+    assert loc.bovw is not None
+    refs = sorted(set(pairs.df["r_session"]))
+    rows = pd.concat([props[s].df for s in refs], ignore_index=True)
+    build = partial(train_vocabulary, loc.bovw, frames.df, rows)
+    return p.unit("bovw_vocab", keys.bovw_vocab(loc.bovw, [props[s].key for s in refs]), build)
+
+
+def bovw_words(
+    p: Context, loc: LocalizerConfig, frames: Table, props: dict[str, Table], vocab: Entry
+) -> tuple[dict[str, Entry], int]:
+    """Each session's word vectors (``words.npz`` + ``index.parquet``), in resumable shards.
+
+    Returns:
+        The entries, and how many subimages had no feature (no vector, counted).
+    """
+    from harness.retrieval.bovw import combine_word_shards, encode_words
+
+    bc = loc.bovw
+    assert bc is not None
+    units: list[tuple[tuple[Any, ...], Build]] = []
+    spans = {}
+    for sc in p.cfg.sessions:
+        rows, fr = props[sc.name].df, frames.df[frames.df["session"] == sc.name]
+        utimes = np.unique(rows["utime"].to_numpy())
+        shards = [utimes[i : i + bc.shard_frames] for i in range(0, len(utimes), bc.shard_frames)]
+        spans[sc.name] = (len(units), len(units) + len(shards))
+        for si, ut in enumerate(shards):
+            build = partial(
+                encode_words,
+                bc,
+                vocab.path,
+                fr,
+                rows[rows["utime"].isin(ut)].reset_index(drop=True),
+                f"{loc.name} {sc.name} [{si + 1}/{len(shards)}]",
+            )
+            key = keys.bovw_shard(vocab.key, props[sc.name].key, [int(u) for u in ut])
+            units.append((key, build))
+    done = p.units("bovw_shards", units)
+    nofeat = sum(
+        int(p.cache.manifest("bovw_shards", e.key)["info"].get("no_feature_subimages", 0))
+        for e in done
+    )
+    out = {}
+    for sc in p.cfg.sessions:
+        parts = done[slice(*spans[sc.name])]
+        build = partial(combine_word_shards, [e.path for e in parts])
+        out[sc.name] = p.unit(
+            "bovw_words",
+            keys.bovw_words(vocab.key, props[sc.name].key, [e.key for e in parts]),
+            build,
+        )
+    return out, nofeat
+
+
+def localizer_ranks(
+    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
+) -> RankTable:
+    """One localizer's rank rows: its engine over its proposals (SPEC sections 6, 11, 12)."""
+    mine = localizer_proposals(p, loc, props)
+    with p.measuring(loc):
+        if loc.import_ is not None:
+            spec = ImportSpec(loc.name, Path(loc.import_.file))
+            return imported_ranks(p, frames, pairs, mine, spec)
+        if loc.bovw is not None:
+            vocab = bovw_vocabulary(p, loc, frames, pairs, mine)
+            words, nofeat = bovw_words(p, loc, frames, mine, vocab)
+            ranks = query_ranks(p, frames, pairs, words)
+            ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
+            return ranks
+        model = descriptor_model(p, frames, mine)
+        projection = descriptor_projection(p, frames, pairs, mine, model)
+        described = session_descriptors(p, frames, mine, model, projection)
+        return query_ranks(p, frames, pairs, described)
+
+
+def ranks_at_radius(
+    p: Context,
+    radius_m: float,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    props: dict[str, Table],
+) -> RankTable:
+    """A localizer's ranks with the ground-truth place ``radius_m`` wide (``gt_radius_also``).
+
+    The same descriptors (their keys do not hold the radius), ranked again under the other place.
+    """
+    saved = p.cfg
+    p.cfg = dataclasses.replace(
+        saved, retrieval=dataclasses.replace(saved.retrieval, gt_radius_m=radius_m)
+    )
+    try:
+        return localizer_ranks(p, loc, frames, pairs, props)
+    finally:
+        p.cfg = saved
+
+
+def measured_costs(
+    p: Context,
+    loc: LocalizerConfig,
+    trail: list[tuple[str, Path]],
+    ranks: RankTable,
+    pairs: Table,
+    props: dict[str, Table],
+) -> dict[str, float]:
+    """Table L's cost cells of a localizer from the entries its stages used (``trail``)."""
+    from harness.runtime.costs import localizer_costs
+
+    mine = localizer_proposals(p, loc, props)
+    refs = sorted(set(pairs.df["r_session"]))
+    ref_rows = [mine[s].df for s in refs if s in mine]
+    ref_sub = sum(len(df) for df in ref_rows)
+    ref_frames = sum(len(df[["camera", "utime"]].drop_duplicates()) for df in ref_rows)
+    return localizer_costs(
+        trail, len(ranks.df), ref_sub, ref_frames, imported=loc.import_ is not None
+    )
+
+
+def localizer_fusion(
+    p: Context, loc: LocalizerConfig, ranks: RankTable, n_images: int
+) -> tuple[FusionConfig, list[str]]:
+    """The fusion methods a localizer can have, and the notes its tables carry.
+
+    A localizer without a relevance score (an imported list without ``scores``) gets no score
+    method (never NaN rows without a word); lost images and truncated lists are noted.
+    """
+    notes: list[str] = []
+    fc = p.cfg.fusion
+    info = ranks.counts.get("import", {})
+    has_d = loc.import_ is None or bool(info.get("has_scores"))
+    if not has_d:
+        dropped = [m for m in SCORE_ONLY if m in fc.methods]
+        kept = tuple(m for m in fc.methods if m not in dropped)
+        if dropped and kept:
+            fc = dataclasses.replace(fc, methods=kept)
+        if dropped:
+            notes.append(
+                f"NOTE: {', '.join(dropped)} not computed: localizer {loc.name} gives ranked "
+                "lists without scores, so it has no relevance score d (SPEC sections 11-12)."
+            )
+    lost = int(info.get("unranked_query_images", 0))
+    if lost:
+        notes.append(
+            f"NOTE: {lost} of {n_images} query images have no row from localizer {loc.name} "
+            "and are left out of every table ([import] allow_unranked_images = true)."
+        )
+    inexact = int(info.get("gt_missing_from_truncated_list", 0))
+    if inexact:
+        notes.append(
+            f"NOTE: {inexact} of {len(ranks.df)} query subimages of localizer {loc.name} have a "
+            "truncated list without their place: their rank is a bound (exact = False)."
+        )
+    nofeat = int(ranks.counts.get("bovw", {}).get("no_feature_subimages", 0))
+    if nofeat:
+        notes.append(
+            f"NOTE: {nofeat} subimages had no local feature under localizer {loc.name}: they "
+            "are neither queries nor database rows of its engine (SPEC section 11)."
+        )
+    return fc, notes
+
+
+IMAGE_KEY = ["q_session", "q_camera", "q_utime", "r_session"]
+
+
+def common_images(p: Context, measured: list[Measured], pairs: Table) -> str | None:
+    """Score every localizer on the same query images (SPEC section 11).
+
+    A query image of the pairs that some localizer did not rank is an error naming the
+    localizer and the image, unless ``[import] allow_unranked_images``: then it is left out of
+    every localizer's ranks, and the returned note says how many.
+
+    Raises:
+        RetrievalError: an unranked image (not allowed).
+    """
+    all_images = pd.MultiIndex.from_frame(pairs.df[IMAGE_KEY])
+    keep = np.ones(len(all_images), bool)
+    first_missing: tuple[str, Any] | None = None
+    for m in measured:
+        got = pd.MultiIndex.from_frame(m.ranks.df[IMAGE_KEY].drop_duplicates())
+        has = all_images.isin(got)
+        if first_missing is None and not has.all():
+            first_missing = (m.loc.name, all_images[np.flatnonzero(~has)[0]])
+        keep &= has
+    if keep.all():
+        return None
+    lost = int((~keep).sum())
+    assert first_missing is not None
+    name, ex = first_missing
+    if not p.cfg.import_.allow_unranked_images:
+        raise RetrievalError(
+            f"localizer {name!r} ranks no subimage of query image {ex[0]}/{ex[1]}/{ex[2]} -> "
+            f"{ex[3]} ({lost} of {len(all_images)} query images lack some localizer's rank); "
+            "every localizer is scored on the same images: set [import] allow_unranked_images "
+            "= true to leave them out of every table (counted)"
+        )
+    kept = pd.MultiIndex.from_frame(pairs.df[IMAGE_KEY][keep])
+    for m in measured:
+        df = m.ranks.df
+        sel = pd.MultiIndex.from_frame(df[IMAGE_KEY]).isin(kept)
+        if not sel.all():
+            m.ranks = RankTable(
+                df[sel].reset_index(drop=True),
+                stable_hash("common-images", m.ranks.key, int((~sel).sum())),
+                m.ranks.counts,
+            )
+    return (
+        f"NOTE: {lost} of {len(all_images)} query images lack a rank from at least one "
+        f"localizer (e.g. {name}: {ex[0]}/{ex[1]}/{ex[2]}) and are left out of every row "
+        "([import] allow_unranked_images = true)."
+    )
+
+
+def across_localizers(measured: list[Measured]) -> RankTable:
+    """Every localizer's rank rows as one list of original boxes (SPEC section 11).
+
+    An original box is the pair (localizer, box): its method becomes ``localizer:method``, and
+    ``d`` is dropped (scores of different localizers are not comparable).
+    """
+    parts = [
+        m.ranks.df.assign(method=m.loc.name + ":" + m.ranks.df["method"].astype(str), d=np.nan)
+        for m in measured
+    ]
+    df = pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
+    return RankTable(df, stable_hash("all-localizers", [m.ranks.key for m in measured]), {})

@@ -1,0 +1,422 @@
+"""The pipeline (SPEC sections 3-10) as a chain of stage calls.
+
+logs -> frames -> pairs -> proposals -> model [-> projection] -> descriptors -> ranks -> samples ->
+tables
+
+Each stage is a module-level function of typed inputs (the :class:`Pipeline` context and the
+outputs of the stages before it) to a typed output. It builds its cache key with
+:mod:`harness.pipeline.keys` and hands a build function (a module-level function of the stage's
+module, bound with :func:`functools.partial`) to the cache: an entry ``<out>/cache/<stage>/<key>/``
+is built once, so a rerun with nothing changed does no work, an interrupted run resumes, and
+changing one option reruns only what depends on it. ``docs/architecture.md`` draws the chain.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import platform
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness import __version__
+from harness.config.load import ALL_LOCALIZERS, Config
+from harness.errors import HarnessError, RetrievalError
+from harness.localizers.stages import (
+    IMAGE_KEY,
+    NOT_ACROSS,
+    SCORE_ONLY,
+    Measured,
+    across_localizers,
+    bovw_vocabulary,
+    bovw_words,
+    common_images,
+    localizer_fusion,
+    localizer_proposals,
+    localizer_ranks,
+    measured_costs,
+    ranks_at_radius,
+)
+from harness.methods import ordered_methods
+from harness.pipeline.context import Build, Context, Entry, RankTable, Table, localizer_record
+from harness.pipeline.stages import (
+    SORT_RANKS,
+    annotation_table,
+    change_tables,
+    check_fixture_spec,
+    check_names,
+    descriptor_model,
+    descriptor_projection,
+    frame_table,
+    fused_samples,
+    generate_fixture,
+    imported_ranks,
+    ingest_logs,
+    preflight,
+    query_pairs,
+    query_ranks,
+    ranks_device,
+    session_descriptors,
+    session_proposals,
+)
+from harness.reports.write import Block, Reports
+from harness.retrieval.import_file import ImportSpec
+from harness.runtime.cache import write_json
+from harness.runtime.costs import cost_record, machine
+from harness.runtime.executors import LocalExecutor
+from harness.runtime.outdirs import read_run_record
+
+#: The chain's names and, re-exported, the context's and the stages' (one import for callers).
+__all__ = [
+    "IMAGE_KEY",
+    "NOT_ACROSS",
+    "SCORE_ONLY",
+    "SORT_RANKS",
+    "Build",
+    "Context",
+    "Entry",
+    "Measured",
+    "Pipeline",
+    "RankTable",
+    "Table",
+    "across_localizers",
+    "annotation_table",
+    "bovw_vocabulary",
+    "bovw_words",
+    "change_tables",
+    "check_fixture_spec",
+    "check_inputs",
+    "check_localizer_set",
+    "check_names",
+    "common_images",
+    "descriptor_model",
+    "descriptor_projection",
+    "frame_table",
+    "fused_samples",
+    "generate_fixture",
+    "imported_ranks",
+    "ingest_logs",
+    "ingest_summary",
+    "load_run",
+    "localizer_fusion",
+    "localizer_proposals",
+    "localizer_ranks",
+    "localizer_record",
+    "preflight",
+    "query_pairs",
+    "query_ranks",
+    "ranks_device",
+    "reproduce",
+    "run_all",
+    "run_record",
+    "session_descriptors",
+    "session_proposals",
+    "until_pairs",
+    "until_ranks",
+]
+
+log = logging.getLogger(__name__)
+
+# ---------------------------------------------------------------- the chain
+
+
+class Pipeline(Context):
+    """A run: the :class:`~harness.pipeline.context.Context` every stage takes, and the chain."""
+
+    def run(self) -> dict[str, Any]:
+        """Run every stage under the run lock; write the reports into ``out``.
+
+        Return the run record.
+        """
+        with self.locked():
+            return run_all(self)
+
+
+def until_pairs(p: Context) -> tuple[dict[str, Entry], Table, Table, Table]:
+    """Fixture (if configured), ingest, frames, annotations and pairs.
+
+    Returns:
+        (ingest entries, frames, annotations, pairs).
+    """
+    check_names(p)
+    generate_fixture(p)
+    preflight(p)
+    ingested = ingest_logs(p)
+    frames = frame_table(p, ingested)
+    ann = annotation_table(p, frames)
+    return ingested, frames, ann, query_pairs(p, frames, ann)
+
+
+def until_ranks(
+    p: Context, check: bool = True
+) -> tuple[dict[str, Entry], Table, Table, Table, list[Measured]]:
+    """Every stage up to the ranks of every localizer (computed, or imported).
+
+    With ``check``, inputs that can only give NaN tables are refused before any proposal work.
+    Proposals are computed once and shared by the localizers that use the same method.
+
+    Returns:
+        (ingest entries, frames, annotations, pairs, one :class:`Measured` per localizer).
+    """
+    ingested, frames, ann, pairs = until_pairs(p)
+    if check:
+        check_inputs(p, ann, pairs)
+    props = session_proposals(p, frames, pairs, ingested)
+    measured = []
+    for loc in p.localizer_list:
+        start = len(p.trail)
+        ranks = localizer_ranks(p, loc, frames, pairs, props)
+        if not len(ranks.df):
+            raise RetrievalError(f"localizer {loc.name}: no query subimage got a rank")
+        fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
+        costs = measured_costs(p, loc, p.trail[start:], ranks, pairs, props)
+        also = p.cfg.report.gt_radius_also
+        ranks_also = ranks_at_radius(p, also, loc, frames, pairs, props) if also > 0 else None
+        measured.append(Measured(loc, ranks, fusion, notes, costs, ranks_also))
+    return ingested, frames, ann, pairs, measured
+
+
+def run_all(p: Context) -> dict[str, Any]:
+    """The whole chain into ``p.out``: stages, reports, ``run.json`` (and ``report.html``).
+
+    Returns:
+        The run record (``run.json``'s content plus ``table`` and ``reports``).
+    """
+    t0 = time.perf_counter()
+    check_localizer_set(p)
+    ingested, frames, ann, pairs, measured = until_ranks(p)
+    blocks, keys_ = [], {}
+    shared = common_images(p, measured, pairs) if len(measured) > 1 else None
+    n_samples = 0
+    for m in measured:
+        samples = fused_samples(p, m.ranks, frames, ann, m.fusion)
+        notes = m.notes + ([shared] if shared else [])
+        blocks.append(
+            Block(
+                m.loc.name,
+                samples.df,
+                m.ranks.df,
+                ordered_methods(m.fusion.methods),
+                notes,
+                m.costs,
+                m.ranks_also.df if m.ranks_also is not None else None,
+            )
+        )
+        keys_[m.loc.name] = {"ranks": m.ranks.key, "samples": samples.key}
+        n_samples += len(samples.df)
+    if len(measured) > 1:
+        ranks_all = across_localizers(measured)
+        fc = dataclasses.replace(
+            p.cfg.fusion, methods=tuple(x for x in p.cfg.fusion.methods if x not in NOT_ACROSS)
+        )
+        samples = fused_samples(p, ranks_all, frames, ann, fc)
+        blocks.append(
+            Block(
+                ALL_LOCALIZERS,
+                samples.df,
+                None,
+                ordered_methods(fc.methods),
+                [shared] if shared else [],
+            )
+        )
+        keys_[ALL_LOCALIZERS] = {"ranks": ranks_all.key, "samples": samples.key}
+        n_samples += len(samples.df)
+    reports = change_tables(p, blocks, frames, ann)
+    record = run_record(
+        p,
+        ingested,
+        frames,
+        ann,
+        pairs,
+        measured,
+        keys_,
+        n_samples,
+        reports,
+        time.perf_counter() - t0,
+    )
+    write_json(p.out / "run.json", record)
+    if p.cfg.report.html:
+        from harness.reports.html.page import write_html_report
+
+        t_html = time.perf_counter()
+        record["report_html"] = str(write_html_report(p.out))
+        p.timings["report_html"] = time.perf_counter() - t_html
+    record["table"] = reports.tables["I"]
+    record["reports"] = reports
+    return record
+
+
+def check_localizer_set(p: Context) -> None:
+    """Refuse to replace the tables of a run that measured another localizer set, unless ``force``.
+
+    Raises:
+        HarnessError: ``out/run.json`` names other localizers; the message names both sets.
+    """
+    if p.force or not (p.out / "run.json").exists():
+        return
+    try:
+        rec = read_run_record(p.out)
+    except HarnessError:
+        return  # a damaged record is rewritten by this run
+    config = rec.get("config")
+    listed = rec.get("localizers")
+    before = [
+        str(loc.get("name"))
+        for loc in (listed if isinstance(listed, list) else [])
+        if isinstance(loc, dict)
+    ]
+    if not before and isinstance(config, dict):
+        before = [str(config.get("descriptor", {}).get("name", "?"))]
+    now = [loc.name for loc in p.localizer_list]
+    if before != now:
+        raise HarnessError(
+            f"{p.out}: holds the tables of localizer {', '.join(before)}; this run measures "
+            f"{', '.join(now)}; pass --force to replace them, or choose another --out"
+        )
+
+
+def check_inputs(p: Context, ann: Table, pairs: Table) -> None:
+    """Refuse, before any proposal or descriptor work, inputs that can only give NaN tables."""
+    if not (ann.df["status"] == "change").any():
+        raise HarnessError(
+            f"{p.cfg.annotations}: no frame is annotated 'change', so no split has a "
+            "positive and every AP "
+            "would be NaN; annotate at least one change box"
+        )
+    if not len(pairs.df):
+        raise HarnessError(
+            "no query frame found a reference frame; check [pairs] and the annotations"
+        )
+
+
+def run_record(
+    p: Context,
+    ingested: dict[str, Entry],
+    frames: Table,
+    ann: Table,
+    pairs: Table,
+    measured: list[Measured],
+    block_keys: dict[str, dict[str, str]],
+    n_samples: int,
+    reports: Reports,
+    seconds: float,
+) -> dict[str, Any]:
+    """What ``run.json`` records.
+
+    Config, versions, timings, counts, keys, warnings, cache entries. With several localizers the
+    rank counters and keys are given per localizer (``keys.localizers``).
+    """
+    multi = len(measured) > 1
+    first = measured[0]
+    rank_counts: Any = (
+        {m.loc.name: m.ranks.counts for m in measured} if multi else first.ranks.counts
+    )
+    unranked = sum(
+        int(c.get("unranked_query_images", 0))
+        for m in measured
+        for c in m.ranks.counts.values()
+        if isinstance(c, dict)
+    )
+    return {
+        "config": asdict(p.cfg),
+        "versions": _versions(),
+        "seed": p.cfg.seed,
+        "argv": sys.argv,
+        "localizers": [localizer_record(m.loc, multi) for m in measured],
+        "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
+        "total_s": round(seconds, 3),
+        "stage_units_run": p.ran,
+        "executor": p.executor.describe(),
+        "counts": {
+            "frames": len(frames.df),
+            "annotated_frames": int(
+                ann.df[["session", "camera", "utime"]].drop_duplicates().shape[0]
+            ),
+            "pairs": len(pairs.df),
+            "frames_not_described": dict(sorted(p.not_described.items())),
+            "ranked_subimages": sum(len(m.ranks.df) for m in measured),
+            "unranked_query_images": unranked,
+            "samples": n_samples,
+            "rank_counts": rank_counts,
+        },
+        "keys": {
+            "frames": frames.key,
+            "pairs": pairs.key,
+            **block_keys[first.loc.name],
+            **({"localizers": block_keys} if multi else {}),
+        },
+        "localization": reports.localization.to_dict(orient="records"),
+        # Table L's cost columns, and the machine they were measured on
+        "costs": {
+            "machine": machine(),
+            "localizers": {m.loc.name: cost_record(m.costs) for m in measured},
+        },
+        "warnings": reports.warnings,
+        "ingest": {
+            name: ingest_summary(e.path / "ingest_report.json") for name, e in ingested.items()
+        },
+        "cache_entries": {stage: sorted(keys_) for stage, keys_ in sorted(p.used.items())},
+    }
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def ingest_summary(path: Path) -> dict[str, Any]:
+    """What run.json keeps of a session's ingest report: frames written, drops, pose frames."""
+    rep = json.loads(path.read_text())
+    return {
+        k: rep[k]
+        for k in ("format", "frames_written", "dropped", "pose_frames", "salvaged")
+        if k in rep
+    }
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    import cv2
+    import torch
+
+    def ver(dist: str) -> str:
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            return "?"
+
+    return {
+        "dbl-harness": __version__,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "pandas": pd.__version__,
+        "torch": torch.__version__,
+        "opencv": cv2.__version__,
+        "rosbags": ver("rosbags"),
+        "mcap": ver("mcap"),
+        "platform": platform.platform(),
+    }
+
+
+def reproduce(
+    cfg: Config,
+    out: Path,
+    rank_import: ImportSpec | None = None,
+    executor: Any = None,
+    force: bool = False,
+) -> dict[str, Any]:
+    """Run the whole pipeline for ``cfg`` into ``out`` (``executor``: local by default)."""
+    return Pipeline(
+        cfg, Path(out), rank_import=rank_import, executor=executor or LocalExecutor(), force=force
+    ).run()
+
+
+def load_run(out: Path) -> dict[str, Any]:
+    """The ``run.json`` of a finished run in ``out``."""
+    return json.loads((Path(out) / "run.json").read_text())

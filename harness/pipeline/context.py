@@ -1,0 +1,207 @@
+"""The run context every stage takes (:class:`Context`) and the stage outputs' record types.
+
+``Entry`` (a cache directory and its key), ``Table`` (a stage's table and its key), ``RankTable``
+(rank rows, key, counters) and the run's localizers (SPEC section 11). The stages are in
+:mod:`harness.pipeline.stages` and :mod:`harness.localizers.stages`, the chain in
+:mod:`harness.pipeline.chain`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from harness.config.load import Config, LocalizerConfig, LocalizerImportConfig
+from harness.retrieval.import_file import ImportSpec, parse_import_arg
+from harness.runtime.cache import StageCache, content_sha
+from harness.runtime.executors import LocalExecutor
+from harness.runtime.outdirs import claim_dir, run_lock
+
+log = logging.getLogger(__name__)
+
+Build = Callable[[Path], "dict[str, Any] | None"]
+
+
+@dataclass(frozen=True)
+class Entry:
+    """A finished cache entry: its directory and its key."""
+
+    path: Path
+    key: str
+
+
+@dataclass(frozen=True)
+class Table:
+    """A stage's table (read from its cache entry) and the entry's key."""
+
+    df: pd.DataFrame
+    key: str
+
+
+@dataclass(frozen=True)
+class RankTable:
+    """Rank rows of every query subimage, their key, and counters per reference session."""
+
+    df: pd.DataFrame
+    key: str
+    counts: dict[str, dict[str, int]]
+
+
+@dataclass
+class Context:
+    """One config's run into one output directory: the context every stage function takes.
+
+    :class:`harness.pipeline.chain.Pipeline` adds ``run`` (the chain).
+
+    Attributes:
+        cfg: The validated config.
+        out: The run directory (claimed: new, empty or an earlier run of the harness).
+        rank_import: A localizer's rank file to import instead of computing ranks
+            (``--import NAME=FILE``, SPEC section 12).
+        force: Replace the tables of a run directory that measured another localizer set.
+        annotations_optional: A config without ``annotations`` is fine (``harness detect``).
+        train_sessions: The sessions a learned descriptor trains on (None: every session's
+            proposals; ``harness detect``: the map alone).
+        executor: Maps independent units (local or Ray).
+        timings: Seconds per stage.
+        ran: Entries built per stage (0 everywhere on a cached rerun).
+        used: Entries read or written per stage (what ``harness gc`` keeps).
+        not_described: Frames per session that no ranking reads (not proposed or encoded).
+    """
+
+    cfg: Config
+    out: Path
+    rank_import: ImportSpec | None = None
+    force: bool = False
+    executor: Any = field(default_factory=LocalExecutor)
+    annotations_optional: bool = False
+    train_sessions: tuple[str, ...] | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    ran: dict[str, int] = field(default_factory=dict)
+    used: dict[str, set[str]] = field(default_factory=dict)
+    # every entry the run used, in order (stage, entry directory): what a localizer cost
+    trail: list[tuple[str, Path]] = field(default_factory=list)
+    not_described: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def localizer_list(self) -> tuple[LocalizerConfig, ...]:
+        """The localizers this run measures (SPEC section 11).
+
+        ``--import NAME=FILE`` measures that file alone; otherwise ``[[localizers]]``, or the one
+        localizer ``[descriptor]`` defines.
+        """
+        if self.rank_import is not None:
+            return (
+                LocalizerConfig(
+                    self.rank_import.name,
+                    "import",
+                    self.cfg.proposals.methods,
+                    import_=LocalizerImportConfig(
+                        str(self.rank_import.path), self.cfg.import_.score_kind
+                    ),
+                ),
+            )
+        return self.cfg.localizer_set()
+
+    @property
+    def localizer(self) -> dict[str, Any]:
+        """The first localizer's record (its name, kind and source)."""
+        return localizer_record(self.localizer_list[0], len(self.localizer_list) > 1)
+
+    @contextlib.contextmanager
+    def measuring(self, loc: LocalizerConfig) -> Iterator[None]:
+        """Run the stages of ``loc``: ``cfg`` seen with its descriptor and import settings.
+
+        The stage functions read ``[descriptor]`` and ``[import]`` from ``p.cfg``; inside this
+        block they read the localizer's. A config without ``[[localizers]]`` is unchanged.
+        """
+        saved = self.cfg
+        cfg = saved
+        if loc.descriptor is not None:
+            cfg = dataclasses.replace(cfg, descriptor=loc.descriptor)
+        if loc.import_ is not None:
+            cfg = dataclasses.replace(
+                cfg, import_=dataclasses.replace(cfg.import_, score_kind=loc.import_.score_kind)
+            )
+        self.cfg = cfg
+        try:
+            yield
+        finally:
+            self.cfg = saved
+
+    def __post_init__(self) -> None:
+        if self.rank_import is not None and not isinstance(self.rank_import, ImportSpec):
+            self.rank_import = parse_import_arg(str(self.rank_import))
+        # never write into a directory the harness did not create; resolved: remote workers may
+        # start elsewhere
+        self.out = claim_dir(Path(self.out), "run")
+        self.cache = StageCache(self.out / "cache")
+        self._lock_depth = 0
+        self._lock_cm: Any = None
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the run lock of ``out`` (re-entrant): :func:`harness.runtime.outdirs.run_lock`."""
+        if self._lock_depth == 0:
+            self._lock_cm = run_lock(self.out)
+            self._lock_cm.__enter__()
+        self._lock_depth += 1
+        try:
+            yield
+        finally:
+            self._lock_depth -= 1
+            if self._lock_depth == 0:
+                cm, self._lock_cm = self._lock_cm, None
+                cm.__exit__(None, None, None)
+
+    def unit(self, stage: str, key_parts: tuple[Any, ...], build: Build) -> Entry:
+        """The entry of ``stage`` for ``key_parts``, built here by ``build(tmp)`` unless cached."""
+        t0 = time.perf_counter()
+        path, ran = self.cache.run(stage, key_parts, build)
+        self._count(stage, [(path, ran)], t0)
+        return Entry(path, path.name)
+
+    def units(
+        self, stage: str, units: list[tuple[tuple[Any, ...], Build]], gpu: bool = False
+    ) -> list[Entry]:
+        """Entries of independent units of ``stage``, built through the executor (in parallel)."""
+        t0 = time.perf_counter()
+        res = self.executor.map_units(self.cache, stage, units, gpu=gpu)
+        self._count(stage, res, t0)
+        return [Entry(Path(p), Path(p).name) for p, _ in res]
+
+    def _count(self, stage: str, res: list[tuple[Path, bool]], t0: float) -> None:
+        self.ran[stage] = self.ran.get(stage, 0) + sum(int(r) for _, r in res)
+        self.used.setdefault(stage, set()).update(Path(p).name for p, _ in res)
+        self.trail.extend((stage, Path(p)) for p, _ in res)
+        self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def localizer_record(loc: LocalizerConfig, full: bool = True) -> dict[str, Any]:
+    """What ``run.json`` and the page say of a localizer: name, kind, source."""
+    if loc.import_ is not None:
+        path = Path(loc.import_.file)
+        return {
+            "name": loc.name,
+            "kind": "import",
+            "file": str(path.resolve()),
+            "sha256": content_sha(path) if path.is_file() else None,
+            "score_kind": loc.import_.score_kind,
+            **({"proposals": list(loc.proposals)} if full else {}),
+        }
+    rec: dict[str, Any] = {"name": loc.name, "kind": loc.kind}
+    if full:
+        rec["proposals"] = list(loc.proposals)
+        if loc.descriptor is not None:
+            rec["descriptor"] = loc.descriptor.name
+        if loc.bovw is not None:
+            rec["bovw"] = dataclasses.asdict(loc.bovw)
+    return rec

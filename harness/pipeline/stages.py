@@ -1,0 +1,487 @@
+"""The pipeline's stages (SPEC sections 3-10), in data-flow order.
+
+Each is a function of the :class:`~harness.pipeline.context.Context` and the typed outputs of the
+stages before it.
+Each builds its cache key with :mod:`harness.pipeline.keys` and hands a build function (a
+module-level function of the stage's module, bound with :func:`functools.partial`) to the cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.config.load import FusionConfig
+from harness.descriptors import make_descriptor
+from harness.descriptors.extract import (
+    combine_shards,
+    encode_shard,
+    fit_projection_unit,
+    train_model,
+)
+from harness.errors import AnnotationError, ConfigError, IngestError, RetrievalError
+from harness.fusion.fuse import write_samples
+from harness.imagestore import local_uri
+from harness.ingest import combine_frames, ingest_session
+from harness.ingest.annotations import COLUMNS, load_annotations
+from harness.ingest.annotations import validate as validate_annotations
+from harness.pairs import write_pairs
+from harness.pipeline import keys
+from harness.pipeline.context import Build, Context, Entry, RankTable, Table
+from harness.proposals.proposers import write_proposals
+from harness.reports.write import Block, Reports, write_reports
+from harness.retrieval import described_frames, rank_reference
+from harness.retrieval.import_file import ImportSpec
+from harness.retrieval.imported import unranked_images
+from harness.runtime.cache import (
+    content_sha,
+    read_cached_parquet,
+    stable_hash,
+    write_parquet,
+    write_text,
+)
+from harness.runtime.progress import progress
+
+log = logging.getLogger(__name__)
+
+# ---------------------------------------------------------------- the stages, in data-flow order
+
+
+def generate_fixture(p: Context) -> None:
+    """Generate the fixture into ``data_root`` when ``[fixture] generate`` and it is absent.
+
+    An existing fixture is reused as it is. A ``data_root`` that exists and holds anything else
+    is never touched: that is someone's data, and the error says so.
+    """
+    fx, root = p.cfg.fixture, p.cfg.data_root
+    if not fx.generate:
+        return
+    if (root / "fixture.json").exists():
+        check_fixture_spec(p)
+        return
+    if root.exists() and (not root.is_dir() or any(root.iterdir())):
+        raise ConfigError(
+            f"{root}: [fixture] generate = true, but data_root exists and holds no "
+            "generated fixture "
+            "(no fixture.json); the harness never writes into it. Set generate = false for "
+            "real data, "
+            "or point data_root (--data-root) at a new directory"
+        )
+    from harness.fixture import FixtureSpec, generate
+
+    log.info("fixture: generating into %s", root)
+    spec = FixtureSpec(
+        seed=fx.seed,
+        frames=fx.frames,
+        width=fx.width,
+        height=fx.height,
+        objects=fx.objects,
+        loop_scale=fx.loop_scale,
+        render_scale=fx.render_scale,
+    )
+    t0 = time.perf_counter()
+    try:
+        generate(root, spec, formats=fx.formats or None)
+    except ValueError as err:
+        raise ConfigError(f"[fixture] {err}") from None
+    p.timings["fixture"] = time.perf_counter() - t0
+    if p.cfg.annotations is not None and not p.cfg.annotations.exists():
+        p.cfg.annotations.parent.mkdir(parents=True, exist_ok=True)
+        write_text(p.cfg.annotations, (root / "annotations.csv").read_text())
+
+
+def check_fixture_spec(p: Context) -> None:
+    """An existing generated fixture must be the one ``[fixture]`` describes.
+
+    Raises:
+        ConfigError: it was generated with other settings (naming them); it is never replaced
+            silently: the message says to remove it so that the next run generates it again.
+    """
+    from harness.fixture.generate import read_spec
+
+    fx, root = p.cfg.fixture, p.cfg.data_root
+    try:
+        have = read_spec(root)
+    except (OSError, ValueError, KeyError):
+        return  # an unreadable record: ingest reports what is wrong with the data
+    want = {
+        "seed": fx.seed,
+        "frames": fx.frames,
+        "width": fx.width,
+        "height": fx.height,
+        "objects": fx.objects,
+        "loop_scale": fx.loop_scale,
+        "render_scale": fx.render_scale,
+    }
+    diff = {k: (have.get(k), v) for k, v in want.items() if k in have and have.get(k) != v}
+    if diff:
+        raise ConfigError(
+            f"{root}: a fixture generated with other [fixture] settings ("
+            + ", ".join(f"{k} {a!r} there, {b!r} in the config" for k, (a, b) in diff.items())
+            + f"); remove {root} (the harness generated it) and run again to regenerate it"
+        )
+
+
+def check_names(p: Context) -> None:
+    """Registry names of the config, checked before the fixture is generated or anything read.
+
+    A descriptor registered at run time counts.
+
+    Raises:
+        ConfigError: An unknown descriptor or log format, naming the known ones.
+    """
+    from harness.descriptors import REGISTRY
+    from harness.ingest.logs import known_formats
+
+    cfg = p.cfg
+    for loc in p.localizer_list:
+        if loc.descriptor is not None and loc.descriptor.name not in REGISTRY:
+            where = "[descriptor]" if not cfg.localizers else f"localizer {loc.name}: descriptor"
+            raise ConfigError(
+                f"{where} name = {loc.descriptor.name!r}: unknown; known: {sorted(REGISTRY)}"
+            )
+    for sc in cfg.sessions:
+        if sc.format != "auto" and sc.format not in known_formats():
+            raise ConfigError(
+                f"sessions {sc.name}: format = {sc.format!r}: unknown; known: "
+                f"{list(known_formats())}"
+            )
+
+
+def preflight(p: Context) -> None:
+    """Every input the config names checked before any stage runs (nothing half done).
+
+    Every session's log (present, readable, of a known format, an NCLT session's camera), the
+    annotation file and a proposal table.
+
+    Raises:
+        HarnessError: Naming the key or the file and what is wrong.
+    """
+    from harness.ingest.logs import detect_format
+    from harness.inputs import check_input
+
+    cfg = p.cfg
+    for sc in cfg.sessions:
+        src = Path(sc.source)
+        check_input(src, f"log of session {sc.name}", IngestError, directory=src.is_dir())
+        fmt = detect_format(src) if sc.format == "auto" else sc.format
+        cams = src / "images" / sc.name / "lb3"
+        if fmt == "nclt" and not (cams / sc.camera).is_dir():
+            found = sorted(d.name for d in cams.glob("*") if d.is_dir()) if cams.is_dir() else []
+            raise ConfigError(
+                f"sessions {sc.name}: camera = {sc.camera!r}: no {cams / sc.camera}; cameras "
+                f"found: {found or 'none'} (names are case-sensitive)"
+            )
+    if cfg.annotations is None:
+        if not p.annotations_optional:
+            raise ConfigError(
+                "missing required key 'annotations': the tables measure change against an "
+                "annotation file (harness detect runs without one)"
+            )
+    else:
+        check_input(cfg.annotations, "annotation file", AnnotationError)
+    if "file" in cfg.proposals.methods and cfg.proposals.file:
+        check_input(cfg.proposals.file, "[proposals] file", ConfigError)
+
+
+def ingest_logs(p: Context) -> dict[str, Entry]:
+    """Logs -> one ingest entry per session (``frames.parquet``, images, ``ingest_report.json``)."""
+    units: list[tuple[tuple[Any, ...], Build]] = [
+        (keys.ingest(p.cfg, sc), partial(ingest_session, sc, p.cfg.ingest)) for sc in p.cfg.sessions
+    ]
+    return dict(zip([sc.name for sc in p.cfg.sessions], p.units("ingest", units), strict=True))
+
+
+def frame_table(p: Context, ingested: dict[str, Entry]) -> Table:
+    """Ingest entries -> the run's frame table (image URIs local to this machine)."""
+    build = partial(
+        combine_frames,
+        [e.path for e in ingested.values()],
+        p.out,
+        p.cfg.data_root,
+        sources=[sc.source for sc in p.cfg.sessions],
+    )
+    entry = p.unit("frames", keys.frames([e.key for e in ingested.values()]), build)
+    df = read_cached_parquet(entry.path / "frames.parquet")
+    df["image"] = [local_uri(u, p.out, p.cfg.data_root) for u in df["image"]]
+    return Table(df, entry.key)
+
+
+def annotation_table(p: Context, frames: Table) -> Table:
+    """The annotation file, checked against the frames; its key is the file's content hash."""
+    if p.cfg.annotations is None:  # harness detect without annotations: no frame is annotated
+        return Table(validate_annotations(pd.DataFrame(columns=COLUMNS), None, "none"), "none")
+    path = p.cfg.annotations
+    if p.annotations_optional:  # harness detect: the rows of the sessions it reads
+        every = load_annotations(path)
+        names = {s.name for s in p.cfg.sessions}
+        mine = every[every["session"].isin(names)].reset_index(drop=True)
+        return Table(validate_annotations(mine, frames.df, str(path)), content_sha(path))
+    return Table(load_annotations(path, frames.df), content_sha(path))
+
+
+def query_pairs(p: Context, frames: Table, ann: Table) -> Table:
+    """Frames (+ annotations) -> a reference viewpoint per query frame and season (SPEC 4)."""
+    queries = ann.df if p.cfg.pairs.queries == "annotated" else None
+    build = partial(write_pairs, frames.df, p.cfg.pairs, p.cfg.seasons(), queries)
+    entry = p.unit("pairs", keys.pairs(p.cfg, frames.key, ann.key), build)
+    return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
+
+
+def session_proposals(
+    p: Context, frames: Table, pairs: Table, ingested: dict[str, Entry]
+) -> dict[str, Table]:
+    """Frames + pairs -> each session's proposal boxes (SPEC section 5).
+
+    Only on the frames ranking reads.
+
+    Those are a session's query frames and, for a reference session, the frames its database keeps
+    (every frame unless ``[retrieval] db_stride_m``); the others are counted in ``run.json``
+    (``counts.frames_not_described``), never proposed or encoded.
+    """
+    out = {}
+    described = described_frames(frames.df, pairs.df, p.cfg.retrieval.db_stride_m)
+    empty = frames.df.iloc[:0]
+    for sc in p.cfg.sessions:
+        fr = described.get(sc.name, empty)
+        p.not_described[sc.name] = int((frames.df["session"] == sc.name).sum()) - len(fr)
+        build = partial(write_proposals, fr, p.cfg.proposals, sc.name)
+        used = [(str(c), int(u)) for c, u in zip(fr["camera"], fr["utime"], strict=True)]
+        entry = p.unit("proposals", keys.proposals(p.cfg, ingested[sc.name].key, used), build)
+        out[sc.name] = Table(read_cached_parquet(entry.path / "proposals.parquet"), entry.key)
+    return out
+
+
+def descriptor_model(p: Context, frames: Table, props: dict[str, Table]) -> Entry:
+    """Proposals -> the trained descriptor model (empty for descriptors that do not train)."""
+    trains = make_descriptor(p.cfg.descriptor).needs_training
+    if p.train_sessions is not None:
+        props = {s: t for s, t in props.items() if s in p.train_sessions}
+    rows = (
+        pd.concat([t.df for t in props.values()], ignore_index=True) if trains else pd.DataFrame()
+    )
+    build = partial(train_model, p.cfg.descriptor, frames.df, rows)
+    return p.unit("model", keys.model(p.cfg, trains, [t.key for t in props.values()]), build)
+
+
+def descriptor_projection(
+    p: Context, frames: Table, pairs: Table, props: dict[str, Table], model: Entry
+) -> Entry | None:
+    """Model -> the compact-descriptor projection (``[projection] dim > 0``).
+
+    Fitted on the reference sessions.
+
+    The reference sessions are those some pair ranks against; None when the projection is off.
+    """
+    if p.cfg.projection.dim == 0:
+        return None
+    refs = sorted(set(pairs.df["r_session"]))
+    rows = pd.concat([props[s].df for s in refs], ignore_index=True)
+    build = partial(
+        fit_projection_unit, p.cfg.descriptor, p.cfg.projection, model.path, frames.df, rows
+    )
+    return p.unit(
+        "projection", keys.projection(p.cfg, model.key, [props[s].key for s in refs]), build
+    )
+
+
+def session_descriptors(
+    p: Context,
+    frames: Table,
+    props: dict[str, Table],
+    model: Entry,
+    projection: Entry | None = None,
+) -> dict[str, Entry]:
+    """Proposals + model (+ projection) -> each session's descriptors.
+
+    ``desc.npy``, aligned with ``index.parquet``.
+
+    Work is cached in shards of ``shard_frames`` frames (an interrupted extraction resumes at the
+    next unfinished shard); a session's shards are then combined, one shard at a time.
+    """
+    dc = p.cfg.descriptor
+    units: list[tuple[tuple[Any, ...], Build]] = []
+    spans = {}
+    for sc in p.cfg.sessions:
+        rows, fr = props[sc.name].df, frames.df[frames.df["session"] == sc.name]
+        utimes = np.unique(rows["utime"].to_numpy())
+        shards = [
+            utimes[i : i + dc.shard_frames] for i in range(0, len(utimes), max(1, dc.shard_frames))
+        ]
+        spans[sc.name] = (len(units), len(units) + len(shards))
+        for si, ut in enumerate(shards):
+            build = partial(
+                encode_shard,
+                dc,
+                model.path,
+                projection.path if projection else None,
+                fr,
+                rows[rows["utime"].isin(ut)],
+                f"{sc.name} [{si + 1}/{len(shards)}]",
+            )
+            key = keys.descriptor_shard(
+                p.cfg,
+                props[sc.name].key,
+                model.key,
+                [int(u) for u in ut],
+                projection.key if projection else None,
+            )
+            units.append((key, build))
+    shards_done = p.units("descriptor_shards", units, gpu=True)
+    out = {}
+    for sc in p.cfg.sessions:
+        parts = shards_done[slice(*spans[sc.name])]
+        build = partial(combine_shards, dc, props[sc.name].df, [e.path for e in parts])
+        out[sc.name] = p.unit(
+            "descriptors",
+            keys.descriptors(p.cfg, props[sc.name].key, model.key, [e.key for e in parts]),
+            build,
+        )
+    return out
+
+
+def ranks_device(p: Context) -> str:
+    """The exact engine's device: CUDA when ``[descriptor] device`` allows it and one is present."""
+    import torch
+
+    rc, dev = p.cfg.retrieval, p.cfg.descriptor.device
+    return (
+        "cuda"
+        if rc.engine == "exact" and dev in ("auto", "cuda") and torch.cuda.is_available()
+        else "cpu"
+    )
+
+
+def query_ranks(p: Context, frames: Table, pairs: Table, described: dict[str, Entry]) -> RankTable:
+    """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
+
+    Units: (reference session, chunk of ``query_frames_per_shard`` pairs); one engine per
+    proposal method inside each. With ``rank_import`` the ranks come from the user's file.
+    """
+    rc, dkeys = p.cfg.retrieval, {s: e.key for s, e in described.items()}
+    paths, device = {s: e.path for s, e in described.items()}, ranks_device(p)
+    units: list[tuple[tuple[Any, ...], Build]] = []
+    unit_ref = []
+    step = max(1, rc.query_frames_per_shard)
+    for ref in [s.name for s in p.cfg.sessions]:
+        sub = pairs.df[pairs.df["r_session"] == ref].reset_index(drop=True)
+        for c0 in range(0, max(len(sub), 1), step):
+            chunk = sub.iloc[c0 : c0 + step]
+            build = partial(
+                _write_ranks, rc, p.cfg.pairs.max_yaw_diff_deg, chunk, ref, paths, frames.df, device
+            )
+            units.append((keys.ranks_unit(p.cfg, ref, pairs.key, dkeys, c0, len(chunk)), build))
+            unit_ref.append(ref)
+    parts: list[pd.DataFrame] = []
+    counts: dict[str, dict[str, int]] = {}
+    for ref, entry in zip(unit_ref, p.units("ranks", units, gpu=True), strict=True):
+        parts.append(read_cached_parquet(entry.path / "ranks.parquet"))
+        c = counts.setdefault(ref, {})
+        for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
+            c[k] = c.get(k, 0) + v
+    parts = [d for d in parts if len(d)]
+    df = (
+        pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
+        if parts
+        else pd.DataFrame()
+    )
+    return RankTable(df, stable_hash(*keys.ranks(p.cfg, pairs.key, dkeys)), counts)
+
+
+SORT_RANKS = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+
+
+def _write_ranks(
+    rc: Any,
+    max_yaw_deg: float,
+    pairs: pd.DataFrame,
+    ref: str,
+    descriptors: dict[str, Path],
+    frames: pd.DataFrame,
+    device: str,
+    tmp: Path,
+) -> dict[str, int]:
+    """One ranking unit (:func:`harness.retrieval.rank_reference`) into ``tmp/ranks.parquet``."""
+    df, counts = rank_reference(rc, max_yaw_deg, pairs, ref, descriptors, frames, device)
+    write_parquet(tmp / "ranks.parquet", df)
+    return counts
+
+
+def imported_ranks(
+    p: Context, frames: Table, pairs: Table, props: dict[str, Table], spec: ImportSpec
+) -> RankTable:
+    """Ranks from a user's localizer (``--import NAME=FILE`` or an ``import`` localizer).
+
+    Checked against the run (SPEC 12): every row must be a proposal of the run and match a pair;
+    a query image of the pairs without any row is an error unless ``[import]
+    allow_unranked_images`` (then it is counted).
+    """
+    from harness.retrieval.imported import write_imported_ranks
+
+    if not Path(spec.path).is_file():
+        raise RetrievalError(f"{spec.path}: --import file not found (localizer {spec.name!r})")
+    allprops = pd.concat([t.df for t in props.values()], ignore_index=True)
+    build = partial(
+        write_imported_ranks,
+        spec,
+        pairs.df,
+        frames.df,
+        allprops,
+        p.cfg.retrieval.gt_radius_m,
+        p.cfg.pairs.max_yaw_diff_deg,
+        p.cfg.import_.score_kind,
+    )
+    key = keys.ranks_import(
+        p.cfg, spec.name, content_sha(spec.path), pairs.key, [t.key for t in props.values()]
+    )
+    entry = p.unit("ranks", key, build)
+    df = read_cached_parquet(entry.path / "ranks.parquet")
+    info = dict(p.cache.manifest("ranks", entry.key)["info"])
+    missing = unranked_images(pairs.df, df)
+    info["unranked_query_images"] = len(missing)
+    if len(missing) and not p.cfg.import_.allow_unranked_images:
+        ex = missing.iloc[0]
+        raise RetrievalError(
+            f"{spec.path}: localizer {spec.name!r} ranks no subimage of {len(missing)} of "
+            f"{len(pairs.df)} query images (e.g. {ex.q_session}/{ex.q_camera}/{ex.q_utime} -> "
+            f"{ex.r_session}); every localizer is scored on the same images: rank them, or set "
+            "[import] allow_unranked_images = true to leave them out of every table (counted)"
+        )
+    return RankTable(df, entry.key, {"import": info})
+
+
+def fused_samples(
+    p: Context, ranks: RankTable, frames: Table, ann: Table, fusion: FusionConfig | None = None
+) -> Table:
+    """Ranks + annotations -> a sample per fused box with each method's LoC (SPEC 7-8)."""
+    fc = fusion or p.cfg.fusion
+    cfg = p.cfg if fusion is None else dataclasses.replace(p.cfg, fusion=fc)
+    build = partial(write_samples, ranks.df, frames.df, ann.df, fc)
+    entry = p.unit("samples", keys.samples(cfg, ranks.key, ann.key), build)
+    return Table(read_cached_parquet(entry.path / "samples.parquet"), entry.key)
+
+
+def change_tables(p: Context, blocks: list[Block], frames: Table, ann: Table) -> Reports:
+    """Samples -> Tables I, S, P (and L), localization quality, splits and figures (SPEC 8-11).
+
+    One block per localizer (and ``all localizers`` where there are several); a block's notes
+    are printed under its change tables (what the localizer lacks or lost).
+    """
+    t0 = time.perf_counter()
+    reports = write_reports(
+        p.cfg,
+        p.out,
+        blocks,
+        frames=frames.df,
+        ann=ann.df,
+        progress=partial(progress, desc="splits", unit="split"),
+    )
+    p.timings["labels_ap_reports"] = time.perf_counter() - t0
+    return reports

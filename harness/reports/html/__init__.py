@@ -1,0 +1,1 @@
+"""The report page: its tables, figures and the one HTML file."""

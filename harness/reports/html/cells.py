@@ -1,0 +1,425 @@
+"""The report page's tables as HTML: verdicts, change tables, localization, heat maps, Table L.
+
+Every table reads the same pivots and intros as the markdown (:mod:`harness.reports.render`); a cell
+is green when its 95% interval lies clear above the floor, grey when it holds it, red below.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.methods import FUSION_METHODS, METHOD_LABELS
+from harness.reports import tables as report_tables
+from harness.reports.render import chance_rows, gap_line
+from harness.reports.write import TABLE_INTRO, loc_columns, pivot
+
+
+def esc(x: Any) -> str:
+    """``x`` as HTML text."""
+    return html.escape(str(x))
+
+
+def num(v: float, d: int = 2) -> str:
+    """``v`` to ``d`` decimals; NaN as ``NaN``."""
+    return "NaN" if v != v else f"{v:.{d}f}"
+
+
+NAN = float("nan")
+
+
+def diff_colour(lo: float, hi: float) -> str:
+    """A paired difference's background: green when its interval lies above 0, red below."""
+    return "#e3f4e1" if lo > 0 else "#fbe3e1" if hi < 0 else "#fff"
+
+
+#: What a change-table cell says about its AP: SPEC 9's verdict
+# (:func:`harness.evaluate.chance.verdict`).
+VERDICTS = {
+    "above": "above chance: above the chance band and clear of the random baseline (paired)",
+    "chance": "cannot be told from chance on this data",
+    "below": "below chance: under the chance band and clear below the random baseline (paired)",
+    "untested": "no interval: not tested against chance; the shade shows the distance only",
+    "undefined": "undefined (no positive)",
+}
+
+
+def verdict(ap: float, floor: float, word: str) -> tuple[str, str]:
+    """(verdict, background) of one AP cell: the colour of SPEC 9's verdict ``word``.
+
+    Green above chance, red below, grey when it cannot be told from chance; the shade grows with
+    the distance of the AP from the floor, as a share of the room there is (1 - floor above it,
+    floor below it). Untested cells (no interval) get a pale version of the same scale and decide
+    nothing.
+    """
+    if ap != ap or floor != floor or word == "undefined":
+        return "undefined", "#f0f0f0"
+    up = ap >= floor
+    room = (1.0 - floor) if up else floor
+    t = float(np.clip(abs(ap - floor) / room if room > 0 else 0.0, 0.0, 1.0))
+    green = (int(232 - 100 * t), int(246 - 40 * t), int(228 - 100 * t))
+    red = (int(251 - 20 * t), int(228 - 110 * t), int(225 - 110 * t))
+    if word == "above":
+        return "above", "rgb({},{},{})".format(*green)
+    if word == "below":
+        return "below", "rgb({},{},{})".format(*red)
+    if word == "chance":
+        return "chance", "#e4e4e4"
+    r, g, b = green if up else red
+    r, g, b = (int(255 - (255 - v) * 0.5) for v in (r, g, b))
+    return "untested", f"rgb({r},{g},{b})"
+
+
+LEGEND = (
+    '<div class="legend" data-legend="floor"><b>How to read the colours</b> (SPEC 9, one rule '
+    "for every colour). "
+    '<span class="sw" style="background:rgb(182,226,178)"></span> green: above chance, the AP '
+    "exceeds the chance band (the 95th percentile of random orders of the same samples) and its "
+    "paired bootstrap difference from the random baseline lies clear above 0, the darker the "
+    "further from the floor; "
+    '<span class="sw" style="background:#e4e4e4"></span> grey: this data cannot tell the method '
+    "from chance; "
+    '<span class="sw" style="background:rgb(241,163,160)"></span> red: below chance, '
+    "symmetrically. The floor is the mean AP of those random orders, not the positive rate. "
+    "Paired differences: green or red when their interval is clear of 0, white when it holds 0. "
+    "A cell without an interval is paler and decides nothing.</div>"
+)
+
+
+def heat_style(v: float, floor: float = 0.0) -> str:
+    """A background colour for AP: pale red at the floor (random orders) to green at 1."""
+    if v != v:
+        return "#f0f0f0"
+    v = float(np.clip((v - floor) / (1 - floor) if floor == floor and floor < 1 else v, 0, 1))
+    r, g, b = (
+        (int(255 - 90 * v), int(215 + 25 * v), int(215 - 60 * v))
+        if v >= 0.5
+        else (250, int(205 + 40 * v), int(200 + 20 * v))
+    )
+    return f"rgb({r},{g},{b})"
+
+
+def change_table(
+    summ: pd.DataFrame,
+    table: str,
+    methods: tuple[str, ...],
+    warnings: list[str],
+    who: str = "",
+) -> str:
+    """One change table (I, S or P) of a run's summary, cells coloured against their floor."""
+    ap, lo, hi, ver = (
+        pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "verdict")
+    )
+    floor = pivot(summ, table, methods, "floor")
+    cols = list(ap.columns)
+    head = "".join(f"<th>{esc(f'{c:.2f}' if isinstance(c, float) else c)}</th>" for c in cols)
+    rows, sep = [], False
+    for m in ap.index:
+        if m not in FUSION_METHODS and not sep:
+            rows.append(
+                f'<tr class="sep"><td colspan="{len(cols) + 1}">variants and baselines (the '
+                "baselines read no pixel)</td></tr>"
+            )
+            sep = True
+        cells = "".join(
+            '<td data-verdict="{}" style="background:{}" title="{}">'.format(
+                *verdict(ap.loc[m, c], floor.loc[m, c], str(ver.loc[m, c])),
+                esc(VERDICTS.get(str(ver.loc[m, c]), "")),
+            )
+            + f"{num(ap.loc[m, c])}"
+            + (
+                f' <span class="ci">[{num(lo.loc[m, c])}, {num(hi.loc[m, c])}]</span>'
+                if lo.loc[m, c] == lo.loc[m, c]
+                else ""
+            )
+            + "</td>"
+            for c in cols
+        )
+        rows.append(f"<tr><td>{esc(METHOD_LABELS[m])}</td>{cells}</tr>")
+    rows += [
+        f'<tr class="floor"><td>{esc(label)}</td>'
+        + "".join(f"<td>{esc(v)}</td>" for v in vals)
+        + "</tr>"
+        for label, vals in chance_rows(summ, table, methods)
+    ]
+    if table == "P":
+        warnings = [gap_line(summ, methods), *warnings]
+    title, intro = TABLE_INTRO[table]
+    warn = "".join(f'<div class="warn">{esc(w)}</div>' for w in warnings)
+    heading = "h3" if table == "I" else "h2"
+    return (
+        f'<{heading} id="table{table}">{esc(title + who)}</{heading}><p class="note">{esc(intro)} '
+        "Cells: AP [95% bootstrap interval over query images]; colour: SPEC 9's verdict "
+        "against chance (see the legend).</p>"
+        f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}'
+    )
+
+
+def localization_table(
+    loc: pd.DataFrame, radius: float, who: str = "", anchor: str = "localization"
+) -> str:
+    """The localization-quality table (SPEC section 10) of ``who`` (``anchor``: its id)."""
+    cols = loc_columns(loc)
+    head = "".join(f"<th>{esc(lab)}</th>" for _, lab, _ in cols)
+
+    def rows(df: pd.DataFrame) -> str:
+        return "".join(
+            f'<tr><td>{esc(r.proposals)}</td><td class="l">{esc(r.season_pair)}</td>'
+            + "".join(
+                f"<td>{int(getattr(r, c))}</td>"
+                if d == 0
+                else f"<td>{num(float(getattr(r, c)), d)}</td>"
+                for c, _, d in cols
+            )
+            + "</tr>"
+            for r in df.itertuples(index=False)
+        )
+
+    table = f"<tr><th>proposals</th><th>season pair</th>{head}</tr>"
+    return (
+        f'<h2 id="{anchor}">Localization quality{esc(who)}</h2><p class="note">'
+        "Every change figure rests on these ranks. Ground truth: "
+        f"the reference frames within {radius:g} m of the paired frame (the place). R@k: "
+        "share of query subimages whose place "
+        "ranks within the first k; median r: 0.5 is chance; clean: subimages of annotated "
+        "frames with RoC &le; 0.05.</p>"
+        f'<table data-table="{anchor}">{table}{rows(loc[loc["season_pair"] == "all"])}</table>'
+        "<details><summary>per season "
+        f"pair</summary><table>{table}{rows(loc[loc['season_pair'] != 'all'])}</table></details>"
+    )
+
+
+def heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
+    """Table I's AP of one method per season pair, at ``split``."""
+    d = summ[
+        (summ["table"] == "I")
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] != "all")
+        & (summ["method"] == method)
+        & (summ["split"] == split)
+    ]
+    if not len(d):
+        return ""
+    return heat_table(
+        d.set_index("season_pair")["ap"].to_dict(),
+        d.set_index("season_pair")["floor"].to_dict(),
+        "heatmapI",
+        f"{METHOD_LABELS[method]}, Table I (the paper's protocol), {split}",
+    )
+
+
+def heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split: str) -> str:
+    """Table S's AP of one method per season pair (query season down, reference across)."""
+    from harness.evaluate.chance import MIN_DRAWS, stratified_chance
+    from harness.evaluate.metrics import stratified_ap
+
+    col = f"loc_{method}"
+    allp = rep[(rep["proposals"] == "all") & (rep["label_stratified"] >= 0)]
+    if col not in allp.columns or not len(allp):
+        return ""
+    pairs, floors = {}, {}
+    for pair, g in allp.groupby("season_pair", sort=True):
+        g = g[g[col].notna()]
+        y, sob = g["label_stratified"].to_numpy() == 1, g["SoB"].to_numpy()
+        pairs[pair] = stratified_ap(y, g[col].to_numpy(), sob, edges)[0]
+        floors[pair] = stratified_chance(y, sob, np.asarray(edges), MIN_DRAWS, 0)[0]
+    return heat_table(
+        pairs,
+        floors,
+        "heatmap",
+        f"{METHOD_LABELS[method]}, Table S (size-stratified), {split}",
+    )
+
+
+def heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, what: str) -> str:
+    """A season x season table of ``what`` per pair, coloured against each pair's floor."""
+    seasons = sorted(
+        {p.split("->")[0] for p in pairs} | {p.split("->")[1] for p in pairs},
+        key=lambda s: ["WI", "SP", "SU", "AU"].index(s) if s in ("WI", "SP", "SU", "AU") else 9,
+    )
+    head = "".join(f"<th>{esc(s)}</th>" for s in seasons)
+
+    def cell(q: str, r: str) -> str:
+        if q == r:
+            return '<td class="diag">&mdash;</td>'
+        key = f"{q}->{r}"
+        if key not in pairs:
+            return '<td class="diag">no pair</td>'
+        ap, fl = pairs[key], floors.get(key, NAN)
+        colour = verdict(ap, fl, "untested")[1]
+        text = num(ap) if ap == ap else "NaN"
+        return f'<td style="background:{colour}" title="floor {num(fl)}">{text}</td>'
+
+    rows = "".join(
+        f"<tr><th>{esc(q)}</th>" + "".join(cell(q, r) for r in seasons) + "</tr>" for q in seasons
+    )
+    return (
+        f'<h3 id="{anchor}">AP per season pair</h3><p class="note">{esc(what)}; query season '
+        "down, reference season across. &mdash;: a season is never paired with itself; NaN: "
+        "the pair has no positive (or no stratum with both labels); no pair: no query of that "
+        "season found a reference of the other. A per-pair AP has no interval (few query "
+        "images per pair): its colour is the pale scale of the legend and decides nothing "
+        "(hover a cell for its floor).</p>"
+        f'<table data-table="{anchor}"><tr><th>query \\ reference</th>{head}</tr>{rows}</table>'
+    )
+
+
+def table_l(out: Path, machine: str = "") -> str:
+    """Table L (SPEC section 11) from ``tableL.csv``: every AP coloured against its floor.
+
+    Then what each localizer costs; an undefined cell is ``-`` with its reason in a footnote.
+    """
+    from harness.reports.leaderboard import (
+        AP_COLUMNS,
+        COST_NOTE,
+        WHY,
+        cost_text,
+        recall_columns,
+        undefined,
+    )
+    from harness.runtime.costs import COST_COLUMNS
+
+    t = pd.read_csv(out / "tableL.csv")
+    first = str(t["localizer"].iloc[0])
+    rec = recall_columns(t)
+    head = "".join(
+        f"<th>{esc(h)}</th>"
+        for h in (
+            "localizer",
+            *(h for _, h in rec),
+            *(h for *_, h in AP_COLUMNS),
+            f"S rank fusion - {first}",
+        )
+    )
+    rows = []
+    marks: set[str] = set()
+
+    def dash(r: pd.Series, column: str) -> str:
+        m = undefined(t, r, column) or "f"
+        marks.add(m)
+        return f'<td title="{esc(WHY[m])}">-<sup>{m}</sup></td>'
+
+    for _, r in t.iterrows():
+        cells = [f"<td>{esc(r['localizer'])}</td>"]
+        for c, _ in rec:
+            x = float(r[c])
+            cells.append(f"<td>{num(x)}</td>" if x == x else dash(r, c))
+        for pfx, *_ in AP_COLUMNS:
+            v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
+            word = str(r[f"{pfx}_verdict"])
+            if v != v:
+                cells.append(dash(r, f"{pfx}_ap"))
+                continue
+            cells.append(
+                '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
+                + num(v)
+                + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
+                + "</td>"
+            )
+        d, dl, dh = (
+            float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high")
+        )
+        holm_ok = bool(r.get("S_rank_fusion_holm_survives", False))
+        cells.append(
+            "<td></td>"
+            if d != d
+            else f'<td style="background:{diff_colour(dl, dh)}"'
+            + (' data-holm="1"' if holm_ok else "")
+            + f'>{d:+.2f} <span class="ci">[{dl:+.2f}, {dh:+.2f}]</span>'
+            + (" <b>[Holm]</b>" if holm_ok else "")
+            + "</td>"
+        )
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    r0 = t.iloc[0]
+    rows.append(
+        f'<tr class="floor"><td>floor ({esc(first)})</td>'
+        + "<td></td>" * len(rec)
+        + "".join(f"<td>{num(float(r0[f'{p}_floor']))}</td>" for p, *_ in AP_COLUMNS)
+        + "<td></td></tr>"
+    )
+    cost_rows = []
+    for _, r in t.iterrows():
+        cost_rows.append(
+            f"<tr><td>{esc(r['localizer'])}</td>"
+            + "".join(
+                f"<td>{cost_text(float(r[c]), dg)}</td>" if r[c] == r[c] else dash(r, c)
+                for c, _, dg in COST_COLUMNS
+            )
+            + "</tr>"
+        )
+    cost_head = "".join(
+        f"<th>{esc(h)}</th>" for h in ("localizer", *(h for _, h, _ in COST_COLUMNS))
+    )
+    return (
+        '<h2 id="tableL">Table L: localizers</h2><p class="note">One row per localizer and '
+        "one for all localizers fused by rank (SPEC section 11), every one scored on the same "
+        f"query images. Table S at RoC-max {float(t['roc_max'].iloc[0]):.2f}; each AP with its "
+        "95% interval, coloured by SPEC 9's verdict against chance (random orders of the same "
+        "samples, and the paired difference from the random baseline); "
+        f"the last column is the paired difference from {esc(first)} in Table S rank fusion over "
+        "the same bootstrap resamples ([Holm]: it survives Holm's correction over the "
+        "localizers' differences). Recall: the ground-truth place ranked within the first N "
+        f'({esc(", ".join(h for _, h in rec))}).</p><table data-table="L"><tr>{head}</tr>'
+        f"{''.join(rows)}</table>"
+        f'<h3>What each localizer costs</h3><table data-table="L-cost"><tr>{cost_head}</tr>'
+        f'{"".join(cost_rows)}</table><p class="note">{esc(COST_NOTE)}'
+        + (f" Measured on: {esc(machine)}." if machine else "")
+        + "</p>"
+        + "".join(f'<p class="note"><sup>{m}</sup> -: {esc(WHY[m])}.</p>' for m in sorted(marks))
+    )
+
+
+def other_blocks(summ: pd.DataFrame, names: list[str], warnings: dict[str, list[str]]) -> str:
+    """Tables S and P of every localizer after the first, and of ``all localizers``."""
+    parts = []
+    for name in names:
+        s = summ[summ["localizer"] == name]
+        methods = tuple(m for m in METHOD_LABELS if m in set(s["method"]))
+        pre = f"[{name}] "
+        for t in ("S", "P"):
+            notes = [w[len(pre) :] for w in warnings.get(t, []) if w.startswith(pre)]
+            html = change_table(s, t, methods, notes, f" (localizer: {name})")
+            parts.append(html.replace(f'id="table{t}"', f'data-localizer="{esc(name)}"', 1))
+    return (
+        '<h2 id="blocks">Tables S and P of the other localizers</h2>'
+        "<p class='note'>The same tables, each localizer's boxes alone; <i>all localizers</i>: "
+        "every localizer's boxes fused by rank (no score method is defined across "
+        "localizers).</p>" + "".join(parts).replace("<h2 ", "<h3 ").replace("</h2>", "</h3>")
+    )
+
+
+def registered_table(spec: report_tables.TableSpec, frame: pd.DataFrame) -> str:
+    """A registered table (:mod:`harness.reports.tables`) with the console's cells.
+
+    Each AP is coloured against its own floor, each paired difference by whether its interval
+    clears zero.
+    """
+    head = "".join(f"<th>{esc(c.header)}</th>" for c in spec.columns)
+    rows = []
+    for _, r in frame.iterrows():
+        cells = []
+        for c in spec.columns:
+            text = esc(report_tables.cell(c, r))
+            if c.kind == "ap":
+                v, lo, hi, fl = (float(r[f]) for f in c.fields())
+                word = str(r.get(f"{c.key}_verdict", "untested"))
+                cells.append(
+                    '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
+                    + text
+                    + "</td>"
+                )
+            elif c.kind == "diff":
+                _, lo, hi = (float(r[f]) for f in c.fields())
+                cells.append(f'<td style="background:{diff_colour(lo, hi)}">{text}</td>')
+            else:
+                cells.append(f"<td>{text}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return (
+        f'<h2 id="{esc(spec.stem)}">Table {esc(spec.id)}: {esc(spec.title)}</h2>'
+        f'<p class="note">{esc(spec.intro)}</p>'
+        f'<table data-table="{esc(spec.id)}"><tr>{head}</tr>{"".join(rows)}</table>'
+    )

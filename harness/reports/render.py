@@ -1,0 +1,418 @@
+"""How the tables read (SPEC section 10): markdown, CSV and LaTeX renderers of one table spec.
+
+The localization table, Tables I, S and P from a run's summary (:func:`pivot`), the paired
+comparisons; the console (:mod:`harness.cli`) and the page (:mod:`harness.reports.html.page`) read
+the same pivots and intros.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.evaluate.chance import MARK_LEGEND, VERDICT_MARKS, VERDICT_TEX
+from harness.methods import FUSION_METHODS, METHOD_LABELS
+from harness.reports.texfmt import tex_escape as _tex_escape
+
+#: A query subimage is "clean" for the localization table when at most this share of it changed.
+CLEAN_ROC = 0.05
+
+
+def _fmt(v: float, digits: int = 2) -> str:
+    return "NaN" if v != v else f"{v:.{digits}f}"
+
+
+def recall_ns(loc: pd.DataFrame) -> list[int]:
+    """The N of every ``recall_at_N`` column of a localization table (``[report] recall_at``)."""
+    return sorted(int(c[10:]) for c in loc.columns if re.fullmatch(r"recall_at_\d+", c))
+
+
+def loc_columns(loc: pd.DataFrame) -> list[tuple[str, str, int]]:
+    """(column, heading, decimals) of a localization table: R@N for each ``[report] recall_at``."""
+    ns = recall_ns(loc)
+    return [
+        ("subimages", "n", 0),
+        *((f"recall_at_{n}", f"R@{n}", 2) for n in ns),
+        ("median_r", "med r", 3),
+        ("chance_recall_at_1", "chance R@1", 3),
+        *((f"clean_recall_at_{n}", f"clean R@{n}", 2) for n in ns),
+        ("clean_median_r", "clean med r", 3),
+    ]
+
+
+def heading_suffix(localizer: str) -> str:
+    """What every table heading adds: the localizer it measured (SPEC section 11)."""
+    return f" (localizer: {localizer})" if localizer else ""
+
+
+def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str = "") -> str:
+    """The localization table as markdown (recall@N, median r, chance rates)."""
+    cols = loc_columns(loc)
+    head = (
+        "| proposals | season pair | "
+        + " | ".join(lab for _, lab, _ in cols)
+        + " |\n|---|---|"
+        + "---:|" * len(cols)
+        + "\n"
+    )
+    body = "".join(
+        f"| {r.proposals} | {r.season_pair} | "
+        + " | ".join(
+            str(int(getattr(r, c))) if d == 0 else _fmt(float(getattr(r, c)), d) for c, _, d in cols
+        )
+        + " |\n"
+        for r in loc.itertuples(index=False)
+    )
+    foot = (
+        "\nLocalization quality of the engines whose ranks every change figure rests on. "
+        "Ground truth: the place of "
+        f"the reference frame (frames within {gt_radius_m:g} m, SPEC section 6). R@k: share "
+        "of query subimages whose "
+        "place ranks within the first k; median r: median normalised rank (0.5 = chance); "
+        "clean: subimages of "
+        f"annotated frames with RoC <= {CLEAN_ROC}. R@1 by chance: mean 1/L.\n"
+    )
+    return f"# Localization quality{heading_suffix(localizer)}\n\n" + head + body + foot
+
+
+# ------------------------------------------------------------------ rendering
+
+
+def pivot(
+    summ: pd.DataFrame, table: str, methods: tuple[str, ...], value: str = "ap"
+) -> pd.DataFrame:
+    """One table's ``value`` (AP by default), method x split, in SPEC order."""
+    main = summ[
+        (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+    ]
+    col = "split" if table == "P" else "roc_max"
+    t = main.pivot(index="method", columns=col, values=value).reindex(list(methods))
+    if table == "P":
+        t = t.reindex(columns=["pixel", "image"])
+    return t
+
+
+def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = True) -> str:
+    """One row per method id (first column ``method``), one column per split, two decimals.
+
+    With ``localizer`` a first column names it (a run of several localizers: one CSV, a block of
+    rows each; ``header`` only on the first).
+    """
+    pre = "" if localizer is None else "localizer,"
+    lines = [pre + "method," + ",".join(_col(c) for c in table.columns)] if header else []
+    cell = "" if localizer is None else (f'"{localizer}",' if "," in localizer else f"{localizer},")
+    for m, row in table.iterrows():
+        lines.append(
+            cell
+            + str(m)
+            + ","
+            + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy())
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _col(c: Any) -> str:
+    return f"{c:.2f}" if isinstance(c, float) else str(c)
+
+
+def _cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
+    if v != v:
+        return "NaN"
+    mark = VERDICT_MARKS.get(verdict, "")
+    return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
+        f" {mark}" if mark else ""
+    )
+
+
+def change_cells(summ: pd.DataFrame, table: str, methods: tuple[str, ...]) -> pd.DataFrame:
+    """Every AP cell of a change table as text: ``AP [interval] mark`` (the verdict's mark)."""
+    ap, lo, hi, ver = (
+        pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "verdict")
+    )
+    return pd.DataFrame(
+        {
+            c: [_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c], ver.loc[m, c]) for m in ap.index]
+            for c in ap.columns
+        },
+        index=ap.index,
+    )
+
+
+def box_sets(methods: tuple[str, ...] | list[str]) -> list[tuple[str, str]]:
+    """(label, reference method) of each sample set a change table's rows are scored on."""
+    fused = next((m for m in methods if m != "rank_no_fusion"), None)
+    out = [("fused set", fused)] if fused else []
+    if "rank_no_fusion" in methods:
+        out.append(("original boxes", "rank_no_fusion"))
+    return out
+
+
+def chance_rows(
+    summ: pd.DataFrame, table: str, methods: tuple[str, ...]
+) -> list[tuple[str, list[str]]]:
+    """The rows under a change table (SPEC 9), each as (label, cells).
+
+    Per sample set its floor, chance band and (Table P) ceiling, then the positive rate.
+    """
+    cols = list(pivot(summ, table, methods).columns)
+    piv = {
+        v: pivot(summ, table, methods, v)
+        for v in ("floor", "chance_low", "chance_high", "ceiling", "positive_rate")
+    }
+    out = []
+    sets = box_sets([m for m in methods if m in piv["floor"].index])
+    for label, ref in sets:
+        f, lo, hi = (piv[v].loc[ref] for v in ("floor", "chance_low", "chance_high"))
+        out.append((f"floor, {label} (mean AP of random orders)", [_fmt(f[c]) for c in cols]))
+        out.append(
+            (
+                f"chance band, {label} (5th-95th percentile)",
+                ["NaN" if lo[c] != lo[c] else f"{lo[c]:.2f}-{hi[c]:.2f}" for c in cols],
+            )
+        )
+        if table == "P":
+            cl = piv["ceiling"].loc[ref]
+            out.append(
+                (f"ceiling, {label} (boxes scored by their RoC)", [_fmt(cl[c]) for c in cols])
+            )
+    pr = piv["positive_rate"].loc[sets[0][1]] if sets else None
+    if pr is not None:
+        out.append(("positive rate (not the floor)", [_fmt(pr[c], 3) for c in cols]))
+    return out
+
+
+def gap_line(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
+    """Table P's share of the reachable gap, ``(AP - floor) / (ceiling - floor)``, per method."""
+    g = pivot(summ, "P", methods, "gap_closed")
+    parts = [
+        f"{METHOD_LABELS[str(m)]} "
+        + " / ".join(
+            "NaN" if g.loc[m, c] != g.loc[m, c] else f"{100 * g.loc[m, c]:.0f}%" for c in g.columns
+        )
+        for m in g.index
+    ]
+    return (
+        "Share of the reachable gap closed, (AP - floor) / (ceiling - floor), pixel / image: "
+        + "; ".join(parts)
+        + "."
+    )
+
+
+TABLE_INTRO = {
+    "I": (
+        "Table I",
+        (
+            "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): "
+            "positives are small boxes "
+            "(SoB <= 0.4), negatives large ones (SoB >= 0.4)."
+        ),
+    ),
+    "S": (
+        "Table S",
+        (
+            "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
+            "boxes of the same size, "
+            "weighted by the strata's positives. The floor is the mean of the same figure over "
+            "random orders within the same strata (SPEC 9)."
+        ),
+    ),
+    "P": (
+        "Table P",
+        (
+            "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact "
+            "region areas) and image AP "
+            "(each query image scores the largest LoC of its samples), SPEC section 9."
+        ),
+    ),
+}
+
+
+def table_markdown(
+    summ: pd.DataFrame,
+    table: str,
+    methods: tuple[str, ...],
+    warnings: list[str],
+    localizer: str = "",
+) -> str:
+    """A change table as markdown: the six methods, then the variants and baselines.
+
+    Cells AP [95% interval].
+    """
+    cells = change_cells(summ, table, methods)
+    cols = list(cells.columns)
+    title, intro = TABLE_INTRO[table]
+    head = (
+        "| AP [95% CI] | "
+        + " | ".join(_col(c) for c in cols)
+        + " |\n|---|"
+        + "---:|" * len(cols)
+        + "\n"
+    )
+    lines, first_extra = [], True
+    for m in cells.index:
+        if m not in FUSION_METHODS and first_extra:
+            lines.append("| *variants and baselines* |" + " |" * len(cols) + "\n")
+            first_extra = False
+        lines.append(f"| {METHOD_LABELS[str(m)]} | " + " | ".join(cells.loc[m]) + " |\n")
+    for label, vals in chance_rows(summ, table, methods):
+        lines.append(f"| *{label}* | " + " | ".join(vals) + " |\n")
+    ref = box_sets(tuple(cells.index))[0][1]
+    main = summ[
+        (summ["table"] == table)
+        & (summ["proposals"] == "all")
+        & (summ["season_pair"] == "all")
+        & (summ["method"] == ref)
+    ]
+    counts = "; ".join(
+        f"{_col(r.roc_max if table != 'P' else r.split)}: {r.positives} positives / "
+        f"{r.negatives} negatives" + (" (pixels)" if table == "P" and r.split == "pixel" else "")
+        for r in main.itertuples()
+    )
+    warn = "".join(f"\n**{w}**\n" for w in warnings)
+    return (
+        f"# {title}{heading_suffix(localizer)}\n\n{intro}\n\n"
+        + head
+        + "".join(lines)
+        + f"\n{MARK_LEGEND} Floor: the mean AP of random orders of the same samples"
+        + (" through the same pixel maps" if table == "P" else "")
+        + (" within the same strata" if table == "S" else "")
+        + f". Counts ({ref}): {counts}. Intervals: 95% bootstrap over query images; "
+        "the paired differences with rank fusion are in comparisons.md.\n"
+        + (f"\n{gap_line(summ, methods)}\n" if table == "P" else "")
+        + warn
+    )
+
+
+def table_latex(
+    t: pd.DataFrame,
+    caption_cols: str = "",
+    localizer: str = "",
+    verdicts: pd.DataFrame | None = None,
+    extra: list[tuple[str, list[str]]] | None = None,
+) -> str:
+    """A booktabs ``tabular`` of one table.
+
+    Two decimals; the variants and baselines come after a rule. The localizer is named in a
+    comment line above it. ``verdicts`` (the same shape) add SPEC 9's marks; ``extra`` rows
+    (floor, chance band, ceiling) come after a last rule.
+    """
+    cols = list(t.columns)
+    out = [f"% localizer: {localizer}"] if localizer else []
+    out += [
+        r"\begin{tabular}{l" + "r" * len(cols) + "}",
+        r"\toprule",
+        " & ".join([_tex_escape(caption_cols or "Method")] + [_tex_escape(_col(c)) for c in cols])
+        + r" \\",
+        r"\midrule",
+    ]
+    first_extra = True
+    for m, row in t.iterrows():
+        if m not in FUSION_METHODS and first_extra and m in METHOD_LABELS:
+            out.append(r"\midrule")
+            first_extra = False
+        label = METHOD_LABELS.get(str(m), str(m))
+        marks = (
+            [VERDICT_TEX.get(str(verdicts.loc[m, c]), "") for c in cols]
+            if verdicts is not None
+            else [""] * len(cols)
+        )
+        out.append(
+            " & ".join(
+                [_tex_escape(label)]
+                + [
+                    "--" if v != v else f"{v:.2f}{mk}"
+                    for v, mk in zip(row.to_numpy(), marks, strict=True)
+                ]
+            )
+            + r" \\"
+        )
+    if extra:
+        out.append(r"\midrule")
+        out += [
+            " & ".join([r"\emph{" + _tex_escape(lab) + "}"] + [_tex_escape(v) for v in vals])
+            + r" \\"
+            for lab, vals in extra
+        ]
+    out += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(out) + "\n"
+
+
+#: How the comparisons mark a difference that survives Holm's correction over its table.
+HOLM_MARK = "[Holm]"
+
+
+def holm_sentence(main: pd.DataFrame, table_title: str) -> str:
+    """How many of a table's paired differences were tested and how many survive Holm."""
+    tested = int(main["holm_tested"].max()) if "holm_tested" in main and len(main) else 0
+    kept = int(main["holm_survives"].sum()) if "holm_survives" in main else 0
+    if not tested:
+        return f"{table_title}: no paired difference to test."
+    return (
+        f"{table_title}: {kept} of the {tested} differences from rank fusion tested in this "
+        f"table survive a Holm correction over those {tested} (family-wise error 5%); they are "
+        f"marked {HOLM_MARK}. The others' intervals may clear 0 by chance among so many."
+    )
+
+
+def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer: str = "") -> str:
+    """Every method against rank fusion, in words, for every pooled column of Tables I, S and P.
+
+    Each table's differences are one family for Holm's correction
+    (:func:`harness.evaluate.metrics.holm`): the survivors are marked, and the table's heading says
+    how many were tested.
+    """
+    lines = [
+        f"# Paired comparisons with rank fusion{heading_suffix(localizer)}",
+        "",
+        (
+            "Each line: AP(method) - AP(rank fusion) [95% interval of the difference over the "
+            "same bootstrap resamples of query "
+            "images]; 'sign flips' is the share of resamples in which the difference has the "
+            "other sign; p: two-sided, from the bootstrap standard error of the difference (normal "
+            "approximation; where the resampled differences are skewed it can exceed 0.05 while "
+            "the percentile interval excludes 0). "
+            f"{HOLM_MARK}: the difference survives Holm's correction over every difference of "
+            "its table (Tables I, S and P are three families)."
+        ),
+        "",
+    ]
+    for table in ("I", "S", "P"):
+        main = summ[
+            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+        ]
+        if not len(main):
+            continue
+        lines += [holm_sentence(main, TABLE_INTRO[table][0]), ""]
+        for split, g in main.groupby("split", sort=False):
+            lines.append(f"## {TABLE_INTRO[table][0]}, {split}")
+            lines.append("")
+            for r in g.itertuples():
+                if r.method == "rank_fusion" or r.diff != r.diff:
+                    continue
+                flips = (
+                    f"sign flips in {100 * r.sign_flip_share:.0f}% of resamples"
+                    if r.sign_flip_share == r.sign_flip_share
+                    else "no difference"
+                )
+                p = getattr(r, "p_value", float("nan"))
+                ptxt = "" if p != p else ", p < 0.001" if p < 0.001 else f", p = {p:.3f}"
+                mark = f" {HOLM_MARK}" if getattr(r, "holm_survives", False) else ""
+                lines.append(
+                    f"- {METHOD_LABELS[r.method]} - rank fusion = {r.diff:+.2f} "
+                    f"[{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}] ({flips}{ptxt}){mark}"
+                )
+            lines.append("")
+    return "\n".join(lines)
+
+
+def localization_latex(loc: pd.DataFrame, localizer: str = "") -> str:
+    """The localization table (all season pairs) as a booktabs ``tabular``."""
+    ns = recall_ns(loc)
+    t = loc[loc["season_pair"] == "all"].set_index("proposals")[
+        [*(f"recall_at_{n}" for n in ns), "median_r", "chance_recall_at_1", "clean_recall_at_1"]
+    ]
+    t.columns = [*(f"R@{n}" for n in ns), "median r", "R@1 by chance", "clean R@1"]
+    return table_latex(t, "Proposals", localizer)

@@ -1,0 +1,551 @@
+"""Reports of a run (SPEC sections 6, 9 and 10).
+
+Localization quality, Table I, the per-split reports and their summary, PR curves and LoC-map
+figures.
+
+Every file is written atomically; files of an earlier run into the same directory that this run
+no longer produces (a split dropped from the config, an old figure) are removed, so a directory
+never mixes two runs' reports.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.config.load import Config
+from harness.errors import ConfigError
+from harness.evaluate.aps import (
+    _groups,
+    _pixel_image_rows,
+    _pooled_rows,
+    _table_i_rows,
+    stratified_labels,
+)
+from harness.evaluate.metrics import holm, pr_curve
+from harness.evaluate.splits import Split, paper_splits, roc_sob
+from harness.evaluate.splits import label as split_label
+from harness.ingest.annotations import change_boxes
+from harness.methods import BASELINES, FUSION_METHODS, ordered_methods
+from harness.reports import tables as report_tables
+from harness.reports.render import (
+    CLEAN_ROC,
+    TABLE_INTRO,
+    chance_rows,
+    comparisons_markdown,
+    heading_suffix,
+    loc_columns,
+    localization_latex,
+    localization_markdown,
+    pivot,
+    table_csv,
+    table_latex,
+    table_markdown,
+)
+from harness.runtime.cache import write_parquet, write_text
+
+#: Names callers read from here (the renderers and AP helpers live in their own modules).
+__all__ = [
+    "CLEAN_ROC",
+    "TABLE_INTRO",
+    "WARN_MARGIN",
+    "Block",
+    "Reports",
+    "comparisons_markdown",
+    "confound_warnings",
+    "heading_suffix",
+    "loc_columns",
+    "localization_latex",
+    "localization_markdown",
+    "localization_table",
+    "pivot",
+    "stratified_labels",
+    "table_csv",
+    "table_latex",
+    "table_markdown",
+    "write_reports",
+]
+
+log = logging.getLogger(__name__)
+
+
+def localization_table(
+    ranks: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    recall_at: Sequence[int] = (1, 5, 10, 20),
+) -> pd.DataFrame:
+    """Recall@N (``[report] recall_at``) and median r per proposal method x season pair.
+
+    Also over all pairs and all proposal methods (``all``).
+
+    Each statistic is given over all ranked query subimages and over the clean ones (annotated
+    query frames, RoC <= 0.05), next to its chance level: the mean of 1/L (recall@1 of a random
+    ranking) and 0.5 (its median r).
+    """
+    cb = change_boxes(ann)
+    size = {
+        k: (int(w), int(h))
+        for k, w, h in zip(
+            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames["width"],
+            frames["height"],
+            strict=True,
+        )
+    }
+    roc = np.full(len(ranks), np.nan)
+    for key, idx in ranks.groupby(["q_session", "q_camera", "q_utime"], sort=False).indices.items():
+        k = (str(key[0]), str(key[1]), int(key[2]))
+        if k in cb:
+            w, h = size[k]
+            roc[idx] = roc_sob(
+                ranks[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)[idx], cb[k], w, h
+            )[0]
+    df = ranks.assign(_clean=roc <= CLEAN_ROC)
+    rows = []
+    for prop, gp in [("all", df), *df.groupby("method", sort=True)]:
+        for pair, g in [("all", gp), *gp.groupby("season_pair", sort=True)]:
+            c = g[g["_clean"]]
+            rows.append(
+                {
+                    "proposals": str(prop),
+                    "season_pair": str(pair),
+                    "subimages": len(g),
+                    **{f"recall_at_{n}": float((g["rank"] <= n).mean()) for n in recall_at},
+                    "median_r": float(g["r"].median()),
+                    "chance_recall_at_1": float((1.0 / g["L"]).mean()),
+                    "clean_subimages": len(c),
+                    **{
+                        f"clean_recall_at_{n}": float((c["rank"] <= n).mean())
+                        if len(c)
+                        else float("nan")
+                        for n in recall_at
+                    },
+                    "clean_median_r": float(c["r"].median()) if len(c) else float("nan"),
+                    "median_place_size": float(g["place_size"].median())
+                    if "place_size" in g.columns
+                    else 1.0,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+# ------------------------------------------------------------------ change tables (I, S, P)
+
+# : A baseline within this of the best of the six methods is reported under the table (SPEC section
+# 7).
+WARN_MARGIN = 0.02
+
+
+def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
+    """SPEC section 7: warn where a baseline that reads no pixel nears the best method.
+
+    Where one comes within 0.02 of the best of the six methods, say so: one line per baseline,
+    naming every split where it happens and both APs.
+    """
+    hits: dict[str, list[str]] = {}
+    for split, g in main.groupby("split", sort=False):
+        six = g[g["method"].isin(FUSION_METHODS)].dropna(subset=["ap"])
+        if not len(six):
+            continue
+        best = six.loc[six["ap"].idxmax()]
+        for b in BASELINES:
+            row = g[g["method"] == b]
+            if (
+                len(row)
+                and np.isfinite(row["ap"].iloc[0])
+                and row["ap"].iloc[0] >= best["ap"] - WARN_MARGIN
+            ):
+                name = (
+                    f"RoC-max {row['roc_max'].iloc[0]:.2f}" if table != "Table P" else f"{split} AP"
+                )
+                hits.setdefault(b, []).append(
+                    f"{name}: {row['ap'].iloc[0]:.2f} vs {best['method']} {best['ap']:.2f}"
+                )
+    see = (
+        "; read Table S (tableS.md), which compares boxes of the same size"
+        if table == "Table I"
+        else ""
+    )
+    return [
+        f"WARNING ({table}): the baseline {b}, which reads no pixel, comes within "
+        f"{WARN_MARGIN} of the best of the six methods "
+        f"({'; '.join(v)}): under this protocol it separates the labels without detecting "
+        f"anything{see}."
+        for b, v in hits.items()
+    ]
+
+
+def holm_columns(summ: pd.DataFrame, alpha: float) -> pd.DataFrame:
+    """Mark the paired differences from rank fusion that survive Holm's correction.
+
+    The family is one table's differences (every method but rank fusion, every pooled column:
+    proposals ``all``, season pair ``all``), ``holm_tested`` of them; ``holm_survives`` marks those
+    rejected at ``alpha`` (``1 - [report] ci``). Rows outside a family are never marked.
+    """
+    out = summ.copy()
+    out["holm_tested"] = 0
+    out["holm_survives"] = False
+    if not len(out) or "p_value" not in out.columns:
+        return out
+    for _, g in out.groupby("table", sort=False):
+        fam = g[
+            (g["proposals"] == "all")
+            & (g["season_pair"] == "all")
+            & (g["method"] != "rank_fusion")
+            & np.isfinite(g["p_value"].to_numpy(np.float64))
+        ]
+        out.loc[fam.index, "holm_tested"] = len(fam)
+        out.loc[fam.index, "holm_survives"] = holm(fam["p_value"].to_numpy(np.float64), alpha)
+    return out
+
+
+# ------------------------------------------------------------------ all reports
+
+
+def _remove_stale(directory: Path, pattern: str, keep: set[Path]) -> int:
+    """Remove files matching ``pattern`` in ``directory`` that are not in ``keep``.
+
+    ``directory`` lies inside the harness's own run directory.
+    """
+    n = 0
+    if directory.is_dir():
+        for p in directory.glob(pattern):
+            if p.is_file() and p.resolve() not in keep:
+                p.unlink()
+                n += 1
+    return n
+
+
+#: The files a table is written to (``<stem>.csv`` and so on).
+TABLE_SUFFIXES = ("csv", "md", "tex")
+
+
+def _remove_unwritten(paths: Sequence[Path], keep: set[Path]) -> int:
+    """Remove those of ``paths`` (the harness's own file names) that this run did not write.
+
+    Only these exact names: a file of the user's beside them (``tableL.notes``) is left alone.
+    """
+    gone = [p for p in paths if p.is_file() and p.resolve() not in keep]
+    for p in gone:
+        p.unlink()
+    return len(gone)
+
+
+@dataclass
+class Block:
+    """One block of the tables: a localizer's boxes, or every localizer's (``all localizers``).
+
+    ``ranks`` is None for the cross-localizer block (it has no localization table of its own);
+    ``methods`` are the fusion methods computed for it; ``notes`` are printed under its tables.
+    """
+
+    name: str
+    samples: pd.DataFrame
+    ranks: pd.DataFrame | None
+    methods: tuple[str, ...]
+    notes: list[str] = field(default_factory=list)
+    # Table L's cost cells (harness.runtime.costs)
+    costs: dict[str, float] = field(default_factory=dict)
+    ranks_also: pd.DataFrame | None = None  # the ranks at [report] gt_radius_also
+
+
+@dataclass
+class Reports:
+    """What a run's reports hold, for the caller to print.
+
+    With several localizers, ``blocks`` holds each block's own :class:`Reports` (the fields
+    above hold their concatenation, or the first block's tables) and ``table_l`` the leaderboard.
+    """
+
+    summary: pd.DataFrame
+    localization: pd.DataFrame
+    tables: dict[str, pd.DataFrame]
+    warnings: dict[str, list[str]]
+    methods: tuple[str, ...]
+    localizer: str = ""
+    blocks: list[Reports] = field(default_factory=list)
+    table_l: pd.DataFrame | None = None
+    costs: dict[str, float] = field(default_factory=dict)
+    localization_also: pd.DataFrame | None = None  # at [report] gt_radius_also
+
+
+def write_reports(
+    cfg: Config,
+    out: Path,
+    samples: pd.DataFrame | Sequence[Block],
+    ranks: pd.DataFrame | None = None,
+    frames: pd.DataFrame | None = None,
+    ann: pd.DataFrame | None = None,
+    progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+    localizer: str = "",
+    notes: Sequence[str] = (),
+) -> Reports:
+    """Write every report of a run into ``out``.
+
+    ``samples`` is one localizer's sample table (with ``ranks``, ``localizer`` and ``notes``), or
+    a list of :class:`Block` (SPEC section 11: one per localizer, then ``all localizers``). A
+    localizer is named in every heading and in a ``localizer`` column of the split reports and
+    the summary; ``notes`` are printed under every change table. With one block the files are
+    those of a one-localizer run; with several, each CSV gains a ``localizer`` column, each
+    markdown/LaTeX file a section per block, and Table L (``tableL.*``) is written.
+    """
+    assert frames is not None and ann is not None
+    if isinstance(samples, pd.DataFrame):
+        assert ranks is not None
+        blocks = [
+            Block(localizer, samples, ranks, ordered_methods(cfg.fusion.methods), list(notes))
+        ]
+    else:
+        blocks = list(samples)
+    multi = len(blocks) > 1
+    written: set[Path] = set()
+
+    def put(path: Path) -> Path:
+        written.add(path.resolve())
+        return path
+
+    def tag(df: pd.DataFrame, name: str) -> pd.DataFrame:
+        if multi and "localizer" not in df.columns:
+            df = df.copy()
+            df.insert(0, "localizer", name)
+        return df
+
+    located = [b for b in blocks if b.ranks is not None]
+    locs = {
+        b.name: localization_table(b.ranks, frames, ann, cfg.report.recall_at)
+        for b in located
+        if b.ranks is not None
+    }
+    write_text(
+        put(out / "localization.csv"),
+        pd.concat([tag(v, k) for k, v in locs.items()], ignore_index=True).to_csv(
+            index=False, float_format="%.4f"
+        ),
+    )
+    write_text(
+        put(out / "localization.md"),
+        "\n".join(localization_markdown(v, cfg.retrieval.gt_radius_m, k) for k, v in locs.items()),
+    )
+    write_text(
+        put(out / "localization.tex"),
+        "\n".join(localization_latex(v, k) for k, v in locs.items()),
+    )
+    also = cfg.report.gt_radius_also
+    locs_also = {
+        b.name: localization_table(b.ranks_also, frames, ann, cfg.report.recall_at)
+        for b in located
+        if b.ranks_also is not None
+    }
+    if locs_also:  # the same table with the place gt_radius_also wide
+        write_text(
+            put(out / "localization_also.csv"),
+            pd.concat(
+                [tag(v, k).assign(gt_radius_m=also) for k, v in locs_also.items()],
+                ignore_index=True,
+            ).to_csv(index=False, float_format="%.4f"),
+        )
+        write_text(
+            put(out / "localization_also.md"),
+            "\n".join(localization_markdown(v, also, k) for k, v in locs_also.items()),
+        )
+        write_text(
+            put(out / "localization_also.tex"),
+            "\n".join(localization_latex(v, k) for k, v in locs_also.items()),
+        )
+    write_parquet(
+        put(out / "ranks.parquet"),
+        pd.concat([b.ranks.assign(localizer=b.name) for b in located if b.ranks is not None]),
+    )
+    splits = paper_splits(cfg.splits)
+    allps = [b.samples[b.samples["proposals"] == "all"].reset_index(drop=True) for b in blocks]
+    ids = {g: i for i, g in enumerate(sorted(set().union(*(set(_groups(a)) for a in allps))))}
+    summaries: list[list[dict]] = [[] for _ in blocks]
+    curves: list[list[pd.DataFrame]] = [[] for _ in blocks]
+    boots: list[dict[tuple[str, str, str], np.ndarray]] = [{} for _ in blocks]
+    for sp in progress(splits):
+        reps = []
+        for bi, b in enumerate(blocks):
+            rep = _split_block(cfg, b, allps[bi], sp, ids, summaries[bi], curves[bi], boots[bi])
+            reps.append(rep)
+        write_parquet(
+            put(out / "splits" / f"{sp.name}.parquet"), pd.concat(reps, ignore_index=True)
+        )
+        del reps
+    results = []
+    for bi, b in enumerate(blocks):
+        summaries[bi] += _pixel_image_rows(cfg, allps[bi], frames, ann, b.methods, ids)
+        summ = holm_columns(pd.DataFrame(summaries[bi]), 1.0 - cfg.report.ci)
+        summ.insert(0, "localizer", b.name)
+        tables, warnings = {}, {}
+        for table in ("I", "S", "P"):
+            main = summ[
+                (summ["table"] == table)
+                & (summ["proposals"] == "all")
+                & (summ["season_pair"] == "all")
+            ]
+            warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(b.notes)
+            tables[table] = pivot(summ, table, b.methods)
+        loc_b = locs.get(b.name, pd.DataFrame())
+        results.append(
+            Reports(
+                summ,
+                loc_b,
+                tables,
+                warnings,
+                b.methods,
+                b.name,
+                costs=dict(b.costs),
+                localization_also=locs_also.get(b.name),
+            )
+        )
+    summ_all = pd.concat([r.summary for r in results], ignore_index=True)
+    write_parquet(put(out / "splits" / "summary.parquet"), summ_all)
+    allc = [
+        tag(pd.concat(c, ignore_index=True), b.name)
+        for b, c in zip(blocks, curves, strict=True)
+        if c
+    ]
+    if allc:
+        write_parquet(put(out / "splits" / "pr_curves.parquet"), pd.concat(allc, ignore_index=True))
+    for table, stem in (("I", "table1"), ("S", "tableS"), ("P", "tableP")):
+        write_text(
+            put(out / f"{stem}.csv"),
+            "".join(
+                table_csv(r.tables[table], r.localizer if multi else None, header=i == 0)
+                for i, r in enumerate(results)
+            ),
+        )
+        write_text(
+            put(out / f"{stem}.md"),
+            "\n".join(
+                table_markdown(r.summary, table, r.methods, r.warnings[table], r.localizer)
+                for r in results
+            ),
+        )
+        write_text(
+            put(out / f"{stem}.tex"),
+            "\n".join(
+                table_latex(
+                    r.tables[table],
+                    "AP" if table != "P" else "Method",
+                    r.localizer,
+                    pivot(r.summary, table, r.methods, "verdict"),
+                    chance_rows(r.summary, table, r.methods),
+                )
+                for r in results
+            ),
+        )
+    table_l = None
+    cmp_md = "\n".join(comparisons_markdown(r.summary, r.methods, r.localizer) for r in results)
+    if multi:
+        from harness.reports.leaderboard import (
+            leaderboard,
+            leaderboard_csv,
+            leaderboard_latex,
+            leaderboard_md,
+        )
+
+        table_l = leaderboard(cfg, results, boots, splits)
+        write_text(put(out / "tableL.csv"), leaderboard_csv(table_l))
+        write_text(put(out / "tableL.md"), leaderboard_md(table_l, cfg))
+        write_text(put(out / "tableL.tex"), leaderboard_latex(table_l))
+        cmp_md = leaderboard_md(table_l, cfg, comparisons=True) + "\n" + cmp_md
+    write_text(put(out / "comparisons.md"), cmp_md)
+    for spec in report_tables.load_builtin().values():  # registered (harness/reports/tables.py)
+        try:
+            frame = spec.compute(cfg, results)
+            if frame is None or not len(frame):
+                continue
+            frame = report_tables.check_frame(spec, frame)
+        except ValueError as err:
+            raise ConfigError(f"report table {spec.id!r}: {err}") from err
+        write_text(put(out / f"{spec.stem}.csv"), report_tables.to_csv(frame))
+        write_text(put(out / f"{spec.stem}.md"), report_tables.to_markdown(spec, frame))
+        write_text(put(out / f"{spec.stem}.tex"), report_tables.to_latex(spec, frame))
+    if cfg.report.plots:
+        from harness.reports.plots import locmap_figures, pr_plots
+
+        if curves[0]:
+            for png in pr_plots(pd.concat(curves[0], ignore_index=True), out / "plots"):
+                put(png)
+        for png in locmap_figures(
+            blocks[0].samples, frames, ann, out / "locmaps", cfg.report.locmap_examples
+        ):
+            put(png)
+    stale = _remove_stale(out / "splits", "*.parquet", written) + _remove_stale(
+        out / "plots", "pr_*.png", written
+    )
+    stale += _remove_stale(out / "locmaps", "*", written)
+    stems = ["tableL", "localization_also", *(spec.stem for spec in report_tables.TABLES.values())]
+    stale += _remove_unwritten([out / f"{t}.{x}" for t in stems for x in TABLE_SUFFIXES], written)
+    if stale:
+        log.info(
+            "reports: removed %d file(s) of an earlier run that this run no longer writes", stale
+        )
+    if not multi:
+        return results[0]
+    first = results[0]
+    return Reports(
+        summ_all,
+        pd.concat([tag(v, k) for k, v in locs.items()], ignore_index=True),
+        first.tables,
+        {
+            t: [f"[{r.localizer}] {w}" for r in results for w in r.warnings[t]]
+            for t in ("I", "S", "P")
+        },
+        first.methods,
+        ", ".join(r.localizer for r in results),
+        results,
+        table_l,
+    )
+
+
+def _split_block(
+    cfg: Config,
+    b: Block,
+    allp: pd.DataFrame,
+    sp: Split,
+    ids: dict[str, int],
+    summary: list[dict],
+    curves: list[pd.DataFrame],
+    boots: dict[tuple[str, str, str], np.ndarray],
+) -> pd.DataFrame:
+    """One block's split report (returned) and its summary rows and PR curves (appended)."""
+    samples, methods = b.samples, b.methods
+    lab = split_label(samples["RoC"].to_numpy(), samples["SoB"].to_numpy(), sp)
+    rep = samples.assign(
+        label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp)
+    )
+    rep.insert(0, "localizer", b.name)
+    summary += _pooled_rows(cfg, allp, methods, sp, "I", ids, boots)
+    summary += _pooled_rows(cfg, allp, methods, sp, "S", ids, boots)
+    for prop, g in samples.groupby("proposals", sort=True):
+        if prop != "all":
+            summary += _table_i_rows(
+                g, sp, methods, "all", str(prop), cfg.report.chance_draws, cfg.seed
+            )
+        else:
+            for pair, gp in g.groupby("season_pair", sort=True):
+                summary += _table_i_rows(
+                    gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed
+                )
+    allg = rep[rep["proposals"] == "all"]
+    for m in methods:
+        sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()
+        if (allg.loc[sel, "label"] == 1).any():
+            thr, p, r = pr_curve(
+                allg.loc[sel, "label"].to_numpy() == 1, allg.loc[sel, f"loc_{m}"].to_numpy()
+            )
+            curves.append(
+                pd.DataFrame(
+                    {"split": sp.name, "method": m, "threshold": thr, "precision": p, "recall": r}
+                )
+            )
+    return rep

@@ -1,0 +1,1 @@
+"""Run infrastructure: the stage cache and its collector, executors, output folders, costs."""
