@@ -9,64 +9,118 @@ the names live with their stage (``fusion``, ``proposals``), which register them
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
+
+@dataclass(frozen=True)
+class FusionRule:
+    """One fusion method of the catalogue: its name, label, what it needs and where it may run.
+
+    Built-in and registered methods are the same record (``fusion.register_method`` makes one);
+    the function behind a ``cover`` rule is attached by the module that defines it
+    (``harness.fusion.rules``), so this module still imports nothing of the harness.
+    """
+
+    name: str
+    label: str
+    #: ``cover``: a function of the cover matrix (fused set); ``image``: of the image alone
+    #: (``size_prior``, ``random``); ``unfused``: one sample per original box.
+    kind: str = "cover"
+    #: ``table``: one of Table I's six rows; ``extra``: the variants-and-baselines block.
+    block: str = "extra"
+    #: Needs the relevance score ``d`` (a localizer without one cannot have it).
+    needs_score: bool = False
+    #: Needs the rank-list lengths ``L`` (``r' = (L + 1 - rank) / L``).
+    needs_lengths: bool = False
+    #: Defined on the box list of all localizers together (SPEC 11).
+    across: bool = True
+    #: ``harness detect`` may threshold its LoC into boxes.
+    detect: bool = False
+    #: Reads no pixel: SPEC section 7's confound warning compares it with Table I's six.
+    baseline: bool = False
+    #: The keyword options its function takes: ``seed`` (the image's seed), ``rrf_c``.
+    options: tuple[str, ...] = ()
+    #: The function: (cover (m, n) bool, r (n,), d (n,), L (n,)) -> (m,) LoC; None until attached.
+    loc: Callable[..., Any] | None = None
+
+
+def _builtin(name: str, label: str, **kw: Any) -> FusionRule:
+    return FusionRule(name, label, **kw)
+
+
+_RANK = {"needs_lengths": True}
+#: Every fusion method, in table order: SPEC section 7's six (Table I's rows), the paper's two
+#: variants, the field's four rules (SPEC 14), the three baselines; then registered ones.
+FUSION_RULES: dict[str, FusionRule] = {
+    r.name: r
+    for r in (
+        _builtin("rank_fusion", "rank fusion", block="table", detect=True, **_RANK),
+        _builtin(
+            "rank_fusion_le2",
+            "rank fusion (<=2)",
+            block="table",
+            detect=True,
+            options=("seed",),
+            **_RANK,
+        ),
+        _builtin(
+            "rank_fusion_le3",
+            "rank fusion (<=3)",
+            block="table",
+            detect=True,
+            options=("seed",),
+            **_RANK,
+        ),
+        _builtin("rank_no_fusion", "rank w/o fusion", kind="unfused", block="table", across=False),
+        _builtin("score_max", "score max", block="table", needs_score=True, across=False),
+        _builtin("score_sum", "score sum", block="table", needs_score=True, across=False),
+        _builtin("rank_fusion_asc", "rank fusion asc (variant 2)"),
+        _builtin("rank_fusion_raw", "rank fusion raw (variant 1)", **_RANK),
+        _builtin("rrf", "RRF (reciprocal rank)", detect=True, options=("rrf_c",), **_RANK),
+        _builtin("combmnz", "CombMNZ", detect=True, **_RANK),
+        _builtin("borda", "Borda count", detect=True, **_RANK),
+        _builtin("isr", "ISR (inverse square rank)", detect=True, **_RANK),
+        _builtin("size_prior", "size prior (no pixel)", kind="image", baseline=True),
+        _builtin("cover_count", "cover count (no pixel)", baseline=True),
+        _builtin("random", "random", kind="image", baseline=True),
+    )
+}
+
+
+def rules_where(**flags: Any) -> tuple[str, ...]:
+    """The catalogue's methods (registered ones too) whose record has every given field value."""
+    return tuple(
+        n for n, r in FUSION_RULES.items() if all(getattr(r, k) == v for k, v in flags.items())
+    )
+
+
 #: Table I's six rows, in SPEC section 7's order.
-FUSION_METHODS = (
-    "rank_fusion",
-    "rank_fusion_le2",
-    "rank_fusion_le3",
-    "rank_no_fusion",
-    "score_max",
-    "score_sum",
-)
-#: The paper's two variants and the three baselines (SPEC section 7), the separate block of every
-#: table.
-EXTRA_METHODS = (
-    "rank_fusion_asc",
-    "rank_fusion_raw",
-    "rrf",
-    "combmnz",
-    "borda",
-    "isr",
-    "size_prior",
-    "cover_count",
-    "random",
-)
+FUSION_METHODS = rules_where(block="table")
+#: The paper's two variants, the field's four rules and the three baselines (SPEC sections 7 and
+#: 14), the separate block of every table.
+EXTRA_METHODS = rules_where(block="extra")
 #: The field's standard rank-fusion rules (SPEC section 14): ranks alone, so every localizer
 #: (imported lists without scores too) and every pair of localizers can have them.
 STANDARD_RULES = ("rrf", "combmnz", "borda", "isr")
-#: The methods whose LoC ``harness detect`` can threshold into boxes: fused-set rules of ranks
-#: alone (no relevance score, not a baseline).
-DETECT_METHODS = ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", *STANDARD_RULES)
 #: Baselines that read no pixel: SPEC section 7's confound warning compares them with the six.
-BASELINES = ("size_prior", "cover_count", "random")
+BASELINES = rules_where(baseline=True)
 ALL_METHODS = FUSION_METHODS + EXTRA_METHODS
-#: Methods that need a relevance score ``d`` (a localizer without one cannot have them).
-SCORE_METHODS = ("score_max", "score_sum")
 
-#: How every table, figure and page names a fusion method.
-METHOD_LABELS = {
-    "rank_fusion": "rank fusion",
-    "rank_fusion_le2": "rank fusion (<=2)",
-    "rank_fusion_le3": "rank fusion (<=3)",
-    "rank_no_fusion": "rank w/o fusion",
-    "score_max": "score max",
-    "score_sum": "score sum",
-    "rank_fusion_asc": "rank fusion asc (variant 2)",
-    "rank_fusion_raw": "rank fusion raw (variant 1)",
-    "rrf": "RRF (reciprocal rank)",
-    "combmnz": "CombMNZ",
-    "borda": "Borda count",
-    "isr": "ISR (inverse square rank)",
-    "size_prior": "size prior (no pixel)",
-    "cover_count": "cover count (no pixel)",
-    "random": "random",
-}
+#: How every table, figure and page names a fusion method (registered ones added as registered).
+METHOD_LABELS = {n: r.label for n, r in FUSION_RULES.items()}
 
-#: Fused-set fusion methods registered beside SPEC section 7's (``fusion.register_method``):
-#: name -> the function of the cover matrix.
-FUSION_REGISTRY: dict[str, Callable[..., Any]] = {}
+
+def detect_methods() -> tuple[str, ...]:
+    """The methods whose LoC ``harness detect`` can threshold into boxes (registered ones too)."""
+    return rules_where(detect=True)
+
+
+def add_rule(rule: FusionRule) -> None:
+    """Put ``rule`` in the catalogue (its label too); ``fusion.register_method`` checks the name."""
+    FUSION_RULES[rule.name] = rule
+    METHOD_LABELS[rule.name] = rule.label
+
 
 #: Proposal methods of the harness that are not per-image functions.
 SPECIAL_PROPOSALS = ("grid5", "yolo", "file")
@@ -78,7 +132,7 @@ PROPOSERS: dict[str, Callable[..., Any]] = {}
 
 def known_fusion_methods() -> tuple[str, ...]:
     """Every method ``[fusion] methods`` may list: SPEC section 7's, then registered ones."""
-    return (*ALL_METHODS, *FUSION_REGISTRY)
+    return tuple(FUSION_RULES)
 
 
 def known_proposal_methods() -> tuple[str, ...]:

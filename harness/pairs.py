@@ -14,7 +14,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from harness.config.load import PairsConfig
+from harness.config.schema import PairsConfig
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import write_json, write_parquet
 
 log = logging.getLogger(__name__)
@@ -120,10 +121,10 @@ def build_pairs(
         (pairs table with PAIR_COLUMNS, summary dict with counts per season pair and unmatched
         queries).
     """
-    frames = frames.sort_values(["session", "camera", "utime"]).reset_index(drop=True)
+    frames = frames.sort_values(FRAME_KEY).reset_index(drop=True)
     if queries is not None:
-        qkeys = queries[["session", "camera", "utime"]].drop_duplicates()
-        q_all = frames.merge(qkeys, on=["session", "camera", "utime"], how="inner")
+        qkeys = queries[FRAME_KEY].drop_duplicates()
+        q_all = frames.merge(qkeys, on=FRAME_KEY, how="inner")
     else:
         parts = []
         for _, g in frames.groupby(["session", "camera"], sort=True):
@@ -179,7 +180,7 @@ def build_pairs(
         "pairs_per_season_pair": dict(sorted(matched.items())),
         "no_reference_per_season_pair": dict(sorted(unmatched.items())),
         "queries_without_any_reference": int(
-            len(q_all) - pairs[["q_session", "q_camera", "q_utime"]].drop_duplicates().shape[0]
+            len(q_all) - pairs[QUERY_KEY].drop_duplicates().shape[0]
         ),
     }
     log.info(

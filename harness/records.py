@@ -19,6 +19,8 @@ NCLT_SEASONS: dict[str, str] = {
 }
 
 FRAME_KEY = ["session", "camera", "utime"]
+#: The query frame's key in pair, rank and sample tables.
+QUERY_KEY = ["q_session", "q_camera", "q_utime"]
 FRAME_COLUMNS = [
     "session",
     "camera",

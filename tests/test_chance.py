@@ -109,7 +109,7 @@ def test_random_is_never_above_chance_and_other_noise_rarely_is() -> None:
     above chance in at most 6 of 60 seeds (the band alone lets 5% through, i.e. 3 expected;
     P(X >= 7 | Binomial(60, 0.05)) < 0.04, and the paired condition only lowers the rate); the
     informative method is above chance in at least 55."""
-    from harness.evaluate.aps import _groups, _pooled_rows
+    from harness.evaluate.aps import pooled_rows, sample_groups
     from harness.evaluate.splits import paper_splits
 
     cfg = _cfg()
@@ -117,12 +117,12 @@ def test_random_is_never_above_chance_and_other_noise_rarely_is() -> None:
     noise_above = informative_above = 0
     for seed in range(60):
         df = _samples(seed)
-        ids = {g: i for i, g in enumerate(sorted(set(_groups(df))))}
+        ids = {g: i for i, g in enumerate(sorted(set(sample_groups(df))))}
         cfg_s = dataclasses.replace(cfg, seed=seed)
         for table in ("I", "S"):
             rows = {
                 r["method"]: r
-                for r in _pooled_rows(
+                for r in pooled_rows(
                     cfg_s, df, ("rank_fusion", "other_random", "random"), split, table, ids
                 )
             }

@@ -136,8 +136,10 @@ def test_fixture_section_chooses_formats_and_render_scale(tmp_path: Path) -> Non
     """A config with [fixture] render_scale and one format generates and ingests."""
     import dataclasses
 
-    from harness.config.load import FixtureConfig, load_config
-    from harness.pipeline.chain import Pipeline, frame_table, generate_fixture, ingest_logs
+    from harness.config.load import load_config
+    from harness.config.schema import FixtureConfig
+    from harness.pipeline.chain import Pipeline
+    from harness.pipeline.stages import frame_table, generate_fixture, ingest_logs
 
     cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(tmp_path / "world"))
     fx = FixtureConfig(

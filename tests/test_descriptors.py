@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.config.load import DescriptorConfig
+from harness.config.schema import DescriptorConfig
 from harness.descriptors import AutoencoderDescriptor, HogDescriptor, ThumbDescriptor, normalize
 from harness.descriptors.autoencoder import (
     ConvAutoencoder,

@@ -558,3 +558,43 @@ def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) ->
     assert (opt.boxes, opt.box_score, opt.locmap_level) == ("locmap", "mean", 0.3)
     opt = detect_options(build_parser().parse_args([*base, "--boxes", "proposals"]), cfg)
     assert opt.boxes == "proposals"
+
+
+def test_a_registered_fusion_method_is_usable_by_detect(
+    detected: tuple, local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One catalogue for the paper's rules and a user's (issue 35): a method registered with
+    ``fusion.register_method`` is a ``--method`` of ``harness detect``; one registered with
+    ``detect=False`` is refused in one ERROR line before any work."""
+    from harness import methods
+    from harness.fusion import fuse as fusion
+
+    def best_rank(cover: np.ndarray, r: np.ndarray, d: np.ndarray, L: np.ndarray) -> np.ndarray:
+        return np.where(cover, (L / (L + 1.0 - r * L))[None, :], 0.0).max(1)
+
+    saved = dict(methods.FUSION_RULES), dict(methods.METHOD_LABELS)
+    try:
+        fusion.register_method("best_rank", best_rank, "best single rank")
+        fusion.register_method("no_detect", best_rank, "not for detect", detect=False)
+        a, _, _ = detected
+        out = tmp_path / "registered"
+        shutil.copytree(a / "cache", out / "cache")  # the map, model and ranks are reused
+        shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+        world = str(local_run[0].cfg.data_root)
+        argv = ["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query",
+                QUERY, "--out", str(out), "--data-root", world]  # fmt: skip
+        _run([*argv, "--method", "best_rank"])
+        assert json.loads((out / "detect.json").read_text())["options"]["method"] == "best_rank"
+        dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
+        before = pd.DataFrame(json.loads((a / "detections.json").read_text()))
+        assert (dets["score"] >= 1.0).all()  # 1 / r' >= 1 for every box
+        assert dets["score"].max() < before["score"].max()  # one list's 1/r', not N * sum(1/r')
+        capsys.readouterr()
+        assert main([*argv, "--method", "no_detect"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("ERROR:") and "no_detect" in err[0]
+        assert "best_rank" in err[0]  # the registered one is offered
+    finally:
+        for d, before_ in zip((methods.FUSION_RULES, methods.METHOD_LABELS), saved, strict=True):
+            d.clear()
+            d.update(before_)

@@ -109,7 +109,7 @@ def test_large_frames_rendered_at_a_lower_scale_and_streamed_into_one_format(
     import pandas as pd
     import pytest
 
-    from harness.config.load import IngestConfig, SessionConfig
+    from harness.config.schema import IngestConfig, SessionConfig
     from harness.ingest import ingest_session
 
     spec = FixtureSpec(frames=6, width=240, height=320, render_scale=4, objects=1)

@@ -13,7 +13,8 @@ import os
 import numpy as np
 import pytest
 
-from harness.fusion.fuse import loc_from_cover, standard_rule
+from harness.fusion.fuse import loc_from_cover
+from harness.fusion.rules import standard_rule
 
 # ranx's kernels are numba functions: compiled, they cost a minute and a half of a fresh venv's CI
 # for lists of a few dozen places; interpreted, they are the same Python source in milliseconds.

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.config.load import IngestConfig, SessionConfig
+from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import CorruptLogError, IngestError, TopicError
 from harness.fixture import build_world, render_frame
 from harness.fixture import writers as W

@@ -94,5 +94,98 @@ def test_the_detector_finds_a_circle() -> None:
 def test_no_import_circle_among_harness_modules() -> None:
     graph = import_graph()
     assert "harness.methods" in graph and not graph["harness.methods"]  # the bottom of the house
-    assert "harness.methods" in graph["harness.config.load"]
+    assert "harness.methods" in graph["harness.config.schema"]
     assert cycles(graph) == []
+
+
+#: The layers, lowest first (issue 35). A module may import its own layer and the layers below,
+#: never one above: data flows up this list, and evaluation never imports presentation.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("harness", "harness.errors", "harness.records", "harness.methods", "harness.inputs"),
+    ("harness.config",),
+    ("harness.runtime", "harness.imagestore"),
+    ("harness.ingest",),
+    ("harness.fixture", "harness.pairs"),
+    ("harness.proposals",),
+    ("harness.descriptors",),
+    ("harness.retrieval",),
+    ("harness.evaluate",),
+    ("harness.fusion",),
+    ("harness.localizers",),
+    ("harness.reports",),
+    ("harness.pipeline",),
+    ("harness.detect",),
+    ("harness.cli",),
+)
+
+
+def layer_of(module: str) -> int:
+    """The layer of ``module``: that of the longest prefix named in :data:`LAYERS`."""
+    best, at = -1, -1
+    for i, names in enumerate(LAYERS):
+        for n in names:
+            if (module == n or module.startswith(n + ".")) and len(n) > best:
+                best, at = len(n), i
+    assert at >= 0, f"{module} is in no layer: add it to LAYERS"
+    return at
+
+
+def test_no_import_goes_up_a_layer() -> None:
+    upward = [
+        f"{m} (layer {layer_of(m)}) imports {t} (layer {layer_of(t)})"
+        for m, targets in import_graph().items()
+        for t in sorted(targets)
+        if layer_of(t) > layer_of(m)
+    ]
+    assert upward == []
+
+
+def test_few_top_level_modules() -> None:
+    """The top of ``harness/`` keeps only what every layer imports; the rest are packages."""
+    top = sorted(p.stem for p in PACKAGE.glob("*.py") if p.name != "__init__.py")
+    assert len(top) <= 10, top
+
+
+def _imports(f: Path) -> list[ast.ImportFrom]:
+    return [n for n in ast.walk(ast.parse(f.read_text())) if isinstance(n, ast.ImportFrom)]
+
+
+def test_no_module_imports_a_private_name_of_another() -> None:
+    private = [
+        f"{f.relative_to(ROOT)}: from {n.module} import {a.name}"
+        for f in _modules().values()
+        for n in _imports(f)
+        if (n.module or "").startswith("harness") or n.level
+        for a in n.names
+        if a.name.startswith("_") and not a.name.startswith("__")
+    ]
+    assert private == []
+
+
+def test_no_module_re_exports_beyond_its_package() -> None:
+    """``__all__`` of a plain module names only what it defines; ``import x as x`` is not used.
+
+    A package's ``__init__`` may gather its own submodules' API (``harness.ingest``,
+    ``harness.retrieval``, ...), never another package's.
+    """
+    bad = []
+    for name, f in _modules().items():
+        tree = ast.parse(f.read_text())
+        imported: dict[str, str] = {}
+        for n in tree.body:
+            if isinstance(n, ast.ImportFrom):
+                for a in n.names:
+                    if a.asname and a.asname == a.name:
+                        bad.append(f"{name}: import {a.name} as {a.name}")
+                    imported[a.asname or a.name] = n.module or ""
+        for n in tree.body:
+            if isinstance(n, ast.Assign) and any(
+                isinstance(t, ast.Name) and t.id == "__all__" for t in n.targets
+            ):
+                for e in ast.literal_eval(n.value):
+                    src = imported.get(e)
+                    if src is None:
+                        continue
+                    if f.name != "__init__.py" or not src.startswith(name + "."):
+                        bad.append(f"{name}: __all__ re-exports {e} from {src}")
+    assert bad == []

@@ -22,7 +22,8 @@ import pytest
 import scipy.sparse as sp
 
 from harness.cli import main
-from harness.config.load import BovwConfig, load_config
+from harness.config.load import load_config
+from harness.config.schema import BovwConfig
 from harness.errors import ConfigError
 from harness.evaluate.chance import stratified_chance
 from harness.evaluate.metrics import average_precision, stratified_ap
@@ -386,7 +387,8 @@ def test_an_image_some_localizer_did_not_rank_is_an_error_unless_allowed(
     import dataclasses
 
     from harness.errors import RetrievalError
-    from harness.pipeline.chain import Measured, RankTable, Table, common_images
+    from harness.pipeline.context import RankTable, Table
+    from harness.pipeline.localizer_stages import Measured, common_images
 
     p, _, run = local_run
     ranks = pd.read_parquet(run / "ranks.parquet").drop(columns="localizer")

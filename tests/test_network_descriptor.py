@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from harness.cli import main
-from harness.config.load import DescriptorConfig, YoloConfig
+from harness.config.schema import DescriptorConfig, YoloConfig
 from harness.descriptors import make_descriptor
 from harness.descriptors.network import pool
 from harness.errors import ConfigError

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.config.load import ProposalsConfig
+from harness.config.schema import ProposalsConfig
 from harness.descriptors.autoencoder import ConvAutoencoder, train
 from harness.errors import ConfigError, HarnessError
 from harness.pipeline.chain import Pipeline

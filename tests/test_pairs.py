@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.config.load import IngestConfig, PairsConfig, SessionConfig
+from harness.config.schema import IngestConfig, PairsConfig, SessionConfig
 from harness.ingest import ingest_session, load_frames
 from harness.pairs import build_pairs, nearest_with_heading, thin_by_stride, yaw_diff_deg
 

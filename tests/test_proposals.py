@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 import torch
 
-from harness.config.load import EdgesConfig, ProposalsConfig, YoloConfig
+from harness.config.schema import EdgesConfig, ProposalsConfig, YoloConfig
 from harness.errors import AnnotationError, ConfigError
 from harness.proposals.proposers import (
     YoloProposer,

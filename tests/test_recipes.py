@@ -62,9 +62,7 @@ def registries():
     """The method catalogue's registries as they were before the test (a recipe adds to them)."""
     from harness import methods
 
-    saved = [
-        (d, dict(d)) for d in (methods.PROPOSERS, methods.FUSION_REGISTRY, methods.METHOD_LABELS)
-    ]
+    saved = [(d, dict(d)) for d in (methods.PROPOSERS, methods.FUSION_RULES, methods.METHOD_LABELS)]
     yield methods
     for d, before in saved:
         d.clear()
@@ -81,7 +79,7 @@ def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
 
 
 def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registries) -> None:
-    from harness.config.load import validate
+    from harness.config.check import validate
     from harness.proposals import proposers as proposals
 
     # --- the recipe: a function of the upright image, registered, listed in [proposals] ---
@@ -134,7 +132,7 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
 
 
 def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries) -> None:
-    from harness.fusion import fuse as fusion
+    from harness import fusion
 
     # --- the recipe: LoC from the cover matrix, registered with a label, listed in [fusion] ---
 
@@ -177,7 +175,7 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
 
     from rosbags.typesys import Stores, get_typestore
 
-    from harness.config.load import IngestConfig, SessionConfig
+    from harness.config.schema import IngestConfig, SessionConfig
     from harness.imagestore import read_image
     from harness.ingest import ingest_session, logs
 
@@ -244,7 +242,7 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
 
 
 def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries) -> None:
-    from harness.config.load import ProposalsConfig
+    from harness.config.schema import ProposalsConfig
     from harness.errors import ConfigError
     from harness.fusion import fuse as fusion
     from harness.proposals import proposers as proposals
@@ -253,7 +251,7 @@ def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries)
     frame = pd.Series({"session": "s", "camera": "Cam5", "utime": 7})
     with pytest.raises(ConfigError, match=r"'bad' on frame s/Cam5/7: .*\(2, 3\)"):
         proposals._checked("bad", frame, *proposals.IMAGE_METHODS["bad"](None, ProposalsConfig()))
-    fusion.REGISTERED["flat"] = lambda cover, r, d, L: np.ones(1)
+    fusion.register_method("flat", lambda cover, r, d, L: np.ones(1), "flat")
     cover = np.ones((3, 2), bool)
     with pytest.raises(ConfigError, match=r"'flat' returned LoC of shape \(1,\), expected \(3,\)"):
         fusion.loc_from_cover(cover, "flat", r=np.ones(2), d=np.ones(2), L=np.ones(2))

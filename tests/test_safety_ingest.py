@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from harness.cli import main
-from harness.config.load import IngestConfig, SessionConfig
+from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import CorruptLogError, IngestError
 from harness.fixture import writers as W
 from harness.ingest import ingest_session, load_frames

@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from harness.evaluate.aps import pixel_regions
 from harness.evaluate.metrics import (
     average_precision,
     bootstrap_aps,
@@ -18,8 +19,8 @@ from harness.evaluate.metrics import (
     stratified_ap,
     weighted_average_precision,
 )
-from harness.fusion.fuse import pixel_regions
-from harness.reports.write import confound_warnings, table_latex
+from harness.reports.render import table_latex
+from harness.reports.write import confound_warnings
 
 EDGES = [0.0, 0.1, 0.5, 1.0]
 

@@ -16,7 +16,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from harness.cli import main
-from harness.config.load import IngestConfig, SessionConfig
+from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.fixture import writers as W
 from harness.ingest import ingest_session, load_frames

@@ -14,7 +14,7 @@ def case_descriptor(quick: bool) -> None:
     """Autoencoder encoding throughput and its fraction of the measured matmul FLOP rate."""
     import torch
 
-    from harness.config.load import DescriptorConfig
+    from harness.config.schema import DescriptorConfig
     from harness.descriptors import AutoencoderDescriptor, HogDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder, to_tensor
 

@@ -14,12 +14,13 @@ def case_fusion(quick: bool) -> None:
 
     import pandas as pd
 
-    from harness.config.load import SplitsConfig, load_config
+    from harness.config.load import load_config
+    from harness.config.schema import SplitsConfig
+    from harness.evaluate.aps import pixel_image_rows, sample_groups
     from harness.evaluate.metrics import average_precision
     from harness.evaluate.splits import label, paper_splits
     from harness.fusion.fuse import fuse_samples
     from harness.proposals.proposers import grid5
-    from harness.reports.write import _groups, _pixel_image_rows
 
     rng = np.random.default_rng(0)
     n_img = 50 if quick else 200
@@ -89,7 +90,7 @@ def case_fusion(quick: bool) -> None:
     methods = tuple(c[4:] for c in samples.columns if c.startswith("loc_"))
     cfg = load_config(ROOT / "datasets" / "fixture.toml")
     cfg = dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, bootstrap=0))
-    ids = {g: i for i, g in enumerate(sorted(set(_groups(allp))))}
+    ids = {g: i for i, g in enumerate(sorted(set(sample_groups(allp))))}
 
     def fusion() -> None:
         fuse_samples(ranks, frames, annotations, 0, 4096)
@@ -102,7 +103,7 @@ def case_fusion(quick: bool) -> None:
                 average_precision(lab[sel] == 1, allp[f"loc_{m}"].to_numpy()[sel])
 
     def pixel_image_ap() -> None:
-        _pixel_image_rows(cfg, allp, frames, annotations, methods, ids)
+        pixel_image_rows(cfg, allp, frames, annotations, methods, ids)
 
     note = f"17 boxes per image, {len(methods)} methods"
     emit(

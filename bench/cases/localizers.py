@@ -46,7 +46,7 @@ def case_localizers(quick: bool) -> None:
     import faiss
     import torch
 
-    from harness.config.load import BovwConfig, DescriptorConfig
+    from harness.config.schema import BovwConfig, DescriptorConfig
     from harness.descriptors import AutoencoderDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder
     from harness.retrieval.bovw import bovw_ranks, features

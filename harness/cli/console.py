@@ -117,7 +117,7 @@ def print_localization(console, rep, rec, also: bool = False) -> None:
     """One localizer's localization quality (all season pairs); ``also``: at the second radius."""
     from rich.table import Table
 
-    from harness.reports.write import loc_columns
+    from harness.reports.render import loc_columns
 
     loc = rep.localization_also if also else rep.localization
     radius = (

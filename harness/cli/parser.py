@@ -140,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--method",
         default="rank_fusion",
         help="the rank method whose LoC finds the boxes: rank_fusion, rank_fusion_le2, "
-        "rank_fusion_le3, or one of the field's rules rrf, combmnz, borda, isr (SPEC 14)",
+        "rank_fusion_le3, one of the field's rules rrf, combmnz, borda, isr (SPEC 14), or a method "
+        "registered with detect=True",
     )
     p.add_argument(
         "--boxes",

@@ -42,8 +42,8 @@ def cmd_fixture(args: argparse.Namespace) -> int:
 
 def cmd_ingest(args: argparse.Namespace) -> int:
     """``harness ingest``: one log into a frame table and an ingest report."""
-    from harness.config.check import check_ingest
-    from harness.config.load import IngestConfig, SessionConfig, check_session_name
+    from harness.config.check import check_ingest, check_session_name
+    from harness.config.schema import IngestConfig, SessionConfig
     from harness.ingest import ingest_session
     from harness.runtime.outdirs import check_replaceable, claim_dir
 
@@ -113,7 +113,8 @@ def cmd_pairs(args: argparse.Namespace) -> int:
 
 def cmd_proposals(args: argparse.Namespace) -> int:
     """``harness proposals``: run up to the proposals and say where they are."""
-    from harness.pipeline.chain import session_proposals, until_pairs
+    from harness.pipeline.chain import until_pairs
+    from harness.pipeline.stages import session_proposals
 
     p = pipeline_of(args)
     with p.locked():
@@ -155,7 +156,8 @@ def cmd_rank(args: argparse.Namespace) -> int:
 def cmd_task(args: argparse.Namespace) -> int:
     """``harness task export``: the localization task for a user's localizer (SPEC 12)."""
     from harness.localizers.task_export import write_task
-    from harness.pipeline.chain import check_inputs, session_proposals, until_pairs
+    from harness.pipeline.chain import check_inputs, until_pairs
+    from harness.pipeline.stages import session_proposals
 
     p = pipeline_of(args)
     with p.locked():

@@ -17,9 +17,9 @@ from harness.errors import ConfigError
 from harness.methods import known_fusion_methods, known_proposal_methods
 
 
-def _check_bovw(bw: BovwConfig, where: str) -> None:
+def check_bovw(bw: BovwConfig, where: str) -> None:
     """Ranges of a ``bovw`` table."""
-    c = _check
+    c = check_value
     c(bw.features in ("sift", "rootsift", "orb"), where, "features", bw.features,
       "'sift', 'rootsift' or 'orb'")  # fmt: skip
     c(2 <= bw.k <= 1_000_000, where, "k", bw.k, "[2, 1e6]")
@@ -55,7 +55,8 @@ def check_session_name(name: object, where: str) -> str:
     return name
 
 
-def _check(ok: bool, where: str, key: str, value: Any, allowed: str) -> None:
+def check_value(ok: bool, where: str, key: str, value: Any, allowed: str) -> None:
+    """Unless ``ok``, one ConfigError naming ``where``, ``key``, its value and what is allowed."""
     if not ok:
         raise ConfigError(f"{where}: {key} = {value!r} is out of range; allowed: {allowed}")
 
@@ -63,7 +64,7 @@ def _check(ok: bool, where: str, key: str, value: Any, allowed: str) -> None:
 def _range(
     where: str, key: str, pair: tuple[float, float], lo: float = 0.0, hi: float = 1.0
 ) -> None:
-    _check(
+    check_value(
         lo <= pair[0] <= pair[1] <= hi,
         where,
         key,
@@ -91,8 +92,8 @@ def check_ingest(ig: Any, where: str, flags: dict[str, str] | None = None) -> No
     }
     for key in ("max_pose_gap_s", "max_tf_gap_s"):
         v = getattr(ig, key)
-        _check(_finite(v) and v > 0, where, name[key], v, "> 0 seconds, finite")
-    _check(
+        check_value(_finite(v) and v > 0, where, name[key], v, "> 0 seconds, finite")
+    check_value(
         ig.max_image_pixels >= 1,
         where,
         name["max_image_pixels"],
@@ -107,13 +108,13 @@ def check_fixture(fx: Any, where: str, flags: dict[str, str] | None = None) -> N
     def name(k: str) -> str:
         return (flags or {}).get(k, f"[fixture] {k}")
 
-    _check(0 <= fx.seed <= MAX_SEED, where, name("seed"), fx.seed, f"0 .. {MAX_SEED}")
-    _check(fx.render_scale >= 1, where, name("render_scale"), fx.render_scale, ">= 1")
-    _check(fx.frames >= 1, where, name("frames"), fx.frames, ">= 1")
+    check_value(0 <= fx.seed <= MAX_SEED, where, name("seed"), fx.seed, f"0 .. {MAX_SEED}")
+    check_value(fx.render_scale >= 1, where, name("render_scale"), fx.render_scale, ">= 1")
+    check_value(fx.frames >= 1, where, name("frames"), fx.frames, ">= 1")
     for k in ("width", "height"):
-        _check(getattr(fx, k) >= 8, where, name(k), getattr(fx, k), ">= 8 pixels")
-    _check(fx.objects >= 0, where, name("objects"), fx.objects, ">= 0")
-    _check(
+        check_value(getattr(fx, k) >= 8, where, name(k), getattr(fx, k), ">= 8 pixels")
+    check_value(fx.objects >= 0, where, name("objects"), fx.objects, ">= 0")
+    check_value(
         _finite(fx.loop_scale) and fx.loop_scale > 0,
         where,
         name("loop_scale"),
@@ -128,7 +129,7 @@ def validate(cfg: Config, where: str) -> None:
     Raises:
         ConfigError: naming the key, the value and the allowed range.
     """
-    c = _check
+    c = check_value
     fu, pa, ig, de, re_, sp, rp, fx, pr = (
         cfg.fusion,
         cfg.pairs,

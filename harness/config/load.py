@@ -16,11 +16,9 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from harness.config.check import (
-    FIXTURE_FORMATS,
-    SESSION_NAME,
-    _check,
-    _check_bovw,
+    check_bovw,
     check_session_name,
+    check_value,
     validate,
 )
 from harness.config.schema import (
@@ -50,48 +48,7 @@ from harness.config.schema import (
 from harness.errors import ConfigError
 from harness.inputs import read_text
 
-# the method catalogue lives in ``methods`` (the bottom of the house); named here too, as before
-from harness.methods import ALL_METHODS as ALL_METHODS
-from harness.methods import BASELINES as BASELINES
-from harness.methods import EXTRA_METHODS as EXTRA_METHODS
-from harness.methods import FUSION_METHODS as FUSION_METHODS
-
-__all__ = [
-    "ALL_LOCALIZERS",
-    "ALL_METHODS",
-    "BASELINES",
-    "EXTRA_METHODS",
-    "FIXTURE_FORMATS",
-    "FUSION_METHODS",
-    "LOCALIZER_NAME",
-    "SESSION_NAME",
-    "BovwConfig",
-    "Config",
-    "DescriptorConfig",
-    "DetectConfig",
-    "EdgesConfig",
-    "FixtureConfig",
-    "FusionConfig",
-    "ImportConfig",
-    "IngestConfig",
-    "LocalizerConfig",
-    "LocalizerImportConfig",
-    "MserConfig",
-    "PairsConfig",
-    "ProjectionConfig",
-    "ProposalsConfig",
-    "ReportConfig",
-    "RetrievalConfig",
-    "SessionConfig",
-    "SplitsConfig",
-    "YoloConfig",
-    "check_session_name",
-    "load_config",
-    "parse_config",
-    "parse_localizers",
-    "project_root",
-    "validate",
-]
+__all__ = ["load_config", "parse_config", "parse_localizers", "project_root"]
 
 T = TypeVar("T")
 
@@ -331,12 +288,12 @@ def parse_localizers(
                 de = dataclasses.replace(de, path=str(net if net.is_absolute() else base / net))
         elif kind == "bovw":
             bw = _build(BovwConfig, item[kind], f"{at}.bovw")
-            _check_bovw(bw, f"{at}.bovw")
+            check_bovw(bw, f"{at}.bovw")
         else:
             im = _build(LocalizerImportConfig, item[kind], f"{at}.import")
             f = Path(im.file.replace("{data_root}", str(root))).expanduser()
             im = dataclasses.replace(im, file=str(f if f.is_absolute() else base / f))
-            _check(
+            check_value(
                 im.score_kind in ("distance", "similarity"),
                 at,
                 "import.score_kind",

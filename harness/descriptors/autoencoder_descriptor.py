@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from harness.config.load import DescriptorConfig
+from harness.config.schema import DescriptorConfig
 from harness.descriptors.autoencoder import (
     ConvAutoencoder,
     inference_encoder,

@@ -15,15 +15,14 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from harness.config.load import DescriptorConfig, ProjectionConfig
+from harness.config.schema import DescriptorConfig, ProjectionConfig
 from harness.descriptors.base import Descriptor, make_descriptor, normalize
 from harness.descriptors.crops import iter_crops
 from harness.descriptors.projection import fit_projection, load_projection, project
 from harness.errors import HarnessError, RetrievalError
+from harness.records import FRAME_KEY
 from harness.runtime.cache import open_memmap_reserved, read_cached_parquet, write_parquet
 from harness.runtime.progress import progress
-
-FRAME_KEY = ["session", "camera", "utime"]
 
 
 def _images(rows: pd.DataFrame, frames: pd.DataFrame) -> pd.Series:

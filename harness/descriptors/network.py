@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.config.load import DescriptorConfig
+from harness.config.schema import DescriptorConfig
 from harness.descriptors.base import Descriptor
 from harness.errors import ConfigError, HarnessError
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.config.load import ProjectionConfig
+from harness.config.schema import ProjectionConfig
 from harness.descriptors.base import normalize
 from harness.errors import ConfigError
 

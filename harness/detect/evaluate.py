@@ -23,9 +23,8 @@ import pandas as pd
 
 from harness.evaluate import chance
 from harness.evaluate.metrics import interval, resample_counts
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import write_json, write_text
-
-FRAME_KEY = ["session", "camera", "utime"]
 
 
 def _voc_all_point(tp: np.ndarray, scores: np.ndarray, n_gt: int) -> float:
@@ -80,7 +79,7 @@ def coco_ground_truth(
     fr: pd.DataFrame, ann: pd.DataFrame, ids: dict[tuple[str, str, int], int]
 ) -> dict[str, Any]:
     """The annotated query frames as a COCO ground truth (category 1 = change)."""
-    annotated = ann[["session", "camera", "utime"]].drop_duplicates()
+    annotated = ann[FRAME_KEY].drop_duplicates()
     keyset = {(str(s), str(c), int(u)) for s, c, u in annotated.to_numpy()}
     imgs = [
         {"id": ids[k], "width": int(w), "height": int(h)}
@@ -273,11 +272,7 @@ def _by_image(
     """(boxes x1 y1 x2 y2, scores) of each image id in ``on``, from rows keyed by frame."""
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     keycols = [c for c in d.columns if c in ("session", "q_session")]
-    cols = (
-        ["session", "camera", "utime"]
-        if keycols == ["session"]
-        else ["q_session", "q_camera", "q_utime"]
-    )
+    cols = FRAME_KEY if keycols == ["session"] else QUERY_KEY
     for k, g in d.groupby(cols, sort=True):
         i = ids.get((str(k[0]), str(k[1]), int(k[2])))
         if i in on:
@@ -375,9 +370,9 @@ def score_detections(
     t = pd.DataFrame(rows)
     t.insert(1, "boxes", boxes)
     # SPEC 13.1: the false-alarm rate measured on frames annotated no-change, at the nominal one
-    quiet = ann[ann["status"] == "no-change"][["session", "camera", "utime"]].drop_duplicates()
+    quiet = ann[ann["status"] == "no-change"][FRAME_KEY].drop_duplicates()
     if "exceedance" in fr.columns and len(quiet):
-        q = fr.merge(quiet, on=["session", "camera", "utime"])
+        q = fr.merge(quiet, on=FRAME_KEY)
         t["alarm_nominal"] = alarm
         t["no_change_frames"] = len(q)
         k = int((q["exceedance"] <= alarm).sum())

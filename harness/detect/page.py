@@ -19,6 +19,7 @@ import pandas as pd
 from harness.detect.calibrate import in_words
 from harness.evaluate.chance import VERDICT_WORDS
 from harness.imagestore import read_image
+from harness.records import FRAME_KEY
 from harness.reports.html.page import (
     SCRIPT,  # the page reports its own loaded images (browser test)
 )
@@ -97,7 +98,7 @@ def write_detect_page(
     Where a frame is annotated, its annotated change boxes are drawn in red beside the detections
     (yellow), and a section shows the annotated change frames (up to ``ANNOTATED_SHOWN``).
     """
-    fk = frames.set_index(["session", "camera", "utime"])
+    fk = frames.set_index(FRAME_KEY)
     truth = _truth_boxes(ann)
 
     def query_thumb(k: tuple[str, str, int], image: str, name: str) -> tuple[str, str]:

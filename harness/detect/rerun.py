@@ -29,6 +29,7 @@ import pandas as pd
 from harness.errors import ConfigError
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, stable_hash
 
 log = logging.getLogger(__name__)
@@ -37,11 +38,10 @@ log = logging.getLogger(__name__)
 APPLICATION = "dbl-harness detect"
 #: The LoC map's largest width in the recording (pixels; the frame's own size when smaller).
 LOC_WIDTH = 320
-FRAME_KEY = ["session", "camera", "utime"]
-Q_KEY = ["q_session", "q_camera", "q_utime"]
 
 
-def _sdk() -> Any:
+def rerun_sdk() -> Any:
+    """The ``rerun`` module (rerun-sdk), or a ConfigError saying how to install it."""
     try:
         import rerun as rr
     except ImportError:
@@ -83,7 +83,7 @@ def write_recording(
     Returns:
         What was logged: query frames, change boxes, LoC maps.
     """
-    rr = _sdk()
+    rr = rerun_sdk()
     rec = rr.RecordingStream(APPLICATION, recording_id=recording_id)
     rec.set_log_time_enabled(False)  # the logs' own clock only: the same run, the same data
     rec.save(str(path))
@@ -119,7 +119,7 @@ def write_recording(
     counts = {"query_frames": 0, "change_boxes": 0, "loc_maps": 0}
     for e in entries:  # one cached chunk at a time
         samples = read_cached_parquet(e.path / "samples.parquet")
-        for key, g in samples.groupby(Q_KEY, sort=True):
+        for key, g in samples.groupby(QUERY_KEY, sort=True):
             k = (str(key[0]), str(key[1]), int(key[2]))
             i = index.get(k)
             if i is None:

@@ -33,11 +33,12 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.load import ALL_LOCALIZERS, Config
+from harness.config.schema import ALL_LOCALIZERS, Config
 from harness.errors import ConfigError, HarnessError
 from harness.fusion.fuse import fuse_samples, loc_map
 from harness.imagestore import read_image
 from harness.pipeline import keys
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import (
     read_cached_parquet,
     stable_hash,
@@ -49,8 +50,6 @@ from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
 
-FRAME_KEY = ["session", "camera", "utime"]
-Q_KEY = ["q_session", "q_camera", "q_utime"]
 #: A frame's result after its frame key and map session: its score (the largest LoC), the kept
 #: boxes and fused samples, and the best box.
 FRAME_RESULT = ["score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_y2"]
@@ -173,7 +172,7 @@ def detect_chunk(
     ``frames.parquet``: one row per frame (key, map frame, score, boxes, samples); and, for the
     LoC maps drawn later, ``samples.parquet`` (every fused qBB with its LoC).
     """
-    qk = ranks[Q_KEY].drop_duplicates()
+    qk = ranks[QUERY_KEY].drop_duplicates()
     # every query frame of the chunk as "annotated, no change": fusion then covers them all
     ann = pd.DataFrame(
         {
@@ -206,10 +205,10 @@ def detect_chunk(
     }
     orig = {
         (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-        for k, g in ranks.groupby(Q_KEY, sort=False)
+        for k, g in ranks.groupby(QUERY_KEY, sort=False)
     }
     rows, frow, cand_parts = [], [], []
-    for key, g in samples.groupby([*Q_KEY, "r_session"], sort=True):
+    for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
         fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
         floc = g[col].to_numpy(np.float64)
@@ -252,7 +251,7 @@ def detect_chunk(
     cands = (
         pd.concat(cand_parts, ignore_index=True)
         if cand_parts
-        else pd.DataFrame(columns=[*Q_KEY, "x1", "y1", "x2", "y2", "loc"])
+        else pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "loc"])
     )
     write_parquet(tmp / "candidates.parquet", cands)
     write_parquet(
@@ -268,7 +267,7 @@ def detect_chunk(
     )
     write_parquet(
         tmp / "samples.parquet",
-        samples[[*Q_KEY, "x1", "y1", "x2", "y2", "N", col]].rename(columns={col: "loc"}),
+        samples[[*QUERY_KEY, "x1", "y1", "x2", "y2", "N", col]].rename(columns={col: "loc"}),
     )
     return {"frames": len(frow), "capped_closures": int(counts.get("capped_closures", 0))}
 
@@ -290,17 +289,16 @@ def run_detect(
     Raises:
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
-    from harness.methods import DETECT_METHODS
-    from harness.pipeline.chain import (
+    from harness.methods import detect_methods
+    from harness.pipeline.chain import Pipeline, until_pairs
+    from harness.pipeline.context import Table
+    from harness.pipeline.localizer_stages import (
         Measured,
-        Pipeline,
-        Table,
         across_localizers,
         localizer_fusion,
         localizer_ranks,
-        session_proposals,
-        until_pairs,
     )
+    from harness.pipeline.stages import session_proposals
     from harness.runtime.executors import LocalExecutor
 
     opt = opt or DetectOptions()
@@ -313,8 +311,8 @@ def run_detect(
             f"detect: --map {map_session} and --query {query_sessions}: each session once, the "
             "map not among the queries"
         )
-    if opt.method not in DETECT_METHODS:
-        raise ConfigError(f"detect: method {opt.method!r}: one of {', '.join(DETECT_METHODS)}")
+    if opt.method not in detect_methods():
+        raise ConfigError(f"detect: method {opt.method!r}: one of {', '.join(detect_methods())}")
     if rerun is not None:
         check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
     alarm = cfg.detect.alarm if alarm is None else alarm
@@ -361,10 +359,14 @@ def run_detect(
         ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
         names_l = [m.loc.name for m in measured]
         chunk_units: list[tuple[tuple[Any, ...], Any]] = []
-        qframes = ranks.df[Q_KEY].drop_duplicates().sort_values(Q_KEY).reset_index(drop=True)
+        qframes = (
+            ranks.df[QUERY_KEY].drop_duplicates().sort_values(QUERY_KEY).reset_index(drop=True)
+        )
         for c0 in range(0, len(qframes), opt.chunk_frames):
             part = qframes.iloc[c0 : c0 + opt.chunk_frames]
-            mask = pd.MultiIndex.from_frame(ranks.df[Q_KEY]).isin(pd.MultiIndex.from_frame(part))
+            mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(
+                pd.MultiIndex.from_frame(part)
+            )
             build = partial(
                 detect_chunk,
                 ranks.df[mask].reset_index(drop=True),
@@ -422,7 +424,7 @@ def check_rerun_target(path: Path) -> None:
     Raises:
         ConfigError: the path is a folder, or a file of someone else's (never replaced).
     """
-    from harness.detect.rerun import APPLICATION, _sdk
+    from harness.detect.rerun import APPLICATION, rerun_sdk
 
     if path.is_dir():
         raise ConfigError(f"--rerun {path}: is a folder; give the .rrd file to write")
@@ -430,7 +432,7 @@ def check_rerun_target(path: Path) -> None:
         if not path.parent.is_dir():
             raise ConfigError(f"--rerun {path}: its folder {path.parent} does not exist")
         return
-    rr = _sdk()
+    rr = rerun_sdk()
     from rerun.chunk import RrdReader
 
     try:
@@ -505,7 +507,7 @@ def write_outputs(
     out = p.out
     fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "yaw", "image", "width", "height"]], on=FRAME_KEY)
     fr = fr.merge(
-        pairs[[*Q_KEY, "r_camera", "r_utime"]].rename(
+        pairs[[*QUERY_KEY, "r_camera", "r_utime"]].rename(
             columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}
         ),
         on=FRAME_KEY,
@@ -598,7 +600,7 @@ def write_outputs(
         cands = []
         for e in entries:  # candidates of the annotated frames only, one chunk at a time
             sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
-            cands.append(sm[pd.MultiIndex.from_frame(sm[Q_KEY]).isin(annotated)])
+            cands.append(sm[pd.MultiIndex.from_frame(sm[QUERY_KEY]).isin(annotated)])
         table_d = score_detections(
             out,
             fr,
@@ -656,7 +658,7 @@ def locmaps(
     written: dict[tuple[str, str, int], Path] = {}
     for e in entries:
         s = read_cached_parquet(e.path / "samples.parquet")
-        for key, g in s.groupby(Q_KEY, sort=True):
+        for key, g in s.groupby(QUERY_KEY, sort=True):
             k = (str(key[0]), str(key[1]), int(key[2]))
             if k not in want:
                 continue

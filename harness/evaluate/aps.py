@@ -1,7 +1,7 @@
 """Pooled APs with bootstrap intervals and paired differences (SPEC section 9).
 
-Table I and S columns (:func:`_pooled_rows`), the per-proposal and per-season-pair breakdowns
-(:func:`_table_i_rows`) and Table P's pixel and image APs (:func:`_pixel_image_rows`).
+Table I and S columns (:func:`pooled_rows`), the per-proposal and per-season-pair breakdowns
+(:func:`table_i_rows`) and Table P's pixel and image APs (:func:`pixel_image_rows`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from functools import partial
 import numpy as np
 import pandas as pd
 
-from harness.config.load import Config
+from harness.config.schema import Config
 from harness.evaluate import chance
 from harness.evaluate.metrics import (
     average_precision,
@@ -26,11 +26,45 @@ from harness.evaluate.metrics import (
 )
 from harness.evaluate.splits import Split
 from harness.evaluate.splits import label as split_label
-from harness.fusion.fuse import pixel_regions
 from harness.ingest.annotations import change_boxes
+from harness.records import FRAME_KEY
 
 
-def _groups(df: pd.DataFrame) -> np.ndarray:
+def pixel_regions(
+    boxes: np.ndarray, change: np.ndarray, width: float, height: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The image cut into rectangular regions by every box edge (exact areas, SPEC section 9).
+
+    Returns:
+        (area (c,), positive (c,) bool: inside the union of the change boxes, owner (c,) int: the
+        index of the smallest box of ``boxes`` holding the region, -1 where none does).
+        Ties in area (identical boxes) go to the lowest index; callers order boxes so that this
+        is the box they want.
+    """
+    b = np.clip(np.asarray(boxes, np.float64).reshape(-1, 4), 0, [width, height, width, height])
+    ch = np.clip(np.asarray(change, np.float64).reshape(-1, 4), 0, [width, height, width, height])
+    xs = np.unique(np.concatenate([[0.0, width], b[:, 0], b[:, 2], ch[:, 0], ch[:, 2]]))
+    ys = np.unique(np.concatenate([[0.0, height], b[:, 1], b[:, 3], ch[:, 1], ch[:, 3]]))
+    area = np.outer(np.diff(ys), np.diff(xs))  # (rows, cols) of the region grid
+    owner = np.full(area.shape, -1, np.int64)
+    # paint boxes from the largest to the smallest, so each region keeps the smallest box holding it
+    barea = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    order = np.lexsort((-np.arange(len(b)), -barea))  # equal areas: the lowest index painted last
+    cx0, cx1 = np.searchsorted(xs, b[:, 0]), np.searchsorted(xs, b[:, 2])
+    cy0, cy1 = np.searchsorted(ys, b[:, 1]), np.searchsorted(ys, b[:, 3])
+    for i in order:
+        owner[cy0[i] : cy1[i], cx0[i] : cx1[i]] = i
+    positive = np.zeros(area.shape, bool)
+    for x0, y0, x1, y1 in ch:
+        positive[
+            np.searchsorted(ys, y0) : np.searchsorted(ys, y1),
+            np.searchsorted(xs, x0) : np.searchsorted(xs, x1),
+        ] = True
+    return area.ravel(), positive.ravel(), owner.ravel()
+
+
+def sample_groups(df: pd.DataFrame) -> np.ndarray:
+    """Each sample's query image and reference session as one group id (the bootstrap's unit)."""
     return (
         df["q_session"].astype(str)
         + "|"
@@ -129,7 +163,7 @@ def _chance_fields(
     }
 
 
-def _table_i_rows(
+def table_i_rows(
     df: pd.DataFrame,
     split: Split,
     methods: tuple[str, ...],
@@ -146,7 +180,7 @@ def _table_i_rows(
     nan = float("nan")
     rows = []
     lab = split_label(df["RoC"].to_numpy(), df["SoB"].to_numpy(), split)
-    groups = _groups(df)
+    groups = sample_groups(df)
     for m in methods:
         loc = df[f"loc_{m}"].to_numpy()
         sel = (lab >= 0) & ~np.isnan(loc)
@@ -176,7 +210,7 @@ def _table_i_rows(
     return rows
 
 
-def _pooled_rows(
+def pooled_rows(
     cfg: Config,
     samples: pd.DataFrame,
     methods: tuple[str, ...],
@@ -191,7 +225,7 @@ def _pooled_rows(
     differences between localizers use the same resamples).
     """
     df = samples
-    gi = np.array([ids[g] for g in _groups(df)], np.int64)
+    gi = np.array([ids[g] for g in sample_groups(df)], np.int64)
     roc, sob = df["RoC"].to_numpy(), df["SoB"].to_numpy()
     lab = split_label(roc, sob, split) if table == "I" else stratified_labels(roc, split)
     edges = np.asarray(cfg.splits.sob_strata, np.float64)
@@ -232,7 +266,7 @@ def _pooled_rows(
     return pooled.finish()
 
 
-def _pixel_image_rows(
+def pixel_image_rows(
     cfg: Config,
     samples: pd.DataFrame,
     frames: pd.DataFrame,
@@ -248,7 +282,7 @@ def _pixel_image_rows(
     size = {
         k: (float(w), float(h))
         for k, w, h in zip(
-            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames[FRAME_KEY].itertuples(index=False, name=None),
             frames["width"],
             frames["height"],
             strict=True,
@@ -262,7 +296,7 @@ def _pixel_image_rows(
     }
     px: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "w": [], "g": []} for m in methods}
     img: dict[str, dict[str, list]] = {m: {"s": [], "y": [], "g": []} for m in methods}
-    groups = _groups(samples)
+    groups = sample_groups(samples)
     boxes = samples[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     locs = {m: samples[f"loc_{m}"].to_numpy(np.float64) for m in methods}
     fused_methods = [m for m in methods if m != "rank_no_fusion"]

@@ -1,1 +1,9 @@
-"""Fusion of ranks into likelihood of change (SPEC 5 and 14)."""
+"""Fusion of ranks into likelihood of change (SPEC 5, 7 and 14).
+
+``rules`` holds one small function per rule of the catalogue, ``fuse`` the fused set, the
+samples stage's build and the LoC maps. A user's rule: :func:`register_method`.
+"""
+
+from harness.fusion.fuse import register_method
+
+__all__ = ["register_method"]

@@ -13,46 +13,57 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.load import FusionConfig
+from harness.config.schema import FusionConfig
 from harness.errors import ConfigError
 from harness.evaluate.splits import roc_sob
+from harness.fusion import rules  # noqa: F401  (attaches the built-in rules' functions)
 from harness.ingest.annotations import change_boxes
 from harness.methods import (
     ALL_METHODS,
-    FUSION_REGISTRY,
-    METHOD_LABELS,
-    STANDARD_RULES,
+    FUSION_RULES,
+    FusionRule,
+    add_rule,
     known_fusion_methods,
+    ordered_methods,
+    rules_where,
 )
-from harness.methods import ordered_methods as ordered_methods
+from harness.records import FRAME_KEY
 from harness.runtime.cache import source_fingerprints, stable_hash, write_parquet
 from harness.runtime.progress import progress
 
-#: Methods whose samples are the fused qBB set (every method but rank_no_fusion).
-FUSED_METHODS = tuple(m for m in ALL_METHODS if m != "rank_no_fusion")
 #: Baselines computed from the image rather than the ranks.
-IMAGE_BASELINES = ("size_prior", "random")
+IMAGE_BASELINES = rules_where(kind="image")
 
 #: A fused-set method's LoC from the cover matrix: (cover (m, n) bool, r (n,) = rank / L,
 #: d (n,) L2 distances, L (n,) list lengths) -> (m,) LoC, higher = more likely changed.
 CoverLoc = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-#: Fused-set methods registered beside SPEC section 7's (:func:`register_method`).
-REGISTERED: dict[str, CoverLoc] = FUSION_REGISTRY  # the catalogue's registry, one dict
 
 
-def register_method(name: str, loc: CoverLoc, label: str) -> None:
+def register_method(
+    name: str,
+    loc: CoverLoc,
+    label: str,
+    *,
+    needs_score: bool = False,
+    across: bool = True,
+    detect: bool = True,
+) -> None:
     """Add a fused-set fusion method, computed and reported when ``[fusion] methods`` lists it.
 
     It is reported after SPEC section 7's methods under ``label``; its source is part of the
-    samples' cache key, so editing it recomputes them.
+    samples' cache key, so editing it recomputes them. The same catalogue record as the paper's
+    rules (``harness.methods.FusionRule``): ``needs_score`` (it reads ``d``: a localizer without
+    scores does not get it), ``across`` (it is defined on the box list of all localizers) and
+    ``detect`` (``harness detect --method`` may use it).
 
     Raises:
         ValueError: ``name`` is taken.
     """
     if name in known_methods():
         raise ValueError(f"fusion method {name!r} exists; known: {list(known_methods())}")
-    REGISTERED[name] = loc
-    METHOD_LABELS[name] = label
+    add_rule(
+        FusionRule(name, label, needs_score=needs_score, across=across, detect=detect, loc=loc)
+    )
 
 
 known_methods = known_fusion_methods
@@ -60,7 +71,8 @@ known_methods = known_fusion_methods
 
 def method_fingerprints(methods: Iterable[str]) -> dict[str, str]:
     """The source hash of each listed method registered from outside the package."""
-    return source_fingerprints(REGISTERED, methods)
+    registry = {n: r.loc for n, r in FUSION_RULES.items() if r.loc is not None}
+    return source_fingerprints(registry, methods)
 
 
 def intersection_closure(
@@ -112,56 +124,6 @@ def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
     )
 
 
-def _subset_cover(cover: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-    """Where a row covers more than k originals, keep a random k of them (in row order)."""
-    out = cover.copy()
-    for i in np.nonzero(cover.sum(1) > k)[0]:
-        idx = np.nonzero(cover[i])[0]
-        keep = rng.choice(idx, size=k, replace=False)
-        out[i] = False
-        out[i, keep] = True
-    return out
-
-
-def r_desc_of(r: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """``r' = (L + 1 - rank) / L`` from ``r = rank / L`` (SPEC section 6)."""
-    r, L = np.asarray(r, np.float64), np.asarray(L, np.float64)
-    return np.asarray((L + 1.0) / L - r, np.float64)
-
-
-def standard_rule(
-    cover: np.ndarray, rule: str, rank: np.ndarray, L: np.ndarray, c: float = 60.0
-) -> np.ndarray:
-    """LoC of the fused boxes by one of the field's rank-fusion rules (SPEC section 14).
-
-    Each original box k is one ranked list of ``L_k`` places; ``rank_k`` is its true place's
-    position sorted most similar first, so ``rank'_k = L_k + 1 - rank_k`` is its position sorted
-    least similar first (1 = the strongest sign of change). A fused box fuses the lists of the
-    originals that cover it (``N`` of them). The formulas are ranx's (``rrf``, ``combmnz``
-    over rank-normalised scores, ``borda``, ``isr``), written here from their definitions.
-
-    Args:
-        cover: (m, n) bool: original k contains fused box i.
-        rule: ``rrf``, ``combmnz``, ``borda`` or ``isr``.
-        rank: (n,) the true place's rank in each list, most similar first (1..L).
-        L: (n,) the lists' lengths.
-        c: RRF's constant (``[fusion] rrf_c``).
-    """
-    rank, L = np.asarray(rank, np.float64), np.asarray(L, np.float64)
-    cov = cover.astype(np.float64)
-    n = cov.sum(1)
-    rank_d = L + 1.0 - rank
-    if rule == "rrf":
-        return np.asarray(cov @ (1.0 / (c + rank_d)), np.float64)
-    if rule == "combmnz":
-        return np.asarray(n * (cov @ (rank / L)), np.float64)
-    if rule == "borda":
-        return np.asarray((cov @ ((rank - 1.0) / L)) / np.maximum(n, 1.0), np.float64)
-    if rule == "isr":
-        return np.asarray(n * (cov @ (1.0 / rank_d**2)), np.float64)
-    raise ValueError(f"unknown rank-fusion rule {rule!r}; known: {STANDARD_RULES}")
-
-
 def loc_from_cover(
     cover: np.ndarray,
     method: str,
@@ -172,55 +134,50 @@ def loc_from_cover(
     seed: int = 0,
     rrf_c: float = 60.0,
 ) -> np.ndarray:
-    """LoC of the fused boxes (rows of ``cover``) for one method of SPEC section 7.
+    """LoC of the fused boxes (rows of ``cover``) by fusion method ``method`` (its catalogue entry).
 
-    Higher is more likely changed.
+    Higher is more likely changed. The paper's rules and a user's are looked up alike
+    (``harness.methods.FUSION_RULES``; the built-in functions are in :mod:`harness.fusion.rules`).
 
     Args:
         cover: (m, n) bool: original box k contains fused box i.
-        method: a fused-set method id other than ``size_prior`` and ``random`` (see
+        method: a ``cover`` method (not ``rank_no_fusion``, ``size_prior``, ``random``: see
             :func:`image_loc`).
         r: (n,) normalised ranks ``rank / L`` of the originals.
         d: (n,) exact L2 distances of the originals to their ground-truth place.
         L: (n,) rank-list lengths; needed by every rank-fusion method except ``rank_fusion_asc``.
         seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
         rrf_c: the constant of ``rrf`` (SPEC section 14).
+
+    Raises:
+        ValueError: not a ``cover`` method, or ``L`` missing where the method needs it.
+        ConfigError: a registered method returned other than one finite LoC per fused box.
     """
-    r = np.asarray(r, np.float64)
-    if method in REGISTERED:
-        lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
-        loc = np.asarray(
-            REGISTERED[method](cover, r, np.asarray(d, np.float64), lengths), np.float64
-        )
-        if loc.shape != (len(cover),) or not np.isfinite(loc).all():
-            raise ConfigError(
-                f"fusion method {method!r} returned LoC of shape {loc.shape}, expected "
-                f"({len(cover)},): one finite value per fused box"
-            )
-        return loc
-    if method == "score_max":
-        return np.asarray(np.where(cover, np.asarray(d, np.float64)[None, :], -np.inf).max(1))
-    if method == "score_sum":
-        return np.asarray((cover * np.asarray(d, np.float64)[None, :]).sum(1), np.float64)
-    if method == "cover_count":
-        return np.asarray(cover.sum(1), np.float64)
-    # the paper's variant 2: ascending order (SPEC's earlier formula)
-    if method == "rank_fusion_asc":
-        return np.asarray(1.0 / (cover.sum(1) * (cover * (1.0 / r)[None, :]).sum(1)), np.float64)
-    known = ("rank_fusion", "rank_fusion_le2", "rank_fusion_le3", "rank_fusion_raw")
-    if method not in (*known, *STANDARD_RULES):
-        raise ValueError(f"unknown fused-set method {method!r}; known: {FUSED_METHODS}")
-    if L is None:
+    spec = FUSION_RULES.get(method)
+    if spec is None or spec.kind != "cover" or spec.loc is None:
+        raise ValueError(f"unknown fused-set method {method!r}; known: {rules_where(kind='cover')}")
+    if spec.needs_lengths and L is None:
         raise ValueError(f"{method} needs the rank-list lengths L (r' = (L + 1 - rank) / L)")
-    if method in STANDARD_RULES:
-        lengths = np.asarray(L, np.float64)
-        return standard_rule(cover, method, np.rint(r * lengths), lengths, rrf_c)
-    rd = r_desc_of(r, L)
-    if method in ("rank_fusion_le2", "rank_fusion_le3"):
-        cover = _subset_cover(cover, 2 if method.endswith("2") else 3, np.random.default_rng(seed))
-    # raw: 1 / (L + 1 - rank)
-    inv = 1.0 / (rd * np.asarray(L, np.float64)) if method == "rank_fusion_raw" else 1.0 / rd
-    return np.asarray(cover.sum(1) * (cover * inv[None, :]).sum(1), np.float64)
+    lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
+    options = {"seed": seed, "rrf_c": rrf_c}
+    loc = np.asarray(
+        spec.loc(
+            cover,
+            np.asarray(r, np.float64),
+            np.asarray(d, np.float64),
+            lengths,
+            **{k: options[k] for k in spec.options},
+        ),
+        np.float64,
+    )
+    if spec.loc.__module__.startswith("harness."):
+        return loc
+    if loc.shape != (len(cover),) or not np.isfinite(loc).all():
+        raise ConfigError(
+            f"fusion method {method!r} returned LoC of shape {loc.shape}, expected "
+            f"({len(cover)},): one finite value per fused box"
+        )
+    return loc
 
 
 def image_loc(fused: np.ndarray, method: str, width: float, height: float, seed: int) -> np.ndarray:
@@ -271,7 +228,7 @@ def fuse(
     d = np.asarray(d, np.float64)
     if method == "rank_no_fusion":
         return boxes.copy(), r.copy()
-    if method not in (*FUSED_METHODS, *REGISTERED) or method in IMAGE_BASELINES:
+    if method not in rules_where(kind="cover"):
         raise ValueError(
             f"fuse() computes {[m for m in known_methods() if m not in IMAGE_BASELINES]}, got "
             f"{method!r} (size_prior, random: image_loc)"
@@ -279,39 +236,6 @@ def fuse(
     fused, _ = intersection_closure(boxes, max_boxes)
     cover = cover_matrix(fused, boxes)
     return fused, loc_from_cover(cover, method, r=r, d=d, L=L, seed=seed)
-
-
-def pixel_regions(
-    boxes: np.ndarray, change: np.ndarray, width: float, height: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The image cut into rectangular regions by every box edge (exact areas, SPEC section 9).
-
-    Returns:
-        (area (c,), positive (c,) bool: inside the union of the change boxes, owner (c,) int: the
-        index of the smallest box of ``boxes`` holding the region, -1 where none does).
-        Ties in area (identical boxes) go to the lowest index; callers order boxes so that this
-        is the box they want.
-    """
-    b = np.clip(np.asarray(boxes, np.float64).reshape(-1, 4), 0, [width, height, width, height])
-    ch = np.clip(np.asarray(change, np.float64).reshape(-1, 4), 0, [width, height, width, height])
-    xs = np.unique(np.concatenate([[0.0, width], b[:, 0], b[:, 2], ch[:, 0], ch[:, 2]]))
-    ys = np.unique(np.concatenate([[0.0, height], b[:, 1], b[:, 3], ch[:, 1], ch[:, 3]]))
-    area = np.outer(np.diff(ys), np.diff(xs))  # (rows, cols) of the region grid
-    owner = np.full(area.shape, -1, np.int64)
-    # paint boxes from the largest to the smallest, so each region keeps the smallest box holding it
-    barea = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    order = np.lexsort((-np.arange(len(b)), -barea))  # equal areas: the lowest index painted last
-    cx0, cx1 = np.searchsorted(xs, b[:, 0]), np.searchsorted(xs, b[:, 2])
-    cy0, cy1 = np.searchsorted(ys, b[:, 1]), np.searchsorted(ys, b[:, 3])
-    for i in order:
-        owner[cy0[i] : cy1[i], cx0[i] : cx1[i]] = i
-    positive = np.zeros(area.shape, bool)
-    for x0, y0, x1, y1 in ch:
-        positive[
-            np.searchsorted(ys, y0) : np.searchsorted(ys, y1),
-            np.searchsorted(xs, x0) : np.searchsorted(xs, x1),
-        ] = True
-    return area.ravel(), positive.ravel(), owner.ravel()
 
 
 def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -358,7 +282,7 @@ def fuse_samples(
     cb = change_boxes(ann)
     size = dict(
         zip(
-            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames[FRAME_KEY].itertuples(index=False, name=None),
             frames[["width", "height"]].to_numpy(),
             strict=True,
         )

@@ -24,6 +24,7 @@ import pandas as pd
 from harness.errors import AnnotationError
 from harness.imagestore import read_image
 from harness.inputs import check_input, read_text
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import atomic_dir, write_json
 from harness.runtime.outdirs import check_file_replaceable, check_replaceable, write_marker
 
@@ -123,7 +124,7 @@ def validate(
             "box has zero or negative area",
         )
         fail(chg & ((box[:, 0] < 0) | (box[:, 1] < 0)), "box starts outside the image")
-    keys = ["session", "camera", "utime"]
+    keys = FRAME_KEY
     if frames is not None:
         fk = frames[keys + ["width", "height"]].drop_duplicates(keys)
         m = df.merge(fk, on=keys, how="left", indicator=True)
@@ -194,7 +195,7 @@ def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataF
 def change_boxes(ann: pd.DataFrame) -> dict[tuple[str, str, int], np.ndarray]:
     """Frame key -> (c, 4) change boxes (c = 0 for no-change frames), for every annotated frame."""
     out: dict[tuple[str, str, int], np.ndarray] = {}
-    for key, g in ann.groupby(["session", "camera", "utime"], sort=True):
+    for key, g in ann.groupby(FRAME_KEY, sort=True):
         b = g.loc[g["status"] == "change", ["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
         out[(str(key[0]), str(key[1]), int(key[2]))] = b.reshape(-1, 4)
     return out
@@ -350,12 +351,8 @@ def export_for_labelling(
     lists them; CVAT, Label Studio and most tools import it.
     """
     out = check_replaceable(Path(out), "labelling-task", force)
-    keyed = frames.set_index(["session", "camera", "utime"])
-    q = (
-        pairs.drop_duplicates(["q_session", "q_camera", "q_utime"]).head(limit)
-        if limit
-        else pairs.drop_duplicates(["q_session", "q_camera", "q_utime"])
-    )
+    keyed = frames.set_index(FRAME_KEY)
+    q = pairs.drop_duplicates(QUERY_KEY).head(limit) if limit else pairs.drop_duplicates(QUERY_KEY)
     for side in ("q", "r"):  # every frame a pair names must be in the frame table
         cols = [f"{side}_session", f"{side}_camera", f"{side}_utime"]
         missing = ~pd.MultiIndex.from_frame(q[cols]).isin(keyed.index)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.config.load import IngestConfig, SessionConfig
+from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.ingest.poses import interpolate
 from harness.records import FRAME_COLUMNS, FRAME_SCHEMA

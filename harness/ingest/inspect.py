@@ -45,7 +45,7 @@ def inspect_log(path: Path) -> dict[str, Any]:
         return _inspect_nclt(path)
     from rosbags.highlevel import AnyReader
 
-    from harness.ingest.logs import READ_ERRORS, _default_typestore
+    from harness.ingest.logs import READ_ERRORS, typestore_for
     from harness.ingest.tf import TfTree
 
     with uri_safe_path(path) as readable:
@@ -55,7 +55,7 @@ def inspect_log(path: Path) -> dict[str, Any]:
         tree = TfTree()
         tf_counts: dict[str, list[int]] = {}
         try:
-            with AnyReader([readable], default_typestore=_default_typestore(fmt)) as reader:
+            with AnyReader([readable], default_typestore=typestore_for(fmt)) as reader:
                 for conn, t, raw in reader.messages():
                     times.setdefault(conn.topic, []).append(int(t))
                     if conn.msgtype in IMAGE_TYPES and conn.topic not in images:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.config.load import IngestConfig, SessionConfig
+from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import CorruptLogError, IngestError
 from harness.ingest.frame_table import finish, write_frames
 from harness.ingest.images import (

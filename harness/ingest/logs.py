@@ -185,7 +185,8 @@ class Message:
     msg: Any  # a deserialized rosbags message: its type is built at run time
 
 
-def _default_typestore(fmt: str):
+def typestore_for(fmt: str):
+    """The rosbags type store a log of format ``fmt`` falls back on (ROS1 Noetic, ROS2 Humble)."""
     return get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
 
 
@@ -201,7 +202,7 @@ def list_topics(path: Path, fmt: str, salvage: bool = False) -> dict[str, tuple[
     if fmt in FOLDER_FORMATS:
         return _folder_call(path, fmt, lambda: FOLDER_FORMATS[fmt].topics(Path(path)))
     try:
-        with AnyReader([Path(path)], default_typestore=_default_typestore(fmt)) as reader:
+        with AnyReader([Path(path)], default_typestore=typestore_for(fmt)) as reader:
             return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
     except READ_ERRORS as err:
         found: dict[str, tuple[str, int]] = {}
@@ -329,7 +330,7 @@ def stream(
         return
     n = 0
     try:
-        reader = AnyReader([Path(path)], default_typestore=_default_typestore(fmt))
+        reader = AnyReader([Path(path)], default_typestore=typestore_for(fmt))
         reader.open()
     except READ_ERRORS as err:
         if fmt == "mcap":

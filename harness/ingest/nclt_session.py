@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.config.load import IngestConfig, SessionConfig
+from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.imagestore import make_uri, stored_size, upright_size
 from harness.ingest.frame_table import finish

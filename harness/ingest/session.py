@@ -10,7 +10,7 @@ from pathlib import Path
 import pandas as pd
 import pyarrow as pa
 
-from harness.config.load import IngestConfig, SessionConfig
+from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.imagestore import (
     DATA_PREFIX,
@@ -24,7 +24,7 @@ from harness.ingest.log_session import ingest_log
 from harness.ingest.logs import detect_format, known_formats
 from harness.ingest.nclt_session import ingest_nclt
 from harness.inputs import check_input
-from harness.records import FRAME_SCHEMA
+from harness.records import FRAME_KEY, FRAME_SCHEMA
 from harness.runtime.cache import atomic_dir, write_json, write_parquet
 from harness.runtime.outdirs import check_replaceable, write_marker
 
@@ -158,7 +158,5 @@ def combine_frames(
         parts.append(df)
     df = pd.concat(parts, ignore_index=True)
     df["image"] = [portable_uri(u, out, data_root) for u in df["image"]]
-    write_parquet(
-        tmp / "frames.parquet", df.sort_values(["session", "camera", "utime"]), schema=FRAME_SCHEMA
-    )
+    write_parquet(tmp / "frames.parquet", df.sort_values(FRAME_KEY), schema=FRAME_SCHEMA)
     return {"frames": len(df)}

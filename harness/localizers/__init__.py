@@ -1,1 +1,1 @@
-"""SPEC 11's localizers: their stages and the task export for outside localizers."""
+"""SPEC 11's outside localizers: the task export (their stages: ``pipeline.localizer_stages``)."""

@@ -32,6 +32,7 @@ import cv2
 import pandas as pd
 
 from harness.imagestore import read_image, split_uri
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.retrieval import import_file, imported
 from harness.runtime.cache import atomic_dir, write_json, write_parquet, write_text
 from harness.runtime.outdirs import check_replaceable, write_marker
@@ -96,7 +97,7 @@ def write_task(
         props[pk].rename(
             columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"}
         ),
-        on=["q_session", "q_camera", "q_utime"],
+        on=QUERY_KEY,
         how="inner",
     )
     q = q[[*import_file.KEY[:3], "method", "box_id", *BOX, "r_session", "r_camera"]]
@@ -105,13 +106,11 @@ def write_task(
     ref = props.loc[props["session"].isin(refs), pk].sort_values(pk[:5]).reset_index(drop=True)
     used = pd.concat(
         [
-            q[["q_session", "q_camera", "q_utime"]].set_axis(
-                ["session", "camera", "utime"], axis=1
-            ),
-            ref[["session", "camera", "utime"]],
+            q[QUERY_KEY].set_axis(FRAME_KEY, axis=1),
+            ref[FRAME_KEY],
         ]
     ).drop_duplicates()
-    fr = frames.merge(used, on=["session", "camera", "utime"], how="inner")
+    fr = frames.merge(used, on=FRAME_KEY, how="inner")
     dbs = (
         ref.groupby(["session", "camera", "method"], sort=True)["utime"]
         .nunique()
@@ -122,10 +121,10 @@ def write_task(
         img = _image_columns(fr, tmp, out, mode)
         qi = q.merge(
             img.rename(columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"}),
-            on=["q_session", "q_camera", "q_utime"],
+            on=QUERY_KEY,
             how="left",
         )
-        ri = ref.merge(img, on=["session", "camera", "utime"], how="left")
+        ri = ref.merge(img, on=FRAME_KEY, how="left")
         for name, df in (("queries", qi), ("references", ri)):
             write_parquet(tmp / f"{name}.parquet", df)
             write_text(tmp / f"{name}.csv", df.to_csv(index=False))

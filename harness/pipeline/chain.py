@@ -27,45 +27,32 @@ import numpy as np
 import pandas as pd
 
 from harness import __version__
-from harness.config.load import ALL_LOCALIZERS, Config
+from harness.config.schema import ALL_LOCALIZERS, Config
 from harness.errors import HarnessError, RetrievalError
-from harness.localizers.stages import (
-    IMAGE_KEY,
-    NOT_ACROSS,
-    SCORE_ONLY,
+from harness.methods import ordered_methods, rules_where
+from harness.pipeline.context import Context, Entry, Table, localizer_record
+from harness.pipeline.localizer_stages import (
     Measured,
     across_localizers,
-    bovw_vocabulary,
-    bovw_words,
     common_images,
     localizer_fusion,
-    localizer_proposals,
     localizer_ranks,
     measured_costs,
     ranks_at_radius,
 )
-from harness.methods import ordered_methods
-from harness.pipeline.context import Build, Context, Entry, RankTable, Table, localizer_record
 from harness.pipeline.stages import (
-    SORT_RANKS,
     annotation_table,
     change_tables,
-    check_fixture_spec,
     check_names,
-    descriptor_model,
-    descriptor_projection,
     frame_table,
     fused_samples,
     generate_fixture,
-    imported_ranks,
     ingest_logs,
     preflight,
     query_pairs,
-    query_ranks,
-    ranks_device,
-    session_descriptors,
     session_proposals,
 )
+from harness.records import FRAME_KEY
 from harness.reports.write import Block, Reports
 from harness.retrieval.import_file import ImportSpec
 from harness.runtime.cache import write_json
@@ -73,51 +60,16 @@ from harness.runtime.costs import cost_record, machine
 from harness.runtime.executors import LocalExecutor
 from harness.runtime.outdirs import read_run_record
 
-#: The chain's names and, re-exported, the context's and the stages' (one import for callers).
+#: The chain's own names.
 __all__ = [
-    "IMAGE_KEY",
-    "NOT_ACROSS",
-    "SCORE_ONLY",
-    "SORT_RANKS",
-    "Build",
-    "Context",
-    "Entry",
-    "Measured",
     "Pipeline",
-    "RankTable",
-    "Table",
-    "across_localizers",
-    "annotation_table",
-    "bovw_vocabulary",
-    "bovw_words",
-    "change_tables",
-    "check_fixture_spec",
     "check_inputs",
     "check_localizer_set",
-    "check_names",
-    "common_images",
-    "descriptor_model",
-    "descriptor_projection",
-    "frame_table",
-    "fused_samples",
-    "generate_fixture",
-    "imported_ranks",
-    "ingest_logs",
     "ingest_summary",
     "load_run",
-    "localizer_fusion",
-    "localizer_proposals",
-    "localizer_ranks",
-    "localizer_record",
-    "preflight",
-    "query_pairs",
-    "query_ranks",
-    "ranks_device",
     "reproduce",
     "run_all",
     "run_record",
-    "session_descriptors",
-    "session_proposals",
     "until_pairs",
     "until_ranks",
 ]
@@ -214,7 +166,8 @@ def run_all(p: Context) -> dict[str, Any]:
     if len(measured) > 1:
         ranks_all = across_localizers(measured)
         fc = dataclasses.replace(
-            p.cfg.fusion, methods=tuple(x for x in p.cfg.fusion.methods if x not in NOT_ACROSS)
+            p.cfg.fusion,
+            methods=tuple(x for x in p.cfg.fusion.methods if x in rules_where(across=True)),
         )
         samples = fused_samples(p, ranks_all, frames, ann, fc)
         blocks.append(
@@ -336,9 +289,7 @@ def run_record(
         "executor": p.executor.describe(),
         "counts": {
             "frames": len(frames.df),
-            "annotated_frames": int(
-                ann.df[["session", "camera", "utime"]].drop_duplicates().shape[0]
-            ),
+            "annotated_frames": int(ann.df[FRAME_KEY].drop_duplicates().shape[0]),
             "pairs": len(pairs.df),
             "frames_not_described": dict(sorted(p.not_described.items())),
             "ranked_subimages": sum(len(m.ranks.df) for m in measured),

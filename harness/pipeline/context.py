@@ -2,7 +2,7 @@
 
 ``Entry`` (a cache directory and its key), ``Table`` (a stage's table and its key), ``RankTable``
 (rank rows, key, counters) and the run's localizers (SPEC section 11). The stages are in
-:mod:`harness.pipeline.stages` and :mod:`harness.localizers.stages`, the chain in
+:mod:`harness.pipeline.stages` and :mod:`harness.pipeline.localizer_stages`, the chain in
 :mod:`harness.pipeline.chain`.
 """
 
@@ -19,7 +19,7 @@ from typing import Any
 
 import pandas as pd
 
-from harness.config.load import Config, LocalizerConfig, LocalizerImportConfig
+from harness.config.schema import Config, LocalizerConfig, LocalizerImportConfig
 from harness.retrieval.import_file import ImportSpec, parse_import_arg
 from harness.runtime.cache import StageCache, content_sha
 from harness.runtime.executors import LocalExecutor

@@ -14,7 +14,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from harness.config.load import (
+from harness.config.schema import (
     BovwConfig,
     Config,
     DescriptorConfig,

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.load import FusionConfig
+from harness.config.schema import FusionConfig
 from harness.descriptors import make_descriptor
 from harness.descriptors.extract import (
     combine_shards,

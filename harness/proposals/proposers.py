@@ -22,10 +22,11 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.load import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
+from harness.config.schema import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
 from harness.errors import AnnotationError, ConfigError, HarnessError
 from harness.imagestore import read_image
 from harness.methods import PROPOSERS, SPECIAL_PROPOSALS, known_proposal_methods
+from harness.records import FRAME_KEY
 from harness.runtime.cache import source_fingerprints, write_parquet
 from harness.runtime.progress import progress
 
@@ -300,7 +301,7 @@ def load_file_proposals(path: Path, frames: pd.DataFrame) -> pd.DataFrame:
     df = df.reset_index(drop=True)
     df["score"] = df["score"].astype(float) if "score" in df.columns else 1.0
     df["class"] = df["class"].astype(str) if "class" in df.columns else ""
-    keys = ["session", "camera", "utime"]
+    keys = FRAME_KEY
     m = df.merge(frames[keys + ["width", "height"]].drop_duplicates(keys), on=keys, how="left")
     b = df[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     checks = [
@@ -388,7 +389,7 @@ def compute_proposals(
     progress: Callable[[Iterable], Iterable] = lambda it: it,
 ) -> pd.DataFrame:
     """Proposal rows (PROPOSAL_COLUMNS) of every method in ``cfg.methods`` for every frame."""
-    frames = frames.sort_values(["session", "camera", "utime"]).reset_index(drop=True)
+    frames = frames.sort_values(FRAME_KEY).reset_index(drop=True)
     out: list[pd.DataFrame] = []
     methods = list(cfg.methods)
     unknown = [m for m in methods if m not in known_methods()]
@@ -449,12 +450,12 @@ def compute_proposals(
                 "[proposals] method 'file' needs [proposals] file = <path to the table>"
             )
         fp = load_file_proposals(Path(cfg.file), frames)
-        fp = fp.merge(frames[["session", "camera", "utime"]], on=["session", "camera", "utime"])
+        fp = fp.merge(frames[FRAME_KEY], on=FRAME_KEY)
         fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(
             drop=True
         )
         fp["method"] = "file"
-        fp["box_id"] = fp.groupby(["session", "camera", "utime"]).cumcount().astype(np.int32)
+        fp["box_id"] = fp.groupby(FRAME_KEY).cumcount().astype(np.int32)
         out.append(fp[PROPOSAL_COLUMNS])
     df = (
         pd.concat([d for d in out if len(d)], ignore_index=True)

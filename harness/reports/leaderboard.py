@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.load import Config
+from harness.config.schema import Config
 from harness.evaluate.chance import MARK_LEGEND, VERDICT_MARKS
 from harness.evaluate.metrics import holm, paired_difference
 from harness.evaluate.splits import Split

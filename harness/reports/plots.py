@@ -6,6 +6,8 @@ from pathlib import Path
 
 import matplotlib
 
+from harness.records import FRAME_KEY
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
@@ -89,7 +91,7 @@ def locmap_figures(
     # the query images with the largest annotated change first (ties: key order)
     area = (
         chg.assign(area=(chg["x2"] - chg["x1"]) * (chg["y2"] - chg["y1"]))
-        .groupby(["session", "camera", "utime"], as_index=False)["area"]
+        .groupby(FRAME_KEY, as_index=False)["area"]
         .sum()
     )
     keys = allp[["q_session", "q_camera", "q_utime", "r_session"]].drop_duplicates()
@@ -99,7 +101,7 @@ def locmap_figures(
     keys = keys.sort_values(
         ["area", "q_session", "q_utime", "r_session"], ascending=[False, True, True, True]
     )
-    fr = frames.set_index(["session", "camera", "utime"])
+    fr = frames.set_index(FRAME_KEY)
     for k in keys.head(n).itertuples(index=False):
         g = allp[
             (allp["q_session"] == k.q_session)

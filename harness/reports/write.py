@@ -19,28 +19,27 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.load import Config
+from harness.config.schema import Config
 from harness.errors import ConfigError
 from harness.evaluate.aps import (
-    _groups,
-    _pixel_image_rows,
-    _pooled_rows,
-    _table_i_rows,
+    pixel_image_rows,
+    pooled_rows,
+    sample_groups,
     stratified_labels,
+    table_i_rows,
 )
 from harness.evaluate.metrics import holm, pr_curve
 from harness.evaluate.splits import Split, paper_splits, roc_sob
 from harness.evaluate.splits import label as split_label
 from harness.ingest.annotations import change_boxes
 from harness.methods import BASELINES, FUSION_METHODS, ordered_methods
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.reports import tables as report_tables
 from harness.reports.render import (
     CLEAN_ROC,
     TABLE_INTRO,
     chance_rows,
     comparisons_markdown,
-    heading_suffix,
-    loc_columns,
     localization_latex,
     localization_markdown,
     pivot,
@@ -50,25 +49,13 @@ from harness.reports.render import (
 )
 from harness.runtime.cache import write_parquet, write_text
 
-#: Names callers read from here (the renderers and AP helpers live in their own modules).
+#: What this module defines for callers.
 __all__ = [
-    "CLEAN_ROC",
-    "TABLE_INTRO",
     "WARN_MARGIN",
     "Block",
     "Reports",
-    "comparisons_markdown",
     "confound_warnings",
-    "heading_suffix",
-    "loc_columns",
-    "localization_latex",
-    "localization_markdown",
     "localization_table",
-    "pivot",
-    "stratified_labels",
-    "table_csv",
-    "table_latex",
-    "table_markdown",
     "write_reports",
 ]
 
@@ -93,14 +80,14 @@ def localization_table(
     size = {
         k: (int(w), int(h))
         for k, w, h in zip(
-            frames[["session", "camera", "utime"]].itertuples(index=False, name=None),
+            frames[FRAME_KEY].itertuples(index=False, name=None),
             frames["width"],
             frames["height"],
             strict=True,
         )
     }
     roc = np.full(len(ranks), np.nan)
-    for key, idx in ranks.groupby(["q_session", "q_camera", "q_utime"], sort=False).indices.items():
+    for key, idx in ranks.groupby(QUERY_KEY, sort=False).indices.items():
         k = (str(key[0]), str(key[1]), int(key[2]))
         if k in cb:
             w, h = size[k]
@@ -365,7 +352,7 @@ def write_reports(
     )
     splits = paper_splits(cfg.splits)
     allps = [b.samples[b.samples["proposals"] == "all"].reset_index(drop=True) for b in blocks]
-    ids = {g: i for i, g in enumerate(sorted(set().union(*(set(_groups(a)) for a in allps))))}
+    ids = {g: i for i, g in enumerate(sorted(set().union(*(set(sample_groups(a)) for a in allps))))}
     summaries: list[list[dict]] = [[] for _ in blocks]
     curves: list[list[pd.DataFrame]] = [[] for _ in blocks]
     boots: list[dict[tuple[str, str, str], np.ndarray]] = [{} for _ in blocks]
@@ -380,7 +367,7 @@ def write_reports(
         del reps
     results = []
     for bi, b in enumerate(blocks):
-        summaries[bi] += _pixel_image_rows(cfg, allps[bi], frames, ann, b.methods, ids)
+        summaries[bi] += pixel_image_rows(cfg, allps[bi], frames, ann, b.methods, ids)
         summ = holm_columns(pd.DataFrame(summaries[bi]), 1.0 - cfg.report.ci)
         summ.insert(0, "localizer", b.name)
         tables, warnings = {}, {}
@@ -524,16 +511,16 @@ def _split_block(
         label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp)
     )
     rep.insert(0, "localizer", b.name)
-    summary += _pooled_rows(cfg, allp, methods, sp, "I", ids, boots)
-    summary += _pooled_rows(cfg, allp, methods, sp, "S", ids, boots)
+    summary += pooled_rows(cfg, allp, methods, sp, "I", ids, boots)
+    summary += pooled_rows(cfg, allp, methods, sp, "S", ids, boots)
     for prop, g in samples.groupby("proposals", sort=True):
         if prop != "all":
-            summary += _table_i_rows(
+            summary += table_i_rows(
                 g, sp, methods, "all", str(prop), cfg.report.chance_draws, cfg.seed
             )
         else:
             for pair, gp in g.groupby("season_pair", sort=True):
-                summary += _table_i_rows(
+                summary += table_i_rows(
                     gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed
                 )
     allg = rep[rep["proposals"] == "all"]

@@ -26,15 +26,14 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from harness.config.load import BovwConfig
+from harness.config.schema import BovwConfig
 from harness.descriptors.crops import iter_crops
 from harness.errors import RetrievalError
+from harness.records import FRAME_KEY
 from harness.runtime.cache import read_cached_parquet, write_parquet
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
-
-FRAME_KEY = ["session", "camera", "utime"]
 
 
 def _extractor(bc: BovwConfig) -> Any:
@@ -284,13 +283,13 @@ def bovw_ranks(
     Returns:
         ``rank`` (n,) int64, ``L`` (n,) int64, ``dist`` (n,) float64 (= ``d``).
     """
-    from harness.retrieval.engines import _frame_layout, _place_columns
+    from harness.retrieval.engines import frame_layout, place_columns
 
     db_frame, gt_frame = np.asarray(db_frame), np.asarray(gt_frame)
     if query.shape[1] != db.shape[1]:
         raise RetrievalError(f"vocabularies disagree: query {query.shape}, database {db.shape}")
-    order, frame_ids, starts = _frame_layout(db_frame)
-    pcols = _place_columns(frame_ids, gt_frame, place)
+    order, frame_ids, starts = frame_layout(db_frame)
+    pcols = place_columns(frame_ids, gt_frame, place)
     inverted = db.tocsc()
     n, L = query.shape[0], len(frame_ids)
     rank, Lq, dist = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.float64)

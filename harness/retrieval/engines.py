@@ -64,7 +64,7 @@ class Ranks:
     place_size: np.ndarray  # (n,) int64: frames of the place that are in the database
 
 
-def _place_columns(
+def place_columns(
     frame_ids: np.ndarray, gt_frame: np.ndarray, place: Sequence[np.ndarray] | None
 ) -> list[np.ndarray]:
     """Per query, the database columns (sorted frame ids) of its ground-truth place.
@@ -92,7 +92,7 @@ def _place_columns(
     return out
 
 
-def _frame_layout(db_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def frame_layout(db_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Order of database rows grouped by frame, the frame ids in that order, and group starts."""
     order = np.argsort(db_frame, kind="stable")
     f = db_frame[order]
@@ -272,9 +272,9 @@ def image_ranks(
         )
     if len(db_frame) != len(db_desc) or len(gt_frame) != len(query_desc):
         raise RetrievalError("db_frame must align with db_desc and gt_frame with query_desc")
-    order, frame_ids, starts = _frame_layout(db_frame)
+    order, frame_ids, starts = frame_layout(db_frame)
     L = len(frame_ids)
-    pcols = _place_columns(frame_ids, gt_frame, place)
+    pcols = place_columns(frame_ids, gt_frame, place)
     n = len(query_desc)
     group = max(1, int(memory_mb * 2**20 // (CELL_BYTES * max(L, 1))))
     if (
@@ -551,9 +551,9 @@ def image_ranks_faiss(
     index.add(db)
     kk = min(k, len(db))
     D, idx = index.search(q, kk)
-    order, frame_ids, starts = _frame_layout(np.asarray(db_frame))
+    order, frame_ids, starts = frame_layout(np.asarray(db_frame))
     L = len(frame_ids)
-    pcols = _place_columns(frame_ids, np.asarray(gt_frame), place)
+    pcols = place_columns(frame_ids, np.asarray(gt_frame), place)
     rank = np.empty(len(q), np.int64)
     dist = np.empty(len(q), np.float64)
     exact = np.empty(len(q), bool)

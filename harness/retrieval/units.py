@@ -16,8 +16,9 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from harness.config.load import RetrievalConfig
+from harness.config.schema import RetrievalConfig
 from harness.pairs import thin_by_stride
+from harness.records import FRAME_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
 from harness.retrieval.engines import image_ranks, image_ranks_faiss
 from harness.retrieval.places import ground_truth_places
@@ -174,11 +175,11 @@ def _rank_query_session(
     q_idx["row"] = np.arange(len(q_idx))
     qm = q_idx[q_idx["method"] == method].merge(
         g.rename(columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}),
-        on=["session", "camera", "utime"],
+        on=FRAME_KEY,
         how="inner",
     )
     counts["query_frames_without_subimages"] += int(
-        len(g) - qm[["session", "camera", "utime"]].drop_duplicates().shape[0]
+        len(g) - qm[FRAME_KEY].drop_duplicates().shape[0]
     )
     if not len(qm):
         return None

@@ -22,8 +22,6 @@ from pathlib import Path
 
 from harness.errors import HarnessError, OwnershipError
 
-__all__ = ["OwnershipError"]  # raised here, defined with the other errors
-
 log = logging.getLogger(__name__)
 
 #: File that marks a directory as written by the harness.

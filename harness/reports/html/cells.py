@@ -15,8 +15,7 @@ import pandas as pd
 
 from harness.methods import FUSION_METHODS, METHOD_LABELS
 from harness.reports import tables as report_tables
-from harness.reports.render import chance_rows, gap_line
-from harness.reports.write import TABLE_INTRO, loc_columns, pivot
+from harness.reports.render import TABLE_INTRO, chance_rows, gap_line, loc_columns, pivot
 
 
 def esc(x: Any) -> str:

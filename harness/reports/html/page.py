@@ -41,8 +41,7 @@ from harness.reports.html.cells import (
     table_l,
 )
 from harness.reports.html.gallery import gallery_html, pr_figure_html
-from harness.reports.render import HOLM_MARK, holm_sentence
-from harness.reports.write import TABLE_INTRO
+from harness.reports.render import HOLM_MARK, TABLE_INTRO, holm_sentence
 from harness.runtime.cache import write_text
 from harness.runtime.outdirs import read_run_record
 

@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.load import FusionConfig, LocalizerConfig
+from harness.config.schema import FusionConfig, LocalizerConfig
 from harness.errors import RetrievalError
+from harness.methods import rules_where
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.pipeline.stages import (
@@ -32,11 +33,6 @@ from harness.retrieval.import_file import ImportSpec
 from harness.runtime.cache import stable_hash
 
 log = logging.getLogger(__name__)
-
-#: Fusion methods that need the relevance score d (SPEC section 7).
-SCORE_ONLY = ("score_max", "score_sum")
-#: Methods not defined across localizers (SPEC section 11).
-NOT_ACROSS = ("rank_no_fusion", *SCORE_ONLY)
 
 
 # ---------------------------------------------------------------- localizers (SPEC section 11)
@@ -207,7 +203,7 @@ def localizer_fusion(
     info = ranks.counts.get("import", {})
     has_d = loc.import_ is None or bool(info.get("has_scores"))
     if not has_d:
-        dropped = [m for m in SCORE_ONLY if m in fc.methods]
+        dropped = [m for m in rules_where(needs_score=True) if m in fc.methods]
         kept = tuple(m for m in fc.methods if m not in dropped)
         if dropped and kept:
             fc = dataclasses.replace(fc, methods=kept)
