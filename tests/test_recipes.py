@@ -179,7 +179,7 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
     from harness.imagestore import read_image
     from harness.ingest import ingest_session, logs
 
-    monkeypatch.setattr(logs, "READERS", {})  # undo after
+    monkeypatch.setattr(logs, "READERS", dict(logs.READERS))  # undo after
     store = get_typestore(Stores.ROS2_HUMBLE)
     # --- the recipe: a reader (detect, topics, messages) registered under a name ---
 

@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from harness.config.schema import BovwConfig, Config
+from harness.config.schema import BovwConfig, Config, DescriptorConfig
 from harness.errors import ConfigError
 from harness.methods import known_fusion_methods, known_proposal_methods
 
@@ -126,21 +126,30 @@ def check_fixture(fx: Any, where: str, flags: dict[str, str] | None = None) -> N
 def validate(cfg: Config, where: str) -> None:
     """Range checks that a dataclass cannot express, all at load time, before any work.
 
+    One function per section, in the order they always ran.
+
     Raises:
         ConfigError: naming the key, the value and the allowed range.
     """
+    _check_fusion(cfg, where)
+    _check_pairs(cfg, where)
+    _check_ingest_keys(cfg, where)
+    _check_retrieval(cfg, where)
+    _check_seeds(cfg, where)
+    _check_projection(cfg, where)
+    _check_descriptor(cfg, where)
+    _check_proposals(cfg, where)
+    _check_splits(cfg, where)
+    _check_report(cfg, where)
+    _check_detect(cfg, where)
+    _check_fixture_keys(cfg, where)
+    _device(cfg.descriptor.device, where, "[descriptor] device")
+
+
+def _check_fusion(cfg: Config, where: str) -> None:
+    """The import score kind and ``[fusion]``: known methods, each once, their options."""
     c = check_value
-    fu, pa, ig, de, re_, sp, rp, fx, pr = (
-        cfg.fusion,
-        cfg.pairs,
-        cfg.ingest,
-        cfg.descriptor,
-        cfg.retrieval,
-        cfg.splits,
-        cfg.report,
-        cfg.fixture,
-        cfg.proposals,
-    )
+    fu = cfg.fusion
     fusion_methods = known_fusion_methods  # SPEC section 7's and registered ones
 
     c(
@@ -167,6 +176,12 @@ def validate(cfg: Config, where: str) -> None:
     )
     c(fu.max_fused_boxes >= 1, where, "[fusion] max_fused_boxes", fu.max_fused_boxes, ">= 1")
     c(fu.rrf_c >= 0, where, "[fusion] rrf_c", fu.rrf_c, "a number >= 0")
+
+
+def _check_pairs(cfg: Config, where: str) -> None:
+    """``[pairs]``: the heading gate, distances, which queries."""
+    c = check_value
+    pa = cfg.pairs
     c(
         0 < pa.max_yaw_diff_deg <= 180,
         where,
@@ -189,6 +204,12 @@ def validate(cfg: Config, where: str) -> None:
         pa.queries,
         "'annotated' or 'all'",
     )
+
+
+def _check_ingest_keys(cfg: Config, where: str) -> None:
+    """``[ingest]``: the gaps and limits (:func:`check_ingest`), time source, storage, rotation."""
+    c = check_value
+    ig = cfg.ingest
     check_ingest(ig, where)
     c(
         ig.time_source in ("header", "log"),
@@ -211,6 +232,12 @@ def validate(cfg: Config, where: str) -> None:
         ig.nclt_rotation,
         "cw, ccw or none",
     )
+
+
+def _check_retrieval(cfg: Config, where: str) -> None:
+    """``[retrieval]``: the engine, the place radius against the database stride, sizes."""
+    c = check_value
+    re_ = cfg.retrieval
     c(
         re_.engine in ("exact", "faiss"),
         where,
@@ -245,6 +272,11 @@ def validate(cfg: Config, where: str) -> None:
         f"at least half of db_stride_m = {re_.db_stride_m:g} (a place must keep a frame of the "
         "thinned database)",
     )
+
+
+def _check_seeds(cfg: Config, where: str) -> None:
+    """Every seed, the run's, each section's and each localizer's, in ``0 .. MAX_SEED``."""
+    c = check_value
     c(0 <= cfg.seed <= MAX_SEED, where, "seed", cfg.seed, f"0 .. {MAX_SEED}")
     for section in ("descriptor", "projection", "fusion", "proposals", "retrieval"):
         sub = getattr(cfg, section, None)
@@ -259,6 +291,11 @@ def validate(cfg: Config, where: str) -> None:
                 lc.descriptor.seed,
                 f"0 .. {MAX_SEED}",
             )
+
+
+def _check_projection(cfg: Config, where: str) -> None:
+    """``[projection]``: its dimension and the samples it is fitted on."""
+    c = check_value
     pj = cfg.projection
     c(pj.dim >= 0, where, "[projection] dim", pj.dim, ">= 0 (0: the full descriptor)")
     c(
@@ -268,6 +305,12 @@ def validate(cfg: Config, where: str) -> None:
         pj.fit_samples,
         f">= dim ({pj.dim}) and >= 1",
     )
+
+
+def _check_descriptor(cfg: Config, where: str) -> None:
+    """``[descriptor]``: sizes, options, a user's network file."""
+    c = check_value
+    de = cfg.descriptor
     c(
         de.input_norm in ("none", "per_crop"),
         where,
@@ -331,15 +374,7 @@ def validate(cfg: Config, where: str) -> None:
     )
     c(de.gem_p > 0, where, "[descriptor] gem_p", de.gem_p, "> 0")
     c(all(v > 0 for v in de.std), where, "[descriptor] std", list(de.std), "three values > 0")
-    if de.name in ("torchscript", "onnx"):
-        c(bool(de.path), where, "[descriptor] path", de.path, f"the local {de.name} file")
-        c(
-            Path(de.path).is_file(),
-            where,
-            "[descriptor] path",
-            de.path,
-            "an existing file (nothing is downloaded at run time)",
-        )
+    _check_network_file(de, where)
     c(
         all(ch >= 1 for ch in de.channels),
         where,
@@ -347,6 +382,25 @@ def validate(cfg: Config, where: str) -> None:
         list(de.channels),
         "three integers >= 1",
     )
+
+
+def _check_network_file(de: DescriptorConfig, where: str) -> None:
+    """A user's network (``torchscript``, ``onnx``) is a local file: nothing is downloaded."""
+    if de.name in ("torchscript", "onnx"):
+        check_value(bool(de.path), where, "[descriptor] path", de.path, f"the local {de.name} file")
+        check_value(
+            Path(de.path).is_file(),
+            where,
+            "[descriptor] path",
+            de.path,
+            "an existing file (nothing is downloaded at run time)",
+        )
+
+
+def _check_proposals(cfg: Config, where: str) -> None:
+    """``[proposals]``: known methods, the files they need, each method's options."""
+    c = check_value
+    pr = cfg.proposals
     known_methods = known_proposal_methods  # the registry (built-ins and registered methods)
 
     badp = [m for m in pr.methods if m not in known_methods()]
@@ -412,6 +466,12 @@ def validate(cfg: Config, where: str) -> None:
             f"[proposals.{sub_name}] min_area_frac..max_area_frac",
             (sub.min_area_frac, sub.max_area_frac),
         )
+
+
+def _check_splits(cfg: Config, where: str) -> None:
+    """``[splits]``: RoC-max values, the ranges of the positive and negative labels, strata."""
+    c = check_value
+    sp = cfg.splits
     c(
         len(sp.roc_max) > 0,
         where,
@@ -454,6 +514,12 @@ def validate(cfg: Config, where: str) -> None:
         list(st_),
         "at least two increasing edges in [0, 1]",
     )
+
+
+def _check_report(cfg: Config, where: str) -> None:
+    """``[report]``: bootstrap, interval, chance draws, the page's options, a second radius."""
+    c = check_value
+    rp = cfg.report
     c(
         rp.bootstrap >= 0,
         where,
@@ -488,6 +554,12 @@ def validate(cfg: Config, where: str) -> None:
         "0 (off) or a second place radius in metres, other than [retrieval] gt_radius_m and at "
         "least half of [retrieval] db_stride_m",
     )
+
+
+def _check_detect(cfg: Config, where: str) -> None:
+    """``[detect]`` (SPEC 13.1), then ``[report] recall_at``."""
+    c = check_value
+    rp = cfg.report
     dt = cfg.detect
     c(
         dt.boxes in ("fused", "locmap", "proposals"),
@@ -514,6 +586,12 @@ def validate(cfg: Config, where: str) -> None:
         list(rp.recall_at),
         "a non-empty increasing list of list positions >= 1, e.g. [1, 5, 10, 20]",
     )
+
+
+def _check_fixture_keys(cfg: Config, where: str) -> None:
+    """``[fixture]`` (:func:`check_fixture`) and its formats, one or one per session."""
+    c = check_value
+    fx = cfg.fixture
     check_fixture(fx, where)
     c(
         not fx.formats or len(fx.formats) in (1, len(cfg.sessions)),
@@ -529,7 +607,6 @@ def validate(cfg: Config, where: str) -> None:
         list(fx.formats),
         f"names from {list(FIXTURE_FORMATS)}",
     )
-    _device(de.device, where, "[descriptor] device")
 
 
 #: The log formats the fixture generator writes (``harness.fixture.generate.FORMATS``).

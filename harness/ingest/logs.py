@@ -112,9 +112,26 @@ class LogReader(Protocol):
         ...
 
 
-#: Log formats registered beside nclt, ros1, ros2 and mcap, by name (``format`` of a session).
-READERS: dict[str, LogReader] = {}
-BUILTIN_FORMATS = ("nclt", "ros1", "ros2", "mcap", *FOLDER_FORMATS)
+@dataclass(frozen=True)
+class LogFormat:
+    """One log format of the registry: its reader and how it is asked.
+
+    The built-in formats are records like a user's (:func:`register_format`); their readers also
+    take ``salvage`` (read what a damaged log still holds), and ``nclt`` is a session layout read
+    by :mod:`harness.ingest.nclt_session` rather than a stream of messages.
+    """
+
+    name: str
+    reader: Any  # a LogReader; a built-in one's topics and messages also take ``salvage``
+    builtin: bool = False
+    #: Order in which built-in formats are asked whether a path is theirs (registered ones first).
+    detect_order: int = 0
+    #: False for a session layout of its own (``nclt``): no topics, no message stream.
+    streams: bool = True
+
+
+#: Every log format by name (a session's ``format``): the built-in ones, then registered ones.
+READERS: dict[str, LogFormat] = {}
 
 
 def register_format(name: str, reader: LogReader) -> None:
@@ -127,16 +144,16 @@ def register_format(name: str, reader: LogReader) -> None:
     """
     if name in known_formats():
         raise ValueError(f"log format {name!r} exists; known: {list(known_formats())}")
-    READERS[name] = reader
+    READERS[name] = LogFormat(name, reader)
 
 
 def known_formats() -> tuple[str, ...]:
     """Every log format a session may name: the built-in ones, then registered ones."""
-    return (*BUILTIN_FORMATS, *READERS)
+    return tuple(READERS)
 
 
 def detect_format(path: Path) -> str:
-    """``nclt``, ``ros1``, ``ros2``, ``mcap`` or a registered format from what is at ``path``.
+    """The format of what is at ``path``: a registered one's, else a built-in layout's.
 
     Raises:
         IngestError: The path does not exist or is of no known format.
@@ -144,27 +161,17 @@ def detect_format(path: Path) -> str:
     path = Path(path)
     if not path.exists():
         raise IngestError(f"{path}: no such file or directory")
-    registered = [name for name, r in READERS.items() if r.detect(path)]
-    if registered:
-        return registered[0]
-    folder = [name for name, r in FOLDER_FORMATS.items() if r.detect(path)]
-    if folder:
-        return folder[0]
+    asked = sorted(READERS.values(), key=lambda f: (f.builtin, f.detect_order))
+    found = [f.name for f in asked if f.reader.detect(path)]
+    if found:
+        return found[0]
     if path.is_dir():
-        if (path / "metadata.yaml").exists():
-            return "ros2"
-        if (path / "images").is_dir() or (path / "ground_truth").is_dir():
-            return "nclt"
         raise IngestError(
             f"{path}: directory is neither a ROS2 bag (no metadata.yaml), an NCLT root "
             "(no images/ or ground_truth/) nor a folder of images with a TUM, KITTI or EuRoC "
             "trajectory (groundtruth.txt + rgb/, times.txt + poses.txt, "
             "mav0/state_groundtruth_estimate0/data.csv)"
         )
-    if path.suffix == ".bag":
-        return "ros1"
-    if path.suffix == ".mcap":
-        return "mcap"
     if path.suffix == ".db3":
         raise IngestError(
             f"{path}: a bare .db3 file; pass the ROS2 bag directory that holds it and metadata.yaml"
@@ -173,6 +180,12 @@ def detect_format(path: Path) -> str:
         f"{path}: unknown log format (expected an NCLT root, a .bag, a ROS2 bag directory "
         "or an .mcap)"
     )
+
+
+def _format(fmt: str) -> LogFormat:
+    if fmt not in READERS or not READERS[fmt].streams:
+        raise IngestError(f"no message stream for log format {fmt!r}; known: {known_formats()}")
+    return READERS[fmt]
 
 
 @dataclass(frozen=True)
@@ -191,31 +204,16 @@ def typestore_for(fmt: str):
 
 
 def list_topics(path: Path, fmt: str, salvage: bool = False) -> dict[str, tuple[str, int]]:
-    """Topic -> (message type, message count) of a log.
+    """Topic -> (message type, message count) of a log of format ``fmt``.
 
     A log that cannot be opened is read sequentially where that is possible (MCAP always, ROS1
     and ROS2 bags with ``salvage``); a damaged log whose topics cannot be read is a
     :class:`CorruptLogError`, never an "empty" log.
     """
-    if fmt in READERS:
-        return READERS[fmt].topics(Path(path))
-    if fmt in FOLDER_FORMATS:
-        return _folder_call(path, fmt, lambda: FOLDER_FORMATS[fmt].topics(Path(path)))
-    try:
-        with AnyReader([Path(path)], default_typestore=typestore_for(fmt)) as reader:
-            return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
-    except READ_ERRORS as err:
-        found: dict[str, tuple[str, int]] = {}
-        if fmt == "mcap":
-            found = _mcap_stream_topics(Path(path))
-        elif salvage and fmt == "ros1":
-            found = salvage_mod.ros1_topics(Path(path))
-        elif salvage and fmt == "ros2":
-            mc = sorted(Path(path).glob("*.mcap"))
-            found = _mcap_stream_topics(mc[0]) if mc else salvage_mod.ros2_sqlite_topics(Path(path))
-        if not found:
-            raise CorruptLogError(path, 0, f"cannot open: {err}", salvage=salvage) from None
-        return found
+    f = _format(fmt)
+    if f.builtin:
+        return dict(f.reader.topics(Path(path), salvage=salvage))
+    return dict(f.reader.topics(Path(path)))
 
 
 def choose_topics(
@@ -309,55 +307,127 @@ def _salvage_stream(path: Path, fmt: str, topics: tuple[str, ...]) -> Iterator[M
 def stream(
     path: Path, fmt: str, topics: tuple[str, ...], salvage: bool = False
 ) -> Iterator[Message]:
-    """Yield the messages of ``topics`` in log order, deserialized.
+    """Yield the messages of ``topics`` in log order, deserialized, from a log of format ``fmt``.
 
     Raises:
         CorruptLogError: The log is damaged; ``messages_read`` says how many were yielded before.
     """
-    if fmt in READERS:
-        yield from READERS[fmt].messages(Path(path), topics)
-        return
-    if fmt in FOLDER_FORMATS:  # one image in memory at a time
-        recs = FOLDER_FORMATS[fmt].raw(Path(path), topics)
+    f = _format(fmt)
+    if f.builtin:
+        yield from f.reader.messages(Path(path), topics, salvage=salvage)
+    else:
+        yield from f.reader.messages(Path(path), topics)
+
+
+class RosbagsLog:
+    """ROS1 bags, ROS2 bags (sqlite3 or mcap storage) and plain MCAP files, through rosbags.
+
+    Read with ``AnyReader``; one that cannot be opened is read sequentially where that is possible
+    (MCAP always, ROS1 and ROS2 bags with ``salvage``).
+    """
+
+    def __init__(self, fmt: str) -> None:
+        self.fmt = fmt
+
+    def detect(self, path: Path) -> bool:
+        """A ``.bag`` file (ros1), a directory with ``metadata.yaml`` (ros2), an ``.mcap`` file."""
+        if self.fmt == "ros2":
+            return path.is_dir() and (path / "metadata.yaml").exists()
+        return not path.is_dir() and path.suffix == (".bag" if self.fmt == "ros1" else ".mcap")
+
+    def topics(self, path: Path, salvage: bool = False) -> dict[str, tuple[str, int]]:
+        """Topic -> (message type, message count); see :func:`list_topics`."""
+        fmt = self.fmt
+        try:
+            with AnyReader([Path(path)], default_typestore=typestore_for(fmt)) as reader:
+                return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        except READ_ERRORS as err:
+            found: dict[str, tuple[str, int]] = {}
+            if fmt == "mcap":
+                found = _mcap_stream_topics(Path(path))
+            elif salvage and fmt == "ros1":
+                found = salvage_mod.ros1_topics(Path(path))
+            elif salvage and fmt == "ros2":
+                mc = sorted(Path(path).glob("*.mcap"))
+                found = (
+                    _mcap_stream_topics(mc[0]) if mc else salvage_mod.ros2_sqlite_topics(Path(path))
+                )
+            if not found:
+                raise CorruptLogError(path, 0, f"cannot open: {err}", salvage=salvage) from None
+            return found
+
+    def messages(
+        self, path: Path, topics: tuple[str, ...], salvage: bool = False
+    ) -> Iterator[Message]:
+        """The messages of ``topics`` in log order; see :func:`stream`."""
+        fmt = self.fmt
+        n = 0
+        try:
+            reader = AnyReader([Path(path)], default_typestore=typestore_for(fmt))
+            reader.open()
+        except READ_ERRORS as err:
+            if fmt == "mcap":
+                yield from _mcap_stream(Path(path), topics, salvage)
+                return
+            if salvage:
+                yield from _salvage_stream(Path(path), fmt, topics)
+                return
+            raise CorruptLogError(path, 0, f"cannot open: {err}") from None
+        try:
+            conns = [c for c in reader.connections if c.topic in topics]
+            it = reader.messages(connections=conns)
+            while True:
+                try:
+                    conn, t, raw = next(it)
+                    msg = reader.deserialize(raw, conn.msgtype)
+                except StopIteration:
+                    break
+                except READ_ERRORS as err:
+                    raise CorruptLogError(
+                        path, n, f"{type(err).__name__}: {err}", salvage=salvage
+                    ) from None
+                n += 1
+                yield Message(conn.topic, conn.msgtype, int(t), msg)
+        finally:
+            with contextlib.suppress(*READ_ERRORS):  # closing a damaged file may fail again
+                reader.close()
+
+
+class FolderLog:
+    """A folder of images with a TUM, KITTI or EuRoC trajectory (:mod:`harness.ingest.folders`)."""
+
+    def __init__(self, folder: Any) -> None:
+        self.folder = folder
+
+    def detect(self, path: Path) -> bool:
+        """Whether ``path`` is a folder of this layout."""
+        return bool(self.folder.detect(path))
+
+    def topics(self, path: Path, salvage: bool = False) -> dict[str, tuple[str, int]]:
+        """The image and the pose topic with their counts."""
+        return dict(_folder_call(path, self.folder.name, lambda: self.folder.topics(Path(path))))
+
+    def messages(
+        self, path: Path, topics: tuple[str, ...], salvage: bool = False
+    ) -> Iterator[Message]:
+        """The poses and images in time order, one image in memory at a time."""
+        recs = self.folder.raw(Path(path), topics)
         while True:
             try:
                 topic, typ, t, msg = next(recs)
             except StopIteration:
                 break
             except (ValueError, OSError) as err:
-                raise IngestError(f"{path} ({fmt} folder): {err}") from None
+                raise IngestError(f"{path} ({self.folder.name} folder): {err}") from None
             yield Message(topic, typ, t, msg)
-        return
-    n = 0
-    try:
-        reader = AnyReader([Path(path)], default_typestore=typestore_for(fmt))
-        reader.open()
-    except READ_ERRORS as err:
-        if fmt == "mcap":
-            yield from _mcap_stream(Path(path), topics, salvage)
-            return
-        if salvage:
-            yield from _salvage_stream(Path(path), fmt, topics)
-            return
-        raise CorruptLogError(path, 0, f"cannot open: {err}") from None
-    try:
-        conns = [c for c in reader.connections if c.topic in topics]
-        it = reader.messages(connections=conns)
-        while True:
-            try:
-                conn, t, raw = next(it)
-                msg = reader.deserialize(raw, conn.msgtype)
-            except StopIteration:
-                break
-            except READ_ERRORS as err:
-                raise CorruptLogError(
-                    path, n, f"{type(err).__name__}: {err}", salvage=salvage
-                ) from None
-            n += 1
-            yield Message(conn.topic, conn.msgtype, int(t), msg)
-    finally:
-        with contextlib.suppress(*READ_ERRORS):  # closing a damaged file may fail again
-            reader.close()
+
+
+class NcltLayout:
+    """An NCLT session root (``images/`` or ``ground_truth/``), read by ``nclt_session``."""
+
+    def detect(self, path: Path) -> bool:
+        """A directory holding ``images/`` or ``ground_truth/``."""
+        return path.is_dir() and ((path / "images").is_dir() or (path / "ground_truth").is_dir())
 
 
 def _mcap_records(path: Path) -> Iterator[object]:
@@ -417,3 +487,16 @@ def _mcap_stream(path: Path, topics: tuple[str, ...], salvage: bool = False) -> 
         raise CorruptLogError(path, n, f"{type(err).__name__}: {err}", salvage=salvage) from None
     if n == 0:
         raise CorruptLogError(path, 0, "no readable message", salvage=salvage)
+
+
+def _register_builtins() -> None:
+    """The built-in formats, in the order sessions list them; detection asks folders first."""
+    order = {"tum": 0, "kitti": 0, "euroc": 0, "ros2": 1, "nclt": 2, "ros1": 3, "mcap": 4}
+    READERS["nclt"] = LogFormat("nclt", NcltLayout(), True, order["nclt"], streams=False)
+    for fmt in ("ros1", "ros2", "mcap"):
+        READERS[fmt] = LogFormat(fmt, RosbagsLog(fmt), True, order[fmt])
+    for name, folder in FOLDER_FORMATS.items():
+        READERS[name] = LogFormat(name, FolderLog(folder), True, order.get(name, 0))
+
+
+_register_builtins()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -126,25 +127,52 @@ def bovw_words(
     return out, nofeat
 
 
+def descriptor_kind_ranks(
+    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
+) -> RankTable:
+    """Kind ``descriptor``: model, projection, descriptors, then the ranking engine."""
+    model = descriptor_model(p, frames, mine)
+    projection = descriptor_projection(p, frames, pairs, mine, model)
+    described = session_descriptors(p, frames, mine, model, projection)
+    return query_ranks(p, frames, pairs, described)
+
+
+def bovw_kind_ranks(
+    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
+) -> RankTable:
+    """Kind ``bovw``: vocabulary, words, then the same ranking engine on the sparse vectors."""
+    vocab = bovw_vocabulary(p, loc, frames, pairs, mine)
+    words, nofeat = bovw_words(p, loc, frames, mine, vocab)
+    ranks = query_ranks(p, frames, pairs, words)
+    ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
+    return ranks
+
+
+def import_kind_ranks(
+    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
+) -> RankTable:
+    """Kind ``import``: a user's ranked lists, checked and scored (SPEC 12)."""
+    assert loc.import_ is not None  # the config's kind says so
+    return imported_ranks(p, frames, pairs, mine, ImportSpec(loc.name, Path(loc.import_.file)))
+
+
+#: A localizer kind's rank rows: (context, localizer, frames, pairs, its proposals) -> ranks.
+KindRanks = Callable[[Context, LocalizerConfig, Table, Table, dict[str, Table]], RankTable]
+#: Localizer kinds (``LocalizerConfig.kind``, one ``[[localizers]]`` sub-table each) -> their ranks.
+LOCALIZER_KINDS: dict[str, KindRanks] = {
+    "descriptor": descriptor_kind_ranks,
+    "bovw": bovw_kind_ranks,
+    "import": import_kind_ranks,
+}
+
+
 def localizer_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
 ) -> RankTable:
-    """One localizer's rank rows: its engine over its proposals (SPEC sections 6, 11, 12)."""
+    """One localizer's rank rows: its kind's stages over its proposals (SPEC sections 6, 11, 12)."""
     mine = localizer_proposals(p, loc, props)
     with p.measuring(loc):
-        if loc.import_ is not None:
-            spec = ImportSpec(loc.name, Path(loc.import_.file))
-            return imported_ranks(p, frames, pairs, mine, spec)
-        if loc.bovw is not None:
-            vocab = bovw_vocabulary(p, loc, frames, pairs, mine)
-            words, nofeat = bovw_words(p, loc, frames, mine, vocab)
-            ranks = query_ranks(p, frames, pairs, words)
-            ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
-            return ranks
-        model = descriptor_model(p, frames, mine)
-        projection = descriptor_projection(p, frames, pairs, mine, model)
-        described = session_descriptors(p, frames, mine, model, projection)
-        return query_ranks(p, frames, pairs, described)
+        return LOCALIZER_KINDS[loc.kind](p, loc, frames, pairs, mine)
 
 
 def ranks_at_radius(
