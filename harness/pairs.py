@@ -192,6 +192,44 @@ def build_pairs(
     return pairs[PAIR_COLUMNS], summary
 
 
+def candidate_pairs(
+    frames: pd.DataFrame, seasons: dict[str, str], queries: pd.DataFrame | None = None
+) -> pd.DataFrame:
+    """Every query frame with every other session, before retrieval chooses the frame (SPEC 13.2).
+
+    Args:
+        frames: the frame table (all sessions; poses not needed).
+        seasons: session -> season code, for ``season_pair``.
+        queries: optional frame keys restricting the query frames (the annotated ones).
+
+    Returns:
+        ``q_session, q_camera, q_utime, r_session, season_pair``: one row per query frame and
+        reference session; :func:`harness.retrieval.pairing.retrieval_pairs` adds the frame.
+    """
+    fr = frames.sort_values(FRAME_KEY).reset_index(drop=True)
+    if queries is not None:
+        fr = fr.merge(queries[FRAME_KEY].drop_duplicates(), on=FRAME_KEY, how="inner")
+    out = []
+    for rs in sorted(frames["session"].unique()):
+        q = fr[fr["session"] != rs]
+        out.append(
+            pd.DataFrame(
+                {
+                    "q_session": q["session"].to_numpy(),
+                    "q_camera": q["camera"].to_numpy(),
+                    "q_utime": q["utime"].to_numpy(np.int64),
+                    "r_session": rs,
+                    "season_pair": [
+                        f"{seasons.get(s, s)}->{seasons.get(rs, rs)}" for s in q["session"]
+                    ],
+                }
+            )
+        )
+    cols = ["q_session", "q_camera", "q_utime", "r_session", "season_pair"]
+    cand = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=cols)
+    return cand.sort_values([*QUERY_KEY, "r_session"]).reset_index(drop=True)[cols]
+
+
 def write_pairs(
     frames: pd.DataFrame,
     cfg: PairsConfig,

@@ -598,3 +598,39 @@ def test_a_registered_fusion_method_is_usable_by_detect(
         for d, before_ in zip((methods.FUSION_RULES, methods.METHOD_LABELS), saved, strict=True):
             d.clear()
             d.update(before_)
+
+
+def test_detect_by_retrieval_says_how_often_it_agrees_with_the_pose_pairs(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``[pairs] by = "retrieval"`` where poses exist (SPEC 13.2): ``detect.json``'s agreement is
+    the share recomputed from its retrieval pairs and the pose pairs of the pose run."""
+    a, _, _ = detected
+    out = tmp_path / "retrieval"
+    shutil.copytree(a / "cache", out / "cache")  # the map's proposals and model are reused
+    shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+    text = (ROOT / "datasets" / "fixture-detect.toml").read_text()
+    cfg = tmp_path / "by-retrieval.toml"
+    cfg.write_text(text.replace('queries = "annotated"', 'queries = "annotated"\nby = "retrieval"'))
+    printed = _run(["detect", "--config", str(cfg), "--map", MAP, "--query", QUERY, "--out",
+                    str(out), "--data-root", str(local_run[0].cfg.data_root)])  # fmt: skip
+    agree = json.loads((out / "detect.json").read_text())["pairing"]["agreement_with_pose_pairs"]
+    (entry,) = (out / "cache" / "pairs_retrieval").iterdir()
+    rp = pd.read_parquet(entry / "pairs.parquet")
+    pose = pd.read_parquet(a / "frames.parquet")  # the pose run: each query frame's map frame
+    frames = pd.concat(
+        [pd.read_parquet(f) for f in (a / "cache" / "frames").glob("*/frames.parquet")]
+    ).drop_duplicates(["session", "camera", "utime"])
+    xy = frames.set_index(["session", "camera", "utime"])[["x", "y"]]
+    pose = pose.rename(columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"})
+    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    m = rp.merge(pose[[*keys, "r_camera", "r_utime"]], on=keys, suffixes=("", "_p"))
+    ra = xy.loc[list(zip(m.r_session, m.r_camera, m.r_utime, strict=True))].to_numpy()
+    rb = xy.loc[list(zip(m.r_session, m.r_camera_p, m.r_utime_p, strict=True))].to_numpy()
+    dist = np.linalg.norm(ra - rb, axis=1)
+    assert agree["compared"] == len(m) > 0
+    assert agree["agree"] == int((dist <= 10.0).sum())
+    assert f"{agree['agree']} of {agree['compared']}" in printed
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    share = round(100 * agree["share"])
+    assert f"pairs {agree['agree']} of its {agree['compared']} query frames ({share}%)" in readme

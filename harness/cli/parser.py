@@ -129,10 +129,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "detect", help="what changed: the detector on new sessions against a map session"
     )
-    p.add_argument("--config", required=True, help="sessions, localizer(s); annotations optional")
-    p.add_argument("--map", required=True, help="the map (reference) session")
     p.add_argument(
-        "--query", required=True, action="append", help="a new session (repeat for several)"
+        "--config",
+        help="sessions, localizer(s); annotations optional (with --map-images: the settings alone)",
+    )
+    p.add_argument("--map", help="the map (reference) session of the config")
+    p.add_argument("--query", action="append", help="a new session (repeat for several)")
+    p.add_argument(
+        "--map-images",
+        metavar="DIR",
+        help="a folder of map images, no poses needed (SPEC 13.2): the session 'map'",
+    )
+    p.add_argument(
+        "--query-images",
+        metavar="DIR",
+        action="append",
+        help="a folder of new images (repeat for several): sessions 'query', 'query2', ...",
     )
     p.add_argument("--out", required=True)
     p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")

@@ -77,6 +77,30 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
     )
 
 
+def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
+    """The config, map and query sessions of ``harness detect``.
+
+    Named in ``--config``, or two (or more) folders of images (``--map-images``,
+    ``--query-images``; ``--config`` then gives the settings alone).
+    """
+    from harness.config.load import image_folders_config
+
+    folders = args.map_images is not None or args.query_images
+    if folders:
+        if args.map_images is None or not args.query_images:
+            raise HarnessError("--map-images DIR and --query-images DIR go together")
+        if args.map is not None or args.query:
+            raise HarnessError("--map/--query name config sessions; with image folders, omit them")
+        base = run_config(args) if args.config else None
+        return image_folders_config(Path(args.map_images), list(args.query_images), base)
+    if args.config is None or args.map is None or not args.query:
+        raise HarnessError(
+            "detect needs --config with --map and --query, or --map-images DIR and "
+            "--query-images DIR"
+        )
+    return run_config(args), args.map, list(args.query)
+
+
 def cmd_detect(args: argparse.Namespace) -> int:
     """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
     from harness.detect.calibrate import in_words
@@ -86,12 +110,12 @@ def cmd_detect(args: argparse.Namespace) -> int:
     check_executor_flags(args)
     if args.top < 0:
         raise HarnessError(f"--top {args.top}: must be >= 0 places")
-    cfg = run_config(args)
+    cfg, map_session, queries = detect_sessions(args)
     opt = detect_options(args, cfg)
     rec = run_detect(
         cfg,
-        args.map,
-        list(args.query),
+        map_session,
+        queries,
         Path(args.out),
         opt,
         make_executor(args.executor, args.address, args.ray_cpus),
@@ -117,6 +141,17 @@ def cmd_detect(args: argparse.Namespace) -> int:
         f"alarms at a nominal false-alarm rate of {al['rate']:g}: {al['frames']} frames, "
         f"{al['boxes']} change boxes (alarms.csv)"
     )
+    agree = rec.get("pairing", {}).get("agreement_with_pose_pairs")
+    if rec.get("pairing"):
+        print(
+            "pairs by retrieval (SPEC 13.2): each query frame with the map frame it retrieves best"
+            + (
+                f"; {agree['agree']} of {agree['compared']} ({100 * agree['share']:.0f}%) within "
+                f"{agree['within_m']:g} m of the pose pair"
+                if agree and agree["compared"]
+                else " (no poses to compare with)"
+            )
+        )
     if rec.get("table_d"):
         print((out / "tableD.md").read_text())
     print(

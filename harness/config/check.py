@@ -204,6 +204,24 @@ def _check_pairs(cfg: Config, where: str) -> None:
         pa.queries,
         "'annotated' or 'all'",
     )
+    c(pa.by in ("pose", "retrieval"), where, "[pairs] by", pa.by, "'pose' or 'retrieval'")
+    c(pa.place_frames >= 0, where, "[pairs] place_frames", pa.place_frames, ">= 0 frames")
+    if pa.by == "retrieval":
+        rc, rp = cfg.retrieval, cfg.report
+        c(
+            rc.db_stride_m == 0,
+            where,
+            "[retrieval] db_stride_m",
+            rc.db_stride_m,
+            "0 with [pairs] by = 'retrieval' (a database thinned by distance needs poses)",
+        )
+        c(
+            rp.gt_radius_also == 0,
+            where,
+            "[report] gt_radius_also",
+            rp.gt_radius_also,
+            "0 with [pairs] by = 'retrieval' (a place radius needs poses)",
+        )
 
 
 def _check_ingest_keys(cfg: Config, where: str) -> None:

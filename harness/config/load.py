@@ -324,3 +324,38 @@ def load_config(path: Path, data_root: str | None = None) -> Config:
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     return parse_config(doc, project_root(path.parent), str(path), data_root)
+
+
+def image_folders_config(
+    map_dir: Path, query_dirs: list[Path], cfg: Config | None = None
+) -> tuple[Config, str, list[str]]:
+    """The config of ``harness detect --map-images DIR --query-images DIR`` (SPEC 13.2).
+
+    The folders are sessions of images alone (format ``images``): the map is ``map``, the queries
+    ``query``, ``query2``, ... Pairs come from retrieval with the localizer (``[pairs] by =
+    "retrieval"``, every query frame). Every other setting is ``cfg``'s (a ``--config``), or the
+    defaults; its sessions, annotations and fixture are not used.
+
+    Returns:
+        (the config, the map session's name, the query sessions' names).
+    """
+    names = ["map", *(f"query{i + 1 if i else ''}" for i in range(len(query_dirs)))]
+    dirs = [Path(map_dir), *map(Path, query_dirs)]
+    where = "--map-images/--query-images"
+    for d in dirs:
+        if not d.is_dir():
+            raise ConfigError(f"{where}: {d} is not a folder of images")
+    sessions = [
+        {"name": n, "source": str(d.expanduser().resolve()), "format": "images", "season": n}
+        for n, d in zip(names, dirs, strict=True)
+    ]
+    base = cfg or parse_config({"name": "image-folders", "sessions": sessions}, Path.cwd(), where)
+    out = dataclasses.replace(
+        base,
+        sessions=tuple(SessionConfig(**s) for s in sessions),
+        annotations=None,
+        fixture=dataclasses.replace(base.fixture, generate=False),
+        pairs=dataclasses.replace(base.pairs, by="retrieval", queries="all"),
+    )
+    validate(out, where)
+    return out, names[0], names[1:]

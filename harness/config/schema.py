@@ -66,6 +66,12 @@ class PairsConfig:
     max_distance_m: float | None = 10.0
     stride_m: float = 0.0
     queries: str = "annotated"  # "annotated": only annotated query frames; "all": every frame
+    # "pose": the nearest viewpoint by pose (SPEC 4); "retrieval": the map frame the query's
+    # subimages retrieve best with the run's localizer (SPEC 13.2: sessions without poses)
+    by: str = "pose"
+    # by = "retrieval": the ground-truth place is the paired frame and this many neighbours on
+    # each side in the map's order (SPEC 13.2)
+    place_frames: int = 2
 
 
 @dataclass(frozen=True)

@@ -209,8 +209,16 @@ def write_detect_page(
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
         "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "
         "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
-        '<h2 id="trajectory">Where</h2><img id="trajectory-map" src="trajectory.png" '
-        'alt="query trajectory over the map, coloured by change score" style="max-width:760px">'
+        + (
+            '<h2 id="trajectory">Where</h2><img id="trajectory-map" src="trajectory.png" '
+            'alt="query trajectory over the map, coloured by change score" style="max-width:760px">'
+            if has_poses(frames)
+            else '<h2 id="trajectory">When</h2><p class="note">The sessions have no poses '
+            "(SPEC 13.2): each query frame was paired with the map frame it retrieves best, and "
+            "the figure shows the change score along the query sequence.</p>"
+            '<img id="trajectory-map" src="trajectory.png" alt="change score of each query frame '
+            'in time order" style="max-width:760px">'
+        )
         + td
         + (
             f'<h2 id="annotated">Annotated changes: {len(shown)} of the {len(in_truth)} annotated '
@@ -257,15 +265,25 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
     return out
 
 
+def has_poses(frames: pd.DataFrame) -> bool:
+    """Whether every frame has a position (not a session of images alone, SPEC 13.2)."""
+    return bool(len(frames)) and bool(frames[["x", "y"]].notna().all(axis=None))
+
+
 def trajectory_figure(
     path: Path, frames: pd.DataFrame, map_session: str, fr: pd.DataFrame, top: pd.DataFrame
 ) -> Path:
-    """The map session's path in grey, the query frames coloured by change score, top numbered."""
+    """The map session's path in grey, the query frames coloured by change score, top numbered.
+
+    Without poses (SPEC 13.2): the change score of each query frame in time order, top numbered.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if not has_poses(frames):
+        return _score_timeline(path, fr, top, plt)
     m = frames[frames["session"] == map_session].sort_values("utime")
     fig, ax = plt.subplots(figsize=(7, 6))
     ax.plot(m["x"], m["y"], "-", color="0.7", lw=3, label=f"map {map_session}", zorder=1)
@@ -288,6 +306,35 @@ def trajectory_figure(
     ax.set_ylabel("y (m)")
     ax.legend(loc="best", fontsize=8)
     ax.set_title("Query trajectory over the map; numbers: the most changed places")
+    return _save(fig, path, plt)
+
+
+def _score_timeline(path: Path, fr: pd.DataFrame, top: pd.DataFrame, plt: Any) -> Path:
+    """Each query frame's change score in time order (no poses), the most changed numbered."""
+    order = fr.sort_values(["session", "camera", "utime"]).reset_index(drop=True)
+    pos = {
+        k: i
+        for i, k in enumerate(zip(order["session"], order["camera"], order["utime"], strict=True))
+    }
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.plot(np.arange(len(order)), order["score"], "-", color="0.6", lw=1, zorder=1)
+    sc = ax.scatter(
+        np.arange(len(order)), order["score"], c=order["score"], cmap="inferno", s=18, zorder=2
+    )
+    for i, r in enumerate(top.itertuples(), start=1):
+        j = pos.get((r.session, r.camera, r.utime))
+        if j is not None:
+            ax.annotate(str(i), (j, r.score), xytext=(4, 4), textcoords="offset points",
+                        fontsize=9, weight="bold", color="#1060c0")  # fmt: skip
+    fig.colorbar(sc, ax=ax, label="change score")
+    ax.set_xlabel("query frame (time order)")
+    ax.set_ylabel("change score (largest LoC)")
+    ax.set_title("No poses: change score along the query sequence; numbers: most changed")
+    return _save(fig, path, plt)
+
+
+def _save(fig: Any, path: Path, plt: Any) -> Path:
+    """Write ``fig`` to ``path`` atomically (a temporary beside it, renamed) and close it."""
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.dbl-harness.tmp.png")
     fig.savefig(tmp, dpi=110)

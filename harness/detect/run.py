@@ -290,8 +290,7 @@ def run_detect(
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
     from harness.methods import detect_methods
-    from harness.pipeline.chain import Pipeline, until_pairs
-    from harness.pipeline.context import Table
+    from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations
     from harness.pipeline.localizer_stages import (
         Measured,
         across_localizers,
@@ -337,25 +336,20 @@ def run_detect(
         train_sessions=(map_session,),  # the model sees the map alone, never the new session
     )
     with p.locked():
-        ingested, frames, ann, pairs_all = until_pairs(p)
-        sel = (pairs_all.df["r_session"] == map_session) & pairs_all.df["q_session"].isin(
-            query_sessions
-        )
-        pairs = Table(
-            pairs_all.df[sel].reset_index(drop=True),
-            stable_hash("detect-pairs", pairs_all.key, map_session, sorted(query_sessions)),
-        )
-        if not len(pairs.df):
-            raise HarnessError(
-                f"detect: no frame of {query_sessions} found a map frame of {map_session} within "
-                "[pairs] max_distance_m and max_yaw_diff_deg"
+        if dcfg.pairs.by == "retrieval":  # sessions without poses (SPEC 13.2)
+            ingested, frames, ann = until_annotations(p)
+            pairs, m = pairs_by_retrieval(
+                p, ingested, frames, ann, False, (map_session, tuple(query_sessions))
             )
-        props = session_proposals(p, frames, pairs, ingested)
-        measured = []
-        for loc in p.localizer_list:
-            ranks = localizer_ranks(p, loc, frames, pairs, props)
-            fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
-            measured.append(Measured(loc, ranks, fusion, notes))
+            measured = [m]
+        else:
+            ingested, frames, ann, pairs = detect_pairs(p, map_session, query_sessions)
+            props = session_proposals(p, frames, pairs, ingested)
+            measured = []
+            for loc in p.localizer_list:
+                ranks = localizer_ranks(p, loc, frames, pairs, props)
+                fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
+                measured.append(Measured(loc, ranks, fusion, notes))
         ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
         names_l = [m.loc.name for m in measured]
         chunk_units: list[tuple[tuple[Any, ...], Any]] = []
@@ -412,10 +406,35 @@ def run_detect(
             record["rerun"] = write_rerun(
                 Path(rerun), p.out, frames.df, map_session, fr, dets, entries, opt
             )
+        if p.pairing:
+            record["pairing"] = p.pairing
         record["total_s"] = round(time.perf_counter() - t0, 3)
         record["ms_per_query_frame"] = round(1000 * record["total_s"] / max(len(fr), 1), 2)
         write_json(p.out / "detect.json", record)
     return record
+
+
+def detect_pairs(
+    p: Any, map_session: str, query_sessions: list[str]
+) -> tuple[dict[str, Any], Any, Any, Any]:
+    """Ingest, frames, annotations and the pairs by pose of the queries with the map alone."""
+    from harness.pipeline.chain import until_pairs
+    from harness.pipeline.context import Table
+
+    ingested, frames, ann, pairs_all = until_pairs(p)
+    sel = (pairs_all.df["r_session"] == map_session) & pairs_all.df["q_session"].isin(
+        query_sessions
+    )
+    pairs = Table(
+        pairs_all.df[sel].reset_index(drop=True),
+        stable_hash("detect-pairs", pairs_all.key, map_session, sorted(query_sessions)),
+    )
+    if not len(pairs.df):
+        raise HarnessError(
+            f"detect: no frame of {query_sessions} found a map frame of {map_session} within "
+            "[pairs] max_distance_m and max_yaw_diff_deg"
+        )
+    return ingested, frames, ann, pairs
 
 
 def check_rerun_target(path: Path) -> None:

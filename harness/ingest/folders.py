@@ -27,6 +27,7 @@ times, the gap rule and the drop counts are the other ingesters' own.
 from __future__ import annotations
 
 import decimal
+import itertools
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -300,6 +301,47 @@ class EurocFolder(_Folder):
         return out
 
 
+class ImagesFolder(_Folder):
+    """A folder of images and nothing else: no trajectory (SPEC 13.2, ``[pairs] by = "retrieval"``).
+
+    The images lie in the folder itself, in file-name order. Their times: ``times.txt`` (one time
+    in seconds per image, in name order, as KITTI writes it) if present; else the file names where
+    every one is a number of seconds (``1305031102.175304.png``, as TUM names them); else one
+    second apart from 0. Asked after the formats with a trajectory, so a TUM, KITTI or EuRoC
+    folder is never taken for images alone.
+    """
+
+    name = "images"
+
+    def detect(self, path: Path) -> bool:
+        """A directory with image files in it (not in a subfolder)."""
+        return path.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir())
+
+    def images(self, path: Path) -> list[tuple[int, Path]]:
+        """(time ns, image file) of every image, in name order."""
+        files = _images_in(path)
+        listing = path / "times.txt"
+        if listing.exists():
+            times = [seconds_to_ns(r[0], f"{listing}: line {i}") for i, r in _rows(listing)]
+            if len(times) != len(files):
+                raise ValueError(f"{path}: {len(files)} images but {len(times)} lines in times.txt")
+        elif files and all(_is_float(f.stem) for f in files):
+            times = [seconds_to_ns(f.stem, str(f)) for f in files]
+        else:
+            times = [i * 1_000_000_000 for i in range(len(files))]
+        if any(b <= a for a, b in itertools.pairwise(times)):
+            raise ValueError(f"{path}: image times must increase in file-name order")
+        return list(zip(times, files, strict=True))
+
+    def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """None: the folder has no trajectory."""
+        return []
+
+    def topics(self, path: Path) -> dict[str, tuple[str, int]]:
+        """The image topic alone."""
+        return {IMAGE_TOPIC: ("sensor_msgs/msg/CompressedImage", len(self.images(path)))}
+
+
 FOLDER_FORMATS: dict[str, _Folder] = {
-    r.name: r for r in (TumFolder(), KittiFolder(), EurocFolder())
+    r.name: r for r in (TumFolder(), KittiFolder(), EurocFolder(), ImagesFolder())
 }

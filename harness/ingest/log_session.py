@@ -56,8 +56,14 @@ def _is_static_tf(topic: str) -> bool:
     return topic.rstrip("/").split("/")[-1] == "tf_static"
 
 
-def _pose_mode(sc: SessionConfig, topics: dict[str, tuple[str, int]], where: str) -> str:
-    """``tf`` (poses composed through the tf tree) or ``topic`` (one pose topic, as it is)."""
+def _pose_mode(sc: SessionConfig, topics: dict[str, tuple[str, int]], where: str, fmt: str) -> str:
+    """How the frames get poses: ``tf``, ``topic`` or ``none``.
+
+    ``tf``: composed through the tf tree; ``topic``: one pose topic, as it is; ``none``: a folder
+    of images alone (SPEC 13.2), whose frames carry no pose.
+    """
+    if fmt == "images":
+        return "none"
     tf_topics = [t for t, (typ, _) in topics.items() if typ == TF_TYPE]
     if sc.pose_topic is not None:
         if sc.pose_topic in topics and topics[sc.pose_topic][0] == TF_TYPE:
@@ -85,8 +91,13 @@ def _ingest_log_from(
 ) -> pd.DataFrame:
     """Ingest a ROS log; ``readable`` is ``src`` or a link to it that rosbags can open."""
     topics = list_topics(readable, fmt, salvage=ic.salvage)
-    mode = _pose_mode(sc, topics, str(src))
-    if mode == "tf":
+    mode = _pose_mode(sc, topics, str(src), fmt)
+    if mode == "none":
+        image_topic, _ = choose_topics(
+            topics | {"__none__": (next(iter(POSE_TYPES)), 0)}, sc.image_topic, "__none__", str(src)
+        )
+        pose_topics: tuple[str, ...] = ()
+    elif mode == "tf":
         no_tf = {t: v for t, v in topics.items() if v[0] != TF_TYPE}
         image_topic, _ = choose_topics(
             no_tf | {"__tf__": (TF_TYPE, 0)}, sc.image_topic, "__tf__", str(src)
@@ -212,6 +223,11 @@ def _ingest_log_from(
     img_arr, size_arr = np.array(img_t, np.int64), np.array(sizes, np.int64)
     if mode == "tf":
         return _finish_tf(sc, ic, tmp, img_arr, uris, size_arr, tree, frame_ids, report, src)
+    if mode == "none":  # no trajectory: every image is a frame, its pose unknown (NaN)
+        poses = np.full((len(img_arr), 6), np.nan)
+        return write_frames(
+            sc, tmp, img_arr, uris, size_arr, poses, np.ones(len(img_arr), bool), report
+        )
     if not rows:
         raise IngestError(f"{src}: no pose message on {pose_topics[0]}")
     report["pose_frames"] = pose_frame

@@ -28,8 +28,9 @@ import pandas as pd
 
 from harness import __version__
 from harness.config.schema import ALL_LOCALIZERS, Config
-from harness.errors import HarnessError, RetrievalError
+from harness.errors import ConfigError, HarnessError, RetrievalError
 from harness.methods import ordered_methods, rules_where
+from harness.pairs import build_pairs
 from harness.pipeline.context import Context, Entry, Table, localizer_record
 from harness.pipeline.localizer_stages import (
     Measured,
@@ -39,9 +40,11 @@ from harness.pipeline.localizer_stages import (
     localizer_ranks,
     measured_costs,
     ranks_at_radius,
+    retrieval_ranks,
 )
 from harness.pipeline.stages import (
     annotation_table,
+    candidate_table,
     change_tables,
     check_names,
     frame_table,
@@ -55,7 +58,8 @@ from harness.pipeline.stages import (
 from harness.records import FRAME_KEY
 from harness.reports.write import Block, Reports
 from harness.retrieval.import_file import ImportSpec
-from harness.runtime.cache import write_json
+from harness.retrieval.pairing import pose_agreement
+from harness.runtime.cache import stable_hash, write_json
 from harness.runtime.costs import cost_record, machine
 from harness.runtime.executors import LocalExecutor
 from harness.runtime.outdirs import read_run_record
@@ -91,19 +95,102 @@ class Pipeline(Context):
             return run_all(self)
 
 
-def until_pairs(p: Context) -> tuple[dict[str, Entry], Table, Table, Table]:
-    """Fixture (if configured), ingest, frames, annotations and pairs.
+def until_annotations(p: Context) -> tuple[dict[str, Entry], Table, Table]:
+    """Fixture (if configured), ingest, frames and annotations.
 
     Returns:
-        (ingest entries, frames, annotations, pairs).
+        (ingest entries, frames, annotations).
     """
     check_names(p)
     generate_fixture(p)
     preflight(p)
     ingested = ingest_logs(p)
     frames = frame_table(p, ingested)
-    ann = annotation_table(p, frames)
+    return ingested, frames, annotation_table(p, frames)
+
+
+def until_pairs(p: Context) -> tuple[dict[str, Entry], Table, Table, Table]:
+    """Fixture (if configured), ingest, frames, annotations and pairs by pose.
+
+    Raises:
+        ConfigError: ``[pairs] by = "retrieval"``: pairs need the descriptors (``rank``,
+            ``reproduce`` and ``detect`` make them).
+
+    Returns:
+        (ingest entries, frames, annotations, pairs).
+    """
+    if p.cfg.pairs.by == "retrieval":
+        raise ConfigError(
+            "[pairs] by = 'retrieval': the pairs come from the localizer's descriptors; "
+            "harness rank, reproduce and detect make them (pairs and proposals alone cannot)"
+        )
+    ingested, frames, ann = until_annotations(p)
     return ingested, frames, ann, query_pairs(p, frames, ann)
+
+
+def pairs_by_retrieval(
+    p: Context,
+    ingested: dict[str, Entry],
+    frames: Table,
+    ann: Table,
+    check: bool = True,
+    detect: tuple[str, tuple[str, ...]] | None = None,
+) -> tuple[Table, Measured]:
+    """Pairs by retrieval with the run's one descriptor localizer, and its ranks (SPEC 13.2).
+
+    Where the paired frames have poses, ``p.pairing`` records how often the retrieval pair lies
+    within ``[pairs] max_distance_m`` (10 m when unset) of the pose pair. ``detect``: (the map,
+    the query sessions): only those pairs (``harness detect``).
+    """
+    locs = p.localizer_list
+    if len(locs) != 1:
+        raise ConfigError(
+            f"[pairs] by = 'retrieval' pairs with the run's localizer: one localizer, not "
+            f"{len(locs)} ({', '.join(x.name for x in locs)})"
+        )
+    cand = candidate_table(p, frames, ann)
+    if detect is not None:
+        sel = (cand.df["r_session"] == detect[0]) & cand.df["q_session"].isin(detect[1])
+        cand = Table(
+            cand.df[sel].reset_index(drop=True),
+            stable_hash("detect-candidates", cand.key, detect[0], sorted(detect[1])),
+        )
+    if check:
+        check_inputs(p, ann, cand)
+    props = session_proposals(p, frames, cand, ingested)
+    start = len(p.trail)
+    pairs, ranks = retrieval_ranks(p, locs[0], frames, cand, props)
+    if not len(ranks.df):
+        raise RetrievalError(f"localizer {locs[0].name}: no query subimage got a rank")
+    p.pairing = {"by": "retrieval", "place_frames": p.cfg.pairs.place_frames}
+    posed = frames.df[["x", "y", "yaw"]].notna().all(axis=1)
+    if posed.all() and len(frames.df):
+        queries = ann.df if p.cfg.pairs.queries == "annotated" else None
+        by_pose, _ = build_pairs(frames.df, p.cfg.pairs, p.cfg.seasons(), queries)
+        within = p.cfg.pairs.max_distance_m or 10.0
+        p.pairing["agreement_with_pose_pairs"] = pose_agreement(
+            pairs.df, by_pose, frames.df, within
+        )
+    fusion, notes = localizer_fusion(p, locs[0], ranks, len(pairs.df))
+    notes.append(pairing_note(p.pairing))
+    costs = measured_costs(p, locs[0], p.trail[start:], ranks, pairs, props)
+    return pairs, Measured(locs[0], ranks, fusion, notes, costs)
+
+
+def pairing_note(pairing: dict[str, Any]) -> str:
+    """What pairs by retrieval mean for the tables, in words (SPEC 13.2)."""
+    note = (
+        "Pairs by retrieval (SPEC 13.2): each query frame's reference is the map frame this "
+        f"localizer retrieves best, and its place that frame and {pairing['place_frames']} "
+        "neighbours each side, so R@N measures the localizer against its own choice (optimistic)."
+    )
+    agree = pairing.get("agreement_with_pose_pairs")
+    if agree and agree["compared"]:
+        note += (
+            f" Where poses exist, {agree['agree']} of {agree['compared']} retrieval pairs "
+            f"({100 * agree['share']:.0f}%) lie within {agree['within_m']:g} m of the pose pair."
+        )
+    return note
 
 
 def until_ranks(
@@ -117,6 +204,10 @@ def until_ranks(
     Returns:
         (ingest entries, frames, annotations, pairs, one :class:`Measured` per localizer).
     """
+    if p.cfg.pairs.by == "retrieval":
+        ingested, frames, ann = until_annotations(p)
+        pairs, m = pairs_by_retrieval(p, ingested, frames, ann, check)
+        return ingested, frames, ann, pairs, [m]
     ingested, frames, ann, pairs = until_pairs(p)
     if check:
         check_inputs(p, ann, pairs)
@@ -297,6 +388,7 @@ def run_record(
             "samples": n_samples,
             "rank_counts": rank_counts,
         },
+        **({"pairing": p.pairing} if p.pairing else {}),
         "keys": {
             "frames": frames.key,
             "pairs": pairs.key,

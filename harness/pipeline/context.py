@@ -75,6 +75,8 @@ class Context:
         ran: Entries built per stage (0 everywhere on a cached rerun).
         used: Entries read or written per stage (what ``harness gc`` keeps).
         not_described: Frames per session that no ranking reads (not proposed or encoded).
+        pairing: How the pairs were made (``[pairs] by``) and, by retrieval where poses exist,
+            how often they agree with the pose pairs (SPEC 13.2).
     """
 
     cfg: Config
@@ -90,6 +92,7 @@ class Context:
     # every entry the run used, in order (stage, entry directory): what a localizer cost
     trail: list[tuple[str, Path]] = field(default_factory=list)
     not_described: dict[str, int] = field(default_factory=dict)
+    pairing: dict[str, Any] = field(default_factory=dict)
 
     @property
     def localizer_list(self) -> tuple[LocalizerConfig, ...]:

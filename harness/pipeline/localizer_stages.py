@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import FusionConfig, LocalizerConfig
-from harness.errors import RetrievalError
+from harness.errors import ConfigError, RetrievalError
 from harness.methods import rules_where
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
@@ -28,6 +28,7 @@ from harness.pipeline.stages import (
     descriptor_projection,
     imported_ranks,
     query_ranks,
+    retrieval_pair_table,
     session_descriptors,
 )
 from harness.retrieval.import_file import ImportSpec
@@ -173,6 +174,32 @@ def localizer_ranks(
     mine = localizer_proposals(p, loc, props)
     with p.measuring(loc):
         return LOCALIZER_KINDS[loc.kind](p, loc, frames, pairs, mine)
+
+
+def retrieval_ranks(
+    p: Context, loc: LocalizerConfig, frames: Table, cand: Table, props: dict[str, Table]
+) -> tuple[Table, RankTable]:
+    """Pairs by retrieval, then ranks, with one descriptor localizer (SPEC 13.2).
+
+    The localizer's descriptors of every candidate frame pair each query frame with its map
+    frame (its first proposal method's subimages); the ranks are then computed as by pose, the
+    place being that frame and ``[pairs] place_frames`` neighbours each side.
+
+    Returns:
+        (the pairs, the rank rows).
+    """
+    if loc.kind != "descriptor":
+        raise ConfigError(
+            f"[pairs] by = 'retrieval' pairs frames with the run's descriptor; localizer "
+            f"{loc.name} is of kind {loc.kind!r}"
+        )
+    mine = localizer_proposals(p, loc, props)
+    with p.measuring(loc):
+        model = descriptor_model(p, frames, mine)
+        projection = descriptor_projection(p, frames, cand, mine, model)
+        described = session_descriptors(p, frames, mine, model, projection)
+        pairs = retrieval_pair_table(p, frames, cand, described, loc.proposals[0])
+        return pairs, query_ranks(p, frames, pairs, described)
 
 
 def ranks_at_radius(

@@ -32,7 +32,7 @@ from harness.imagestore import local_uri
 from harness.ingest import combine_frames, ingest_session
 from harness.ingest.annotations import COLUMNS, load_annotations
 from harness.ingest.annotations import validate as validate_annotations
-from harness.pairs import write_pairs
+from harness.pairs import candidate_pairs, write_pairs
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.proposals.proposers import write_proposals
@@ -40,6 +40,7 @@ from harness.reports.write import Block, Reports, write_reports
 from harness.retrieval import described_frames, rank_reference
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.imported import unranked_images
+from harness.retrieval.pairing import write_retrieval_pairs
 from harness.runtime.cache import (
     content_sha,
     read_cached_parquet,
@@ -235,6 +236,30 @@ def query_pairs(p: Context, frames: Table, ann: Table) -> Table:
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
 
 
+def candidate_table(p: Context, frames: Table, ann: Table) -> Table:
+    """Frames (+ annotations) -> query frames and the sessions to pair them with (SPEC 13.2).
+
+    ``[pairs] by = "retrieval"``: the frame each is paired with comes later, from the
+    localizer's descriptors (:func:`retrieval_pair_table`).
+    """
+    queries = ann.df if p.cfg.pairs.queries == "annotated" else None
+    cand = candidate_pairs(frames.df, p.cfg.seasons(), queries)
+    return Table(cand, stable_hash("candidates", *keys.pairs(p.cfg, frames.key, ann.key)))
+
+
+def retrieval_pair_table(
+    p: Context, frames: Table, cand: Table, described: dict[str, Entry], method: str
+) -> Table:
+    """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2)."""
+    paths = {s: e.path for s, e in described.items()}
+    build = partial(
+        write_retrieval_pairs, cand.df, paths, frames.df, method, p.cfg.retrieval.memory_mb
+    )
+    dkeys = {s: e.key for s, e in described.items()}
+    entry = p.unit("pairs_retrieval", (cand.key, dkeys, method), build)
+    return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
+
+
 def session_proposals(
     p: Context, frames: Table, pairs: Table, ingested: dict[str, Entry]
 ) -> dict[str, Table]:
@@ -375,7 +400,15 @@ def query_ranks(p: Context, frames: Table, pairs: Table, described: dict[str, En
         for c0 in range(0, max(len(sub), 1), step):
             chunk = sub.iloc[c0 : c0 + step]
             build = partial(
-                _write_ranks, rc, p.cfg.pairs.max_yaw_diff_deg, chunk, ref, paths, frames.df, device
+                _write_ranks,
+                rc,
+                p.cfg.pairs.max_yaw_diff_deg,
+                chunk,
+                ref,
+                paths,
+                frames.df,
+                device,
+                p.cfg.pairs.place_frames if p.cfg.pairs.by == "retrieval" else None,
             )
             units.append((keys.ranks_unit(p.cfg, ref, pairs.key, dkeys, c0, len(chunk)), build))
             unit_ref.append(ref)
@@ -406,10 +439,13 @@ def _write_ranks(
     descriptors: dict[str, Path],
     frames: pd.DataFrame,
     device: str,
+    place_frames: int | None,
     tmp: Path,
 ) -> dict[str, int]:
     """One ranking unit (:func:`harness.retrieval.rank_reference`) into ``tmp/ranks.parquet``."""
-    df, counts = rank_reference(rc, max_yaw_deg, pairs, ref, descriptors, frames, device)
+    df, counts = rank_reference(
+        rc, max_yaw_deg, pairs, ref, descriptors, frames, device, place_frames
+    )
     write_parquet(tmp / "ranks.parquet", df)
     return counts
 

@@ -45,3 +45,30 @@ def ground_truth_places(
         near = near[yaw_diff_deg(yaw[near], yaw[p]) < max_yaw_deg] if len(near) else near
         out[int(g)] = np.union1d(ut[near], [g]).astype(np.int64)
     return out
+
+
+def places_by_order(
+    ref_frames: pd.DataFrame, gt_utime: np.ndarray, place_frames: int
+) -> dict[int, np.ndarray]:
+    """The ground-truth place without poses (SPEC 13.2): G and ``place_frames`` frames each side.
+
+    The neighbours are taken in the reference session's time order (one camera), so the place is
+    the stretch of the map around the frame a query was paired with by retrieval.
+
+    Args:
+        ref_frames: the reference session's frames (``utime``; one camera).
+        gt_utime: the ground-truth frames G whose place is wanted.
+        place_frames: neighbours on each side (0: G alone).
+
+    Returns:
+        G's utime -> sorted utimes of P(G).
+    """
+    ut = np.sort(ref_frames["utime"].to_numpy(np.int64))
+    out: dict[int, np.ndarray] = {}
+    for g in np.unique(np.asarray(gt_utime, np.int64)):
+        p = int(np.searchsorted(ut, g))
+        if p >= len(ut) or ut[p] != g:
+            out[int(g)] = np.array([g], np.int64)
+            continue
+        out[int(g)] = ut[max(0, p - place_frames) : p + place_frames + 1].copy()
+    return out

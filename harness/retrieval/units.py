@@ -21,7 +21,7 @@ from harness.pairs import thin_by_stride
 from harness.records import FRAME_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
 from harness.retrieval.engines import image_ranks, image_ranks_faiss
-from harness.retrieval.places import ground_truth_places
+from harness.retrieval.places import ground_truth_places, places_by_order
 from harness.runtime.cache import read_cached_parquet
 
 #: Counters every unit reports (summed per reference session in ``run.json``).
@@ -91,6 +91,7 @@ def rank_reference(
     descriptors: dict[str, Path],
     frames: pd.DataFrame,
     device: str,
+    place_frames: int | None = None,
 ) -> tuple[pd.DataFrame, dict[str, int]]:
     """Rank rows of every query subimage of ``pairs`` against reference session ``ref``.
 
@@ -102,6 +103,8 @@ def rank_reference(
         descriptors: Each session's descriptor entry (``desc.npy`` + ``index.parquet``).
         frames: The frame table (poses of the reference frames).
         device: ``"cpu"`` or ``"cuda"`` for the exact engine.
+        place_frames: pairs by retrieval (SPEC 13.2): the place is G and this many frames each
+            side in the map's order (:func:`places_by_order`); None: by pose (SPEC 6).
 
     Returns:
         The rank rows (sorted by query image, method, box) and the unit's counters.
@@ -111,11 +114,17 @@ def rank_reference(
         return pd.DataFrame(), counts
     ref_frames = frames[frames["session"] == ref]
     places = {
-        cam: ground_truth_places(
-            ref_frames[ref_frames["camera"] == cam],
-            g["r_utime"].to_numpy(),
-            rc.gt_radius_m,
-            max_yaw_deg,
+        cam: (
+            ground_truth_places(
+                ref_frames[ref_frames["camera"] == cam],
+                g["r_utime"].to_numpy(),
+                rc.gt_radius_m,
+                max_yaw_deg,
+            )
+            if place_frames is None
+            else places_by_order(
+                ref_frames[ref_frames["camera"] == cam], g["r_utime"].to_numpy(), place_frames
+            )
         )
         for cam, g in pairs.groupby("r_camera", sort=True)
     }

@@ -1,0 +1,220 @@
+"""Pairs without poses (SPEC 13.2): each query frame's map frame by image-level retrieval.
+
+A query frame is paired, in each other session, with the frame its subimages retrieve best with
+the run's localizer: the frame distance is the mean, over the query's subimages of one proposal
+method (``grid5`` by default: the same five boxes in every frame), of the smallest squared L2
+distance to that frame's subimages of the method, and the frame of least distance is the pair.
+Streamed: query frames in groups, the reference database in chunks of whole frames, so memory is
+bounded by ``memory_mb`` whatever the sessions' sizes.
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.pairs import PAIR_COLUMNS, yaw_diff_deg
+from harness.records import FRAME_KEY, QUERY_KEY
+from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
+
+
+def _frame_blocks(frame_of_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(frame ids in row order, start row of each) of rows already grouped by frame."""
+    change = np.r_[True, frame_of_row[1:] != frame_of_row[:-1]]
+    starts = np.nonzero(change)[0]
+    return frame_of_row[starts], starts
+
+
+def best_frames(
+    q_desc: np.ndarray,
+    q_frame: np.ndarray,
+    db_desc: np.ndarray,
+    db_frame: np.ndarray,
+    *,
+    chunk_rows: int = 8192,
+    memory_mb: float = 256.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each query frame's best database frame by mean per-frame minimum squared distance.
+
+    Args:
+        q_desc: (n, D) query subimage descriptors, rows grouped by frame.
+        q_frame: (n,) the frame id of each query row.
+        db_desc: (m, D) database subimage descriptors (array or float16 memmap), grouped by frame.
+        db_frame: (m,) the frame id of each database row.
+        chunk_rows: database rows per pass (cut at frame boundaries).
+        memory_mb: budget of the (query frames x database frames) sums.
+
+    Returns:
+        (query frame ids, their best database frame ids, the best mean squared distance).
+    """
+    qf_ids, q_starts = _frame_blocks(np.asarray(q_frame))
+    db_ids, db_starts = _frame_blocks(np.asarray(db_frame))
+    q_row_frame = np.repeat(np.arange(len(qf_ids)), np.diff(np.r_[q_starts, len(q_frame)]))
+    q_count = np.bincount(q_row_frame, minlength=len(qf_ids)).astype(np.float64)
+    group = max(1, int(memory_mb * 2**20 // max(8 * len(db_ids), 1)))
+    db_cuts = [0]  # frame indices where a chunk starts
+    for i, s in enumerate(db_starts):
+        if s - db_starts[db_cuts[-1]] >= chunk_rows:
+            db_cuts.append(i)
+    db_cuts.append(len(db_ids))
+    bounds = np.r_[db_starts, len(db_frame)]
+    q_bounds = np.r_[q_starts, len(q_frame)]
+    best = np.zeros(len(qf_ids), np.int64)
+    score = np.zeros(len(qf_ids), np.float64)
+    for g0 in range(0, len(qf_ids), group):
+        g1 = min(len(qf_ids), g0 + group)
+        r0, r1 = int(q_bounds[g0]), int(q_bounds[g1])
+        q = np.asarray(q_desc[r0:r1], np.float32)
+        qn = (q.astype(np.float64) ** 2).sum(1)
+        sums = np.zeros((g1 - g0, len(db_ids)), np.float64)
+        rows_frame = q_row_frame[r0:r1] - g0
+        for c0, c1 in itertools.pairwise(db_cuts):
+            a, b = int(bounds[c0]), int(bounds[c1])
+            blk = np.asarray(db_desc[a:b], np.float32)
+            d2 = qn[:, None] + (blk.astype(np.float64) ** 2).sum(1)[None, :] - 2.0 * (q @ blk.T)
+            mins = np.minimum.reduceat(np.maximum(d2, 0.0), bounds[c0:c1] - a, axis=1)
+            np.add.at(sums[:, c0:c1], rows_frame, mins)
+        mean = sums / q_count[g0:g1, None]
+        best[g0:g1] = db_ids[np.argmin(mean, axis=1)]
+        score[g0:g1] = mean.min(axis=1)
+    return qf_ids, best, score
+
+
+def retrieval_pairs(
+    candidates: pd.DataFrame,
+    descriptors: dict[str, Path],
+    frames: pd.DataFrame,
+    method: str,
+    memory_mb: float = 256.0,
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Pair each candidate query frame with its best frame of each reference session.
+
+    Args:
+        candidates: query frames and the reference sessions to pair them with (``q_session``,
+            ``q_camera``, ``q_utime``, ``r_session``, ``r_camera``, ``season_pair``).
+        descriptors: each session's descriptor entry (``desc.npy`` + ``index.parquet``).
+        frames: the frame table (poses, where there are, give ``distance_m`` and ``yaw_diff_deg``).
+        method: the proposal method whose subimages compare frames.
+        memory_mb: the budget of one group's frame sums.
+
+    Returns:
+        (pairs with ``PAIR_COLUMNS`` plus ``retrieval_d2``, a summary of counts).
+    """
+    out = []
+    no_subimage = 0
+    for (qs, rs), cand in candidates.groupby(["q_session", "r_session"], sort=True):
+        qi = read_cached_parquet(descriptors[qs] / "index.parquet")
+        ri = read_cached_parquet(descriptors[rs] / "index.parquet")
+        qsel = qi[qi["method"] == method].reset_index()
+        want = pd.MultiIndex.from_frame(cand[QUERY_KEY].set_axis(FRAME_KEY, axis=1))
+        qsel = qsel[pd.MultiIndex.from_frame(qsel[FRAME_KEY]).isin(want)]
+        rsel = ri[ri["method"] == method].reset_index()
+        if not len(qsel) or not len(rsel):
+            no_subimage += len(cand)
+            continue
+        qsel = qsel.sort_values([*FRAME_KEY, "box_id"], kind="stable")
+        rsel = rsel.sort_values([*FRAME_KEY, "box_id"], kind="stable")
+        q_ids = qsel.groupby(["camera", "utime"], sort=False).ngroup().to_numpy()
+        r_ids = rsel.groupby(["camera", "utime"], sort=False).ngroup().to_numpy()
+        qdesc = np.load(descriptors[qs] / "desc.npy", mmap_mode="r")
+        rdesc = np.load(descriptors[rs] / "desc.npy", mmap_mode="r")
+        qf, bf, d2 = best_frames(
+            qdesc[qsel["index"].to_numpy()],
+            q_ids,
+            rdesc[rsel["index"].to_numpy()],
+            r_ids,
+            memory_mb=memory_mb,
+        )
+        qkeys = qsel.drop_duplicates(["camera", "utime"])[["camera", "utime"]].to_numpy()
+        rkeys = rsel.drop_duplicates(["camera", "utime"])[["camera", "utime"]].to_numpy()
+        no_subimage += len(cand) - len(qf)
+        part = pd.DataFrame(
+            {
+                "q_session": qs,
+                "q_camera": qkeys[qf, 0].astype(str),
+                "q_utime": qkeys[qf, 1].astype(np.int64),
+                "r_session": rs,
+                "r_camera": rkeys[bf, 0].astype(str),
+                "r_utime": rkeys[bf, 1].astype(np.int64),
+                "retrieval_d2": d2,
+            }
+        )
+        part = part.merge(
+            cand[[*QUERY_KEY, "r_session", "season_pair"]], on=[*QUERY_KEY, "r_session"]
+        )
+        out.append(part)
+    pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=PAIR_COLUMNS)
+    pose = frames.set_index(FRAME_KEY)[["x", "y", "yaw"]]
+    qp = pose.reindex(pd.MultiIndex.from_frame(pairs[QUERY_KEY].set_axis(FRAME_KEY, axis=1)))
+    rp = pose.reindex(
+        pd.MultiIndex.from_arrays(
+            [pairs["r_session"], pairs["r_camera"], pairs["r_utime"]], names=FRAME_KEY
+        )
+    )
+    pairs["distance_m"] = np.hypot(
+        qp["x"].to_numpy() - rp["x"].to_numpy(), qp["y"].to_numpy() - rp["y"].to_numpy()
+    )
+    pairs["yaw_diff_deg"] = yaw_diff_deg(qp["yaw"].to_numpy(), rp["yaw"].to_numpy())
+    pairs = pairs.sort_values([*QUERY_KEY, "r_session"]).reset_index(drop=True)
+    summary = {
+        "by": "retrieval",
+        "method": method,
+        "queries": int(candidates[QUERY_KEY].drop_duplicates().shape[0]),
+        "pairs": len(pairs),
+        "no_subimage": int(no_subimage),
+    }
+    return pairs[[*PAIR_COLUMNS, "retrieval_d2"]], summary
+
+
+def write_retrieval_pairs(
+    candidates: pd.DataFrame,
+    descriptors: dict[str, Path],
+    frames: pd.DataFrame,
+    method: str,
+    memory_mb: float,
+    tmp: Path,
+) -> dict[str, Any]:
+    """:func:`retrieval_pairs` into ``tmp/pairs.parquet`` and ``tmp/summary.json``."""
+    pairs, summary = retrieval_pairs(candidates, descriptors, frames, method, memory_mb)
+    write_parquet(tmp / "pairs.parquet", pairs)
+    write_json(tmp / "summary.json", summary)
+    return summary
+
+
+def pose_agreement(
+    by_retrieval: pd.DataFrame, by_pose: pd.DataFrame, frames: pd.DataFrame, within_m: float
+) -> dict[str, Any]:
+    """How often the retrieval pair is where the pose pair is (SPEC 13.2), where poses exist.
+
+    A retrieval pair agrees when its reference frame lies within ``within_m`` metres of the pose
+    pair's reference frame (same query frame, same reference session).
+
+    Returns:
+        ``compared`` (query frames with both pairs), ``agree``, ``share`` (NaN when none was
+        compared), ``median_m`` (the median distance between the two reference frames),
+        ``within_m``.
+    """
+    keys = [*QUERY_KEY, "r_session"]
+    m = by_retrieval[[*keys, "r_camera", "r_utime"]].merge(
+        by_pose[[*keys, "r_camera", "r_utime"]], on=keys, suffixes=("", "_pose")
+    )
+    pose = frames.set_index(FRAME_KEY)[["x", "y"]]
+
+    def xy(cam: str, ut: str) -> np.ndarray:
+        idx = pd.MultiIndex.from_arrays([m["r_session"], m[cam], m[ut]], names=FRAME_KEY)
+        return np.asarray(pose.reindex(idx).to_numpy(np.float64), np.float64)
+
+    dist = np.linalg.norm(xy("r_camera", "r_utime") - xy("r_camera_pose", "r_utime_pose"), axis=1)
+    ok = np.isfinite(dist)
+    agree = int((dist[ok] <= within_m).sum())
+    return {
+        "compared": int(ok.sum()),
+        "agree": agree,
+        "share": round(agree / int(ok.sum()), 4) if ok.any() else float("nan"),
+        "median_m": round(float(np.median(dist[ok])), 3) if ok.any() else float("nan"),
+        "within_m": within_m,
+    }
