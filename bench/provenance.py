@@ -3,9 +3,10 @@
 Every row ``python -m bench`` records carries ``commit`` (the checkout's HEAD), ``dirty`` (whether
 the files the case measures had uncommitted changes), ``date`` (UTC, ISO 8601) and ``cpu`` (the
 model name and the widest SIMD the CPU has: figures of one machine kind differ between AVX-512 and
-AVX2-only instances). ``bench.md`` marks a row *stale* when a commit after the row's own touched
-the code its case measures (:func:`bench.cases.measures`), and says so where a row records no
-commit at all (rows from before this record).
+AVX2-only instances) with ``cpu_flags`` (the flags a figure depends on, bf16 included).
+``bench.md`` marks a row *stale* when a commit after the row's own touched the code its case
+measures (:func:`bench.cases.measures`), and says so where a row records no commit at all (rows
+from before this record).
 """
 
 from __future__ import annotations
@@ -26,6 +27,22 @@ def _git(*args: str) -> str | None:
     except (OSError, subprocess.TimeoutExpired):
         return None
     return proc.stdout.strip() if proc.returncode == 0 else None
+
+
+#: The CPU flags a figure depends on: the SIMD width, fused multiply-add, and the bf16 / int8
+#: matrix instructions the encoder and ranking products could use (issue 37).
+RELEVANT_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_tile")
+
+
+def cpu_flags() -> list[str]:
+    """Which of :data:`RELEVANT_FLAGS` this CPU has (from ``/proc/cpuinfo``)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return []
+    line = next((x for x in text.splitlines() if x.partition(":")[0].strip() == "flags"), "")
+    have = set(line.partition(":")[2].split())
+    return [f for f in RELEVANT_FLAGS if f in have]
 
 
 def cpu() -> str:
@@ -52,6 +69,7 @@ def stamp(measures: tuple[str, ...]) -> dict[str, object]:
         "dirty": bool(dirty) if dirty is not None else None,
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "cpu": cpu(),
+        "cpu_flags": cpu_flags(),
     }
 
 

@@ -153,17 +153,37 @@ def to_rgb8(img: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def read_image(uri: str) -> np.ndarray:
+#: Reduced JPEG decoding: libjpeg's DCT scaling gives 1/2, 1/4 or 1/8 of the frame for less work.
+_REDUCED = {  # EXIF orientation ignored, as IMREAD_UNCHANGED does
+    f: flag | cv2.IMREAD_IGNORE_ORIENTATION
+    for f, flag in (
+        (2, cv2.IMREAD_REDUCED_COLOR_2),
+        (4, cv2.IMREAD_REDUCED_COLOR_4),
+        (8, cv2.IMREAD_REDUCED_COLOR_8),
+    )
+}
+
+
+def read_image(uri: str, reduce: int = 1) -> np.ndarray:
     """Decode an image URI to an upright RGB uint8 array ``(H, W, 3)``.
+
+    ``reduce`` (1, 2, 4 or 8): the image at that fraction of its size, ``ceil(H / reduce)`` x
+    ``ceil(W / reduce)``: a JPEG decoded at that scale (less work than the full frame), any other
+    file decoded whole and shrunk once with area interpolation.
 
     Raises:
         IngestError: The file is missing or cannot be decoded.
     """
     path, rot = split_uri(uri)
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    jpeg = reduce > 1 and path.lower().endswith((".jpg", ".jpeg"))
+    img = cv2.imread(path, _REDUCED[reduce] if jpeg else cv2.IMREAD_UNCHANGED)
     if img is None:
         raise IngestError(f"{path}: missing or not a decodable image")
     rgb = to_rgb8(img)
+    if reduce > 1 and not jpeg:
+        h, w = rgb.shape[:2]
+        size = (-(-w // reduce), -(-h // reduce))
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
     if rot in _ROT:
         rgb = cv2.rotate(rgb, _ROT[rot])
     return np.ascontiguousarray(rgb)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -102,6 +103,34 @@ def nearest_with_heading(
     return best, best_d
 
 
+def _query_frames(
+    frames: pd.DataFrame, stride_m: float, queries: pd.DataFrame | None
+) -> pd.DataFrame:
+    """The query frames: the listed ones, else every frame thinned to one per ``stride_m``."""
+    if queries is not None:
+        return frames.merge(queries[FRAME_KEY].drop_duplicates(), on=FRAME_KEY, how="inner")
+    parts = []
+    for _, g in frames.groupby(["session", "camera"], sort=True):
+        g = g.sort_values("utime")
+        parts.append(g.iloc[thin_by_stride(g[["x", "y"]].to_numpy(), stride_m)])
+    return pd.concat(parts, ignore_index=True) if parts else frames.iloc[:0]
+
+
+def _summary(
+    q_all: pd.DataFrame, pairs: pd.DataFrame, matched: Counter[str], unmatched: Counter[str]
+) -> dict[str, Any]:
+    """The pairing summary: queries, pairs, and the drops by season pair."""
+    return {
+        "queries": len(q_all),
+        "pairs": len(pairs),
+        "pairs_per_season_pair": dict(sorted(matched.items())),
+        "no_reference_per_season_pair": dict(sorted(unmatched.items())),
+        "queries_without_any_reference": int(
+            len(q_all) - pairs[QUERY_KEY].drop_duplicates().shape[0]
+        ),
+    }
+
+
 def build_pairs(
     frames: pd.DataFrame,
     cfg: PairsConfig,
@@ -122,15 +151,7 @@ def build_pairs(
         queries).
     """
     frames = frames.sort_values(FRAME_KEY).reset_index(drop=True)
-    if queries is not None:
-        qkeys = queries[FRAME_KEY].drop_duplicates()
-        q_all = frames.merge(qkeys, on=FRAME_KEY, how="inner")
-    else:
-        parts = []
-        for _, g in frames.groupby(["session", "camera"], sort=True):
-            g = g.sort_values("utime")
-            parts.append(g.iloc[thin_by_stride(g[["x", "y"]].to_numpy(), cfg.stride_m)])
-        q_all = pd.concat(parts, ignore_index=True) if parts else frames.iloc[:0]
+    q_all = _query_frames(frames, cfg.stride_m, queries)
     sessions = sorted(frames["session"].unique())
     out = []
     matched: Counter[str] = Counter()
@@ -174,15 +195,7 @@ def build_pairs(
     pairs = pairs.sort_values(["q_session", "q_camera", "q_utime", "r_session"]).reset_index(
         drop=True
     )
-    summary = {
-        "queries": len(q_all),
-        "pairs": len(pairs),
-        "pairs_per_season_pair": dict(sorted(matched.items())),
-        "no_reference_per_season_pair": dict(sorted(unmatched.items())),
-        "queries_without_any_reference": int(
-            len(q_all) - pairs[QUERY_KEY].drop_duplicates().shape[0]
-        ),
-    }
+    summary = _summary(q_all, pairs, matched, unmatched)
     log.info(
         "pairs: %d queries, %d pairs, %d (query, session) without reference",
         len(q_all),

@@ -54,6 +54,7 @@ def test_the_bench_command_runs_as_typed_and_keeps_other_cases_figures(tmp_path:
     assert (ROOT / "results" / "bench" / "bench.json").read_bytes() == tracked
     fresh = [r for r in rows if r["group"] == "fusion"]
     assert all(r["date"][:4] >= "2026" and ("AVX" in r["cpu"]) for r in fresh), fresh[0]
+    assert all(isinstance(r["cpu_flags"], list) for r in fresh), fresh[0]  # bf16 where it is
     # the copy is not a git checkout: its rows say so rather than claim a commit
     assert all(r["commit"] is None for r in fresh)
     assert "| rank exact db=1000 |" in md and "no commit recorded" in md

@@ -44,3 +44,40 @@ def case_crops(quick: bool) -> None:
             "subimages/s",
             notes=f"{n} JPEG frames 1232x1616, 16 boxes each",
         )
+    _grid5_reduced(paths)
+
+
+def _grid5_reduced(paths: list[str]) -> None:
+    """grid5's five boxes per NCLT-sized JPEG frame at 256: the full frame against the frame
+    decoded at the fraction every box allows (1/2 here), next to the limits measured in the same
+    run: libjpeg-turbo's decode of the full frame and of its half."""
+    import cv2
+    import pandas as pd
+
+    from harness.descriptors.crops import iter_crops
+    from harness.proposals.proposers import grid5
+
+    boxes = grid5(1232, 1616)
+    df = pd.DataFrame(
+        [(p, *b) for p in paths for b in boxes], columns=["image", "x1", "y1", "x2", "y2"]
+    )
+    n = len(paths)
+    for reduced in (False, True):
+        runs = timed(
+            lambda r=reduced: [None for _ in iter_crops(df, df["image"], 256, reduced=r)],
+            repeat=3,
+        )
+        emit(
+            f"grid5 crops[decode={'reduced' if reduced else 'full'}]",
+            [1000 * t / n for t in runs],
+            "ms/frame",
+            notes=f"{n} JPEG frames 1232x1616, grid5 (5 boxes of 821x1077) resized to 256",
+        )
+    for flag, name in ((cv2.IMREAD_UNCHANGED, "full"), (cv2.IMREAD_REDUCED_COLOR_2, "1/2")):
+        runs = timed(lambda f=flag: [cv2.imread(p, f) for p in paths], repeat=3)
+        emit(
+            f"jpeg decode[{name}] (limit)",
+            [1000 * t / n for t in runs],
+            "ms/frame",
+            notes="cv2.imread alone (libjpeg-turbo): the decode floor of the row above",
+        )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
@@ -17,6 +18,20 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("-v", "--verbose", action="store_true")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
+    _add_fixture(sub)
+    _add_ingest(sub)
+    _add_stage_commands(sub)
+    _add_detect(sub)
+    _add_task(sub)
+    _add_report(sub)
+    _add_gc(sub)
+    _add_inspect(sub)
+    _add_annotations(sub)
+    return ap
+
+
+def _add_fixture(sub: Any) -> None:
+    """``harness fixture``."""
     p = sub.add_parser("fixture", help="generate the synthetic fixture world as real logs")
     p.add_argument("--out", required=True)
     p.add_argument("--seed", type=int, default=0)
@@ -48,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_fixture)
 
+
+def _add_ingest(sub: Any) -> None:
+    """``harness ingest``."""
     p = sub.add_parser("ingest", help="turn a season log into frames.parquet")
     p.add_argument("source", nargs="?")
     p.add_argument("--session")
@@ -87,6 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_ingest)
 
+
+def _add_stage_commands(sub: Any) -> None:
+    """``pairs``, ``proposals``, ``rank`` and ``reproduce``: a config and an output folder."""
     for name, func, hlp in (
         ("pairs", cmd_pairs, "build cross-season pairs"),
         ("proposals", cmd_proposals, "compute object proposals"),
@@ -126,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
             )
         p.set_defaults(func=func)
 
+
+def _add_detect(sub: Any) -> None:
+    """``harness detect``."""
     p = sub.add_parser(
         "detect", help="what changed: the detector on new sessions against a map session"
     )
@@ -179,6 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-cpus", type=int, help="workers of a local Ray cluster")
     p.set_defaults(func=cmd_detect)
 
+
+def _add_task(sub: Any) -> None:
+    """``harness task``."""
     p = sub.add_parser("task", help="the localization task for your own localizer")
     tsub = p.add_subparsers(dest="action", required=True)
     p = tsub.add_parser(
@@ -198,6 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_task, executor="local", address=None, ray_cpus=None)
 
+
+def _add_report(sub: Any) -> None:
+    """``harness report``."""
     p = sub.add_parser("report", help="(re)write OUT/report.html for an existing run")
     p.add_argument("out", help="a run directory (the --out of harness reproduce)")
     p.add_argument(
@@ -207,6 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_report)
 
+
+def _add_gc(sub: Any) -> None:
+    """``harness gc``."""
     p = sub.add_parser("gc", help="remove the cache entries of OUT that its last run did not use")
     p.add_argument("out", help="a run directory (the --out of harness reproduce)")
     p.add_argument(
@@ -216,6 +249,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_gc)
 
+
+def _add_inspect(sub: Any) -> None:
+    """``harness inspect``."""
     p = sub.add_parser(
         "inspect",
         help="what is in a log: topics, rates, images, the tf tree, and config lines to ingest it",
@@ -224,6 +260,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the description as JSON")
     p.set_defaults(func=cmd_inspect)
 
+
+def _add_annotations(sub: Any) -> None:
+    """``harness annotations``."""
     p = sub.add_parser(
         "annotations", help="import annotations from labelling tools, or export a labelling task"
     )
@@ -246,4 +285,3 @@ def build_parser() -> argparse.ArgumentParser:
         help="replace --out if it is a labelling task the harness wrote",
     )
     pe.set_defaults(func=cmd_annotations)
-    return ap

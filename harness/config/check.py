@@ -391,6 +391,7 @@ def _check_descriptor(cfg: Config, where: str) -> None:
         "avg, max, gem",
     )
     c(de.gem_p > 0, where, "[descriptor] gem_p", de.gem_p, "> 0")
+    c(de.decode in ("reduced", "full"), where, "[descriptor] decode", de.decode, "reduced or full")
     c(all(v > 0 for v in de.std), where, "[descriptor] std", list(de.std), "three values > 0")
     _check_network_file(de, where)
     c(

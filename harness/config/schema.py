@@ -153,6 +153,9 @@ class DescriptorConfig:
     std: tuple[float, float, float] = (0.229, 0.224, 0.225)
     pooling: str = "avg"  # of a (N, C, H, W) output: "avg", "max" or "gem"
     gem_p: float = 3.0
+    # "reduced": decode each frame at 1/2, 1/4 or 1/8 where every box keeps input_size pixels
+    # (JPEG: libjpeg's scaled decode); "full": always the whole frame
+    decode: str = "reduced"
 
 
 @dataclass(frozen=True)

@@ -38,16 +38,65 @@ def crop_resize(rgb: np.ndarray, boxes: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
+def levels(boxes: np.ndarray, size: int) -> np.ndarray:
+    """Each box's pyramid level: the largest of 8, 4, 2 that leaves it ``size`` pixels a side, or 1.
+
+    Cropped from the frame shrunk by that factor, a box is still shrunk (never enlarged) to
+    ``size``, so its crop is the full frame's up to the resampling (``docs/method.md``).
+    """
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    side = np.minimum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1])
+    out = np.ones(len(b), np.int64)
+    for f in (2, 4, 8):
+        out[side / f >= size] = f
+    return out
+
+
+def reduction(boxes: np.ndarray, size: int) -> int:
+    """The fraction the frame can be decoded at: its boxes' smallest level (1 without boxes)."""
+    lv = levels(boxes, size)
+    return int(lv.min()) if len(lv) else 1
+
+
+def crop_pyramid(uri: str, boxes: np.ndarray, size: int) -> np.ndarray:
+    """The crops of ``boxes``, each from the coarsest frame of a pyramid that its level allows.
+
+    The frame is decoded at :func:`reduction` (a JPEG at 1/2, 1/4 or 1/8: less decoding), then
+    halved (area average) for the boxes of coarser levels: a large box is resized from a small
+    frame, not from the full one.
+    """
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    lv = levels(b, size)
+    f0 = int(lv.min()) if len(lv) else 1
+    img = read_image(uri, f0)
+    out = np.empty((len(b), size, size, 3), np.uint8)
+    f = f0
+    while True:
+        sel = lv == f
+        if sel.any():
+            out[sel] = crop_resize(img, b[sel] / f, size)
+        if not (lv > f).any():
+            return out
+        h, w = img.shape[:2]
+        img = cv2.resize(img, (-(-w // 2), -(-h // 2)), interpolation=cv2.INTER_AREA)
+        f *= 2
+
+
 class _FrameCrops(Dataset):
-    def __init__(self, groups: list[tuple[str, np.ndarray, np.ndarray]], size: int) -> None:
+    def __init__(
+        self, groups: list[tuple[str, np.ndarray, np.ndarray]], size: int, reduced: bool
+    ) -> None:
         self.groups = groups
         self.size = size
+        self.reduced = reduced
 
     def __len__(self) -> int:
         return len(self.groups)
 
     def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         uri, rows, boxes = self.groups[i]
+        if self.reduced:
+            return rows, crop_pyramid(uri, boxes, self.size)
         return rows, crop_resize(read_image(uri), boxes, self.size)
 
 
@@ -61,6 +110,7 @@ def iter_crops(
     size: int,
     frames_per_batch: int = 8,
     num_workers: int = 0,
+    reduced: bool = False,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Yield ``(row positions, crops uint8 (b, size, size, 3))`` for the rows of ``boxes``.
 
@@ -70,6 +120,9 @@ def iter_crops(
         size: output side in pixels.
         frames_per_batch: frames decoded per batch (rows of one frame are never split).
         num_workers: DataLoader processes decoding and cropping (0: in this process).
+        reduced: each box from the coarsest level of a frame pyramid it allows, the frame decoded
+            at the finest level needed (:func:`crop_pyramid`; ``[descriptor] decode =
+            "reduced"``).
     """
     uris = images.to_numpy()
     b = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
@@ -80,7 +133,7 @@ def iter_crops(
     )
     groups = [(str(uris[s]), np.arange(s, e), b[s:e]) for s, e in itertools.pairwise(starts)]
     loader = DataLoader(
-        _FrameCrops(groups, size),
+        _FrameCrops(groups, size, reduced),
         batch_size=frames_per_batch,
         shuffle=False,
         num_workers=num_workers,

@@ -59,7 +59,13 @@ def train_model(
         tmp / "train_crops.npy", np.uint8, (n, dc.input_size, dc.input_size, 3)
     )
     for idx, crops in progress(
-        iter_crops(rows, _images(rows, frames), dc.input_size, num_workers=dc.num_workers),
+        iter_crops(
+            rows,
+            _images(rows, frames),
+            dc.input_size,
+            num_workers=dc.num_workers,
+            reduced=dc.decode == "reduced",
+        ),
         "training crops",
         "batch",
     ):
@@ -103,7 +109,13 @@ def _encoded(
         (rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy())
     )
     for idx, crops in progress(
-        iter_crops(rows.iloc[order], img.iloc[order], dc.input_size, num_workers=dc.num_workers),
+        iter_crops(
+            rows.iloc[order],
+            img.iloc[order],
+            dc.input_size,
+            num_workers=dc.num_workers,
+            reduced=dc.decode == "reduced",
+        ),
         f"descriptors {name}",
         "batch",
     ):

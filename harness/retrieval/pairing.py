@@ -148,6 +148,20 @@ def retrieval_pairs(
         )
         out.append(part)
     pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=PAIR_COLUMNS)
+    pairs = _with_poses(pairs, frames).sort_values([*QUERY_KEY, "r_session"])
+    pairs = pairs.reset_index(drop=True)
+    summary = {
+        "by": "retrieval",
+        "method": method,
+        "queries": int(candidates[QUERY_KEY].drop_duplicates().shape[0]),
+        "pairs": len(pairs),
+        "no_subimage": int(no_subimage),
+    }
+    return pairs[[*PAIR_COLUMNS, "retrieval_d2"]], summary
+
+
+def _with_poses(pairs: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
+    """``distance_m`` and ``yaw_diff_deg`` of each pair from the frames' poses (NaN without)."""
     pose = frames.set_index(FRAME_KEY)[["x", "y", "yaw"]]
     qp = pose.reindex(pd.MultiIndex.from_frame(pairs[QUERY_KEY].set_axis(FRAME_KEY, axis=1)))
     rp = pose.reindex(
@@ -159,15 +173,7 @@ def retrieval_pairs(
         qp["x"].to_numpy() - rp["x"].to_numpy(), qp["y"].to_numpy() - rp["y"].to_numpy()
     )
     pairs["yaw_diff_deg"] = yaw_diff_deg(qp["yaw"].to_numpy(), rp["yaw"].to_numpy())
-    pairs = pairs.sort_values([*QUERY_KEY, "r_session"]).reset_index(drop=True)
-    summary = {
-        "by": "retrieval",
-        "method": method,
-        "queries": int(candidates[QUERY_KEY].drop_duplicates().shape[0]),
-        "pairs": len(pairs),
-        "no_subimage": int(no_subimage),
-    }
-    return pairs[[*PAIR_COLUMNS, "retrieval_d2"]], summary
+    return pairs
 
 
 def write_retrieval_pairs(

@@ -1,0 +1,87 @@
+"""Decoding no more than the crops need (issue 37): a frame at 1/2, 1/4 or 1/8 where boxes allow.
+
+The reduced path's crops and descriptors against the full frame's, on NCLT-sized frames written
+as JPEG and as PNG by the test; the tolerance is stated in ``docs/method.md`` (*Reduced decode*).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from harness.descriptors.crops import iter_crops, levels, reduction
+from harness.imagestore import read_image
+
+
+def _frame(tmp: Path, suffix: str) -> str:
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (1616, 1232, 3), dtype=np.uint8), (0, 0), 6)
+    p = tmp / f"f{suffix}"
+    cv2.imwrite(str(p), img, [cv2.IMWRITE_JPEG_QUALITY, 95] if suffix == ".jpg" else [])
+    return str(p)
+
+
+def test_the_reduction_keeps_every_box_at_the_input_size() -> None:
+    boxes = np.array([[0, 0, 600, 900], [100, 100, 700, 1200]], float)
+    assert reduction(boxes, 256) == 2  # 600 / 2 = 300 >= 256; / 4 = 150 < 256
+    assert reduction(boxes, 64) == 8
+    assert reduction(np.array([[0, 0, 200, 900]], float), 256) == 1  # 200 < 256: full frame
+    assert reduction(np.zeros((0, 4)), 256) == 1
+    from harness.proposals.proposers import grid5
+
+    # grid5 on an NCLT frame: the centre box (410 x 538) at full scale, the others at 1/2
+    assert levels(grid5(1232, 1616), 256).tolist() == [1, 2, 2, 2, 2]
+    assert levels(grid5(1232, 1616), 64).tolist() == [4, 8, 8, 8, 8]
+
+
+def test_a_reduced_frame_has_the_size_and_pixels_of_the_full_one_shrunk(tmp_path: Path) -> None:
+    for suffix in (".jpg", ".png"):
+        uri = _frame(tmp_path, suffix)
+        full = read_image(uri)
+        for f in (2, 4, 8):
+            small = read_image(uri, f)
+            assert small.shape == (-(-1616 // f), -(-1232 // f), 3)
+            ref = cv2.resize(full, small.shape[1::-1], interpolation=cv2.INTER_AREA)
+            # libjpeg's DCT scaling is not an area average: within 2 grey levels on average
+            assert np.abs(small.astype(int) - ref).mean() < (2.0 if suffix == ".jpg" else 1e-9)
+
+
+def test_reduced_crops_and_descriptors_equal_the_full_frames_within_the_tolerance(
+    tmp_path: Path,
+) -> None:
+    from harness.proposals.proposers import grid5
+
+    rows = []
+    rng = np.random.default_rng(1)
+    for suffix in (".jpg", ".png"):
+        uri = _frame(tmp_path, suffix)
+        for _ in range(6):  # grid5-sized boxes: every one at least 2 x 256 on each side
+            x1, y1 = rng.uniform(0, 300), rng.uniform(0, 400)
+            rows.append((uri, x1, y1, x1 + rng.uniform(520, 900), y1 + rng.uniform(520, 1200)))
+        rows += [(uri, *b) for b in grid5(1232, 1616)]  # levels 1 and 2 in one frame
+    df = pd.DataFrame(rows, columns=["image", "x1", "y1", "x2", "y2"])
+
+    def crops(reduced: bool) -> np.ndarray:
+        got = list(iter_crops(df, df["image"], 256, reduced=reduced))
+        return np.concatenate([c for _, c in got]).astype(np.float64)
+
+    full, red = crops(False), crops(True)
+    assert full.shape == red.shape == (22, 256, 256, 3)
+    diff = np.abs(full - red)
+    assert diff.mean() < 2.0 and np.percentile(diff, 99) < 12  # grey levels of 255
+    import torch
+
+    from harness.descriptors.autoencoder import ConvAutoencoder, inference_encoder, to_tensor
+
+    torch.manual_seed(0)  # the paper's encoder, random weights: the function the descriptors use
+    enc = inference_encoder(ConvAutoencoder().eval())
+    with torch.no_grad():
+        a, b = (
+            enc(to_tensor(x.astype(np.uint8), torch.device("cpu"))).numpy() for x in (full, red)
+        )
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    assert (a * b).sum(1).min() > 0.999  # cosine of each crop's descriptor with its full twin
