@@ -112,8 +112,8 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     """``harness detect --map-images DIR --query-images DIR --out OUT``: every output, no pose."""
     line = next(x for x in README.splitlines() if x.startswith("harness detect --map-images"))
     assert line == "harness detect --map-images DIR --query-images DIR --out OUT"
-    m = _session_images(small_world, "ros1/2012-03-31*", tmp_path / "im", 4)
-    q = _session_images(small_world, "ros2/2012-08-04*", tmp_path / "iq", 3)
+    m = _session_images(small_world, "ros1/2012-03-31*", tmp_path / "im", 3)
+    q = _session_images(small_world, "ros2/2012-08-04*", tmp_path / "iq", 2)
     _write_images(tmp_path / "map", m, [f"m{i:02d}.png" for i in range(len(m))])
     _write_images(tmp_path / "new", q, [f"q{i:02d}.png" for i in range(len(q))])
     argv = line.split()[1:]
@@ -130,11 +130,11 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
         assert (out / f).stat().st_size > 0, f
     assert list((out / "locmaps").glob("*.npy"))
     rec = json.loads((out / "detect.json").read_text())
-    assert rec["map"] == "map" and rec["queries"] == ["query"] and rec["query_frames"] == 3
+    assert rec["map"] == "map" and rec["queries"] == ["query"] and rec["query_frames"] == 2
     assert rec["pairing"] == {"by": "retrieval", "place_frames": 2}  # no poses: nothing to compare
     assert "pairs by retrieval (SPEC 13.2)" in printed and "no poses to compare with" in printed
     fr = pd.read_parquet(out / "frames.parquet")
-    assert fr["x"].isna().all() and len(fr) == 3
+    assert fr["x"].isna().all() and len(fr) == 2
     page = (out / "detect.html").read_text()
     assert 'id="trajectory">When</h2>' in page and "have no poses" in page
     # the README's second form: the fixture's small-frame settings from a config
@@ -150,7 +150,7 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(argv) == 0
     rec2 = json.loads((tmp_path / "out2" / "detect.json").read_text())
-    assert rec2["pairing"]["by"] == "retrieval" and rec2["query_frames"] == 3
+    assert rec2["pairing"]["by"] == "retrieval" and rec2["query_frames"] == 2
     assert (tmp_path / "out2" / "detect.html").exists()
 
 

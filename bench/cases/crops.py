@@ -71,7 +71,7 @@ def _grid5_reduced(paths: list[str]) -> None:
             f"grid5 crops[decode={'reduced' if reduced else 'full'}]",
             [1000 * t / n for t in runs],
             "ms/frame",
-            notes=f"{n} JPEG frames 1232x1616, grid5 (5 boxes of 821x1077) resized to 256",
+            notes=f"{n} JPEG frames 1232x1616, grid5 (centre 410x538, four of 821x1077) to 256",
         )
     for flag, name in ((cv2.IMREAD_UNCHANGED, "full"), (cv2.IMREAD_REDUCED_COLOR_2, "1/2")):
         runs = timed(lambda f=flag: [cv2.imread(p, f) for p in paths], repeat=3)
