@@ -112,7 +112,7 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     """``harness detect --map-images DIR --query-images DIR --out OUT``: every output, no pose."""
     line = next(x for x in README.splitlines() if x.startswith("harness detect --map-images"))
     assert line == "harness detect --map-images DIR --query-images DIR --out OUT"
-    m = _session_images(small_world, "ros1/2012-03-31*", tmp_path / "im", 3)
+    m = _session_images(small_world, "ros1/2012-03-31*", tmp_path / "im", 2)
     q = _session_images(small_world, "ros2/2012-08-04*", tmp_path / "iq", 2)
     _write_images(tmp_path / "map", m, [f"m{i:02d}.png" for i in range(len(m))])
     _write_images(tmp_path / "new", q, [f"q{i:02d}.png" for i in range(len(q))])
