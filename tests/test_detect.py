@@ -633,4 +633,9 @@ def test_detect_by_retrieval_says_how_often_it_agrees_with_the_pose_pairs(
     assert f"{agree['agree']} of {agree['compared']}" in printed
     readme = " ".join((ROOT / "README.md").read_text().split())
     share = round(100 * agree["share"])
-    assert f"pairs {agree['agree']} of its {agree['compared']} query frames ({share}%)" in readme
+    ci = f"{100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%"
+    assert (
+        f"pairs {agree['agree']} of its {agree['compared']} query frames ({share}%, 95% interval "
+        f"{ci}; a random map frame: {100 * agree['chance_share']:.0f}%)" in readme
+    ), agree
+    assert f"(a random map frame: {100 * agree['chance_share']:.0f}%)" in printed

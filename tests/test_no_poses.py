@@ -165,6 +165,8 @@ def test_image_folder_flags_are_checked_in_one_line(tmp_path: Path, capsys) -> N
         (["--map", "x", "--map-images", str(tmp_path / "m"), "--query-images", str(tmp_path / "m")],
          "omit them"),
         ([], "--map-images DIR and --query-images DIR"),
+        (["--map-images", str(tmp_path / "m"), "--query-images", str(tmp_path / "m")],
+         "holds no image file"),
     ):  # fmt: skip
         assert main(["detect", *argv, "--out", str(tmp_path / "o")]) == 1
         assert says in one_error(capsys)
@@ -239,6 +241,13 @@ def test_reproduce_by_retrieval_pairs_as_the_descriptors_say_and_agrees_as_the_r
     dist = np.linalg.norm(a - b, axis=1)
     assert agree["compared"] == len(m) and agree["agree"] == int((dist <= 10.0).sum())
     assert agree["median_m"] == pytest.approx(float(np.median(dist)), abs=1e-3)
+    # chance: a map frame drawn uniformly from the session, within 10 m of the pose pair's frame
+    chance = [
+        float((np.linalg.norm(xy.loc[s].to_numpy() - p_, axis=1) <= 10.0).mean())
+        for s, p_ in zip(m.r_session, b, strict=True)
+    ]
+    assert agree["chance_share"] == pytest.approx(np.mean(chance), abs=1e-4)
+    assert agree["share_ci_low"] < agree["share"] < agree["share_ci_high"]
     # the README quotes this run
     share = round(100 * agree["agree"] / agree["compared"])
     r1 = pd.read_csv(tmp_path / "localization.csv")
@@ -248,8 +257,11 @@ def test_reproduce_by_retrieval_pairs_as_the_descriptors_say_and_agrees_as_the_r
         sel = (df["proposals"] == "all") & (df["season_pair"] == "all")
         return float(df[sel]["recall_at_1"].iloc[0])
 
+    ci = f"{100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%"
     quoted = (
-        f"{agree['agree']} of the {agree['compared']} retrieval pairs ({share}%) lie within\n10 m"
+        f"{agree['agree']} of the {agree['compared']} retrieval pairs ({share}%, 95% interval "
+        f"{ci}) lie within 10 m of the pose pair, where a map frame drawn at random would in "
+        f"{100 * agree['chance_share']:.0f}%"
     )
     flat = " ".join(text.split())
     assert " ".join(quoted.split()) in flat

@@ -146,8 +146,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
         print(
             "pairs by retrieval (SPEC 13.2): each query frame with the map frame it retrieves best"
             + (
-                f"; {agree['agree']} of {agree['compared']} ({100 * agree['share']:.0f}%) within "
-                f"{agree['within_m']:g} m of the pose pair"
+                f"; {agree['agree']} of {agree['compared']} ({100 * agree['share']:.0f}%, 95% "
+                f"interval {100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%) "
+                f"within {agree['within_m']:g} m of the pose pair (a random map frame: "
+                f"{100 * agree['chance_share']:.0f}%)"
                 if agree and agree["compared"]
                 else " (no poses to compare with)"
             )

@@ -342,9 +342,16 @@ def image_folders_config(
     names = ["map", *(f"query{i + 1 if i else ''}" for i in range(len(query_dirs)))]
     dirs = [Path(map_dir), *map(Path, query_dirs)]
     where = "--map-images/--query-images"
+    from harness.ingest.folders import IMAGE_SUFFIXES
+
     for d in dirs:
         if not d.is_dir():
             raise ConfigError(f"{where}: {d} is not a folder of images")
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in d.iterdir()):
+            raise ConfigError(
+                f"{where}: {d} holds no image file ({', '.join(IMAGE_SUFFIXES)}) in the folder "
+                "itself"
+            )
     sessions = [
         {"name": n, "source": str(d.expanduser().resolve()), "format": "images", "season": n}
         for n, d in zip(names, dirs, strict=True)

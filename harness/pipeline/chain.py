@@ -188,7 +188,9 @@ def pairing_note(pairing: dict[str, Any]) -> str:
     if agree and agree["compared"]:
         note += (
             f" Where poses exist, {agree['agree']} of {agree['compared']} retrieval pairs "
-            f"({100 * agree['share']:.0f}%) lie within {agree['within_m']:g} m of the pose pair."
+            f"({100 * agree['share']:.0f}%, 95% interval {100 * agree['share_ci_low']:.0f}-"
+            f"{100 * agree['share_ci_high']:.0f}%) lie within {agree['within_m']:g} m of the pose "
+            f"pair; a map frame drawn at random would in {100 * agree['chance_share']:.0f}%."
         )
     return note
 

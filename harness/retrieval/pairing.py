@@ -201,9 +201,14 @@ def pose_agreement(
 
     Returns:
         ``compared`` (query frames with both pairs), ``agree``, ``share`` (NaN when none was
-        compared), ``median_m`` (the median distance between the two reference frames),
-        ``within_m``.
+        compared) with its exact 95% interval ``share_ci_low`` / ``share_ci_high``
+        (Clopper-Pearson), ``chance_share`` (the share a map frame drawn uniformly from the
+        reference session would reach: the mean, over the compared pairs, of the share of that
+        session's frames within ``within_m`` of the pose pair's frame), ``median_m`` (the median
+        distance between the two reference frames), ``within_m``.
     """
+    from scipy.stats import beta
+
     keys = [*QUERY_KEY, "r_session"]
     m = by_retrieval[[*keys, "r_camera", "r_utime"]].merge(
         by_pose[[*keys, "r_camera", "r_utime"]], on=keys, suffixes=("", "_pose")
@@ -216,11 +221,21 @@ def pose_agreement(
 
     dist = np.linalg.norm(xy("r_camera", "r_utime") - xy("r_camera_pose", "r_utime_pose"), axis=1)
     ok = np.isfinite(dist)
-    agree = int((dist[ok] <= within_m).sum())
+    agree, n = int((dist[ok] <= within_m).sum()), int(ok.sum())
+    pose_xy = xy("r_camera_pose", "r_utime_pose")[ok]
+    chance = []
+    for s, pxy in zip(m["r_session"].to_numpy()[ok], pose_xy, strict=True):
+        ref = frames.loc[frames["session"] == s, ["x", "y"]].to_numpy(np.float64)
+        chance.append(float((np.linalg.norm(ref - pxy, axis=1) <= within_m).mean()))
+    lo = float(beta.ppf(0.025, agree, n - agree + 1)) if agree > 0 else 0.0
+    hi = float(beta.ppf(0.975, agree + 1, n - agree)) if agree < n else 1.0
     return {
-        "compared": int(ok.sum()),
+        "compared": n,
         "agree": agree,
-        "share": round(agree / int(ok.sum()), 4) if ok.any() else float("nan"),
+        "share": round(agree / n, 4) if n else float("nan"),
+        "share_ci_low": round(lo, 4) if n else float("nan"),
+        "share_ci_high": round(hi, 4) if n else float("nan"),
+        "chance_share": round(float(np.mean(chance)), 4) if n else float("nan"),
         "median_m": round(float(np.median(dist[ok])), 3) if ok.any() else float("nan"),
         "within_m": within_m,
     }
