@@ -13,6 +13,9 @@ from pathlib import Path
 
 from harness.errors import HarnessError
 
+#: The image files a folder session reads (``harness.ingest.folders``).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
+
 
 def check_input(
     path: Path | str, what: str, error: type[HarnessError] = HarnessError, directory: bool = False

@@ -46,7 +46,7 @@ from harness.config.schema import (
     YoloConfig,
 )
 from harness.errors import ConfigError
-from harness.inputs import read_text
+from harness.inputs import IMAGE_SUFFIXES, read_text
 
 __all__ = ["load_config", "parse_config", "parse_localizers", "project_root"]
 
@@ -342,8 +342,6 @@ def image_folders_config(
     names = ["map", *(f"query{i + 1 if i else ''}" for i in range(len(query_dirs)))]
     dirs = [Path(map_dir), *map(Path, query_dirs)]
     where = "--map-images/--query-images"
-    from harness.ingest.folders import IMAGE_SUFFIXES
-
     for d in dirs:
         if not d.is_dir():
             raise ConfigError(f"{where}: {d} is not a folder of images")

@@ -34,9 +34,10 @@ from typing import Any
 
 import numpy as np
 
+from harness.inputs import IMAGE_SUFFIXES
+
 IMAGE_TOPIC = "/camera/image/compressed"
 POSE_TOPIC = "/pose"
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 Raw = tuple[str, str, int, Any]  # (topic, type, log time ns, message)
 
 
