@@ -81,6 +81,167 @@ def _truth_boxes(ann: pd.DataFrame | None) -> dict[tuple[str, str, int], list[tu
     return out
 
 
+def _frame_boxes(dets: pd.DataFrame, k: tuple[str, str, int]) -> np.ndarray:
+    """(n, 4) x1, y1, x2, y2 of the change boxes detected in frame ``k``."""
+    b = dets[
+        (dets["kind"] == "detection")
+        & (dets["session"] == k[0])
+        & (dets["camera"] == k[1])
+        & (dets["utime"] == k[2])
+    ]
+    return b[["x1", "y1", "x2", "y2"]].to_numpy()
+
+
+def _query_thumb(
+    out: Path,
+    dets: pd.DataFrame,
+    truth: dict[tuple[str, str, int], list[tuple]],
+    k: tuple[str, str, int],
+    image: str,
+) -> tuple[str, str]:
+    """(caption, thumbnail) of a query frame: detections in yellow, annotated changes in red."""
+    q = read_image(image).copy()
+    for x1, y1, x2, y2 in _frame_boxes(dets, k):
+        cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (255, 220, 0), 2)
+    for x1, y1, x2, y2 in truth.get(k, []):
+        cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (230, 30, 30), 1)
+    what = "change boxes in yellow" + (", annotated changes in red" if k in truth else "")
+    name = f"{k[0]}_{k[1]}_{k[2]}"
+    return (f"query {k[0]} {k[2]} ({what})", _thumb(q, out / "detect" / f"{name}_q.jpg"))
+
+
+def _figures(cells: list[tuple[str, str]]) -> str:
+    return "".join(
+        f'<figure><img src="{_e(src)}" alt="{_e(cap)}"><figcaption>{_e(cap)}</figcaption></figure>'
+        for cap, src in cells
+    )
+
+
+def _place_html(
+    out: Path,
+    i: int,
+    r: Any,
+    dets: pd.DataFrame,
+    truth: dict[tuple[str, str, int], list[tuple]],
+    fk: pd.DataFrame,
+    maps: dict[tuple[str, str, int], Path],
+    map_session: str,
+) -> str:
+    """One most-changed place: query frame | the map frame it was paired with | its LoC map."""
+    k = (str(r.session), str(r.camera), int(r.utime))
+    name = f"{k[0]}_{k[1]}_{k[2]}"
+    cells = [_query_thumb(out, dets, truth, k, str(r.image))]
+    mk = (map_session, str(r.r_camera), int(r.r_utime)) if r.r_utime == r.r_utime else None
+    if mk is not None and mk in fk.index:
+        mimg = read_image(str(fk.loc[mk, "image"]))
+        cells.append((f"map {mk[0]} {mk[2]}", _thumb(mimg, out / "detect" / f"{name}_m.jpg")))
+    if k in maps:
+        bgr = cv2.imread(str(maps[k]))
+        assert bgr is not None, maps[k]  # written by this run
+        over = bgr[..., ::-1]
+        cells.append(
+            (
+                "LoC map (rank fusion) with its colour bar",
+                _thumb(over, out / "detect" / f"{name}_l.jpg"),
+            )
+        )
+    return (
+        f'<h3 id="place{i}">{i}. {_e(k[0])} {_e(k[1])} {k[2]}: change score {r.score:.3g}, '
+        f"{int(r.boxes)} change boxes, at ({r.x:.1f}, {r.y:.1f}) m</h3>"
+        + (
+            f'<p class="note" data-calibrated="{r.exceedance:.6g}">Calibrated: '
+            f"{_e(in_words(r.exceedance, 'frames of this run'))}; its top box: "
+            f"{_e(in_words(_top_box_exceedance(dets, k), 'candidate boxes'))}.</p>"
+            if hasattr(r, "exceedance")
+            else ""
+        )
+        + f'<div class="place" data-place="{i}">{_figures(cells)}</div>'
+    )
+
+
+def _annotated_html(
+    out: Path,
+    fr: pd.DataFrame,
+    dets: pd.DataFrame,
+    truth: dict[tuple[str, str, int], list[tuple]],
+) -> str:
+    """The annotated change frames, most changed first (up to ``ANNOTATED_SHOWN``)."""
+    in_truth = [
+        r for r in fr.sort_values(["score", "image_id"], ascending=[False, True]).itertuples()
+        if (str(r.session), str(r.camera), int(r.utime)) in truth
+    ]  # fmt: skip
+    shown = in_truth[:ANNOTATED_SHOWN]
+    if not shown:
+        return ""
+    annotated = "".join(
+        "<figure><img src='{1}' alt='{0}'><figcaption>{0}</figcaption></figure>".format(
+            *(_e(x) for x in _query_thumb(
+                out, dets, truth, (str(r.session), str(r.camera), int(r.utime)), str(r.image)
+            ))
+        )
+        for r in shown
+    )  # fmt: skip
+    return (
+        f'<h2 id="annotated">Annotated changes: {len(shown)} of the {len(in_truth)} annotated '
+        "change frames, most changed first</h2><p class='note'>Detections in yellow, the "
+        "annotated change boxes in red: where they meet, the boxes found the change.</p>"
+        f'<div class="place" data-annotated="{len(shown)}">{annotated}</div>'
+    )
+
+
+def table_d_html(table_d: pd.DataFrame | None) -> str:
+    """Table D with its floor, chance band, ceiling, candidates' recall and false-alarm rates."""
+    if table_d is None:
+        return ""
+    rows = "".join(
+        f"<tr><td>{_e(x.row)}</td><td data-verdict='{_e(x.verdict)}'>"
+        f"{x.ap50_voc_all_point:.3f} [{x.ci_low:.3f}, {x.ci_high:.3f}]</td>"
+        f"<td>{_e(VERDICT_WORDS[x.verdict])}</td>"
+        f"<td>{x.coco_ap_50_95:.3f}</td><td>{x.coco_ap_50:.3f}</td>"
+        f"<td>{x.annotated_frames}</td><td>{x.change_boxes}</td><td>{x.detections}</td></tr>"
+        for x in table_d.itertuples()
+    )
+    c = table_d.iloc[0]
+    td = (
+        '<h2 id="tableD">Table D: change boxes on the annotated frames</h2>'
+        "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
+        "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
+        "no-change give false positives only. Verdict by SPEC 9: above chance only above the "
+        "chance band and clear of the random row (paired).</p>"
+        '<table data-table="D"><tr><th></th><th>AP50 (VOC all-point)</th><th>verdict</th>'
+        "<th>COCO AP@[.5:.95]</th><th>COCO AP@.5</th><th>frames</th><th>change boxes</th>"
+        f"<th>detections</th></tr>{rows}</table>"
+        f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {c.floor:.3f} "
+        f"(mean of random scores, same NMS), chance band {c.chance_low:.3f}-"
+        f"{c.chance_high:.3f}, ceiling {c.ceiling:.3f} (candidates scored by their best IoU), "
+        f"candidates' recall at IoU 0.5 {c.candidate_recall:.3f}.</p>"
+    )
+    if "alarm_measured" in table_d.columns and int(c.no_change_frames):
+        td += (
+            f"<p class='note' data-alarm='{c.alarm_nominal:g}'>Calibrated scores: at a "
+            f"nominal false-alarm rate of {c.alarm_nominal:g}, "
+            f"{c.alarm_measured:.3f} [{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] (95% exact "
+            f"interval) of the {int(c.no_change_frames)} frames annotated no-change are "
+            "flagged.</p>"
+        )
+    return td + "".join(f'<p class="warn">{_e(w)}</p>' for w in table_d_warnings(table_d))
+
+
+def _trajectory_html(frames: pd.DataFrame) -> str:
+    if has_poses(frames):
+        return (
+            '<h2 id="trajectory">Where</h2><img id="trajectory-map" src="trajectory.png" '
+            'alt="query trajectory over the map, coloured by change score" style="max-width:760px">'
+        )
+    return (
+        '<h2 id="trajectory">When</h2><p class="note">The sessions have no poses '
+        "(SPEC 13.2): each query frame was paired with the map frame it retrieves best, and "
+        "the figure shows the change score along the query sequence.</p>"
+        '<img id="trajectory-map" src="trajectory.png" alt="change score of each query frame '
+        'in time order" style="max-width:760px">'
+    )
+
+
 def write_detect_page(
     out: Path,
     fr: pd.DataFrame,
@@ -100,106 +261,10 @@ def write_detect_page(
     """
     fk = frames.set_index(FRAME_KEY)
     truth = _truth_boxes(ann)
-
-    def query_thumb(k: tuple[str, str, int], image: str, name: str) -> tuple[str, str]:
-        q = read_image(image).copy()
-        b = dets[
-            (dets["kind"] == "detection")
-            & (dets["session"] == k[0])
-            & (dets["camera"] == k[1])
-            & (dets["utime"] == k[2])
-        ]
-        for x1, y1, x2, y2 in b[["x1", "y1", "x2", "y2"]].to_numpy():
-            cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (255, 220, 0), 2)
-        for x1, y1, x2, y2 in truth.get(k, []):
-            cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (230, 30, 30), 1)
-        what = "change boxes in yellow" + (", annotated changes in red" if k in truth else "")
-        return (f"query {k[0]} {k[2]} ({what})", _thumb(q, out / "detect" / f"{name}_q.jpg"))
-
-    places = []
-    for i, r in enumerate(top.itertuples(), start=1):
-        k = (str(r.session), str(r.camera), int(r.utime))
-        name = f"{k[0]}_{k[1]}_{k[2]}"
-        cells = [query_thumb(k, str(r.image), name)]
-        mk = (map_session, str(r.r_camera), int(r.r_utime)) if r.r_utime == r.r_utime else None
-        if mk is not None and mk in fk.index:
-            mimg = read_image(str(fk.loc[mk, "image"]))
-            cells.append((f"map {mk[0]} {mk[2]}", _thumb(mimg, out / "detect" / f"{name}_m.jpg")))
-        if k in maps:
-            bgr = cv2.imread(str(maps[k]))
-            assert bgr is not None, maps[k]  # written by this run
-            over = bgr[..., ::-1]
-            cells.append(
-                (
-                    "LoC map (rank fusion) with its colour bar",
-                    _thumb(over, out / "detect" / f"{name}_l.jpg"),
-                )
-            )
-        figs = "".join(
-            f'<figure><img src="{_e(src)}" alt="{_e(cap)}">'
-            f"<figcaption>{_e(cap)}</figcaption></figure>"
-            for cap, src in cells
-        )
-        places.append(
-            f'<h3 id="place{i}">{i}. {_e(k[0])} {_e(k[1])} {k[2]}: change score {r.score:.3g}, '
-            f"{int(r.boxes)} change boxes, at ({r.x:.1f}, {r.y:.1f}) m</h3>"
-            + (
-                f'<p class="note" data-calibrated="{r.exceedance:.6g}">Calibrated: '
-                f"{_e(in_words(r.exceedance, 'frames of this run'))}; its top box: "
-                f"{_e(in_words(_top_box_exceedance(dets, k), 'candidate boxes'))}.</p>"
-                if hasattr(r, "exceedance")
-                else ""
-            )
-            + f'<div class="place" data-place="{i}">{figs}</div>'
-        )
-    in_truth = [
-        r for r in fr.sort_values(["score", "image_id"], ascending=[False, True]).itertuples()
-        if (str(r.session), str(r.camera), int(r.utime)) in truth
-    ]  # fmt: skip
-    shown = in_truth[:ANNOTATED_SHOWN]
-    annotated = "".join(
-        "<figure><img src='{1}' alt='{0}'><figcaption>{0}</figcaption></figure>".format(
-            *(_e(x) for x in query_thumb(
-                (str(r.session), str(r.camera), int(r.utime)), str(r.image),
-                f"{r.session}_{r.camera}_{r.utime}",
-            ))
-        )
-        for r in shown
-    )  # fmt: skip
-    td = ""
-    if table_d is not None:
-        rows = "".join(
-            f"<tr><td>{_e(x.row)}</td><td data-verdict='{_e(x.verdict)}'>"
-            f"{x.ap50_voc_all_point:.3f} [{x.ci_low:.3f}, {x.ci_high:.3f}]</td>"
-            f"<td>{_e(VERDICT_WORDS[x.verdict])}</td>"
-            f"<td>{x.coco_ap_50_95:.3f}</td><td>{x.coco_ap_50:.3f}</td>"
-            f"<td>{x.annotated_frames}</td><td>{x.change_boxes}</td><td>{x.detections}</td></tr>"
-            for x in table_d.itertuples()
-        )
-        c = table_d.iloc[0]
-        td = (
-            '<h2 id="tableD">Table D: change boxes on the annotated frames</h2>'
-            "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
-            "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
-            "no-change give false positives only. Verdict by SPEC 9: above chance only above the "
-            "chance band and clear of the random row (paired).</p>"
-            '<table data-table="D"><tr><th></th><th>AP50 (VOC all-point)</th><th>verdict</th>'
-            "<th>COCO AP@[.5:.95]</th><th>COCO AP@.5</th><th>frames</th><th>change boxes</th>"
-            f"<th>detections</th></tr>{rows}</table>"
-            f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {c.floor:.3f} "
-            f"(mean of random scores, same NMS), chance band {c.chance_low:.3f}-"
-            f"{c.chance_high:.3f}, ceiling {c.ceiling:.3f} (candidates scored by their best IoU), "
-            f"candidates' recall at IoU 0.5 {c.candidate_recall:.3f}.</p>"
-        )
-        if "alarm_measured" in table_d.columns and int(c.no_change_frames):
-            td += (
-                f"<p class='note' data-alarm='{c.alarm_nominal:g}'>Calibrated scores: at a "
-                f"nominal false-alarm rate of {c.alarm_nominal:g}, "
-                f"{c.alarm_measured:.3f} [{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] (95% exact "
-                f"interval) of the {int(c.no_change_frames)} frames annotated no-change are "
-                "flagged.</p>"
-            )
-        td += "".join(f'<p class="warn">{_e(w)}</p>' for w in table_d_warnings(table_d))
+    places = [
+        _place_html(out, i, r, dets, truth, fk, maps, map_session)
+        for i, r in enumerate(top.itertuples(), start=1)
+    ]
     qs = sorted(set(fr["session"]))
     page = (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
@@ -209,25 +274,9 @@ def write_detect_page(
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
         "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "
         "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
-        + (
-            '<h2 id="trajectory">Where</h2><img id="trajectory-map" src="trajectory.png" '
-            'alt="query trajectory over the map, coloured by change score" style="max-width:760px">'
-            if has_poses(frames)
-            else '<h2 id="trajectory">When</h2><p class="note">The sessions have no poses '
-            "(SPEC 13.2): each query frame was paired with the map frame it retrieves best, and "
-            "the figure shows the change score along the query sequence.</p>"
-            '<img id="trajectory-map" src="trajectory.png" alt="change score of each query frame '
-            'in time order" style="max-width:760px">'
-        )
-        + td
-        + (
-            f'<h2 id="annotated">Annotated changes: {len(shown)} of the {len(in_truth)} annotated '
-            "change frames, most changed first</h2><p class='note'>Detections in yellow, the "
-            "annotated change boxes in red: where they meet, the boxes found the change.</p>"
-            f'<div class="place" data-annotated="{len(shown)}">{annotated}</div>'
-            if shown
-            else ""
-        )
+        + _trajectory_html(frames)
+        + table_d_html(table_d)
+        + _annotated_html(out, fr, dets, truth)
         + f'<h2 id="places">The {len(top)} most changed places</h2>'
         + "".join(places)
         + "</body></html>\n"

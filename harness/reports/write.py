@@ -263,6 +263,31 @@ class Reports:
     localization_also: pd.DataFrame | None = None  # at [report] gt_radius_also
 
 
+@dataclass
+class _Files:
+    """The files one call of :func:`write_reports` writes (the rest of ``out`` is stale)."""
+
+    out: Path
+    multi: bool
+    written: set[Path] = field(default_factory=set)
+
+    def put(self, path: Path) -> Path:
+        """``path`` (under ``out``), recorded as written by this run."""
+        self.written.add(path.resolve())
+        return path
+
+    def text(self, name: str, text: str) -> None:
+        """Write ``out/name`` atomically and record it."""
+        write_text(self.put(self.out / name), text)
+
+    def tag(self, df: pd.DataFrame, name: str) -> pd.DataFrame:
+        """``df`` with a first ``localizer`` column where the run has several localizers."""
+        if self.multi and "localizer" not in df.columns:
+            df = df.copy()
+            df.insert(0, "localizer", name)
+        return df
+
+
 def write_reports(
     cfg: Config,
     out: Path,
@@ -291,39 +316,109 @@ def write_reports(
         ]
     else:
         blocks = list(samples)
-    multi = len(blocks) > 1
-    written: set[Path] = set()
+    files = _Files(out, len(blocks) > 1)
+    locs, locs_also = _write_localization(cfg, files, blocks, frames, ann)
+    splits = paper_splits(cfg.splits)
+    allps = [b.samples[b.samples["proposals"] == "all"].reset_index(drop=True) for b in blocks]
+    ids = {g: i for i, g in enumerate(sorted(set().union(*(set(sample_groups(a)) for a in allps))))}
+    summaries, curves, boots = _write_splits(cfg, files, blocks, allps, ids, progress(splits))
+    results = [
+        _block_reports(cfg, b, summaries[bi], allps[bi], frames, ann, ids, locs, locs_also)
+        for bi, b in enumerate(blocks)
+    ]
+    summ_all = pd.concat([r.summary for r in results], ignore_index=True)
+    write_parquet(files.put(out / "splits" / "summary.parquet"), summ_all)
+    allc = [
+        files.tag(pd.concat(c, ignore_index=True), b.name)
+        for b, c in zip(blocks, curves, strict=True)
+        if c
+    ]
+    if allc:
+        write_parquet(
+            files.put(out / "splits" / "pr_curves.parquet"), pd.concat(allc, ignore_index=True)
+        )
+    _write_change_tables(files, results)
+    table_l = _write_comparisons(cfg, files, results, boots, splits)
+    _write_registered(cfg, files, results)
+    if cfg.report.plots:
+        _write_plots(cfg, files, curves[0], blocks[0].samples, frames, ann)
+    _remove_old(files)
+    if not files.multi:
+        return results[0]
+    first = results[0]
+    return Reports(
+        summ_all,
+        pd.concat([files.tag(v, k) for k, v in locs.items()], ignore_index=True),
+        first.tables,
+        {
+            t: [f"[{r.localizer}] {w}" for r in results for w in r.warnings[t]]
+            for t in ("I", "S", "P")
+        },
+        first.methods,
+        ", ".join(r.localizer for r in results),
+        results,
+        table_l,
+    )
 
-    def put(path: Path) -> Path:
-        written.add(path.resolve())
-        return path
 
-    def tag(df: pd.DataFrame, name: str) -> pd.DataFrame:
-        if multi and "localizer" not in df.columns:
-            df = df.copy()
-            df.insert(0, "localizer", name)
-        return df
+def _write_splits(
+    cfg: Config,
+    files: _Files,
+    blocks: list[Block],
+    allps: list[pd.DataFrame],
+    ids: dict,
+    splits: Iterable[Split],
+) -> tuple[
+    list[list[dict]], list[list[pd.DataFrame]], list[dict[tuple[str, str, str], np.ndarray]]
+]:
+    """Write ``splits/<split>.parquet`` of every block, split by split.
 
+    Returns, per block, its summary rows, PR curves and bootstrap APs (paired comparisons).
+    """
+    summaries: list[list[dict]] = [[] for _ in blocks]
+    curves: list[list[pd.DataFrame]] = [[] for _ in blocks]
+    boots: list[dict[tuple[str, str, str], np.ndarray]] = [{} for _ in blocks]
+    for sp in splits:
+        reps = []
+        for bi, b in enumerate(blocks):
+            rep = _split_block(cfg, b, allps[bi], sp, ids, summaries[bi], curves[bi], boots[bi])
+            reps.append(rep)
+        write_parquet(
+            files.put(files.out / "splits" / f"{sp.name}.parquet"),
+            pd.concat(reps, ignore_index=True),
+        )
+        del reps
+    return summaries, curves, boots
+
+
+def _write_localization(
+    cfg: Config,
+    files: _Files,
+    blocks: list[Block],
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+) -> tuple[dict[str, pd.DataFrame], dict[str, pd.DataFrame]]:
+    """``localization.*`` (and ``localization_also.*``) and ``ranks.parquet`` of every block.
+
+    Returns the localization table per block name, at ``gt_radius_m`` and at ``gt_radius_also``.
+    """
     located = [b for b in blocks if b.ranks is not None]
     locs = {
         b.name: localization_table(b.ranks, frames, ann, cfg.report.recall_at)
         for b in located
         if b.ranks is not None
     }
-    write_text(
-        put(out / "localization.csv"),
-        pd.concat([tag(v, k) for k, v in locs.items()], ignore_index=True).to_csv(
+    files.text(
+        "localization.csv",
+        pd.concat([files.tag(v, k) for k, v in locs.items()], ignore_index=True).to_csv(
             index=False, float_format="%.4f"
         ),
     )
-    write_text(
-        put(out / "localization.md"),
+    files.text(
+        "localization.md",
         "\n".join(localization_markdown(v, cfg.retrieval.gt_radius_m, k) for k, v in locs.items()),
     )
-    write_text(
-        put(out / "localization.tex"),
-        "\n".join(localization_latex(v, k) for k, v in locs.items()),
-    )
+    files.text("localization.tex", "\n".join(localization_latex(v, k) for k, v in locs.items()))
     also = cfg.report.gt_radius_also
     locs_also = {
         b.name: localization_table(b.ranks_also, frames, ann, cfg.report.recall_at)
@@ -331,93 +426,81 @@ def write_reports(
         if b.ranks_also is not None
     }
     if locs_also:  # the same table with the place gt_radius_also wide
-        write_text(
-            put(out / "localization_also.csv"),
+        files.text(
+            "localization_also.csv",
             pd.concat(
-                [tag(v, k).assign(gt_radius_m=also) for k, v in locs_also.items()],
+                [files.tag(v, k).assign(gt_radius_m=also) for k, v in locs_also.items()],
                 ignore_index=True,
             ).to_csv(index=False, float_format="%.4f"),
         )
-        write_text(
-            put(out / "localization_also.md"),
+        files.text(
+            "localization_also.md",
             "\n".join(localization_markdown(v, also, k) for k, v in locs_also.items()),
         )
-        write_text(
-            put(out / "localization_also.tex"),
+        files.text(
+            "localization_also.tex",
             "\n".join(localization_latex(v, k) for k, v in locs_also.items()),
         )
     write_parquet(
-        put(out / "ranks.parquet"),
+        files.put(files.out / "ranks.parquet"),
         pd.concat([b.ranks.assign(localizer=b.name) for b in located if b.ranks is not None]),
     )
-    splits = paper_splits(cfg.splits)
-    allps = [b.samples[b.samples["proposals"] == "all"].reset_index(drop=True) for b in blocks]
-    ids = {g: i for i, g in enumerate(sorted(set().union(*(set(sample_groups(a)) for a in allps))))}
-    summaries: list[list[dict]] = [[] for _ in blocks]
-    curves: list[list[pd.DataFrame]] = [[] for _ in blocks]
-    boots: list[dict[tuple[str, str, str], np.ndarray]] = [{} for _ in blocks]
-    for sp in progress(splits):
-        reps = []
-        for bi, b in enumerate(blocks):
-            rep = _split_block(cfg, b, allps[bi], sp, ids, summaries[bi], curves[bi], boots[bi])
-            reps.append(rep)
-        write_parquet(
-            put(out / "splits" / f"{sp.name}.parquet"), pd.concat(reps, ignore_index=True)
-        )
-        del reps
-    results = []
-    for bi, b in enumerate(blocks):
-        summaries[bi] += pixel_image_rows(cfg, allps[bi], frames, ann, b.methods, ids)
-        summ = holm_columns(pd.DataFrame(summaries[bi]), 1.0 - cfg.report.ci)
-        summ.insert(0, "localizer", b.name)
-        tables, warnings = {}, {}
-        for table in ("I", "S", "P"):
-            main = summ[
-                (summ["table"] == table)
-                & (summ["proposals"] == "all")
-                & (summ["season_pair"] == "all")
-            ]
-            warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(b.notes)
-            tables[table] = pivot(summ, table, b.methods)
-        loc_b = locs.get(b.name, pd.DataFrame())
-        results.append(
-            Reports(
-                summ,
-                loc_b,
-                tables,
-                warnings,
-                b.methods,
-                b.name,
-                costs=dict(b.costs),
-                localization_also=locs_also.get(b.name),
-            )
-        )
-    summ_all = pd.concat([r.summary for r in results], ignore_index=True)
-    write_parquet(put(out / "splits" / "summary.parquet"), summ_all)
-    allc = [
-        tag(pd.concat(c, ignore_index=True), b.name)
-        for b, c in zip(blocks, curves, strict=True)
-        if c
-    ]
-    if allc:
-        write_parquet(put(out / "splits" / "pr_curves.parquet"), pd.concat(allc, ignore_index=True))
+    return locs, locs_also
+
+
+def _block_reports(
+    cfg: Config,
+    b: Block,
+    rows: list[dict],
+    allp: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    ids: dict,
+    locs: dict[str, pd.DataFrame],
+    locs_also: dict[str, pd.DataFrame],
+) -> Reports:
+    """One block's summary (split rows, pixel and image rows, Holm), Tables I/S/P, warnings."""
+    rows += pixel_image_rows(cfg, allp, frames, ann, b.methods, ids)
+    summ = holm_columns(pd.DataFrame(rows), 1.0 - cfg.report.ci)
+    summ.insert(0, "localizer", b.name)
+    tables, warnings = {}, {}
+    for table in ("I", "S", "P"):
+        main = summ[
+            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+        ]
+        warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(b.notes)
+        tables[table] = pivot(summ, table, b.methods)
+    return Reports(
+        summ,
+        locs.get(b.name, pd.DataFrame()),
+        tables,
+        warnings,
+        b.methods,
+        b.name,
+        costs=dict(b.costs),
+        localization_also=locs_also.get(b.name),
+    )
+
+
+def _write_change_tables(files: _Files, results: list[Reports]) -> None:
+    """Tables I, S and P (``table1``, ``tableS``, ``tableP``) as CSV, markdown and LaTeX."""
     for table, stem in (("I", "table1"), ("S", "tableS"), ("P", "tableP")):
-        write_text(
-            put(out / f"{stem}.csv"),
+        files.text(
+            f"{stem}.csv",
             "".join(
-                table_csv(r.tables[table], r.localizer if multi else None, header=i == 0)
+                table_csv(r.tables[table], r.localizer if files.multi else None, header=i == 0)
                 for i, r in enumerate(results)
             ),
         )
-        write_text(
-            put(out / f"{stem}.md"),
+        files.text(
+            f"{stem}.md",
             "\n".join(
                 table_markdown(r.summary, table, r.methods, r.warnings[table], r.localizer)
                 for r in results
             ),
         )
-        write_text(
-            put(out / f"{stem}.tex"),
+        files.text(
+            f"{stem}.tex",
             "\n".join(
                 table_latex(
                     r.tables[table],
@@ -429,9 +512,19 @@ def write_reports(
                 for r in results
             ),
         )
+
+
+def _write_comparisons(
+    cfg: Config,
+    files: _Files,
+    results: list[Reports],
+    boots: list[dict[tuple[str, str, str], np.ndarray]],
+    splits: list[Split],
+) -> pd.DataFrame | None:
+    """``comparisons.md``, and with several localizers Table L (``tableL.*``), returned."""
     table_l = None
     cmp_md = "\n".join(comparisons_markdown(r.summary, r.methods, r.localizer) for r in results)
-    if multi:
+    if files.multi:
         from harness.reports.leaderboard import (
             leaderboard,
             leaderboard_csv,
@@ -440,12 +533,17 @@ def write_reports(
         )
 
         table_l = leaderboard(cfg, results, boots, splits)
-        write_text(put(out / "tableL.csv"), leaderboard_csv(table_l))
-        write_text(put(out / "tableL.md"), leaderboard_md(table_l, cfg))
-        write_text(put(out / "tableL.tex"), leaderboard_latex(table_l))
+        files.text("tableL.csv", leaderboard_csv(table_l))
+        files.text("tableL.md", leaderboard_md(table_l, cfg))
+        files.text("tableL.tex", leaderboard_latex(table_l))
         cmp_md = leaderboard_md(table_l, cfg, comparisons=True) + "\n" + cmp_md
-    write_text(put(out / "comparisons.md"), cmp_md)
-    for spec in report_tables.load_builtin().values():  # registered (harness/reports/tables.py)
+    files.text("comparisons.md", cmp_md)
+    return table_l
+
+
+def _write_registered(cfg: Config, files: _Files, results: list[Reports]) -> None:
+    """The registered tables (harness/reports/tables.py) that have rows for this run."""
+    for spec in report_tables.load_builtin().values():
         try:
             frame = spec.compute(cfg, results)
             if frame is None or not len(frame):
@@ -453,19 +551,34 @@ def write_reports(
             frame = report_tables.check_frame(spec, frame)
         except ValueError as err:
             raise ConfigError(f"report table {spec.id!r}: {err}") from err
-        write_text(put(out / f"{spec.stem}.csv"), report_tables.to_csv(frame))
-        write_text(put(out / f"{spec.stem}.md"), report_tables.to_markdown(spec, frame))
-        write_text(put(out / f"{spec.stem}.tex"), report_tables.to_latex(spec, frame))
-    if cfg.report.plots:
-        from harness.reports.plots import locmap_figures, pr_plots
+        files.text(f"{spec.stem}.csv", report_tables.to_csv(frame))
+        files.text(f"{spec.stem}.md", report_tables.to_markdown(spec, frame))
+        files.text(f"{spec.stem}.tex", report_tables.to_latex(spec, frame))
 
-        if curves[0]:
-            for png in pr_plots(pd.concat(curves[0], ignore_index=True), out / "plots"):
-                put(png)
-        for png in locmap_figures(
-            blocks[0].samples, frames, ann, out / "locmaps", cfg.report.locmap_examples
-        ):
-            put(png)
+
+def _write_plots(
+    cfg: Config,
+    files: _Files,
+    curves: list[pd.DataFrame],
+    samples: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+) -> None:
+    """The first block's PR curves (``plots/``) and LoC-map figures (``locmaps/``)."""
+    from harness.reports.plots import locmap_figures, pr_plots
+
+    if curves:
+        for png in pr_plots(pd.concat(curves, ignore_index=True), files.out / "plots"):
+            files.put(png)
+    for png in locmap_figures(
+        samples, frames, ann, files.out / "locmaps", cfg.report.locmap_examples
+    ):
+        files.put(png)
+
+
+def _remove_old(files: _Files) -> None:
+    """Remove the reports of an earlier run into ``out`` that this run did not write."""
+    out, written = files.out, files.written
     stale = _remove_stale(out / "splits", "*.parquet", written) + _remove_stale(
         out / "plots", "pr_*.png", written
     )
@@ -476,22 +589,6 @@ def write_reports(
         log.info(
             "reports: removed %d file(s) of an earlier run that this run no longer writes", stale
         )
-    if not multi:
-        return results[0]
-    first = results[0]
-    return Reports(
-        summ_all,
-        pd.concat([tag(v, k) for k, v in locs.items()], ignore_index=True),
-        first.tables,
-        {
-            t: [f"[{r.localizer}] {w}" for r in results for w in r.warnings[t]]
-            for t in ("I", "S", "P")
-        },
-        first.methods,
-        ", ".join(r.localizer for r in results),
-        results,
-        table_l,
-    )
 
 
 def _split_block(

@@ -142,39 +142,8 @@ def localization_also(out: Path, cfg: dict[str, Any], lead: str, who: str) -> st
     return localization_table(loc, radius, f"{who}, place {radius:g} m", "localization-also")
 
 
-def write_html_report(out: Path, gallery: int | None = None) -> Path:
-    """Write ``out/report.html`` (and its images under ``out/report/``) for a finished run.
-
-    Raises:
-        HarnessError: ``out`` holds no finished run (no ``run.json``).
-    """
-    from harness.ingest.annotations import load_annotations
-
-    out = Path(out)
-    run: dict[str, Any] = read_run_record(out)
-    cfg = run["config"]
-    n = int(cfg["report"].get("gallery", 3)) if gallery is None else gallery
-    summ_all = pd.read_parquet(out / "splits" / "summary.parquet")
-    loc = pd.read_csv(out / "localization.csv")
-    ranks = pd.read_parquet(out / "ranks.parquet")
-    names = list(dict.fromkeys(summ_all["localizer"].astype(str)))
-    lead_name = names[0]  # with several localizers the sections below show the first one's
-    multi = len(names) > 1
-    extra = report_tables.written(out)  # registered tables (harness/reports/tables.py)
-    summ = summ_all[summ_all["localizer"] == lead_name] if multi else summ_all
-    if multi:
-        loc = loc[loc["localizer"] == lead_name]
-        ranks = ranks[ranks["localizer"] == lead_name]
-    frames = pd.read_parquet(out / "cache" / "frames" / run["keys"]["frames"] / "frames.parquet")
-    frames["image"] = [local_uri(u, out, Path(cfg["data_root"])) for u in frames["image"]]
-    ann = load_annotations(Path(cfg["annotations"]))
-    methods = tuple(m for m in METHOD_LABELS if m in set(summ["method"]))
-    warnings = run.get("warnings", {})
-    if multi:  # the first block's lines (the record prefixes each with its block's name)
-        pre = f"[{lead_name}] "
-        warnings = {
-            t: [w[len(pre) :] for w in ws if w.startswith(pre)] for t, ws in warnings.items()
-        }
+def run_facts(run: dict[str, Any], cfg: dict[str, Any]) -> tuple[str, str]:
+    """The localizers' names and the rows of the page's *Run* table (config, versions, counts)."""
     counts = run["counts"]
     locs = [x for x in run.get("localizers") or [] if isinstance(x, dict)] or [
         {"name": cfg.get("descriptor", {}).get("name", "?"), "kind": "descriptor"}
@@ -224,7 +193,14 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     ]
     fact_rows = "".join(f"<tr><td>{esc(k)}</td><td>{esc(v)}</td></tr>" for k, v in facts)
     fact_rows += f"<tr><td>ranking</td><td>{rank_counts_table(counts.get('rank_counts'))}</td></tr>"
-    who = f" (localizer: {lead_name}; data: {Path(str(cfg['data_root'])).name})"
+    return loc_name, fact_rows
+
+
+def comparisons_html(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
+    """The section of paired comparisons: AP(method) - AP(rank fusion), per table and split.
+
+    Each difference with its bootstrap interval, coloured by it, and Holm's mark where it holds.
+    """
     cmp_rows = summ[
         (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()
     ]
@@ -267,42 +243,27 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
             f'<p class="note">{esc(holm_sentence(t, TABLE_INTRO[table][0]))}</p><table '
             f'data-table="cmp{table}"><tr><th>difference</th>{head}</tr>{diffs}</table>'
         )
-    headline = float(cfg["report"].get("headline_roc_max", 0.05))
-    split_file = headline_split(out, headline)
-    split_name = split_file.stem if split_file is not None else ""
-    edges = [float(e) for e in cfg["splits"]["sob_strata"]]
-    (out / "report").mkdir(exist_ok=True)
-    rep = pd.read_parquet(split_file) if split_file is not None else None
-    if rep is not None and multi:
-        rep = rep[rep["localizer"] == lead_name]
-    lead = "rank_fusion" if "rank_fusion" in methods else methods[0]
-    pr_s, pr_files = (
-        pr_figure_html(
-            out, rep, "label_stratified", "S", f"Table S labels (RoC only), {split_name}"
-        )
-        if rep is not None
-        else ("", [])
+    return (
+        '<h2 id="comparisons">Paired comparisons with rank fusion</h2><p '
+        'class="note">AP(method) &minus; AP(rank fusion) over the same '
+        "bootstrap resamples of query images, with its 95% interval; green: better than "
+        "rank fusion, red: worse, white: cannot be told apart "
+        "on this data.</p>" + cmp_html
     )
-    pr_i, pr_files_i = (
-        pr_figure_html(out, rep, "label", "I", f"Table I labels (the paper's), {split_name}")
-        if rep is not None
-        else ("", [])
-    )
-    heat_s = heatmap_stratified(rep, lead, edges, split_name) if rep is not None else ""
-    only = lead_name if multi else None
-    gallery_s, thumbs = gallery_html(
-        out, split_file, n, frames, ann, ranks, "label_stratified", edges, only
-    )
-    # the paper's protocol is collapsed at the end: one example per method and kind is enough there
-    gallery_i, thumbs_i = gallery_html(
-        out, split_file, min(n, 1), frames, ann, ranks, "label", edges, only
-    )
-    keep = {p.resolve() for p in [*thumbs, *thumbs_i, *pr_files, *pr_files_i]}
-    for p in (out / "report").glob("*") if (out / "report").is_dir() else []:
-        if p.suffix in (".jpg", ".png") and p.resolve() not in keep:
-            p.unlink()  # images of an earlier page that this page no longer shows
-    confound = [w for w in warnings.get("I", []) if w.startswith("WARNING")]
-    notes_i = [w for w in warnings.get("I", []) if not w.startswith("WARNING")]
+
+
+def protocol_section(
+    summ: pd.DataFrame,
+    methods: tuple[str, ...],
+    lines: list[str],
+    who: str,
+    heat: str,
+    pr_i: str,
+    gallery_i: str,
+) -> str:
+    """The paper's protocol (Table I) at the end of the page, collapsed, with its warnings."""
+    confound = [w for w in lines if w.startswith("WARNING")]
+    notes_i = [w for w in lines if not w.startswith("WARNING")]
     protocol = (
         '<h2 id="protocol">The paper\'s protocol (Table I): read it last</h2>'
         "<p class='note'>Table I labels a box positive when it is at least 90% inside a change "
@@ -315,16 +276,16 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         "under its labels</summary>"
         + change_table(summ, "I", methods, notes_i, who)
         + f'<div class="grid pr" id="prI">{pr_i}</div>'
-        + heatmap(summ, lead, split_name)
+        + heat
         + gallery_i
         + "</details>"
     )
-    body = [
-        f"<h1>Detection-by-Localization: {esc(cfg['name'])}, localizer {esc(loc_name)}</h1>",
-        (
-            f"<p class='sub'>data: {esc(cfg['data_root'])}; dbl-harness "
-            f"{esc(run['versions'].get('dbl-harness', ''))}, seed {run['seed']}</p>"
-        ),
+    return protocol
+
+
+def nav_html(multi: bool, extra: list[tuple[str, str]]) -> str:
+    """The page's table of contents: (anchor, title) of every section, registered tables too."""
+    return (
         "<nav>"
         + "".join(
             f'<a href="#{a}">{t}</a>'
@@ -334,7 +295,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
                 *([("tableL", "Table L"), ("blocks", "per localizer")] if multi else []),
                 ("tableS", "Table S"),
                 ("tableP", "Table P"),
-                *((spec.stem, f"Table {spec.id}") for spec, _ in extra),
+                *extra,
                 ("comparisons", "comparisons"),
                 ("pr", "PR curve"),
                 ("heatmap", "season pairs"),
@@ -342,7 +303,135 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
                 ("protocol", "Table I (paper's protocol)"),
             )
         )
-        + "</nav>",
+        + "</nav>"
+    )
+
+
+def page_html(title: str, body: list[str]) -> str:
+    """The whole HTML document: head (title, style, script) and the sections of ``body``."""
+    return (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><meta name='viewport' "
+        "content='width=device-width, initial-scale=1'>"
+        f"<title>dbl-harness report: {esc(title)}</title>"
+        f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
+        + "\n".join(body)
+        + "</body></html>\n"
+    )
+
+
+def page_figures(
+    out: Path,
+    split_file: Path | None,
+    rep: pd.DataFrame | None,
+    n: int,
+    data: tuple[pd.DataFrame, Any, pd.DataFrame],
+    edges: list[float],
+    only: str | None,
+) -> tuple[str, str, str, str]:
+    """PR curves (Table S and I labels) and galleries, written under ``out/report/``.
+
+    Images of an earlier page that this one no longer shows are removed. ``data``: frames,
+    annotations, ranks. Returns the HTML of the PR figure (S, I) and of the galleries (S, I).
+    """
+    frames, ann, ranks = data
+    split_name = split_file.stem if split_file is not None else ""
+    pr_s, pr_files = (
+        pr_figure_html(
+            out, rep, "label_stratified", "S", f"Table S labels (RoC only), {split_name}"
+        )
+        if rep is not None
+        else ("", [])
+    )
+    pr_i, pr_files_i = (
+        pr_figure_html(out, rep, "label", "I", f"Table I labels (the paper's), {split_name}")
+        if rep is not None
+        else ("", [])
+    )
+    gallery_s, thumbs = gallery_html(
+        out, split_file, n, frames, ann, ranks, "label_stratified", edges, only
+    )
+    # the paper's protocol is collapsed at the end: one example per method and kind is enough there
+    gallery_i, thumbs_i = gallery_html(
+        out, split_file, min(n, 1), frames, ann, ranks, "label", edges, only
+    )
+    keep = {p.resolve() for p in [*thumbs, *thumbs_i, *pr_files, *pr_files_i]}
+    for p in (out / "report").glob("*") if (out / "report").is_dir() else []:
+        if p.suffix in (".jpg", ".png") and p.resolve() not in keep:
+            p.unlink()  # images of an earlier page that this page no longer shows
+    return pr_s, pr_i, gallery_s, gallery_i
+
+
+def run_frames(out: Path, run: dict[str, Any]) -> tuple[pd.DataFrame, Any]:
+    """The run's frames (image paths as this machine reads them) and its annotations."""
+    from harness.ingest.annotations import load_annotations
+
+    cfg = run["config"]
+    frames = pd.read_parquet(out / "cache" / "frames" / run["keys"]["frames"] / "frames.parquet")
+    frames["image"] = [local_uri(u, out, Path(cfg["data_root"])) for u in frames["image"]]
+    ann = load_annotations(Path(cfg["annotations"]))
+    return frames, ann
+
+
+def block_lines(warnings: dict[str, list[str]], block: str | None) -> dict[str, list[str]]:
+    """The warnings and notes of one localizer's block (the record prefixes each with its name).
+
+    ``block`` None: a run of one localizer, whose lines have no prefix.
+    """
+    if block is None:
+        return warnings
+    pre = f"[{block}] "
+    return {t: [w[len(pre) :] for w in ws if w.startswith(pre)] for t, ws in warnings.items()}
+
+
+def write_html_report(out: Path, gallery: int | None = None) -> Path:
+    """Write ``out/report.html`` (and its images under ``out/report/``) for a finished run.
+
+    Raises:
+        HarnessError: ``out`` holds no finished run (no ``run.json``).
+    """
+    out = Path(out)
+    run: dict[str, Any] = read_run_record(out)
+    cfg = run["config"]
+    n = int(cfg["report"].get("gallery", 3)) if gallery is None else gallery
+    summ_all = pd.read_parquet(out / "splits" / "summary.parquet")
+    loc = pd.read_csv(out / "localization.csv")
+    ranks = pd.read_parquet(out / "ranks.parquet")
+    names = list(dict.fromkeys(summ_all["localizer"].astype(str)))
+    lead_name = names[0]  # with several localizers the sections below show the first one's
+    multi = len(names) > 1
+    extra = report_tables.written(out)  # registered tables (harness/reports/tables.py)
+    summ = summ_all[summ_all["localizer"] == lead_name] if multi else summ_all
+    if multi:
+        loc = loc[loc["localizer"] == lead_name]
+        ranks = ranks[ranks["localizer"] == lead_name]
+    methods = tuple(m for m in METHOD_LABELS if m in set(summ["method"]))
+    warnings = block_lines(run.get("warnings", {}), lead_name if multi else None)
+    loc_name, fact_rows = run_facts(run, cfg)
+    who = f" (localizer: {lead_name}; data: {Path(str(cfg['data_root'])).name})"
+    headline = float(cfg["report"].get("headline_roc_max", 0.05))
+    split_file = headline_split(out, headline)
+    split_name = split_file.stem if split_file is not None else ""
+    edges = [float(e) for e in cfg["splits"]["sob_strata"]]
+    (out / "report").mkdir(exist_ok=True)
+    rep = pd.read_parquet(split_file) if split_file is not None else None
+    if rep is not None and multi:
+        rep = rep[rep["localizer"] == lead_name]
+    lead = "rank_fusion" if "rank_fusion" in methods else methods[0]
+    only = lead_name if multi else None
+    pr_s, pr_i, gallery_s, gallery_i = page_figures(
+        out, split_file, rep, n, (*run_frames(out, run), ranks), edges, only
+    )
+    heat_s = heatmap_stratified(rep, lead, edges, split_name) if rep is not None else ""
+    protocol = protocol_section(
+        summ, methods, warnings.get("I", []), who, heatmap(summ, lead, split_name), pr_i, gallery_i
+    )
+    body = [
+        f"<h1>Detection-by-Localization: {esc(cfg['name'])}, localizer {esc(loc_name)}</h1>",
+        (
+            f"<p class='sub'>data: {esc(cfg['data_root'])}; dbl-harness "
+            f"{esc(run['versions'].get('dbl-harness', ''))}, seed {run['seed']}</p>"
+        ),
+        nav_html(multi, [(spec.stem, f"Table {spec.id}") for spec, _ in extra]),
         f'<h2 id="facts">Run</h2><table class="facts" data-table="facts">{fact_rows}</table>',
         localization_table(loc, float(cfg["retrieval"]["gt_radius_m"]), who),
         localization_also(out, cfg, lead_name if multi else "", who),
@@ -358,11 +447,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         ),
         *(change_table(summ, t, methods, warnings.get(t, []), who) for t in ("S", "P")),
         *(registered_table(spec, frame) for spec, frame in extra),
-        '<h2 id="comparisons">Paired comparisons with rank fusion</h2><p '
-        'class="note">AP(method) &minus; AP(rank fusion) over the same '
-        "bootstrap resamples of query images, with its 95% interval; green: better than "
-        "rank fusion, red: worse, white: cannot be told apart "
-        "on this data.</p>" + cmp_html,
+        comparisons_html(summ, methods),
         (
             f'<h2 id="pr">Precision-recall curve (Table S labels, {esc(split_name)})</h2>'
             "<p class='note'>The six methods' curves over the samples of all size strata "
@@ -374,15 +459,6 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
         gallery_s,
         protocol,
     ]
-    page = (
-        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><meta name='viewport' "
-        "content='width=device-width, initial-scale=1'>"
-        "<title>dbl-harness report: "
-        f"{esc(cfg['name'])}, localizer {esc(loc_name)}</title>"
-        f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
-        + "\n".join(body)
-        + "</body></html>\n"
-    )
-    write_text(out / "report.html", page)
+    write_text(out / "report.html", page_html(f"{cfg['name']}, localizer {loc_name}", body))
     log.info("report: wrote %s", out / "report.html")
     return out / "report.html"
