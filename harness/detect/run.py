@@ -158,6 +158,82 @@ def _nms(boxes: np.ndarray, scores: np.ndarray, nms_iou: float, max_boxes: int) 
     return change_boxes_nms(boxes, scores, nms_iou, max_boxes)
 
 
+def _all_no_change(qk: pd.DataFrame) -> pd.DataFrame:
+    """Every query frame of a chunk as annotated "no-change": fusion then covers them all."""
+    return pd.DataFrame(
+        {
+            "session": qk["q_session"].to_numpy(),
+            "camera": qk["q_camera"].to_numpy(),
+            "utime": qk["q_utime"].to_numpy(),
+            "status": "no-change",
+            "x1": np.nan,
+            "y1": np.nan,
+            "x2": np.nan,
+            "y2": np.nan,
+            "label": "",
+        }
+    )
+
+
+def _frame_boxes_of(
+    g: pd.DataFrame,
+    floc: np.ndarray,
+    orig: np.ndarray,
+    size: tuple[int, int],
+    fk: tuple[str, str, int],
+    opt: DetectOptions,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's candidate boxes and scores by ``opt.boxes``, kept by NMS, and the random row.
+
+    ``g``: the frame's fused qBBs, ``floc`` their LoC; ``orig``: its original proposals. Returns
+    candidates, their scores, the indices kept, the indices kept for random scores, those scores.
+    """
+    fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    if opt.boxes == "fused":
+        boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
+    else:
+        boxes, loc = candidate_boxes(
+            opt.boxes, fused, floc, orig, *size, opt.box_score, opt.locmap_level
+        )
+        # the random row: uniform scores on the same candidates, seeded by the frame
+        rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(len(boxes))
+    keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
+    rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
+    return boxes, loc, keep, rand, rnd
+
+
+def _write_chunk(
+    tmp: Path,
+    cand_parts: list[pd.DataFrame],
+    rows: list[tuple],
+    frow: list[tuple],
+    samples: pd.DataFrame,
+    col: str,
+) -> None:
+    """A chunk's candidates, change boxes, frame rows and fused qBBs (LoC in ``col``)."""
+    cands = (
+        pd.concat(cand_parts, ignore_index=True)
+        if cand_parts
+        else pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "loc"])
+    )
+    write_parquet(tmp / "candidates.parquet", cands)
+    write_parquet(
+        tmp / "boxes.parquet",
+        pd.DataFrame(rows, columns=[*FRAME_KEY, "kind", "rank", "x1", "y1", "x2", "y2", "score"]),
+    )
+    write_parquet(
+        tmp / "frames.parquet",
+        pd.DataFrame(
+            frow,
+            columns=[*FRAME_KEY, "r_session", *FRAME_RESULT],
+        ),
+    )
+    write_parquet(
+        tmp / "samples.parquet",
+        samples[[*QUERY_KEY, "x1", "y1", "x2", "y2", "N", col]].rename(columns={col: "loc"}),
+    )
+
+
 def detect_chunk(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
@@ -173,20 +249,7 @@ def detect_chunk(
     LoC maps drawn later, ``samples.parquet`` (every fused qBB with its LoC).
     """
     qk = ranks[QUERY_KEY].drop_duplicates()
-    # every query frame of the chunk as "annotated, no change": fusion then covers them all
-    ann = pd.DataFrame(
-        {
-            "session": qk["q_session"].to_numpy(),
-            "camera": qk["q_camera"].to_numpy(),
-            "utime": qk["q_utime"].to_numpy(),
-            "status": "no-change",
-            "x1": np.nan,
-            "y1": np.nan,
-            "x2": np.nan,
-            "y2": np.nan,
-            "label": "",
-        }
-    )
+    ann = _all_no_change(qk)
     samples, counts = fuse_samples(
         ranks,
         frames,
@@ -210,20 +273,8 @@ def detect_chunk(
     rows, frow, cand_parts = [], [], []
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
-        fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
         floc = g[col].to_numpy(np.float64)
-        if opt.boxes == "fused":
-            boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
-        else:
-            boxes, loc = candidate_boxes(
-                opt.boxes, fused, floc, orig[fk], *size[fk], opt.box_score, opt.locmap_level
-            )
-            # the random row: uniform scores on the same candidates, seeded by the frame
-            rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(
-                len(boxes)
-            )
-        keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
-        rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
+        boxes, loc, keep, rand, rnd = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt)
         for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
             for j, i in enumerate(idx):
                 rows.append((*key[:3], kind, j, *boxes[i], float(sc[i])))
@@ -248,59 +299,26 @@ def detect_chunk(
                 *top,
             )
         )
-    cands = (
-        pd.concat(cand_parts, ignore_index=True)
-        if cand_parts
-        else pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "loc"])
-    )
-    write_parquet(tmp / "candidates.parquet", cands)
-    write_parquet(
-        tmp / "boxes.parquet",
-        pd.DataFrame(rows, columns=[*FRAME_KEY, "kind", "rank", "x1", "y1", "x2", "y2", "score"]),
-    )
-    write_parquet(
-        tmp / "frames.parquet",
-        pd.DataFrame(
-            frow,
-            columns=[*FRAME_KEY, "r_session", *FRAME_RESULT],
-        ),
-    )
-    write_parquet(
-        tmp / "samples.parquet",
-        samples[[*QUERY_KEY, "x1", "y1", "x2", "y2", "N", col]].rename(columns={col: "loc"}),
-    )
+    _write_chunk(tmp, cand_parts, rows, frow, samples, col)
     return {"frames": len(frow), "capped_closures": int(counts.get("capped_closures", 0))}
 
 
-def run_detect(
+def check_detect_args(
     cfg: Config,
     map_session: str,
     query_sessions: list[str],
-    out: Path,
-    opt: DetectOptions | None = None,
-    executor: Any = None,
-    rerun: Path | None = None,
-    alarm: float | None = None,
-) -> dict[str, Any]:
-    """The detector on ``query_sessions`` against ``map_session`` into ``out`` (SPEC 13).
-
-    With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.detect.rerun`).
+    opt: DetectOptions,
+    rerun: Path | None,
+    alarm: float | None,
+) -> float:
+    """The nominal false-alarm rate, after checking every argument of :func:`run_detect`.
 
     Raises:
-        ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
+        ConfigError: an unknown or repeated session, the map among the queries, an unknown
+            method or box generator, a rate or NMS option out of range.
     """
     from harness.methods import detect_methods
-    from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations
-    from harness.pipeline.localizer_stages import (
-        Measured,
-        across_localizers,
-        localizer_fusion,
-        localizer_ranks,
-    )
-    from harness.pipeline.stages import session_proposals
-    from harness.runtime.executors import LocalExecutor
 
-    opt = opt or DetectOptions()
     names = [s.name for s in cfg.sessions]
     for s in [map_session, *query_sessions]:
         if s not in names:
@@ -323,6 +341,91 @@ def run_detect(
         raise ConfigError(
             f"detect: nms_iou {opt.nms_iou} must be in (0, 1] and max_boxes {opt.max_boxes} >= 1"
         )
+    return alarm
+
+
+def _measure(p: Any, map_session: str, query_sessions: list[str]) -> tuple[Any, Any, Any, list]:
+    """Frames, annotations, pairs and each localizer's ranks and fusion.
+
+    Pairs by pose, or by retrieval where the config says so (SPEC 13.2).
+    """
+    from harness.pipeline.chain import pairs_by_retrieval, until_annotations
+    from harness.pipeline.localizer_stages import Measured, localizer_fusion, localizer_ranks
+    from harness.pipeline.stages import session_proposals
+
+    if p.cfg.pairs.by == "retrieval":  # sessions without poses (SPEC 13.2)
+        ingested, frames, ann = until_annotations(p)
+        pairs, m = pairs_by_retrieval(
+            p, ingested, frames, ann, False, (map_session, tuple(query_sessions))
+        )
+        measured = [m]
+    else:
+        ingested, frames, ann, pairs = detect_pairs(p, map_session, query_sessions)
+        props = session_proposals(p, frames, pairs, ingested)
+        measured = []
+        for loc in p.localizer_list:
+            ranks = localizer_ranks(p, loc, frames, pairs, props)
+            fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
+            measured.append(Measured(loc, ranks, fusion, notes))
+    return frames, ann, pairs, measured
+
+
+def _chunk_units(
+    ranks: Any, frames: pd.DataFrame, opt: DetectOptions, dcfg: Config
+) -> list[tuple[tuple[Any, ...], Any]]:
+    """(cache key, build) of each chunk of ``opt.chunk_frames`` query frames.
+
+    The build is :func:`detect_chunk` on the chunk's ranks.
+    """
+    chunk_units: list[tuple[tuple[Any, ...], Any]] = []
+    qframes = ranks.df[QUERY_KEY].drop_duplicates().sort_values(QUERY_KEY).reset_index(drop=True)
+    for c0 in range(0, len(qframes), opt.chunk_frames):
+        part = qframes.iloc[c0 : c0 + opt.chunk_frames]
+        mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(pd.MultiIndex.from_frame(part))
+        build = partial(
+            detect_chunk,
+            ranks.df[mask].reset_index(drop=True),
+            frames,
+            opt,
+            dcfg.fusion.max_fused_boxes,
+            dcfg.fusion.rrf_c,
+        )
+        key = (
+            "detect",
+            ranks.key,
+            dataclasses.asdict(opt) | {"chunk_frames": None},
+            c0,
+            len(part),
+            keys.fusion_method_fingerprints((opt.method,)),
+            *((dcfg.fusion.rrf_c,) if opt.method == "rrf" else ()),
+        )
+        chunk_units.append((key, build))
+    return chunk_units
+
+
+def run_detect(
+    cfg: Config,
+    map_session: str,
+    query_sessions: list[str],
+    out: Path,
+    opt: DetectOptions | None = None,
+    executor: Any = None,
+    rerun: Path | None = None,
+    alarm: float | None = None,
+) -> dict[str, Any]:
+    """The detector on ``query_sessions`` against ``map_session`` into ``out`` (SPEC 13).
+
+    With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.detect.rerun`).
+
+    Raises:
+        ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
+    """
+    from harness.pipeline.chain import Pipeline
+    from harness.pipeline.localizer_stages import across_localizers
+    from harness.runtime.executors import LocalExecutor
+
+    opt = opt or DetectOptions()
+    alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
     keep = [s for s in cfg.sessions if s.name in (map_session, *query_sessions)]
     dcfg = dataclasses.replace(
         cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
@@ -336,49 +439,10 @@ def run_detect(
         train_sessions=(map_session,),  # the model sees the map alone, never the new session
     )
     with p.locked():
-        if dcfg.pairs.by == "retrieval":  # sessions without poses (SPEC 13.2)
-            ingested, frames, ann = until_annotations(p)
-            pairs, m = pairs_by_retrieval(
-                p, ingested, frames, ann, False, (map_session, tuple(query_sessions))
-            )
-            measured = [m]
-        else:
-            ingested, frames, ann, pairs = detect_pairs(p, map_session, query_sessions)
-            props = session_proposals(p, frames, pairs, ingested)
-            measured = []
-            for loc in p.localizer_list:
-                ranks = localizer_ranks(p, loc, frames, pairs, props)
-                fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
-                measured.append(Measured(loc, ranks, fusion, notes))
+        frames, ann, pairs, measured = _measure(p, map_session, query_sessions)
         ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
         names_l = [m.loc.name for m in measured]
-        chunk_units: list[tuple[tuple[Any, ...], Any]] = []
-        qframes = (
-            ranks.df[QUERY_KEY].drop_duplicates().sort_values(QUERY_KEY).reset_index(drop=True)
-        )
-        for c0 in range(0, len(qframes), opt.chunk_frames):
-            part = qframes.iloc[c0 : c0 + opt.chunk_frames]
-            mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(
-                pd.MultiIndex.from_frame(part)
-            )
-            build = partial(
-                detect_chunk,
-                ranks.df[mask].reset_index(drop=True),
-                frames.df,
-                opt,
-                dcfg.fusion.max_fused_boxes,
-                dcfg.fusion.rrf_c,
-            )
-            key = (
-                "detect",
-                ranks.key,
-                dataclasses.asdict(opt) | {"chunk_frames": None},
-                c0,
-                len(part),
-                keys.fusion_method_fingerprints((opt.method,)),
-                *((dcfg.fusion.rrf_c,) if opt.method == "rrf" else ()),
-            )
-            chunk_units.append((key, build))
+        chunk_units = _chunk_units(ranks, frames.df, opt, dcfg)
         entries = p.units("detect", chunk_units)
         dets = pd.concat(
             [read_cached_parquet(e.path / "boxes.parquet") for e in entries], ignore_index=True
@@ -504,26 +568,13 @@ def _frame_name(s: str, c: str, u: int) -> str:
     return f"{s}_{c}_{u}"
 
 
-def write_outputs(
-    p: Any,
-    cfg: Config,
-    map_session: str,
-    queries: list[str],
-    frames: pd.DataFrame,
-    pairs: pd.DataFrame,
-    ann: pd.DataFrame,
-    dets: pd.DataFrame,
-    fr: pd.DataFrame,
-    entries: list[Any],
-    opt: DetectOptions,
-    localizers: list[str],
-    alarm: float = 0.01,
-) -> dict[str, Any]:
-    """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
+def _frame_table(
+    out: Path, fr: pd.DataFrame, frames: pd.DataFrame, pairs: pd.DataFrame
+) -> tuple[pd.DataFrame, dict[tuple[str, str, int], int]]:
+    """The query frames with pose, image and map frame, numbered; ``images.json`` (COCO).
 
-    Also the alarms at the nominal false-alarm rate ``alarm`` (``alarms.csv``, SPEC 13.1).
+    Returns the frames and the COCO image id of each frame key.
     """
-    out = p.out
     fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "yaw", "image", "width", "height"]], on=FRAME_KEY)
     fr = fr.merge(
         pairs[[*QUERY_KEY, "r_camera", "r_utime"]].rename(
@@ -552,8 +603,17 @@ def write_outputs(
         out / "images.json",
         {"images": images, "categories": [{"id": 1, "name": "change", "supercategory": "change"}]},
     )
-    # calibrated scores (SPEC 13.1): each box against every candidate box of the run, each
-    # frame against every frame, one chunk's candidates at a time
+    return fr, ids
+
+
+def _calibrated(
+    fr: pd.DataFrame, dets: pd.DataFrame, entries: list[Any]
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Calibrated scores (SPEC 13.1), in ``exceedance`` columns.
+
+    Each box against every candidate box of the run, each frame against every frame, one chunk's
+    candidates at a time.
+    """
     from harness.detect.calibrate import exceedance
 
     null = np.concatenate(
@@ -566,8 +626,12 @@ def write_outputs(
         )
     )
     fr = fr.assign(exceedance=exceedance(fr["score"].to_numpy(), fr["score"].to_numpy()))
-    det = dets[dets["kind"] == "detection"]
-    results = [
+    return fr, dets
+
+
+def _coco_results(det: pd.DataFrame, ids: dict[tuple[str, str, int], int]) -> list[dict]:
+    """The change boxes as COCO results (``detections.json``), with their calibrated scores."""
+    return [
         {
             "image_id": ids[(str(r.session), str(r.camera), int(r.utime))],
             "category_id": 1,
@@ -577,6 +641,87 @@ def write_outputs(
         }
         for r in det.itertuples()
     ]
+
+
+def _write_alarms(
+    out: Path, fr: pd.DataFrame, det: pd.DataFrame, alarm: float
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``alarms.csv``: the frames and boxes flagged at the nominal false-alarm rate ``alarm``."""
+    flagged_f = fr[fr["exceedance"] <= alarm]
+    flagged_b = det[det["exceedance"] <= alarm]
+    alarms = pd.concat(
+        [
+            flagged_f.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
+            flagged_b.assign(kind="box")[
+                ["kind", *FRAME_KEY, "x1", "y1", "x2", "y2", "score", "exceedance"]
+            ],
+        ],
+        ignore_index=True,
+    ).sort_values(["kind", "exceedance", *FRAME_KEY, "x1", "y1"], kind="stable")
+    write_text(out / "alarms.csv", alarms.to_csv(index=False, float_format="%.6g"))
+    return flagged_f, flagged_b
+
+
+def _table_d(
+    out: Path,
+    cfg: Config,
+    fr: pd.DataFrame,
+    ann: pd.DataFrame,
+    dets: pd.DataFrame,
+    ids: dict[tuple[str, str, int], int],
+    entries: list[Any],
+    opt: DetectOptions,
+    alarm: float,
+) -> pd.DataFrame:
+    """Table D on the annotated frames, from the candidates of those frames only."""
+    from harness.detect.evaluate import score_detections
+
+    annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
+    cands = []
+    for e in entries:  # candidates of the annotated frames only, one chunk at a time
+        sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
+        cands.append(sm[pd.MultiIndex.from_frame(sm[QUERY_KEY]).isin(annotated)])
+    return score_detections(
+        out,
+        fr,
+        ann,
+        dets,
+        ids,
+        pd.concat(cands, ignore_index=True),
+        partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes),
+        cfg.report.chance_draws,
+        cfg.report.bootstrap,
+        cfg.report.ci,
+        cfg.seed,
+        opt.boxes,
+        alarm,
+    )
+
+
+def write_outputs(
+    p: Any,
+    cfg: Config,
+    map_session: str,
+    queries: list[str],
+    frames: pd.DataFrame,
+    pairs: pd.DataFrame,
+    ann: pd.DataFrame,
+    dets: pd.DataFrame,
+    fr: pd.DataFrame,
+    entries: list[Any],
+    opt: DetectOptions,
+    localizers: list[str],
+    alarm: float = 0.01,
+) -> dict[str, Any]:
+    """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
+
+    Also the alarms at the nominal false-alarm rate ``alarm`` (``alarms.csv``, SPEC 13.1).
+    """
+    out = p.out
+    fr, ids = _frame_table(out, fr, frames, pairs)
+    fr, dets = _calibrated(fr, dets, entries)
+    det = dets[dets["kind"] == "detection"]
+    results = _coco_results(det, ids)
     write_text(out / "detections.json", json.dumps(results))
     table = fr[
         [
@@ -594,47 +739,13 @@ def write_outputs(
     ]
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
-    flagged_f = fr[fr["exceedance"] <= alarm]
-    flagged_b = det[det["exceedance"] <= alarm]
-    alarms = pd.concat(
-        [
-            flagged_f.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
-            flagged_b.assign(kind="box")[
-                ["kind", *FRAME_KEY, "x1", "y1", "x2", "y2", "score", "exceedance"]
-            ],
-        ],
-        ignore_index=True,
-    ).sort_values(["kind", "exceedance", *FRAME_KEY, "x1", "y1"], kind="stable")
-    write_text(out / "alarms.csv", alarms.to_csv(index=False, float_format="%.6g"))
+    flagged_f, flagged_b = _write_alarms(out, fr, det, alarm)
     top = fr.sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
     maps = locmaps(out, top, entries, dets)
     from harness.detect.page import trajectory_figure
 
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
-    from harness.detect.evaluate import score_detections
-
-    table_d = None
-    if len(ann):
-        annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
-        cands = []
-        for e in entries:  # candidates of the annotated frames only, one chunk at a time
-            sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
-            cands.append(sm[pd.MultiIndex.from_frame(sm[QUERY_KEY]).isin(annotated)])
-        table_d = score_detections(
-            out,
-            fr,
-            ann,
-            dets,
-            ids,
-            pd.concat(cands, ignore_index=True),
-            partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes),
-            cfg.report.chance_draws,
-            cfg.report.bootstrap,
-            cfg.report.ci,
-            cfg.seed,
-            opt.boxes,
-            alarm,
-        )
+    table_d = _table_d(out, cfg, fr, ann, dets, ids, entries, opt, alarm) if len(ann) else None
     from harness.detect.page import write_detect_page
 
     page = write_detect_page(
