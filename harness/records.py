@@ -7,6 +7,7 @@ frame, angles radians. Images are handled upright.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import pyarrow as pa
 
@@ -21,6 +22,16 @@ NCLT_SEASONS: dict[str, str] = {
 FRAME_KEY = ["session", "camera", "utime"]
 #: The query frame's key in pair, rank and sample tables.
 QUERY_KEY = ["q_session", "q_camera", "q_utime"]
+
+
+def frame_sizes(frames: Any) -> dict[tuple[str, str, int], tuple[int, int]]:
+    """(width, height) of each frame of a frame table, by its key (session, camera, utime)."""
+    return {
+        (str(s), str(c), int(u)): (int(w), int(h))
+        for s, c, u, w, h in frames[[*FRAME_KEY, "width", "height"]].itertuples(index=False)
+    }
+
+
 FRAME_COLUMNS = [
     "session",
     "camera",

@@ -38,7 +38,7 @@ from harness.errors import ConfigError, HarnessError
 from harness.fusion.fuse import fuse_samples, loc_map
 from harness.imagestore import read_image
 from harness.pipeline import keys
-from harness.records import FRAME_KEY, QUERY_KEY
+from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
 from harness.runtime.cache import (
     read_cached_parquet,
     stable_hash,
@@ -262,10 +262,7 @@ def detect_chunk(
     )
     samples = samples[samples["proposals"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.method}"
-    size = {
-        (str(s), str(c), int(u)): (int(w), int(h))
-        for s, c, u, w, h in frames[[*FRAME_KEY, "width", "height"]].itertuples(index=False)
-    }
+    size = frame_sizes(frames)
     orig = {
         (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
         for k, g in ranks.groupby(QUERY_KEY, sort=False)

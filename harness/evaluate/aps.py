@@ -9,6 +9,7 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable
 from functools import partial
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -27,7 +28,7 @@ from harness.evaluate.metrics import (
 from harness.evaluate.splits import Split
 from harness.evaluate.splits import label as split_label
 from harness.ingest.annotations import change_boxes
-from harness.records import FRAME_KEY
+from harness.records import frame_sizes
 
 
 def pixel_regions(
@@ -278,16 +279,75 @@ def pixel_image_rows(
 
     Pixel AP over exact regions and image AP, pooled, with intervals.
     """
+    px, img, maps = _pixel_image_scores(samples, frames, ann, methods, ids)
+    chance_of = _map_chance(cfg, maps, samples["RoC"].to_numpy(np.float64))
+    rows = []
+    for name, data in (("pixel", px), ("image", img)):
+        pooled = _Pooled(cfg, ids, f"P:{name}")
+        for m in methods:
+            ap, g_, extra, boot = _p_ap(name, data[m])
+            floor, ceiling = chance_of[(name, "orig" if m == "rank_no_fusion" else "fused")]
+            pooled.add(
+                m,
+                {
+                    "table": "P",
+                    "split": name,
+                    "roc_max": float("nan"),
+                    "proposals": "all",
+                    "season_pair": "all",
+                    "ap": ap,
+                    **_chance_fields(floor, ap, ceiling),
+                    "left_out": 0,
+                    "query_images": len(np.unique(g_)),
+                    **extra,
+                },
+                boot,
+            )
+        rows += pooled.finish()
+    return rows
+
+
+def _box_sets(
+    idx: np.ndarray, in_fused: np.ndarray, locs: dict[str, np.ndarray], methods: tuple[str, ...]
+) -> dict[str, np.ndarray]:
+    """A frame's sample rows by box set: the fused qBBs, and the original proposals by LoC."""
+    sets = {"fused": idx[in_fused[idx]]}
+    if "rank_no_fusion" in methods:
+        o = idx[np.isfinite(locs["rank_no_fusion"][idx])]
+        sets["orig"] = o[
+            np.argsort(-locs["rank_no_fusion"][o], kind="stable")
+        ]  # identical boxes: the highest LoC owns their regions
+    return sets
+
+
+def _merged_regions(
+    boxes: np.ndarray, change: np.ndarray, w: float, h: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`pixel_regions` with the regions of one owner and label summed: (area, label, owner).
+
+    Regions with the same owner and label get the same LoC under every method.
+    """
+    area, pos, owner = pixel_regions(boxes, change, w, h)
+    uniq, inv = np.unique((owner + 1) * 2 + pos, return_inverse=True)
+    return np.bincount(inv, weights=area), (uniq % 2).astype(bool), uniq // 2 - 1
+
+
+def _pixel_image_scores(
+    samples: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    methods: tuple[str, ...],
+    ids: dict[str, int],
+) -> tuple[dict, dict, dict]:
+    """Per method, the scored pixel regions and image scores of Table P; the region maps.
+
+    Pixel regions: every region of a frame cut by its boxes and change boxes, its area, label and
+    the LoC of the box that owns it (the frame's lowest LoC where no box covers it). Images: the
+    frame's largest LoC. The maps, per box set ("fused" or "orig"), give the regions' owners
+    and the boxes by image, for the floor (random box scores) and ceiling (box RoC).
+    """
     cb = change_boxes(ann)
-    size = {
-        k: (float(w), float(h))
-        for k, w, h in zip(
-            frames[FRAME_KEY].itertuples(index=False, name=None),
-            frames["width"],
-            frames["height"],
-            strict=True,
-        )
-    }
+    size = frame_sizes(frames)
     low = {
         m: float(np.nanmin(samples[f"loc_{m}"].to_numpy()))
         if samples[f"loc_{m}"].notna().any()
@@ -317,22 +377,13 @@ def pixel_image_rows(
     }
     for gkey, idx in pd.Series(np.arange(len(samples))).groupby(groups, sort=True).indices.items():
         qk = (str(qs[idx[0]]), str(qc[idx[0]]), int(qu[idx[0]]))
-        w, h = size[qk]
+        w, h = map(float, size[qk])
         change = cb.get(qk, np.zeros((0, 4)))
         gid = ids[gkey]
-        sets = {"fused": idx[in_fused[idx]]}
-        if "rank_no_fusion" in methods:
-            o = idx[np.isfinite(locs["rank_no_fusion"][idx])]
-            sets["orig"] = o[
-                np.argsort(-locs["rank_no_fusion"][o], kind="stable")
-            ]  # identical boxes: the highest LoC owns their regions
+        sets = _box_sets(idx, in_fused, locs, methods)
         regions = {}
         for k, v in sets.items():
-            area, pos, owner = pixel_regions(boxes[v], change, w, h)
-            # regions with the same owner and label get the same LoC under every method: sum them
-            # once
-            uniq, inv = np.unique((owner + 1) * 2 + pos, return_inverse=True)
-            regions[k] = (np.bincount(inv, weights=area), (uniq % 2).astype(bool), uniq // 2 - 1)
+            regions[k] = _merged_regions(boxes[v], change, w, h)
             a, y, own = regions[k]
             maps[k]["row"].append(np.where(own >= 0, v[np.maximum(own, 0)] if len(v) else -1, -1))
             maps[k]["y"].append(y)
@@ -355,61 +406,45 @@ def pixel_image_rows(
                 img[m]["s"].append(float(np.nanmax(v)))
                 img[m]["y"].append(bool(len(change)))
                 img[m]["g"].append(gid)
-    chance_of = _map_chance(cfg, maps, samples["RoC"].to_numpy(np.float64))
-    rows = []
-    for name, data in (("pixel", px), ("image", img)):
-        pooled = _Pooled(cfg, ids, f"P:{name}")
-        for m in methods:
-            d = data[m]
-            if name == "pixel":
-                s_ = np.concatenate(d["s"]) if d["s"] else np.zeros(0)
-                y_ = np.concatenate(d["y"]).astype(bool) if d["y"] else np.zeros(0, bool)
-                w_ = np.concatenate(d["w"]) if d["w"] else np.zeros(0)
-                g_ = np.concatenate(d["g"]) if d["g"] else np.zeros(0, np.int64)
-                ap = weighted_average_precision(y_, s_, w_)
-                pos_w, tot_w = float(w_[y_].sum()), float(w_.sum())
+    return px, img, maps
 
-                boot = partial(bootstrap_aps, y_, s_, g_, weights=w_)
 
-                extra = {
-                    "positives": round(pos_w),
-                    "negatives": round(tot_w - pos_w),
-                    "positive_rate": pos_w / tot_w if tot_w else float("nan"),
-                }
-            else:
-                s_, y_, g_ = (
-                    np.asarray(d["s"], np.float64),
-                    np.asarray(d["y"], bool),
-                    np.asarray(d["g"], np.int64),
-                )
-                ap = average_precision(y_, s_)
+def _p_ap(name: str, d: dict[str, list]) -> tuple[float, np.ndarray, dict, Any]:
+    """AP of one method's pixel regions (area-weighted) or images, with its groups and counts.
 
-                boot = partial(bootstrap_aps, y_, s_, g_)
+    Also the bootstrap of the same AP (a partial of :func:`bootstrap_aps`).
+    """
+    if name == "pixel":
+        s_ = np.concatenate(d["s"]) if d["s"] else np.zeros(0)
+        y_ = np.concatenate(d["y"]).astype(bool) if d["y"] else np.zeros(0, bool)
+        w_ = np.concatenate(d["w"]) if d["w"] else np.zeros(0)
+        g_ = np.concatenate(d["g"]) if d["g"] else np.zeros(0, np.int64)
+        ap = weighted_average_precision(y_, s_, w_)
+        pos_w, tot_w = float(w_[y_].sum()), float(w_.sum())
 
-                extra = {
-                    "positives": int(y_.sum()),
-                    "negatives": int((~y_).sum()),
-                    "positive_rate": float(y_.mean()) if len(y_) else float("nan"),
-                }
-            floor, ceiling = chance_of[(name, "orig" if m == "rank_no_fusion" else "fused")]
-            pooled.add(
-                m,
-                {
-                    "table": "P",
-                    "split": name,
-                    "roc_max": float("nan"),
-                    "proposals": "all",
-                    "season_pair": "all",
-                    "ap": ap,
-                    **_chance_fields(floor, ap, ceiling),
-                    "left_out": 0,
-                    "query_images": len(np.unique(g_)),
-                    **extra,
-                },
-                boot,
-            )
-        rows += pooled.finish()
-    return rows
+        boot = partial(bootstrap_aps, y_, s_, g_, weights=w_)
+
+        extra = {
+            "positives": round(pos_w),
+            "negatives": round(tot_w - pos_w),
+            "positive_rate": pos_w / tot_w if tot_w else float("nan"),
+        }
+    else:
+        s_, y_, g_ = (
+            np.asarray(d["s"], np.float64),
+            np.asarray(d["y"], bool),
+            np.asarray(d["g"], np.int64),
+        )
+        ap = average_precision(y_, s_)
+
+        boot = partial(bootstrap_aps, y_, s_, g_)
+
+        extra = {
+            "positives": int(y_.sum()),
+            "negatives": int((~y_).sum()),
+            "positive_rate": float(y_.mean()) if len(y_) else float("nan"),
+        }
+    return ap, g_, extra, boot
 
 
 def _map_chance(

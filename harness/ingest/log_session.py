@@ -5,7 +5,9 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -80,17 +82,10 @@ def _pose_mode(sc: SessionConfig, topics: dict[str, tuple[str, int]], where: str
     return "topic" if others or not tf_topics else "tf"
 
 
-def _ingest_log_from(
-    sc: SessionConfig,
-    ic: IngestConfig,
-    fmt: str,
-    tmp: Path,
-    report: dict,
-    src: Path,
-    readable: Path,
-) -> pd.DataFrame:
-    """Ingest a ROS log; ``readable`` is ``src`` or a link to it that rosbags can open."""
-    topics = list_topics(readable, fmt, salvage=ic.salvage)
+def _choose(
+    sc: SessionConfig, topics: dict, src: Path, fmt: str, report: dict
+) -> tuple[str, str, tuple[str, ...]]:
+    """(pose mode, image topic, pose topics) of a log; written into ``report["topics"]``."""
     mode = _pose_mode(sc, topics, str(src), fmt)
     if mode == "none":
         image_topic, _ = choose_topics(
@@ -113,94 +108,134 @@ def _ingest_log_from(
         "pose_source": mode,
         "available": {t: v[0] for t, v in sorted(topics.items())},
     }
+    return mode, image_topic, pose_topics
+
+
+@dataclass
+class _LogReading:
+    """What one pass over a log's messages gathers: images, poses or transforms, counts."""
+
+    ic: IngestConfig
+    store: Path
+    camera: str
+    dropped: dict
+    read: Counter[str] = field(default_factory=Counter)
+    img_t: list[int] = field(default_factory=list)
+    uris: list[str] = field(default_factory=list)
+    sizes: list[tuple[int, int]] = field(default_factory=list)
+    seen: set[int] = field(default_factory=set)
+    rows: list[tuple] = field(default_factory=list)
+    tree: TfTree = field(default_factory=TfTree)
+    frame_ids: Counter[str] = field(default_factory=Counter)
+    pose_frame: dict[str, str] = field(default_factory=dict)
+    stats: dict[str, int] = field(default_factory=dict)
+
+    def image(self, m: Any, where: str) -> None:
+        """An image message: stored as it came (compressed) or in ``store_format`` (raw)."""
+        ic, dropped = self.ic, self.dropped
+        t = stamp_us(m.msg.header) if ic.time_source == "header" else m.log_ns // 1000
+        if self.img_t and t < self.img_t[-1]:
+            raise IngestError(
+                f"{where}: image time stamps are not monotonic: utime {t} comes "
+                f"after utime {self.img_t[-1]}"
+            )
+        if t in self.seen:
+            dropped["duplicate_image_time"] = dropped.get("duplicate_image_time", 0) + 1
+            return
+        self.seen.add(t)
+        self.frame_ids[str(m.msg.header.frame_id).lstrip("/")] += 1
+        if m.msgtype.endswith("CompressedImage"):
+            kind = compressed_kind(m.msg, where)
+            data = bytes(np.asarray(m.msg.data, dtype=np.uint8))
+            w, h = compressed_size(data, where)
+            if ic.verify_images:
+                problem = decode_problem(data)
+                if problem:
+                    log.warning("%s: dropped: %s", where, problem)
+                    dropped["corrupt_image"] = dropped.get("corrupt_image", 0) + 1
+                    return
+            name = f"{t}.{kind}"
+            (self.store / name).write_bytes(data)
+        else:
+            arr = raw_to_array(m.msg, where)
+            h, w = arr.shape[:2]
+            name = write_raw(self.store / str(t), arr, ic.store_format).name
+        self.img_t.append(t)
+        self.uris.append(f"images/{self.camera}/{name}")
+        self.sizes.append((w, h))
+
+    def transforms(self, m: Any, where: str) -> None:
+        """A tf message: each finite transform into the tree (non-finite ones counted)."""
+        static = _is_static_tf(m.topic)
+        for tr in m.msg.transforms:
+            tl, q = tr.transform.translation, tr.transform.rotation
+            vals = (tl.x, tl.y, tl.z, q.x, q.y, q.z, q.w)
+            if not all(math.isfinite(v) for v in vals):
+                self.dropped["non_finite_transform"] = (
+                    self.dropped.get("non_finite_transform", 0) + 1
+                )
+                self.tree.touch(str(tr.header.frame_id), str(tr.child_frame_id), static, where)
+                continue
+            parent, child = (
+                str(tr.header.frame_id).lstrip("/"),
+                str(tr.child_frame_id).lstrip("/"),
+            )
+            edge = f"{parent}->{child}"
+            euler_from_quaternion(
+                q.x, q.y, q.z, q.w, f"{where} ({edge})", self.stats
+            )  # the norm check
+            t = stamp_us(tr.header) if self.ic.time_source == "header" else m.log_ns // 1000
+            self.tree.add(
+                str(tr.header.frame_id),
+                str(tr.child_frame_id),
+                t,
+                (tl.x, tl.y, tl.z),
+                (q.x, q.y, q.z, q.w),
+                static,
+                where,
+            )
+
+    def pose(self, m: Any, where: str) -> None:
+        """A pose message: its rows (time, x, y, z, roll, pitch, yaw) with the message number."""
+        num = self.read[m.topic]
+        if not self.pose_frame:
+            self.pose_frame = {
+                "pose_frame": str(m.msg.header.frame_id).lstrip("/"),
+                "pose_of": str(getattr(m.msg, "child_frame_id", "") or m.topic).lstrip("/"),
+            }
+        self.rows.extend(
+            (*r, num)
+            for r in pose_rows(
+                m.msg, m.msgtype, m.log_ns // 1000, self.ic.time_source, None, where, self.stats
+            )
+        )
+
+
+def _ingest_log_from(
+    sc: SessionConfig,
+    ic: IngestConfig,
+    fmt: str,
+    tmp: Path,
+    report: dict,
+    src: Path,
+    readable: Path,
+) -> pd.DataFrame:
+    """Ingest a ROS log; ``readable`` is ``src`` or a link to it that rosbags can open."""
+    topics = list_topics(readable, fmt, salvage=ic.salvage)
+    mode, image_topic, pose_topics = _choose(sc, topics, src, fmt, report)
     store = tmp / "images" / sc.camera
     store.mkdir(parents=True)
-    read: Counter[str] = Counter()
-    img_t: list[int] = []
-    uris: list[str] = []
-    sizes: list[tuple[int, int]] = []
-    seen: set[int] = set()
-    rows: list[tuple] = []
-    tree = TfTree()
-    frame_ids: Counter[str] = Counter()
-    pose_frame: dict[str, str] = {}
-    dropped = report["dropped"]
-    stats: dict[str, int] = {}
+    r = _LogReading(ic, store, sc.camera, report["dropped"])
     try:
         for m in stream(readable, fmt, (image_topic, *pose_topics), salvage=ic.salvage):
-            read[m.topic] += 1
-            where = f"{src}: {m.topic} message {read[m.topic]}"
+            r.read[m.topic] += 1
+            where = f"{src}: {m.topic} message {r.read[m.topic]}"
             if m.topic == image_topic:
-                t = stamp_us(m.msg.header) if ic.time_source == "header" else m.log_ns // 1000
-                if img_t and t < img_t[-1]:
-                    raise IngestError(
-                        f"{where}: image time stamps are not monotonic: utime {t} comes "
-                        f"after utime {img_t[-1]}"
-                    )
-                if t in seen:
-                    dropped["duplicate_image_time"] = dropped.get("duplicate_image_time", 0) + 1
-                    continue
-                seen.add(t)
-                frame_ids[str(m.msg.header.frame_id).lstrip("/")] += 1
-                if m.msgtype.endswith("CompressedImage"):
-                    kind = compressed_kind(m.msg, where)
-                    data = bytes(np.asarray(m.msg.data, dtype=np.uint8))
-                    w, h = compressed_size(data, where)
-                    if ic.verify_images:
-                        problem = decode_problem(data)
-                        if problem:
-                            log.warning("%s: dropped: %s", where, problem)
-                            dropped["corrupt_image"] = dropped.get("corrupt_image", 0) + 1
-                            continue
-                    name = f"{t}.{kind}"
-                    (store / name).write_bytes(data)
-                else:
-                    arr = raw_to_array(m.msg, where)
-                    h, w = arr.shape[:2]
-                    name = write_raw(store / str(t), arr, ic.store_format).name
-                img_t.append(t)
-                uris.append(f"images/{sc.camera}/{name}")
-                sizes.append((w, h))
+                r.image(m, where)
             elif mode == "tf":
-                static = _is_static_tf(m.topic)
-                for tr in m.msg.transforms:
-                    tl, q = tr.transform.translation, tr.transform.rotation
-                    vals = (tl.x, tl.y, tl.z, q.x, q.y, q.z, q.w)
-                    if not all(math.isfinite(v) for v in vals):
-                        dropped["non_finite_transform"] = dropped.get("non_finite_transform", 0) + 1
-                        tree.touch(str(tr.header.frame_id), str(tr.child_frame_id), static, where)
-                        continue
-                    parent, child = (
-                        str(tr.header.frame_id).lstrip("/"),
-                        str(tr.child_frame_id).lstrip("/"),
-                    )
-                    edge = f"{parent}->{child}"
-                    euler_from_quaternion(
-                        q.x, q.y, q.z, q.w, f"{where} ({edge})", stats
-                    )  # the norm check
-                    t = stamp_us(tr.header) if ic.time_source == "header" else m.log_ns // 1000
-                    tree.add(
-                        str(tr.header.frame_id),
-                        str(tr.child_frame_id),
-                        t,
-                        (tl.x, tl.y, tl.z),
-                        (q.x, q.y, q.z, q.w),
-                        static,
-                        where,
-                    )
+                r.transforms(m, where)
             else:
-                num = read[m.topic]
-                if not pose_frame:
-                    pose_frame = {
-                        "pose_frame": str(m.msg.header.frame_id).lstrip("/"),
-                        "pose_of": str(getattr(m.msg, "child_frame_id", "") or m.topic).lstrip("/"),
-                    }
-                rows.extend(
-                    (*r, num)
-                    for r in pose_rows(
-                        m.msg, m.msgtype, m.log_ns // 1000, ic.time_source, None, where, stats
-                    )
-                )
+                r.pose(m, where)
     except CorruptLogError as err:
         if not ic.salvage:
             raise
@@ -211,47 +246,43 @@ def _ingest_log_from(
             err.messages_read,
             err.detail,
         )
-    report["messages_read"] = dict(sorted(read.items()))
-    if sum(read.values()) == 0:
+    report["messages_read"] = dict(sorted(r.read.items()))
+    if sum(r.read.values()) == 0:
         raise IngestError(
             f"{src}: the log has no message on {image_topic} or {', '.join(pose_topics)} "
             "(empty log)"
         )
-    if not img_t:
+    if not r.img_t:
         raise IngestError(f"{src}: no image message on {image_topic}")
-    report["normalised"] = {"quaternion_normalised": stats.get("quaternion_normalised", 0)}
-    img_arr, size_arr = np.array(img_t, np.int64), np.array(sizes, np.int64)
+    report["normalised"] = {"quaternion_normalised": r.stats.get("quaternion_normalised", 0)}
+    img_arr, size_arr = np.array(r.img_t, np.int64), np.array(r.sizes, np.int64)
     if mode == "tf":
-        return _finish_tf(sc, ic, tmp, img_arr, uris, size_arr, tree, frame_ids, report, src)
+        return _finish_tf(sc, ic, tmp, img_arr, r.uris, size_arr, r.tree, r.frame_ids, report, src)
     if mode == "none":  # no trajectory: every image is a frame, its pose unknown (NaN)
         poses = np.full((len(img_arr), 6), np.nan)
         return write_frames(
-            sc, tmp, img_arr, uris, size_arr, poses, np.ones(len(img_arr), bool), report
+            sc, tmp, img_arr, r.uris, size_arr, poses, np.ones(len(img_arr), bool), report
         )
-    if not rows:
+    if not r.rows:
         raise IngestError(f"{src}: no pose message on {pose_topics[0]}")
-    report["pose_frames"] = pose_frame
-    pose_arr = np.array(rows, dtype=np.float64)
+    report["pose_frames"] = r.pose_frame
+    pose_arr = np.array(r.rows, dtype=np.float64)
     pose_t = pose_arr[:, 0].astype(np.int64)
     check_monotonic(
         pose_t, f"{src}: {pose_topics[0]}", "pose", numbers=pose_arr[:, 7].astype(np.int64)
     )
-    return finish(sc, ic, tmp, img_arr, uris, size_arr, pose_t, pose_arr[:, 1:7], report)
+    return finish(sc, ic, tmp, img_arr, r.uris, size_arr, pose_t, pose_arr[:, 1:7], report)
 
 
-def _finish_tf(
-    sc: SessionConfig,
-    ic: IngestConfig,
-    tmp: Path,
-    img_t: np.ndarray,
-    uris: list[str],
-    sizes: np.ndarray,
-    tree: TfTree,
-    frame_ids: Counter[str],
-    report: dict,
-    src: Path,
-) -> pd.DataFrame:
-    """Camera poses composed through the tf tree at the image times (SPEC section 3)."""
+def _tf_ends(
+    sc: SessionConfig, tree: TfTree, frame_ids: Counter[str], src: Path
+) -> tuple[str, str, list[str]]:
+    """(fixed frame, camera frame, roots) of the tf tree: from the config or the only choice.
+
+    Raises:
+        IngestError: no transform, a loop, several roots and no fixed_frame, several image frames
+            and no camera_frame, or a named frame not in the tree.
+    """
     if not tree.edges:
         raise IngestError(f"{src}: the /tf topics hold no transform")
     frames = tree.frames()
@@ -292,6 +323,23 @@ def _finish_tf(
             f"{sorted(frames)}; "
             f"set camera_frame (children of {fixed}: {below})"
         )
+    return fixed, camera, roots
+
+
+def _finish_tf(
+    sc: SessionConfig,
+    ic: IngestConfig,
+    tmp: Path,
+    img_t: np.ndarray,
+    uris: list[str],
+    sizes: np.ndarray,
+    tree: TfTree,
+    frame_ids: Counter[str],
+    report: dict,
+    src: Path,
+) -> pd.DataFrame:
+    """Camera poses composed through the tf tree at the image times (SPEC section 3)."""
+    fixed, camera, roots = _tf_ends(sc, tree, frame_ids, src)
     path = tree.path(fixed, camera)
     gaps, transforms = {}, {}
     for e in tree.edges.values():

@@ -33,7 +33,7 @@ from harness.evaluate.splits import Split, paper_splits, roc_sob
 from harness.evaluate.splits import label as split_label
 from harness.ingest.annotations import change_boxes
 from harness.methods import BASELINES, FUSION_METHODS, ordered_methods
-from harness.records import FRAME_KEY, QUERY_KEY
+from harness.records import QUERY_KEY, frame_sizes
 from harness.reports import tables as report_tables
 from harness.reports.render import (
     CLEAN_ROC,
@@ -77,15 +77,7 @@ def localization_table(
     ranking) and 0.5 (its median r).
     """
     cb = change_boxes(ann)
-    size = {
-        k: (int(w), int(h))
-        for k, w, h in zip(
-            frames[FRAME_KEY].itertuples(index=False, name=None),
-            frames["width"],
-            frames["height"],
-            strict=True,
-        )
-    }
+    size = frame_sizes(frames)
     roc = np.full(len(ranks), np.nan)
     for key, idx in ranks.groupby(QUERY_KEY, sort=False).indices.items():
         k = (str(key[0]), str(key[1]), int(key[2]))
