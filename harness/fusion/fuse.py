@@ -257,6 +257,74 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
     return out
 
 
+#: The columns of a sample table before the LoC of each method (``loc_<method>``).
+SAMPLE_COLUMNS = (
+    *("q_session", "q_camera", "q_utime", "r_session", "season_pair", "proposals"),
+    *("x1", "y1", "x2", "y2", "original", "N", "RoC", "SoB"),
+)
+
+
+def _runs(kcols: list[np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(start, end) of each run of equal keys in the sorted key columns ``kcols``."""
+    change = np.zeros(n, bool)
+    for kc in kcols:
+        change[1:] |= kc[1:] != kc[:-1]
+    starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
+    return starts, np.append(starts[1:], n)
+
+
+def _fuse_image(
+    boxes: np.ndarray,
+    rdl: tuple[np.ndarray, np.ndarray, np.ndarray],
+    methods: tuple[str, ...],
+    size: tuple[Any, Any],
+    change: np.ndarray,
+    img_seed: int,
+    max_boxes: int,
+    rrf_c: float,
+    counts: dict[str, Any],
+) -> dict[str, np.ndarray]:
+    """The sample columns of one query image and proposal set, from its boxes' ``r, d, L``.
+
+    Rows: the fused boxes, then the duplicate originals. Columns: the box, ``original``, ``N``,
+    ``RoC``, ``SoB`` and ``loc_<method>`` per method (``change``: the image's change boxes).
+    """
+    r, d, L = rdl
+    w, h = size
+    fused, capped = intersection_closure(boxes, max_boxes)
+    counts["capped_closures"] += int(capped)
+    cover = cover_matrix(fused, boxes)
+    locs = {}
+    for m in methods:
+        if m in IMAGE_BASELINES:
+            locs[m] = image_loc(fused, m, w, h, img_seed)
+        elif m != "rank_no_fusion":
+            locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c)
+    # rank_no_fusion: one sample per original box; merged into the fused row of the same box
+    fidx = {tuple(bx): i for i, bx in enumerate(fused)}
+    nof = np.full(len(fused), np.nan)
+    extra = []
+    for k, bx in enumerate(map(tuple, boxes)):
+        i = fidx[bx]
+        if np.isnan(nof[i]):
+            nof[i] = r[k]
+        else:
+            extra.append((bx, r[k]))
+    all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
+    roc, sob = roc_sob(all_boxes, change, w, h)
+    n_x = len(extra)
+    part = {c: all_boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))}
+    part["original"] = np.concatenate([~np.isnan(nof), np.ones(n_x, bool)])
+    part["N"] = np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64)
+    part["RoC"] = np.asarray(roc, np.float64)
+    part["SoB"] = np.asarray(sob, np.float64)
+    if "rank_no_fusion" in methods:
+        part["loc_rank_no_fusion"] = np.concatenate([nof, [v for _, v in extra]])
+    for m, v in locs.items():
+        part[f"loc_{m}"] = np.concatenate([v, np.full(n_x, np.nan)])
+    return part
+
+
 def fuse_samples(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
@@ -299,32 +367,8 @@ def fuse_samples(
     box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
     L_all = srt["L"].to_numpy(np.float64)
-    n = len(srt)
-    change = np.zeros(n, bool)
-    for kc in kcols:
-        change[1:] |= kc[1:] != kc[:-1]
-    starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
-    ends = np.append(starts[1:], n)
-    cols: dict[str, list[Any]] = {
-        c: []
-        for c in (
-            "q_session",
-            "q_camera",
-            "q_utime",
-            "r_session",
-            "season_pair",
-            "proposals",
-            "x1",
-            "y1",
-            "x2",
-            "y2",
-            "original",
-            "N",
-            "RoC",
-            "SoB",
-            *(f"loc_{m}" for m in methods),
-        )
-    }
+    starts, ends = _runs(kcols, len(srt))
+    cols: dict[str, list[Any]] = {c: [] for c in (*SAMPLE_COLUMNS, *(f"loc_{m}" for m in methods))}
     for a, b in progress(list(zip(starts, ends, strict=True))):
         key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
         qkey = key[:3]
@@ -336,47 +380,24 @@ def fuse_samples(
             sel = np.isin(method[a:b], ms)
             if not sel.any():
                 continue
-            boxes = box_all[a:b][sel]
-            r, d, L = r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]
-            fused, capped = intersection_closure(boxes, max_boxes)
-            counts["capped_closures"] += int(capped)
-            cover = cover_matrix(fused, boxes)
-            img_seed = int(stable_hash(seed, key, name, length=8), 16)
-            locs = {}
-            for m in methods:
-                if m in IMAGE_BASELINES:
-                    locs[m] = image_loc(fused, m, w, h, img_seed)
-                elif m != "rank_no_fusion":
-                    locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c)
-            # rank_no_fusion: one sample per original box; merged into the fused row of the same box
-            fidx = {tuple(bx): i for i, bx in enumerate(fused)}
-            nof = np.full(len(fused), np.nan)
-            extra = []
-            for k, bx in enumerate(map(tuple, boxes)):
-                i = fidx[bx]
-                if np.isnan(nof[i]):
-                    nof[i] = r[k]
-                else:
-                    extra.append((bx, r[k]))
-            all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
-            roc, sob = roc_sob(all_boxes, cb[qkey], w, h)
-            n_rows, n_x = len(all_boxes), len(extra)
+            part = _fuse_image(
+                box_all[a:b][sel],
+                (r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]),
+                methods,
+                (w, h),
+                cb[qkey],
+                int(stable_hash(seed, key, name, length=8), 16),
+                max_boxes,
+                rrf_c,
+                counts,
+            )
+            n_rows = len(part["x1"])
             for c, v in zip(("q_session", "q_camera", "q_utime", "r_session"), key, strict=True):
                 cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
             cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
             cols["proposals"].append(np.full(n_rows, name, dtype=object))
-            for j, c in enumerate(("x1", "y1", "x2", "y2")):
-                cols[c].append(all_boxes[:, j])
-            cols["original"].append(np.concatenate([~np.isnan(nof), np.ones(n_x, bool)]))
-            cols["N"].append(
-                np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64)
-            )
-            cols["RoC"].append(np.asarray(roc, np.float64))
-            cols["SoB"].append(np.asarray(sob, np.float64))
-            if "rank_no_fusion" in methods:
-                cols["loc_rank_no_fusion"].append(np.concatenate([nof, [v for _, v in extra]]))
-            for m, v in locs.items():
-                cols[f"loc_{m}"].append(np.concatenate([v, np.full(n_x, np.nan)]))
+            for c, v in part.items():
+                cols[c].append(v)
     if not cols["x1"]:
         return pd.DataFrame(), counts
     df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})

@@ -165,34 +165,17 @@ def _vectors(entry: Path) -> Any:
     return np.load(entry / "desc.npy", mmap_mode="r")
 
 
-def _rank_query_session(
-    rc: RetrievalConfig,
-    method: str,
-    g: pd.DataFrame,
-    qdir: Path,
-    db: np.ndarray,
-    db_frame: np.ndarray,
+def _rankable(
+    qm: pd.DataFrame,
+    have: set[int],
     places: dict[Any, dict[int, np.ndarray]],
     kept: set[int] | None,
-    device: str,
     counts: dict[str, int],
-) -> pd.DataFrame | None:
-    """Rank rows of one query session's subimages of ``method`` (``g``: its pairs); None if none."""
-    have = set(np.unique(db_frame).tolist())
-    q_idx = read_cached_parquet(qdir / "index.parquet")
-    q_desc = _vectors(qdir)
-    q_idx["row"] = np.arange(len(q_idx))
-    qm = q_idx[q_idx["method"] == method].merge(
-        g.rename(columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}),
-        on=FRAME_KEY,
-        how="inner",
-    )
-    counts["query_frames_without_subimages"] += int(
-        len(g) - qm[FRAME_KEY].drop_duplicates().shape[0]
-    )
-    if not len(qm):
-        return None
-    counts["query_subimages"] += len(qm)
+) -> np.ndarray:
+    """Which query subimages can be ranked; the others are counted by reason.
+
+    Rankable: the reference frame (in a thinned database, a frame of its place) has rows.
+    """
     if kept is None:
         ok = qm["r_utime"].isin(have).to_numpy()
         counts["no_rank_reference_frame_has_no_subimage"] += int((~ok).sum())
@@ -209,25 +192,24 @@ def _rank_query_session(
             else np.zeros(0, bool)
         )
         counts["no_rank_place_not_in_database"] += int((~ok).sum())
-    qm = qm[ok].reset_index(drop=True)
-    if not len(qm):
-        return None
-    qd = q_desc[np.sort(qm["row"].to_numpy())]
-    qd = qd if sp.issparse(qd) else np.asarray(qd, np.float32)
-    qd = qd[np.argsort(np.argsort(qm["row"].to_numpy(), kind="stable"), kind="stable")]
-    gt = qm["r_utime"].to_numpy()
-    place = [places[c][int(u)] for c, u in zip(qm["r_camera"], gt, strict=True)]
-    if (
-        kept is not None
-    ):  # G itself may be thinned away: the place's frames in the database stand for it
-        place = [p[np.isin(p, db_frame)] for p in place]
-        gt = np.array(
-            [
-                u if u in set(p.tolist()) else p[np.argmin(np.abs(p - u))]
-                for u, p in zip(gt, place, strict=True)
-            ],
-            np.int64,
-        )
+    return np.asarray(ok, bool)
+
+
+def _ranks_by_engine(
+    rc: RetrievalConfig,
+    qd: Any,
+    db: Any,
+    db_frame: np.ndarray,
+    gt: np.ndarray,
+    place: list[np.ndarray],
+    device: str,
+    counts: dict[str, int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(rank, L, d, exact) by the engine that fits the descriptors.
+
+    The inverted index for bags of visual words; faiss (checked against the exact engine on a
+    sample of the queries) or the exact engine for dense descriptors.
+    """
     if sp.issparse(qd):  # a bag-of-visual-words localizer: the inverted-index engine
         rank, L, dist = bovw_ranks(qd, db, db_frame, gt, place)
         exact = np.ones(len(rank), bool)
@@ -272,6 +254,58 @@ def _rank_query_session(
             memory_mb=rc.memory_mb,
         )
         exact = np.ones(len(rank), bool)
+    return rank, L, dist, exact
+
+
+def _rank_query_session(
+    rc: RetrievalConfig,
+    method: str,
+    g: pd.DataFrame,
+    qdir: Path,
+    db: np.ndarray,
+    db_frame: np.ndarray,
+    places: dict[Any, dict[int, np.ndarray]],
+    kept: set[int] | None,
+    device: str,
+    counts: dict[str, int],
+) -> pd.DataFrame | None:
+    """Rank rows of one query session's subimages of ``method`` (``g``: its pairs); None if none."""
+    have = set(np.unique(db_frame).tolist())
+    q_idx = read_cached_parquet(qdir / "index.parquet")
+    q_desc = _vectors(qdir)
+    q_idx["row"] = np.arange(len(q_idx))
+    qm = q_idx[q_idx["method"] == method].merge(
+        g.rename(columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}),
+        on=FRAME_KEY,
+        how="inner",
+    )
+    counts["query_frames_without_subimages"] += int(
+        len(g) - qm[FRAME_KEY].drop_duplicates().shape[0]
+    )
+    if not len(qm):
+        return None
+    counts["query_subimages"] += len(qm)
+    ok = _rankable(qm, have, places, kept, counts)
+    qm = qm[ok].reset_index(drop=True)
+    if not len(qm):
+        return None
+    qd = q_desc[np.sort(qm["row"].to_numpy())]
+    qd = qd if sp.issparse(qd) else np.asarray(qd, np.float32)
+    qd = qd[np.argsort(np.argsort(qm["row"].to_numpy(), kind="stable"), kind="stable")]
+    gt = qm["r_utime"].to_numpy()
+    place = [places[c][int(u)] for c, u in zip(qm["r_camera"], gt, strict=True)]
+    if (
+        kept is not None
+    ):  # G itself may be thinned away: the place's frames in the database stand for it
+        place = [p[np.isin(p, db_frame)] for p in place]
+        gt = np.array(
+            [
+                u if u in set(p.tolist()) else p[np.argmin(np.abs(p - u))]
+                for u, p in zip(gt, place, strict=True)
+            ],
+            np.int64,
+        )
+    rank, L, dist, exact = _ranks_by_engine(rc, qd, db, db_frame, gt, place, device, counts)
     frame_set = np.unique(db_frame)
     place_size = np.array([int(np.isin(p, frame_set).sum()) for p in place], np.int64)
     counts["ranked"] += len(rank)
