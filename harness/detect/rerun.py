@@ -60,6 +60,85 @@ def score_colours(scores: np.ndarray) -> np.ndarray:
     return np.stack([255 * t, np.zeros_like(t), 255 * (1 - t)], 1).round().astype(np.uint8)
 
 
+def _log_trajectories(
+    rr: Any, rec: Any, frames: pd.DataFrame, map_session: str, fr: pd.DataFrame
+) -> None:
+    """The map session's trajectory (grey) and each query session's (blue), static."""
+    m = frames[frames["session"] == map_session].sort_values(["utime", "camera"])
+    m = m.drop_duplicates("utime")
+    rec.log(
+        "world/map",
+        rr.LineStrips3D(
+            [np.column_stack([m["x"], m["y"], np.zeros(len(m))]).astype(np.float32)],
+            colors=[[160, 160, 160]],
+            radii=[0.1],
+        ),
+        static=True,
+    )
+    for s, g in fr.groupby("session", sort=True):
+        rec.log(
+            f"world/query/{s}/trajectory",
+            rr.LineStrips3D(
+                [np.column_stack([g["x"], g["y"], np.zeros(len(g))]).astype(np.float32)],
+                colors=[[90, 90, 200]],
+                radii=[0.05],
+            ),
+            static=True,
+        )
+
+
+def _log_frame(
+    rr: Any,
+    rec: Any,
+    r: pd.Series,
+    i: int,
+    k: tuple[str, str, int],
+    colour: Any,
+    b: pd.DataFrame | None,
+    g: pd.DataFrame,
+) -> int:
+    """One query frame at its time: position, score, image, change boxes ``b``, LoC map.
+
+    The LoC map is drawn from the frame's fused qBBs ``g``. Returns the number of boxes logged.
+    """
+    rec.set_time("utime", sequence=int(k[2]))
+    rec.set_time("frame", sequence=i)
+    rec.log(
+        f"world/query/{k[0]}/frame",
+        rr.Points3D([[float(r["x"]), float(r["y"]), 0.0]], colors=[colour], radii=[0.4]),
+    )
+    rec.log("detect/score", rr.Scalars([float(r["score"])]))
+    img = read_image(str(r["image"]))
+    h, w = img.shape[:2]
+    ok, jpg = cv2.imencode(".jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
+    if not ok:
+        raise ConfigError(f"{r['image']}: the frame could not be encoded for the recording")
+    cam = f"camera/{k[1]}"
+    rec.log(f"{cam}/image", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
+    boxes = b[["x1", "y1", "x2", "y2"]].to_numpy(np.float32) if b is not None else np.zeros((0, 4))
+    rec.log(
+        f"{cam}/image/changes",
+        rr.Boxes2D(
+            array=boxes.astype(np.float32),
+            array_format=rr.Box2DFormat.XYXY,
+            labels=[f"{v:.3g}" for v in (b["score"] if b is not None else [])],
+            colors=[[255, 220, 0]],
+        ),
+    )
+    lm = loc_map(
+        g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
+        g["loc"].to_numpy(np.float64),
+        w,
+        h,
+    )
+    if w > LOC_WIDTH:
+        size = (LOC_WIDTH, max(1, round(h * LOC_WIDTH / w)))
+        # nearest: the map is constant per box, and NaN (no box) stays NaN
+        lm = cv2.resize(lm, size, interpolation=cv2.INTER_NEAREST)
+    rec.log(f"{cam}/loc", rr.DepthImage(lm.astype(np.float32), colormap="turbo"))
+    return len(boxes)
+
+
 def write_recording(
     path: Path,
     frames: pd.DataFrame,
@@ -87,29 +166,9 @@ def write_recording(
     rec = rr.RecordingStream(APPLICATION, recording_id=recording_id)
     rec.set_log_time_enabled(False)  # the logs' own clock only: the same run, the same data
     rec.save(str(path))
-    m = frames[frames["session"] == map_session].sort_values(["utime", "camera"])
-    m = m.drop_duplicates("utime")
-    rec.log(
-        "world/map",
-        rr.LineStrips3D(
-            [np.column_stack([m["x"], m["y"], np.zeros(len(m))]).astype(np.float32)],
-            colors=[[160, 160, 160]],
-            radii=[0.1],
-        ),
-        static=True,
-    )
     fr = fr.sort_values(["utime", "camera", "session"]).reset_index(drop=True)
     colours = score_colours(fr["score"].to_numpy(np.float64))
-    for s, g in fr.groupby("session", sort=True):
-        rec.log(
-            f"world/query/{s}/trajectory",
-            rr.LineStrips3D(
-                [np.column_stack([g["x"], g["y"], np.zeros(len(g))]).astype(np.float32)],
-                colors=[[90, 90, 200]],
-                radii=[0.05],
-            ),
-            static=True,
-        )
+    _log_trajectories(rr, rec, frames, map_session, fr)
     index = {
         (str(r.session), str(r.camera), int(r.utime)): i
         for i, r in enumerate(fr[FRAME_KEY].itertuples(index=False))
@@ -124,53 +183,9 @@ def write_recording(
             i = index.get(k)
             if i is None:
                 continue
-            r = fr.iloc[i]
-            rec.set_time("utime", sequence=int(k[2]))
-            rec.set_time("frame", sequence=i)
-            rec.log(
-                f"world/query/{k[0]}/frame",
-                rr.Points3D(
-                    [[float(r["x"]), float(r["y"]), 0.0]], colors=[colours[i]], radii=[0.4]
-                ),
-            )
-            rec.log("detect/score", rr.Scalars([float(r["score"])]))
-            img = read_image(str(r["image"]))
-            h, w = img.shape[:2]
-            ok, jpg = cv2.imencode(".jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
-            if not ok:
-                raise ConfigError(f"{r['image']}: the frame could not be encoded for the recording")
-            cam = f"camera/{k[1]}"
-            rec.log(
-                f"{cam}/image", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg")
-            )
-            b = by_frame.get(k)
-            boxes = (
-                b[["x1", "y1", "x2", "y2"]].to_numpy(np.float32)
-                if b is not None
-                else np.zeros((0, 4))
-            )
-            rec.log(
-                f"{cam}/image/changes",
-                rr.Boxes2D(
-                    array=boxes.astype(np.float32),
-                    array_format=rr.Box2DFormat.XYXY,
-                    labels=[f"{v:.3g}" for v in (b["score"] if b is not None else [])],
-                    colors=[[255, 220, 0]],
-                ),
-            )
-            lm = loc_map(
-                g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
-                g["loc"].to_numpy(np.float64),
-                w,
-                h,
-            )
-            if w > LOC_WIDTH:
-                size = (LOC_WIDTH, max(1, round(h * LOC_WIDTH / w)))
-                # nearest: the map is constant per box, and NaN (no box) stays NaN
-                lm = cv2.resize(lm, size, interpolation=cv2.INTER_NEAREST)
-            rec.log(f"{cam}/loc", rr.DepthImage(lm.astype(np.float32), colormap="turbo"))
+            n_boxes = _log_frame(rr, rec, fr.iloc[i], i, k, colours[i], by_frame.get(k), g)
             counts["query_frames"] += 1
-            counts["change_boxes"] += len(boxes)
+            counts["change_boxes"] += n_boxes
             counts["loc_maps"] += 1
     rec.flush()
     rec.disconnect()
