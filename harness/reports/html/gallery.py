@@ -5,7 +5,9 @@ Each gallery entry is query | reference | LoC map, with the map's colour bar und
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -76,6 +78,91 @@ def stratum(sob: float, edges: list[float]) -> str:
     return f"SoB [{edges[k]:g}, {edges[k + 1]:g}{close}"
 
 
+def _example(
+    out: Path,
+    r: Any,
+    m: str,
+    kind: str,
+    rep: pd.DataFrame,
+    tables: tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame],
+    image: Callable[[tuple], np.ndarray],
+    tag: str,
+    where: tuple[Path, list[float] | None, bool],
+) -> tuple[str, str]:
+    """One worst case of method ``m``: its thumbnail under ``out/report/`` and its figure.
+
+    ``tables``: frames (by key), the reference of each query image, the change annotations;
+    ``where``: the split report, the size strata's edges, whether the labels are stratified.
+    Returns the thumbnail's file name and the figure's HTML.
+    """
+    fr, refs, chg = tables
+    split_file, edges, stratified = where
+    col = f"loc_{m}"
+    qk = (r.q_session, r.q_camera, int(r.q_utime))
+    rk = refs.loc[(r.q_session, r.q_camera, int(r.q_utime), r.r_session)]
+    rkey = (r.r_session, rk["r_camera"], int(rk["r_utime"]))
+    img = rep[
+        (rep["q_session"] == r.q_session)
+        & (rep["q_camera"] == r.q_camera)
+        & (rep["q_utime"] == r.q_utime)
+        & (rep["r_session"] == r.r_session)
+        & rep[col].notna()
+    ]
+    w, h = int(fr.loc[qk, "width"]), int(fr.loc[qk, "height"])
+    lmap = loc_map(
+        img[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
+        img[col].to_numpy(np.float64),
+        w,
+        h,
+    )
+    change = chg[
+        (chg["session"] == r.q_session)
+        & (chg["camera"] == r.q_camera)
+        & (chg["utime"] == r.q_utime)
+    ][["x1", "y1", "x2", "y2"]].to_numpy()
+    thumb = thumbnail(image(qk), image(rkey), lmap, change, np.array([[r.x1, r.y1, r.x2, r.y2]]))
+    name = f"{tag}_{m}_{'fp' if kind.startswith('false') else 'miss'}_{r.row}.jpg"
+    ok, buf = cv2.imencode(
+        ".jpg", cv2.cvtColor(thumb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 82]
+    )
+    if not ok:
+        raise HarnessError(f"{out / 'report' / name}: could not encode a thumbnail")
+    with atomic_path(out / "report" / name) as tmp:
+        tmp.write_bytes(buf.tobytes())
+    return name, (
+        f'<figure><img src="report/{esc(name)}" alt="{esc(kind)}" '
+        f'loading="lazy"><figcaption><b>{esc(kind.split(":")[0])}</b>, LoC '
+        f"{r.__getattribute__(col):.3g}, RoC {r.RoC:.2f}, SoB {r.SoB:.3f}"
+        + (f" (stratum {esc(stratum(r.SoB, edges))})" if stratified and edges else "")
+        + f", N {r.N}<br>{esc(r.q_session)} {int(r.q_utime)} vs "
+        f"{esc(r.r_session)} ({esc(r.season_pair)}); <a "
+        f'href="{esc(split_file.relative_to(out))}">{esc(split_file.name)}</a> '
+        f"row {r.row}"
+        "</figcaption></figure>"
+    )
+
+
+def _gallery_intro(split: str, n: int, stratified: bool) -> str:
+    labels = (
+        "Table S's labels: positive = at least RoC-min inside a change, negative = at most "
+        "RoC-max, whatever the box's size; each example names its size stratum, the only "
+        "boxes it was compared with"
+        if stratified
+        else "Table I's labels, where box size decides much of the label"
+    )
+    intro = (
+        "<p class='note'>Per method, the negatives it scored highest (false positives) and "
+        "the positives it scored lowest "
+        f"(missed changes) under {esc(split)} ({labels}). Each: query with "
+        "the annotated change (red) and the sample "
+        "(yellow) | its reference | the method's LoC map over the query, with its colour bar "
+        "(the map's range of that method's LoC in this image; brighter = more likely "
+        "changed). Rows refer to the split "
+        f"report. At most {n} of each per method (<code>[report] gallery</code>).</p>"
+    )
+    return intro
+
+
 def gallery_html(
     out: Path,
     split_file: Path | None,
@@ -126,72 +213,24 @@ def gallery_html(
             ("missed change: the lowest LoC among positives", misses),
         ):
             for r in rows.itertuples():
-                qk = (r.q_session, r.q_camera, int(r.q_utime))
-                rk = refs.loc[(r.q_session, r.q_camera, int(r.q_utime), r.r_session)]
-                rkey = (r.r_session, rk["r_camera"], int(rk["r_utime"]))
-                img = rep[
-                    (rep["q_session"] == r.q_session)
-                    & (rep["q_camera"] == r.q_camera)
-                    & (rep["q_utime"] == r.q_utime)
-                    & (rep["r_session"] == r.r_session)
-                    & rep[col].notna()
-                ]
-                w, h = int(fr.loc[qk, "width"]), int(fr.loc[qk, "height"])
-                lmap = loc_map(
-                    img[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
-                    img[col].to_numpy(np.float64),
-                    w,
-                    h,
+                name, fig = _example(
+                    out,
+                    r,
+                    m,
+                    kind,
+                    rep,
+                    (fr, refs, chg),
+                    image,
+                    tag,
+                    (split_file, edges, stratified),
                 )
-                change = chg[
-                    (chg["session"] == r.q_session)
-                    & (chg["camera"] == r.q_camera)
-                    & (chg["utime"] == r.q_utime)
-                ][["x1", "y1", "x2", "y2"]].to_numpy()
-                thumb = thumbnail(
-                    image(qk), image(rkey), lmap, change, np.array([[r.x1, r.y1, r.x2, r.y2]])
-                )
-                name = f"{tag}_{m}_{'fp' if kind.startswith('false') else 'miss'}_{r.row}.jpg"
-                ok, buf = cv2.imencode(
-                    ".jpg", cv2.cvtColor(thumb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 82]
-                )
-                if not ok:
-                    raise HarnessError(f"{out / 'report' / name}: could not encode a thumbnail")
-                with atomic_path(out / "report" / name) as tmp:
-                    tmp.write_bytes(buf.tobytes())
                 written.append(out / "report" / name)
-                figs.append(
-                    f'<figure><img src="report/{esc(name)}" alt="{esc(kind)}" '
-                    f'loading="lazy"><figcaption><b>{esc(kind.split(":")[0])}</b>, LoC '
-                    f"{r.__getattribute__(col):.3g}, RoC {r.RoC:.2f}, SoB {r.SoB:.3f}"
-                    + (f" (stratum {esc(stratum(r.SoB, edges))})" if stratified and edges else "")
-                    + f", N {r.N}<br>{esc(r.q_session)} {int(r.q_utime)} vs "
-                    f"{esc(r.r_session)} ({esc(r.season_pair)}); <a "
-                    f'href="{esc(split_file.relative_to(out))}">{esc(split_file.name)}</a> '
-                    f"row {r.row}"
-                    "</figcaption></figure>"
-                )
+                figs.append(fig)
         parts.append(
             f"<h3>{esc(METHOD_LABELS[m])}</h3><div "
             f'class="grid">{"".join(figs) or "<p class=note>no labelled samples</p>"}</div>'
         )
-    labels = (
-        "Table S's labels: positive = at least RoC-min inside a change, negative = at most "
-        "RoC-max, whatever the box's size; each example names its size stratum, the only "
-        "boxes it was compared with"
-        if stratified
-        else "Table I's labels, where box size decides much of the label"
-    )
-    intro = (
-        "<p class='note'>Per method, the negatives it scored highest (false positives) and "
-        "the positives it scored lowest "
-        f"(missed changes) under {esc(split_file.stem)} ({labels}). Each: query with "
-        "the annotated change (red) and the sample "
-        "(yellow) | its reference | the method's LoC map over the query, with its colour bar "
-        "(the map's range of that method's LoC in this image; brighter = more likely "
-        "changed). Rows refer to the split "
-        f"report. At most {n} of each per method (<code>[report] gallery</code>).</p>"
-    )
+    intro = _gallery_intro(split_file.stem, n, stratified)
     heading = "h3" if not stratified else "h2"
     title = "Change maps: worst cases" + ("" if stratified else " under Table I's labels")
     return f'<{heading} id="{anchor}">{title}</{heading}>' + intro + "".join(parts), written
