@@ -172,6 +172,32 @@ def _finite_loss(value: float, step: int) -> None:
         )
 
 
+def split_holdout(n: int, holdout: float, g: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A seeded ``holdout`` share of ``n`` crops (sorted) and the rest (the training crops)."""
+    perm = torch.randperm(n, generator=g).numpy()
+    n_hold = min(max(1, round(n * holdout)), max(n - 1, 0)) if holdout > 0 and n > 1 else 0
+    return np.sort(perm[:n_hold]), perm[n_hold:]
+
+
+def held_out_loss(
+    model: ConvAutoencoder,
+    data: np.ndarray,
+    hold: np.ndarray,
+    batch_size: int,
+    device: torch.device,
+    per_crop: bool,
+) -> float:
+    """Mean reconstruction loss over the held-out crops ``hold`` (the model left training)."""
+    model.eval()
+    with torch.no_grad():
+        tot = 0.0
+        for s in range(0, len(hold), batch_size):
+            x = to_tensor(data[hold[s : s + batch_size]], device, per_crop)
+            tot += float(nn.functional.mse_loss(model(x), x)) * len(x)
+    model.train()
+    return tot / max(len(hold), 1)
+
+
 def train_budget(
     model: ConvAutoencoder,
     data: np.ndarray,
@@ -196,10 +222,8 @@ def train_budget(
     """
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    n = len(data)
-    perm = torch.randperm(n, generator=g).numpy()
-    n_hold = min(max(1, round(n * holdout)), max(n - 1, 0)) if holdout > 0 and n > 1 else 0
-    hold, train_idx = np.sort(perm[:n_hold]), perm[n_hold:]
+    hold, train_idx = split_holdout(len(data), holdout, g)
+    n_hold = len(hold)
     model.to(device, memory_format=torch.channels_last)  # type: ignore[call-overload]
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=lr)
@@ -209,16 +233,6 @@ def train_budget(
     best, best_step, best_state, bad = float("inf"), 0, None, 0
     order, pos, epoch = np.array([], np.int64), 0, -1
     stopped = False
-
-    def held_out_loss() -> float:
-        model.eval()
-        with torch.no_grad():
-            tot = 0.0
-            for s in range(0, n_hold, batch_size):
-                x = to_tensor(data[hold[s : s + batch_size]], device, per_crop)
-                tot += float(nn.functional.mse_loss(model(x), x)) * len(x)
-        model.train()
-        return tot / max(n_hold, 1)
 
     for step in range(steps):
         if pos >= len(order):
@@ -237,7 +251,7 @@ def train_budget(
         if progress:
             progress(1)
         if n_hold and ((step + 1) % eval_every == 0 or step + 1 == steps):
-            hl = held_out_loss()
+            hl = held_out_loss(model, data, hold, batch_size, device, per_crop)
             curve.append((step + 1, hl))
             if hl < best - 1e-7:
                 best, best_step, bad = hl, step + 1, 0

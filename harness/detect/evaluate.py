@@ -174,6 +174,76 @@ def _frame_dets(
     return sc, tp
 
 
+def _random_score_aps(
+    cands: dict[int, np.ndarray],
+    gts: dict[int, np.ndarray],
+    nms: Any,
+    ids: list[int],
+    n_gt: int,
+    draws: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """AP50 of ``draws`` random scorings of the candidates, through the detector's NMS."""
+    aps = np.empty(draws)
+    for b in range(draws):
+        sc, tp = [], []
+        for i in ids:
+            s_, t_ = _frame_dets(cands[i], rng.random(len(cands[i])), gts[i], nms)
+            sc.append(s_)
+            tp.append(t_)
+        s_all, t_all = np.concatenate(sc), np.concatenate(tp)
+        aps[b] = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
+    return aps
+
+
+def _ceiling(
+    cands: dict[int, np.ndarray], gts: dict[int, np.ndarray], nms: Any, ids: list[int], n_gt: int
+) -> tuple[float, int]:
+    """The ceiling and the candidates' matches.
+
+    The ceiling: AP50 of the candidates scored by their best IoU with an annotated box. The
+    matches: how many annotated boxes some candidate meets at IoU 0.5.
+    """
+    sc, tp = [], []
+    matched = 0
+    for i in ids:
+        iou = iou_matrix(cands[i], gts[i])
+        best = iou.max(axis=1) if iou.shape[1] else np.zeros(len(cands[i]))
+        matched += int((iou.max(axis=0) >= 0.5).sum()) if len(cands[i]) else 0
+        s_, t_ = _frame_dets(cands[i], best, gts[i], nms)
+        sc.append(s_)
+        tp.append(t_)
+    ceiling = _weighted_voc(
+        np.concatenate(sc), np.concatenate(tp), np.ones(sum(map(len, sc))), n_gt
+    )
+    return ceiling, matched
+
+
+def _row_ap(
+    per: dict[int, tuple[np.ndarray, np.ndarray]],
+    gts: dict[int, np.ndarray],
+    ids: list[int],
+    n_gt: int,
+    counts: np.ndarray,
+    gt_n: np.ndarray,
+) -> tuple[float, np.ndarray]:
+    """A row's AP50 and its AP50 in each bootstrap resample (``counts``) of annotated frames."""
+    sc, tp, img = [], [], []
+    for k, i in enumerate(ids):
+        boxes, scores = per.get(i, (np.zeros((0, 4)), np.zeros(0)))
+        order = np.argsort(-scores, kind="stable")
+        t_ = np.zeros(len(scores), bool)
+        t_[order] = match50(iou_matrix(boxes, gts[i]), order)
+        sc.append(scores)
+        tp.append(t_)
+        img.append(np.full(len(scores), k))
+    s_all, t_all, g_all = np.concatenate(sc), np.concatenate(tp), np.concatenate(img)
+    ap = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
+    return ap, np.array(
+        [_weighted_voc(s_all, t_all, c[g_all].astype(np.float64), float(c @ gt_n)) for c in counts]
+    )
+
+
 def table_d_chance(
     cands: dict[int, np.ndarray],
     gts: dict[int, np.ndarray],
@@ -204,28 +274,8 @@ def table_d_chance(
     ids = sorted(gts)
     n_gt = sum(len(gts[i]) for i in ids)
     rng = np.random.default_rng(chance.draw_seed(seed, "D", n_gt, len(ids)))
-    aps = np.empty(draws)
-    for b in range(draws):
-        sc, tp = [], []
-        for i in ids:
-            s_, t_ = _frame_dets(cands[i], rng.random(len(cands[i])), gts[i], nms)
-            sc.append(s_)
-            tp.append(t_)
-        s_all, t_all = np.concatenate(sc), np.concatenate(tp)
-        aps[b] = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
-    floor, lo, hi = chance.summarise(aps)
-    sc, tp = [], []
-    matched = 0
-    for i in ids:
-        iou = iou_matrix(cands[i], gts[i])
-        best = iou.max(axis=1) if iou.shape[1] else np.zeros(len(cands[i]))
-        matched += int((iou.max(axis=0) >= 0.5).sum()) if len(cands[i]) else 0
-        s_, t_ = _frame_dets(cands[i], best, gts[i], nms)
-        sc.append(s_)
-        tp.append(t_)
-    ceiling = _weighted_voc(
-        np.concatenate(sc), np.concatenate(tp), np.ones(sum(map(len, sc))), n_gt
-    )
+    floor, lo, hi = chance.summarise(_random_score_aps(cands, gts, nms, ids, n_gt, draws, rng))
+    ceiling, matched = _ceiling(cands, gts, nms, ids, n_gt)
     out: dict[str, dict[str, Any]] = {
         "chance": {
             "floor": floor,
@@ -239,23 +289,7 @@ def table_d_chance(
     gt_n = np.array([len(gts[i]) for i in ids], np.float64)
     boots = {}
     for row, per in dets.items():
-        sc, tp, img = [], [], []
-        for k, i in enumerate(ids):
-            boxes, scores = per.get(i, (np.zeros((0, 4)), np.zeros(0)))
-            order = np.argsort(-scores, kind="stable")
-            t_ = np.zeros(len(scores), bool)
-            t_[order] = match50(iou_matrix(boxes, gts[i]), order)
-            sc.append(scores)
-            tp.append(t_)
-            img.append(np.full(len(scores), k))
-        s_all, t_all, g_all = np.concatenate(sc), np.concatenate(tp), np.concatenate(img)
-        ap = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
-        boots[row] = np.array(
-            [
-                _weighted_voc(s_all, t_all, c[g_all].astype(np.float64), float(c @ gt_n))
-                for c in counts
-            ]
-        )
+        ap, boots[row] = _row_ap(per, gts, ids, n_gt, counts, gt_n)
         bl, bh = interval(boots[row], ci)
         out[row] = {"ap50": ap, "ci_low": bl, "ci_high": bh}
     for row in dets:
@@ -285,6 +319,47 @@ def _by_image(
 
 #: Table D's rows: the detector and the random baseline (one draw of random scores, same NMS).
 D_ROWS = {"detection": "detector", "random": "random scores, same boxes (one draw)"}
+
+
+def _coco_results(
+    d: pd.DataFrame, ids: dict[tuple[str, str, int], int], on: set[int]
+) -> list[dict[str, Any]]:
+    """COCO results of the boxes ``d`` on the annotated image ids ``on``."""
+    return [
+        {
+            "image_id": ids[k],
+            "category_id": 1,
+            "score": float(s),
+            "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)],
+        }
+        for k, x1, y1, x2, y2, s in zip(
+            map(tuple, d[FRAME_KEY].to_numpy().tolist()),
+            d["x1"],
+            d["y1"],
+            d["x2"],
+            d["y2"],
+            d["score"],
+            strict=True,
+        )
+        if ids.get((str(k[0]), str(k[1]), int(k[2]))) in on
+    ]
+
+
+def _alarm_columns(
+    t: pd.DataFrame, fr: pd.DataFrame, ann: pd.DataFrame, alarm: float, ci: float
+) -> None:
+    """SPEC 13.1: the false-alarm rate measured at the nominal rate ``alarm``, added to ``t``.
+
+    Measured on the frames annotated no-change, with its exact interval.
+    """
+    quiet = ann[ann["status"] == "no-change"][FRAME_KEY].drop_duplicates()
+    if "exceedance" in fr.columns and len(quiet):
+        q = fr.merge(quiet, on=FRAME_KEY)
+        t["alarm_nominal"] = alarm
+        t["no_change_frames"] = len(q)
+        k = int((q["exceedance"] <= alarm).sum())
+        t["alarm_measured"] = k / len(q) if len(q) else np.nan
+        t["alarm_ci_low"], t["alarm_ci_high"] = clopper_pearson(k, len(q), ci)
 
 
 def score_detections(
@@ -325,25 +400,7 @@ def score_detections(
     )  # fmt: skip
     rows = []
     for kind, label in D_ROWS.items():
-        d = dets[dets["kind"] == kind]
-        res = [
-            {
-                "image_id": ids[k],
-                "category_id": 1,
-                "score": float(s),
-                "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)],
-            }
-            for k, x1, y1, x2, y2, s in zip(
-                map(tuple, d[FRAME_KEY].to_numpy().tolist()),
-                d["x1"],
-                d["y1"],
-                d["x2"],
-                d["y2"],
-                d["score"],
-                strict=True,
-            )
-            if ids.get((str(k[0]), str(k[1]), int(k[2]))) in on
-        ]
+        res = _coco_results(dets[dets["kind"] == kind], ids, on)
         voc, coco, coco50 = coco_eval(gt, res)
         c = ch["detector" if kind == "detection" else "random"]
         rows.append(
@@ -369,15 +426,7 @@ def score_detections(
         )
     t = pd.DataFrame(rows)
     t.insert(1, "boxes", boxes)
-    # SPEC 13.1: the false-alarm rate measured on frames annotated no-change, at the nominal one
-    quiet = ann[ann["status"] == "no-change"][FRAME_KEY].drop_duplicates()
-    if "exceedance" in fr.columns and len(quiet):
-        q = fr.merge(quiet, on=FRAME_KEY)
-        t["alarm_nominal"] = alarm
-        t["no_change_frames"] = len(q)
-        k = int((q["exceedance"] <= alarm).sum())
-        t["alarm_measured"] = k / len(q) if len(q) else np.nan
-        t["alarm_ci_low"], t["alarm_ci_high"] = clopper_pearson(k, len(q), ci)
+    _alarm_columns(t, fr, ann, alarm, ci)
     write_text(out / "tableD.csv", t.to_csv(index=False, float_format="%.4f"))
     write_text(out / "tableD.md", table_d_markdown(t))
     return t

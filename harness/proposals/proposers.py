@@ -383,44 +383,39 @@ def _checked(method: str, frame: Any, boxes: Any, scores: Any) -> tuple[np.ndarr
     return b, s
 
 
-def compute_proposals(
+def _rows(
+    f: Any, method: str, boxes: np.ndarray, scores: np.ndarray, classes: list[str]
+) -> pd.DataFrame:
+    """Proposal rows of one frame ``f`` and method (PROPOSAL_COLUMNS)."""
+    n = len(boxes)
+    return pd.DataFrame(
+        {
+            "session": f.session,
+            "camera": f.camera,
+            "utime": np.full(n, f.utime, np.int64),
+            "method": method,
+            "box_id": np.arange(n, dtype=np.int32),
+            "x1": boxes[:, 0] if n else [],
+            "y1": boxes[:, 1] if n else [],
+            "x2": boxes[:, 2] if n else [],
+            "y2": boxes[:, 3] if n else [],
+            "score": scores,
+            "class": classes,
+        }
+    )
+
+
+def _image_proposals(
     frames: pd.DataFrame,
     cfg: ProposalsConfig,
-    progress: Callable[[Iterable], Iterable] = lambda it: it,
-) -> pd.DataFrame:
-    """Proposal rows (PROPOSAL_COLUMNS) of every method in ``cfg.methods`` for every frame."""
-    frames = frames.sort_values(FRAME_KEY).reset_index(drop=True)
+    methods: list[str],
+    progress: Callable[[Iterable], Iterable],
+) -> list[pd.DataFrame]:
+    """The rows of the methods that read the image: OpenCV's, registered ones, YOLO.
+
+    Frame batch by frame batch, each image read once.
+    """
     out: list[pd.DataFrame] = []
-    methods = list(cfg.methods)
-    unknown = [m for m in methods if m not in known_methods()]
-    if unknown:
-        raise ConfigError(
-            f"[proposals] unknown method(s) {unknown}; known: {list(known_methods())}"
-        )
-
-    def rows(
-        f: pd.Series, method: str, boxes: np.ndarray, scores: np.ndarray, classes: list[str]
-    ) -> pd.DataFrame:
-        n = len(boxes)
-        return pd.DataFrame(
-            {
-                "session": f.session,
-                "camera": f.camera,
-                "utime": np.full(n, f.utime, np.int64),
-                "method": method,
-                "box_id": np.arange(n, dtype=np.int32),
-                "x1": boxes[:, 0] if n else [],
-                "y1": boxes[:, 1] if n else [],
-                "x2": boxes[:, 2] if n else [],
-                "y2": boxes[:, 3] if n else [],
-                "score": scores,
-                "class": classes,
-            }
-        )
-
-    if "grid5" in methods:
-        for f in frames.itertuples(index=False):
-            out.append(rows(f, "grid5", grid5(f.width, f.height), np.ones(5), [""] * 5))
     per_image = [m for m in IMAGE_METHODS if m in methods]
     if per_image or "yolo" in methods:
         yolo = YoloProposer(cfg.yolo) if "yolo" in methods else None
@@ -440,23 +435,48 @@ def compute_proposals(
                             f"check [proposals.{m}]"
                         ) from None
                     b, s = _checked(m, f, *found)
-                    out.append(rows(f, m, b, s, [""] * len(b)))
+                    out.append(_rows(f, m, b, s, [""] * len(b)))
             if yolo is not None:
                 for f, (b, s, c) in zip(chunk, yolo(imgs), strict=True):
-                    out.append(rows(f, "yolo", b, s, [str(int(k)) for k in c]))
-    if "file" in methods:
-        if not cfg.file:
-            raise ConfigError(
-                "[proposals] method 'file' needs [proposals] file = <path to the table>"
-            )
-        fp = load_file_proposals(Path(cfg.file), frames)
-        fp = fp.merge(frames[FRAME_KEY], on=FRAME_KEY)
-        fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(
-            drop=True
+                    out.append(_rows(f, "yolo", b, s, [str(int(k)) for k in c]))
+    return out
+
+
+def _file_proposals(frames: pd.DataFrame, cfg: ProposalsConfig) -> pd.DataFrame:
+    """The rows of method ``file``: the user's table, numbered per frame in box order."""
+    if not cfg.file:
+        raise ConfigError("[proposals] method 'file' needs [proposals] file = <path to the table>")
+    fp = load_file_proposals(Path(cfg.file), frames)
+    fp = fp.merge(frames[FRAME_KEY], on=FRAME_KEY)
+    fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(
+        drop=True
+    )
+    fp["method"] = "file"
+    fp["box_id"] = fp.groupby(FRAME_KEY).cumcount().astype(np.int32)
+    return fp[PROPOSAL_COLUMNS]
+
+
+def compute_proposals(
+    frames: pd.DataFrame,
+    cfg: ProposalsConfig,
+    progress: Callable[[Iterable], Iterable] = lambda it: it,
+) -> pd.DataFrame:
+    """Proposal rows (PROPOSAL_COLUMNS) of every method in ``cfg.methods`` for every frame."""
+    frames = frames.sort_values(FRAME_KEY).reset_index(drop=True)
+    out: list[pd.DataFrame] = []
+    methods = list(cfg.methods)
+    unknown = [m for m in methods if m not in known_methods()]
+    if unknown:
+        raise ConfigError(
+            f"[proposals] unknown method(s) {unknown}; known: {list(known_methods())}"
         )
-        fp["method"] = "file"
-        fp["box_id"] = fp.groupby(FRAME_KEY).cumcount().astype(np.int32)
-        out.append(fp[PROPOSAL_COLUMNS])
+
+    if "grid5" in methods:
+        for f in frames.itertuples(index=False):
+            out.append(_rows(f, "grid5", grid5(f.width, f.height), np.ones(5), [""] * 5))
+    out += _image_proposals(frames, cfg, methods, progress)
+    if "file" in methods:
+        out.append(_file_proposals(frames, cfg))
     df = (
         pd.concat([d for d in out if len(d)], ignore_index=True)
         if out

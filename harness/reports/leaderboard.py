@@ -183,6 +183,70 @@ def _footnotes(marks: set[str]) -> list[str]:
     return [f"{m}) -: {WHY[m]}." for m in sorted(marks)]
 
 
+def leaderboard_comparisons_md(t: pd.DataFrame) -> str:
+    """The differences between localizers in Table L, in words, with Holm's mark."""
+    first = str(t["localizer"].iloc[0])
+    roc = float(t["roc_max"].iloc[0])
+    lines = [
+        "# Paired comparisons between localizers (Table L)",
+        "",
+        f"Table S rank fusion at RoC-max {roc:.2f}: AP(localizer) - AP({first}) [95% "
+        "interval over the same bootstrap resamples of query images].",
+        "",
+    ]
+    tested = int(np.isfinite(t["S_rank_fusion_p_value"].to_numpy(np.float64)).sum())
+    kept = int(t["S_rank_fusion_holm_survives"].sum())
+    lines += [
+        f"Table L: {kept} of the {tested} differences from {first} tested survive a Holm "
+        f"correction over those {tested} (family-wise error 5%); they are marked [Holm].",
+        "",
+    ]
+    for r in t.iloc[1:].itertuples():
+        flips = (
+            f"sign flips in {100 * r.S_rank_fusion_sign_flip_share:.0f}% of resamples"
+            if r.S_rank_fusion_sign_flip_share == r.S_rank_fusion_sign_flip_share
+            else "no difference"
+        )
+        p = r.S_rank_fusion_p_value
+        ptxt = "" if p != p else ", p < 0.001" if p < 0.001 else f", p = {p:.3f}"
+        lines.append(
+            f"- {r.localizer} - {first} = {r.S_rank_fusion_diff:+.2f} "
+            f"[{r.S_rank_fusion_diff_ci_low:+.2f}, {r.S_rank_fusion_diff_ci_high:+.2f}] "
+            f"({flips}{ptxt})" + (" [Holm]" if r.S_rank_fusion_holm_survives else "")
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _floor_lines(t: pd.DataFrame, rec: list[tuple[str, str]]) -> list[str]:
+    """Table L's floor row (the first localizer's) and the sentence on the other rows' floors."""
+    first = str(t["localizer"].iloc[0])
+    lines = []
+    r0 = t.iloc[0]
+    lines.append(
+        f"| *floor ({first})* | "
+        + " | " * len(rec)
+        + " | ".join(_pct(float(r0[f"{p}_floor"])) for p, _, _, _, _ in AP_COLUMNS)
+        + " | |"
+    )
+    other = [
+        f"{r.localizer} {float(r.S_rank_fusion_floor):.2f}"
+        for r in t.itertuples()
+        if abs(float(r.S_rank_fusion_floor) - float(r0["S_rank_fusion_floor"])) >= 0.005
+    ]
+    lines.append("")
+    lines.append(
+        "Floor: the mean AP of random orders of the same samples (within the same strata, "
+        "through the same pixel maps). "
+        + (
+            "Rows whose Table S floor differs (their boxes differ): " + ", ".join(other) + "."
+            if other
+            else "Every row's Table S floor is the same to two decimals."
+        )
+        + f" {MARK_LEGEND}"
+    )
+    return lines
+
+
 def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> str:
     """Table L as markdown (``comparisons``: the differences between localizers, in words).
 
@@ -192,34 +256,7 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
     first = str(t["localizer"].iloc[0])
     roc = float(t["roc_max"].iloc[0])
     if comparisons:
-        lines = [
-            "# Paired comparisons between localizers (Table L)",
-            "",
-            f"Table S rank fusion at RoC-max {roc:.2f}: AP(localizer) - AP({first}) [95% "
-            "interval over the same bootstrap resamples of query images].",
-            "",
-        ]
-        tested = int(np.isfinite(t["S_rank_fusion_p_value"].to_numpy(np.float64)).sum())
-        kept = int(t["S_rank_fusion_holm_survives"].sum())
-        lines += [
-            f"Table L: {kept} of the {tested} differences from {first} tested survive a Holm "
-            f"correction over those {tested} (family-wise error 5%); they are marked [Holm].",
-            "",
-        ]
-        for r in t.iloc[1:].itertuples():
-            flips = (
-                f"sign flips in {100 * r.S_rank_fusion_sign_flip_share:.0f}% of resamples"
-                if r.S_rank_fusion_sign_flip_share == r.S_rank_fusion_sign_flip_share
-                else "no difference"
-            )
-            p = r.S_rank_fusion_p_value
-            ptxt = "" if p != p else ", p < 0.001" if p < 0.001 else f", p = {p:.3f}"
-            lines.append(
-                f"- {r.localizer} - {first} = {r.S_rank_fusion_diff:+.2f} "
-                f"[{r.S_rank_fusion_diff_ci_low:+.2f}, {r.S_rank_fusion_diff_ci_high:+.2f}] "
-                f"({flips}{ptxt})" + (" [Holm]" if r.S_rank_fusion_holm_survives else "")
-            )
-        return "\n".join(lines) + "\n"
+        return leaderboard_comparisons_md(t)
     heads = [h for _, _, _, _, h in AP_COLUMNS]
     rec = recall_columns(t)
     marks: set[str] = set()
@@ -262,29 +299,7 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
             for p, _, _, _, _ in AP_COLUMNS
         ]
         lines.append(f"| {r.localizer} | " + " | ".join(recs + aps) + f" | {diff} |")
-    r0 = t.iloc[0]
-    lines.append(
-        f"| *floor ({first})* | "
-        + " | " * len(rec)
-        + " | ".join(_pct(float(r0[f"{p}_floor"])) for p, _, _, _, _ in AP_COLUMNS)
-        + " | |"
-    )
-    other = [
-        f"{r.localizer} {float(r.S_rank_fusion_floor):.2f}"
-        for r in t.itertuples()
-        if abs(float(r.S_rank_fusion_floor) - float(r0["S_rank_fusion_floor"])) >= 0.005
-    ]
-    lines.append("")
-    lines.append(
-        "Floor: the mean AP of random orders of the same samples (within the same strata, "
-        "through the same pixel maps). "
-        + (
-            "Rows whose Table S floor differs (their boxes differ): " + ", ".join(other) + "."
-            if other
-            else "Every row's Table S floor is the same to two decimals."
-        )
-        + f" {MARK_LEGEND}"
-    )
+    lines += _floor_lines(t, rec)
     lines += ["", *_footnotes(marks)] if marks else []
     lines += ["", *cost_md(t)]
     return "\n".join(lines) + "\n"

@@ -299,6 +299,38 @@ def image_ranks(
     return rank, Lq, dist
 
 
+def _place_rows(
+    pair_q: np.ndarray, pair_c: np.ndarray, bounds: np.ndarray, f0: int, f1: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(query, chunk-local row) of every row of a place frame in the chunk of frames f0..f1.
+
+    ``pair_q``, ``pair_c``: the (query, place frame) pairs in frame order; one run of rows per
+    pair.
+    """
+    a, b = np.searchsorted(pair_c, [f0, f1])
+    cq, cc = pair_q[a:b], pair_c[a:b]
+    clen = bounds[cc + 1] - bounds[cc]
+    rep = np.repeat(np.arange(len(cc)), clen)
+    first = np.concatenate([[0], np.cumsum(clen)[:-1]]).astype(np.int64)
+    crow = (bounds[cc] - bounds[f0])[rep] + np.arange(len(rep)) - first[rep]
+    return cq[rep], crow
+
+
+def _place_ranks(fm: torch.Tensor, qi: np.ndarray, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rank of each query's place and its L from the (queries x frames) per-frame minima ``fm``.
+
+    ``qi``, ``pc``: the (query, place frame) pairs. Frames of the place never count.
+    """
+    n, L = fm.shape
+    dev = fm.device
+    in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
+    in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
+    dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
+    rank = (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)
+    Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
+    return rank, Lq
+
+
 def _rank_group(
     query_desc: np.ndarray,
     db_desc: np.ndarray,
@@ -354,14 +386,7 @@ def _rank_group(
         bn_host = bn.double().cpu().numpy()
         lens = np.diff(bounds[f0 : f1 + 1]).astype(np.int64)
         idx = _pad_index(lens, dev)
-        # rows (chunk-local) of the place frames in this chunk, one run per (query, frame) pair
-        a, b = np.searchsorted(pair_c, [f0, f1])
-        cq, cc = pair_q[a:b], pair_c[a:b]
-        clen = bounds[cc + 1] - bounds[cc]
-        rep = np.repeat(np.arange(len(cc)), clen)
-        first = np.concatenate([[0], np.cumsum(clen)[:-1]]).astype(np.int64)
-        crow = (bounds[cc] - r0)[rep] + np.arange(len(rep)) - first[rep]
-        cqr = cq[rep]
+        cqr, crow = _place_rows(pair_q, pair_c, bounds, f0, f1)
         vals = np.empty(len(cqr), np.float32)  # fast values of those rows, batch by batch
         for bi, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
             q0 = bi * query_batch
@@ -380,13 +405,7 @@ def _rank_group(
             exact.add(cqr, vals, bn_host[crow], query_desc, block.numpy(), crow)
         else:  # the device's copy is not read back: the rows are read from the database
             exact.add(cqr, vals, bn_host[crow], query_desc, db_desc, order[r0 + crow])
-    in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
-    in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
-    dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
-    rank = (
-        (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)
-    )  # place frames never count
-    Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
+    rank, Lq = _place_ranks(fm, qi, pc)
     return rank, Lq, np.sqrt(exact.best)
 
 

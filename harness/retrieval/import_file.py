@@ -129,17 +129,8 @@ def _float_list(v: Any) -> list[float] | None:
     return out
 
 
-def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
-    """A rank file (CSV or parquet) as a typed table; every value checked.
-
-    Returns:
-        The table (``ranked`` and ``scores`` as Python lists) and its row numbering.
-
-    Raises:
-        RetrievalError: The file is missing, unreadable, lacks a column, or a value has the
-            wrong type: one message naming the file, the count and one example row.
-    """
-    path = Path(path)
+def _read_table(path: Path) -> tuple[pd.DataFrame, bool]:
+    """The rank file's table (a CSV as strings) and whether it is a CSV."""
     if not path.exists():
         raise RetrievalError(f"{path}: rank file not found")
     if path.is_dir():
@@ -159,6 +150,57 @@ def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
     except (OSError, ValueError) as err:
         kind = "CSV" if csv else "parquet"
         raise RetrievalError(f"{path}: not a readable {kind} file ({err})") from None
+    return df, csv
+
+
+def _read_lists(df: pd.DataFrame, out: pd.DataFrame, rows: Rows) -> None:
+    """``ranked`` (and ``scores``) into ``out`` as Python lists, every value checked."""
+    ranked = [_int_list(v) for v in df["ranked"]]
+    bad_i = [i for i, v in enumerate(ranked) if v is None]
+    rows.fail(
+        bad_i,
+        "have a 'ranked' that is not a list of integer frame utimes (CSV: space-separated)",
+        f"{str(df['ranked'].iloc[bad_i[0]])[:40]!r}" if bad_i else "",
+    )
+    rows.fail([i for i, v in enumerate(ranked) if not v], "have an empty 'ranked' list")
+    rows.fail(
+        [i for i, v in enumerate(ranked) if v is not None and len(set(v)) != len(v)],
+        "have a 'ranked' list that repeats a frame",
+    )
+    out["ranked"] = ranked
+    long = out["L"].to_numpy() < np.array([len(v or []) for v in ranked])
+    rows.fail(long, "have L shorter than their 'ranked' list")
+    if "scores" in df.columns:
+        scores = [_float_list(v) for v in df["scores"]]
+        rows.fail(
+            [i for i, v in enumerate(scores) if v is None],
+            "have 'scores' that are not a list of numbers (CSV: space-separated)",
+        )
+        rows.fail(
+            [
+                i
+                for i, (s, r) in enumerate(zip(scores, ranked, strict=True))
+                if len(s or []) != len(r or [])
+            ],
+            "have 'scores' of another length than 'ranked'",
+        )
+        nonfinite = [i for i, s in enumerate(scores) if not all(math.isfinite(x) for x in s or [])]
+        rows.fail(nonfinite, "have non-finite scores (NaN or inf)")
+        out["scores"] = scores
+
+
+def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
+    """A rank file (CSV or parquet) as a typed table; every value checked.
+
+    Returns:
+        The table (``ranked`` and ``scores`` as Python lists) and its row numbering.
+
+    Raises:
+        RetrievalError: The file is missing, unreadable, lacks a column, or a value has the
+            wrong type: one message naming the file, the count and one example row.
+    """
+    path = Path(path)
+    df, csv = _read_table(path)
     rows = Rows(path, csv)
     if "distance" in df.columns and "scores" not in df.columns:
         raise RetrievalError(
@@ -194,36 +236,5 @@ def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
         out[c] = vals
     flat = (out["x2"] <= out["x1"]) | (out["y2"] <= out["y1"])
     rows.fail(flat.to_numpy(), "have a box with x2 <= x1 or y2 <= y1 (reversed or empty)")
-    ranked = [_int_list(v) for v in df["ranked"]]
-    bad_i = [i for i, v in enumerate(ranked) if v is None]
-    rows.fail(
-        bad_i,
-        "have a 'ranked' that is not a list of integer frame utimes (CSV: space-separated)",
-        f"{str(df['ranked'].iloc[bad_i[0]])[:40]!r}" if bad_i else "",
-    )
-    rows.fail([i for i, v in enumerate(ranked) if not v], "have an empty 'ranked' list")
-    rows.fail(
-        [i for i, v in enumerate(ranked) if v is not None and len(set(v)) != len(v)],
-        "have a 'ranked' list that repeats a frame",
-    )
-    out["ranked"] = ranked
-    long = out["L"].to_numpy() < np.array([len(v or []) for v in ranked])
-    rows.fail(long, "have L shorter than their 'ranked' list")
-    if "scores" in df.columns:
-        scores = [_float_list(v) for v in df["scores"]]
-        rows.fail(
-            [i for i, v in enumerate(scores) if v is None],
-            "have 'scores' that are not a list of numbers (CSV: space-separated)",
-        )
-        rows.fail(
-            [
-                i
-                for i, (s, r) in enumerate(zip(scores, ranked, strict=True))
-                if len(s or []) != len(r or [])
-            ],
-            "have 'scores' of another length than 'ranked'",
-        )
-        nonfinite = [i for i, s in enumerate(scores) if not all(math.isfinite(x) for x in s or [])]
-        rows.fail(nonfinite, "have non-finite scores (NaN or inf)")
-        out["scores"] = scores
+    _read_lists(df, out, rows)
     return out, rows

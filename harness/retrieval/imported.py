@@ -98,41 +98,52 @@ def _check_against_run(
         )
     m["r_utime"] = m["r_utime"].astype(np.int64)
     if proposals is not None:
-        pk = ["session", "camera", "utime", "method", "box_id"]
-        pr = proposals[pk + BOX].rename(
-            columns={
-                "session": "q_session",
-                "camera": "q_camera",
-                "utime": "q_utime",
-                "x1": "_x1",
-                "y1": "_y1",
-                "x2": "_x2",
-                "y2": "_y2",
-            }
+        _check_proposals(m, rows, proposals)
+    _check_frame_ids(m, rows, frames)
+    return m
+
+
+def _check_proposals(m: pd.DataFrame, rows: Rows, proposals: pd.DataFrame) -> None:
+    """Each row's box must be the run's proposal of its (query frame, method, box_id)."""
+    pk = ["session", "camera", "utime", "method", "box_id"]
+    pr = proposals[pk + BOX].rename(
+        columns={
+            "session": "q_session",
+            "camera": "q_camera",
+            "utime": "q_utime",
+            "x1": "_x1",
+            "y1": "_y1",
+            "x2": "_x2",
+            "y2": "_y2",
+        }
+    )
+    j = m.merge(pr, on=["q_session", "q_camera", "q_utime", "method", "box_id"], how="left")
+    none = j["_x1"].isna().to_numpy()
+    if none.any():
+        i = int(np.flatnonzero(none)[0])
+        known = sorted(set(proposals["method"]))
+        rows.fail(
+            none,
+            "match no proposal of the run (query frame, method, box_id)",
+            f"method {j.loc[i, 'method']!r} box {j.loc[i, 'box_id']}; the run's methods: "
+            f"{known}; `harness task export` lists every query subimage",
         )
-        j = m.merge(pr, on=["q_session", "q_camera", "q_utime", "method", "box_id"], how="left")
-        none = j["_x1"].isna().to_numpy()
-        if none.any():
-            i = int(np.flatnonzero(none)[0])
-            known = sorted(set(proposals["method"]))
-            rows.fail(
-                none,
-                "match no proposal of the run (query frame, method, box_id)",
-                f"method {j.loc[i, 'method']!r} box {j.loc[i, 'box_id']}; the run's methods: "
-                f"{known}; `harness task export` lists every query subimage",
-            )
-        off = np.zeros(len(j), bool)
-        for a in BOX:
-            off |= np.abs(j[a].to_numpy() - j["_" + a].to_numpy()) > BOX_TOLERANCE_PX
-        if off.any():
-            i = int(np.flatnonzero(off)[0])
-            rows.fail(
-                off,
-                "have a box that is not the run's proposal of that box_id",
-                f"({j.loc[i, 'x1']:g}, {j.loc[i, 'y1']:g}, {j.loc[i, 'x2']:g}, {j.loc[i, 'y2']:g})"
-                f" vs ({j.loc[i, '_x1']:g}, {j.loc[i, '_y1']:g}, {j.loc[i, '_x2']:g}, "
-                f"{j.loc[i, '_y2']:g}) in upright pixels",
-            )
+    off = np.zeros(len(j), bool)
+    for a in BOX:
+        off |= np.abs(j[a].to_numpy() - j["_" + a].to_numpy()) > BOX_TOLERANCE_PX
+    if off.any():
+        i = int(np.flatnonzero(off)[0])
+        rows.fail(
+            off,
+            "have a box that is not the run's proposal of that box_id",
+            f"({j.loc[i, 'x1']:g}, {j.loc[i, 'y1']:g}, {j.loc[i, 'x2']:g}, {j.loc[i, 'y2']:g})"
+            f" vs ({j.loc[i, '_x1']:g}, {j.loc[i, '_y1']:g}, {j.loc[i, '_x2']:g}, "
+            f"{j.loc[i, '_y2']:g}) in upright pixels",
+        )
+
+
+def _check_frame_ids(m: pd.DataFrame, rows: Rows, frames: pd.DataFrame) -> None:
+    """Each listed reference id must be a frame (utime) of the row's reference session."""
     known_ids = {
         str(s): set(g["utime"].astype(np.int64).tolist())
         for s, g in frames.groupby("session", sort=True)
@@ -150,7 +161,6 @@ def _check_against_run(
                     hint = " (nanoseconds? frame ids are utimes in microseconds)"
                 example = f"{stray[0]} is no frame of session {rs}{hint}"
     rows.fail(bad_ids, "list reference ids that are not frames of their reference session", example)
-    return m
 
 
 def _pair_hint(r: Any, pairs: pd.DataFrame) -> str:
@@ -168,6 +178,56 @@ def _pair_hint(r: Any, pairs: pd.DataFrame) -> str:
     if not (q["r_session"] == r.r_session).any() or r.r_session == r.q_session:
         return f"; reference sessions of the pairs: {sorted(set(q['r_session']))}"
     return ""
+
+
+def _check_scores(m: pd.DataFrame, rows: Rows, score_kind: str) -> None:
+    """Scores in [0, 1] for similarities, and in the order of ``ranked``."""
+    if score_kind == "similarity":
+        out_of = [i for i, s in enumerate(m["scores"]) if any(x < 0 or x > 1 for x in s)]
+        rows.fail(out_of, "have similarities outside [0, 1] (SPEC 11: d = 1 - s)")
+    wrong = [i for i, s in enumerate(m["scores"]) if np.any(np.diff(_distances(s, score_kind)) < 0)]
+    other = "similarity" if score_kind == "distance" else "distance"
+    rows.fail(
+        wrong,
+        f"have scores out of the order of 'ranked' (best first means {score_kind}s "
+        f"{'rise' if score_kind == 'distance' else 'fall'} along the list; "
+        f'if they are {other}s, set [import] score_kind = "{other}")',
+    )
+
+
+def _places(
+    m: pd.DataFrame, frames: pd.DataFrame, gt_radius_m: float, max_yaw_deg: float
+) -> dict[tuple[str, str], dict[int, np.ndarray]]:
+    """(session, camera) -> each reference frame's place P(G), for the references of ``m``."""
+    places: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+    for (s, c), g in frames.groupby(["session", "camera"], sort=True):
+        sel = (m["r_session"] == s) & (m["r_camera"] == c)
+        if sel.any():
+            places[(str(s), str(c))] = ground_truth_places(
+                g, m.loc[sel, "r_utime"].to_numpy(np.int64), gt_radius_m, max_yaw_deg
+            )
+    return places
+
+
+def _rank_rows(
+    m: pd.DataFrame,
+    rank: np.ndarray,
+    Lq: np.ndarray,
+    dval: np.ndarray,
+    exact: np.ndarray,
+    psize: np.ndarray,
+) -> pd.DataFrame:
+    """The rank rows in the built-in engine's columns."""
+    cols = [*KEY[:4], "r_camera", "r_utime", "season_pair", "method", "box_id", *BOX]
+    out = m[cols].copy()
+    out["rank"] = rank
+    out["L"] = Lq
+    out["r"] = rank / Lq
+    out["r_desc"] = (Lq + 1 - rank) / Lq
+    out["d"] = dval
+    out["exact"] = exact
+    out["place_size"] = psize
+    return out
 
 
 def ranks_from_import(
@@ -203,27 +263,9 @@ def ranks_from_import(
         raise RetrievalError(f"[import] score_kind = {score_kind!r}; allowed: {SCORE_KINDS}")
     m = _check_against_run(df, rows, pairs, proposals, frames)
     has_scores = "scores" in m.columns
-    if has_scores and score_kind == "similarity":
-        out_of = [i for i, s in enumerate(m["scores"]) if any(x < 0 or x > 1 for x in s)]
-        rows.fail(out_of, "have similarities outside [0, 1] (SPEC 11: d = 1 - s)")
     if has_scores:
-        wrong = [
-            i for i, s in enumerate(m["scores"]) if np.any(np.diff(_distances(s, score_kind)) < 0)
-        ]
-        other = "similarity" if score_kind == "distance" else "distance"
-        rows.fail(
-            wrong,
-            f"have scores out of the order of 'ranked' (best first means {score_kind}s "
-            f"{'rise' if score_kind == 'distance' else 'fall'} along the list; "
-            f'if they are {other}s, set [import] score_kind = "{other}")',
-        )
-    places: dict[tuple[str, str], dict[int, np.ndarray]] = {}
-    for (s, c), g in frames.groupby(["session", "camera"], sort=True):
-        sel = (m["r_session"] == s) & (m["r_camera"] == c)
-        if sel.any():
-            places[(str(s), str(c))] = ground_truth_places(
-                g, m.loc[sel, "r_utime"].to_numpy(np.int64), gt_radius_m, max_yaw_deg
-            )
+        _check_scores(m, rows, score_kind)
+    places = _places(m, frames, gt_radius_m, max_yaw_deg)
     db = _databases(proposals)
     n = len(m)
     rank = np.empty(n, np.int64)
@@ -261,15 +303,7 @@ def ranks_from_import(
             exact[i] = False
     rows.fail(incomplete, "have a complete list (len = L) without any frame of the place P(G)")
     rank = np.minimum(rank, Lq)
-    cols = [*KEY[:4], "r_camera", "r_utime", "season_pair", "method", "box_id", *BOX]
-    out = m[cols].copy()
-    out["rank"] = rank
-    out["L"] = Lq
-    out["r"] = rank / Lq
-    out["r_desc"] = (Lq + 1 - rank) / Lq
-    out["d"] = dval
-    out["exact"] = exact
-    out["place_size"] = psize
+    out = _rank_rows(m, rank, Lq, dval, exact, psize)
     counts["ranked"] = n
     return out.sort_values(
         ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]

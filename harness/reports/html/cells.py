@@ -7,6 +7,7 @@ is green when its 95% interval lies clear above the floor, grey when it holds it
 from __future__ import annotations
 
 import html
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -267,6 +268,45 @@ def heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, w
     )
 
 
+def _table_l_cells(
+    r: pd.Series, rec: list[tuple[str, str]], dash: Callable[[pd.Series, str], str]
+) -> list[str]:
+    """One localizer's cells of Table L: recalls, APs coloured by verdict, the paired difference.
+
+    ``dash``: the cell of an undefined value (``-`` with its footnote mark).
+    """
+    from harness.reports.leaderboard import AP_COLUMNS
+
+    cells = [f"<td>{esc(r['localizer'])}</td>"]
+    for c, _ in rec:
+        x = float(r[c])
+        cells.append(f"<td>{num(x)}</td>" if x == x else dash(r, c))
+    for pfx, *_ in AP_COLUMNS:
+        v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
+        word = str(r[f"{pfx}_verdict"])
+        if v != v:
+            cells.append(dash(r, f"{pfx}_ap"))
+            continue
+        cells.append(
+            '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
+            + num(v)
+            + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
+            + "</td>"
+        )
+    d, dl, dh = (float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high"))
+    holm_ok = bool(r.get("S_rank_fusion_holm_survives", False))
+    cells.append(
+        "<td></td>"
+        if d != d
+        else f'<td style="background:{diff_colour(dl, dh)}"'
+        + (' data-holm="1"' if holm_ok else "")
+        + f'>{d:+.2f} <span class="ci">[{dl:+.2f}, {dh:+.2f}]</span>'
+        + (" <b>[Holm]</b>" if holm_ok else "")
+        + "</td>"
+    )
+    return cells
+
+
 def table_l(out: Path, machine: str = "") -> str:
     """Table L (SPEC section 11) from ``tableL.csv``: every AP coloured against its floor.
 
@@ -303,36 +343,7 @@ def table_l(out: Path, machine: str = "") -> str:
         return f'<td title="{esc(WHY[m])}">-<sup>{m}</sup></td>'
 
     for _, r in t.iterrows():
-        cells = [f"<td>{esc(r['localizer'])}</td>"]
-        for c, _ in rec:
-            x = float(r[c])
-            cells.append(f"<td>{num(x)}</td>" if x == x else dash(r, c))
-        for pfx, *_ in AP_COLUMNS:
-            v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
-            word = str(r[f"{pfx}_verdict"])
-            if v != v:
-                cells.append(dash(r, f"{pfx}_ap"))
-                continue
-            cells.append(
-                '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
-                + num(v)
-                + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
-                + "</td>"
-            )
-        d, dl, dh = (
-            float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high")
-        )
-        holm_ok = bool(r.get("S_rank_fusion_holm_survives", False))
-        cells.append(
-            "<td></td>"
-            if d != d
-            else f'<td style="background:{diff_colour(dl, dh)}"'
-            + (' data-holm="1"' if holm_ok else "")
-            + f'>{d:+.2f} <span class="ci">[{dl:+.2f}, {dh:+.2f}]</span>'
-            + (" <b>[Holm]</b>" if holm_ok else "")
-            + "</td>"
-        )
-        rows.append("<tr>" + "".join(cells) + "</tr>")
+        rows.append("<tr>" + "".join(_table_l_cells(r, rec, dash)) + "</tr>")
     r0 = t.iloc[0]
     rows.append(
         f'<tr class="floor"><td>floor ({esc(first)})</td>'
