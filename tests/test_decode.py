@@ -85,3 +85,74 @@ def test_reduced_crops_and_descriptors_equal_the_full_frames_within_the_toleranc
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     b /= np.linalg.norm(b, axis=1, keepdims=True)
     assert (a * b).sum(1).min() > 0.999  # cosine of each crop's descriptor with its full twin
+
+
+# ------------------------------------------------ decode ahead of the encoder (a reader thread)
+
+
+def test_prefetched_keeps_the_order_raises_where_the_producer_failed_and_stops_when_left() -> None:
+    import threading
+
+    import pytest
+
+    from harness.runtime.prefetch import prefetched
+
+    assert list(prefetched(iter(range(50)), 3)) == list(range(50))
+    assert list(prefetched(iter(range(5)), 0)) == list(range(5))
+
+    def broken():
+        yield 1
+        yield 2
+        raise ValueError("frame 3 is unreadable")
+
+    got = []
+    with pytest.raises(ValueError, match="frame 3"):
+        for x in prefetched(broken(), 2):
+            got.append(x)
+    assert got == [1, 2]  # every item before the failure, then the producer's own error
+    produced = []
+
+    def endless():
+        i = 0
+        while True:
+            produced.append(i)
+            yield i
+            i += 1
+
+    it = prefetched(endless(), 2)
+    assert [next(it) for _ in range(3)] == [0, 1, 2]
+    it.close()  # the consumer leaves: the reader stops, it does not run on
+    n = len(produced)
+    assert n <= 3 + 2 + 1 and not [t for t in threading.enumerate() if t.name == "prefetch"]
+
+
+def test_descriptors_are_the_same_bytes_with_and_without_the_reader_thread(
+    tmp_path: Path,
+) -> None:
+    """``[descriptor] prefetch`` changes when frames are decoded, never what is encoded."""
+    from harness.config.schema import DescriptorConfig
+    from harness.descriptors.extract import encode_shard
+
+    rng = np.random.default_rng(2)
+    frames, rows = [], []
+    for i in range(12):
+        p = tmp_path / f"{i}.jpg"
+        img = cv2.GaussianBlur(rng.integers(0, 256, (160, 120, 3), dtype=np.uint8), (0, 0), 2)
+        cv2.imwrite(str(p), img)
+        frames.append(("s", "Cam5", i, str(p)))
+        for b in range(3):
+            x1, y1 = rng.uniform(0, 50), rng.uniform(0, 70)
+            rows.append(("s", "Cam5", i, "grid5", b, x1, y1, x1 + 60, y1 + 80))
+    fr = pd.DataFrame(frames, columns=["session", "camera", "utime", "image"])
+    df = pd.DataFrame(
+        rows, columns=["session", "camera", "utime", "method", "box_id", "x1", "y1", "x2", "y2"]
+    )
+    out = {}
+    for depth in (0, 2):
+        dc = DescriptorConfig(name="thumb", input_size=32, prefetch=depth, shard_frames=4)
+        d = tmp_path / f"p{depth}"
+        d.mkdir()
+        encode_shard(dc, d, None, fr, df, f"prefetch {depth}", d)
+        out[depth] = np.load(d / "desc.npy")
+    assert out[0].shape == (36, out[0].shape[1]) and out[0].shape[1] > 0
+    assert out[0].tobytes() == out[2].tobytes()

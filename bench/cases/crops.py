@@ -45,6 +45,8 @@ def case_crops(quick: bool) -> None:
             notes=f"{n} JPEG frames 1232x1616, 16 boxes each",
         )
     _grid5_reduced(paths)
+    _overlap(paths)
+    _overlap_bovw(paths)
 
 
 def _grid5_reduced(paths: list[str]) -> None:
@@ -80,4 +82,103 @@ def _grid5_reduced(paths: list[str]) -> None:
             [1000 * t / n for t in runs],
             "ms/frame",
             notes="cv2.imread alone (libjpeg-turbo): the decode floor of the row above",
+        )
+
+
+def _overlap(paths: list[str]) -> None:
+    """The descriptor stage's loop on grid5 of NCLT-sized JPEG frames (reduced decode, the
+    paper's encoder at 256): with a reader thread decoding ahead (``[descriptor] prefetch``) and
+    without, next to its two limits measured in the same run, decode alone and encode alone.
+    Overlapped, the loop should cost about the larger of the two, not their sum."""
+    import statistics
+
+    import pandas as pd
+
+    from harness.config.schema import DescriptorConfig
+    from harness.descriptors import AutoencoderDescriptor
+    from harness.descriptors.autoencoder import ConvAutoencoder
+    from harness.descriptors.crops import iter_crops
+    from harness.proposals.proposers import grid5
+    from harness.runtime.prefetch import prefetched
+
+    boxes = grid5(1232, 1616)
+    df = pd.DataFrame(
+        [(p, *b) for p in paths for b in boxes], columns=["image", "x1", "y1", "x2", "y2"]
+    )
+    n = len(paths)
+    d = AutoencoderDescriptor(DescriptorConfig(input_size=256, device="cpu"))
+    d.model = ConvAutoencoder().eval()
+    crops = [c for _, c in iter_crops(df, df["image"], 256, reduced=True)]
+    d.encode(crops[0])  # warm
+
+    def loop(depth: int) -> None:
+        for _, c in prefetched(iter_crops(df, df["image"], 256, reduced=True), depth):
+            d.encode(c)
+
+    rounds: dict[str, list[float]] = {"decode": [], "encode": [], "p0": [], "p2": []}
+    for _ in range(3):  # interleaved: this machine's rate drifts within a minute
+        rounds["decode"] += timed(
+            lambda: [None for _ in iter_crops(df, df["image"], 256, reduced=True)], repeat=1
+        )
+        rounds["encode"] += timed(lambda: [d.encode(c) for c in crops], repeat=1)
+        rounds["p0"] += timed(lambda: loop(0), repeat=1)
+        rounds["p2"] += timed(lambda: loop(2), repeat=1)
+    med = {k: statistics.median(v) for k, v in rounds.items()}
+    limit = max(med["decode"], med["encode"])
+    for key, name in (("decode", "decode+crop alone (limit)"), ("encode", "encode alone (limit)")):
+        emit(
+            f"descriptor loop: {name}",
+            [1000 * t / n for t in rounds[key]],
+            "ms/frame",
+            notes=f"{n} JPEG frames 1232x1616, grid5 at 256, reduced decode",
+        )
+    for key, depth in (("p0", 0), ("p2", 2)):
+        emit(
+            f"descriptor loop[prefetch={depth}]",
+            [1000 * t / n for t in rounds[key]],
+            "ms/frame",
+            vs_limit=round(med[key] / limit, 2),
+            notes=f"{med[key] / limit:.2f}x max(decode, encode) and "
+            f"{med[key] / (med['decode'] + med['encode']):.2f}x their sum, same rounds",
+        )
+
+
+def _overlap_bovw(paths: list[str]) -> None:
+    """The same for BoVW's feature loop (dense RootSIFT at 128, one core): with and without the
+    reader thread, in interleaved rounds."""
+    import statistics
+
+    import pandas as pd
+
+    from harness.config.schema import BovwConfig
+    from harness.proposals.proposers import grid5
+    from harness.retrieval.bovw import iter_features
+
+    rows = pd.DataFrame(
+        [
+            ("s", "c", i, "grid5", k, *b)
+            for i in range(len(paths))
+            for k, b in enumerate(grid5(1232, 1616))
+        ],
+        columns=["session", "camera", "utime", "method", "box_id", "x1", "y1", "x2", "y2"],
+    )
+    frames = pd.DataFrame(
+        [("s", "c", i, p) for i, p in enumerate(paths)],
+        columns=["session", "camera", "utime", "image"],
+    )
+    runs: dict[int, list[float]] = {0: [], 2: []}
+    for _ in range(3):
+        for depth in runs:
+            bc = BovwConfig(prefetch=depth)
+            runs[depth] += timed(
+                lambda bc=bc: [None for _ in iter_features(bc, rows, frames, "bench")], repeat=1
+            )
+    base = statistics.median(runs[0])
+    for depth, r in runs.items():
+        emit(
+            f"bovw feature loop[prefetch={depth}]",
+            [1000 * t / len(paths) for t in r],
+            "ms/frame",
+            notes=f"{len(paths)} JPEG frames 1232x1616, grid5, dense RootSIFT at 128; "
+            f"{base / statistics.median(r):.2f}x the loop without the thread, same rounds",
         )

@@ -32,6 +32,7 @@ def check_bovw(bw: BovwConfig, where: str) -> None:
     c(bw.kmeans_iter >= 1, where, "kmeans_iter", bw.kmeans_iter, ">= 1")
     c(bw.seed >= 0, where, "seed", bw.seed, ">= 0")
     c(bw.shard_frames >= 1, where, "shard_frames", bw.shard_frames, ">= 1")
+    c(bw.prefetch >= 0, where, "prefetch", bw.prefetch, ">= 0")
 
 
 #: A session name is a directory name under ``--out``: letters, digits, ``.``, ``_``, ``-``, not
@@ -375,6 +376,7 @@ def _check_descriptor(cfg: Config, where: str) -> None:
     for key in ("epochs", "batch_size", "max_train_subimages", "shard_frames"):
         c(getattr(de, key) >= 1, where, f"[descriptor] {key}", getattr(de, key), ">= 1")
     c(de.num_workers >= 0, where, "[descriptor] num_workers", de.num_workers, ">= 0")
+    c(de.prefetch >= 0, where, "[descriptor] prefetch", de.prefetch, ">= 0")
     c(
         de.input_size >= 8 and de.input_size % 8 == 0,
         where,

@@ -30,7 +30,7 @@ from harness.runtime.cache import content_sha, file_fingerprint, relative_to_roo
 Parts = tuple[Any, ...]
 
 #: Descriptor options that change neither the trained model nor the descriptors' values.
-DESCRIPTOR_EXECUTION = ("num_workers", "shard_frames")
+DESCRIPTOR_EXECUTION = ("num_workers", "shard_frames", "prefetch")
 #: ... and the ones that change the descriptors but not the model (the stored dtype, the batch).
 MODEL_EXCLUDED = (*DESCRIPTOR_EXECUTION, "encode_batch", "dtype")
 #: Retrieval options that only cut the ranking work into units.
@@ -212,7 +212,7 @@ def samples(cfg: Config, ranks_key: str, ann_key: str) -> Parts:
 
 
 #: Bag-of-words options that only change how the work is cut or run.
-BOVW_EXECUTION = ("num_workers", "shard_frames")
+BOVW_EXECUTION = ("num_workers", "shard_frames", "prefetch")
 
 
 def bovw_options(bc: BovwConfig) -> dict[str, Any]:

@@ -31,6 +31,7 @@ from harness.descriptors.crops import iter_crops
 from harness.errors import RetrievalError
 from harness.records import FRAME_KEY
 from harness.runtime.cache import read_cached_parquet, write_parquet
+from harness.runtime.prefetch import prefetched
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
@@ -87,7 +88,7 @@ def _images(rows: pd.DataFrame, frames: pd.DataFrame) -> pd.Series:
     return rows.merge(frames[[*FRAME_KEY, "image"]], on=FRAME_KEY, how="left")["image"]
 
 
-def _iter_features(bc: BovwConfig, rows: pd.DataFrame, frames: pd.DataFrame, name: str) -> Any:
+def iter_features(bc: BovwConfig, rows: pd.DataFrame, frames: pd.DataFrame, name: str) -> Any:
     """(row positions in ``rows``, their features), batch by batch, frames decoded once each."""
     order = np.lexsort(
         (rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy())
@@ -95,7 +96,12 @@ def _iter_features(bc: BovwConfig, rows: pd.DataFrame, frames: pd.DataFrame, nam
     img = _images(rows, frames)
     ex = _extractor(bc)
     for idx, crops in progress(
-        iter_crops(rows.iloc[order], img.iloc[order], bc.input_size, num_workers=bc.num_workers),
+        prefetched(
+            iter_crops(
+                rows.iloc[order], img.iloc[order], bc.input_size, num_workers=bc.num_workers
+            ),
+            0 if bc.num_workers else bc.prefetch,
+        ),
         name,
         "batch",
     ):
@@ -122,7 +128,7 @@ def train_vocabulary(
     pick = np.sort(rng.choice(len(rows), size=n, replace=False)) if n else np.zeros(0, int)
     sample = rows.iloc[pick].reset_index(drop=True)
     feats: list[np.ndarray] = [np.zeros((0, 0), np.float32)] * len(sample)
-    for idx, fs in _iter_features(bc, sample, frames, "bovw vocabulary features"):
+    for idx, fs in iter_features(bc, sample, frames, "bovw vocabulary features"):
         for i, f in zip(idx, fs, strict=True):
             feats[int(i)] = f
     have = [f for f in feats if len(f)]
@@ -206,7 +212,7 @@ def encode_words(
     index.add(vocab)
     words: list[np.ndarray] = [np.zeros(0, np.int64)] * len(rows)
     nfeat = 0
-    for idx, fs in _iter_features(bc, rows, frames, f"bovw words {name}"):
+    for idx, fs in iter_features(bc, rows, frames, f"bovw words {name}"):
         for i, f in zip(idx, fs, strict=True):
             if len(f):
                 _, w = index.search(np.ascontiguousarray(f, np.float32), 1)
