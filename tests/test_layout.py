@@ -189,3 +189,18 @@ def test_no_module_re_exports_beyond_its_package() -> None:
                     if f.name != "__init__.py" or not src.startswith(name + "."):
                         bad.append(f"{name}: __all__ re-exports {e} from {src}")
     assert bad == []
+
+
+#: The longest a function of the package may be (issue 35): a longer one is cut into named steps.
+MAX_FUNCTION_LINES = 80
+
+
+def test_no_function_is_longer_than_80_lines() -> None:
+    long = []
+    for name, path in _modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = (node.end_lineno or node.lineno) - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long.append(f"{name}.{node.name} ({n} lines, line {node.lineno})")
+    assert not long, f"functions over {MAX_FUNCTION_LINES} lines: {long}"
