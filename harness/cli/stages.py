@@ -15,15 +15,7 @@ def cmd_fixture(args: argparse.Namespace) -> int:
     from harness.config.check import check_fixture
     from harness.fixture import FixtureSpec, generate
 
-    spec = FixtureSpec(
-        seed=args.seed,
-        frames=args.frames,
-        width=args.width,
-        height=args.height,
-        objects=args.objects,
-        loop_scale=args.loop_scale,
-        render_scale=args.render_scale,
-    )
+    spec = FixtureSpec.chosen(args)
     check_fixture(
         spec,
         "harness fixture",

@@ -78,15 +78,7 @@ def generate_fixture(p: Context) -> None:
     from harness.fixture import FixtureSpec, generate
 
     log.info("fixture: generating into %s", root)
-    spec = FixtureSpec(
-        seed=fx.seed,
-        frames=fx.frames,
-        width=fx.width,
-        height=fx.height,
-        objects=fx.objects,
-        loop_scale=fx.loop_scale,
-        render_scale=fx.render_scale,
-    )
+    spec = FixtureSpec.chosen(fx)
     t0 = time.perf_counter()
     try:
         generate(root, spec, formats=fx.formats or None)
