@@ -99,7 +99,6 @@ def _overlap(paths: list[str]) -> None:
     from harness.descriptors.autoencoder import ConvAutoencoder
     from harness.descriptors.crops import iter_crops
     from harness.proposals.proposers import grid5
-    from harness.runtime.prefetch import prefetched
 
     boxes = grid5(1232, 1616)
     df = pd.DataFrame(
@@ -112,7 +111,7 @@ def _overlap(paths: list[str]) -> None:
     d.encode(crops[0])  # warm
 
     def loop(depth: int) -> None:
-        for _, c in prefetched(iter_crops(df, df["image"], 256, reduced=True), depth):
+        for _, c in iter_crops(df, df["image"], 256, reduced=True, prefetch=depth):
             d.encode(c)
 
     rounds: dict[str, list[float]] = {"decode": [], "encode": [], "p0": [], "p2": []}

@@ -17,6 +17,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from harness.imagestore import read_image
+from harness.runtime.prefetch import prefetched
 
 
 def crop_resize(rgb: np.ndarray, boxes: np.ndarray, size: int) -> np.ndarray:
@@ -111,6 +112,7 @@ def iter_crops(
     frames_per_batch: int = 8,
     num_workers: int = 0,
     reduced: bool = False,
+    prefetch: int = 0,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Yield ``(row positions, crops uint8 (b, size, size, 3))`` for the rows of ``boxes``.
 
@@ -123,6 +125,9 @@ def iter_crops(
         reduced: each box from the coarsest level of a frame pyramid it allows, the frame decoded
             at the finest level needed (:func:`crop_pyramid`; ``[descriptor] decode =
             "reduced"``).
+        prefetch: batches a reader thread decodes ahead of the consumer
+            (:func:`harness.runtime.prefetch.prefetched`); ignored with ``num_workers`` > 0, where
+            the loader's processes decode ahead.
     """
     uris = images.to_numpy()
     b = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
@@ -142,4 +147,4 @@ def iter_crops(
         prefetch_factor=2 if num_workers else None,
         generator=torch.Generator().manual_seed(0),
     )
-    yield from loader
+    yield from prefetched(loader, 0 if num_workers else prefetch)

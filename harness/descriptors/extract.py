@@ -22,7 +22,6 @@ from harness.descriptors.projection import fit_projection, load_projection, proj
 from harness.errors import HarnessError, RetrievalError
 from harness.records import FRAME_KEY
 from harness.runtime.cache import open_memmap_reserved, read_cached_parquet, write_parquet
-from harness.runtime.prefetch import prefetched
 from harness.runtime.progress import progress
 
 
@@ -60,15 +59,13 @@ def train_model(
         tmp / "train_crops.npy", np.uint8, (n, dc.input_size, dc.input_size, 3)
     )
     for idx, crops in progress(
-        prefetched(
-            iter_crops(
-                rows,
-                _images(rows, frames),
-                dc.input_size,
-                num_workers=dc.num_workers,
-                reduced=dc.decode == "reduced",
-            ),
-            0 if dc.num_workers else dc.prefetch,
+        iter_crops(
+            rows,
+            _images(rows, frames),
+            dc.input_size,
+            num_workers=dc.num_workers,
+            reduced=dc.decode == "reduced",
+            prefetch=dc.prefetch,
         ),
         "training crops",
         "batch",
@@ -113,15 +110,13 @@ def _encoded(
         (rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy())
     )
     for idx, crops in progress(
-        prefetched(  # the next batches decoded while this one is encoded
-            iter_crops(
-                rows.iloc[order],
-                img.iloc[order],
-                dc.input_size,
-                num_workers=dc.num_workers,
-                reduced=dc.decode == "reduced",
-            ),
-            0 if dc.num_workers else dc.prefetch,
+        iter_crops(  # with prefetch: the next batches decoded while this one is encoded
+            rows.iloc[order],
+            img.iloc[order],
+            dc.input_size,
+            num_workers=dc.num_workers,
+            reduced=dc.decode == "reduced",
+            prefetch=dc.prefetch,
         ),
         f"descriptors {name}",
         "batch",

@@ -31,7 +31,6 @@ from harness.descriptors.crops import iter_crops
 from harness.errors import RetrievalError
 from harness.records import FRAME_KEY
 from harness.runtime.cache import read_cached_parquet, write_parquet
-from harness.runtime.prefetch import prefetched
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
@@ -96,11 +95,12 @@ def iter_features(bc: BovwConfig, rows: pd.DataFrame, frames: pd.DataFrame, name
     img = _images(rows, frames)
     ex = _extractor(bc)
     for idx, crops in progress(
-        prefetched(
-            iter_crops(
-                rows.iloc[order], img.iloc[order], bc.input_size, num_workers=bc.num_workers
-            ),
-            0 if bc.num_workers else bc.prefetch,
+        iter_crops(
+            rows.iloc[order],
+            img.iloc[order],
+            bc.input_size,
+            num_workers=bc.num_workers,
+            prefetch=bc.prefetch,
         ),
         name,
         "batch",
