@@ -257,7 +257,7 @@ def _ingest_log_from(
     report["normalised"] = {"quaternion_normalised": r.stats.get("quaternion_normalised", 0)}
     img_arr, size_arr = np.array(r.img_t, np.int64), np.array(r.sizes, np.int64)
     if mode == "tf":
-        return _finish_tf(sc, ic, tmp, img_arr, r.uris, size_arr, r.tree, r.frame_ids, report, src)
+        return _finish_tf(sc, ic, tmp, r, report, src)
     if mode == "none":  # no trajectory: every image is a frame, its pose unknown (NaN)
         poses = np.full((len(img_arr), 6), np.nan)
         return write_frames(
@@ -330,16 +330,17 @@ def _finish_tf(
     sc: SessionConfig,
     ic: IngestConfig,
     tmp: Path,
-    img_t: np.ndarray,
-    uris: list[str],
-    sizes: np.ndarray,
-    tree: TfTree,
-    frame_ids: Counter[str],
+    r: _LogReading,
     report: dict,
     src: Path,
 ) -> pd.DataFrame:
-    """Camera poses composed through the tf tree at the image times (SPEC section 3)."""
-    fixed, camera, roots = _tf_ends(sc, tree, frame_ids, src)
+    """Camera poses composed through the tf tree at the image times (SPEC section 3).
+
+    ``r``: what the pass over the log gathered (images, the tf tree, the images' frame ids).
+    """
+    tree = r.tree
+    img_t, sizes = np.array(r.img_t, np.int64), np.array(r.sizes, np.int64)
+    fixed, camera, roots = _tf_ends(sc, tree, r.frame_ids, src)
     path = tree.path(fixed, camera)
     gaps, transforms = {}, {}
     for e in tree.edges.values():
@@ -375,4 +376,4 @@ def _finish_tf(
         )
     eul = np.array([euler_from_quaternion(*q) for q in rot[ok]]).reshape(-1, 3)
     poses = np.column_stack([trans[ok], eul])
-    return write_frames(sc, tmp, img_t, uris, sizes, poses, ok, report)
+    return write_frames(sc, tmp, img_t, r.uris, sizes, poses, ok, report)
