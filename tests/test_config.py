@@ -50,6 +50,8 @@ CASES = [
     ("loop_scale = 1.5", 'loop_scale = 1.5\nformats = ["nclt", "rosbag9"]', "", "formats"),
     ('name = "autoencoder"', 'name = "netvlad"', "", "[descriptor] name = 'netvlad': unknown"),
     ("bootstrap = 200", "bootstrap = 200", '\n[import]\nscore_kind = "rank"\n', "score_kind"),
+    ('name = "autoencoder"', 'name = "autoencoder"\nprefetch = -1', "", "prefetch = -1"),
+    ('name = "autoencoder"', 'name = "autoencoder"\nprefetch = 1.5', "", "expected an integer"),
 ]
 
 

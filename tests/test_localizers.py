@@ -63,6 +63,7 @@ def _config(tmp_path: Path, localizers: str) -> Path:
         ('[[localizers]]\nname = "a"\nproposals = ["mser"]\nbovw = {}\n', "proposals = ['mser']"),
         ('[[localizers]]\nname = "a"\nbovw = { features = "surf" }\n', "features = 'surf'"),
         ('[[localizers]]\nname = "a"\nbovw = { k = 1 }\n', "k = 1"),
+        ('[[localizers]]\nname = "a"\nbovw = { prefetch = -2 }\n', "prefetch = -2"),
         ('[[localizers]]\nname = "a"\nbovw = { colour = 1 }\n', "unknown key(s) ['colour']"),
         (
             '[[localizers]]\nname = "a"\nbovw = {}\n[[localizers]]\nname = "a"\nbovw = {}\n',
