@@ -125,7 +125,11 @@ def add_rule(rule: FusionRule) -> None:
 #: Proposal methods of the harness that are not per-image functions.
 SPECIAL_PROPOSALS = ("grid5", "yolo", "file")
 #: The built-in per-image proposers (``proposals`` registers their functions).
-BUILTIN_PROPOSERS = ("edges", "mser")
+BUILTIN_PROPOSERS = ("edges", "mser", "segments")
+#: ``harness detect``'s box generators (SPEC 13.1, ``[detect] boxes``), the default first.
+BOX_GENERATORS = ("fused", "locmap", "proposals", "segments")
+#: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
+BOX_SCORES = ("max", "mean", "contrast")
 #: Per-image proposal methods: name -> function (built-in ones and ``proposals.register_method``).
 PROPOSERS: dict[str, Callable[..., Any]] = {}
 

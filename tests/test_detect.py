@@ -395,18 +395,25 @@ def test_box_generators_on_a_loc_map_known_by_hand() -> None:
     assert b.tolist() == [[0, 0, 4, 10], [16, 0, 20, 10]] and s.tolist() == [9.0, 7.0]
 
 
+def _scored_again(detected: tuple, local_run: tuple, out: Path, *flags: str) -> Path:
+    """The README's second command again with ``flags``, into ``out``, reusing the scored run's
+    cache (map, model, ranks); returns ``out``."""
+    _, b, _ = detected
+    shutil.copytree(b / "cache", out / "cache")
+    shutil.copy(b / ".dbl-harness.json", out / ".dbl-harness.json")
+    _run(["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
+          "--query", "2012-08-04", "--out", str(out), "--data-root",
+          str(local_run[0].cfg.data_root), *flags])  # fmt: skip
+    return out
+
+
 def test_boxes_proposals_as_typed_scores_the_original_proposals(
     detected: tuple, local_run: tuple, tmp_path: Path
 ) -> None:
     """``--boxes proposals`` (SPEC 13.1): every change box is an original proposal of its frame,
     Table D names the generator and its candidates are those proposals."""
-    _, b, _ = detected
-    out = tmp_path / "props"
-    shutil.copytree(b / "cache", out / "cache")
-    shutil.copy(b / ".dbl-harness.json", out / ".dbl-harness.json")
-    _run(["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
-          "--query", "2012-08-04", "--out", str(out), "--data-root",
-          str(local_run[0].cfg.data_root), "--boxes", "proposals", "--alarm", "0.2"])  # fmt: skip
+    out = _scored_again(detected, local_run, tmp_path / "props", "--boxes", "proposals",
+                        "--alarm", "0.2")  # fmt: skip
     rec = json.loads((out / "detect.json").read_text())
     assert rec["options"]["boxes"] == "proposals"
     assert rec["alarm"]["rate"] == 0.2  # --alarm: the README's "still 0 at 0.2"
@@ -434,6 +441,82 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
         i = images[d["image_id"]]
         x, y, w, h = d["bbox"]
         assert (x, y, x + w, y + h) in boxes[(i["session"], i["camera"], i["utime"])]
+
+
+def test_boxes_segments_with_contrast_as_typed(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``--boxes segments --box-score contrast`` (SPEC 13.1): every change box is a colour region
+    of its frame, the candidates meet most change boxes, and the README quotes Table D as run."""
+    from harness.config.schema import SegmentsConfig
+    from harness.imagestore import read_image
+    from harness.proposals.proposers import segment_boxes
+
+    out = _scored_again(detected, local_run, tmp_path / "segments", "--boxes", "segments",
+                        "--box-score", "contrast")  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert (rec["options"]["boxes"], rec["options"]["box_score"]) == ("segments", "contrast")
+    t = pd.read_csv(out / "tableD.csv")
+    assert (t["boxes"] == "segments").all()
+    d = t.iloc[0]
+    assert d.candidate_recall > 0.7  # the regions meet the objects: proposals' recall is 0.30
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert (
+        f"`segments` with `--box-score contrast` reaches AP50 {d.ap50_voc_all_point:.3f} against "
+        f"a floor of {d.floor:.3f} and a chance band up to {d.chance_high:.3f} (ceiling "
+        f"{d.ceiling:.3f}, candidates' recall {d.candidate_recall:.3f})"
+    ) in readme
+    images = {i["id"]: i for i in json.loads((out / "images.json").read_text())["images"]}
+    dets = json.loads((out / "detections.json").read_text())
+    assert dets
+    regions: dict[int, set] = {}
+    for det in dets[:20]:
+        i = images[det["image_id"]]
+        if det["image_id"] not in regions:
+            found = segment_boxes(read_image(i["file_name"]), SegmentsConfig())[0]
+            regions[det["image_id"]] = set(map(tuple, found.tolist()))
+        x, y, w, h = det["bbox"]
+        assert (x, y, x + w, y + h) in regions[det["image_id"]]
+
+
+def test_segment_boxes_frame_coloured_objects_on_a_textured_scene() -> None:
+    """A flat object and a checkered one on a noisy two-tone scene: each gets a box that fits it,
+    the checkered one whole (its cells merged by the closings); the same image, the same boxes."""
+    from harness.config.schema import SegmentsConfig
+    from harness.detect.evaluate import iou_matrix
+    from harness.proposals.proposers import segment_boxes
+
+    rng = np.random.default_rng(0)
+    img = np.empty((160, 120, 3), np.uint8)
+    img[:80], img[80:] = (120, 160, 220), (110, 110, 105)  # sky over road
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    img[90:130, 10:30] = (230, 40, 40)  # a red bin
+    yy, xx = np.mgrid[30:100, 60:100]
+    img[30:100, 60:100] = np.where((((yy // 4) + (xx // 4)) % 2 == 0)[..., None], (20, 160, 120),
+                                   (40, 200, 90))  # fmt: skip
+    boxes, scores = segment_boxes(img, SegmentsConfig())
+    best = iou_matrix(boxes, np.array([[10, 90, 30, 130], [60, 30, 100, 100]], float)).max(axis=0)
+    assert (best > 0.9).all(), best
+    assert len(scores) == len(boxes) and (np.diff(scores) <= 0).all()  # largest first
+    again, _ = segment_boxes(img.copy(), SegmentsConfig())
+    assert np.array_equal(boxes, again)
+
+
+def test_contrast_prefers_the_box_that_frames_the_hot_region() -> None:
+    """``contrast``: the mean inside less the ring's mean. On a map hot in one 10 x 10 square, the
+    box on the square beats one twice as large around it and one half on it; ``max`` ties them."""
+    from harness.detect.run import _inside
+
+    m = np.ones((60, 60))
+    m[20:30, 20:30] = 9.0
+    on, around, half = (np.array(b, float) for b in ([20, 20, 30, 30], [15, 15, 35, 35],
+                                                     [25, 20, 35, 30]))  # fmt: skip
+    c = {k: _inside(m, b, "contrast") for k, b in (("on", on), ("around", around), ("half", half))}
+    assert c["on"] == 8.0 and c["on"] > c["around"] > 0 and c["on"] > c["half"]
+    assert _inside(m, on, "max") == _inside(m, around, "max") == 9.0
+    edge = np.full((60, 60), np.nan)
+    edge[0:10, 0:10] = 4.0  # no mapped pixel around it: the ring counts 0
+    assert _inside(edge, np.array([0, 0, 10, 10], float), "contrast") == 4.0
 
 
 def test_exceedance_and_its_words_by_hand() -> None:
@@ -524,7 +607,8 @@ def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected:
     [
         (["--alarm", "0"], "--alarm 0.0: a false-alarm rate in (0, 1)"),
         (["--alarm", "1.5"], "--alarm 1.5"),
-        (["--boxes", "pixels"], "--boxes 'pixels': one of fused, locmap, proposals"),
+        (["--boxes", "pixels"], "--boxes 'pixels': one of fused, locmap, proposals, segments"),
+        (["--box-score", "median"], "box_score 'median': one of max, mean, contrast"),
         (["--method", "score_max"], "method 'score_max': one of rank_fusion"),
         (["--rerun", "/nonexistent-folder/x.rrd"], "does not exist"),
     ],

@@ -8,6 +8,7 @@ from typing import Any
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
 from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
+from harness.methods import BOX_GENERATORS, BOX_SCORES
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -181,7 +182,13 @@ def _add_detect(sub: Any) -> None:
     )
     p.add_argument(
         "--boxes",
-        help="the box generator (SPEC 13.1): fused, locmap or proposals (default: [detect] boxes)",
+        help=f"the box generator (SPEC 13.1): {', '.join(BOX_GENERATORS)} "
+        "(default: [detect] boxes)",
+    )
+    p.add_argument(
+        "--box-score",
+        help=f"how a generator other than fused scores a box from the LoC map: "
+        f"{', '.join(BOX_SCORES)} (default: [detect] box_score)",
     )
     p.add_argument(
         "--alarm",

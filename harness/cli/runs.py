@@ -72,8 +72,9 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
         top=args.top,
         seed=cfg.fusion.seed,
         boxes=args.boxes or cfg.detect.boxes,
-        box_score=cfg.detect.box_score,
+        box_score=args.box_score or cfg.detect.box_score,
         locmap_level=cfg.detect.locmap_level,
+        segments=cfg.proposals.segments,
     )
 
 

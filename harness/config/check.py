@@ -14,7 +14,12 @@ from typing import Any
 
 from harness.config.schema import BovwConfig, Config, DescriptorConfig
 from harness.errors import ConfigError
-from harness.methods import known_fusion_methods, known_proposal_methods
+from harness.methods import (
+    BOX_GENERATORS,
+    BOX_SCORES,
+    known_fusion_methods,
+    known_proposal_methods,
+)
 
 
 def check_bovw(bw: BovwConfig, where: str) -> None:
@@ -471,7 +476,16 @@ def _check_proposals(cfg: Config, where: str) -> None:
         list(pr.edges.dilations),
         "a non-empty list of odd kernel sizes >= 1",
     )
-    for sub_name in ("edges", "mser"):
+    seg = pr.segments
+    c(2 <= seg.k <= 64, where, "[proposals.segments] k", seg.k, "a colour cluster count in [2, 64]")
+    c(
+        all(d >= 1 for d in seg.closings) and len(seg.closings) > 0,
+        where,
+        "[proposals.segments] closings",
+        list(seg.closings),
+        "a non-empty list of kernel sizes >= 1",
+    )
+    for sub_name in ("edges", "mser", "segments"):
         sub = getattr(pr, sub_name)
         c(sub.max_boxes >= 1, where, f"[proposals.{sub_name}] max_boxes", sub.max_boxes, ">= 1")
         c(0 < sub.nms_iou <= 1, where, f"[proposals.{sub_name}] nms_iou", sub.nms_iou, "(0, 1]")
@@ -583,13 +597,19 @@ def _check_detect(cfg: Config, where: str) -> None:
     rp = cfg.report
     dt = cfg.detect
     c(
-        dt.boxes in ("fused", "locmap", "proposals"),
+        dt.boxes in BOX_GENERATORS,
         where,
         "[detect] boxes",
         dt.boxes,
-        "fused, locmap or proposals (SPEC 13.1)",
+        f"one of {', '.join(BOX_GENERATORS)} (SPEC 13.1)",
     )
-    c(dt.box_score in ("max", "mean"), where, "[detect] box_score", dt.box_score, "max or mean")
+    c(
+        dt.box_score in BOX_SCORES,
+        where,
+        "[detect] box_score",
+        dt.box_score,
+        f"one of {', '.join(BOX_SCORES)}",
+    )
     c(0 < dt.alarm < 1, where, "[detect] alarm", dt.alarm, "(0, 1): a false-alarm rate")
     c(
         0 < dt.locmap_level < 1,

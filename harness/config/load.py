@@ -41,6 +41,7 @@ from harness.config.schema import (
     ProposalsConfig,
     ReportConfig,
     RetrievalConfig,
+    SegmentsConfig,
     SessionConfig,
     SplitsConfig,
     YoloConfig,
@@ -133,6 +134,7 @@ _NESTED: dict[tuple[str, str], type] = {
     ("ProposalsConfig", "yolo"): YoloConfig,
     ("ProposalsConfig", "mser"): MserConfig,
     ("ProposalsConfig", "edges"): EdgesConfig,
+    ("ProposalsConfig", "segments"): SegmentsConfig,
 }
 
 _SECTIONS: dict[str, type] = {

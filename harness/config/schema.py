@@ -99,6 +99,26 @@ class MserConfig:
 
 
 @dataclass(frozen=True)
+class SegmentsConfig:
+    """``[proposals.segments]``: colour-region proposals (areas as fractions of the image).
+
+    The frame's pixels (CIELAB, on a copy ``work_width`` wide) fall into ``k`` colour clusters
+    (faiss k-means, ``seed``); each cluster's mask is closed with each square kernel of
+    ``closings`` (1: as is) so that the cells of a textured object merge; every 8-connected region
+    gives its bounding box.
+    """
+
+    k: int = 8
+    closings: tuple[int, ...] = (1, 3, 5)
+    min_area_frac: float = 0.002
+    max_area_frac: float = 0.5
+    max_boxes: int = 200
+    nms_iou: float = 0.9
+    work_width: int = 320
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class EdgesConfig:
     """``[proposals.edges]``: edge-contour proposals (areas as fractions of the image)."""
 
@@ -118,6 +138,7 @@ class ProposalsConfig:
     edges: EdgesConfig = field(default_factory=EdgesConfig)
     yolo: YoloConfig = field(default_factory=YoloConfig)
     mser: MserConfig = field(default_factory=MserConfig)
+    segments: SegmentsConfig = field(default_factory=SegmentsConfig)
     file: str | None = None
 
 
@@ -255,9 +276,12 @@ class DetectConfig:
     """``[detect]``: how ``harness detect`` turns LoC into change boxes (SPEC 13.1)."""
 
     # the box generator: "fused" (the fused qBBs, SPEC 13), "locmap" (connected regions of the
-    # thresholded LoC map) or "proposals" (the original proposals scored by the LoC inside)
+    # thresholded LoC map), "proposals" (the original proposals scored by the LoC inside) or
+    # "segments" (the frame's colour regions, [proposals.segments], scored by the LoC inside)
     boxes: str = "fused"
-    box_score: str = "max"  # locmap / proposals: the LoC inside a box, "max" or "mean"
+    # locmap / proposals / segments: a box's score from the LoC map, "max" or "mean" inside it,
+    # or "contrast" (the mean inside less the mean of the ring around it, half the box wide)
+    box_score: str = "max"
     # locmap: the level, as a share of the frame's LoC range (lo + level * (hi - lo))
     locmap_level: float = 0.5
     # the nominal false-alarm rate: boxes and frames whose calibrated score (exceedance) is at

@@ -24,7 +24,7 @@ import dataclasses
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -33,11 +33,13 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import ALL_LOCALIZERS, Config
+from harness.config.schema import ALL_LOCALIZERS, Config, SegmentsConfig
 from harness.errors import ConfigError, HarnessError
 from harness.fusion.fuse import fuse_samples, loc_map
 from harness.imagestore import read_image
+from harness.methods import BOX_GENERATORS, BOX_SCORES
 from harness.pipeline import keys
+from harness.proposals.proposers import segment_boxes
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
 from harness.runtime.cache import (
     read_cached_parquet,
@@ -66,8 +68,16 @@ class DetectOptions:
     top: int = 10  # most changed places on the map and the page
     seed: int = 0
     boxes: str = "fused"  # the box generator (SPEC 13.1, [detect] boxes)
-    box_score: str = "max"  # locmap / proposals: the LoC inside a box, max or mean
+    box_score: str = "max"  # locmap / proposals / segments: max, mean or contrast of the LoC
     locmap_level: float = 0.5  # locmap: the level, a share of the frame's LoC range
+    segments: SegmentsConfig = field(default_factory=SegmentsConfig)  # [proposals.segments]
+
+    def record(self) -> dict[str, Any]:
+        """The options as ``detect.json`` and the cache keys hold them (``segments`` where used)."""
+        out = dataclasses.asdict(self)
+        if self.boxes != "segments":
+            del out["segments"]
+        return out
 
 
 def change_boxes_nms(
@@ -94,16 +104,38 @@ def change_boxes_nms(
     return ok[idx].astype(np.int64)
 
 
-def _inside(m: np.ndarray, box: np.ndarray, how: str) -> float:
-    """The LoC map's ``max`` or ``mean`` over the pixels centred in ``box`` (NaN: none)."""
+def _pixels(m: np.ndarray, box: np.ndarray) -> tuple[int, int, int, int]:
+    """The pixel rows and columns (v0, v1, u0, u1) whose centres lie in ``box``."""
     h, w = m.shape
     x1, y1, x2, y2 = box
     u0, u1 = max(int(np.ceil(x1 - 0.5)), 0), min(int(np.ceil(x2 - 0.5)), w)
     v0, v1 = max(int(np.ceil(y1 - 0.5)), 0), min(int(np.ceil(y2 - 0.5)), h)
+    return v0, v1, u0, u1
+
+
+def _inside(m: np.ndarray, box: np.ndarray, how: str) -> float:
+    """A box's score from the LoC map ``m`` (NaN: no mapped pixel centred in it).
+
+    ``max`` or ``mean`` over the pixels centred in ``box``; ``contrast``: their mean less the mean
+    of the mapped pixels of the ring around it (the box grown by half its width and height on each
+    side, clipped to the frame), or less 0 where the ring holds none: a change is hotter than its
+    surroundings, and a box that merely overlaps a hot region scores less than one that frames it.
+    """
+    v0, v1, u0, u1 = _pixels(m, box)
     part = m[v0:v1, u0:u1]
     if not part.size or not np.isfinite(part).any():
         return float("nan")
-    return float(np.nanmax(part) if how == "max" else np.nanmean(part))
+    if how == "max":
+        return float(np.nanmax(part))
+    inner = float(np.nanmean(part))
+    if how == "mean":
+        return inner
+    x1, y1, x2, y2 = box
+    gw, gh = (x2 - x1) / 2, (y2 - y1) / 2
+    r0, r1, c0, c1 = _pixels(m, np.array([x1 - gw, y1 - gh, x2 + gw, y2 + gh]))
+    ring = m[r0:r1, c0:c1].copy()
+    ring[v0 - r0 : v1 - r0, u0 - c0 : u1 - c0] = np.nan
+    return inner - (float(np.nanmean(ring)) if np.isfinite(ring).any() else 0.0)
 
 
 def candidate_boxes(
@@ -118,11 +150,12 @@ def candidate_boxes(
 ) -> tuple[np.ndarray, np.ndarray]:
     """A frame's candidate change boxes and their scores under a box generator (SPEC 13.1).
 
-    ``fused``: the fused qBBs and their LoC. ``proposals``: the original proposals (``originals``,
-    duplicates merged), each scored by the ``how`` (max or mean) of the pixel-wise LoC map inside
-    it. ``locmap``: the LoC map thresholded at ``lo + level * (hi - lo)`` of the frame's range,
-    the bounding boxes of its 8-connected regions (``cv2.connectedComponentsWithStats``), each
-    scored by the ``how`` of the LoC over the region's own pixels.
+    ``fused``: the fused qBBs and their LoC. ``proposals`` and ``segments``: the boxes
+    ``originals`` (the frame's original proposals, or its colour regions), duplicates merged, each
+    scored by the ``how`` (:func:`_inside`) of the pixel-wise LoC map. ``locmap``: the LoC map
+    thresholded at ``lo + level * (hi - lo)`` of the frame's range, the bounding boxes of its
+    8-connected regions (``cv2.connectedComponentsWithStats``), each scored by the ``how`` of the
+    LoC over the region's own pixels (``contrast``: over its box, as :func:`_inside`).
 
     Returns:
         (boxes (k, 4) in pixels, scores (k,), NaN where a box holds no mapped pixel).
@@ -132,11 +165,11 @@ def candidate_boxes(
     if generator == "fused":
         return fused, loc
     m = loc_map(fused, loc, width, height)
-    if generator == "proposals":
+    if generator in ("proposals", "segments"):
         boxes = np.unique(np.asarray(originals, np.float64).reshape(-1, 4), axis=0)
         return boxes, np.array([_inside(m, b, how) for b in boxes], np.float64)
     if generator != "locmap":
-        raise ConfigError(f"[detect] boxes = {generator!r}: fused, locmap or proposals")
+        raise ConfigError(f"[detect] boxes = {generator!r}: one of {', '.join(BOX_GENERATORS)}")
     ok = np.isfinite(m)
     if not ok.any():
         return np.zeros((0, 4)), np.zeros(0)
@@ -149,7 +182,10 @@ def candidate_boxes(
         x, y, w, h = (int(v) for v in stats[i, :4])
         vals = m[labels == i]
         found.append((x, y, x + w, y + h))
-        scores.append(float(vals.max() if how == "max" else vals.mean()))
+        if how == "contrast":
+            scores.append(_inside(m, np.array(found[-1], np.float64), how))
+        else:
+            scores.append(float(vals.max() if how == "max" else vals.mean()))
     return np.asarray(found, np.float64).reshape(-1, 4), np.asarray(scores, np.float64)
 
 
@@ -234,6 +270,25 @@ def _write_chunk(
     )
 
 
+def _frame_boxes(
+    ranks: pd.DataFrame, frames: pd.DataFrame, opt: DetectOptions
+) -> dict[tuple[str, str, int], np.ndarray]:
+    """Each query frame's boxes for the ``proposals`` or ``segments`` generator.
+
+    Its original proposals (the rows of ``ranks``), or, for ``segments``, the colour regions of
+    its image (:func:`harness.proposals.proposers.segment_boxes`, read one frame at a time).
+    """
+    out = {
+        (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        for k, g in ranks.groupby(QUERY_KEY, sort=False)
+    }
+    if opt.boxes == "segments":
+        images = frames.set_index(FRAME_KEY)["image"]
+        for k in out:
+            out[k] = segment_boxes(read_image(images.loc[k]), opt.segments)[0]
+    return out
+
+
 def detect_chunk(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
@@ -263,10 +318,7 @@ def detect_chunk(
     samples = samples[samples["proposals"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.method}"
     size = frame_sizes(frames)
-    orig = {
-        (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-        for k, g in ranks.groupby(QUERY_KEY, sort=False)
-    }
+    orig = _frame_boxes(ranks, frames, opt)
     rows, frow, cand_parts = [], [], []
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
@@ -332,8 +384,10 @@ def check_detect_args(
     alarm = cfg.detect.alarm if alarm is None else alarm
     if not 0 < alarm < 1:
         raise ConfigError(f"detect: --alarm {alarm}: a false-alarm rate in (0, 1), e.g. 0.01")
-    if opt.boxes not in ("fused", "locmap", "proposals"):
-        raise ConfigError(f"detect: --boxes {opt.boxes!r}: one of fused, locmap, proposals")
+    if opt.boxes not in BOX_GENERATORS:
+        raise ConfigError(f"detect: --boxes {opt.boxes!r}: one of {', '.join(BOX_GENERATORS)}")
+    if opt.box_score not in BOX_SCORES:
+        raise ConfigError(f"detect: box_score {opt.box_score!r}: one of {', '.join(BOX_SCORES)}")
     if not 0 < opt.nms_iou <= 1 or opt.max_boxes < 1:
         raise ConfigError(
             f"detect: nms_iou {opt.nms_iou} must be in (0, 1] and max_boxes {opt.max_boxes} >= 1"
@@ -390,7 +444,7 @@ def _chunk_units(
         key = (
             "detect",
             ranks.key,
-            dataclasses.asdict(opt) | {"chunk_frames": None},
+            opt.record() | {"chunk_frames": None},
             c0,
             len(part),
             keys.fusion_method_fingerprints((opt.method,)),
@@ -553,7 +607,7 @@ def write_rerun(
             fr,
             dets,
             entries,
-            recording_id(out, dataclasses.asdict(opt)),
+            recording_id(out, opt.record()),
         )
         os.replace(tmp, path)
     finally:
@@ -754,7 +808,7 @@ def write_outputs(
         "queries": queries,
         "localizers": localizers,
         "fused_across": ALL_LOCALIZERS if len(localizers) > 1 else None,
-        "options": dataclasses.asdict(opt),
+        "options": opt.record(),
         "query_frames": len(fr),
         "detections": len(results),
         # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)

@@ -22,7 +22,13 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import EdgesConfig, MserConfig, ProposalsConfig, YoloConfig
+from harness.config.schema import (
+    EdgesConfig,
+    MserConfig,
+    ProposalsConfig,
+    SegmentsConfig,
+    YoloConfig,
+)
 from harness.errors import AnnotationError, ConfigError, HarnessError
 from harness.imagestore import read_image
 from harness.methods import PROPOSERS, SPECIAL_PROPOSALS, known_proposal_methods
@@ -112,6 +118,49 @@ def mser_boxes(rgb: np.ndarray, cfg: MserConfig) -> tuple[np.ndarray, np.ndarray
     boxes, frac = np.round(boxes[ok], 2), frac[ok]
     boxes, idx = np.unique(boxes, axis=0, return_index=True)
     frac = frac[idx]
+    keep = nms(boxes, frac, cfg.nms_iou)[: cfg.max_boxes]
+    return boxes[keep], frac[keep]
+
+
+def segment_boxes(rgb: np.ndarray, cfg: SegmentsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes of colour regions in full-image pixels, scored by their area fraction; (k, 4), (k,).
+
+    The pixels of a copy ``work_width`` wide (CIELAB, lightly blurred) fall into ``cfg.k`` colour
+    clusters by faiss k-means (seeded); each cluster's mask, closed with each kernel of
+    ``cfg.closings`` so that the cells of a textured object merge, gives the bounding boxes of its
+    8-connected regions (``cv2.connectedComponentsWithStats``). A new object of its own colours
+    is a region of its own, whatever the edges of the scene around it.
+    """
+    import faiss
+
+    h, w = rgb.shape[:2]
+    small, scale = _working_copy(rgb, cfg.work_width)
+    lab = cv2.cvtColor(cv2.GaussianBlur(small, (0, 0), 0.8), cv2.COLOR_RGB2Lab)
+    px = np.ascontiguousarray(lab.reshape(-1, 3), np.float32)
+    k = max(1, min(cfg.k, len(px) // 39))  # faiss wants 39 points per centroid
+    km = faiss.Kmeans(3, k, niter=20, seed=cfg.seed, verbose=False)
+    km.train(px)
+    labels = km.index.search(px, 1)[1].reshape(lab.shape[:2])
+    area = float(lab.shape[0] * lab.shape[1])
+    found = []
+    for c in range(k):
+        mask = (labels == c).astype(np.uint8)
+        for size in cfg.closings:
+            m = (
+                mask
+                if size <= 1
+                else cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((size, size), np.uint8))
+            )
+            n, _, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+            found.append(stats[1:n, :4])
+    bb = np.unique(np.concatenate(found).astype(np.float64).reshape(-1, 4), axis=0)
+    frac = bb[:, 2] * bb[:, 3] / area
+    bb = bb[(frac >= cfg.min_area_frac) & (frac <= cfg.max_area_frac)]
+    if not len(bb):
+        return np.zeros((0, 4)), np.zeros(0)
+    boxes = np.column_stack([bb[:, 0], bb[:, 1], bb[:, 0] + bb[:, 2], bb[:, 1] + bb[:, 3]])
+    boxes = np.clip(np.round(boxes / scale, 2), 0, [w, h, w, h])
+    frac = bb[:, 2] * bb[:, 3] / area
     keep = nms(boxes, frac, cfg.nms_iou)[: cfg.max_boxes]
     return boxes[keep], frac[keep]
 
@@ -340,10 +389,14 @@ def _mser(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray
     return mser_boxes(rgb, cfg.mser)
 
 
+def _segments(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    return segment_boxes(rgb, cfg.segments)
+
+
 #: Proposal methods that read one image at a time, by name (``[proposals] methods``): the
 #: catalogue's registry (``methods.PROPOSERS``), one dict, holding the built-in ones from here on.
 IMAGE_METHODS = PROPOSERS
-IMAGE_METHODS.update({"edges": _edges, "mser": _mser})
+IMAGE_METHODS.update({"edges": _edges, "mser": _mser, "segments": _segments})
 
 
 def register_method(name: str, proposer: ImageProposer) -> None:
