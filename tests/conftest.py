@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from harness.fixture import FixtureSpec, generate
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def no_figures(cfg: Any) -> Any:
+    """``cfg`` without the figures and the page: for a test that reads neither (they cost about
+    8 s a run on the fixture; no cache key holds ``[report]``, so nothing else changes)."""
+    return dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, plots=False, html=False))
+
 
 #: A small world written in every log format, for ingester comparisons.
 SMALL = FixtureSpec(frames=12, width=48, height=64, objects=2, loop_scale=1.0)

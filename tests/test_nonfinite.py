@@ -22,6 +22,8 @@ from harness.errors import ConfigError, HarnessError
 from harness.pipeline.chain import Pipeline
 from harness.runtime.cache import StageCache
 
+from .conftest import no_figures
+
 # ------------------------------------------------------------------ harness.descriptors
 
 
@@ -80,7 +82,7 @@ def test_a_flipped_byte_in_a_cache_entry_rebuilds_it_with_a_warning(
         data = bytearray(victim.read_bytes())
         data[len(data) // 2] ^= 0x40  # same size: only a checksum can tell
         victim.write_bytes(bytes(data))
-    q = Pipeline(p.cfg, out)
+    q = Pipeline(no_figures(p.cfg), out)
     with caplog.at_level(logging.WARNING):
         q.run()
     assert "does not match its checksum" in caplog.text

@@ -17,7 +17,7 @@ import pytest
 
 from harness.pipeline.chain import Pipeline
 
-from .conftest import ROOT
+from .conftest import ROOT, no_figures
 
 #: Largest allowed absolute difference from the committed two-decimal tables. Same machine, same
 #: bytes (tested below); between machines BLAS and CPU differences move the trained autoencoder's
@@ -136,7 +136,7 @@ def test_an_untrained_autoencoder_fails_the_regression(
     p, _, _ = run
     monkeypatch.setattr(ad, "train", lambda *a, **k: [])  # epochs
     monkeypatch.setattr(ad, "train_budget", lambda *a, **k: ([], {}))  # train_samples (fixture)
-    Pipeline(p.cfg, tmp_path / "mutant").run()
+    Pipeline(no_figures(p.cfg), tmp_path / "mutant").run()
     diff = regression_diff(tmp_path / "mutant")
     assert max(diff.values()) > 5 * TOLERANCE, diff
 
@@ -326,7 +326,7 @@ def test_changing_one_option_reruns_only_what_depends_on_it(run: tuple, tmp_path
     p, _, out = run
     _copy_cache(out, tmp_path)
     cfg = dataclasses.replace(p.cfg, fusion=dataclasses.replace(p.cfg.fusion, seed=5))
-    q = Pipeline(cfg, tmp_path)
+    q = Pipeline(no_figures(cfg), tmp_path)
     q.run()
     assert q.ran.get("samples") == 1
     assert all(
@@ -344,7 +344,7 @@ def test_encoding_options_never_retrain_the_autoencoder(run: tuple, tmp_path: Pa
             p.cfg.descriptor, encode_batch=5, dtype="float32", num_workers=1
         ),
     )
-    q = Pipeline(cfg, tmp_path)
+    q = Pipeline(no_figures(cfg), tmp_path)
     q.run()
     assert q.ran.get("model", 0) == 0
     assert q.ran.get("descriptors", 0) == len(cfg.sessions)
@@ -357,7 +357,7 @@ def test_interrupted_run_resumes(run: tuple, tmp_path: Path) -> None:
     # lose the last stages, as if the run died after the descriptors
     for stage in ("ranks", "samples"):
         shutil.rmtree(cache / "cache" / stage)
-    q = Pipeline(p.cfg, cache)
+    q = Pipeline(no_figures(p.cfg), cache)
     q.run()
     assert q.ran.get("ranks") == 4 and q.ran.get("descriptors", 0) == 0
     assert (cache / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
@@ -367,7 +367,7 @@ def test_faiss_engine_reports_its_recall_against_exact(run: tuple, tmp_path: Pat
     p, _, out = run
     _copy_cache(out, tmp_path)
     cfg = dataclasses.replace(p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, engine="faiss"))
-    rec = Pipeline(cfg, tmp_path).run()
+    rec = Pipeline(no_figures(cfg), tmp_path).run()
     counts = rec["counts"]["rank_counts"]
     for ref, c in counts.items():
         assert c["faiss_checked"] > 0, ref
@@ -384,7 +384,7 @@ def test_descriptor_extraction_resumes_at_the_next_shard(
     for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
         shutil.rmtree(tmp_path / "cache" / stage)
     cfg = dataclasses.replace(
-        p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, shard_frames=16)
+        no_figures(p.cfg), descriptor=dataclasses.replace(p.cfg.descriptor, shard_frames=16)
     )
     from harness.descriptors import AutoencoderDescriptor
 

@@ -13,6 +13,8 @@ import pytest
 from harness.errors import ConfigError
 from harness.pipeline.chain import Pipeline
 
+from .conftest import no_figures
+
 ray = pytest.importorskip("ray")
 
 MAPPED = ("ingest", "descriptor_shards", "descriptors", "ranks")
@@ -71,7 +73,7 @@ def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: 
     p, _, out = local_run
     shutil.copytree(out / "cache" / "model", tmp_path / "cache" / "model")
     shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
-    q = Pipeline(p.cfg, tmp_path, executor=executor)
+    q = Pipeline(no_figures(p.cfg), tmp_path, executor=executor)
     q.run()
     assert q.ran["descriptor_shards"] > 0 and q.ran["ranks"] == 4 and q.ran.get("model", 0) == 0
     assert q.ran["ingest"] == 4 and q.ran["proposals"] > 0  # the rest from nothing
@@ -79,7 +81,7 @@ def test_ray_run_equals_local_run(local_run: tuple, executor: object, tmp_path: 
     import dataclasses
 
     cfg = dataclasses.replace(
-        p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, query_frames_per_shard=10)
+        no_figures(p.cfg), retrieval=dataclasses.replace(p.cfg.retrieval, query_frames_per_shard=10)
     )
     chunked = Pipeline(cfg, tmp_path / "chunked", executor=executor)
     shutil.copytree(out / "cache", tmp_path / "chunked" / "cache", dirs_exist_ok=True)
@@ -101,16 +103,16 @@ def test_a_worker_that_dies_mid_shard_is_retried(
     p, _, out = local_run
     shutil.copytree(out / "cache", tmp_path / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
-    for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
+    for stage in ("ranks", "samples"):  # the ranks' units run on Ray (one of them killed)
         shutil.rmtree(tmp_path / "cache" / stage)
     marker = tmp_path / "killed-once"
     faulty = RayExecutor(fault_once=str(marker))  # joins the running local cluster
-    q = Pipeline(p.cfg, tmp_path, executor=faulty)
+    q = Pipeline(no_figures(p.cfg), tmp_path, executor=faulty)
     q.run()
     assert marker.exists(), "a worker was killed"
     assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
     # a rerun after the crash skips every finished shard
-    again = Pipeline(p.cfg, tmp_path, executor=faulty)
+    again = Pipeline(no_figures(p.cfg), tmp_path, executor=faulty)
     again.run()
     assert sum(again.ran.values()) == 0
 

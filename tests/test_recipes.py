@@ -35,15 +35,12 @@ def test_recipe_a_toy_descriptor_in_under_30_lines(
             return np.concatenate([c.mean((1, 2)), *blocks], axis=1)
 
     monkeypatch.setitem(REGISTRY, "mean_colour", MeanColour)
-    p, _, out = local_run
+    p, _, _ = local_run
     cfg = dataclasses.replace(
         p.cfg, descriptor=dataclasses.replace(p.cfg.descriptor, name="mean_colour")
     )
     # --- end of the recipe (the rest checks it) ---
-    shutil.copytree(out / "cache", tmp_path / "cache")
-    shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
-    q = Pipeline(cfg, tmp_path)
-    rec = q.run()
+    q, rec = _rerun(local_run, tmp_path, cfg)
     assert (
         q.ran.get("proposals", 0) == 0 and q.ran["descriptor_shards"] > 0
     )  # only what depends on it reran
@@ -70,10 +67,12 @@ def registries():
 
 
 def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
-    """``cfg`` run into ``tmp_path`` from a copy of the fixture run's cache."""
+    """``cfg`` run into ``tmp_path`` from a copy of the fixture run's cache, without the figures
+    and the page (no recipe here checks them; they cost seconds per run)."""
     _, _, out = local_run
     shutil.copytree(out / "cache", tmp_path / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
+    cfg = dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, plots=False, html=False))
     q = Pipeline(cfg, tmp_path)
     return q, q.run()
 
@@ -95,6 +94,10 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
         p.cfg, proposals=dataclasses.replace(p.cfg.proposals, methods=("grid5", "centre"))
     )
     # --- end of the recipe (the rest checks it) ---
+    # the new crops retrain the model: a sixth of the fixture's budget is enough to show it
+    cfg = dataclasses.replace(
+        cfg, descriptor=dataclasses.replace(cfg.descriptor, train_samples=1000)
+    )
     validate(cfg, "recipe")  # the name is known to the config check
     with pytest.raises(ValueError, match="exists"):
         proposals.register_method("edges", centre)
