@@ -14,6 +14,8 @@ from harness.pairs import thin_by_stride
 from harness.pipeline.chain import Pipeline, load_run
 from harness.retrieval import described_frames
 
+from .conftest import no_figures
+
 
 def _variant(
     local_run: tuple, tmp_path: Path, name: str, reuse: bool = True, **retrieval: float
@@ -22,7 +24,7 @@ def _variant(
     shutil.copytree(out / "cache", tmp_path / name / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / name / ".dbl-harness.json")
     cfg = dataclasses.replace(p.cfg, retrieval=dataclasses.replace(p.cfg.retrieval, **retrieval))
-    q = Pipeline(cfg, tmp_path / name)
+    q = Pipeline(no_figures(cfg), tmp_path / name)
     rec = q.run()
     if reuse:  # the same described frames: only ranks and what follows run again
         assert (

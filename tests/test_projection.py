@@ -15,6 +15,8 @@ from harness.descriptors.projection import fit_projection, load_projection, proj
 from harness.errors import ConfigError
 from harness.pipeline.chain import Pipeline
 
+from .conftest import no_figures
+
 
 def _data(n: int = 400, D: int = 6, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Rows with standard deviations 5, 2, 0.1, ... along a known rotation of the axes."""
@@ -86,7 +88,7 @@ def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(
     shutil.copytree(out / "cache", tmp_path / "cache")
     shutil.copy(out / ".dbl-harness.json", tmp_path / ".dbl-harness.json")
     cfg = dataclasses.replace(p.cfg, projection=ProjectionConfig(dim=64))
-    q = Pipeline(cfg, tmp_path)
+    q = Pipeline(no_figures(cfg), tmp_path)
     rec = q.run()
     assert q.ran.get("model", 0) == 0 and q.ran["projection"] == 1  # the model is reused
     for key in rec["cache_entries"]["descriptors"]:

@@ -17,6 +17,7 @@ import pytest
 from harness.cli import main
 from harness.pipeline.chain import Pipeline
 
+from .conftest import no_figures
 from .safety_common import FIXTURE_TOML, _err
 
 
@@ -52,7 +53,7 @@ def test_memmaps_reserve_their_blocks(tmp_path: Path) -> None:
 
 def test_a_damaged_cache_entry_is_rebuilt(local_run: tuple, tmp_path: Path) -> None:
     p, _, out = local_run
-    q = Pipeline(p.cfg, tmp_path / "o")
+    q = Pipeline(no_figures(p.cfg), tmp_path / "o")
     shutil.copytree(out / "cache", tmp_path / "o" / "cache", dirs_exist_ok=True)
     victim = next((tmp_path / "o" / "cache" / "samples").glob("*/samples.parquet"))
     victim.write_bytes(victim.read_bytes()[:100])

@@ -18,7 +18,7 @@ from harness.config.load import load_config
 from harness.errors import ConfigError, HarnessError
 from harness.pipeline.chain import Pipeline
 
-from .conftest import ROOT
+from .conftest import ROOT, no_figures
 from .safety_common import FIXTURE_TOML, _config, _err
 
 
@@ -30,7 +30,7 @@ def test_fusion_methods_are_honoured(local_run: tuple, tmp_path: Path) -> None:
     )
     shutil.copytree(_out / "cache", tmp_path / "o" / "cache")  # only fusion and reports rerun
     shutil.copy(_out / ".dbl-harness.json", tmp_path / "o" / ".dbl-harness.json")
-    rec = Pipeline(cfg, tmp_path / "o").run()
+    rec = Pipeline(no_figures(cfg), tmp_path / "o").run()
     assert list(rec["table"].index) == [
         "rank_fusion",
         "score_max",

@@ -18,6 +18,7 @@ from harness.cli import main
 from harness.errors import HarnessError
 from harness.pipeline.chain import Pipeline
 
+from .conftest import no_figures
 from .safety_common import FIXTURE_TOML, TINY, _config, _err, _log
 
 
@@ -143,7 +144,7 @@ def test_temporaries_of_a_killed_run_are_removed_and_the_lock_refuses_a_second_r
     from harness.runtime.outdirs import run_lock
 
     p, _, out = local_run
-    q = Pipeline(p.cfg, tmp_path / "o")
+    q = Pipeline(no_figures(p.cfg), tmp_path / "o")
     debris = tmp_path / "o" / "cache" / "model" / ".abc123.dbl-harness-x7y8z9ab.tmp"
     stray = tmp_path / "o" / ".table1.csv.dbl-harness-x1y2z3w4.tmp"
     with run_lock(
@@ -170,7 +171,7 @@ def test_a_moved_run_directory_resumes_without_reading_the_old_place(
         next((tmp_path / "moved" / "cache" / "frames").glob("*/frames.parquet"))
     )
     assert all(u.startswith(("{out}/", "{data_root}/")) for u in frames["image"])
-    q = Pipeline(p.cfg, tmp_path / "moved")
+    q = Pipeline(no_figures(p.cfg), tmp_path / "moved")
     q.run()
     assert sum(q.ran.values()) == 0
     assert (tmp_path / "moved" / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()
