@@ -150,3 +150,63 @@ def test_file_proposals_validated(tmp_path: Path) -> None:
     ).to_csv(p, index=False)
     df = compute_proposals(frames, ProposalsConfig(methods=("grid5", "file"), file=str(p)))
     assert df.groupby("method").size().to_dict() == {"file": 1, "grid5": 5}
+
+
+def test_reduced_decode_picks_the_smallest_scale_that_holds_the_work_width() -> None:
+    from harness.proposals.proposers import decode_scale
+
+    cfg = ProposalsConfig()  # edges 480 px, mser 320 px wide copies
+    assert decode_scale(1232, cfg, ["edges"], False) == 2  # NCLT upright: 616 >= 480 > 308
+    assert decode_scale(2600, cfg, ["edges"], False) == 4
+    assert decode_scale(2600, cfg, ["mser"], False) == 8  # 325 >= 320
+    assert decode_scale(2600, cfg, ["edges", "mser"], False) == 4  # the widest copy decides
+    assert decode_scale(120, cfg, ["edges"], False) == 1  # the fixture: whole frames
+    assert decode_scale(2600, cfg, ["edges"], True) == 1  # YOLO sizes its own input
+    assert decode_scale(2600, cfg, ["edges", "segments"], False) == 1
+    assert decode_scale(2600, cfg, ["edges", "a_users_method"], False) == 1
+    off = ProposalsConfig(reduced_decode=False)
+    assert decode_scale(2600, off, ["edges"], False) == 1
+
+
+def test_edges_on_a_reduced_decode_find_the_boxes_of_the_full_frame(tmp_path: Path) -> None:
+    """NCLT-sized JPEGs: decoded at 1/2, the edge proposals are those of the full frame (in the
+    frame's own pixels): at least 90% of them within IoU 0.9 of one, the same count within 10%."""
+    import cv2
+
+    from harness.detect.evaluate import iou_matrix
+    from harness.proposals.proposers import _image_proposals
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for n in range(3):
+        img = np.empty((1616, 1232, 3), np.uint8)
+        img[:700], img[700:] = (200, 170, 120), (100, 105, 110)
+        img = np.clip(img + rng.normal(0, 6, img.shape), 0, 255).astype(np.uint8)
+        for _ in range(8):
+            x, y, (w, h) = rng.integers(0, 1000), rng.integers(200, 1400), rng.integers(60, 300, 2)
+            img[y : y + h, x : x + w] = rng.integers(0, 255, 3)
+        cv2.imwrite(str(tmp_path / f"{n}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        rows.append(
+            {"session": "s", "camera": "c", "utime": n, "image": str(tmp_path / f"{n}.jpg"),
+             "width": 1232, "height": 1616}
+        )  # fmt: skip
+    frames = pd.DataFrame(rows)
+    got = {
+        rd: pd.concat(
+            _image_proposals(frames, ProposalsConfig(reduced_decode=rd), ["edges"], lambda x: x)
+        )
+        for rd in (False, True)
+    }
+    full, reduced = got[False], got[True]
+    assert abs(len(reduced) - len(full)) <= 0.1 * len(full) and len(full) >= 20
+    best = np.concatenate(
+        [
+            iou_matrix(
+                full[full["utime"] == u][["x1", "y1", "x2", "y2"]].to_numpy(),
+                reduced[reduced["utime"] == u][["x1", "y1", "x2", "y2"]].to_numpy(),
+            ).max(axis=1)
+            for u in range(3)
+        ]
+    )
+    assert (best >= 0.9).mean() >= 0.9, np.sort(best)
+    assert (reduced[["x2", "y2"]].to_numpy() <= [1232, 1616]).all()

@@ -14,7 +14,10 @@ import importlib
 #: measured paths (``bench/provenance.py``).
 CASES: dict[str, tuple[str, tuple[str, ...]]] = {
     "ingest": ("ingest", ("harness/ingest",)),
-    "crops": ("crops", ("harness/descriptors/crops.py", "harness/imagestore.py")),
+    "crops": (
+        "crops",
+        ("harness/descriptors/crops.py", "harness/imagestore.py", "harness/proposals/proposers.py"),
+    ),
     "descriptor": ("descriptor", ("harness/descriptors",)),
     "ranking": ("ranking", ("harness/retrieval",)),
     "localizers": ("localizers", ("harness", "bench/nclt_localizers.toml")),

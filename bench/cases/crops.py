@@ -45,6 +45,7 @@ def case_crops(quick: bool) -> None:
             notes=f"{n} JPEG frames 1232x1616, 16 boxes each",
         )
     _grid5_reduced(paths)
+    _edges_reduced(8 if quick else 32)
     _overlap(paths)
     _overlap_bovw(paths)
 
@@ -82,6 +83,48 @@ def _grid5_reduced(paths: list[str]) -> None:
             [1000 * t / n for t in runs],
             "ms/frame",
             notes="cv2.imread alone (libjpeg-turbo): the decode floor of the row above",
+        )
+
+
+def _edges_reduced(n: int) -> None:
+    """The ``edges`` proposals of NCLT-sized JPEG scenes (two tones, noise, eight flat boxes): the
+    full frame against the frame decoded at 1/2 (``[proposals] reduced_decode``; edges works on a
+    480-px copy either way). The decode limits are the ``jpeg decode`` rows of this case."""
+    import cv2
+    import pandas as pd
+
+    from harness.config.schema import ProposalsConfig
+    from harness.proposals.proposers import _image_proposals
+
+    d = DATA / "edges"
+    d.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(1)
+    rows = []
+    for i in range(n):
+        p = d / f"{i}.jpg"
+        if not p.exists():
+            img = np.empty((1616, 1232, 3), np.uint8)
+            img[:700], img[700:] = (200, 170, 120), (100, 105, 110)
+            img = np.clip(img + rng.normal(0, 6, img.shape), 0, 255).astype(np.uint8)
+            for _ in range(8):
+                x, y, (w, h) = (
+                    rng.integers(0, 1000),
+                    rng.integers(200, 1400),
+                    rng.integers(60, 300, 2),
+                )
+                img[y : y + h, x : x + w] = rng.integers(0, 255, 3)
+            cv2.imwrite(str(p), img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        rows.append({"session": "s", "camera": "c", "utime": i, "image": str(p), "width": 1232,
+                     "height": 1616})  # fmt: skip
+    frames = pd.DataFrame(rows)
+    for reduced in (False, True):
+        cfg = ProposalsConfig(reduced_decode=reduced)
+        runs = timed(lambda c=cfg: _image_proposals(frames, c, ["edges"], lambda x: x), repeat=3)
+        emit(
+            f"edges proposals[decode={'1/2' if reduced else 'full'}]",
+            [1000 * t / n for t in runs],
+            "ms/frame",
+            notes=f"{n} JPEG frames 1232x1616 (decode included), [proposals.edges] work_width 480",
         )
 
 

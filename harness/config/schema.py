@@ -140,6 +140,9 @@ class ProposalsConfig:
     mser: MserConfig = field(default_factory=MserConfig)
     segments: SegmentsConfig = field(default_factory=SegmentsConfig)
     file: str | None = None
+    # decode a JPEG at 1/2, 1/4 or 1/8 of its size where every listed OpenCV method's work_width
+    # still fits (libjpeg's DCT scaling: less work than the full frame); false: the full frame
+    reduced_decode: bool = True
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,11 @@ from harness.config.schema import (
 )
 from harness.errors import AnnotationError, ConfigError, HarnessError
 from harness.imagestore import read_image
-from harness.methods import PROPOSERS, SPECIAL_PROPOSALS, known_proposal_methods
+from harness.methods import (
+    PROPOSERS,
+    SPECIAL_PROPOSALS,
+    known_proposal_methods,
+)
 from harness.records import FRAME_KEY
 from harness.runtime.cache import source_fingerprints, write_parquet
 from harness.runtime.progress import progress
@@ -458,6 +462,35 @@ def _rows(
     )
 
 
+#: The per-image methods that may read a reduced decode: each works on a copy ``work_width`` wide
+#: and gives the same boxes from it (``tests/test_proposals.py``).
+REDUCIBLE = ("edges", "mser")
+
+
+def decode_scale(width: int, cfg: ProposalsConfig, per_image: Sequence[str], yolo: bool) -> int:
+    """The reduced scale (1, 2, 4 or 8) to decode a frame ``width`` pixels wide (upright) at.
+
+    The largest whose width still holds the widest ``work_width`` of the listed OpenCV methods
+    (each works on a copy that wide, so it sees the same detail); 1 where ``reduced_decode`` is
+    off, YOLO or ``segments`` is listed (measured: its colour clusters move with the decode's
+    noise) or a registered method reads the image (their sizes are their own).
+    """
+    if not cfg.reduced_decode or yolo or any(m not in REDUCIBLE for m in per_image):
+        return 1
+    need = max((getattr(cfg, m).work_width for m in per_image), default=width)
+    return max((k for k in (1, 2, 4, 8) if -(-int(width) // k) >= need), default=1)
+
+
+def _full_size(boxes: np.ndarray, f: Any, im: np.ndarray) -> np.ndarray:
+    """``boxes`` found on ``im`` (a reduced decode of frame ``f``) in the frame's own pixels."""
+    h, w = im.shape[:2]
+    if (w, h) == (int(f.width), int(f.height)):
+        return boxes
+    sx, sy = int(f.width) / w, int(f.height) / h
+    out = np.round(boxes * np.array([sx, sy, sx, sy]), 2)
+    return np.clip(out, 0, [f.width, f.height, f.width, f.height])
+
+
 def _image_proposals(
     frames: pd.DataFrame,
     cfg: ProposalsConfig,
@@ -466,7 +499,7 @@ def _image_proposals(
 ) -> list[pd.DataFrame]:
     """The rows of the methods that read the image: OpenCV's, registered ones, YOLO.
 
-    Frame batch by frame batch, each image read once.
+    Frame batch by frame batch, each image read once, at the scale :func:`decode_scale` allows.
     """
     out: list[pd.DataFrame] = []
     per_image = [m for m in IMAGE_METHODS if m in methods]
@@ -476,7 +509,10 @@ def _image_proposals(
         items = list(frames.itertuples(index=False))
         for i in progress(range(0, len(items), batch)):
             chunk = items[i : i + batch]
-            imgs = [read_image(f.image) for f in chunk]
+            imgs = [
+                read_image(f.image, decode_scale(f.width, cfg, per_image, yolo is not None))
+                for f in chunk
+            ]
             for m in per_image:
                 for f, im in zip(chunk, imgs, strict=True):
                     try:
@@ -488,7 +524,7 @@ def _image_proposals(
                             f"check [proposals.{m}]"
                         ) from None
                     b, s = _checked(m, f, *found)
-                    out.append(_rows(f, m, b, s, [""] * len(b)))
+                    out.append(_rows(f, m, _full_size(b, f, im), s, [""] * len(b)))
             if yolo is not None:
                 for f, (b, s, c) in zip(chunk, yolo(imgs), strict=True):
                     out.append(_rows(f, "yolo", b, s, [str(int(k)) for k in c]))
