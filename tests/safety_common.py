@@ -1,4 +1,4 @@
-"""Helpers of the safety tests (tests/test_safety_*.py): a config, a small log."""
+"""Helpers of the safety tests (tests/*/test_safety_*.py): a config, a small log."""
 
 from __future__ import annotations
 

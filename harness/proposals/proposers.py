@@ -463,7 +463,7 @@ def _rows(
 
 
 #: The per-image methods that may read a reduced decode: each works on a copy ``work_width`` wide
-#: and gives the same boxes from it (``tests/test_proposals.py``).
+#: and gives the same boxes from it (``tests/proposals/test_proposals.py``).
 REDUCIBLE = ("edges", "mser")
 
 

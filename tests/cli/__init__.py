@@ -1,0 +1,1 @@
+"""Tests of ``harness.cli`` and of the README's commands as typed."""

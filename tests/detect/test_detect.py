@@ -1,0 +1,725 @@
+"""``harness detect`` (SPEC 13): the change detector on a new session, as a user runs it.
+
+The README's two commands run as typed (with ``--data-root`` pointing at the session's fixture):
+``datasets/fixture-detect.toml`` (no annotation file) writes every output; ``datasets/fixture.toml``
+(annotations named) also writes Table D, whose APs pycocotools gives again from
+``detections.json`` and a ground truth built here from the annotation CSV.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness.cli import main
+from harness.detect.evaluate import _voc_all_point
+from harness.detect.run import change_boxes_nms
+from harness.evaluate import chance
+
+ROOT = Path(__file__).resolve().parents[2]
+MAP, QUERY = "2012-01-22", "2012-03-31"
+
+
+def _run(argv: list[str]) -> str:
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(argv) == 0
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def detected(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
+    """(run without annotations, run with them, what the second printed)."""
+    p, _, run = local_run
+    base = tmp_path_factory.mktemp("detect")
+    a, b = base / "noann", base / "ann"
+    shutil.copytree(run / "cache" / "ingest", a / "cache" / "ingest")  # logs read once
+    shutil.copy(run / ".dbl-harness.json", a / ".dbl-harness.json")
+    world = ["--data-root", str(p.cfg.data_root)]
+    cmd = ["detect", "--map", MAP, "--query", QUERY]
+    _run([*cmd[:1], "--config", "datasets/fixture-detect.toml", *cmd[1:], "--out", str(a), *world])
+    shutil.copytree(a / "cache", b / "cache")  # the same pairs, proposals, model and ranks
+    shutil.copy(a / ".dbl-harness.json", b / ".dbl-harness.json")
+    printed = _run(  # the README's second command: two new sessions, Table D
+        [*cmd[:1], "--config", "datasets/fixture.toml", *cmd[1:], "--query", "2012-08-04",
+         "--out", str(b), *world]
+    )  # fmt: skip
+    return a, b, printed
+
+
+def test_detect_without_annotations_writes_every_output(detected: tuple) -> None:
+    out, _, _ = detected
+    for name in ("detections.json", "images.json", "frames.parquet", "frames.csv",
+                 "trajectory.png", "detect.html", "detect.json"):  # fmt: skip
+        assert (out / name).is_file(), name
+    assert not (out / "tableD.md").exists()
+    images = json.loads((out / "images.json").read_text())
+    dets = json.loads((out / "detections.json").read_text())
+    fr = pd.read_parquet(out / "frames.parquet")
+    assert len(images["images"]) == len(fr) == 64  # every query frame ([pairs] stride_m = 0)
+    assert set(fr["session"]) == {QUERY} and set(fr["r_session"]) == {MAP}
+    assert images["categories"] == [{"id": 1, "name": "change", "supercategory": "change"}]
+    size = {i["id"]: (i["width"], i["height"]) for i in images["images"]}
+    per = pd.Series([d["image_id"] for d in dets]).value_counts()
+    assert per.max() <= 10 and len(dets) > len(fr)  # at most max_boxes per frame
+    for d in dets:
+        x, y, w, h = d["bbox"]
+        assert d["category_id"] == 1 and w > 0 and h > 0
+        assert x >= 0 and y >= 0 and x + w <= size[d["image_id"]][0] + 1e-9
+    # the frame's score is its largest LoC, and its first box is the highest-scored detection
+    best = pd.DataFrame(dets).groupby("image_id")["score"].max()
+    np.testing.assert_allclose(fr.set_index("image_id").loc[best.index, "score"], best.to_numpy())
+    maps = sorted((out / "locmaps").glob("*.npy"))
+    assert len(maps) == 10 and np.load(maps[0]).dtype == np.float16
+    assert len(list((out / "locmaps").glob("*.png"))) == 10
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["query_frames"] == 64 and rec["table_d"] is None and rec["ms_per_query_frame"] > 0
+
+
+def test_a_rerun_does_no_work_and_writes_the_same_detections(
+    detected: tuple, local_run: tuple
+) -> None:
+    out, _, _ = detected
+    before = (out / "detections.json").read_bytes()
+    _run(["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
+          "--out", str(out), "--data-root", str(local_run[0].cfg.data_root)])  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["stage_units_run"] and not any(rec["stage_units_run"].values()), rec
+    assert (out / "detections.json").read_bytes() == before
+
+
+def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
+    detected: tuple,
+) -> None:
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    _, out, printed = detected
+    assert "# Table D" in printed
+    t = pd.read_csv(out / "tableD.csv")
+    assert t["row"].tolist() == ["detector", "random scores, same boxes (one draw)"]
+    images = {
+        (i["session"], i["camera"], i["utime"]): i
+        for i in json.loads((out / "images.json").read_text())["images"]
+    }
+    ann = pd.read_csv(ROOT / "annotations" / "fixture.csv")
+    ann = ann[ann["session"].isin([QUERY, "2012-08-04"])]
+    gt_images = [
+        {"id": images[k]["id"], "width": images[k]["width"], "height": images[k]["height"]}
+        for k in {(s, c, int(u)) for s, c, u in ann[["session", "camera", "utime"]].to_numpy()}
+        if k in images
+    ]
+    gt_anns = [
+        {"id": i + 1, "image_id": images[(r.session, r.camera, int(r.utime))]["id"],
+         "category_id": 1, "bbox": [r.x1, r.y1, r.x2 - r.x1, r.y2 - r.y1],
+         "area": (r.x2 - r.x1) * (r.y2 - r.y1), "iscrowd": 0}
+        for i, r in enumerate(ann[ann["status"] == "change"].itertuples())
+    ]  # fmt: skip
+    keep = {i["id"] for i in gt_images}
+    dets = [d for d in json.loads((out / "detections.json").read_text()) if d["image_id"] in keep]
+    with contextlib.redirect_stdout(io.StringIO()):
+        gt = COCO()
+        gt.dataset = {"images": gt_images, "annotations": gt_anns,
+                      "categories": [{"id": 1, "name": "change"}]}  # fmt: skip
+        gt.createIndex()
+        ev = COCOeval(gt, gt.loadRes(dets), "bbox")
+        ev.evaluate()
+        ev.accumulate()
+        ev.summarize()
+    det = t.iloc[0]
+    assert det["annotated_frames"] == len(gt_images) and det["change_boxes"] == len(gt_anns)
+    assert det["coco_ap_50_95"] == pytest.approx(ev.stats[0], abs=5e-5)
+    assert det["coco_ap_50"] == pytest.approx(ev.stats[1], abs=5e-5)
+    assert ev.stats[1] > 0  # some box matches: the comparison is not of two zeros
+    # the fast matcher behind the floor's draws and the intervals gives COCOeval's AP50
+    assert t["matcher_ap50"].to_numpy() == pytest.approx(t["ap50_voc_all_point"], abs=5e-5)
+    # SPEC 9: the floor and band of random scores on the same candidates, the ceiling of oracle
+    # scores, and the verdict by the one rule
+    assert 0 < det["chance_low"] <= det["floor"] <= det["chance_high"] < det["ceiling"] <= 1
+    # no order of these candidates recalls more change boxes than the candidates meet at all
+    assert det["ceiling"] <= det["candidate_recall"] + 5e-5
+    assert det["ci_low"] <= det["ap50_voc_all_point"] <= det["ci_high"]
+    assert det["verdict"] == chance.verdict(
+        det["ap50_voc_all_point"], det["chance_low"], det["chance_high"],
+        det["vs_random_ci_low"], det["vs_random_ci_high"],
+    )  # fmt: skip
+    assert t.iloc[1]["verdict"] == "chance"  # the random row is never above chance
+    md = (out / "tableD.md").read_text()
+    assert "VOC all-point" in md and "ceiling" in md and "chance band" in md
+    assert ("WARNING" in md) == (det["verdict"] != "above")
+    assert ("NOTE: only" in md) == (det["candidate_recall"] < 0.5)
+
+
+def test_the_detect_page_renders_in_a_real_browser(detected: tuple) -> None:
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("no Chromium here: install Debian's chromium package")
+    _, out, _ = detected
+    page = (out / "detect.html").read_text()
+    assert page.index('id="trajectory"') < page.index('data-table="D"') < page.index('id="places"')
+    assert len(re.findall(r'data-place="\d+"', page)) == 10
+    assert "http://" not in page and "https://" not in page
+    dom = subprocess.run(
+        [chromium, "--headless=new", "--no-sandbox", "--disable-gpu",
+         "--virtual-time-budget=15000", "--dump-dom", (out / "detect.html").resolve().as_uri()],
+        capture_output=True, text=True, timeout=120, check=True,
+    ).stdout  # fmt: skip
+    attrs = dict(re.findall(r'data-([a-z-]+)="([^"]*)"', re.search(r"<body([^>]*)>", dom)[1]))
+    # the trajectory, query | map | LoC map for each of the ten places and the six annotated
+    # change frames, every one loaded
+    assert int(attrs["images-total"]) == 1 + 3 * 10 + 6
+    assert attrs["images-loaded"] == attrs["images-total"], attrs
+    assert attrs["tables"] == "1"
+
+
+def test_nms_keeps_the_highest_loc_and_drops_its_overlaps() -> None:
+    boxes = np.array([[0, 0, 10, 10], [1, 1, 10, 10], [20, 20, 30, 30], [0, 0, 9, 10]], float)
+    loc = np.array([0.5, 0.9, 0.1, np.nan])
+    # box 1 (0.9) first; box 0 overlaps it at IoU 81/100 > 0.5: dropped; box 2 kept; NaN never
+    assert change_boxes_nms(boxes, loc, 0.5, 10).tolist() == [1, 2]
+    assert change_boxes_nms(boxes, loc, 0.9, 10).tolist() == [1, 0, 2]
+    assert change_boxes_nms(boxes, loc, 0.9, 2).tolist() == [1, 0]
+
+
+def test_table_d_evaluator_on_boxes_whose_ap_is_known_by_hand() -> None:
+    from harness.detect.evaluate import coco_eval
+
+    gt = {
+        "images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100},
+                   {"id": 3, "width": 100, "height": 100}],  # image 3: annotated no-change
+        "annotations": [
+            {"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "area": 400,
+             "iscrowd": 0},
+            {"id": 2, "image_id": 2, "category_id": 1, "bbox": [50, 50, 30, 30], "area": 900,
+             "iscrowd": 0},
+        ],
+        "categories": [{"id": 1, "name": "change"}],
+    }  # fmt: skip
+    dets = [
+        {"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.9},  # TP
+        {"image_id": 3, "category_id": 1, "bbox": [0, 0, 10, 10], "score": 0.8},  # FP
+        {"image_id": 2, "category_id": 1, "bbox": [52, 50, 30, 30], "score": 0.7},  # TP, IoU .87
+    ]
+    voc, coco, coco50 = coco_eval(gt, dets)
+    # precision 1, 1/2, 2/3 at recall 1/2, 1/2, 1: all-point area 1/2 * 1 + 1/2 * 2/3
+    assert voc == pytest.approx(0.5 + 0.5 * 2 / 3)
+    # COCO's 101-point AP@.5: p(R) = 1 for R <= .5 (51 points), 2/3 above (50 points)
+    assert coco50 == pytest.approx((51 + 50 * 2 / 3) / 101, abs=1e-6)
+    assert 0 < coco < coco50
+
+
+def test_voc_all_point_ap_by_hand() -> None:
+    # 3 ground-truth boxes; detections by score: TP, FP, TP -> precision 1, 1/2, 2/3 at recall
+    # 1/3, 1/3, 2/3; the envelope: 1 up to recall 1/3, 2/3 up to 2/3, 0 after
+    ap = _voc_all_point(np.array([1, 0, 1]), np.array([0.9, 0.8, 0.7]), 3)
+    assert ap == pytest.approx(1 / 3 * 1 + 1 / 3 * 2 / 3)
+
+
+def test_the_detect_flags_are_honoured_as_typed(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``--method``, ``--nms-iou``, ``--max-boxes`` and ``--top`` as the README shows them."""
+    a, _, _ = detected
+    out = tmp_path / "flags"
+    shutil.copytree(a / "cache", out / "cache")  # the map, model and ranks are reused
+    shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+    flags = ["--method", "rank_fusion_le2", "--nms-iou", "0.2", "--max-boxes", "3", "--top", "4"]
+    _run(["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
+          "--out", str(out), "--data-root", str(local_run[0].cfg.data_root), *flags])  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"] == {
+        "method": "rank_fusion_le2", "nms_iou": 0.2, "max_boxes": 3, "top": 4,
+        "chunk_frames": 64, "seed": 0, "boxes": "fused", "box_score": "max", "locmap_level": 0.5,
+    }  # fmt: skip
+    dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
+    assert dets.groupby("image_id").size().max() == 3  # --max-boxes
+    for _, g in dets.groupby("image_id"):  # --nms-iou: no kept pair overlaps more than 0.2
+        b = np.array(g["bbox"].tolist(), np.float64)
+        x1, y1, x2, y2 = b[:, 0], b[:, 1], b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]
+        iw = np.clip(np.minimum(x2[:, None], x2) - np.maximum(x1[:, None], x1), 0, None)
+        ih = np.clip(np.minimum(y2[:, None], y2) - np.maximum(y1[:, None], y1), 0, None)
+        inter = iw * ih
+        iou = inter / ((b[:, 2] * b[:, 3])[:, None] + b[:, 2] * b[:, 3] - inter)
+        np.fill_diagonal(iou, 0)
+        assert iou.max() <= 0.2 + 1e-9
+    assert len(list((out / "locmaps").glob("*.npy"))) == 4  # --top
+    # --method: the scores are another method's LoC than the default run's
+    before = pd.DataFrame(json.loads((a / "detections.json").read_text()))
+    assert not np.allclose(
+        before.groupby("image_id")["score"].max().to_numpy(),
+        dets.groupby("image_id")["score"].max().to_numpy(),
+    )
+
+
+def test_the_readme_quotes_table_d_as_the_command_prints_it(detected: tuple) -> None:
+    """The README's Table D rows and figures are this run's (issue 34 item 7)."""
+    from ..readme_text import README, table_rows_after
+
+    _, out, _ = detected
+    md = (out / "tableD.md").read_text()
+    for row in table_rows_after("as the second command prints it:", tables=2):
+        assert row in md, row
+    t = pd.read_csv(out / "tableD.csv").set_index("row")
+    det = t.loc["detector"]
+    met = round(float(det["candidate_recall"]) * int(det["change_boxes"]))
+    text = README.read_text()
+    assert f"only {met} of the {int(det['change_boxes'])} change boxes are met" in text
+    assert f"AP50 above {float(det['ceiling']):.2f}" in text
+
+
+def test_detect_resumes_after_a_kill_at_the_next_chunk(
+    detected: tuple, local_run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Killed in its third chunk of 16 query frames, a rerun builds only the chunks not finished
+    and writes the boxes the uninterrupted run wrote (one chunk of 64), byte for byte."""
+    from harness.config.load import load_config
+    from harness.detect import run as detect
+
+    a, _, _ = detected
+    p, _, _ = local_run
+    o = tmp_path / "o"
+    shutil.copytree(a / "cache", o / "cache", ignore=shutil.ignore_patterns("detect"))
+    shutil.copy(a / ".dbl-harness.json", o / ".dbl-harness.json")
+    cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
+    opt = detect.DetectOptions(chunk_frames=16)
+    real, calls = detect.detect_chunk, {"n": 0}
+
+    def dying(*args: object, **kw: object) -> dict[str, int]:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt  # as a kill in the middle of the third chunk
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(detect, "detect_chunk", dying)
+    with pytest.raises(KeyboardInterrupt):
+        detect.run_detect(cfg, MAP, [QUERY], o, opt, None)
+    assert not (o / "detections.json").exists()
+    monkeypatch.setattr(detect, "detect_chunk", real)
+    rec = detect.run_detect(cfg, MAP, [QUERY], o, opt, None)
+    assert rec["stage_units_run"]["detect"] == 4 - 2  # the two chunks finished before the kill
+    assert (o / "detections.json").read_bytes() == (a / "detections.json").read_bytes()
+    assert (o / "frames.csv").read_bytes() == (a / "frames.csv").read_bytes()
+
+
+def test_rerun_recording_reads_back_with_the_sdk(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``harness detect ... --method rrf --rerun OUT.rrd`` as the README shows it (issue 38): the
+    recording, read back with the Rerun SDK, holds the map trajectory, every query frame on the
+    ``utime`` timeline with its image, its change boxes (those of ``detections.json``), its LoC map
+    and its score; a file that is not a recording of ours is never replaced."""
+    rerun_chunk = pytest.importorskip("rerun.chunk")
+    a, _, _ = detected
+    out = tmp_path / "rr"
+    shutil.copytree(a / "cache", out / "cache")
+    shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+    rrd = tmp_path / "detect.rrd"
+    readme = (ROOT / "README.md").read_text()
+    typed = re.search(r"^harness detect .* --rerun \S+$", readme, re.M)
+    assert typed is not None, "the README's --rerun command"
+    argv = typed.group(0).split()[1:]
+    argv[argv.index("--out") + 1] = str(out)
+    argv[argv.index("--rerun") + 1] = str(rrd)
+    assert argv[argv.index("--method") + 1] == "rrf"
+    argv += ["--data-root", str(local_run[0].cfg.data_root)]
+    assert f"rerun {typed.group(0).split()[-1]}" in " ".join(readme.split())  # how to open it
+    printed = _run(argv)
+    assert f"rerun recording: {rrd}" in printed
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"]["method"] == "rrf"
+    frames = pd.read_parquet(out / "frames.parquet")
+    dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
+    reader = rerun_chunk.RrdReader(rrd)
+    assert [s.application_id for s in reader.recordings()] == ["dbl-harness detect"]
+    rows: dict[str, int] = {}
+    boxes = 0
+    utimes: set[int] = set()
+    for ch in reader.stream():
+        path = str(ch.entity_path)
+        rows[path] = rows.get(path, 0) + ch.num_rows
+        batch = ch.to_record_batch()
+        names = batch.schema.names
+        if path.endswith("/image/changes"):
+            col = next(n for n in names if n.endswith("half_sizes"))
+            boxes += sum(len(v) for v in batch.column(col).to_pylist() if v)
+        if path.endswith("/image") and "utime" in names:
+            utimes.update(int(u) for u in batch.column("utime").to_pylist())
+    n = len(frames)
+    cam = f"/camera/{frames['camera'].iloc[0]}"
+    assert rows["/world/map"] == 1
+    assert rows[f"/world/query/{QUERY}/trajectory"] == 1
+    assert rows[f"/world/query/{QUERY}/frame"] == n
+    assert rows[f"{cam}/image"] == rows[f"{cam}/loc"] == rows["/detect/score"] == n
+    assert utimes == set(frames["utime"].astype(int))
+    assert boxes == len(dets)
+    # ours is replaced by the same command; a file of the user's is not
+    assert "rerun recording" in _run(argv)
+    mine = tmp_path / "notes.rrd"
+    mine.write_text("the user's own file")
+    theirs = list(argv)
+    theirs[theirs.index("--rerun") + 1] = str(mine)
+    assert main(theirs) == 1
+    assert mine.read_text() == "the user's own file"
+
+
+def test_box_generators_on_a_loc_map_known_by_hand() -> None:
+    """SPEC 13.1's generators on a 20 x 10 frame whose left half has LoC 1 and right half 5."""
+    from harness.detect.run import candidate_boxes
+
+    fused = np.array([[0, 0, 10, 10], [10, 0, 20, 10]], np.float64)
+    loc = np.array([1.0, 5.0])
+    b, s = candidate_boxes("fused", fused, loc, fused, 20, 10)
+    assert b.tolist() == fused.tolist() and s.tolist() == [1.0, 5.0]
+    # locmap at half the range (3): the right half alone, scored by its LoC
+    b, s = candidate_boxes("locmap", fused, loc, fused, 20, 10, "max", 0.5)
+    assert b.tolist() == [[10, 0, 20, 10]] and s.tolist() == [5.0]
+    # proposals: the originals (duplicates merged) scored by the LoC inside, max or mean
+    orig = np.array([[0, 0, 20, 10], [0, 0, 10, 10], [0, 0, 10, 10], [5, 0, 15, 10]], np.float64)
+    b, s = candidate_boxes("proposals", fused, loc, orig, 20, 10, "max")
+    assert b.tolist() == [[0, 0, 10, 10], [0, 0, 20, 10], [5, 0, 15, 10]]
+    assert s.tolist() == [1.0, 5.0, 5.0]
+    _, s = candidate_boxes("proposals", fused, loc, orig, 20, 10, "mean")
+    assert s.tolist() == [1.0, 3.0, 3.0]
+    # two separate changed blobs are two boxes (8-connected regions)
+    fused3 = np.array([[0, 0, 4, 10], [4, 0, 16, 10], [16, 0, 20, 10]], np.float64)
+    b, s = candidate_boxes("locmap", fused3, np.array([9.0, 0.0, 7.0]), fused3, 20, 10)
+    assert b.tolist() == [[0, 0, 4, 10], [16, 0, 20, 10]] and s.tolist() == [9.0, 7.0]
+
+
+def _scored_again(detected: tuple, local_run: tuple, out: Path, *flags: str) -> Path:
+    """The README's second command again with ``flags``, into ``out``, reusing the scored run's
+    cache (map, model, ranks); returns ``out``."""
+    _, b, _ = detected
+    shutil.copytree(b / "cache", out / "cache")
+    shutil.copy(b / ".dbl-harness.json", out / ".dbl-harness.json")
+    _run(["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
+          "--query", "2012-08-04", "--out", str(out), "--data-root",
+          str(local_run[0].cfg.data_root), *flags])  # fmt: skip
+    return out
+
+
+def test_boxes_proposals_as_typed_scores_the_original_proposals(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``--boxes proposals`` (SPEC 13.1): every change box is an original proposal of its frame,
+    Table D names the generator and its candidates are those proposals."""
+    out = _scored_again(detected, local_run, tmp_path / "props", "--boxes", "proposals",
+                        "--alarm", "0.2")  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"]["boxes"] == "proposals"
+    assert rec["alarm"]["rate"] == 0.2  # --alarm: the README's "still 0 at 0.2"
+    assert (pd.read_csv(out / "alarms.csv")["exceedance"] <= 0.2).all()
+    t = pd.read_csv(out / "tableD.csv")
+    assert (t["boxes"] == "proposals").all()
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    d = t.iloc[0]
+    assert (
+        f"`proposals` reaches AP50 {d.ap50_voc_all_point:.3f} against a floor of {d.floor:.3f} and "
+        f"a chance band up to {d.chance_high:.3f} (ceiling {d.ceiling:.3f})"
+    ) in readme
+    assert d.verdict == "chance"
+    assert d.alarm_nominal == 0.2 and d.alarm_measured == 0.0
+    assert "(boxes: proposals)" in (out / "tableD.md").read_text()
+    images = {i["id"]: i for i in json.loads((out / "images.json").read_text())["images"]}
+    ranks = pd.concat(pd.read_parquet(f) for f in (out / "cache" / "ranks").glob("*/ranks.parquet"))
+    boxes = {
+        (s, c, int(u)): set(map(tuple, g[["x1", "y1", "x2", "y2"]].to_numpy().tolist()))
+        for (s, c, u), g in ranks.groupby(["q_session", "q_camera", "q_utime"])
+    }
+    dets = json.loads((out / "detections.json").read_text())
+    assert dets
+    for d in dets:
+        i = images[d["image_id"]]
+        x, y, w, h = d["bbox"]
+        assert (x, y, x + w, y + h) in boxes[(i["session"], i["camera"], i["utime"])]
+
+
+def test_boxes_segments_with_contrast_as_typed(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``--boxes segments --box-score contrast`` (SPEC 13.1): every change box is a colour region
+    of its frame, the candidates meet most change boxes, and the README quotes Table D as run."""
+    from harness.config.schema import SegmentsConfig
+    from harness.imagestore import read_image
+    from harness.proposals.proposers import segment_boxes
+
+    out = _scored_again(detected, local_run, tmp_path / "segments", "--boxes", "segments",
+                        "--box-score", "contrast")  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert (rec["options"]["boxes"], rec["options"]["box_score"]) == ("segments", "contrast")
+    t = pd.read_csv(out / "tableD.csv")
+    assert (t["boxes"] == "segments").all()
+    d = t.iloc[0]
+    assert d.candidate_recall > 0.7  # the regions meet the objects: proposals' recall is 0.30
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert (
+        f"`segments` with `--box-score contrast` reaches AP50 {d.ap50_voc_all_point:.3f} against "
+        f"a floor of {d.floor:.3f} and a chance band up to {d.chance_high:.3f} (ceiling "
+        f"{d.ceiling:.3f}, candidates' recall {d.candidate_recall:.3f})"
+    ) in readme
+    images = {i["id"]: i for i in json.loads((out / "images.json").read_text())["images"]}
+    dets = json.loads((out / "detections.json").read_text())
+    assert dets
+    regions: dict[int, set] = {}
+    for det in dets[:20]:
+        i = images[det["image_id"]]
+        if det["image_id"] not in regions:
+            found = segment_boxes(read_image(i["file_name"]), SegmentsConfig())[0]
+            regions[det["image_id"]] = set(map(tuple, found.tolist()))
+        x, y, w, h = det["bbox"]
+        assert (x, y, x + w, y + h) in regions[det["image_id"]]
+
+
+def test_segment_boxes_frame_coloured_objects_on_a_textured_scene() -> None:
+    """A flat object and a checkered one on a noisy two-tone scene: each gets a box that fits it,
+    the checkered one whole (its cells merged by the closings); the same image, the same boxes."""
+    from harness.config.schema import SegmentsConfig
+    from harness.detect.evaluate import iou_matrix
+    from harness.proposals.proposers import segment_boxes
+
+    rng = np.random.default_rng(0)
+    img = np.empty((160, 120, 3), np.uint8)
+    img[:80], img[80:] = (120, 160, 220), (110, 110, 105)  # sky over road
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    img[90:130, 10:30] = (230, 40, 40)  # a red bin
+    yy, xx = np.mgrid[30:100, 60:100]
+    img[30:100, 60:100] = np.where((((yy // 4) + (xx // 4)) % 2 == 0)[..., None], (20, 160, 120),
+                                   (40, 200, 90))  # fmt: skip
+    boxes, scores = segment_boxes(img, SegmentsConfig())
+    best = iou_matrix(boxes, np.array([[10, 90, 30, 130], [60, 30, 100, 100]], float)).max(axis=0)
+    assert (best > 0.9).all(), best
+    assert len(scores) == len(boxes) and (np.diff(scores) <= 0).all()  # largest first
+    again, _ = segment_boxes(img.copy(), SegmentsConfig())
+    assert np.array_equal(boxes, again)
+
+
+def test_contrast_prefers_the_box_that_frames_the_hot_region() -> None:
+    """``contrast``: the mean inside less the ring's mean. On a map hot in one 10 x 10 square, the
+    box on the square beats one twice as large around it and one half on it; ``max`` ties them."""
+    from harness.detect.run import _inside
+
+    m = np.ones((60, 60))
+    m[20:30, 20:30] = 9.0
+    on, around, half = (np.array(b, float) for b in ([20, 20, 30, 30], [15, 15, 35, 35],
+                                                     [25, 20, 35, 30]))  # fmt: skip
+    c = {k: _inside(m, b, "contrast") for k, b in (("on", on), ("around", around), ("half", half))}
+    assert c["on"] == 8.0 and c["on"] > c["around"] > 0 and c["on"] > c["half"]
+    assert _inside(m, on, "max") == _inside(m, around, "max") == 9.0
+    edge = np.full((60, 60), np.nan)
+    edge[0:10, 0:10] = 4.0  # no mapped pixel around it: the ring counts 0
+    assert _inside(edge, np.array([0, 0, 10, 10], float), "contrast") == 4.0
+
+
+def test_exceedance_and_its_words_by_hand() -> None:
+    from harness.detect.calibrate import exceedance, in_words
+
+    got = exceedance(np.array([1.0, 2.0, 3.0, 4.0, np.nan]), np.array([4.0, 2.5, 0.0, np.nan]))
+    assert got[:3].tolist() == [2 / 5, 3 / 5, 5 / 5] and np.isnan(got[3])
+    assert exceedance(np.zeros(0), np.array([1.0])).tolist() == [1.0]
+    assert in_words(0.001, "candidate boxes") == "1 in 1,000 candidate boxes scores this high"
+    from harness.detect.evaluate import clopper_pearson
+
+    lo, hi = clopper_pearson(3, 10)  # the textbook interval of 3 in 10
+    assert (round(lo, 4), round(hi, 4)) == (0.0667, 0.6525)
+    assert clopper_pearson(0, 4)[1] == pytest.approx(1 - 0.025**0.25)
+
+
+def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None:
+    """SPEC 13.1 on the README's second command: every frame's and box's exceedance recomputes
+    from the run's own frames and candidates, ``alarms.csv`` holds exactly what the default
+    nominal rate flags, Table D measures the rate on the no-change frames, and the README's and
+    the page's words are this run's."""
+    from harness.detect.calibrate import in_words
+
+    _, out, printed = detected
+    fr = pd.read_csv(out / "frames.csv")
+    s = fr["score"].to_numpy()
+    want = np.array([(1 + (s >= v).sum()) / (1 + len(s)) for v in s])
+    np.testing.assert_allclose(fr["exceedance"], want, rtol=1e-5)
+    rec = json.loads((out / "detect.json").read_text())
+    cands = pd.concat(  # this run's chunks (the cache also holds the first command's)
+        pd.read_parquet(out / "cache" / "detect" / k / "candidates.parquet")
+        for k in rec["cache_entries"]["detect"]
+    )
+    null = cands["loc"].to_numpy()
+    dets = json.loads((out / "detections.json").read_text())
+    for d in dets[:50]:
+        assert d["exceedance"] == pytest.approx((1 + (null >= d["score"]).sum()) / (1 + len(null)))
+    alarms = pd.read_csv(out / "alarms.csv")
+    rate = rec["alarm"]["rate"]
+    assert rate == 0.01
+    assert (alarms["exceedance"] <= rate).all()
+    assert (alarms["kind"] == "box").sum() == sum(d["exceedance"] <= rate for d in dets)
+    assert (alarms["kind"] == "frame").sum() == int((fr["exceedance"] <= rate).sum())
+    t = pd.read_csv(out / "tableD.csv").iloc[0]
+    ann = pd.read_csv(ROOT / "annotations" / "fixture.csv")
+    quiet = ann[ann["status"] == "no-change"].merge(fr, on=["session", "camera", "utime"])
+    assert int(t["no_change_frames"]) == len(quiet) > 0
+    assert t["alarm_measured"] == pytest.approx((quiet["exceedance"] <= rate).mean())
+    # the exact interval of 0 in n: [0, 1 - 0.025 ** (1 / n)]
+    if t["alarm_measured"] == 0:
+        assert t["alarm_ci_low"] == 0 and t["alarm_ci_high"] == pytest.approx(
+            1 - 0.025 ** (1 / len(quiet)),
+            abs=5e-5,  # tableD.csv keeps four decimals
+        )
+    top = fr.sort_values("score", ascending=False).iloc[0]
+    words = in_words(float(top["exceedance"]), "frames")
+    assert f"({words})" in printed
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert f'("{in_words(float(top["exceedance"]), "frames of this run")}")' in readme
+    assert (
+        in_words(float(top["exceedance"]), "frames of this run")
+        in (out / "detect.html").read_text()
+    )
+    assert (
+        f"on the fixture, {int((quiet['exceedance'] <= rate).sum())} of {len(quiet)} at {rate:g}"
+    ) in readme
+
+
+def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected: tuple) -> None:
+    """Issue 36's page: with annotations, the annotated change frames (most changed first) show
+    their annotated boxes in red beside the detections in yellow; without, no such section."""
+    from harness.detect.page import ANNOTATED_SHOWN
+
+    a, out, _ = detected
+    page = (out / "detect.html").read_text()
+    fr = pd.read_csv(out / "frames.csv")
+    ann = pd.read_csv(ROOT / "annotations" / "fixture.csv")
+    changed = ann[ann["status"] == "change"][["session", "camera", "utime"]].drop_duplicates()
+    n = len(fr.merge(changed, on=["session", "camera", "utime"]))
+    assert f'data-annotated="{min(n, ANNOTATED_SHOWN)}"' in page
+    assert f"of the {n} annotated change frames" in page
+    assert "annotated changes in red" in page
+    assert 'id="annotated"' not in (a / "detect.html").read_text()
+
+
+@pytest.mark.parametrize(
+    ("flags", "says"),
+    [
+        (["--alarm", "0"], "--alarm 0.0: a false-alarm rate in (0, 1)"),
+        (["--alarm", "1.5"], "--alarm 1.5"),
+        (["--boxes", "pixels"], "--boxes 'pixels': one of fused, locmap, proposals, segments"),
+        (["--box-score", "median"], "box_score 'median': one of max, mean, contrast"),
+        (["--method", "score_max"], "method 'score_max': one of rank_fusion"),
+        (["--rerun", "/nonexistent-folder/x.rrd"], "does not exist"),
+    ],
+)
+def test_bad_detect_flags_are_one_error_line_before_any_work(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture, flags: list, says: str
+) -> None:
+    out = tmp_path / "o"
+    argv = ["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
+            "--out", str(out), "--data-root", str(local_run[0].cfg.data_root), *flags]  # fmt: skip
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.startswith("ERROR:")]
+    assert len(lines) == 1 and says in lines[0], err
+    assert not out.exists()
+
+
+def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) -> None:
+    """``[detect]`` is passed through: a flag as typed wins, the table fills what is not typed."""
+    from harness.cli.parser import build_parser
+    from harness.cli.runs import detect_options
+    from harness.config.load import load_config
+
+    text = (ROOT / "datasets" / "fixture.toml").read_text()
+    (tmp_path / "c.toml").write_text(
+        text + '\n[detect]\nboxes = "locmap"\nbox_score = "mean"\nlocmap_level = 0.3\n'
+    )
+    cfg = load_config(tmp_path / "c.toml")
+    base = ["detect", "--config", "c.toml", "--map", MAP, "--query", QUERY, "--out", "o"]
+    opt = detect_options(build_parser().parse_args(base), cfg)
+    assert (opt.boxes, opt.box_score, opt.locmap_level) == ("locmap", "mean", 0.3)
+    opt = detect_options(build_parser().parse_args([*base, "--boxes", "proposals"]), cfg)
+    assert opt.boxes == "proposals"
+
+
+def test_a_registered_fusion_method_is_usable_by_detect(
+    detected: tuple, local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One catalogue for the paper's rules and a user's (issue 35): a method registered with
+    ``fusion.register_method`` is a ``--method`` of ``harness detect``; one registered with
+    ``detect=False`` is refused in one ERROR line before any work."""
+    from harness import methods
+    from harness.fusion import fuse as fusion
+
+    def best_rank(cover: np.ndarray, r: np.ndarray, d: np.ndarray, L: np.ndarray) -> np.ndarray:
+        return np.where(cover, (L / (L + 1.0 - r * L))[None, :], 0.0).max(1)
+
+    saved = dict(methods.FUSION_RULES), dict(methods.METHOD_LABELS)
+    try:
+        fusion.register_method("best_rank", best_rank, "best single rank")
+        fusion.register_method("no_detect", best_rank, "not for detect", detect=False)
+        a, _, _ = detected
+        out = tmp_path / "registered"
+        shutil.copytree(a / "cache", out / "cache")  # the map, model and ranks are reused
+        shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+        world = str(local_run[0].cfg.data_root)
+        argv = ["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query",
+                QUERY, "--out", str(out), "--data-root", world]  # fmt: skip
+        _run([*argv, "--method", "best_rank"])
+        assert json.loads((out / "detect.json").read_text())["options"]["method"] == "best_rank"
+        dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
+        before = pd.DataFrame(json.loads((a / "detections.json").read_text()))
+        assert (dets["score"] >= 1.0).all()  # 1 / r' >= 1 for every box
+        assert dets["score"].max() < before["score"].max()  # one list's 1/r', not N * sum(1/r')
+        capsys.readouterr()
+        assert main([*argv, "--method", "no_detect"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("ERROR:") and "no_detect" in err[0]
+        assert "best_rank" in err[0]  # the registered one is offered
+    finally:
+        for d, before_ in zip((methods.FUSION_RULES, methods.METHOD_LABELS), saved, strict=True):
+            d.clear()
+            d.update(before_)
+
+
+def test_detect_by_retrieval_says_how_often_it_agrees_with_the_pose_pairs(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``[pairs] by = "retrieval"`` where poses exist (SPEC 13.2): ``detect.json``'s agreement is
+    the share recomputed from its retrieval pairs and the pose pairs of the pose run."""
+    a, _, _ = detected
+    out = tmp_path / "retrieval"
+    shutil.copytree(a / "cache", out / "cache")  # the map's proposals and model are reused
+    shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
+    text = (ROOT / "datasets" / "fixture-detect.toml").read_text()
+    cfg = tmp_path / "by-retrieval.toml"
+    cfg.write_text(text.replace('queries = "annotated"', 'queries = "annotated"\nby = "retrieval"'))
+    printed = _run(["detect", "--config", str(cfg), "--map", MAP, "--query", QUERY, "--out",
+                    str(out), "--data-root", str(local_run[0].cfg.data_root)])  # fmt: skip
+    agree = json.loads((out / "detect.json").read_text())["pairing"]["agreement_with_pose_pairs"]
+    (entry,) = (out / "cache" / "pairs_retrieval").iterdir()
+    rp = pd.read_parquet(entry / "pairs.parquet")
+    pose = pd.read_parquet(a / "frames.parquet")  # the pose run: each query frame's map frame
+    frames = pd.concat(
+        [pd.read_parquet(f) for f in (a / "cache" / "frames").glob("*/frames.parquet")]
+    ).drop_duplicates(["session", "camera", "utime"])
+    xy = frames.set_index(["session", "camera", "utime"])[["x", "y"]]
+    pose = pose.rename(columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"})
+    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    m = rp.merge(pose[[*keys, "r_camera", "r_utime"]], on=keys, suffixes=("", "_p"))
+    ra = xy.loc[list(zip(m.r_session, m.r_camera, m.r_utime, strict=True))].to_numpy()
+    rb = xy.loc[list(zip(m.r_session, m.r_camera_p, m.r_utime_p, strict=True))].to_numpy()
+    dist = np.linalg.norm(ra - rb, axis=1)
+    assert agree["compared"] == len(m) > 0
+    assert agree["agree"] == int((dist <= 10.0).sum())
+    assert f"{agree['agree']} of {agree['compared']}" in printed
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    share = round(100 * agree["share"])
+    ci = f"{100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%"
+    assert (
+        f"pairs {agree['agree']} of its {agree['compared']} query frames ({share}%, 95% interval "
+        f"{ci}; a random map frame: {100 * agree['chance_share']:.0f}%)" in readme
+    ), agree
+    assert f"(a random map frame: {100 * agree['chance_share']:.0f}%)" in printed
