@@ -204,3 +204,35 @@ def test_no_function_is_longer_than_80_lines() -> None:
                 if n > MAX_FUNCTION_LINES:
                     long.append(f"{name}.{node.name} ({n} lines, line {node.lineno})")
     assert not long, f"functions over {MAX_FUNCTION_LINES} lines: {long}"
+
+
+#: Tests of the whole project rather than of one package: they stay at the top of ``tests/``.
+PROJECT_TESTS = frozenset(
+    {
+        "test_layout",
+        "test_recipes",
+        "test_doc_figures",
+        "test_bench_command",
+        "test_gpu",
+        "test_safety_third_pass",
+    }
+)
+
+
+def test_tests_mirror_the_packages() -> None:
+    """A package's tests live in ``tests/<package>/`` (issue 35; ``tests/pairs/`` for the module
+    ``harness/pairs.py``), so the tree of the tests is the tree of the code; only the project-wide
+    ones sit at the top."""
+    tests = ROOT / "tests"
+    packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
+    packages |= {p.stem for p in PACKAGE.glob("*.py") if p.name != "__init__.py"}
+    misplaced = []
+    for f in sorted(tests.rglob("test_*.py")):
+        rel = f.relative_to(tests)
+        top = len(rel.parts) == 1 and f.stem in PROJECT_TESTS
+        nested = len(rel.parts) == 2 and rel.parts[0] in packages
+        if not (top or nested):
+            misplaced.append(str(rel))
+    assert misplaced == []
+    dirs = {d.name for d in tests.iterdir() if (d / "__init__.py").is_file()}
+    assert dirs <= packages and {"detect", "pipeline", "ingest"} <= dirs
