@@ -495,7 +495,8 @@ def test_a_moved_data_root_resumes_without_recomputing(local_run: tuple, tmp_pat
             for sc in p.cfg.sessions
         )
         cfg = dataclasses.replace(p.cfg, data_root=tmp_path / root, sessions=sessions)
-        q = Pipeline(cfg, out)
+        cfg = dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, plots=False))
+        q = Pipeline(cfg, out)  # the page reads the images (below); the figures are not checked
         q.run()
         assert sum(q.ran.values()) == 0, q.ran
         assert (out / "table1.csv").read_bytes() == (run / "table1.csv").read_bytes()
