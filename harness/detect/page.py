@@ -202,8 +202,9 @@ def table_d_html(table_d: pd.DataFrame | None) -> str:
         for x in table_d.itertuples()
     )
     c = table_d.iloc[0]
+    gen = f" (boxes: {_e(c.boxes)})" if "boxes" in table_d.columns else ""  # the generator
     td = (
-        '<h2 id="tableD">Table D: change boxes on the annotated frames</h2>'
+        f'<h2 id="tableD">Table D: change boxes on the annotated frames{gen}</h2>'
         "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
         "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
         "no-change give false positives only. Verdict by SPEC 9: above chance only above the "

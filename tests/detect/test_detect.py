@@ -460,6 +460,8 @@ def test_boxes_segments_with_contrast_as_typed(
     assert (t["boxes"] == "segments").all()
     d = t.iloc[0]
     assert d.candidate_recall > 0.7  # the regions meet the objects: proposals' recall is 0.30
+    page = (out / "detect.html").read_text()  # the command's last output, the page
+    assert "boxes: segments" in page and f"{d.ceiling:.3f}" in page
     readme = " ".join((ROOT / "README.md").read_text().split())
     assert (
         f"`segments` with `--box-score contrast` reaches AP50 {d.ap50_voc_all_point:.3f} against "
