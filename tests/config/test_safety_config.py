@@ -151,6 +151,25 @@ def test_an_unreachable_ray_address_is_one_error_line_in_seconds(
         (None, "\n[detect]\nlocmap_level = 1.0\n", r"\[detect\] locmap_level = 1.0 is out"),
         (None, "\n[detect]\nalarm = 0\n", r"\[detect\] alarm = 0.0 is out of range"),
         (None, "\n[detect]\ncolour = 1\n", r"unknown key"),
+        (None, "\n[proposals.segments]\nk = 1\n", r"\[proposals.segments\] k = 1 is out of range"),
+        (
+            None,
+            "\n[proposals.segments]\nclosings = []\n",
+            r"\[proposals.segments\] closings = \[\] is out of range",
+        ),
+        (
+            None,
+            "\n[proposals.segments]\nwork_width = 8\n",
+            r"\[proposals.segments\] work_width = 8 is out of range",
+        ),
+        (
+            (
+                'methods = ["grid5", "edges"]',
+                'methods = ["grid5", "edges"]\nreduced_decode = "yes"',
+            ),
+            "",
+            r"reduced_decode",
+        ),
     ],
 )
 def test_bad_config_values_fail_at_load(
