@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -58,8 +59,10 @@ def test_recipe_a_toy_descriptor_in_under_30_lines(
 def registries():
     """The method catalogue's registries as they were before the test (a recipe adds to them)."""
     from harness import methods
+    from harness.config.kinds import LOCALIZER_KINDS
 
-    saved = [(d, dict(d)) for d in (methods.PROPOSERS, methods.FUSION_RULES, methods.METHOD_LABELS)]
+    regs = (methods.PROPOSERS, methods.FUSION_RULES, methods.METHOD_LABELS, LOCALIZER_KINDS)
+    saved = [(d, dict(d)) for d in regs]
     yield methods
     for d, before in saved:
         d.clear()
@@ -170,6 +173,69 @@ def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries
     )
     assert covers.sum() == s.N and np.isclose(s.loc_best_rank, want)
     assert (out / "table1.csv").read_text() != (tmp_path / "table1.csv").read_text()
+
+
+def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registries) -> None:
+    # --- the recipe: options, a ranks function, one registration; a [[localizers]] entry ---
+    import cv2
+
+    from harness.config.kinds import LocalizerKind, register_localizer_kind
+    from harness.imagestore import read_image
+    from harness.pipeline.stages import query_ranks
+    from harness.records import FRAME_KEY
+    from harness.runtime.cache import write_parquet
+
+    @dataclasses.dataclass(frozen=True)
+    class ColourOptions:
+        bins: int = 4  # per RGB channel
+
+    def colour_ranks(p, loc, frames, pairs, props):
+        """Each subimage's square-rooted RGB histogram, ranked by the harness's engine."""
+
+        def build(rows: pd.DataFrame, tmp: Path) -> dict:
+            uris = rows.merge(frames.df[[*FRAME_KEY, "image"]], on=FRAME_KEY, how="left")["image"]
+            b, out = loc.options.bins, []
+            for r, uri in zip(rows.itertuples(), uris, strict=True):
+                crop = read_image(uri)[int(r.y1) : int(r.y2), int(r.x1) : int(r.x2)]
+                h = cv2.calcHist([crop], [0, 1, 2], None, [b] * 3, [0, 256] * 3).ravel()
+                out.append(np.sqrt(h / max(h.sum(), 1.0)))
+            np.save(tmp / "desc.npy", np.asarray(out, np.float32).reshape(len(rows), b**3))
+            write_parquet(tmp / "index.parquet", rows)
+            return {}
+
+        described = {
+            s: p.unit("colour", (loc.options.bins, t.key), partial(build, t.df))
+            for s, t in props.items()
+        }
+        return query_ranks(p, frames, pairs, described)
+
+    register_localizer_kind(LocalizerKind("colour", ColourOptions, ranks=colour_ranks))
+    entry = {"name": "rgb-hist", "proposals": ["grid5"], "colour": {"bins": 4}}
+    # --- end of the recipe (the rest checks it) ---
+    from harness.config.load import parse_localizers
+    from harness.errors import ConfigError
+    from harness.pipeline.context import localizer_record
+
+    p, _, _ = local_run
+    cfg = p.cfg
+    locs = parse_localizers([entry], cfg, tmp_path, cfg.data_root, "recipe")
+    assert locs[0].kind == "colour" and locs[0].options == ColourOptions(4)
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['size'\]"):
+        parse_localizers([{"name": "x", "colour": {"size": 2}}], cfg, tmp_path, cfg.data_root, "t")
+    with pytest.raises(ConfigError, match="one of descriptor, bovw, import or colour"):
+        parse_localizers([{"name": "x"}], cfg, tmp_path, cfg.data_root, "t")
+    with pytest.raises(ConfigError, match="taken"):
+        register_localizer_kind(LocalizerKind("bovw", ColourOptions, ranks=colour_ranks))
+    q, rec = _rerun(local_run, tmp_path, dataclasses.replace(cfg, localizers=locs))
+    assert q.ran["colour"] == len(cfg.sessions) and q.ran.get("descriptor_shards", 0) == 0
+    assert rec["localizers"][0] == {"name": "rgb-hist", "kind": "colour"}
+    assert localizer_record(locs[0])["colour"] == {"bins": 4}  # run.json's, beside others
+    desc = np.load(tmp_path / "cache" / "colour" / q.used["colour"].pop() / "desc.npy")
+    assert desc.shape[1] == 64 and np.allclose((desc**2).sum(1), 1.0, atol=1e-5)
+    loc = pd.read_csv(tmp_path / "localization.csv")
+    r1 = loc.loc[loc["proposals"] == "all", "recall_at_1"].iloc[0]
+    assert loc["subimages"].max() > 0 and 0 < r1 <= 1
+    assert (tmp_path / "table1.csv").exists()
 
 
 def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch) -> None:

@@ -16,15 +16,13 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from harness.config.check import (
-    check_bovw,
     check_session_name,
-    check_value,
     validate,
 )
+from harness.config.kinds import LOCALIZER_KINDS
 from harness.config.schema import (
     ALL_LOCALIZERS,
     LOCALIZER_NAME,
-    BovwConfig,
     Config,
     DescriptorConfig,
     DetectConfig,
@@ -34,7 +32,6 @@ from harness.config.schema import (
     ImportConfig,
     IngestConfig,
     LocalizerConfig,
-    LocalizerImportConfig,
     MserConfig,
     PairsConfig,
     ProjectionConfig,
@@ -241,7 +238,10 @@ def parse_config(
     return cfg
 
 
-_LOCALIZER_KEYS = ("name", "proposals", "descriptor", "bovw", "import")
+def _kind_names() -> str:
+    """``descriptor, bovw or import`` (and any registered kind)."""
+    names = list(LOCALIZER_KINDS)
+    return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]
 
 
 def parse_localizers(
@@ -259,20 +259,20 @@ def parse_localizers(
         at = f"{where}: localizers[{i}]"
         if not isinstance(item, dict):
             raise ConfigError(f"{at}: expected a table, got {type(item).__name__}")
-        unknown = sorted(set(item) - set(_LOCALIZER_KEYS))
+        known = ["name", "proposals", *LOCALIZER_KINDS]
+        unknown = sorted(set(item) - set(known))
         if unknown:
-            raise ConfigError(f"{at}: unknown key(s) {unknown}; known: {list(_LOCALIZER_KEYS)}")
+            raise ConfigError(f"{at}: unknown key(s) {unknown}; known: {known}")
         name = item.get("name")
         if not isinstance(name, str) or not LOCALIZER_NAME.match(name):
             raise ConfigError(
                 f"{at} name = {name!r}: expected a name of letters, digits, '.', '_', '-', '+' "
                 "(it names the localizer in every table)"
             )
-        ways = [k for k in ("descriptor", "bovw", "import") if k in item]
+        ways = [k for k in LOCALIZER_KINDS if k in item]
         if len(ways) != 1:
             raise ConfigError(
-                f"{at} ({name}): give exactly one of descriptor, bovw or import; got "
-                f"{ways or 'none'}"
+                f"{at} ({name}): give exactly one of {_kind_names()}; got {ways or 'none'}"
             )
         props = _coerce(item.get("proposals", list(cfg.proposals.methods)), tuple[str, ...], at)
         bad = [m for m in props if m not in cfg.proposals.methods]
@@ -281,28 +281,11 @@ def parse_localizers(
                 f"{at} ({name}) proposals = {list(props)}: each must be one of [proposals] "
                 f"methods {list(cfg.proposals.methods)} (proposals are computed once, shared)"
             )
-        kind = ways[0]
-        de = bw = im = None
-        if kind == "descriptor":
-            de = _build(DescriptorConfig, item[kind], f"{at}.descriptor")
-            if de.path:
-                net = Path(de.path.replace("{data_root}", str(root))).expanduser()
-                de = dataclasses.replace(de, path=str(net if net.is_absolute() else base / net))
-        elif kind == "bovw":
-            bw = _build(BovwConfig, item[kind], f"{at}.bovw")
-            check_bovw(bw, f"{at}.bovw")
-        else:
-            im = _build(LocalizerImportConfig, item[kind], f"{at}.import")
-            f = Path(im.file.replace("{data_root}", str(root))).expanduser()
-            im = dataclasses.replace(im, file=str(f if f.is_absolute() else base / f))
-            check_value(
-                im.score_kind in ("distance", "similarity"),
-                at,
-                "import.score_kind",
-                im.score_kind,
-                "'distance' or 'similarity'",
-            )
-        out.append(LocalizerConfig(str(name), kind, tuple(props), de, bw, im))
+        kind = LOCALIZER_KINDS[ways[0]]
+        options: Any = _build(kind.options, item[kind.name], f"{at}.{kind.name}")
+        if kind.prepare is not None:
+            options = kind.prepare(options, at, base, root)
+        out.append(LocalizerConfig(str(name), kind.name, tuple(props), options))
     names = [x.name for x in out]
     if len(set(names)) != len(names):
         raise ConfigError(f"{where}: [[localizers]] names must be unique, got {names}")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from harness.methods import ALL_METHODS
 
@@ -359,16 +360,30 @@ class LocalizerImportConfig:
 class LocalizerConfig:
     """One ``[[localizers]]`` entry (SPEC section 11): a name, proposals and one way to rank.
 
-    ``kind`` is ``descriptor`` (with ``descriptor``), ``bovw`` (with ``bovw``) or ``import``
-    (with ``import_``); ``proposals`` are the ``[proposals] methods`` it uses (all by default).
+    ``kind`` names a :data:`harness.config.kinds.LOCALIZER_KINDS` record and ``options`` is its
+    sub-table (a ``DescriptorConfig``, ``BovwConfig``, ``LocalizerImportConfig`` or a registered
+    kind's dataclass); ``proposals`` are the ``[proposals] methods`` it uses (all by default).
     """
 
     name: str
     kind: str
     proposals: tuple[str, ...]
-    descriptor: DescriptorConfig | None = None
-    bovw: BovwConfig | None = None
-    import_: LocalizerImportConfig | None = None
+    options: Any = None
+
+    @property
+    def descriptor(self) -> DescriptorConfig | None:
+        """The options of a ``descriptor`` localizer, else None."""
+        return self.options if self.kind == "descriptor" else None
+
+    @property
+    def bovw(self) -> BovwConfig | None:
+        """The options of a ``bovw`` localizer, else None."""
+        return self.options if self.kind == "bovw" else None
+
+    @property
+    def import_(self) -> LocalizerImportConfig | None:
+        """The options of an ``import`` localizer, else None."""
+        return self.options if self.kind == "import" else None
 
 
 @dataclass(frozen=True)
@@ -404,7 +419,7 @@ class Config:
                 name=self.descriptor.name,
                 kind="descriptor",
                 proposals=self.proposals.methods,
-                descriptor=self.descriptor,
+                options=self.descriptor,
             ),
         )
 

@@ -19,6 +19,7 @@ from typing import Any
 
 import pandas as pd
 
+from harness.config.kinds import LOCALIZER_KINDS
 from harness.config.schema import Config, LocalizerConfig, LocalizerImportConfig
 from harness.retrieval.import_file import ImportSpec, parse_import_arg
 from harness.runtime.cache import StageCache, content_sha
@@ -107,7 +108,7 @@ class Context:
                     self.rank_import.name,
                     "import",
                     self.cfg.proposals.methods,
-                    import_=LocalizerImportConfig(
+                    options=LocalizerImportConfig(
                         str(self.rank_import.path), self.cfg.import_.score_kind
                     ),
                 ),
@@ -203,8 +204,5 @@ def localizer_record(loc: LocalizerConfig, full: bool = True) -> dict[str, Any]:
     rec: dict[str, Any] = {"name": loc.name, "kind": loc.kind}
     if full:
         rec["proposals"] = list(loc.proposals)
-        if loc.descriptor is not None:
-            rec["descriptor"] = loc.descriptor.name
-        if loc.bovw is not None:
-            rec["bovw"] = dataclasses.asdict(loc.bovw)
+        rec.update(LOCALIZER_KINDS[loc.kind].describe(loc.options))
     return rec

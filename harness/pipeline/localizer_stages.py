@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from harness.config.kinds import LOCALIZER_KINDS
 from harness.config.schema import FusionConfig, LocalizerConfig
 from harness.errors import ConfigError, RetrievalError
 from harness.methods import rules_where
@@ -128,6 +129,24 @@ def bovw_words(
     return out, nofeat
 
 
+#: A localizer kind's rank rows: (context, localizer, frames, pairs, its proposals) -> ranks.
+KindRanks = Callable[[Context, LocalizerConfig, Table, Table, dict[str, Table]], RankTable]
+
+
+def kind_ranks(name: str) -> Callable[[KindRanks], KindRanks]:
+    """Attach the decorated function as the ranks of the built-in kind ``name``.
+
+    The kind's record (:data:`harness.config.kinds.LOCALIZER_KINDS`) holds its options.
+    """
+
+    def attach(fn: KindRanks) -> KindRanks:
+        LOCALIZER_KINDS[name] = dataclasses.replace(LOCALIZER_KINDS[name], ranks=fn)
+        return fn
+
+    return attach
+
+
+@kind_ranks("descriptor")
 def descriptor_kind_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
 ) -> RankTable:
@@ -138,6 +157,7 @@ def descriptor_kind_ranks(
     return query_ranks(p, frames, pairs, described)
 
 
+@kind_ranks("bovw")
 def bovw_kind_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
 ) -> RankTable:
@@ -149,6 +169,7 @@ def bovw_kind_ranks(
     return ranks
 
 
+@kind_ranks("import")
 def import_kind_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
 ) -> RankTable:
@@ -157,23 +178,15 @@ def import_kind_ranks(
     return imported_ranks(p, frames, pairs, mine, ImportSpec(loc.name, Path(loc.import_.file)))
 
 
-#: A localizer kind's rank rows: (context, localizer, frames, pairs, its proposals) -> ranks.
-KindRanks = Callable[[Context, LocalizerConfig, Table, Table, dict[str, Table]], RankTable]
-#: Localizer kinds (``LocalizerConfig.kind``, one ``[[localizers]]`` sub-table each) -> their ranks.
-LOCALIZER_KINDS: dict[str, KindRanks] = {
-    "descriptor": descriptor_kind_ranks,
-    "bovw": bovw_kind_ranks,
-    "import": import_kind_ranks,
-}
-
-
 def localizer_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
 ) -> RankTable:
     """One localizer's rank rows: its kind's stages over its proposals (SPEC sections 6, 11, 12)."""
     mine = localizer_proposals(p, loc, props)
     with p.measuring(loc):
-        return LOCALIZER_KINDS[loc.kind](p, loc, frames, pairs, mine)
+        ranks = LOCALIZER_KINDS[loc.kind].ranks
+        assert ranks is not None  # attached here, or given at registration
+        return ranks(p, loc, frames, pairs, mine)
 
 
 def retrieval_ranks(
