@@ -132,6 +132,8 @@ BOX_GENERATORS = ("fused", "locmap", "proposals", "segments")
 BOX_SCORES = ("max", "mean", "contrast")
 #: Per-image proposal methods: name -> function (built-in ones and ``proposals.register_method``).
 PROPOSERS: dict[str, Callable[..., Any]] = {}
+#: A registered method's options: name -> the dataclass its ``[proposals.<name>]`` table builds.
+PROPOSER_OPTIONS: dict[str, type] = {}
 
 
 def known_fusion_methods() -> tuple[str, ...]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import shutil
 from functools import partial
 from pathlib import Path
@@ -12,6 +13,8 @@ import pandas as pd
 import pytest
 
 from harness.pipeline.chain import Pipeline
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_recipe_a_toy_descriptor_in_under_30_lines(
@@ -61,7 +64,13 @@ def registries():
     from harness import methods
     from harness.config.kinds import LOCALIZER_KINDS
 
-    regs = (methods.PROPOSERS, methods.FUSION_RULES, methods.METHOD_LABELS, LOCALIZER_KINDS)
+    regs = (
+        methods.PROPOSERS,
+        methods.PROPOSER_OPTIONS,
+        methods.FUSION_RULES,
+        methods.METHOD_LABELS,
+        LOCALIZER_KINDS,
+    )
     saved = [(d, dict(d)) for d in regs]
     yield methods
     for d, before in saved:
@@ -82,24 +91,42 @@ def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
 
 def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registries) -> None:
     from harness.config.check import validate
+    from harness.config.load import load_config
+    from harness.errors import ConfigError
     from harness.proposals import proposers as proposals
 
-    # --- the recipe: a function of the upright image, registered, listed in [proposals] ---
+    # --- the recipe: a function of the upright image and its options, registered, listed ---
+
+    @dataclasses.dataclass(frozen=True)
+    class CentreOptions:
+        frac: float = 0.25  # the box's side, as a share of the image's
 
     def centre(rgb: np.ndarray, cfg: object) -> tuple[np.ndarray, np.ndarray]:
-        """One box: the image's central quarter (x1, y1, x2, y2 pixels), score 1."""
+        """One box: the image's central ``frac`` (x1, y1, x2, y2 pixels), score 1."""
         h, w = rgb.shape[:2]
-        return np.array([[w / 4, h / 4, 3 * w / 4, 3 * h / 4]]), np.ones(1)
+        f = cfg.options_of("centre").frac  # type: ignore[attr-defined]
+        return np.array([[w * (1 - f) / 2, h * (1 - f) / 2, w * (1 + f) / 2, h * (1 + f) / 2]]), [1]
 
-    proposals.register_method("centre", centre)
-    p, _, _ = local_run
-    cfg = dataclasses.replace(
-        p.cfg, proposals=dataclasses.replace(p.cfg.proposals, methods=("grid5", "centre"))
-    )
+    proposals.register_method("centre", centre, options=CentreOptions)
+    toml = 'methods = ["grid5", "centre"]\n\n[proposals.centre]\nfrac = 0.5\n'
     # --- end of the recipe (the rest checks it) ---
+    p, _, _ = local_run
+    text = (ROOT / "datasets" / "fixture.toml").read_text()
+    conf = tmp_path / "centre.toml"
+    conf.write_text(text.replace('methods = ["grid5", "edges"]\n', toml))
+    cfg = load_config(conf, data_root=str(p.cfg.data_root))
+    assert cfg.proposals.options_of("centre") == CentreOptions(0.5)
+    # its table is checked as the built-ins' are: unknown keys, wrong types
+    for wrong, says in (("side = 2", "unknown key(s) ['side']"), ('frac = "half"', "frac")):
+        bad = toml.replace("frac = 0.5", wrong)
+        conf.write_text(text.replace('methods = ["grid5", "edges"]\n', bad))
+        with pytest.raises(ConfigError, match=re.escape(says)):
+            load_config(conf, data_root=str(p.cfg.data_root))
     # the new crops retrain the model: a sixth of the fixture's budget is enough to show it
     cfg = dataclasses.replace(
-        cfg, descriptor=dataclasses.replace(cfg.descriptor, train_samples=1000)
+        cfg,
+        annotations=p.cfg.annotations,
+        descriptor=dataclasses.replace(cfg.descriptor, train_samples=1000),
     )
     validate(cfg, "recipe")  # the name is known to the config check
     with pytest.raises(ValueError, match="exists"):
@@ -117,6 +144,16 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
     got = cen.merge(fr, on=["session", "camera", "utime"])
     assert np.allclose(got[["x1", "x2"]], np.c_[got["width"] / 4, 3 * got["width"] / 4])
     assert np.allclose(got[["y1", "y2"]], np.c_[got["height"] / 4, 3 * got["height"] / 4])
+    # another value of the option: another proposals key (and nothing else of the config)
+    other = dataclasses.replace(cfg.proposals, options={"centre": CentreOptions(0.75)})
+    from harness.pipeline import keys
+
+    k = [
+        keys.proposals(dataclasses.replace(cfg, proposals=x), "i", [])
+        for x in (cfg.proposals, other)
+    ]
+    assert k[0] != k[1] and k[0][2]["options"] == {"centre": {"frac": 0.5}}
+    assert "options" not in keys.proposals(p.cfg, "i", [])[2]  # no table: the key of before
     ranks = pd.read_parquet(tmp_path / "ranks.parquet")
     assert set(ranks["method"]) == {"grid5", "centre"}  # its own rank engine
     loc = pd.read_csv(tmp_path / "localization.csv")

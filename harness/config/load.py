@@ -111,6 +111,9 @@ def _build(cls: type[T], data: Any, where: str) -> T:
         raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     hints = typing.get_type_hints(cls)
+    extra: dict[str, Any] = {}
+    if cls is ProposalsConfig:  # a registered method's own table, [proposals.<name>]
+        data, extra = _method_options(data, where)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
@@ -121,10 +124,23 @@ def _build(cls: type[T], data: Any, where: str) -> T:
             kwargs[name] = _build(sub, value, f"{where}.{name}")
         else:
             kwargs[name] = _coerce(value, hints[name], f"{where} {name}")
+    if extra:
+        kwargs["options"] = extra
     try:
         return cls(**kwargs)
     except TypeError as err:
         raise ConfigError(f"{where}: {err}") from None
+
+
+def _method_options(data: dict[str, Any], where: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``[proposals]`` without the tables of registered methods, and those tables built."""
+    from harness.methods import PROPOSER_OPTIONS
+
+    if "options" in data:
+        raise ConfigError(f"{where}: unknown key(s) ['options']; a method's table is its name")
+    mine = {k: v for k, v in data.items() if k in PROPOSER_OPTIONS}
+    rest = {k: v for k, v in data.items() if k not in PROPOSER_OPTIONS}
+    return rest, {k: _build(PROPOSER_OPTIONS[k], v, f"{where}.{k}") for k, v in mine.items()}
 
 
 _NESTED: dict[tuple[str, str], type] = {

@@ -144,6 +144,18 @@ class ProposalsConfig:
     # decode a JPEG at 1/2, 1/4 or 1/8 of its size where every listed OpenCV method's work_width
     # still fits (libjpeg's DCT scaling: less work than the full frame); false: the full frame
     reduced_decode: bool = True
+    # a registered method's [proposals.<name>] table, built as its options dataclass
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def options_of(self, method: str) -> Any:
+        """A registered method's options: its ``[proposals.<method>]`` table, or the defaults.
+
+        Raises:
+            KeyError: ``method`` was registered without options.
+        """
+        from harness.methods import PROPOSER_OPTIONS
+
+        return self.options[method] if method in self.options else PROPOSER_OPTIONS[method]()
 
 
 @dataclass(frozen=True)

@@ -94,10 +94,15 @@ def proposals(cfg: Config, ingest_key: str, frames: list[tuple[str, int]]) -> Pa
     return (
         ingest_key,
         stable_hash(frames),
-        dataclasses.asdict(cfg.proposals),
+        _without_empty(dataclasses.asdict(cfg.proposals), "options"),
         proposals_file(cfg.proposals),
         method_fingerprints(cfg.proposals.methods),  # registered methods' own source
     )
+
+
+def _without_empty(opts: dict[str, Any], name: str) -> dict[str, Any]:
+    """``opts`` without ``name`` when it is empty (a key from before the field keeps its value)."""
+    return {k: v for k, v in opts.items() if k != name or v}
 
 
 def _network(opts: dict[str, Any]) -> dict[str, Any]:

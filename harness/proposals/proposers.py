@@ -12,6 +12,7 @@ Methods (each one modality with its own retrieval engine):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable, Iterable, Sequence
 from functools import partial
@@ -32,6 +33,7 @@ from harness.config.schema import (
 from harness.errors import AnnotationError, ConfigError, HarnessError
 from harness.imagestore import read_image
 from harness.methods import (
+    PROPOSER_OPTIONS,
     PROPOSERS,
     SPECIAL_PROPOSALS,
     known_proposal_methods,
@@ -403,18 +405,27 @@ IMAGE_METHODS = PROPOSERS
 IMAGE_METHODS.update({"edges": _edges, "mser": _mser, "segments": _segments})
 
 
-def register_method(name: str, proposer: ImageProposer) -> None:
+def register_method(name: str, proposer: ImageProposer, options: type | None = None) -> None:
     """Add a per-image proposal method, selected by ``name`` in ``[proposals] methods``.
 
     Its source is part of the proposals' cache key (:func:`method_fingerprints`), so editing it
-    recomputes them. Each method gets its own rank engine (SPEC section 6).
+    recomputes them. Each method gets its own rank engine (SPEC section 6). ``options``, a
+    dataclass, is its ``[proposals.<name>]`` table (unknown keys and wrong types rejected at load,
+    part of the proposals' key); the proposer reads it as ``cfg.options_of(name)``. Register
+    before the config loads.
 
     Raises:
-        ValueError: ``name`` is taken.
+        ValueError: ``name`` is taken, or ``options`` is not a dataclass.
     """
-    if name in SPECIAL_METHODS or name in IMAGE_METHODS:
+    fields = [f.name for f in dataclasses.fields(ProposalsConfig)]  # [proposals]'s own keys
+    taken = (*SPECIAL_METHODS, *IMAGE_METHODS, *fields)
+    if name in taken:
         raise ValueError(f"proposal method {name!r} exists; known: {list(known_methods())}")
+    if options is not None and not dataclasses.is_dataclass(options):
+        raise ValueError(f"proposal method {name!r}: options must be a dataclass")
     IMAGE_METHODS[name] = proposer
+    if options is not None:
+        PROPOSER_OPTIONS[name] = options
 
 
 known_methods = known_proposal_methods
