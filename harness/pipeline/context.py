@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from harness.config.kinds import LOCALIZER_KINDS
@@ -29,6 +30,11 @@ from harness.runtime.outdirs import claim_dir, run_lock
 log = logging.getLogger(__name__)
 
 Build = Callable[[Path], "dict[str, Any] | None"]
+#: One shard of a sharded stage: (session, its rows, the shard's frames, a progress label)
+#: -> (key parts, build).
+ShardUnit = Callable[[str, pd.DataFrame, list[int], str], "tuple[tuple[Any, ...], Build]"]
+#: A session's combined entry: (session, its shard entries) -> (key parts, build).
+CombineUnit = Callable[[str, "list[Entry]"], "tuple[tuple[Any, ...], Build]"]
 
 
 @dataclass(frozen=True)
@@ -181,6 +187,36 @@ class Context:
         res = self.executor.map_units(self.cache, stage, units, gpu=gpu)
         self._count(stage, res, t0)
         return [Entry(Path(p), Path(p).name) for p, _ in res]
+
+    def sharded(self, stages: tuple[str, str], props: dict[str, Table], shard_frames: int,
+                shard: ShardUnit, combine: CombineUnit, gpu: bool = False,
+                ) -> tuple[dict[str, Entry], list[Entry]]:  # fmt: skip
+        """Shard, build, combine: a per-session stage cached in shards of frames.
+
+        Each session's proposal rows are cut into shards of ``shard_frames`` frames (in time
+        order); ``shard(session, rows, utimes, label)`` gives each shard's key and build, run as
+        units of ``stages[0]`` through the executor (an interrupted stage resumes at the next
+        unfinished shard); ``combine(session, its shard entries)`` gives the session's entry of
+        ``stages[1]``, built one session at a time.
+
+        Returns:
+            Session name -> its combined entry, and every shard entry (in session order).
+        """
+        units: list[tuple[tuple[Any, ...], Build]] = []
+        spans = {}
+        step = max(1, shard_frames)
+        for sc in self.cfg.sessions:
+            rows = props[sc.name].df
+            utimes = np.unique(rows["utime"].to_numpy())
+            cuts = [utimes[i : i + step] for i in range(0, len(utimes), step)]
+            spans[sc.name] = (len(units), len(units) + len(cuts))
+            for i, ut in enumerate(cuts):
+                label = f"{sc.name} [{i + 1}/{len(cuts)}]"
+                mine = rows[rows["utime"].isin(ut)]
+                units.append(shard(sc.name, mine, [int(u) for u in ut], label))
+        done = self.units(stages[0], units, gpu=gpu)
+        out = {s: self.unit(stages[1], *combine(s, done[slice(*ab)])) for s, ab in spans.items()}
+        return out, done
 
     def _count(self, stage: str, res: list[tuple[Path, bool]], t0: float) -> None:
         self.ran[stage] = self.ran.get(stage, 0) + sum(int(r) for _, r in res)

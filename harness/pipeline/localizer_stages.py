@@ -94,38 +94,22 @@ def bovw_words(
 
     bc = loc.bovw
     assert bc is not None
-    units: list[tuple[tuple[Any, ...], Build]] = []
-    spans = {}
-    for sc in p.cfg.sessions:
-        rows, fr = props[sc.name].df, frames.df[frames.df["session"] == sc.name]
-        utimes = np.unique(rows["utime"].to_numpy())
-        shards = [utimes[i : i + bc.shard_frames] for i in range(0, len(utimes), bc.shard_frames)]
-        spans[sc.name] = (len(units), len(units) + len(shards))
-        for si, ut in enumerate(shards):
-            build = partial(
-                encode_words,
-                bc,
-                vocab.path,
-                fr,
-                rows[rows["utime"].isin(ut)].reset_index(drop=True),
-                f"{loc.name} {sc.name} [{si + 1}/{len(shards)}]",
-            )
-            key = keys.bovw_shard(vocab.key, props[sc.name].key, [int(u) for u in ut])
-            units.append((key, build))
-    done = p.units("bovw_shards", units)
+
+    def shard(s: str, rows: pd.DataFrame, ut: list[int], label: str) -> tuple[Any, Build]:
+        fr = frames.df[frames.df["session"] == s]
+        mine = rows.reset_index(drop=True)
+        build = partial(encode_words, bc, vocab.path, fr, mine, f"{loc.name} {label}")
+        return keys.bovw_shard(vocab.key, props[s].key, ut), build
+
+    def combine(s: str, parts: list[Entry]) -> tuple[Any, Build]:
+        build = partial(combine_word_shards, [e.path for e in parts])
+        return keys.bovw_words(vocab.key, props[s].key, [e.key for e in parts]), build
+
+    out, done = p.sharded(("bovw_shards", "bovw_words"), props, bc.shard_frames, shard, combine)
     nofeat = sum(
         int(p.cache.manifest("bovw_shards", e.key)["info"].get("no_feature_subimages", 0))
         for e in done
     )
-    out = {}
-    for sc in p.cfg.sessions:
-        parts = done[slice(*spans[sc.name])]
-        build = partial(combine_word_shards, [e.path for e in parts])
-        out[sc.name] = p.unit(
-            "bovw_words",
-            keys.bovw_words(vocab.key, props[sc.name].key, [e.key for e in parts]),
-            build,
-        )
     return out, nofeat
 
 

@@ -15,7 +15,6 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
 from harness.config.schema import FusionConfig
@@ -323,45 +322,20 @@ def session_descriptors(
     Work is cached in shards of ``shard_frames`` frames (an interrupted extraction resumes at the
     next unfinished shard); a session's shards are then combined, one shard at a time.
     """
-    dc = p.cfg.descriptor
-    units: list[tuple[tuple[Any, ...], Build]] = []
-    spans = {}
-    for sc in p.cfg.sessions:
-        rows, fr = props[sc.name].df, frames.df[frames.df["session"] == sc.name]
-        utimes = np.unique(rows["utime"].to_numpy())
-        shards = [
-            utimes[i : i + dc.shard_frames] for i in range(0, len(utimes), max(1, dc.shard_frames))
-        ]
-        spans[sc.name] = (len(units), len(units) + len(shards))
-        for si, ut in enumerate(shards):
-            build = partial(
-                encode_shard,
-                dc,
-                model.path,
-                projection.path if projection else None,
-                fr,
-                rows[rows["utime"].isin(ut)],
-                f"{sc.name} [{si + 1}/{len(shards)}]",
-            )
-            key = keys.descriptor_shard(
-                p.cfg,
-                props[sc.name].key,
-                model.key,
-                [int(u) for u in ut],
-                projection.key if projection else None,
-            )
-            units.append((key, build))
-    shards_done = p.units("descriptor_shards", units, gpu=True)
-    out = {}
-    for sc in p.cfg.sessions:
-        parts = shards_done[slice(*spans[sc.name])]
-        build = partial(combine_shards, dc, props[sc.name].df, [e.path for e in parts])
-        out[sc.name] = p.unit(
-            "descriptors",
-            keys.descriptors(p.cfg, props[sc.name].key, model.key, [e.key for e in parts]),
-            build,
-        )
-    return out
+    dc, fkey = p.cfg.descriptor, projection.key if projection else None
+
+    def shard(s: str, rows: pd.DataFrame, ut: list[int], label: str) -> tuple[Any, Build]:
+        fr = frames.df[frames.df["session"] == s]
+        path = projection.path if projection else None
+        build = partial(encode_shard, dc, model.path, path, fr, rows, label)
+        return keys.descriptor_shard(p.cfg, props[s].key, model.key, ut, fkey), build
+
+    def combine(s: str, parts: list[Entry]) -> tuple[Any, Build]:
+        build = partial(combine_shards, dc, props[s].df, [e.path for e in parts])
+        return keys.descriptors(p.cfg, props[s].key, model.key, [e.key for e in parts]), build
+
+    stages = ("descriptor_shards", "descriptors")
+    return p.sharded(stages, props, dc.shard_frames, shard, combine, gpu=True)[0]
 
 
 def ranks_device(p: Context) -> str:
