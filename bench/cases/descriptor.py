@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import statistics
 
@@ -74,6 +75,50 @@ def case_descriptor(quick: bool) -> None:
                 notes=f"{statistics.median(base) * flops / 1e9 / peak:.0%} of matmul peak; folded "
                 f"encoder speed-up {statistics.median(rate) / statistics.median(base):.1f}x",
             )
+    _bf16(peak, quick)
     h = HogDescriptor(DescriptorConfig())
     x = np.random.default_rng(0).integers(0, 256, (256, 64, 64, 3), dtype=np.uint8)
     emit("hog encode 64x64", [256 / t for t in timed(lambda: h.encode(x))], "subimages/s")
+
+
+def _bf16(peak: float, quick: bool) -> None:
+    """The bf16 product rate (the encoder's limit under ``precision = "bf16"``) beside fp32's, and
+    the encoder at 256x256 in bf16: native only where the CPU has AVX512-BF16 or AMX."""
+    import torch
+
+    from harness.config.schema import DescriptorConfig
+    from harness.descriptors import AutoencoderDescriptor
+    from harness.descriptors.autoencoder import ConvAutoencoder
+    from harness.runtime.hardware import has_bf16
+
+    native = has_bf16("cpu")
+    n = 1024 if quick else 2048
+    a, b = torch.randn(n, n).bfloat16(), torch.randn(n, n).bfloat16()
+    a @ b
+    gf = [2 * n**3 / t / 1e9 for t in timed(lambda: a @ b, repeat=3)]
+    emit(
+        f"matmul bf16 {n}x{n}",
+        gf,
+        "GFLOP/s",
+        native_bf16=native,
+        notes=f"{statistics.median(gf) / peak:.2f}x the fp32 peak measured above; native bf16 "
+        f"product on this CPU: {'yes' if native else 'no (emulated: not a figure of bf16 speed)'}",
+    )
+    cfg = DescriptorConfig(input_size=256, batch_size=32, device="cpu")
+    rates = {}
+    for precision in ("fp32", "bf16"):
+        d = AutoencoderDescriptor(dataclasses.replace(cfg, precision=precision))
+        d.model = ConvAutoencoder().eval()
+        x = np.random.default_rng(0).integers(0, 256, (32, 256, 256, 3), dtype=np.uint8)
+        d.encode(x[:4])
+        rates[precision] = [len(x) / t for t in timed(lambda d=d, x=x: d.encode(x), repeat=3)]
+    ratio = statistics.median(rates["bf16"]) / statistics.median(rates["fp32"])
+    emit(
+        "autoencoder encode 256x256, precision bf16",
+        rates["bf16"],
+        "subimages/s",
+        native_bf16=native,
+        vs_fp32=round(ratio, 2),
+        notes=f"{ratio:.2f}x the fp32 encoder in the same run; native bf16: "
+        f"{'yes' if native else 'no (emulated: not a figure of bf16 speed)'}",
+    )

@@ -7,7 +7,8 @@ cache (so only what the setting changes runs again):
 - ``[descriptor] train_samples = 0`` (6 epochs over the training crops instead of the fixture's
   budget of 6,000 sample-steps),
 - ``[projection] dim`` = 256, 128, 64, 32 and 64 with whitening,
-- ``[retrieval] db_stride_m = 9`` with ``gt_radius_m = 5``.
+- ``[retrieval] db_stride_m = 9`` with ``gt_radius_m = 5``,
+- ``[descriptor] precision = "bf16"`` (issue 37: what bf16 costs in R@1 and AP).
 
 One row per variant: ``median`` is its R@1, ``figures`` every figure the text quotes (R@1 over all
 and clean subimages, median r, Table I at RoC-max 0.03 and 0.05, Table S at 0.05, query
@@ -37,7 +38,11 @@ VARIANTS: dict[str, dict[str, dict[str, Any]]] = {
     "dim=32": {"projection": {"dim": 32}},
     "dim=64 whiten": {"projection": {"dim": 64, "whiten": True}},
     "db_stride_m=9": {"retrieval": {"db_stride_m": 9.0, "gt_radius_m": 5.0}},
+    # issue 37: the encoder trained and run in bf16 (emulated where the CPU has no bf16 product)
+    "precision=bf16": {"descriptor": {"precision": "bf16"}},
 }
+#: The figures each variant's row compares with the default run's (``vs_default``).
+COMPARED = ("recall_at_1", "clean_recall_at_1", "t1_rank_fusion_005", "ts_rank_fusion_005")
 
 
 def figures(out: Path) -> dict[str, float]:
@@ -133,16 +138,25 @@ def case_fixture_figures(quick: bool) -> None:
     with tempfile.TemporaryDirectory(prefix="fixture-figures-") as tmp:
         base = Path(tmp)
         default_out: Path | None = None
+        default_fig: dict[str, float] = {}
         for name in names:
             out, wall = run_variant(base, default_out, name)
-            if name == "default":
-                default_out = out
             fig = figures(out)
+            if name == "default":
+                default_out, default_fig = out, fig
+            vs = {k: round(fig[k] - default_fig[k], 4) for k in COMPARED} if default_fig else {}
             emit(
                 f"fixture figures [{name}]",
                 [fig["recall_at_1"]],
                 "R@1",
                 figures=fig,
+                vs_default=vs,
                 wall_s=round(wall, 1),
-                notes=f"datasets/fixture.toml{'' if name == 'default' else ' with ' + name}",
+                notes=f"datasets/fixture.toml{'' if name == 'default' else ' with ' + name}"
+                + (
+                    ""
+                    if name == "default"
+                    else "; minus the default run: "
+                    + ", ".join(f"{k} {v:+.4f}" for k, v in vs.items())
+                ),
             )

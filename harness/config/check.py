@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from harness.config.schema import BovwConfig, Config, DescriptorConfig
+from harness.config.schema import PRECISIONS, BovwConfig, Config, DescriptorConfig
 from harness.errors import ConfigError
 from harness.methods import (
     BOX_GENERATORS,
@@ -348,6 +348,13 @@ def _check_descriptor(cfg: Config, where: str) -> None:
         "[descriptor] dtype",
         de.dtype,
         "float16 or float32",
+    )
+    c(
+        de.precision in PRECISIONS,
+        where,
+        "[descriptor] precision",
+        de.precision,
+        "'auto', 'fp32' or 'bf16'",
     )
     c(
         de.device in ("auto", "cpu", "cuda") or de.device.startswith("cuda:"),

@@ -15,6 +15,8 @@ from harness.methods import ALL_METHODS
 
 #: A localizer's name: it heads tables and names files (never a path).
 LOCALIZER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,63}$")
+#: ``[descriptor] precision``: the encoder's arithmetic (``auto``: bf16 where native).
+PRECISIONS = ("auto", "fp32", "bf16")
 #: The name of the cross-localizer block (SPEC section 11).
 ALL_LOCALIZERS = "all localizers"
 
@@ -180,6 +182,9 @@ class DescriptorConfig:
     patience: int = 4  # evaluations without improvement before training stops
     dtype: str = "float16"
     device: str = "auto"
+    # the encoder's arithmetic, training and inference: "fp32", "bf16" (torch.autocast) or "auto"
+    # (bf16 where the device multiplies bf16 natively: AVX512-BF16 or AMX, a CUDA GPU with bf16)
+    precision: str = "auto"
     seed: int = 0
     num_workers: int = 0
     # frames per cached descriptor shard (the unit an interrupted run resumes at)

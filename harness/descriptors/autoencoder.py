@@ -86,6 +86,11 @@ def to_tensor(crops: np.ndarray, device: torch.device, per_crop: bool = False) -
     return torch.addcmul(b, x, a).sigmoid_()
 
 
+def autocast(device: torch.device, bf16: bool) -> torch.autocast:
+    """``torch.autocast`` in bfloat16 on ``device`` when ``bf16``, else a no-op context."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
+
+
 def inference_encoder(model: ConvAutoencoder) -> nn.Sequential:
     """The trained encoder for inference, batch-norm folded into the convolutions.
 
@@ -123,10 +128,12 @@ def train(
     device: torch.device,
     progress: Callable | None = None,
     per_crop: bool = False,
+    bf16: bool = False,
 ) -> list[tuple[int, int, float]]:
     """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE.
 
-    Returns (epoch, step, loss) rows.
+    ``bf16``: the forward pass under ``torch.autocast`` in bfloat16 (weights and optimizer stay
+    float32). Returns (epoch, step, loss) rows.
     """
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
@@ -144,7 +151,8 @@ def train(
         for s in range(steps):
             idx = np.sort(perm[s * batch_size : (s + 1) * batch_size])
             x = to_tensor(data[idx], device, per_crop)
-            loss = nn.functional.mse_loss(model(x), x)
+            with autocast(device, bf16):
+                loss = nn.functional.mse_loss(model(x).float(), x)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -186,14 +194,15 @@ def held_out_loss(
     batch_size: int,
     device: torch.device,
     per_crop: bool,
+    bf16: bool = False,
 ) -> float:
     """Mean reconstruction loss over the held-out crops ``hold`` (the model left training)."""
     model.eval()
-    with torch.no_grad():
+    with torch.no_grad(), autocast(device, bf16):
         tot = 0.0
         for s in range(0, len(hold), batch_size):
             x = to_tensor(data[hold[s : s + batch_size]], device, per_crop)
-            tot += float(nn.functional.mse_loss(model(x), x)) * len(x)
+            tot += float(nn.functional.mse_loss(model(x).float(), x)) * len(x)
     model.train()
     return tot / max(len(hold), 1)
 
@@ -211,6 +220,7 @@ def train_budget(
     patience: int = 4,
     progress: Callable | None = None,
     per_crop: bool = False,
+    bf16: bool = False,
 ) -> tuple[list[tuple[int, int, float]], dict]:
     """Train on a budget of ``samples`` sample-steps (not epochs), with early stopping.
 
@@ -242,7 +252,8 @@ def train_budget(
         idx = np.sort(order[pos : pos + batch_size])
         pos += batch_size
         x = to_tensor(data[idx], device, per_crop)
-        loss = nn.functional.mse_loss(model(x), x)
+        with autocast(device, bf16):
+            loss = nn.functional.mse_loss(model(x).float(), x)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -251,7 +262,7 @@ def train_budget(
         if progress:
             progress(1)
         if n_hold and ((step + 1) % eval_every == 0 or step + 1 == steps):
-            hl = held_out_loss(model, data, hold, batch_size, device, per_crop)
+            hl = held_out_loss(model, data, hold, batch_size, device, per_crop, bf16)
             curve.append((step + 1, hl))
             if hl < best - 1e-7:
                 best, best_step, bad = hl, step + 1, 0

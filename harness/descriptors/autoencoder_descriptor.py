@@ -12,6 +12,7 @@ import torch
 from harness.config.schema import DescriptorConfig
 from harness.descriptors.autoencoder import (
     ConvAutoencoder,
+    autocast,
     inference_encoder,
     load_checkpoint,
     save_checkpoint,
@@ -21,6 +22,7 @@ from harness.descriptors.autoencoder import (
     train_budget,
 )
 from harness.descriptors.base import Descriptor
+from harness.runtime.hardware import resolve_precision
 
 
 def pick_device(name: str) -> torch.device:
@@ -43,6 +45,8 @@ class AutoencoderDescriptor(Descriptor):
     def __init__(self, cfg: DescriptorConfig) -> None:
         super().__init__(cfg)
         self.device = pick_device(cfg.device)
+        # [descriptor] precision: bf16 arithmetic (autocast) where asked, or native under auto
+        self.bf16 = resolve_precision(cfg.precision, self.device.type) == "bf16"
         self.model: ConvAutoencoder | None = None
         self._encoder: torch.nn.Module | None = None
         self._encoder_of: ConvAutoencoder | None = None
@@ -92,6 +96,7 @@ class AutoencoderDescriptor(Descriptor):
                 self.cfg.patience,
                 progress,
                 per_crop,
+                self.bf16,
             )
         else:
             history = train(
@@ -104,6 +109,7 @@ class AutoencoderDescriptor(Descriptor):
                 self.device,
                 progress,
                 per_crop,
+                self.bf16,
             )
         save_checkpoint(
             out_dir / self.CHECKPOINT,
@@ -139,8 +145,9 @@ class AutoencoderDescriptor(Descriptor):
             self._encoder, self._encoder_of = inference_encoder(self.model), self.model
         encoder = self._encoder
         step, per_crop = self.encode_batch, self.cfg.input_norm == "per_crop"
-        out = [
-            encoder(to_tensor(crops[i : i + step], self.device, per_crop)).float().cpu().numpy()
-            for i in range(0, len(crops), step)
-        ]
+        with autocast(self.device, self.bf16):
+            out = [
+                encoder(to_tensor(crops[i : i + step], self.device, per_crop)).float().cpu().numpy()
+                for i in range(0, len(crops), step)
+            ]
         return np.concatenate(out) if out else np.zeros((0, 0), np.float32)

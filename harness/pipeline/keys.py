@@ -26,6 +26,7 @@ from harness.fusion.fuse import method_fingerprints as fusion_method_fingerprint
 from harness.ingest.logs import detect_format
 from harness.proposals.proposers import method_fingerprints
 from harness.runtime.cache import content_sha, file_fingerprint, relative_to_root, stable_hash
+from harness.runtime.hardware import resolve_precision
 
 Parts = tuple[Any, ...]
 
@@ -113,8 +114,9 @@ def _network(opts: dict[str, Any]) -> dict[str, Any]:
 
 
 def model_options(dc: DescriptorConfig) -> dict[str, Any]:
-    """The ``[descriptor]`` options that change the trained model."""
-    return _network({k: v for k, v in dataclasses.asdict(dc).items() if k not in MODEL_EXCLUDED})
+    """The ``[descriptor]`` options that change the trained model (``precision`` resolved)."""
+    opts = {k: v for k, v in dataclasses.asdict(dc).items() if k not in MODEL_EXCLUDED}
+    return _network(_precision(opts, dc))
 
 
 def model(cfg: Config, trains: bool, proposal_keys: list[str]) -> Parts:
@@ -125,10 +127,18 @@ def model(cfg: Config, trains: bool, proposal_keys: list[str]) -> Parts:
 
 
 def descriptor_options(dc: DescriptorConfig) -> dict[str, Any]:
-    """The ``[descriptor]`` options that change descriptor values."""
-    return _network(
-        {k: v for k, v in dataclasses.asdict(dc).items() if k not in DESCRIPTOR_EXECUTION}
-    )
+    """The ``[descriptor]`` options that change descriptor values (``precision`` resolved)."""
+    opts = {k: v for k, v in dataclasses.asdict(dc).items() if k not in DESCRIPTOR_EXECUTION}
+    return _network(_precision(opts, dc))
+
+
+def _precision(opts: dict[str, Any], dc: DescriptorConfig) -> dict[str, Any]:
+    """``opts`` with ``precision`` as it resolves here: absent for fp32 (the keys of before)."""
+    if resolve_precision(dc.precision, dc.device) == "fp32":
+        opts.pop("precision", None)
+    else:
+        opts["precision"] = "bf16"
+    return opts
 
 
 def descriptor_shard(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ from harness.descriptors.autoencoder import (
     load_checkpoint,
     to_tensor,
 )
+from harness.runtime.hardware import resolve_precision
 
 
 def test_paper_architecture_gives_a_16384_dim_bottleneck() -> None:
@@ -83,6 +85,28 @@ def test_inference_encoder_equals_the_trained_encoder() -> None:
         )
         d.model = model
         assert np.allclose(d.encode(_crops(6, 64)), ref.numpy(), atol=1e-5, rtol=1e-4)
+
+
+def test_bf16_trains_and_encodes_in_bfloat16_close_to_fp32(tmp_path: Path) -> None:
+    """``precision = "bf16"``: autocast in training and encoding; the descriptors of the same
+    weights stay within bf16's rounding of the fp32 ones, and the run is deterministic."""
+    cfg = DescriptorConfig(input_size=32, epochs=2, batch_size=16, seed=7, device="cpu")
+    fp = AutoencoderDescriptor(cfg)
+    bf = AutoencoderDescriptor(dataclasses.replace(cfg, precision="bf16"))
+    assert fp.bf16 == (resolve_precision("auto", "cpu") == "bf16")  # auto: native bf16 only
+    assert bf.bf16
+    info = bf.fit(_crops(), tmp_path / "bf")  # type: ignore[arg-type]
+    assert info["last_epoch_loss"] < info["first_epoch_loss"]  # it learns in bf16
+    again = AutoencoderDescriptor(dataclasses.replace(cfg, precision="bf16"))
+    again.fit(_crops(), tmp_path / "again")  # type: ignore[arg-type]
+    x = _crops(12)
+    assert np.array_equal(bf.encode(x), again.encode(x))  # deterministic
+    fp32 = AutoencoderDescriptor(dataclasses.replace(cfg, precision="fp32"))
+    fp32.model = bf.model  # the same weights, encoded both ways
+    a, b = normalize(fp32.encode(x)), normalize(bf.encode(x))
+    assert not np.array_equal(a, b)  # bf16 arithmetic was used
+    cos = (a * b).sum(1)
+    assert cos.min() > 0.995, cos  # each descriptor within bf16 rounding of its fp32 one
 
 
 def test_per_crop_normalisation_matches_its_definition() -> None:

@@ -1,0 +1,42 @@
+"""What the machine's processors can do: the native bf16 products ``precision = "auto"`` uses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+#: CPU flags of a native bf16 matrix product (AVX512-BF16 dot products, AMX tiles).
+CPU_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
+
+
+def cpu_flags() -> frozenset[str]:
+    """The first processor's flags from ``/proc/cpuinfo`` (empty where there is none)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return frozenset()
+    line = next((x for x in text.splitlines() if x.partition(":")[0].strip() == "flags"), "")
+    return frozenset(line.partition(":")[2].split())
+
+
+def has_bf16(device: str) -> bool:
+    """Whether ``device`` (``cpu`` or ``cuda``) multiplies bf16 matrices natively."""
+    if device == "cuda":
+        import torch
+
+        return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
+    return any(f in cpu_flags() for f in CPU_BF16_FLAGS)
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """``fp32`` or ``bf16``, what ``precision`` means on ``device``.
+
+    ``auto`` is bf16 where the device (``auto``: CUDA when present) multiplies bf16 natively,
+    fp32 elsewhere; the other values are themselves.
+    """
+    if precision != "auto":
+        return precision
+    if device == "auto":
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    return "bf16" if has_bf16(device) else "fp32"

@@ -1,0 +1,63 @@
+"""``[descriptor] precision``: what ``auto`` resolves to, and the keys it enters (issue 37)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from harness.config.schema import DescriptorConfig
+from harness.pipeline import keys
+from harness.runtime import hardware
+
+
+def test_auto_is_bf16_only_where_the_cpu_multiplies_bf16_natively(monkeypatch) -> None:
+    assert hardware.resolve_precision("fp32", "cpu") == "fp32"
+    assert hardware.resolve_precision("bf16", "cpu") == "bf16"  # asked for: emulated if need be
+    for flags, want in (
+        ({"avx2", "fma"}, "fp32"),
+        ({"avx2", "avx512f", "avx512_bf16"}, "bf16"),
+        ({"amx_tile", "amx_bf16"}, "bf16"),
+        (set(), "fp32"),
+    ):
+        monkeypatch.setattr(hardware, "cpu_flags", lambda f=flags: frozenset(f))
+        assert hardware.resolve_precision("auto", "cpu") == want
+
+
+def test_this_machines_flags_are_read_from_proc_cpuinfo() -> None:
+    flags = hardware.cpu_flags()
+    text = Path("/proc/cpuinfo").read_text()
+    assert all(f in text for f in flags) and (not flags or "fpu" in flags)
+
+
+def test_fp32_keeps_the_keys_of_before_and_bf16_changes_them(monkeypatch) -> None:
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx2"}))
+    dc = DescriptorConfig(device="cpu")
+    before = {k: v for k, v in dataclasses.asdict(dc).items() if k != "precision"}
+    for opts in (keys.descriptor_options(dc), keys.model_options(dc)):
+        assert "precision" not in opts
+    assert keys.descriptor_options(dc) == {
+        k: v for k, v in before.items() if k not in keys.DESCRIPTOR_EXECUTION
+    }
+    bf = dataclasses.replace(dc, precision="bf16")
+    assert keys.descriptor_options(bf)["precision"] == "bf16"
+    assert keys.model_options(bf)["precision"] == "bf16"
+    # auto on a CPU with AVX512-BF16 is the bf16 key: a cache moved there is not reused
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
+    assert keys.descriptor_options(dc) == keys.descriptor_options(bf)
+
+
+@pytest.mark.parametrize("value", ["fp16", "BF16", ""])
+def test_a_bad_precision_is_a_config_error_naming_the_key(value: str) -> None:
+    from harness.config.load import parse_config
+    from harness.errors import ConfigError
+
+    doc = {
+        "name": "t",
+        "data_root": ".",
+        "sessions": [{"name": "a", "source": "x"}],
+        "descriptor": {"precision": value},
+    }
+    with pytest.raises(ConfigError, match=r"\[descriptor\] precision"):
+        parse_config(doc, Path("."), "t.toml")
