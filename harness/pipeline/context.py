@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -125,27 +124,6 @@ class Context:
     def localizer(self) -> dict[str, Any]:
         """The first localizer's record (its name, kind and source)."""
         return localizer_record(self.localizer_list[0], len(self.localizer_list) > 1)
-
-    @contextlib.contextmanager
-    def measuring(self, loc: LocalizerConfig) -> Iterator[None]:
-        """Run the stages of ``loc``: ``cfg`` seen with its descriptor and import settings.
-
-        The stage functions read ``[descriptor]`` and ``[import]`` from ``p.cfg``; inside this
-        block they read the localizer's. A config without ``[[localizers]]`` is unchanged.
-        """
-        saved = self.cfg
-        cfg = saved
-        if loc.descriptor is not None:
-            cfg = dataclasses.replace(cfg, descriptor=loc.descriptor)
-        if loc.import_ is not None:
-            cfg = dataclasses.replace(
-                cfg, import_=dataclasses.replace(cfg.import_, score_kind=loc.import_.score_kind)
-            )
-        self.cfg = cfg
-        try:
-            yield
-        finally:
-            self.cfg = saved
 
     def __post_init__(self) -> None:
         if self.rank_import is not None and not isinstance(self.rank_import, ImportSpec):

@@ -18,6 +18,7 @@ from harness.config.schema import (
     BovwConfig,
     Config,
     DescriptorConfig,
+    ProjectionConfig,
     ProposalsConfig,
     RetrievalConfig,
     SessionConfig,
@@ -119,11 +120,11 @@ def model_options(dc: DescriptorConfig) -> dict[str, Any]:
     return _network(_precision(opts, dc))
 
 
-def model(cfg: Config, trains: bool, proposal_keys: list[str]) -> Parts:
+def model(dc: DescriptorConfig, trains: bool, proposal_keys: list[str]) -> Parts:
     """The model: its options and (when it trains) the proposal entries it samples crops from."""
     if not trains:
-        return (model_options(cfg.descriptor),)
-    return (model_options(cfg.descriptor), sorted(proposal_keys))
+        return (model_options(dc),)
+    return (model_options(dc), sorted(proposal_keys))
 
 
 def descriptor_options(dc: DescriptorConfig) -> dict[str, Any]:
@@ -142,7 +143,11 @@ def _precision(opts: dict[str, Any], dc: DescriptorConfig) -> dict[str, Any]:
 
 
 def descriptor_shard(
-    cfg: Config, proposals_key: str, model_key: str, utimes: list[int], projection_key: str | None
+    dc: DescriptorConfig,
+    proposals_key: str,
+    model_key: str,
+    utimes: list[int],
+    projection_key: str | None,
 ) -> Parts:
     """One shard of a session's descriptors.
 
@@ -151,7 +156,7 @@ def descriptor_shard(
     parts = (
         proposals_key,
         model_key,
-        descriptor_options(cfg.descriptor),
+        descriptor_options(dc),
         utimes[0],
         utimes[-1],
         len(utimes),
@@ -159,20 +164,24 @@ def descriptor_shard(
     return parts if projection_key is None else (*parts, projection_key)
 
 
-def descriptors(cfg: Config, proposals_key: str, model_key: str, shard_keys: list[str]) -> Parts:
+def descriptors(
+    dc: DescriptorConfig, proposals_key: str, model_key: str, shard_keys: list[str]
+) -> Parts:
     """A session's combined descriptors: the shards it copies."""
-    return (proposals_key, model_key, descriptor_options(cfg.descriptor), shard_keys)
+    return (proposals_key, model_key, descriptor_options(dc), shard_keys)
 
 
-def projection(cfg: Config, model_key: str, reference_proposal_keys: list[str]) -> Parts:
+def projection(
+    pc: ProjectionConfig, dc: DescriptorConfig, model_key: str, reference_proposal_keys: list[str]
+) -> Parts:
     """The compact-descriptor projection.
 
     ``[projection]``, the model and the reference sessions' proposals.
     """
     return (
-        dataclasses.asdict(cfg.projection),
+        dataclasses.asdict(pc),
         model_key,
-        descriptor_options(cfg.descriptor),
+        descriptor_options(dc),
         sorted(reference_proposal_keys),
     )
 
@@ -195,12 +204,18 @@ def ranks(cfg: Config, pairs_key: str, descriptor_keys: dict[str, str]) -> Parts
 
 
 def ranks_import(
-    cfg: Config, name: str, content_sha: str, pairs_key: str, proposal_keys: list[str]
+    cfg: Config,
+    name: str,
+    content_sha: str,
+    pairs_key: str,
+    proposal_keys: list[str],
+    score_kind: str,
 ) -> Parts:
     """Ranks imported from a user's file.
 
     The file's content (not its path: a moved file is the same import), the pairs, the
-    proposals the rows must match, the place and ``[import]``.
+    proposals the rows must match, the place and ``[import]`` with the localizer's
+    ``score_kind``.
     """
     return (
         "import",
@@ -211,7 +226,7 @@ def ranks_import(
         cfg.retrieval.gt_radius_m,
         cfg.retrieval.db_stride_m,
         cfg.pairs.max_yaw_diff_deg,
-        dataclasses.asdict(cfg.import_),
+        dataclasses.asdict(cfg.import_) | {"score_kind": score_kind},
     )
 
 

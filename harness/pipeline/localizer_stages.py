@@ -135,10 +135,12 @@ def descriptor_kind_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
 ) -> RankTable:
     """Kind ``descriptor``: model, projection, descriptors, then the ranking engine."""
-    model = descriptor_model(p, frames, mine)
-    projection = descriptor_projection(p, frames, pairs, mine, model)
-    described = session_descriptors(p, frames, mine, model, projection)
-    return query_ranks(p, frames, pairs, described)
+    dc = loc.descriptor
+    assert dc is not None  # the config's kind says so
+    model = descriptor_model(p, dc, frames, mine)
+    projection = descriptor_projection(p, dc, frames, pairs, mine, model)
+    described = session_descriptors(p, dc, frames, mine, model, projection)
+    return query_ranks(p, frames, pairs, described, dc.device)
 
 
 @kind_ranks("bovw")
@@ -148,7 +150,7 @@ def bovw_kind_ranks(
     """Kind ``bovw``: vocabulary, words, then the same ranking engine on the sparse vectors."""
     vocab = bovw_vocabulary(p, loc, frames, pairs, mine)
     words, nofeat = bovw_words(p, loc, frames, mine, vocab)
-    ranks = query_ranks(p, frames, pairs, words)
+    ranks = query_ranks(p, frames, pairs, words, p.cfg.descriptor.device)
     ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
     return ranks
 
@@ -158,8 +160,11 @@ def import_kind_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
 ) -> RankTable:
     """Kind ``import``: a user's ranked lists, checked and scored (SPEC 12)."""
-    assert loc.import_ is not None  # the config's kind says so
-    return imported_ranks(p, frames, pairs, mine, ImportSpec(loc.name, Path(loc.import_.file)))
+    im = loc.import_
+    assert im is not None  # the config's kind says so
+    return imported_ranks(
+        p, frames, pairs, mine, ImportSpec(loc.name, Path(im.file)), im.score_kind
+    )
 
 
 def localizer_ranks(
@@ -167,10 +172,9 @@ def localizer_ranks(
 ) -> RankTable:
     """One localizer's rank rows: its kind's stages over its proposals (SPEC sections 6, 11, 12)."""
     mine = localizer_proposals(p, loc, props)
-    with p.measuring(loc):
-        ranks = LOCALIZER_KINDS[loc.kind].ranks
-        assert ranks is not None  # attached here, or given at registration
-        return ranks(p, loc, frames, pairs, mine)
+    ranks = LOCALIZER_KINDS[loc.kind].ranks
+    assert ranks is not None  # attached here, or given at registration
+    return ranks(p, loc, frames, pairs, mine)
 
 
 def retrieval_ranks(
@@ -190,13 +194,13 @@ def retrieval_ranks(
             f"[pairs] by = 'retrieval' pairs frames with the run's descriptor; localizer "
             f"{loc.name} is of kind {loc.kind!r}"
         )
-    mine = localizer_proposals(p, loc, props)
-    with p.measuring(loc):
-        model = descriptor_model(p, frames, mine)
-        projection = descriptor_projection(p, frames, cand, mine, model)
-        described = session_descriptors(p, frames, mine, model, projection)
-        pairs = retrieval_pair_table(p, frames, cand, described, loc.proposals[0])
-        return pairs, query_ranks(p, frames, pairs, described)
+    mine, dc = localizer_proposals(p, loc, props), loc.descriptor
+    assert dc is not None
+    model = descriptor_model(p, dc, frames, mine)
+    projection = descriptor_projection(p, dc, frames, cand, mine, model)
+    described = session_descriptors(p, dc, frames, mine, model, projection)
+    pairs = retrieval_pair_table(p, frames, cand, described, loc.proposals[0])
+    return pairs, query_ranks(p, frames, pairs, described, dc.device)
 
 
 def ranks_at_radius(

@@ -17,7 +17,7 @@ from typing import Any
 
 import pandas as pd
 
-from harness.config.schema import FusionConfig
+from harness.config.schema import DescriptorConfig, FusionConfig, RetrievalConfig
 from harness.descriptors import make_descriptor
 from harness.descriptors.extract import (
     combine_shards,
@@ -275,20 +275,27 @@ def session_proposals(
     return out
 
 
-def descriptor_model(p: Context, frames: Table, props: dict[str, Table]) -> Entry:
-    """Proposals -> the trained descriptor model (empty for descriptors that do not train)."""
-    trains = make_descriptor(p.cfg.descriptor).needs_training
+def descriptor_model(
+    p: Context, dc: DescriptorConfig, frames: Table, props: dict[str, Table]
+) -> Entry:
+    """Proposals -> the trained model of descriptor ``dc`` (empty for one that does not train)."""
+    trains = make_descriptor(dc).needs_training
     if p.train_sessions is not None:
         props = {s: t for s, t in props.items() if s in p.train_sessions}
     rows = (
         pd.concat([t.df for t in props.values()], ignore_index=True) if trains else pd.DataFrame()
     )
-    build = partial(train_model, p.cfg.descriptor, frames.df, rows)
-    return p.unit("model", keys.model(p.cfg, trains, [t.key for t in props.values()]), build)
+    build = partial(train_model, dc, frames.df, rows)
+    return p.unit("model", keys.model(dc, trains, [t.key for t in props.values()]), build)
 
 
 def descriptor_projection(
-    p: Context, frames: Table, pairs: Table, props: dict[str, Table], model: Entry
+    p: Context,
+    dc: DescriptorConfig,
+    frames: Table,
+    pairs: Table,
+    props: dict[str, Table],
+    model: Entry,
 ) -> Entry | None:
     """Model -> the compact-descriptor projection (``[projection] dim > 0``).
 
@@ -300,16 +307,17 @@ def descriptor_projection(
         return None
     refs = sorted(set(pairs.df["r_session"]))
     rows = pd.concat([props[s].df for s in refs], ignore_index=True)
-    build = partial(
-        fit_projection_unit, p.cfg.descriptor, p.cfg.projection, model.path, frames.df, rows
-    )
+    build = partial(fit_projection_unit, dc, p.cfg.projection, model.path, frames.df, rows)
     return p.unit(
-        "projection", keys.projection(p.cfg, model.key, [props[s].key for s in refs]), build
+        "projection",
+        keys.projection(p.cfg.projection, dc, model.key, [props[s].key for s in refs]),
+        build,
     )
 
 
 def session_descriptors(
     p: Context,
+    dc: DescriptorConfig,
     frames: Table,
     props: dict[str, Table],
     model: Entry,
@@ -322,27 +330,26 @@ def session_descriptors(
     Work is cached in shards of ``shard_frames`` frames (an interrupted extraction resumes at the
     next unfinished shard); a session's shards are then combined, one shard at a time.
     """
-    dc, fkey = p.cfg.descriptor, projection.key if projection else None
+    fkey = projection.key if projection else None
 
     def shard(s: str, rows: pd.DataFrame, ut: list[int], label: str) -> tuple[Any, Build]:
         fr = frames.df[frames.df["session"] == s]
         path = projection.path if projection else None
         build = partial(encode_shard, dc, model.path, path, fr, rows, label)
-        return keys.descriptor_shard(p.cfg, props[s].key, model.key, ut, fkey), build
+        return keys.descriptor_shard(dc, props[s].key, model.key, ut, fkey), build
 
     def combine(s: str, parts: list[Entry]) -> tuple[Any, Build]:
         build = partial(combine_shards, dc, props[s].df, [e.path for e in parts])
-        return keys.descriptors(p.cfg, props[s].key, model.key, [e.key for e in parts]), build
+        return keys.descriptors(dc, props[s].key, model.key, [e.key for e in parts]), build
 
     stages = ("descriptor_shards", "descriptors")
     return p.sharded(stages, props, dc.shard_frames, shard, combine, gpu=True)[0]
 
 
-def ranks_device(p: Context) -> str:
-    """The exact engine's device: CUDA when ``[descriptor] device`` allows it and one is present."""
+def ranks_device(rc: RetrievalConfig, dev: str) -> str:
+    """The exact engine's device: CUDA when ``dev`` (the descriptor's) allows it and one exists."""
     import torch
 
-    rc, dev = p.cfg.retrieval, p.cfg.descriptor.device
     return (
         "cuda"
         if rc.engine == "exact" and dev in ("auto", "cuda") and torch.cuda.is_available()
@@ -350,14 +357,17 @@ def ranks_device(p: Context) -> str:
     )
 
 
-def query_ranks(p: Context, frames: Table, pairs: Table, described: dict[str, Entry]) -> RankTable:
+def query_ranks(
+    p: Context, frames: Table, pairs: Table, described: dict[str, Entry], device: str = "auto"
+) -> RankTable:
     """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
 
     Units: (reference session, chunk of ``query_frames_per_shard`` pairs); one engine per
-    proposal method inside each. With ``rank_import`` the ranks come from the user's file.
+    proposal method inside each. ``device``: the descriptor's (``[descriptor] device``); the exact
+    engine runs on CUDA where it allows and one is present.
     """
     rc, dkeys = p.cfg.retrieval, {s: e.key for s, e in described.items()}
-    paths, device = {s: e.path for s, e in described.items()}, ranks_device(p)
+    paths, device = {s: e.path for s, e in described.items()}, ranks_device(rc, device)
     units: list[tuple[tuple[Any, ...], Build]] = []
     unit_ref = []
     step = max(1, rc.query_frames_per_shard)
@@ -417,7 +427,12 @@ def _write_ranks(
 
 
 def imported_ranks(
-    p: Context, frames: Table, pairs: Table, props: dict[str, Table], spec: ImportSpec
+    p: Context,
+    frames: Table,
+    pairs: Table,
+    props: dict[str, Table],
+    spec: ImportSpec,
+    score_kind: str,
 ) -> RankTable:
     """Ranks from a user's localizer (``--import NAME=FILE`` or an ``import`` localizer).
 
@@ -438,10 +453,15 @@ def imported_ranks(
         allprops,
         p.cfg.retrieval.gt_radius_m,
         p.cfg.pairs.max_yaw_diff_deg,
-        p.cfg.import_.score_kind,
+        score_kind,
     )
     key = keys.ranks_import(
-        p.cfg, spec.name, content_sha(spec.path), pairs.key, [t.key for t in props.values()]
+        p.cfg,
+        spec.name,
+        content_sha(spec.path),
+        pairs.key,
+        [t.key for t in props.values()],
+        score_kind,
     )
     entry = p.unit("ranks", key, build)
     df = read_cached_parquet(entry.path / "ranks.parquet")
