@@ -335,27 +335,15 @@ def _check_descriptor(cfg: Config, where: str) -> None:
     """``[descriptor]``: sizes, options, a user's network file."""
     c = check_value
     de = cfg.descriptor
-    c(
-        de.input_norm in ("none", "per_crop"),
-        where,
-        "[descriptor] input_norm",
-        de.input_norm,
-        "'none' or 'per_crop'",
+    choices = (
+        ("input_norm", ("none", "per_crop"), "'none' or 'per_crop'"),
+        ("dtype", ("float16", "float32"), "float16 or float32"),
+        ("precision", PRECISIONS, "'auto', 'fp32' or 'bf16'"),
+        ("pooling", ("avg", "max", "gem"), "avg, max, gem"),
+        ("decode", ("reduced", "full"), "reduced or full"),
     )
-    c(
-        de.dtype in ("float16", "float32"),
-        where,
-        "[descriptor] dtype",
-        de.dtype,
-        "float16 or float32",
-    )
-    c(
-        de.precision in PRECISIONS,
-        where,
-        "[descriptor] precision",
-        de.precision,
-        "'auto', 'fp32' or 'bf16'",
-    )
+    for key, allowed, words in choices:
+        c(getattr(de, key) in allowed, where, f"[descriptor] {key}", getattr(de, key), words)
     c(
         de.device in ("auto", "cpu", "cuda") or de.device.startswith("cuda:"),
         where,
@@ -397,15 +385,7 @@ def _check_descriptor(cfg: Config, where: str) -> None:
         "a multiple of 8, >= 8 pixels",
     )
     c(de.lr > 0, where, "[descriptor] lr", de.lr, "> 0")
-    c(
-        de.pooling in ("avg", "max", "gem"),
-        where,
-        "[descriptor] pooling",
-        de.pooling,
-        "avg, max, gem",
-    )
     c(de.gem_p > 0, where, "[descriptor] gem_p", de.gem_p, "> 0")
-    c(de.decode in ("reduced", "full"), where, "[descriptor] decode", de.decode, "reduced or full")
     c(all(v > 0 for v in de.std), where, "[descriptor] std", list(de.std), "three values > 0")
     _check_network_file(de, where)
     c(
