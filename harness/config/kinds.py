@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.config.check import check_bovw, check_value
+from harness.config.paths import resolve_config_path
 from harness.config.schema import BovwConfig, DescriptorConfig, LocalizerImportConfig
 from harness.errors import ConfigError
 
@@ -48,14 +49,12 @@ class LocalizerKind:
         return {self.name: dataclasses.asdict(options)}
 
 
-def _path(value: str, base: Path, root: Path) -> str:
-    """``value`` with ``{data_root}`` expanded, relative to the config file's folder."""
-    p = Path(value.replace("{data_root}", str(root))).expanduser()
-    return str(p if p.is_absolute() else base / p)
-
-
 def _descriptor(de: DescriptorConfig, where: str, base: Path, root: Path) -> DescriptorConfig:
-    return dataclasses.replace(de, path=_path(de.path, base, root)) if de.path else de
+    return (
+        dataclasses.replace(de, path=str(resolve_config_path(de.path, base, root)))
+        if de.path
+        else de
+    )
 
 
 def _bovw(bw: BovwConfig, where: str, base: Path, root: Path) -> BovwConfig:
@@ -71,7 +70,7 @@ def _import(im: LocalizerImportConfig, where: str, base: Path, root: Path) -> Lo
         im.score_kind,
         "'distance' or 'similarity'",
     )
-    return dataclasses.replace(im, file=_path(im.file, base, root))
+    return dataclasses.replace(im, file=str(resolve_config_path(im.file, base, root)))
 
 
 def _name_only(de: DescriptorConfig) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from harness.config.check import (
     validate,
 )
 from harness.config.kinds import LOCALIZER_KINDS
+from harness.config.paths import resolve_config_path
 from harness.config.schema import (
     ALL_LOCALIZERS,
     LOCALIZER_NAME,
@@ -205,8 +206,7 @@ def parse_config(
         raise ConfigError(f"{where}: 'sessions' must be a non-empty array of tables")
     for i, s in enumerate(doc["sessions"]):
         sc = _build(SessionConfig, s, f"{where}: sessions[{i}]")
-        src = Path(sc.source.replace("{data_root}", str(root))).expanduser()
-        src = src if src.is_absolute() else base / src
+        src = resolve_config_path(sc.source, base, root)
         sessions.append(dataclasses.replace(sc, source=str(src)))
     for i, sc in enumerate(sessions):
         check_session_name(sc.name, f"{where}: sessions[{i}] name")
@@ -216,8 +216,7 @@ def parse_config(
         raise ConfigError(f"{where}: session names must be unique, got {names}")
     ann: Path | None = None
     if "annotations" in doc:
-        ann = Path(str(doc["annotations"]).replace("{data_root}", str(root))).expanduser()
-        ann = ann if ann.is_absolute() else base / ann
+        ann = resolve_config_path(str(doc["annotations"]), base, root)
     kwargs: dict[str, Any] = {}
     for section, cls in _SECTIONS.items():
         if section in doc:
@@ -226,10 +225,8 @@ def parse_config(
             )
     de = kwargs.get("descriptor")
     if de is not None and de.path:  # a user's network: relative to the project, like annotations
-        net = Path(de.path.replace("{data_root}", str(root))).expanduser()
-        kwargs["descriptor"] = dataclasses.replace(
-            de, path=str(net if net.is_absolute() else base / net)
-        )
+        net = resolve_config_path(de.path, base, root)
+        kwargs["descriptor"] = dataclasses.replace(de, path=str(net))
     cfg = Config(
         name=str(doc["name"]),
         data_root=root,
