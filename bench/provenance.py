@@ -35,13 +35,10 @@ RELEVANT_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_b
 
 
 def cpu_flags() -> list[str]:
-    """Which of :data:`RELEVANT_FLAGS` this CPU has (from ``/proc/cpuinfo``)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return []
-    line = next((x for x in text.splitlines() if x.partition(":")[0].strip() == "flags"), "")
-    have = set(line.partition(":")[2].split())
+    """Which of :data:`RELEVANT_FLAGS` this CPU has (``harness.runtime.hardware.cpu_flags``)."""
+    from harness.runtime.hardware import cpu_flags as flags
+
+    have = flags()
     return [f for f in RELEVANT_FLAGS if f in have]
 
 
