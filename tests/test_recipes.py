@@ -131,6 +131,10 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
     validate(cfg, "recipe")  # the name is known to the config check
     with pytest.raises(ValueError, match="exists"):
         proposals.register_method("edges", centre)
+    with pytest.raises(ValueError, match="exists"):  # [proposals]'s own keys are taken too
+        proposals.register_method("reduced_decode", centre)
+    with pytest.raises(ValueError, match="options must be a dataclass"):
+        proposals.register_method("half", centre, options=dict)
     q, rec = _rerun(local_run, tmp_path, cfg)
     assert q.ran["proposals"] > 0 and q.ran.get("model", 0) > 0  # the training crops changed
     props = pd.concat(
