@@ -192,15 +192,29 @@ def retrieval_options(rc: RetrievalConfig) -> dict[str, Any]:
 
 
 def ranks_unit(
-    cfg: Config, ref: str, pairs_key: str, descriptor_keys: dict[str, str], first: int, n: int
+    cfg: Config,
+    ref: str,
+    pairs_key: str,
+    descriptor_keys: dict[str, str],
+    first: int,
+    n: int,
+    precision: str = "fp32",
 ) -> Parts:
-    """One ranking unit: a reference session and ``n`` of its pairs from row ``first``."""
-    return (ref, pairs_key, descriptor_keys, retrieval_options(cfg.retrieval), first, n)
+    """One ranking unit: a reference session and ``n`` of its pairs from row ``first``.
+
+    ``precision``: the engine's candidate product; ``bf16`` only adds to the key (fp32 keys as
+    before it).
+    """
+    parts = (ref, pairs_key, descriptor_keys, retrieval_options(cfg.retrieval), first, n)
+    return parts if precision == "fp32" else (*parts, {"precision": precision})
 
 
-def ranks(cfg: Config, pairs_key: str, descriptor_keys: dict[str, str]) -> Parts:
+def ranks(
+    cfg: Config, pairs_key: str, descriptor_keys: dict[str, str], precision: str = "fp32"
+) -> Parts:
     """The rank table's key (not a cache entry: what the samples depend on)."""
-    return (pairs_key, descriptor_keys, retrieval_options(cfg.retrieval))
+    parts = (pairs_key, descriptor_keys, retrieval_options(cfg.retrieval))
+    return parts if precision == "fp32" else (*parts, {"precision": precision})
 
 
 def ranks_import(

@@ -140,7 +140,7 @@ def descriptor_kind_ranks(
     model = descriptor_model(p, dc, frames, mine)
     projection = descriptor_projection(p, dc, frames, pairs, mine, model)
     described = session_descriptors(p, dc, frames, mine, model, projection)
-    return query_ranks(p, frames, pairs, described, dc.device)
+    return query_ranks(p, frames, pairs, described, dc.device, dc.precision)
 
 
 @kind_ranks("bovw")
@@ -200,7 +200,7 @@ def retrieval_ranks(
     projection = descriptor_projection(p, dc, frames, cand, mine, model)
     described = session_descriptors(p, dc, frames, mine, model, projection)
     pairs = retrieval_pair_table(p, frames, cand, described, loc.proposals[0])
-    return pairs, query_ranks(p, frames, pairs, described, dc.device)
+    return pairs, query_ranks(p, frames, pairs, described, dc.device, dc.precision)
 
 
 def ranks_at_radius(

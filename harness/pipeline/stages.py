@@ -47,6 +47,7 @@ from harness.runtime.cache import (
     write_parquet,
     write_text,
 )
+from harness.runtime.hardware import rank_precision
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
@@ -358,16 +359,24 @@ def ranks_device(rc: RetrievalConfig, dev: str) -> str:
 
 
 def query_ranks(
-    p: Context, frames: Table, pairs: Table, described: dict[str, Entry], device: str = "auto"
+    p: Context,
+    frames: Table,
+    pairs: Table,
+    described: dict[str, Entry],
+    device: str = "auto",
+    precision: str = "fp32",
 ) -> RankTable:
     """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
 
     Units: (reference session, chunk of ``query_frames_per_shard`` pairs); one engine per
     proposal method inside each. ``device``: the descriptor's (``[descriptor] device``); the exact
-    engine runs on CUDA where it allows and one is present.
+    engine runs on CUDA where it allows and one is present. ``precision``: the descriptor's
+    (``[descriptor] precision``), for the exact engine's candidate product
+    (:func:`harness.runtime.hardware.rank_precision`).
     """
     rc, dkeys = p.cfg.retrieval, {s: e.key for s, e in described.items()}
     paths, device = {s: e.path for s, e in described.items()}, ranks_device(rc, device)
+    precision = rank_precision(precision) if rc.engine == "exact" else "fp32"
     units: list[tuple[tuple[Any, ...], Build]] = []
     unit_ref = []
     step = max(1, rc.query_frames_per_shard)
@@ -385,8 +394,10 @@ def query_ranks(
                 frames.df,
                 device,
                 p.cfg.pairs.place_frames if p.cfg.pairs.by == "retrieval" else None,
+                precision,
             )
-            units.append((keys.ranks_unit(p.cfg, ref, pairs.key, dkeys, c0, len(chunk)), build))
+            key = keys.ranks_unit(p.cfg, ref, pairs.key, dkeys, c0, len(chunk), precision)
+            units.append((key, build))
             unit_ref.append(ref)
     parts: list[pd.DataFrame] = []
     counts: dict[str, dict[str, int]] = {}
@@ -401,7 +412,7 @@ def query_ranks(
         if parts
         else pd.DataFrame()
     )
-    return RankTable(df, stable_hash(*keys.ranks(p.cfg, pairs.key, dkeys)), counts)
+    return RankTable(df, stable_hash(*keys.ranks(p.cfg, pairs.key, dkeys, precision)), counts)
 
 
 SORT_RANKS = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
@@ -416,11 +427,12 @@ def _write_ranks(
     frames: pd.DataFrame,
     device: str,
     place_frames: int | None,
+    precision: str,
     tmp: Path,
 ) -> dict[str, int]:
     """One ranking unit (:func:`harness.retrieval.rank_reference`) into ``tmp/ranks.parquet``."""
     df, counts = rank_reference(
-        rc, max_yaw_deg, pairs, ref, descriptors, frames, device, place_frames
+        rc, max_yaw_deg, pairs, ref, descriptors, frames, device, place_frames, precision
     )
     write_parquet(tmp / "ranks.parquet", df)
     return counts

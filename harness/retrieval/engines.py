@@ -46,11 +46,23 @@ CUDA_CHUNK_ROWS = 65536
 CPU_CHUNK_BYTES = 32 * 2**20
 #: (query, row) pairs per block of the exact float64 measurement of ``d``.
 EXACT_BLOCK = 16
+#: (query, row) pairs per call when whole frames are measured exactly (bf16's undecided frames).
+EXACT_PAIRS_PER_CALL = 1 << 16
+#: float64 values per block when whole frames are measured (many rows per numpy call: the
+#: per-call overhead, not the arithmetic, bounds small blocks).
+FRAME_BLOCK_VALUES = 1 << 17
+#: Queries per block when bf16's per-frame minima are decided (a (block, L) float64 temporary).
+RANK_ROWS = 256
 #: Unit roundoff of float32 (round to nearest).
 F32_U = 2.0**-24
 #: Unit roundoff of a float32 product's inputs under ``torch.set_float32_matmul_precision``:
 #: "high" lets a product round its inputs to TF32 (10-bit fraction), "medium" to bfloat16.
 MATMUL_INPUT_U = {"highest": 0.0, "high": 2.0**-11, "medium": 2.0**-8}
+#: Unit roundoff of bfloat16 (8 significant bits, round to nearest).
+BF16_U = 2.0**-8
+#: The candidate product's arithmetic: a float32 or a bfloat16 product; either way the frames its
+#: error bound cannot decide are measured exactly (:func:`_exact_ranks`).
+RANK_PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -169,12 +181,54 @@ def expansion_error_factor(dim: int) -> float:
     return (g + 2 * u_in) / (1 - 2 * g) * (1 + 1e-6)
 
 
+def bf16_error_factor(dim: int) -> float:
+    """:func:`expansion_error_factor`'s ``c`` for a bfloat16 product of float32 vectors.
+
+    The product rounds each input to bfloat16 (``|q~ . b~ - q . b| <= (2u + u^2) |q||b|``,
+    ``u`` = :data:`BF16_U`), accumulates in float32 (``g_dim`` of the rounded inputs, at most
+    ``(1 + u)^2`` larger) and, on CPU, rounds the dot product to bfloat16 (``u`` of it). Twice
+    that error (the expansion's ``-2 q.b``), with ``|q||b| <= (|q| + |b|)^2 / 4``, is added to the
+    float32 expansion's own ``c`` (norms and additions in float32). The vectors are first
+    centred (``q - m``, ``b - m`` in float32, norms taken of the centred ones): each centred vector
+    is within ``u32 |.|`` of its exact value, which moves the squared distance by at most
+    ``3 u32 (|q| + |b|)^2``, also added. ``inf`` where ``dim`` is so large that the bound says
+    nothing.
+    """
+    nu = (dim + 8) * F32_U
+    if nu >= 0.25:
+        return float("inf")
+    g, u = nu / (1 - nu), BF16_U
+    dot = (2 * u + u * u) + g * (1 + u) ** 2 + u * (1 + u) ** 2 * (1 + g)
+    return (g / (1 - 2 * g) + 2 * dot / 4 + 3 * F32_U) * (1 + 1e-6)
+
+
 def _sqdist_into(
     query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, bn: torch.Tensor, out: torch.Tensor
 ) -> torch.Tensor:
     """Squared L2 distances by the expansion, written into ``out`` (no allocation), clamped at 0."""
     torch.add(qn, bn[None, :], out=out)
     return out.addmm_(query, block.T, alpha=-2.0).clamp_min_(0)
+
+
+def _sqdist_bf16_into(
+    query: torch.Tensor, qn: torch.Tensor, block: torch.Tensor, bn: torch.Tensor, out: torch.Tensor
+) -> torch.Tensor:
+    """:func:`_sqdist_into` with the product in bfloat16 (``query`` and ``block`` bfloat16).
+
+    The norms stay float32; the product accumulates in float32 (CUDA's reduced-precision
+    reduction is turned off for the call) and its bfloat16 result is widened into ``out``.
+    """
+    torch.add(qn, bn[None, :], out=out)
+    if query.device.type == "cuda":
+        flag = torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction
+        torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = False
+        try:
+            dot = query @ block.T
+        finally:
+            torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = flag
+    else:
+        dot = query @ block.T
+    return out.add_(dot, alpha=-2.0).clamp_min_(0)
 
 
 def _frame_min(d2: torch.Tensor, lens: np.ndarray, idx: torch.Tensor | None) -> torch.Tensor:
@@ -231,6 +285,8 @@ def image_ranks(
     query_batch: int = 1024,
     device: str | torch.device = "cpu",
     memory_mb: float = 1024.0,
+    precision: str = "fp32",
+    stats: dict[str, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact image-level ranks of the ground-truth places.
 
@@ -239,10 +295,12 @@ def image_ranks(
     size. Memory is bounded by ``memory_mb``, not by the data: queries are ranked in groups
     whose (group, frames) per-frame minimum and place mask fit in it (each group streams the
     database once), plus one chunk of ``chunk_rows`` rows (on CPU at most
-    :data:`CPU_CHUNK_BYTES`) and its (query_batch x chunk_rows) distances. Ranks compare the
-    per-frame minima of the fast matrix-product path with each other; ``d`` is then recomputed
-    exactly from the place's own rows (differences, float64), so
-    a query equal to a database row gets ``d = 0``.
+    :data:`CPU_CHUNK_BYTES`) and its (query_batch x chunk_rows) distances. ``d`` is computed
+    exactly from the place's own rows (differences, float64), so a query equal to a database
+    row gets ``d = 0``; a frame counts towards the rank when the matrix product's per-frame
+    minimum is below ``d`` by more than the product's error bound, and is measured exactly
+    where the bound cannot decide (:func:`_exact_ranks`): the ranks are exact, ties in the
+    query's favour, whatever the product's precision.
 
     Args:
         query_desc: (n, D) query subimage descriptors.
@@ -256,6 +314,12 @@ def image_ranks(
         device: ``"cpu"`` or ``"cuda"`` (float32 products; float16 rows converted on the device).
         memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, :data:`CELL_BYTES` per
             cell.
+        precision: The candidate product: ``fp32``, or ``bf16`` (vectors centred on the
+            group's mean query, then a bfloat16 product: its bound,
+            :func:`bf16_error_factor`, leaves more frames to measure exactly). The ranks
+            are the same.
+        stats: Where given, counts are added to it: ``compared`` (query x frame comparisons) and
+            ``measured_exactly`` (those the bound left to the exact measurement).
 
     Returns:
         ``rank`` (n,) int64, ``L`` (n,) int64 (1 + frames outside the place), ``dist`` (n,)
@@ -272,6 +336,8 @@ def image_ranks(
         )
     if len(db_frame) != len(db_desc) or len(gt_frame) != len(query_desc):
         raise RetrievalError("db_frame must align with db_desc and gt_frame with query_desc")
+    if precision not in RANK_PRECISIONS:
+        raise RetrievalError(f"precision must be one of {RANK_PRECISIONS}, got {precision!r}")
     order, frame_ids, starts = frame_layout(db_frame)
     L = len(frame_ids)
     pcols = place_columns(frame_ids, gt_frame, place)
@@ -295,6 +361,8 @@ def image_ranks(
             chunk_rows,
             query_batch,
             torch.device(device),
+            precision == "bf16",
+            stats if stats is not None else {},
         )
     return rank, Lq, dist
 
@@ -316,21 +384,6 @@ def _place_rows(
     return cq[rep], crow
 
 
-def _place_ranks(fm: torch.Tensor, qi: np.ndarray, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rank of each query's place and its L from the (queries x frames) per-frame minima ``fm``.
-
-    ``qi``, ``pc``: the (query, place frame) pairs. Frames of the place never count.
-    """
-    n, L = fm.shape
-    dev = fm.device
-    in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
-    in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
-    dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
-    rank = (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)
-    Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
-    return rank, Lq
-
-
 def _rank_group(
     query_desc: np.ndarray,
     db_desc: np.ndarray,
@@ -340,6 +393,8 @@ def _rank_group(
     chunk_rows: int,
     query_batch: int,
     dev: torch.device,
+    bf16: bool,
+    stats: dict[str, int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`image_ranks` for one group of queries: one pass over the database.
 
@@ -347,6 +402,8 @@ def _rank_group(
     a fresh multi-megabyte tensor per chunk costs its page faults, as much as the float16
     conversion itself. While a chunk's rows and distances are at hand, the rows of each query's
     place that may hold its exact ``d`` are measured (:class:`_ExactPlace`): no second pass.
+    ``bf16``: the products in bfloat16 of vectors centred on the group's mean query (smaller
+    norms, a tighter bound), each frame's largest centred row norm kept for the bound.
     """
     L, n = len(starts), len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
@@ -357,7 +414,14 @@ def _rank_group(
         ).to(dev)
         for s in range(0, n, query_batch)
     ]
+    center = None  # bf16: both sides less the group's mean query (distances are unchanged)
+    if bf16 and n:
+        mean = np.mean(query_desc, axis=0, dtype=np.float64).astype(np.float32)
+        center = torch.from_numpy(mean).to(dev)
+        queries = [q - center for q in queries]
     qnorms = [torch.linalg.vector_norm(q, dim=1, keepdim=True).square_() for q in queries]
+    lhs = [q.bfloat16() for q in queries] if bf16 else queries
+    sqdist = _sqdist_bf16_into if bf16 else _sqdist_into
     qi = np.repeat(np.arange(n), [len(c) for c in pcols])
     pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
     by_col = np.argsort(pc, kind="stable")
@@ -368,29 +432,26 @@ def _rank_group(
     block_buf = None if direct else workspace("block", widest * db_desc.shape[1], dev)
     d2_buf = workspace("d2", min(query_batch, max(n, 1)) * widest, dev)
     fm = torch.empty((n, L), dtype=torch.float32, device=dev)
+    fmax = np.zeros(L)  # each frame's largest row norm (the bf16 bound)
     exact = _ExactPlace(
         torch.cat(qnorms)[:, 0].double().cpu().numpy() if n else np.zeros(0),
-        db_desc.shape[1],
+        bf16_error_factor(db_desc.shape[1]) if bf16 else expansion_error_factor(db_desc.shape[1]),
     )
     for f0, f1 in chunks:
         r0, r1 = int(bounds[f0]), int(bounds[f1])
-        rows = np.ascontiguousarray(db_desc[r0:r1] if contiguous else db_desc[order[r0:r1]])
-        with warnings.catch_warnings():  # a read-only memmap view; the tensor is only read
-            warnings.simplefilter("ignore", UserWarning)
-            src = torch.from_numpy(rows)
-        if block_buf is None:
-            block = src
-        else:  # float16 -> float32 in torch (multi-threaded), into the reused buffer
-            block = block_buf[: src.numel()].view(src.shape).copy_(src)
-        bn = torch.linalg.vector_norm(block, dim=1).square_()  # fused: no (rows x D) temporary
+        block = _chunk_block(db_desc, order[r0:r1], contiguous, r0, r1, block_buf)
+        rhs = block if center is None else block - center
+        bn = torch.linalg.vector_norm(rhs, dim=1).square_()  # fused: no (rows x D) temporary
         bn_host = bn.double().cpu().numpy()
+        fmax[f0:f1] = np.maximum.reduceat(np.sqrt(bn_host), bounds[f0:f1] - r0)
+        rhs = rhs.bfloat16() if bf16 else rhs
         lens = np.diff(bounds[f0 : f1 + 1]).astype(np.int64)
         idx = _pad_index(lens, dev)
         cqr, crow = _place_rows(pair_q, pair_c, bounds, f0, f1)
         vals = np.empty(len(cqr), np.float32)  # fast values of those rows, batch by batch
-        for bi, (q, qn) in enumerate(zip(queries, qnorms, strict=True)):
+        for bi, (q, qn) in enumerate(zip(lhs, qnorms, strict=True)):
             q0 = bi * query_batch
-            d2 = _sqdist_into(q, qn, block, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1))
+            d2 = sqdist(q, qn, rhs, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1))
             fm[q0 : q0 + len(q), f0:f1] = _frame_min(d2, lens, idx)
             mine = np.nonzero((cqr >= q0) & (cqr < q0 + len(q)))[0]
             if len(mine):
@@ -405,8 +466,102 @@ def _rank_group(
             exact.add(cqr, vals, bn_host[crow], query_desc, block.numpy(), crow)
         else:  # the device's copy is not read back: the rows are read from the database
             exact.add(cqr, vals, bn_host[crow], query_desc, db_desc, order[r0 + crow])
-    rank, Lq = _place_ranks(fm, qi, pc)
+    measure = _FrameMeasure(query_desc, db_desc, order, bounds)
+    rank, Lq = _exact_ranks(fm, qi, pc, exact, fmax, measure, stats)
     return rank, Lq, np.sqrt(exact.best)
+
+
+def _chunk_block(
+    db_desc: np.ndarray,
+    rows_order: np.ndarray,
+    contiguous: bool,
+    r0: int,
+    r1: int,
+    block_buf: torch.Tensor | None,
+) -> torch.Tensor:
+    """Database rows ``r0:r1`` (in frame order) as float32: the array itself or the buffer."""
+    rows = np.ascontiguousarray(db_desc[r0:r1] if contiguous else db_desc[rows_order])
+    with warnings.catch_warnings():  # a read-only memmap view; the tensor is only read
+        warnings.simplefilter("ignore", UserWarning)
+        src = torch.from_numpy(rows)
+    if block_buf is None:
+        return src
+    # float16 -> float32 in torch (multi-threaded), into the reused buffer
+    return block_buf[: src.numel()].view(src.shape).copy_(src)
+
+
+@dataclass(frozen=True)
+class _FrameMeasure:
+    """What measuring a query's distance to a whole frame exactly needs: the rows and the frames."""
+
+    query_desc: np.ndarray
+    db_desc: np.ndarray
+    order: np.ndarray
+    bounds: np.ndarray
+
+    def frame_min(self, qq: np.ndarray, ff: np.ndarray) -> np.ndarray:
+        """Exact (float64) smallest squared distance from query ``qq[k]`` to frame ``ff[k]``."""
+        out = np.empty(len(qq), np.float64)
+        lens = self.bounds[ff + 1] - self.bounds[ff]
+        per = max(1, EXACT_PAIRS_PER_CALL // max(int(lens.max(initial=1)), 1))
+        for s in range(0, len(qq), per):
+            q, f, n = qq[s : s + per], ff[s : s + per], lens[s : s + per]
+            rep = np.repeat(np.arange(len(q)), n)
+            first = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64)
+            rows = self.order[self.bounds[f][rep] + np.arange(len(rep)) - first[rep]]
+            block = max(EXACT_BLOCK, FRAME_BLOCK_VALUES // self.db_desc.shape[1])
+            d2 = _exact_pairs(self.query_desc, q[rep], self.db_desc, rows, block)
+            out[s : s + per] = np.minimum.reduceat(d2, first)
+        return out
+
+
+def _exact_ranks(
+    fm: torch.Tensor,
+    qi: np.ndarray,
+    pc: np.ndarray,
+    exact: _ExactPlace,
+    fmax: np.ndarray,
+    measure: _FrameMeasure,
+    stats: dict[str, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rank and L from the product's per-frame minima ``fm``, decided against the exact ``d``.
+
+    A frame F outside the place is within ``E = c (|q| + max |b in F|)^2`` of its true minimum
+    (``c``: :func:`expansion_error_factor` or :func:`bf16_error_factor`): it counts when
+    ``fm + E < d^2``, not when ``fm - E > d^2``, and is measured exactly (:class:`_FrameMeasure`)
+    in between, where it counts when strictly closer than ``d`` (ties in the query's favour).
+    In fp32 the band is a few units in the last place: a frame is measured only where it is as
+    close as ``d`` to float32's rounding (or the descriptors lie far from the origin).
+    """
+    fmn = fm.cpu().numpy()
+    n, L = fmn.shape
+    by_q = np.zeros(n + 1, np.int64)
+    np.add.at(by_q, qi + 1, 1)
+    by_q = np.cumsum(by_q)  # qi is sorted by query: query i's place columns are pc[by_q[i]:..]
+    rank = np.ones(n, np.int64)
+    todo_q, todo_f = [], []
+    for s in range(0, n, RANK_ROWS):
+        e = min(n, s + RANK_ROWS)
+        v = fmn[s:e].astype(np.float64)
+        err = exact.factor * (exact.qnorm[s:e, None] + fmax[None, :]) ** 2
+        d2 = exact.best[s:e, None]
+        outside = np.ones((e - s, L), bool)
+        outside[qi[by_q[s] : by_q[e]] - s, pc[by_q[s] : by_q[e]]] = False
+        sure = (v + err < d2) & outside
+        maybe = (v - err <= d2) & ~sure & outside
+        rank[s:e] += sure.sum(1)
+        q, f = np.nonzero(maybe)
+        todo_q.append(q + s)
+        todo_f.append(f)
+    qq = np.concatenate(todo_q) if todo_q else np.zeros(0, np.int64)
+    ff = np.concatenate(todo_f) if todo_f else np.zeros(0, np.int64)
+    if len(qq):
+        closer = measure.frame_min(qq, ff) < exact.best[qq]
+        rank += np.bincount(qq[closer], minlength=n)
+    Lq = L - np.diff(by_q) + 1
+    stats["compared"] = stats.get("compared", 0) + int((Lq - 1).sum())
+    stats["measured_exactly"] = stats.get("measured_exactly", 0) + len(qq)
+    return rank, Lq.astype(np.int64)
 
 
 class _ExactPlace:
@@ -423,9 +578,9 @@ class _ExactPlace:
     measuring every row of the place.
     """
 
-    def __init__(self, qn: np.ndarray, dim: int) -> None:
+    def __init__(self, qn: np.ndarray, factor: float) -> None:
         self.qnorm = np.sqrt(qn)
-        self.factor = expansion_error_factor(dim)
+        self.factor = factor  # the product's error bound (:func:`expansion_error_factor`)
         self.best = np.full(len(qn), np.inf)  # least exact squared distance measured
         self.upper = np.full(len(qn), np.inf)  # least known upper bound on it
         self.measured = 0  # (query, row) pairs measured, for the tests and the bench
@@ -478,7 +633,9 @@ class _ExactPlace:
         self._measure(ii[rest], query_desc, dsrc, di[rest])
 
 
-def _exact_pairs(qsrc: np.ndarray, qi: np.ndarray, dsrc: np.ndarray, di: np.ndarray) -> np.ndarray:
+def _exact_pairs(
+    qsrc: np.ndarray, qi: np.ndarray, dsrc: np.ndarray, di: np.ndarray, block: int = EXACT_BLOCK
+) -> np.ndarray:
     """Squared L2 distance of each pair (``qsrc[qi[k]]``, ``dsrc[di[k]]``).
 
     By differences in float64 (float16 and float32 rows widen exactly), squared, then numpy's
@@ -487,20 +644,21 @@ def _exact_pairs(qsrc: np.ndarray, qi: np.ndarray, dsrc: np.ndarray, di: np.ndar
     the GIL), each working in blocks of :data:`EXACT_BLOCK` pairs in buffers of its own kept
     between calls (:func:`scratch`). Own buffers matter: when one thread writes the squares and
     another sums them, every block's cache lines cross between cores, which measured up to three
-    times slower on this project's machines.
+    times slower on this project's machines. ``block``: pairs per block (the same bits whatever
+    it is: each row is summed alone).
     """
     n_pairs = len(qi)
     out = np.empty(n_pairs, np.float64)
     if n_pairs == 0:
         return out
     pool, workers = _exact_pool()
-    per = -(-n_pairs // max(1, min(workers, n_pairs // EXACT_BLOCK)))
+    per = -(-n_pairs // max(1, min(workers, n_pairs // block)))
     parts = [(s, min(n_pairs, s + per)) for s in range(0, n_pairs, per)]
 
     def work(part: tuple[int, int]) -> None:
-        acc = scratch("exact_acc", (EXACT_BLOCK, dsrc.shape[1]), np.float64)
-        for s in range(part[0], part[1], EXACT_BLOCK):
-            k = min(part[1], s + EXACT_BLOCK) - s
+        acc = scratch("exact_acc", (block, dsrc.shape[1]), np.float64)
+        for s in range(part[0], part[1], block):
+            k = min(part[1], s + block) - s
             a = acc[:k]
             a[...] = dsrc[di[s : s + k]]  # gathered, widened
             np.subtract(a, qsrc[qi[s : s + k]], out=a)

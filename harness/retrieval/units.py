@@ -92,6 +92,7 @@ def rank_reference(
     frames: pd.DataFrame,
     device: str,
     place_frames: int | None = None,
+    precision: str = "fp32",
 ) -> tuple[pd.DataFrame, dict[str, int]]:
     """Rank rows of every query subimage of ``pairs`` against reference session ``ref``.
 
@@ -105,6 +106,8 @@ def rank_reference(
         device: ``"cpu"`` or ``"cuda"`` for the exact engine.
         place_frames: pairs by retrieval (SPEC 13.2): the place is G and this many frames each
             side in the map's order (:func:`places_by_order`); None: by pose (SPEC 6).
+        precision: The exact engine's candidate product (``fp32`` or ``bf16``); ``bf16`` adds
+            the counters ``compared`` and ``measured_exactly`` (:func:`image_ranks`).
 
     Returns:
         The rank rows (sorted by query image, method, box) and the unit's counters.
@@ -148,7 +151,16 @@ def rank_reference(
         )
         for qs, g in pairs.groupby("q_session", sort=True):
             part = _rank_query_session(
-                rc, method, g, descriptors[qs], db, db_frame, places, kept, device, counts
+                rc,
+                method,
+                g,
+                descriptors[qs],
+                db,
+                db_frame,
+                places,
+                kept,
+                (device, precision),
+                counts,
             )
             if part is not None:
                 out.append(part)
@@ -202,14 +214,16 @@ def _ranks_by_engine(
     db_frame: np.ndarray,
     gt: np.ndarray,
     place: list[np.ndarray],
-    device: str,
+    engine: tuple[str, str],
     counts: dict[str, int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(rank, L, d, exact) by the engine that fits the descriptors.
 
     The inverted index for bags of visual words; faiss (checked against the exact engine on a
-    sample of the queries) or the exact engine for dense descriptors.
+    sample of the queries) or the exact engine for dense descriptors. ``engine``: the exact
+    engine's (device, precision).
     """
+    device, precision = engine
     if sp.issparse(qd):  # a bag-of-visual-words localizer: the inverted-index engine
         rank, L, dist = bovw_ranks(qd, db, db_frame, gt, place)
         exact = np.ones(len(rank), bool)
@@ -252,6 +266,8 @@ def _ranks_by_engine(
             query_batch=rc.query_batch,
             device=device,
             memory_mb=rc.memory_mb,
+            precision=precision,
+            stats=counts if precision == "bf16" else None,
         )
         exact = np.ones(len(rank), bool)
     return rank, L, dist, exact
@@ -266,7 +282,7 @@ def _rank_query_session(
     db_frame: np.ndarray,
     places: dict[Any, dict[int, np.ndarray]],
     kept: set[int] | None,
-    device: str,
+    engine: tuple[str, str],
     counts: dict[str, int],
 ) -> pd.DataFrame | None:
     """Rank rows of one query session's subimages of ``method`` (``g``: its pairs); None if none."""
@@ -305,7 +321,7 @@ def _rank_query_session(
             ],
             np.int64,
         )
-    rank, L, dist, exact = _ranks_by_engine(rc, qd, db, db_frame, gt, place, device, counts)
+    rank, L, dist, exact = _ranks_by_engine(rc, qd, db, db_frame, gt, place, engine, counts)
     frame_set = np.unique(db_frame)
     place_size = np.array([int(np.isin(p, frame_set).sum()) for p in place], np.int64)
     counts["ranked"] += len(rank)

@@ -40,3 +40,15 @@ def resolve_precision(precision: str, device: str) -> str:
 
         device = "cuda" if torch.cuda.is_available() else "cpu"
     return "bf16" if has_bf16(device) else "fp32"
+
+
+def rank_precision(precision: str) -> str:
+    """The exact ranking engine's candidate product for ``[descriptor] precision``.
+
+    ``bf16`` only where asked for by name: ``auto`` (and ``fp32``) rank in fp32. The bf16
+    product's error bound leaves frames undecided, each measured exactly at about 50 times the
+    cost of its fp32 product (``python -m bench --only ranking``), so bf16 ranks faster only
+    where few frames are undecided, which depends on the localizer, not the machine
+    (``docs/method.md``, *Exact engine*).
+    """
+    return "bf16" if precision == "bf16" else "fp32"

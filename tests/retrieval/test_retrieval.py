@@ -310,7 +310,7 @@ def test_the_expansion_error_bound_holds_and_prunes() -> None:
 def test_the_exact_step_reads_database_rows_as_a_device_pass_does() -> None:
     """A CUDA pass measures its pairs from the host arrays (float16 rows, database order): the
     same values as from a chunk's float32 rows."""
-    from harness.retrieval.engines import _ExactPlace
+    from harness.retrieval.engines import _ExactPlace, expansion_error_factor
 
     rng = np.random.default_rng(9)
     db = rng.standard_normal((40, 500)).astype(np.float16)
@@ -320,7 +320,8 @@ def test_the_exact_step_reads_database_rows_as_a_device_pass_does() -> None:
     rows = rng.integers(0, 40, 30)
     v = np.zeros(30, np.float32)  # no pruning: every pair within every bound
     bn = np.full(30, 1e9)
-    host, chunk = _ExactPlace(np.ones(6), 500), _ExactPlace(np.ones(6), 500)
+    f = expansion_error_factor(500)
+    host, chunk = _ExactPlace(np.ones(6), f), _ExactPlace(np.ones(6), f)
     host.add(ii, v, bn, q, db, order[rows])
     block = db[order].astype(np.float32)
     chunk.add(ii, v, bn, q, block, np.argsort(order)[order[rows]])
@@ -329,3 +330,93 @@ def test_the_exact_step_reads_database_rows_as_a_device_pass_does() -> None:
         ((db[order[rows[ii == k]]].astype(np.float64) - q[k]) ** 2).sum(1).min() for k in range(6)
     ]
     np.testing.assert_array_equal(host.best, want)
+
+
+@pytest.mark.parametrize(
+    ("dim", "scale", "offset"), [(8, 1.0, 0.0), (128, 30.0, 5.0), (256, 1e-3, 0.0), (64, 1.0, 40.0)]
+)
+def test_bf16_candidates_give_the_fp32_ranks_and_d(dim: int, scale: float, offset: float) -> None:
+    """``precision = "bf16"``: random descriptors of several norms (rows of one call from 0.2 to
+    3 times ``scale``, some far from the origin): ranks, L and d identical to fp32's and to the
+    brute-force loop; some frames were left to the exact measurement, most were not."""
+    rng = np.random.default_rng(dim)
+    m, n = 1200, 90
+    db = rng.standard_normal((m, dim)) * rng.uniform(0.2, 3, (m, 1)) * scale + offset
+    db = db.astype(np.float16 if scale == 1.0 else np.float32)  # float16 rows too
+    frame = rng.integers(0, 150, m)
+    q = (db[rng.integers(0, m, n)] + rng.standard_normal((n, dim)) * 0.4 * scale).astype(np.float32)
+    gt = frame[rng.integers(0, m, n)]
+    place = [np.array([int(g), int(g) + 1]) for g in gt]
+    stats: dict[str, int] = {}
+    for chunk, batch in [(8192, 1024), (97, 7)]:
+        fp = image_ranks(q, db, frame, gt, place, chunk_rows=chunk, query_batch=batch)
+        bf = image_ranks(
+            q,
+            db,
+            frame,
+            gt,
+            place,
+            chunk_rows=chunk,
+            query_batch=batch,
+            precision="bf16",
+            stats=stats,
+        )
+        for a, b in zip(fp, bf, strict=True):
+            np.testing.assert_array_equal(a, b)
+    br, bl, bd = brute(q, db, frame, gt, place)
+    np.testing.assert_array_equal(bf[0], br)
+    np.testing.assert_array_equal(bf[1], bl)
+    np.testing.assert_array_equal(bf[2], bd)
+    assert stats["compared"] == 2 * int((bf[1] - 1).sum())
+    assert 0 < stats["measured_exactly"] < stats["compared"] / 2
+
+
+def test_the_bf16_bound_holds_for_the_product_torch_computes() -> None:
+    """:func:`bf16_error_factor` against the values the engine's bf16 path computes (centred,
+    bfloat16 product, float32 norms), measured pair by pair: never beyond the bound."""
+    from harness.retrieval.engines import _sqdist_bf16_into, bf16_error_factor
+
+    rng = np.random.default_rng(5)
+    for dim, scale in [(16, 1.0), (512, 100.0), (2048, 1e-2)]:
+        q = (rng.standard_normal((40, dim)) * scale + scale).astype(np.float32)
+        b = (rng.standard_normal((300, dim)) * rng.uniform(0.1, 4, (300, 1)) * scale).astype(
+            np.float32
+        )
+        c = q.mean(0, dtype=np.float64).astype(np.float32)
+        qc, bc = (
+            torch.from_numpy(q) - torch.from_numpy(c),
+            torch.from_numpy(b) - torch.from_numpy(c),
+        )
+        qn = torch.linalg.vector_norm(qc, dim=1, keepdim=True).square_()
+        bn = torch.linalg.vector_norm(bc, dim=1).square_()
+        out = torch.empty((40, 300))
+        v = _sqdist_bf16_into(qc.bfloat16(), qn, bc.bfloat16(), bn, out).double().numpy()
+        true = ((q[:, None, :].astype(np.float64) - b[None].astype(np.float64)) ** 2).sum(2)
+        bound = (
+            bf16_error_factor(dim)
+            * (np.sqrt(qn.double().numpy()) + np.sqrt(bn.double().numpy())[None]) ** 2
+        )
+        assert (np.abs(v - true) <= bound).all()
+        assert np.abs(v - true).max() > 1e-3 * bound.max()  # bf16 arithmetic was used
+
+
+def test_bf16_ties_count_in_the_querys_favour() -> None:
+    """A frame outside the place with the same rows as the place's is as close, not closer: the
+    bf16 path measures it exactly and does not count it (rank 1), as the loop says."""
+    rng = np.random.default_rng(1)
+    rows = rng.standard_normal((4, 32)).astype(np.float32)
+    db = np.concatenate([rows, rows, rng.standard_normal((40, 32)).astype(np.float32) + 3])
+    frame = np.repeat(np.arange(12), 4)
+    q = rows[:1] + np.float32(0.01)
+    stats: dict[str, int] = {}
+    r, L, _ = image_ranks(q, db, frame, np.array([0]), precision="bf16", stats=stats)
+    br, bl, _ = brute(q, db, frame, np.array([0]))
+    assert r.tolist() == br.tolist() == [1] and L.tolist() == bl.tolist() == [12]
+    assert stats["measured_exactly"] >= 1  # frame 1 could not be decided by the bound
+
+
+def test_an_unknown_rank_precision_is_an_error() -> None:
+    with pytest.raises(RetrievalError, match="precision"):
+        image_ranks(
+            np.zeros((1, 2)), np.zeros((2, 2)), np.array([1, 2]), np.array([1]), precision="fp16"
+        )

@@ -61,3 +61,25 @@ def test_a_bad_precision_is_a_config_error_naming_the_key(value: str) -> None:
     }
     with pytest.raises(ConfigError, match=r"\[descriptor\] precision"):
         parse_config(doc, Path("."), "t.toml")
+
+
+def test_ranking_is_bf16_only_by_name_and_its_keys_say_so(monkeypatch) -> None:
+    """``auto`` ranks in fp32 even where the CPU multiplies bf16 (the exact re-measurement of
+    undecided frames decides whether bf16 pays, not the machine); fp32 keeps the keys of
+    before, bf16 adds to them."""
+    from harness.config.schema import Config
+
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
+    assert [hardware.rank_precision(p) for p in ("auto", "fp32", "bf16")] == [
+        "fp32",
+        "fp32",
+        "bf16",
+    ]
+    cfg = Config(name="t", data_root=Path("."), annotations=None, sessions=())
+    plain = keys.ranks_unit(cfg, "a", "pk", {"a": "k"}, 0, 5)
+    assert keys.ranks_unit(cfg, "a", "pk", {"a": "k"}, 0, 5, "fp32") == plain
+    assert keys.ranks_unit(cfg, "a", "pk", {"a": "k"}, 0, 5, "bf16") == (
+        *plain,
+        {"precision": "bf16"},
+    )
+    assert keys.ranks(cfg, "pk", {"a": "k"}, "bf16")[:-1] == keys.ranks(cfg, "pk", {"a": "k"})
