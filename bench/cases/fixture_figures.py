@@ -89,7 +89,24 @@ def figures(out: Path) -> dict[str, float]:
         "frames_not_described_max": max(run["counts"]["frames_not_described"].values()),
         "train_s": float(run["timings_s"].get("model", 0.0)),
         **_model_info(out, run),
+        **_measured_share(run.get("rank_counts", {})),
     }
+
+
+def _measured_share(counts: Any) -> dict[str, float]:
+    """A bf16 ranking's share of (query, frame) comparisons measured exactly (else nothing)."""
+
+    def total(c: Any, name: str) -> int:
+        if isinstance(c, dict):
+            return sum(
+                int(v) if k == name and isinstance(v, int) else total(v, name) for k, v in c.items()
+            )
+        return 0
+
+    compared = total(counts, "compared")
+    if not compared:
+        return {}
+    return {"rank_measured_exactly_share": total(counts, "measured_exactly") / compared}
 
 
 def _model_info(out: Path, run: dict) -> dict[str, Any]:

@@ -128,6 +128,7 @@ def case_ranking(quick: bool) -> None:
                 repeat=1,
             )
             emit(f"rank faiss flat k=256 db={m}", [nq / t for t in fr], "query subimages/s")
+    bf16_candidate_costs(rng)
     print(
         json.dumps(
             {
@@ -146,3 +147,68 @@ def case_ranking(quick: bool) -> None:
         ),
         flush=True,
     )
+
+
+#: The bf16 : fp32 product rate ratio issue 37 measured on a CPU with AVX512-BF16 (2,048 square,
+#: 2 threads: 773-781 vs 186-190 GFLOP/s); used only where this CPU has no native bf16 product.
+ISSUE_BF16_RATIO = 4.0
+
+
+def bf16_candidate_costs(rng: np.random.Generator) -> None:
+    """What the bf16 candidate product's exact re-measurement costs, per (query, frame).
+
+    Unit-norm rows, 16 per frame, 2,048 queries: the fp32 engine's time per comparison, and the
+    time to measure one (query, frame) exactly (every row of the frame, float64), as the bf16
+    path does for the frames its bound leaves undecided. With a bf16 product ``r`` times the fp32
+    rate, bf16 ranks faster only while the share measured stays below ``(1 - 1/r) / ratio``.
+    ``r`` is measured in the same run where the CPU multiplies bf16 natively; elsewhere it is
+    :data:`ISSUE_BF16_RATIO`, said so in the row. The share itself depends on the localizer: the
+    fixture's is ``fixture-figures``'s ``precision=bf16`` row (``rank_measured_exactly_share``).
+    """
+    import torch
+
+    from harness.retrieval import image_ranks
+    from harness.retrieval.engines import _FrameMeasure, frame_layout
+    from harness.runtime.hardware import has_bf16
+
+    native = has_bf16("cpu")
+    if native:
+        a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
+        fp = min(timed(lambda: a @ b, repeat=3))
+        ab, bb = a.bfloat16(), b.bfloat16()
+        ratio_r = fp / min(timed(lambda: ab @ bb, repeat=3))
+        r_note = f"bf16 product {ratio_r:.2f}x fp32, measured in this run"
+    else:
+        ratio_r = ISSUE_BF16_RATIO
+        r_note = (
+            f"this CPU has no native bf16 product: r = {ratio_r:.0f}, issue 37's measured ratio "
+            "on an AVX512-BF16 machine, not this run's"
+        )
+    for dim, m in ((128, 16_000), (16384, 4_000)):
+        db = rng.standard_normal((m, dim), dtype=np.float32)
+        db /= np.linalg.norm(db, axis=1, keepdims=True)
+        frame = np.arange(m) // 16
+        nq = 2048
+        q = db[rng.integers(0, m, nq)]
+        gt = frame[rng.integers(0, m, nq)]
+        fp32 = timed(lambda db=db, frame=frame, q=q, gt=gt: image_ranks(q, db, frame, gt))
+        per_cell = statistics.median(fp32) / (nq * (m // 16 - 1))
+        order, _, starts = frame_layout(frame)
+        measure = _FrameMeasure(q, db, order, np.concatenate([starts, [m]]))
+        k = 20_000 if dim <= 1024 else 2_000
+        qq, ff = rng.integers(0, nq, k), rng.integers(0, m // 16, k)
+        measure.frame_min(qq[:100], ff[:100])  # warm the threads and buffers
+        ex = [t / k for t in timed(lambda qq=qq, ff=ff, m=measure: m.frame_min(qq, ff))]
+        ratio = statistics.median(ex) / per_cell
+        share = (1 - 1 / ratio_r) / ratio
+        emit(
+            f"rank bf16 candidates: exact frame measurement D={dim}",
+            [t * 1e9 for t in ex],
+            "ns per (query, frame)",
+            vs_fp32_cell=round(ratio, 1),
+            break_even_share=round(share, 4),
+            native_bf16=native,
+            notes=f"16 rows per frame, float64; {ratio:.0f}x a comparison by the fp32 engine "
+            f"({per_cell * 1e9:.0f} ns, same run); bf16 candidates pay only below "
+            f"{share:.2%} of comparisons measured exactly ({r_note})",
+        )
