@@ -230,7 +230,7 @@ def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registrie
     class ColourOptions:
         bins: int = 4  # per RGB channel
 
-    def colour_ranks(p, loc, frames, pairs, props):
+    def colour_ranks(p, loc, frames, pairs, props, rc):
         """Each subimage's square-rooted RGB histogram, ranked by the harness's engine."""
 
         def build(rows: pd.DataFrame, tmp: Path) -> dict:
@@ -248,7 +248,7 @@ def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registrie
             s: p.unit("colour", (loc.options.bins, t.key), partial(build, t.df))
             for s, t in props.items()
         }
-        return query_ranks(p, frames, pairs, described)
+        return query_ranks(p, frames, pairs, described, rc)
 
     register_localizer_kind(LocalizerKind("colour", ColourOptions, ranks=colour_ranks))
     entry = {"name": "rgb-hist", "proposals": ["grid5"], "colour": {"bins": 4}}

@@ -192,7 +192,7 @@ def retrieval_options(rc: RetrievalConfig) -> dict[str, Any]:
 
 
 def ranks_unit(
-    cfg: Config,
+    rc: RetrievalConfig,
     ref: str,
     pairs_key: str,
     descriptor_keys: dict[str, str],
@@ -205,20 +205,21 @@ def ranks_unit(
     ``precision``: the engine's candidate product; ``bf16`` only adds to the key (fp32 keys as
     before it).
     """
-    parts = (ref, pairs_key, descriptor_keys, retrieval_options(cfg.retrieval), first, n)
+    parts = (ref, pairs_key, descriptor_keys, retrieval_options(rc), first, n)
     return parts if precision == "fp32" else (*parts, {"precision": precision})
 
 
 def ranks(
-    cfg: Config, pairs_key: str, descriptor_keys: dict[str, str], precision: str = "fp32"
+    rc: RetrievalConfig, pairs_key: str, descriptor_keys: dict[str, str], precision: str = "fp32"
 ) -> Parts:
     """The rank table's key (not a cache entry: what the samples depend on)."""
-    parts = (pairs_key, descriptor_keys, retrieval_options(cfg.retrieval))
+    parts = (pairs_key, descriptor_keys, retrieval_options(rc))
     return parts if precision == "fp32" else (*parts, {"precision": precision})
 
 
 def ranks_import(
     cfg: Config,
+    rc: RetrievalConfig,
     name: str,
     content_sha: str,
     pairs_key: str,
@@ -237,8 +238,8 @@ def ranks_import(
         content_sha,
         pairs_key,
         sorted(proposal_keys),
-        cfg.retrieval.gt_radius_m,
-        cfg.retrieval.db_stride_m,
+        rc.gt_radius_m,
+        rc.db_stride_m,
         cfg.pairs.max_yaw_diff_deg,
         dataclasses.asdict(cfg.import_) | {"score_kind": score_kind},
     )

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.kinds import LOCALIZER_KINDS
-from harness.config.schema import FusionConfig, LocalizerConfig
+from harness.config.schema import FusionConfig, LocalizerConfig, RetrievalConfig
 from harness.errors import ConfigError, RetrievalError
 from harness.methods import rules_where
 from harness.pipeline import keys
@@ -113,8 +113,11 @@ def bovw_words(
     return out, nofeat
 
 
-#: A localizer kind's rank rows: (context, localizer, frames, pairs, its proposals) -> ranks.
-KindRanks = Callable[[Context, LocalizerConfig, Table, Table, dict[str, Table]], RankTable]
+#: A localizer kind's rank rows: (context, localizer, frames, pairs, its proposals, the
+#: ``[retrieval]`` whose ground-truth place it ranks against) -> ranks.
+KindRanks = Callable[
+    [Context, LocalizerConfig, Table, Table, dict[str, Table], RetrievalConfig], RankTable
+]
 
 
 def kind_ranks(name: str) -> Callable[[KindRanks], KindRanks]:
@@ -132,7 +135,12 @@ def kind_ranks(name: str) -> Callable[[KindRanks], KindRanks]:
 
 @kind_ranks("descriptor")
 def descriptor_kind_ranks(
-    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
+    p: Context,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    mine: dict[str, Table],
+    rc: RetrievalConfig,
 ) -> RankTable:
     """Kind ``descriptor``: model, projection, descriptors, then the ranking engine."""
     dc = loc.descriptor
@@ -140,41 +148,59 @@ def descriptor_kind_ranks(
     model = descriptor_model(p, dc, frames, mine)
     projection = descriptor_projection(p, dc, frames, pairs, mine, model)
     described = session_descriptors(p, dc, frames, mine, model, projection)
-    return query_ranks(p, frames, pairs, described, dc.device, dc.precision)
+    return query_ranks(p, frames, pairs, described, rc, dc.device, dc.precision)
 
 
 @kind_ranks("bovw")
 def bovw_kind_ranks(
-    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
+    p: Context,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    mine: dict[str, Table],
+    rc: RetrievalConfig,
 ) -> RankTable:
     """Kind ``bovw``: vocabulary, words, then the same ranking engine on the sparse vectors."""
     vocab = bovw_vocabulary(p, loc, frames, pairs, mine)
     words, nofeat = bovw_words(p, loc, frames, mine, vocab)
-    ranks = query_ranks(p, frames, pairs, words, p.cfg.descriptor.device)
+    ranks = query_ranks(p, frames, pairs, words, rc, p.cfg.descriptor.device)
     ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
     return ranks
 
 
 @kind_ranks("import")
 def import_kind_ranks(
-    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, mine: dict[str, Table]
+    p: Context,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    mine: dict[str, Table],
+    rc: RetrievalConfig,
 ) -> RankTable:
     """Kind ``import``: a user's ranked lists, checked and scored (SPEC 12)."""
     im = loc.import_
     assert im is not None  # the config's kind says so
     return imported_ranks(
-        p, frames, pairs, mine, ImportSpec(loc.name, Path(im.file)), im.score_kind
+        p, frames, pairs, mine, ImportSpec(loc.name, Path(im.file)), im.score_kind, rc
     )
 
 
 def localizer_ranks(
-    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
+    p: Context,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    props: dict[str, Table],
+    rc: RetrievalConfig | None = None,
 ) -> RankTable:
-    """One localizer's rank rows: its kind's stages over its proposals (SPEC sections 6, 11, 12)."""
+    """One localizer's rank rows: its kind's stages over its proposals (SPEC sections 6, 11, 12).
+
+    ``rc``: the ``[retrieval]`` to rank under (None: the run's).
+    """
     mine = localizer_proposals(p, loc, props)
     ranks = LOCALIZER_KINDS[loc.kind].ranks
     assert ranks is not None  # attached here, or given at registration
-    return ranks(p, loc, frames, pairs, mine)
+    return ranks(p, loc, frames, pairs, mine, p.cfg.retrieval if rc is None else rc)
 
 
 def retrieval_ranks(
@@ -200,7 +226,7 @@ def retrieval_ranks(
     projection = descriptor_projection(p, dc, frames, cand, mine, model)
     described = session_descriptors(p, dc, frames, mine, model, projection)
     pairs = retrieval_pair_table(p, frames, cand, described, loc.proposals[0])
-    return pairs, query_ranks(p, frames, pairs, described, dc.device, dc.precision)
+    return pairs, query_ranks(p, frames, pairs, described, p.cfg.retrieval, dc.device, dc.precision)
 
 
 def ranks_at_radius(
@@ -215,14 +241,8 @@ def ranks_at_radius(
 
     The same descriptors (their keys do not hold the radius), ranked again under the other place.
     """
-    saved = p.cfg
-    p.cfg = dataclasses.replace(
-        saved, retrieval=dataclasses.replace(saved.retrieval, gt_radius_m=radius_m)
-    )
-    try:
-        return localizer_ranks(p, loc, frames, pairs, props)
-    finally:
-        p.cfg = saved
+    rc = dataclasses.replace(p.cfg.retrieval, gt_radius_m=radius_m)
+    return localizer_ranks(p, loc, frames, pairs, props, rc)
 
 
 def measured_costs(

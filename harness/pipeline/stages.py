@@ -363,18 +363,20 @@ def query_ranks(
     frames: Table,
     pairs: Table,
     described: dict[str, Entry],
+    rc: RetrievalConfig,
     device: str = "auto",
     precision: str = "fp32",
 ) -> RankTable:
     """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
 
     Units: (reference session, chunk of ``query_frames_per_shard`` pairs); one engine per
-    proposal method inside each. ``device``: the descriptor's (``[descriptor] device``); the exact
+    proposal method inside each. ``rc``: the ``[retrieval]`` to rank under (the run's, or
+    ``gt_radius_also``'s). ``device``: the descriptor's (``[descriptor] device``); the exact
     engine runs on CUDA where it allows and one is present. ``precision``: the descriptor's
     (``[descriptor] precision``), for the exact engine's candidate product
     (:func:`harness.runtime.hardware.rank_precision`).
     """
-    rc, dkeys = p.cfg.retrieval, {s: e.key for s, e in described.items()}
+    dkeys = {s: e.key for s, e in described.items()}
     paths, device = {s: e.path for s, e in described.items()}, ranks_device(rc, device)
     precision = rank_precision(precision) if rc.engine == "exact" else "fp32"
     units: list[tuple[tuple[Any, ...], Build]] = []
@@ -396,7 +398,7 @@ def query_ranks(
                 p.cfg.pairs.place_frames if p.cfg.pairs.by == "retrieval" else None,
                 precision,
             )
-            key = keys.ranks_unit(p.cfg, ref, pairs.key, dkeys, c0, len(chunk), precision)
+            key = keys.ranks_unit(rc, ref, pairs.key, dkeys, c0, len(chunk), precision)
             units.append((key, build))
             unit_ref.append(ref)
     parts: list[pd.DataFrame] = []
@@ -412,7 +414,7 @@ def query_ranks(
         if parts
         else pd.DataFrame()
     )
-    return RankTable(df, stable_hash(*keys.ranks(p.cfg, pairs.key, dkeys, precision)), counts)
+    return RankTable(df, stable_hash(*keys.ranks(rc, pairs.key, dkeys, precision)), counts)
 
 
 SORT_RANKS = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
@@ -445,6 +447,7 @@ def imported_ranks(
     props: dict[str, Table],
     spec: ImportSpec,
     score_kind: str,
+    rc: RetrievalConfig,
 ) -> RankTable:
     """Ranks from a user's localizer (``--import NAME=FILE`` or an ``import`` localizer).
 
@@ -463,12 +466,13 @@ def imported_ranks(
         pairs.df,
         frames.df,
         allprops,
-        p.cfg.retrieval.gt_radius_m,
+        rc.gt_radius_m,
         p.cfg.pairs.max_yaw_diff_deg,
         score_kind,
     )
     key = keys.ranks_import(
         p.cfg,
+        rc,
         spec.name,
         content_sha(spec.path),
         pairs.key,

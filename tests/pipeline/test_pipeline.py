@@ -543,3 +543,30 @@ def test_recall_at_is_the_share_ranked_within_n(run: tuple) -> None:
     for n in (1, 3, 7):
         assert row[f"recall_at_{n}"] == pytest.approx((ranks["rank"] <= n).mean())
     assert "recall_at_5" not in mine.columns and "clean_recall_at_7" in mine.columns
+
+
+def test_a_second_place_radius_ranks_again_without_touching_the_run(
+    run: tuple, tmp_path: Path
+) -> None:
+    """``[report] gt_radius_also``: the localization table again with a wider place.
+
+    The same descriptors ranked under a 5 m place (its ranks' keys hold the radius, the
+    descriptors' do not): R@1 can only rise, the change tables are the run's own (they rest on
+    ``gt_radius_m``), and the config the run holds is never swapped.
+    """
+    p, _, out = run
+    cfg = dataclasses.replace(p.cfg, report=dataclasses.replace(p.cfg.report, gt_radius_also=5.0))
+    _copy_cache(out, tmp_path)
+    q = Pipeline(cfg, tmp_path)
+    q.run()
+    assert q.cfg is cfg and q.cfg.retrieval.gt_radius_m == p.cfg.retrieval.gt_radius_m
+    assert q.ran["descriptor_shards"] == 0 and q.ran["ranks"] > 0  # ranked again, not encoded
+    base = pd.read_csv(tmp_path / "localization.csv")
+    wide = pd.read_csv(tmp_path / "localization_also.csv")
+    assert set(wide["gt_radius_m"]) == {5.0}
+    key = ["proposals", "season_pair"]
+    both = base.merge(wide, on=key, suffixes=("", "_also"))
+    assert len(both) == len(base)
+    assert (both["recall_at_1_also"] >= both["recall_at_1"] - 1e-12).all()
+    assert (both["recall_at_1_also"] > both["recall_at_1"]).any()
+    assert (tmp_path / "table1.csv").read_bytes() == (out / "table1.csv").read_bytes()

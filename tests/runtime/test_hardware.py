@@ -76,10 +76,12 @@ def test_ranking_is_bf16_only_by_name_and_its_keys_say_so(monkeypatch) -> None:
         "bf16",
     ]
     cfg = Config(name="t", data_root=Path("."), annotations=None, sessions=())
-    plain = keys.ranks_unit(cfg, "a", "pk", {"a": "k"}, 0, 5)
-    assert keys.ranks_unit(cfg, "a", "pk", {"a": "k"}, 0, 5, "fp32") == plain
-    assert keys.ranks_unit(cfg, "a", "pk", {"a": "k"}, 0, 5, "bf16") == (
+    plain = keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5)
+    assert keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5, "fp32") == plain
+    assert keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5, "bf16") == (
         *plain,
         {"precision": "bf16"},
     )
-    assert keys.ranks(cfg, "pk", {"a": "k"}, "bf16")[:-1] == keys.ranks(cfg, "pk", {"a": "k"})
+    assert keys.ranks(cfg.retrieval, "pk", {"a": "k"}, "bf16")[:-1] == keys.ranks(
+        cfg.retrieval, "pk", {"a": "k"}
+    )
