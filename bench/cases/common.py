@@ -185,3 +185,75 @@ def anon_peak_poller() -> tuple[Any, dict[str, float]]:
     th = threading.Thread(target=poll, daemon=True)
     th.start()
     return stop, peak
+
+
+def autoencoder_flops(size: int = 256, train: bool = False) -> float:
+    """FLOPs of the paper's autoencoder on one ``size`` x ``size`` subimage, counted by torch.
+
+    ``train``: a training step's (forward and backward of encoder and decoder); else the
+    encoder's forward, what encoding a subimage costs.
+    """
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from harness.descriptors.autoencoder import ConvAutoencoder
+
+    model = ConvAutoencoder()
+    x = torch.randn(1, 3, size, size)
+    with FlopCounterMode(display=False) as counter:
+        if train:
+            model(x).square().mean().backward()
+        else:
+            with torch.no_grad():
+                model.encode(x)
+    return float(counter.get_total_flops())
+
+
+def kernel_limits(out: Path) -> dict[str, float]:
+    """The kernels' rates measured now, the limits a stage is rated against.
+
+    JPEG decode ms per frame (32 of the run's stored JPEG frames, libjpeg-turbo through
+    ``cv2.imread``: full size and at 1/2), the product rate the encoder can reach (bf16 where the
+    CPU multiplies it natively, else fp32; GFLOP/s), the fp32 rate and the memory bandwidth
+    (GB/s, a 256 MiB copy: read + write).
+    """
+    import cv2
+    import torch
+
+    from harness.runtime.hardware import has_bf16
+
+    jpegs = sorted(p for p in out.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg"))[-32:]
+    if not jpegs:
+        raise SystemExit(f"no stored JPEG frame in {out}: the decode limit cannot be measured")
+
+    def decode(flag: int) -> float:
+        for p in jpegs[:4]:
+            cv2.imread(str(p), flag)  # the page cache and the library warm
+        return 1000 * statistics.median(
+            min(timed(lambda p=p: cv2.imread(str(p), flag), repeat=3)) for p in jpegs
+        )
+
+    fp32 = matmul_gflops()
+    native = has_bf16("cpu")
+    rate = fp32
+    if native:
+        a, b = torch.randn(2048, 2048).bfloat16(), torch.randn(2048, 2048).bfloat16()
+        rate = max(rate, 2 * 2048**3 / min(timed(lambda: a @ b, repeat=5)) / 1e9)
+    src = np.ones(2**28 // 8)
+    dst = np.empty_like(src)
+    copy = min(timed(lambda: np.copyto(dst, src), repeat=5))
+    return {
+        "decode_ms": decode(cv2.IMREAD_COLOR),
+        "decode_half_ms": decode(cv2.IMREAD_REDUCED_COLOR_2),
+        "product_gflops": rate,
+        "fp32_gflops": fp32,
+        "native_bf16": float(native),
+        "bandwidth_gbs": 2 * src.nbytes / copy / 1e9,
+    }
+
+
+def product_note(lim: dict[str, float]) -> str:
+    """Which product rate a limit used, in words."""
+    return f"{lim['product_gflops']:.0f} GFLOP/s " + (
+        "(bf16, native)" if lim["native_bf16"] else "(fp32: this CPU has no native bf16)"
+    )

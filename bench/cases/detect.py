@@ -18,7 +18,15 @@ import tempfile
 import time
 from pathlib import Path
 
-from .common import DATA, ROOT, emit, matmul_gflops, nclt_scale_workload, timed
+from .common import (
+    DATA,
+    ROOT,
+    autoencoder_flops,
+    emit,
+    kernel_limits,
+    nclt_scale_workload,
+    product_note,
+)
 
 PAPER_MS = 25.41
 PER_FRAME_STAGES = ("proposals", "descriptor_shards", "descriptors", "ranks", "detect")
@@ -81,50 +89,8 @@ def case_detect(quick: bool) -> None:
     )
 
 
-#: Subimages per query frame (grid5) and the encoder of ``bench/nclt_detect.toml``.
-BOXES, INPUT, CHANNELS = 5, 256, (32, 32, 16)
-
-
-def _encoder_flops(size: int = INPUT, channels: tuple[int, int, int] = CHANNELS) -> int:
-    """Multiply-adds x 2 of the paper's encoder (three 3 x 3 conv blocks) on one subimage."""
-    c1, c2, c3 = channels
-    return 2 * 9 * (size**2 * 3 * c1 + (size // 2) ** 2 * c1 * c2 + (size // 4) ** 2 * c2 * c3)
-
-
-def _kernel_rates(out: Path) -> dict[str, float]:
-    """This run's limits: JPEG decode ms per frame (32 of the run's stored JPEG frames,
-    libjpeg-turbo through ``cv2.imread`` at full size: grid5's centre box at 256 needs the full
-    frame), the product rate the encoder
-    could reach (bf16 where native, else fp32; GFLOP/s) and the memory bandwidth (GB/s, a
-    256 MiB copy)."""
-    import cv2
-    import numpy as np
-    import torch
-
-    from harness.runtime.hardware import has_bf16
-
-    jpegs = sorted(p for p in out.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg"))[-32:]
-    if not jpegs:
-        raise SystemExit(f"no stored JPEG frame in {out}: the decode limit cannot be measured")
-    for p in jpegs[:4]:
-        cv2.imread(str(p), cv2.IMREAD_COLOR)  # warm the page cache
-    decode = [min(timed(lambda p=p: cv2.imread(str(p), cv2.IMREAD_COLOR), repeat=3)) for p in jpegs]
-    fp32 = matmul_gflops()
-    native = has_bf16("cpu")
-    rate = fp32
-    if native:
-        a, b = torch.randn(2048, 2048).bfloat16(), torch.randn(2048, 2048).bfloat16()
-        rate = max(rate, 2 * 2048**3 / min(timed(lambda: a @ b, repeat=5)) / 1e9)
-    src = np.ones(2**28 // 8)
-    dst = np.empty_like(src)
-    copy = min(timed(lambda: np.copyto(dst, src), repeat=5))
-    return {
-        "decode_ms": 1000 * float(np.median(decode)),
-        "product_gflops": rate,
-        "fp32_gflops": fp32,
-        "native_bf16": float(native),
-        "bandwidth_gbs": 2 * src.nbytes / copy / 1e9,  # read + write
-    }
+#: Subimages per query frame (grid5) and the frame size of ``bench/nclt_detect.toml``.
+BOXES, WIDTH, HEIGHT = 5, 1232, 1616
 
 
 def stage_limits(out: Path, timings: dict[str, float], frames: int) -> None:
@@ -140,9 +106,10 @@ def stage_limits(out: Path, timings: dict[str, float], frames: int) -> None:
       once at the measured memory bandwidth.
     """
 
-    lim = _kernel_rates(out)
-    enc_ms = 1000 * BOXES * _encoder_flops() / (lim["product_gflops"] * 1e9)
-    h, w = 1616, 1232
+    lim = kernel_limits(out)
+    flops = autoencoder_flops()
+    enc_ms = 1000 * BOXES * flops / (lim["product_gflops"] * 1e9)
+    h, w = HEIGHT, WIDTH
     rows_map = BOXES * frames  # the map holds as many frames as the query session
     per_frame = {s: 1000 * float(timings.get(s, 0.0)) / frames for s in PER_FRAME_STAGES}
     limits = {
@@ -160,10 +127,7 @@ def stage_limits(out: Path, timings: dict[str, float], frames: int) -> None:
     what = {
         "proposals": "grid5 boxes from the frame size: no kernel",
         "descriptors": f"JPEG decode {lim['decode_ms']:.1f} ms (libjpeg-turbo, full frame) + "
-        f"encoder {BOXES} x {_encoder_flops() / 1e6:.0f} MFLOP at "
-        f"{lim['product_gflops']:.0f} GFLOP/s "
-        + ("(bf16, native)" if lim["native_bf16"] else "(fp32: this CPU has no native bf16)")
-        + f" = {enc_ms:.1f} ms",
+        f"encoder {BOXES} x {flops / 1e6:.0f} MFLOP at {product_note(lim)} = {enc_ms:.1f} ms",
         "ranks": f"{BOXES} x {rows_map} x 128-D product at {lim['fp32_gflops']:.0f} GFLOP/s",
         "detect": f"a {w} x {h} float32 LoC map written and read at "
         f"{lim['bandwidth_gbs']:.1f} GB/s",

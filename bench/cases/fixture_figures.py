@@ -89,7 +89,7 @@ def figures(out: Path) -> dict[str, float]:
         "frames_not_described_max": max(run["counts"]["frames_not_described"].values()),
         "train_s": float(run["timings_s"].get("model", 0.0)),
         **_model_info(out, run),
-        **_measured_share(run.get("rank_counts", {})),
+        **_measured_share(run["counts"].get("rank_counts", {})),
     }
 
 
