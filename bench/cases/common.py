@@ -212,19 +212,21 @@ def autoencoder_flops(size: int = 256, train: bool = False) -> float:
 def kernel_limits(out: Path) -> dict[str, float]:
     """The kernels' rates measured now, the limits a stage is rated against.
 
-    JPEG decode ms per frame (32 of the run's stored JPEG frames, libjpeg-turbo through
-    ``cv2.imread``: full size and at 1/2), the product rate the encoder can reach (bf16 where the
-    CPU multiplies it natively, else fp32; GFLOP/s), the fp32 rate and the memory bandwidth
-    (GB/s, a 256 MiB copy: read + write).
+    JPEG decode ms per frame (32 of the run's ingested JPEG frames, libjpeg-turbo through
+    ``cv2.imread``: full size and at 1/2; ``decode_pixels`` their size), the product rate the
+    encoder can reach (bf16 where the CPU multiplies it natively, else fp32; GFLOP/s), the fp32
+    rate and the memory bandwidth (GB/s, a 256 MiB copy: read + write).
     """
     import cv2
     import torch
 
     from harness.runtime.hardware import has_bf16
 
-    jpegs = sorted(p for p in out.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg"))[-32:]
+    store = out / "cache" / "ingest"  # the ingested frames, not the report's own images
+    jpegs = sorted(p for p in store.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg"))[-32:]
     if not jpegs:
-        raise SystemExit(f"no stored JPEG frame in {out}: the decode limit cannot be measured")
+        raise SystemExit(f"no stored JPEG frame in {store}: the decode limit cannot be measured")
+    shape = cv2.imread(str(jpegs[0]), cv2.IMREAD_COLOR).shape
 
     def decode(flag: int) -> float:
         for p in jpegs[:4]:
@@ -244,6 +246,7 @@ def kernel_limits(out: Path) -> dict[str, float]:
     copy = min(timed(lambda: np.copyto(dst, src), repeat=5))
     return {
         "decode_ms": decode(cv2.IMREAD_COLOR),
+        "decode_pixels": float(shape[0] * shape[1]),
         "decode_half_ms": decode(cv2.IMREAD_REDUCED_COLOR_2),
         "product_gflops": rate,
         "fp32_gflops": fp32,

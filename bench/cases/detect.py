@@ -126,7 +126,8 @@ def stage_limits(out: Path, timings: dict[str, float], frames: int) -> None:
     }
     what = {
         "proposals": "grid5 boxes from the frame size: no kernel",
-        "descriptors": f"JPEG decode {lim['decode_ms']:.1f} ms (libjpeg-turbo, full frame) + "
+        "descriptors": f"JPEG decode {lim['decode_ms']:.1f} ms (libjpeg-turbo, full "
+        f"{lim['decode_pixels'] / 1e6:.1f} MP frame) + "
         f"encoder {BOXES} x {flops / 1e6:.0f} MFLOP at {product_note(lim)} = {enc_ms:.1f} ms",
         "ranks": f"{BOXES} x {rows_map} x 128-D product at {lim['fp32_gflops']:.0f} GFLOP/s",
         "detect": f"a {w} x {h} float32 LoC map written and read at "
