@@ -198,20 +198,26 @@ def write_md(rows: list[dict]) -> None:
                 "assumption)."
             ),
             "",
-            "| stage | measured | unit | projected, CPU (min) | projected, GPU |",
-            "|---|---|---|---|---|",
+            "| stage | measured | unit | projected, CPU (min) | its kernels' limit (min) "
+            "| x the limit | projected, GPU |",
+            "|---|---|---|---|---|---|---|",
         ]
         for r in proj:
             name = r["case"].removeprefix("full-nclt projection: ")
+            lim = r.get("limit_min_cpu")
+            vs = r.get("vs_limit")
+            rated = f"{lim:.1f} | {vs:.2f}x" if lim else "not rated | "
             if name == "total":
                 lines.append(
                     f"| **total** | | | **{60 * r['median']:.0f} min = {r['median']:.2f} "
-                    "h** | not measured: no GPU lent |"
+                    "h** | | | not measured: no GPU lent |"
                 )
+            elif "projected_min_cpu" not in r:  # the rated stages' sum against their limits
+                lines.append(f"| *{name}* | | | {r['median']:.1f} | {rated} | not measured |")
             else:
                 lines.append(
                     f"| {name} | {r['median']:.4g} | {r['unit']} | "
-                    f"{r['projected_min_cpu']:.1f} | not measured |"
+                    f"{r['projected_min_cpu']:.1f} | {rated} | not measured |"
                 )
         tot = next((r for r in proj if r["case"].endswith("total")), None)
         if tot:
