@@ -46,9 +46,10 @@ def rank_precision(precision: str) -> str:
     """The exact ranking engine's candidate product for ``[descriptor] precision``.
 
     ``bf16`` only where asked for by name: ``auto`` (and ``fp32``) rank in fp32. The bf16
-    product's error bound leaves frames undecided, each measured exactly at about 50 times the
-    cost of its fp32 product (``python -m bench --only ranking``), so bf16 ranks faster only
-    where few frames are undecided, which depends on the localizer, not the machine
-    (``docs/method.md``, *Exact engine*).
+    product's error bound leaves frames undecided, each measured exactly at 37 to 59 times the
+    cost of its fp32 comparison (``python -m bench --only ranking``), so bf16 ranks faster only
+    where few frames are undecided (under 1.3 to 2.0% with a 4x bf16 product; the fixture leaves
+    5.6%), which depends on the localizer, not the machine (``docs/method.md``, *bf16 candidate
+    product*).
     """
     return "bf16" if precision == "bf16" else "fp32"
