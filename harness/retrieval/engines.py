@@ -302,8 +302,7 @@ def image_ranks(
     error bound and is measured exactly where the bound cannot decide (:func:`_exact_ranks`):
     exact ranks, ties in the query's favour. fp32's equal them except where a frame lies within
     float32's rounding of ``d`` (or descriptors lie far from the origin). fp32 does not decide
-    that way because its worst-case bound grows with ``D``: at 16,384-D unit-norm rows it left
-    most frames undecided, 18 times slower (measured).
+    that way: its worst-case bound grows with ``D`` (16,384-D: most frames undecided, 18x slower).
 
     Args:
         query_desc: (n, D) query subimage descriptors.
@@ -317,9 +316,8 @@ def image_ranks(
         device: ``"cpu"`` or ``"cuda"`` (float32 products; float16 rows converted on the device).
         memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, :data:`CELL_BYTES` per
             cell.
-        precision: The candidate product: ``fp32``, or ``bf16`` (vectors centred on the
-            group's mean query, then a bfloat16 product: its bound,
-            :func:`bf16_error_factor`, leaves frames to measure exactly).
+        precision: The candidate product: ``fp32``, or ``bf16`` (centred vectors, a bfloat16
+            product: its bound, :func:`bf16_error_factor`, leaves frames to measure exactly).
         stats: Where given, counts are added to it: ``compared`` (query x frame comparisons) and
             ``measured_exactly`` (those the bound left to the exact measurement).
 
@@ -332,25 +330,13 @@ def image_ranks(
     """
     db_frame = np.asarray(db_frame)
     gt_frame = np.asarray(gt_frame)
-    if query_desc.ndim != 2 or db_desc.ndim != 2 or query_desc.shape[1] != db_desc.shape[1]:
-        raise RetrievalError(
-            f"descriptor shapes disagree: query {query_desc.shape}, database {db_desc.shape}"
-        )
-    if len(db_frame) != len(db_desc) or len(gt_frame) != len(query_desc):
-        raise RetrievalError("db_frame must align with db_desc and gt_frame with query_desc")
-    if precision not in RANK_PRECISIONS:
-        raise RetrievalError(f"precision must be one of {RANK_PRECISIONS}, got {precision!r}")
+    _check_inputs(query_desc, db_desc, db_frame, gt_frame, precision)
     order, frame_ids, starts = frame_layout(db_frame)
     L = len(frame_ids)
     pcols = place_columns(frame_ids, gt_frame, place)
     n = len(query_desc)
     group = max(1, int(memory_mb * 2**20 // (CELL_BYTES * max(L, 1))))
-    if (
-        torch.device(device).type == "cuda"
-    ):  # device memory is large and the copy costs more than the product
-        chunk_rows = max(chunk_rows, CUDA_CHUNK_ROWS)
-    else:  # a chunk's float32 rows are first touched once per call: keep them few megabytes
-        chunk_rows = max(1, min(chunk_rows, CPU_CHUNK_BYTES // (4 * max(db_desc.shape[1], 1))))
+    chunk_rows = _chunk_rows(chunk_rows, torch.device(device), db_desc.shape[1])
     rank, Lq, dist = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.float64))
     for g0 in range(0, n, group):
         g = slice(g0, min(n, g0 + group))
@@ -367,6 +353,36 @@ def image_ranks(
             stats if stats is not None else {},
         )
     return rank, Lq, dist
+
+
+def _check_inputs(
+    query_desc: np.ndarray,
+    db_desc: np.ndarray,
+    db_frame: np.ndarray,
+    gt_frame: np.ndarray,
+    precision: str,
+) -> None:
+    """:func:`image_ranks`'s arguments agree with each other (else :class:`RetrievalError`)."""
+    if query_desc.ndim != 2 or db_desc.ndim != 2 or query_desc.shape[1] != db_desc.shape[1]:
+        raise RetrievalError(
+            f"descriptor shapes disagree: query {query_desc.shape}, database {db_desc.shape}"
+        )
+    if len(db_frame) != len(db_desc) or len(gt_frame) != len(query_desc):
+        raise RetrievalError("db_frame must align with db_desc and gt_frame with query_desc")
+    if precision not in RANK_PRECISIONS:
+        raise RetrievalError(f"precision must be one of {RANK_PRECISIONS}, got {precision!r}")
+
+
+def _chunk_rows(chunk_rows: int, device: torch.device, dim: int) -> int:
+    """Database rows per streamed chunk on ``device``.
+
+    On CUDA at least :data:`CUDA_CHUNK_ROWS` (device memory is large and the copy costs more
+    than the product); on CPU at most :data:`CPU_CHUNK_BYTES` of float32 rows (a chunk's rows
+    are first touched once per call: keep them a few megabytes).
+    """
+    if device.type == "cuda":
+        return max(chunk_rows, CUDA_CHUNK_ROWS)
+    return max(1, min(chunk_rows, CPU_CHUNK_BYTES // (4 * max(dim, 1))))
 
 
 def _place_rows(
@@ -425,19 +441,7 @@ def _rank_group(
     L, n = len(starts), len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
     bounds = np.concatenate([starts, [len(order)]])
-    queries = [
-        torch.from_numpy(
-            np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)
-        ).to(dev)
-        for s in range(0, n, query_batch)
-    ]
-    center = None  # bf16: both sides less the group's mean query (distances are unchanged)
-    if bf16 and n:
-        mean = np.mean(query_desc, axis=0, dtype=np.float64).astype(np.float32)
-        center = torch.from_numpy(mean).to(dev)
-        queries = [q - center for q in queries]
-    qnorms = [torch.linalg.vector_norm(q, dim=1, keepdim=True).square_() for q in queries]
-    lhs = [q.bfloat16() for q in queries] if bf16 else queries
+    lhs, qnorms, center = _query_batches(query_desc, query_batch, dev, bf16)
     sqdist = _sqdist_bf16_into if bf16 else _sqdist_into
     qi = np.repeat(np.arange(n), [len(c) for c in pcols])
     pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
@@ -490,6 +494,31 @@ def _rank_group(
         measure = _FrameMeasure(query_desc, db_desc, order, bounds)
         rank, Lq = _exact_ranks(fm, qi, pc, exact, fmax, measure, stats)
     return rank, Lq, np.sqrt(exact.best)
+
+
+def _query_batches(
+    query_desc: np.ndarray, query_batch: int, dev: torch.device, bf16: bool
+) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor | None]:
+    """The group's queries in batches of ``query_batch`` on ``dev``.
+
+    Returns (the product's left operands, their squared norms, the centre subtracted or None).
+    bf16: both sides less the group's mean query (distances are unchanged, norms smaller), the
+    operands in bfloat16 and the norms of the centred float32 vectors.
+    """
+    n = len(query_desc)
+    queries = [
+        torch.from_numpy(
+            np.ascontiguousarray(query_desc[s : s + query_batch], dtype=np.float32)
+        ).to(dev)
+        for s in range(0, n, query_batch)
+    ]
+    center = None
+    if bf16 and n:
+        mean = np.mean(query_desc, axis=0, dtype=np.float64).astype(np.float32)
+        center = torch.from_numpy(mean).to(dev)
+        queries = [q - center for q in queries]
+    qnorms = [torch.linalg.vector_norm(q, dim=1, keepdim=True).square_() for q in queries]
+    return ([q.bfloat16() for q in queries] if bf16 else queries), qnorms, center
 
 
 def _chunk_block(

@@ -116,21 +116,7 @@ def rank_reference(
     if not len(pairs):
         return pd.DataFrame(), counts
     ref_frames = frames[frames["session"] == ref]
-    places = {
-        cam: (
-            ground_truth_places(
-                ref_frames[ref_frames["camera"] == cam],
-                g["r_utime"].to_numpy(),
-                rc.gt_radius_m,
-                max_yaw_deg,
-            )
-            if place_frames is None
-            else places_by_order(
-                ref_frames[ref_frames["camera"] == cam], g["r_utime"].to_numpy(), place_frames
-            )
-        )
-        for cam, g in pairs.groupby("r_camera", sort=True)
-    }
+    places = _places(ref_frames, pairs, rc.gt_radius_m, max_yaw_deg, place_frames)
     kept = kept_reference_frames(ref_frames, rc.db_stride_m) if rc.db_stride_m > 0 else None
     if kept is not None:
         counts["no_rank_place_not_in_database"] = 0
@@ -168,6 +154,29 @@ def rank_reference(
     if len(df):
         df = df.sort_values(SORT).reset_index(drop=True)
     return df, counts
+
+
+def _places(
+    ref_frames: pd.DataFrame,
+    pairs: pd.DataFrame,
+    radius_m: float,
+    max_yaw_deg: float,
+    place_frames: int | None,
+) -> dict[Any, dict[int, np.ndarray]]:
+    """Per reference camera, each paired reference frame's ground-truth place.
+
+    By pose (``radius_m``, ``max_yaw_deg``: SPEC 6) or, with ``place_frames``, by the map's
+    order (pairs by retrieval, SPEC 13.2).
+    """
+    out = {}
+    for cam, g in pairs.groupby("r_camera", sort=True):
+        mine, utimes = ref_frames[ref_frames["camera"] == cam], g["r_utime"].to_numpy()
+        out[cam] = (
+            ground_truth_places(mine, utimes, radius_m, max_yaw_deg)
+            if place_frames is None
+            else places_by_order(mine, utimes, place_frames)
+        )
+    return out
 
 
 def _vectors(entry: Path) -> Any:
