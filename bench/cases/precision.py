@@ -47,6 +47,11 @@ def _figures(out: Path, run: dict[str, Any]) -> dict[str, float]:
         "t1_rank_fusion_005": float(t1.loc["rank_fusion", "0.05"]),
         "t1_rank_no_fusion_005": float(t1.loc["rank_no_fusion", "0.05"]),
         "ts_rank_fusion_005": float(ts.loc["rank_fusion", "ap"]),
+        # SPEC 9: every AP with its interval, its measured floor and chance band
+        "ts_rank_fusion_ci_low_005": float(ts.loc["rank_fusion", "ci_low"]),
+        "ts_rank_fusion_ci_high_005": float(ts.loc["rank_fusion", "ci_high"]),
+        "ts_floor_005": float(ts.loc["rank_fusion", "floor"]),
+        "ts_chance_high_005": float(ts.loc["rank_fusion", "chance_high"]),
         "subimages": int(row["subimages"]),
     }
     counts = run["counts"].get("rank_counts", {})
@@ -107,5 +112,11 @@ def case_precision(quick: bool) -> None:
         vs_fp32=diff,
         notes="bf16 minus fp32: "
         + ", ".join(f"{k} {v:+.4f}" for k, v in diff.items())
-        + f"; largest {worst:.4f} (goal: none beyond 0.01: {verdict})",
+        + f"; largest {worst:.4f} (goal: none beyond 0.01: {verdict}); Table S rank fusion "
+        + "; ".join(
+            f"{p} {got[p]['ts_rank_fusion_005']:.3f} [{got[p]['ts_rank_fusion_ci_low_005']:.3f}, "
+            f"{got[p]['ts_rank_fusion_ci_high_005']:.3f}] (floor {got[p]['ts_floor_005']:.3f}, "
+            f"chance band up to {got[p]['ts_chance_high_005']:.3f})"
+            for p in PRECISIONS
+        ),
     )
