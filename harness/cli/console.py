@@ -12,7 +12,7 @@ def print_change_table(console, rep, table: str, title: str) -> None:
 
     from harness.evaluate.chance import MARK_LEGEND
     from harness.methods import FUSION_METHODS, METHOD_LABELS
-    from harness.reports.render import chance_rows, change_cells, gap_line
+    from harness.reports.change import chance_rows, change_cells, gap_line
 
     cells = change_cells(rep.summary, table, rep.methods)
     t = Table(title=title)

@@ -1,28 +1,32 @@
 """How the tables read (SPEC section 10): markdown, CSV and LaTeX renderers of one table spec.
 
-The localization table, Tables I, S and P from a run's summary (:func:`pivot`), the paired
-comparisons; the console (:mod:`harness.cli`) and the page (:mod:`harness.reports.html.page`) read
-the same pivots and intros.
+The localization table, Tables I, S and P (their pivots and cells from
+:mod:`harness.reports.change`), the paired comparisons; the console (:mod:`harness.cli`) and the
+page (:mod:`harness.reports.html.page`) read the same pivots and intros.
 """
 
 from __future__ import annotations
 
 import re
-from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from harness.evaluate.chance import MARK_LEGEND, VERDICT_MARKS, VERDICT_TEX
+from harness.evaluate.chance import MARK_LEGEND, VERDICT_TEX
 from harness.methods import FUSION_METHODS, METHOD_LABELS
+from harness.reports.change import (
+    TABLE_INTRO,
+    box_sets,
+    chance_rows,
+    change_cells,
+    column_label,
+    gap_line,
+    number,
+)
 from harness.reports.texfmt import tex_escape as _tex_escape
 
 #: A query subimage is "clean" for the localization table when at most this share of it changed.
 CLEAN_ROC = 0.05
-
-
-def _fmt(v: float, digits: int = 2) -> str:
-    return "NaN" if v != v else f"{v:.{digits}f}"
 
 
 def recall_ns(loc: pd.DataFrame) -> list[int]:
@@ -61,7 +65,8 @@ def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str 
     body = "".join(
         f"| {r.proposals} | {r.season_pair} | "
         + " | ".join(
-            str(int(getattr(r, c))) if d == 0 else _fmt(float(getattr(r, c)), d) for c, _, d in cols
+            str(int(getattr(r, c))) if d == 0 else number(float(getattr(r, c)), d)
+            for c, _, d in cols
         )
         + " |\n"
         for r in loc.itertuples(index=False)
@@ -81,20 +86,6 @@ def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str 
 # ------------------------------------------------------------------ rendering
 
 
-def pivot(
-    summ: pd.DataFrame, table: str, methods: tuple[str, ...], value: str = "ap"
-) -> pd.DataFrame:
-    """One table's ``value`` (AP by default), method x split, in SPEC order."""
-    main = summ[
-        (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
-    ]
-    col = "split" if table == "P" else "roc_max"
-    t = main.pivot(index="method", columns=col, values=value).reindex(list(methods))
-    if table == "P":
-        t = t.reindex(columns=["pixel", "image"])
-    return t
-
-
 def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = True) -> str:
     """One row per method id (first column ``method``), one column per split, two decimals.
 
@@ -102,7 +93,7 @@ def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = 
     rows each; ``header`` only on the first).
     """
     pre = "" if localizer is None else "localizer,"
-    lines = [pre + "method," + ",".join(_col(c) for c in table.columns)] if header else []
+    lines = [pre + "method," + ",".join(column_label(c) for c in table.columns)] if header else []
     cell = "" if localizer is None else (f'"{localizer}",' if "," in localizer else f"{localizer},")
     for m, row in table.iterrows():
         lines.append(
@@ -112,122 +103,6 @@ def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = 
             + ",".join("nan" if np.isnan(v) else f"{v:.2f}" for v in row.to_numpy())
         )
     return "\n".join(lines) + "\n"
-
-
-def _col(c: Any) -> str:
-    return f"{c:.2f}" if isinstance(c, float) else str(c)
-
-
-def _cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
-    if v != v:
-        return "NaN"
-    mark = VERDICT_MARKS.get(verdict, "")
-    return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
-        f" {mark}" if mark else ""
-    )
-
-
-def change_cells(summ: pd.DataFrame, table: str, methods: tuple[str, ...]) -> pd.DataFrame:
-    """Every AP cell of a change table as text: ``AP [interval] mark`` (the verdict's mark)."""
-    ap, lo, hi, ver = (
-        pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "verdict")
-    )
-    return pd.DataFrame(
-        {
-            c: [_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c], ver.loc[m, c]) for m in ap.index]
-            for c in ap.columns
-        },
-        index=ap.index,
-    )
-
-
-def box_sets(methods: tuple[str, ...] | list[str]) -> list[tuple[str, str]]:
-    """(label, reference method) of each sample set a change table's rows are scored on."""
-    fused = next((m for m in methods if m != "rank_no_fusion"), None)
-    out = [("fused set", fused)] if fused else []
-    if "rank_no_fusion" in methods:
-        out.append(("original boxes", "rank_no_fusion"))
-    return out
-
-
-def chance_rows(
-    summ: pd.DataFrame, table: str, methods: tuple[str, ...]
-) -> list[tuple[str, list[str]]]:
-    """The rows under a change table (SPEC 9), each as (label, cells).
-
-    Per sample set its floor, chance band and (Table P) ceiling, then the positive rate.
-    """
-    cols = list(pivot(summ, table, methods).columns)
-    piv = {
-        v: pivot(summ, table, methods, v)
-        for v in ("floor", "chance_low", "chance_high", "ceiling", "positive_rate")
-    }
-    out = []
-    sets = box_sets([m for m in methods if m in piv["floor"].index])
-    for label, ref in sets:
-        f, lo, hi = (piv[v].loc[ref] for v in ("floor", "chance_low", "chance_high"))
-        out.append((f"floor, {label} (mean AP of random orders)", [_fmt(f[c]) for c in cols]))
-        out.append(
-            (
-                f"chance band, {label} (5th-95th percentile)",
-                ["NaN" if lo[c] != lo[c] else f"{lo[c]:.2f}-{hi[c]:.2f}" for c in cols],
-            )
-        )
-        if table == "P":
-            cl = piv["ceiling"].loc[ref]
-            out.append(
-                (f"ceiling, {label} (boxes scored by their RoC)", [_fmt(cl[c]) for c in cols])
-            )
-    pr = piv["positive_rate"].loc[sets[0][1]] if sets else None
-    if pr is not None:
-        out.append(("positive rate (not the floor)", [_fmt(pr[c], 3) for c in cols]))
-    return out
-
-
-def gap_line(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
-    """Table P's share of the reachable gap, ``(AP - floor) / (ceiling - floor)``, per method."""
-    g = pivot(summ, "P", methods, "gap_closed")
-    parts = [
-        f"{METHOD_LABELS[str(m)]} "
-        + " / ".join(
-            "NaN" if g.loc[m, c] != g.loc[m, c] else f"{100 * g.loc[m, c]:.0f}%" for c in g.columns
-        )
-        for m in g.index
-    ]
-    return (
-        "Share of the reachable gap closed, (AP - floor) / (ceiling - floor), pixel / image: "
-        + "; ".join(parts)
-        + "."
-    )
-
-
-TABLE_INTRO = {
-    "I": (
-        "Table I",
-        (
-            "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): "
-            "positives are small boxes "
-            "(SoB <= 0.4), negatives large ones (SoB >= 0.4)."
-        ),
-    ),
-    "S": (
-        "Table S",
-        (
-            "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
-            "boxes of the same size, "
-            "weighted by the strata's positives. The floor is the mean of the same figure over "
-            "random orders within the same strata (SPEC 9)."
-        ),
-    ),
-    "P": (
-        "Table P",
-        (
-            "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact "
-            "region areas) and image AP "
-            "(each query image scores the largest LoC of its samples), SPEC section 9."
-        ),
-    ),
-}
 
 
 def table_markdown(
@@ -246,7 +121,7 @@ def table_markdown(
     title, intro = TABLE_INTRO[table]
     head = (
         "| AP [95% CI] | "
-        + " | ".join(_col(c) for c in cols)
+        + " | ".join(column_label(c) for c in cols)
         + " |\n|---|"
         + "---:|" * len(cols)
         + "\n"
@@ -267,7 +142,7 @@ def table_markdown(
         & (summ["method"] == ref)
     ]
     counts = "; ".join(
-        f"{_col(r.roc_max if table != 'P' else r.split)}: {r.positives} positives / "
+        f"{column_label(r.roc_max if table != 'P' else r.split)}: {r.positives} positives / "
         f"{r.negatives} negatives" + (" (pixels)" if table == "P" and r.split == "pixel" else "")
         for r in main.itertuples()
     )
@@ -304,7 +179,9 @@ def table_latex(
     out += [
         r"\begin{tabular}{l" + "r" * len(cols) + "}",
         r"\toprule",
-        " & ".join([_tex_escape(caption_cols or "Method")] + [_tex_escape(_col(c)) for c in cols])
+        " & ".join(
+            [_tex_escape(caption_cols or "Method")] + [_tex_escape(column_label(c)) for c in cols]
+        )
         + r" \\",
         r"\midrule",
     ]

@@ -35,14 +35,12 @@ from harness.ingest.annotations import change_boxes
 from harness.methods import BASELINES, FUSION_METHODS, ordered_methods
 from harness.records import QUERY_KEY, frame_sizes
 from harness.reports import tables as report_tables
+from harness.reports.change import TABLE_INTRO, chance_rows, pivot
 from harness.reports.render import (
     CLEAN_ROC,
-    TABLE_INTRO,
-    chance_rows,
     comparisons_markdown,
     localization_latex,
     localization_markdown,
-    pivot,
     table_csv,
     table_latex,
     table_markdown,

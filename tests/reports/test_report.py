@@ -203,7 +203,7 @@ def test_every_colour_of_the_fixture_page_is_the_rule_recomputed_from_the_summar
 
     from harness.evaluate.chance import verdict
     from harness.methods import METHOD_LABELS
-    from harness.reports.render import pivot
+    from harness.reports.change import pivot
 
     _, rec, out = local_run
     page = (out / "report.html").read_text()

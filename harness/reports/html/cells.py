@@ -16,7 +16,8 @@ import pandas as pd
 
 from harness.methods import FUSION_METHODS, METHOD_LABELS
 from harness.reports import tables as report_tables
-from harness.reports.render import TABLE_INTRO, chance_rows, gap_line, loc_columns, pivot
+from harness.reports.change import TABLE_INTRO, chance_rows, gap_line, pivot
+from harness.reports.render import loc_columns
 
 
 def esc(x: Any) -> str:

@@ -28,6 +28,7 @@ import pandas as pd
 from harness.imagestore import local_uri
 from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
+from harness.reports.change import TABLE_INTRO
 from harness.reports.html.cells import (
     LEGEND,
     change_table,
@@ -41,7 +42,7 @@ from harness.reports.html.cells import (
     table_l,
 )
 from harness.reports.html.gallery import gallery_html, pr_figure_html
-from harness.reports.render import HOLM_MARK, TABLE_INTRO, holm_sentence
+from harness.reports.render import HOLM_MARK, holm_sentence
 from harness.runtime.cache import write_text
 from harness.runtime.outdirs import read_run_record
 
