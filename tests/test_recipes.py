@@ -450,3 +450,41 @@ def test_recipe_a_toy_report_table(
     (tmp_path / "tableR.notes").write_text("the user's own file")  # not the harness's
     assert main([*argv, str(tmp_path)]) == 0
     assert [p.name for p in tmp_path.glob("tableR.*")] == ["tableR.notes"]
+
+
+def test_recipe_a_column_of_table_s(local_run: tuple) -> None:
+    """A column of Tables I, S and P is summary rows: every format renders it from one spec."""
+    from rich.console import Console
+
+    from harness.cli.console import print_change_table
+    from harness.reports.change import change_table
+    from harness.reports.html.cells import change_html
+    from harness.reports.render import change_latex, table_csv, table_markdown
+
+    _, _, out = local_run
+    summ = pd.read_parquet(out / "splits" / "summary.parquet")
+    summ = summ[summ["localizer"] == summ["localizer"].iloc[0]]
+    # --- the recipe: the summary's rows of the new column (what evaluate/aps.py writes per split;
+    # a RoC-max needs only a value in [splits] roc_max) ---
+    new = summ[(summ["table"] == "S") & (summ["roc_max"] == 0.05)].copy()
+    new["roc_max"], new["split"] = 0.5, "roc_max_0.50"
+    new["ap"], new["ci_low"], new["ci_high"] = 0.625, 0.5, 0.75
+    new["verdict"] = "above"
+    summ = pd.concat([summ, new], ignore_index=True)
+    # --- end of the recipe (the rest checks it) ---
+    methods = tuple(m for m in summ["method"].unique() if isinstance(m, str))
+    t = change_table(summ, "S", methods)
+    assert t.columns[-1] == 0.5 and t.counts.count("positives") == len(t.columns)
+    text = "0.62 [0.50, 0.75]"
+    md = table_markdown(t)
+    header = next(line for line in md.splitlines() if line.startswith("| AP [95% CI]"))
+    assert header.endswith("| 0.05 | 0.50 |")
+    rank_fusion = next(line for line in md.splitlines() if line.startswith("| rank fusion |"))
+    assert rank_fusion.endswith(f"| {text} ▲ |"), rank_fusion
+    assert table_csv(t.frame()).splitlines()[0].endswith(",0.05,0.50")
+    assert "& 0.62$^{\\blacktriangle}$ \\\\" in change_latex(t)
+    console = Console(record=True, width=240)
+    print_change_table(console, t, "recipe")
+    assert text in console.export_text()
+    page = change_html(t)
+    assert "<th>0.50</th>" in page and '>0.62 <span class="ci">[0.50, 0.75]</span></td>' in page

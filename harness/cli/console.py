@@ -3,36 +3,35 @@
 from __future__ import annotations
 
 
-def print_change_table(console, rep, table: str, title: str) -> None:
-    """One change table: cells with intervals and verdict marks, then floor, band and ceiling.
+def print_change_table(console, t, run: str) -> None:
+    """One change table (a :class:`~harness.reports.change.ChangeTable`) on the console.
 
-    The same cells as the markdown, then the table's warnings.
+    The markdown's cells with intervals and verdict marks, then floor, band and ceiling, the
+    legend, the notes and the warnings.
     """
     from rich.table import Table
 
     from harness.evaluate.chance import MARK_LEGEND
-    from harness.methods import FUSION_METHODS, METHOD_LABELS
-    from harness.reports.change import chance_rows, change_cells, gap_line
+    from harness.reports.change import column_label
 
-    cells = change_cells(rep.summary, table, rep.methods)
-    t = Table(title=title)
-    t.add_column("AP [95% CI]")
-    for c in cells.columns:
-        t.add_column(f"{c:.2f}" if isinstance(c, float) else str(c), justify="right")
+    out = Table(title=f"{t.spec.caption} ({run})")
+    out.add_column("AP [95% CI]")
+    for c in t.columns:
+        out.add_column(column_label(c), justify="right")
     shown_sep = False
-    for m in cells.index:
-        if m not in FUSION_METHODS and not shown_sep:
-            t.add_section()
+    for r in t.rows:
+        if r.extra and not shown_sep:
+            out.add_section()
             shown_sep = True
-        t.add_row(METHOD_LABELS[m], *cells.loc[m])
-    t.add_section()
-    for label, vals in chance_rows(rep.summary, table, rep.methods):
-        t.add_row(label, *vals)
-    console.print(t)
+        out.add_row(r.label, *r.cells())
+    out.add_section()
+    for label, vals in t.chance:
+        out.add_row(label, *vals)
+    console.print(out)
     console.print(MARK_LEGEND, markup=False)
-    if table == "P":
-        console.print(gap_line(rep.summary, rep.methods), markup=False)
-    for w in rep.warnings[table]:
+    for n in t.notes:
+        console.print(n, markup=False)
+    for w in t.warnings:
         console.print(f"[bold yellow]{w}[/]")
 
 
@@ -151,9 +150,11 @@ def print_localization(console, rep, rec, also: bool = False) -> None:
 def print_block(console, rep, rec) -> None:
     """One block's Tables I, S and P and its paired comparisons (Table S, last RoC-max)."""
     name = f"{rec['config']['name']}, localizer {rep.localizer}"
-    print_change_table(console, rep, "I", f"Table I: AP by RoC-max, the paper's protocol ({name})")
-    print_change_table(console, rep, "S", f"Table S: size-stratified AP by RoC-max ({name})")
-    print_change_table(console, rep, "P", f"Table P: pixel AP and image AP ({name})")
+    from harness.reports.change import CHANGE_TABLES, change_table
+
+    for table in CHANGE_TABLES:
+        t = change_table(rep.summary, table, rep.methods, rep.warnings[table])
+        print_change_table(console, t, name)
     summ = rep.summary
     cmp_ = summ[
         (summ["table"] == "S")

@@ -1,31 +1,108 @@
-"""Tables I, S and P from a run's summary (SPEC sections 8-10): their pivots, cells and chance rows.
+"""Tables I, S and P as specs (SPEC sections 8-10): each built once from a run's summary.
 
-Every format reads these: the markdown, CSV and LaTeX (:mod:`harness.reports.render`), the console
-(:mod:`harness.cli.console`) and the page (:mod:`harness.reports.html.cells`).
+A change table is a :class:`ChangeSpec` (what it is: title, intro, which summary column gives its
+columns, what its floor is measured within, whether it has a ceiling) and, for one run, a
+:class:`ChangeTable` (:func:`change_table`: its columns, a :class:`ChangeRow` per method with AP,
+interval, floor and verdict per column, the chance rows of SPEC 9, the counts, its notes and
+warnings). Every format renders the ``ChangeTable``: the markdown, CSV and LaTeX
+(:mod:`harness.reports.render`), the console (:mod:`harness.cli.console`) and the page
+(:mod:`harness.reports.html.cells`); a row, a column, a chance row or a note of these tables is
+added here, once.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import pandas as pd
 
 from harness.evaluate.chance import VERDICT_MARKS
-from harness.methods import METHOD_LABELS
+from harness.methods import FUSION_METHODS, METHOD_LABELS
+
+
+@dataclass(frozen=True)
+class ChangeSpec:
+    """What a change table is, apart from one run's numbers."""
+
+    id: str
+    #: Its files: ``<stem>.csv|md|tex``.
+    stem: str
+    title: str
+    intro: str
+    #: The console's title (the run and localizer follow in parentheses).
+    caption: str
+    #: The summary column whose values are the table's columns.
+    column: str = "roc_max"
+    #: A fixed order of the columns (else the summary's, sorted).
+    order: tuple[str, ...] = ()
+    #: Where the floor's random orders are drawn (after "random orders of the same samples").
+    floor_within: str = ""
+    #: The LaTeX table's corner cell.
+    corner: str = "AP"
+    #: Its chance rows add the ceiling (boxes scored by their RoC).
+    ceiling: bool = False
+    #: The count of each column is of pixels, for these columns.
+    pixel_columns: tuple[str, ...] = ()
+    #: On the page it sits in a collapsed section (a lower heading).
+    collapsed: bool = False
+
+
+#: SPEC's change tables, in the order they are written and shown.
+CHANGE_TABLES: dict[str, ChangeSpec] = {
+    "I": ChangeSpec(
+        "I",
+        "table1",
+        "Table I",
+        "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): "
+        "positives are small boxes (SoB <= 0.4), negatives large ones (SoB >= 0.4).",
+        "Table I: AP by RoC-max, the paper's protocol",
+        collapsed=True,
+    ),
+    "S": ChangeSpec(
+        "S",
+        "tableS",
+        "Table S",
+        "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
+        "boxes of the same size, weighted by the strata's positives. The floor is the mean of "
+        "the same figure over random orders within the same strata (SPEC 9).",
+        "Table S: size-stratified AP by RoC-max",
+        floor_within=" within the same strata",
+    ),
+    "P": ChangeSpec(
+        "P",
+        "tableP",
+        "Table P",
+        "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact "
+        "region areas) and image AP (each query image scores the largest LoC of its samples), "
+        "SPEC section 9.",
+        "Table P: pixel AP and image AP",
+        column="split",
+        order=("pixel", "image"),
+        floor_within=" through the same pixel maps",
+        corner="Method",
+        ceiling=True,
+        pixel_columns=("pixel",),
+    ),
+}
 
 
 def pivot(
     summ: pd.DataFrame, table: str, methods: tuple[str, ...], value: str = "ap"
 ) -> pd.DataFrame:
-    """One table's ``value`` (AP by default), method x split, in SPEC order."""
-    main = summ[
+    """One table's ``value`` (AP by default), method x column, in SPEC order."""
+    spec = CHANGE_TABLES[table]
+    main = _pooled(summ, table)
+    t = main.pivot(index="method", columns=spec.column, values=value).reindex(list(methods))
+    return t.reindex(columns=list(spec.order)) if spec.order else t
+
+
+def _pooled(summ: pd.DataFrame, table: str) -> pd.DataFrame:
+    """The table's pooled rows: every proposal method and season pair together."""
+    return summ[
         (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
     ]
-    col = "split" if table == "P" else "roc_max"
-    t = main.pivot(index="method", columns=col, values=value).reindex(list(methods))
-    if table == "P":
-        t = t.reindex(columns=["pixel", "image"])
-    return t
 
 
 def number(v: float, digits: int = 2) -> str:
@@ -38,7 +115,8 @@ def column_label(c: Any) -> str:
     return f"{c:.2f}" if isinstance(c, float) else str(c)
 
 
-def _cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
+def cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
+    """An AP cell as text: ``AP [interval] mark`` (the verdict's mark), ``NaN`` where undefined."""
     if v != v:
         return "NaN"
     mark = VERDICT_MARKS.get(verdict, "")
@@ -47,17 +125,90 @@ def _cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
     )
 
 
-def change_cells(summ: pd.DataFrame, table: str, methods: tuple[str, ...]) -> pd.DataFrame:
-    """Every AP cell of a change table as text: ``AP [interval] mark`` (the verdict's mark)."""
-    ap, lo, hi, ver = (
-        pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "verdict")
+@dataclass(frozen=True)
+class ChangeRow:
+    """One method's line of a change table: per column its AP, interval, floor and verdict."""
+
+    method: str
+    label: str
+    #: A variant or baseline: shown after the six methods, past a rule.
+    extra: bool
+    ap: tuple[float, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    floor: tuple[float, ...]
+    verdict: tuple[str, ...]
+
+    def cells(self) -> list[str]:
+        """The row's AP cells as the markdown and the console show them."""
+        return [cell(*v) for v in zip(self.ap, self.low, self.high, self.verdict, strict=True)]
+
+
+@dataclass(frozen=True)
+class ChangeTable:
+    """A change table of one run (and one localizer), ready for any format to render."""
+
+    spec: ChangeSpec
+    columns: tuple[Any, ...]
+    rows: tuple[ChangeRow, ...]
+    #: SPEC 9's rows under the table, each (label, a cell per column).
+    chance: tuple[tuple[str, list[str]], ...]
+    #: The method whose sample counts the footer gives, and those counts in words.
+    ref: str
+    counts: str
+    #: Lines every format shows under the table (Table P: the share of the gap closed).
+    notes: tuple[str, ...]
+    warnings: tuple[str, ...]
+    localizer: str = ""
+
+    def frame(self, value: str = "ap") -> pd.DataFrame:
+        """One field of the rows (``ap``, ``low``, ``high``, ``floor``, ``verdict``) by column."""
+        return pd.DataFrame(
+            [getattr(r, value) for r in self.rows],
+            index=pd.Index([r.method for r in self.rows], name="method"),
+            columns=pd.Index(list(self.columns), name=self.spec.column),
+        )
+
+
+def change_table(
+    summ: pd.DataFrame,
+    table: str,
+    methods: tuple[str, ...],
+    warnings: Sequence[str] = (),
+    localizer: str = "",
+) -> ChangeTable:
+    """Table ``table`` (``I``, ``S`` or ``P``) of a run's summary, for every format."""
+    spec = CHANGE_TABLES[table]
+    piv = {
+        v: pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "floor", "verdict")
+    }
+    cols = list(piv["ap"].columns)
+    rows = tuple(
+        ChangeRow(
+            str(m),
+            METHOD_LABELS[str(m)],
+            m not in FUSION_METHODS,
+            *(tuple(piv[v].loc[m, c] for c in cols) for v in piv),
+        )
+        for m in piv["ap"].index
     )
-    return pd.DataFrame(
-        {
-            c: [_cell(ap.loc[m, c], lo.loc[m, c], hi.loc[m, c], ver.loc[m, c]) for m in ap.index]
-            for c in ap.columns
-        },
-        index=ap.index,
+    ref = box_sets(tuple(piv["ap"].index))[0][1]
+    main = _pooled(summ, table)
+    counts = "; ".join(
+        f"{column_label(getattr(r, spec.column))}: {r.positives} positives / "
+        f"{r.negatives} negatives" + (" (pixels)" if r.split in spec.pixel_columns else "")
+        for r in main[main["method"] == ref].itertuples()
+    )
+    return ChangeTable(
+        spec,
+        tuple(cols),
+        rows,
+        tuple(chance_rows(summ, table, methods)),
+        ref,
+        counts,
+        (gap_line(summ, methods),) if spec.ceiling else (),
+        tuple(warnings),
+        localizer,
     )
 
 
@@ -93,7 +244,7 @@ def chance_rows(
                 ["NaN" if lo[c] != lo[c] else f"{lo[c]:.2f}-{hi[c]:.2f}" for c in cols],
             )
         )
-        if table == "P":
+        if CHANGE_TABLES[table].ceiling:
             cl = piv["ceiling"].loc[ref]
             out.append(
                 (f"ceiling, {label} (boxes scored by their RoC)", [number(cl[c]) for c in cols])
@@ -119,32 +270,3 @@ def gap_line(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
         + "; ".join(parts)
         + "."
     )
-
-
-TABLE_INTRO = {
-    "I": (
-        "Table I",
-        (
-            "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): "
-            "positives are small boxes "
-            "(SoB <= 0.4), negatives large ones (SoB >= 0.4)."
-        ),
-    ),
-    "S": (
-        "Table S",
-        (
-            "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
-            "boxes of the same size, "
-            "weighted by the strata's positives. The floor is the mean of the same figure over "
-            "random orders within the same strata (SPEC 9)."
-        ),
-    ),
-    "P": (
-        "Table P",
-        (
-            "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact "
-            "region areas) and image AP "
-            "(each query image scores the largest LoC of its samples), SPEC section 9."
-        ),
-    ),
-}

@@ -14,15 +14,7 @@ import pandas as pd
 
 from harness.evaluate.chance import MARK_LEGEND, VERDICT_TEX
 from harness.methods import FUSION_METHODS, METHOD_LABELS
-from harness.reports.change import (
-    TABLE_INTRO,
-    box_sets,
-    chance_rows,
-    change_cells,
-    column_label,
-    gap_line,
-    number,
-)
+from harness.reports.change import CHANGE_TABLES, ChangeTable, column_label, number
 from harness.reports.texfmt import tex_escape as _tex_escape
 
 #: A query subimage is "clean" for the localization table when at most this share of it changed.
@@ -105,20 +97,13 @@ def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = 
     return "\n".join(lines) + "\n"
 
 
-def table_markdown(
-    summ: pd.DataFrame,
-    table: str,
-    methods: tuple[str, ...],
-    warnings: list[str],
-    localizer: str = "",
-) -> str:
+def table_markdown(t: ChangeTable) -> str:
     """A change table as markdown: the six methods, then the variants and baselines.
 
-    Cells AP [95% interval].
+    Cells AP [95% interval] and the verdict's mark; then SPEC 9's chance rows, the legend, the
+    counts, the notes and the warnings.
     """
-    cells = change_cells(summ, table, methods)
-    cols = list(cells.columns)
-    title, intro = TABLE_INTRO[table]
+    spec, cols = t.spec, t.columns
     head = (
         "| AP [95% CI] | "
         + " | ".join(column_label(c) for c in cols)
@@ -127,38 +112,29 @@ def table_markdown(
         + "\n"
     )
     lines, first_extra = [], True
-    for m in cells.index:
-        if m not in FUSION_METHODS and first_extra:
+    for r in t.rows:
+        if r.extra and first_extra:
             lines.append("| *variants and baselines* |" + " |" * len(cols) + "\n")
             first_extra = False
-        lines.append(f"| {METHOD_LABELS[str(m)]} | " + " | ".join(cells.loc[m]) + " |\n")
-    for label, vals in chance_rows(summ, table, methods):
+        lines.append(f"| {r.label} | " + " | ".join(r.cells()) + " |\n")
+    for label, vals in t.chance:
         lines.append(f"| *{label}* | " + " | ".join(vals) + " |\n")
-    ref = box_sets(tuple(cells.index))[0][1]
-    main = summ[
-        (summ["table"] == table)
-        & (summ["proposals"] == "all")
-        & (summ["season_pair"] == "all")
-        & (summ["method"] == ref)
-    ]
-    counts = "; ".join(
-        f"{column_label(r.roc_max if table != 'P' else r.split)}: {r.positives} positives / "
-        f"{r.negatives} negatives" + (" (pixels)" if table == "P" and r.split == "pixel" else "")
-        for r in main.itertuples()
-    )
-    warn = "".join(f"\n**{w}**\n" for w in warnings)
     return (
-        f"# {title}{heading_suffix(localizer)}\n\n{intro}\n\n"
+        f"# {spec.title}{heading_suffix(t.localizer)}\n\n{spec.intro}\n\n"
         + head
         + "".join(lines)
         + f"\n{MARK_LEGEND} Floor: the mean AP of random orders of the same samples"
-        + (" through the same pixel maps" if table == "P" else "")
-        + (" within the same strata" if table == "S" else "")
-        + f". Counts ({ref}): {counts}. Intervals: 95% bootstrap over query images; "
+        + spec.floor_within
+        + f". Counts ({t.ref}): {t.counts}. Intervals: 95% bootstrap over query images; "
         "the paired differences with rank fusion are in comparisons.md.\n"
-        + (f"\n{gap_line(summ, methods)}\n" if table == "P" else "")
-        + warn
+        + "".join(f"\n{n}\n" for n in t.notes)
+        + "".join(f"\n**{w}**\n" for w in t.warnings)
     )
+
+
+def change_latex(t: ChangeTable) -> str:
+    """A change table as a booktabs ``tabular``: APs with verdict marks, then the chance rows."""
+    return table_latex(t.frame(), t.spec.corner, t.localizer, t.frame("verdict"), list(t.chance))
 
 
 def table_latex(
@@ -256,15 +232,15 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
         ),
         "",
     ]
-    for table in ("I", "S", "P"):
+    for table, spec in CHANGE_TABLES.items():
         main = summ[
             (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
         ]
         if not len(main):
             continue
-        lines += [holm_sentence(main, TABLE_INTRO[table][0]), ""]
+        lines += [holm_sentence(main, spec.title), ""]
         for split, g in main.groupby("split", sort=False):
-            lines.append(f"## {TABLE_INTRO[table][0]}, {split}")
+            lines.append(f"## {spec.title}, {split}")
             lines.append("")
             for r in g.itertuples():
                 if r.method == "rank_fusion" or r.diff != r.diff:

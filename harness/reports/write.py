@@ -35,14 +35,14 @@ from harness.ingest.annotations import change_boxes
 from harness.methods import BASELINES, FUSION_METHODS, ordered_methods
 from harness.records import QUERY_KEY, frame_sizes
 from harness.reports import tables as report_tables
-from harness.reports.change import TABLE_INTRO, chance_rows, pivot
+from harness.reports.change import CHANGE_TABLES, change_table, pivot
 from harness.reports.render import (
     CLEAN_ROC,
+    change_latex,
     comparisons_markdown,
     localization_latex,
     localization_markdown,
     table_csv,
-    table_latex,
     table_markdown,
 )
 from harness.runtime.cache import write_parquet, write_text
@@ -454,11 +454,11 @@ def _block_reports(
     summ = holm_columns(pd.DataFrame(rows), 1.0 - cfg.report.ci)
     summ.insert(0, "localizer", b.name)
     tables, warnings = {}, {}
-    for table in ("I", "S", "P"):
+    for table, spec in CHANGE_TABLES.items():
         main = summ[
             (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
         ]
-        warnings[table] = confound_warnings(main, TABLE_INTRO[table][0]) + list(b.notes)
+        warnings[table] = confound_warnings(main, spec.title) + list(b.notes)
         tables[table] = pivot(summ, table, b.methods)
     return Reports(
         summ,
@@ -474,34 +474,20 @@ def _block_reports(
 
 def _write_change_tables(files: _Files, results: list[Reports]) -> None:
     """Tables I, S and P (``table1``, ``tableS``, ``tableP``) as CSV, markdown and LaTeX."""
-    for table, stem in (("I", "table1"), ("S", "tableS"), ("P", "tableP")):
+    for table, spec in CHANGE_TABLES.items():
+        views = [
+            change_table(r.summary, table, r.methods, r.warnings[table], r.localizer)
+            for r in results
+        ]
         files.text(
-            f"{stem}.csv",
+            f"{spec.stem}.csv",
             "".join(
-                table_csv(r.tables[table], r.localizer if files.multi else None, header=i == 0)
-                for i, r in enumerate(results)
+                table_csv(t.frame(), t.localizer if files.multi else None, header=i == 0)
+                for i, t in enumerate(views)
             ),
         )
-        files.text(
-            f"{stem}.md",
-            "\n".join(
-                table_markdown(r.summary, table, r.methods, r.warnings[table], r.localizer)
-                for r in results
-            ),
-        )
-        files.text(
-            f"{stem}.tex",
-            "\n".join(
-                table_latex(
-                    r.tables[table],
-                    "AP" if table != "P" else "Method",
-                    r.localizer,
-                    pivot(r.summary, table, r.methods, "verdict"),
-                    chance_rows(r.summary, table, r.methods),
-                )
-                for r in results
-            ),
-        )
+        files.text(f"{spec.stem}.md", "\n".join(table_markdown(t) for t in views))
+        files.text(f"{spec.stem}.tex", "\n".join(change_latex(t) for t in views))
 
 
 def _write_comparisons(

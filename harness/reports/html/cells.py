@@ -1,6 +1,6 @@
 """The report page's tables as HTML: verdicts, change tables, localization, heat maps, Table L.
 
-Every table reads the same pivots and intros as the markdown (:mod:`harness.reports.render`); a cell
+Every table reads the same specs as the markdown (:mod:`harness.reports.change`); a cell
 is green when its 95% interval lies clear above the floor, grey when it holds it, red below.
 """
 
@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.methods import FUSION_METHODS, METHOD_LABELS
+from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
-from harness.reports.change import TABLE_INTRO, chance_rows, gap_line, pivot
+from harness.reports.change import ChangeTable, change_table, column_label
 from harness.reports.render import loc_columns
 
 
@@ -104,23 +104,13 @@ def heat_style(v: float, floor: float = 0.0) -> str:
     return f"rgb({r},{g},{b})"
 
 
-def change_table(
-    summ: pd.DataFrame,
-    table: str,
-    methods: tuple[str, ...],
-    warnings: list[str],
-    who: str = "",
-) -> str:
-    """One change table (I, S or P) of a run's summary, cells coloured against their floor."""
-    ap, lo, hi, ver = (
-        pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "verdict")
-    )
-    floor = pivot(summ, table, methods, "floor")
-    cols = list(ap.columns)
-    head = "".join(f"<th>{esc(f'{c:.2f}' if isinstance(c, float) else c)}</th>" for c in cols)
+def change_html(t: ChangeTable, who: str = "") -> str:
+    """One change table (I, S or P), its cells coloured by SPEC 9's verdict against the floor."""
+    spec, cols = t.spec, t.columns
+    head = "".join(f"<th>{esc(column_label(c))}</th>" for c in cols)
     rows, sep = [], False
-    for m in ap.index:
-        if m not in FUSION_METHODS and not sep:
+    for r in t.rows:
+        if r.extra and not sep:
             rows.append(
                 f'<tr class="sep"><td colspan="{len(cols) + 1}">variants and baselines (the '
                 "baselines read no pixel)</td></tr>"
@@ -128,35 +118,29 @@ def change_table(
             sep = True
         cells = "".join(
             '<td data-verdict="{}" style="background:{}" title="{}">'.format(
-                *verdict(ap.loc[m, c], floor.loc[m, c], str(ver.loc[m, c])),
-                esc(VERDICTS.get(str(ver.loc[m, c]), "")),
+                *verdict(ap, floor, str(ver)), esc(VERDICTS.get(str(ver), ""))
             )
-            + f"{num(ap.loc[m, c])}"
-            + (
-                f' <span class="ci">[{num(lo.loc[m, c])}, {num(hi.loc[m, c])}]</span>'
-                if lo.loc[m, c] == lo.loc[m, c]
-                else ""
-            )
+            + f"{num(ap)}"
+            + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
             + "</td>"
-            for c in cols
+            for ap, lo, hi, floor, ver in zip(r.ap, r.low, r.high, r.floor, r.verdict, strict=True)
         )
-        rows.append(f"<tr><td>{esc(METHOD_LABELS[m])}</td>{cells}</tr>")
+        rows.append(f"<tr><td>{esc(r.label)}</td>{cells}</tr>")
     rows += [
         f'<tr class="floor"><td>{esc(label)}</td>'
         + "".join(f"<td>{esc(v)}</td>" for v in vals)
         + "</tr>"
-        for label, vals in chance_rows(summ, table, methods)
+        for label, vals in t.chance
     ]
-    if table == "P":
-        warnings = [gap_line(summ, methods), *warnings]
-    title, intro = TABLE_INTRO[table]
-    warn = "".join(f'<div class="warn">{esc(w)}</div>' for w in warnings)
-    heading = "h3" if table == "I" else "h2"
+    warn = "".join(f'<div class="warn">{esc(w)}</div>' for w in (*t.notes, *t.warnings))
+    heading = "h3" if spec.collapsed else "h2"
     return (
-        f'<{heading} id="table{table}">{esc(title + who)}</{heading}><p class="note">{esc(intro)} '
+        f'<{heading} id="table{spec.id}">{esc(spec.title + who)}</{heading}><p class="note">'
+        f"{esc(spec.intro)} "
         "Cells: AP [95% bootstrap interval over query images]; colour: SPEC 9's verdict "
-        "against chance (see the legend).</p>"
-        f'<table data-table="{table}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>{warn}'
+        "against chance (see the legend)."
+        f'</p><table data-table="{spec.id}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>'
+        f"{warn}"
     )
 
 
@@ -393,7 +377,7 @@ def other_blocks(summ: pd.DataFrame, names: list[str], warnings: dict[str, list[
         pre = f"[{name}] "
         for t in ("S", "P"):
             notes = [w[len(pre) :] for w in warnings.get(t, []) if w.startswith(pre)]
-            html = change_table(s, t, methods, notes, f" (localizer: {name})")
+            html = change_html(change_table(s, t, methods, notes), f" (localizer: {name})")
             parts.append(html.replace(f'id="table{t}"', f'data-localizer="{esc(name)}"', 1))
     return (
         '<h2 id="blocks">Tables S and P of the other localizers</h2>'

@@ -28,10 +28,10 @@ import pandas as pd
 from harness.imagestore import local_uri
 from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
-from harness.reports.change import TABLE_INTRO
+from harness.reports.change import CHANGE_TABLES, change_table
 from harness.reports.html.cells import (
     LEGEND,
-    change_table,
+    change_html,
     diff_colour,
     esc,
     heatmap,
@@ -240,8 +240,8 @@ def comparisons_html(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
             for m in d.index
         )
         cmp_html += (
-            f"<h3>{esc(TABLE_INTRO[table][0])}</h3>"
-            f'<p class="note">{esc(holm_sentence(t, TABLE_INTRO[table][0]))}</p><table '
+            f"<h3>{esc(CHANGE_TABLES[table].title)}</h3>"
+            f'<p class="note">{esc(holm_sentence(t, CHANGE_TABLES[table].title))}</p><table '
             f'data-table="cmp{table}"><tr><th>difference</th>{head}</tr>{diffs}</table>'
         )
     return (
@@ -275,7 +275,7 @@ def protocol_section(
         + "".join(f'<div class="warn">{esc(w)}</div>' for w in confound)
         + "<details><summary>Table I, its PR curve, AP per season pair and worst cases "
         "under its labels</summary>"
-        + change_table(summ, "I", methods, notes_i, who)
+        + change_html(change_table(summ, "I", methods, notes_i), who)
         + f'<div class="grid pr" id="prI">{pr_i}</div>'
         + heat
         + gallery_i
@@ -446,7 +446,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
             if multi
             else ""
         ),
-        *(change_table(summ, t, methods, warnings.get(t, []), who) for t in ("S", "P")),
+        *(change_html(change_table(summ, t, methods, warnings.get(t, [])), who) for t in "SP"),
         *(registered_table(spec, frame) for spec, frame in extra),
         comparisons_html(summ, methods),
         (
