@@ -42,55 +42,20 @@ def print_table_l(console, t) -> None:
     """
     from rich.table import Table
 
-    from harness.evaluate.chance import MARK_LEGEND, VERDICT_MARKS
-    from harness.reports.leaderboard import (
-        AP_COLUMNS,
-        COST_NOTE,
-        WHY,
-        cost_text,
-        recall_columns,
-        undefined,
-    )
+    from harness.evaluate.chance import MARK_LEGEND
+    from harness.reports.leaderboard import COST_NOTE, WHY, leader_table
     from harness.runtime.costs import COST_COLUMNS
 
-    first = str(t["localizer"].iloc[0])
-    rec = recall_columns(t)
-    marks: set[str] = set()
-
-    def dash(r, column: str) -> str:
-        m = undefined(t, r, column) or "f"
-        marks.add(m)
-        return f"-{m})"
-
-    lt = Table(title=f"Table L: localizers (Table S at RoC-max {t['roc_max'].iloc[0]:.2f})")
-    heads = ("localizer", *(h for _, h in rec), *(h for *_, h in AP_COLUMNS))
-    for c in (*heads, f"S rank fusion - {first}"):
+    v = leader_table(t)
+    lt = Table(title=f"Table L: localizers (Table S at RoC-max {v.roc_max:.2f})")
+    heads = ("localizer", *v.heads[:-1], f"S rank fusion - {v.first}")
+    for c in heads:
         lt.add_column(c, justify="left" if c == "localizer" else "right")
-
-    def ap(r, pfx: str) -> str:
-        v, lo, hi = (r[f"{pfx}_{k}"] for k in ("ap", "ci_low", "ci_high"))
-        mark = VERDICT_MARKS.get(str(r[f"{pfx}_verdict"]), "")
-        text = f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}"
-        return dash(r, f"{pfx}_ap") if v != v else text + (f" {mark}" if mark else "")
-
-    for _, r in t.iterrows():
-        d = r["S_rank_fusion_diff"]
-        lt.add_row(
-            str(r["localizer"]),
-            *(dash(r, c) if r[c] != r[c] else f"{r[c]:.2f}" for c, _ in rec),
-            *(ap(r, pfx) for pfx, *_ in AP_COLUMNS),
-            ""
-            if d != d
-            else f"{d:+.2f} [{r['S_rank_fusion_diff_ci_low']:+.2f}, "
-            f"{r['S_rank_fusion_diff_ci_high']:+.2f}]",
-        )
+    for name, cs in v.rows:
+        lt.add_row(name, *(c.text() for c in cs))
     lt.add_section()
-    r0 = t.iloc[0]
     lt.add_row(
-        f"floor ({first})",
-        *([""] * len(rec)),
-        *(f"{r0[f'{pfx}_floor']:.2f}" for pfx, *_ in AP_COLUMNS),
-        "",
+        f"floor ({v.first})", *([""] * len(v.recall_heads)), *(f"{f:.2f}" for f in v.floors), ""
     )
     console.print(lt)
     console.print(MARK_LEGEND, markup=False)
@@ -98,17 +63,11 @@ def print_table_l(console, t) -> None:
     ct.add_column("localizer")
     for _, h, _ in COST_COLUMNS:
         ct.add_column(h, justify="right")
-    for _, r in t.iterrows():
-        ct.add_row(
-            str(r["localizer"]),
-            *(
-                cost_text(float(r[c]), dg) if r[c] == r[c] else dash(r, c)
-                for c, _, dg in COST_COLUMNS
-            ),
-        )
+    for name, cs in v.cost_rows:
+        ct.add_row(name, *(c.text() for c in cs))
     console.print(ct)
     console.print(COST_NOTE, markup=False)
-    for m in sorted(marks):
+    for m in sorted({*v.marks, *v.cost_marks}):
         console.print(f"{m}) -: {WHY[m]}.", markup=False)
 
 

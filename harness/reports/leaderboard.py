@@ -13,7 +13,8 @@ is ``-`` with its reason in a footnote (:func:`undefined`), in every rendering a
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -160,13 +161,130 @@ def leaderboard_csv(t: pd.DataFrame) -> str:
     return out
 
 
-def _ap(r: Any, prefix: str) -> str:
-    v, lo, hi, ver = (getattr(r, f"{prefix}_{k}") for k in ("ap", "ci_low", "ci_high", "verdict"))
-    if v != v:
-        return "-"
-    mark = VERDICT_MARKS.get(str(ver), "")
-    return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
-        f" {mark}" if mark else ""
+@dataclass(frozen=True)
+class LCell:
+    """One cell of Table L: a value, or the footnote mark (``why``) saying why it is undefined.
+
+    An AP has its interval, floor and verdict; a paired difference its interval and Holm's mark.
+    """
+
+    kind: str  # "num", "ap", "diff" or "cost"
+    value: float
+    low: float = float("nan")
+    high: float = float("nan")
+    floor: float = float("nan")
+    verdict: str = ""
+    holm: bool = False
+    digits: int = 2
+    why: str = ""
+
+    def text(self) -> str:
+        """The cell as the markdown and the console show it (``-<mark>)`` where undefined)."""
+        if self.why:
+            return f"-{self.why})"
+        v, lo, hi = self.value, self.low, self.high
+        if self.kind == "diff":
+            return "" if v != v else f"{v:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+        if self.kind == "cost":
+            return cost_text(v, self.digits)
+        if self.kind == "num":
+            return _pct(v)
+        mark = VERDICT_MARKS.get(self.verdict, "")
+        return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
+            f" {mark}" if mark else ""
+        )
+
+
+@dataclass(frozen=True)
+class LeaderTable:
+    """Table L ready for any format: each localizer's cells, the floors and the cost table.
+
+    Each row: recall, AP and paired-difference cells; ``floors``: the first localizer's;
+    ``marks`` / ``cost_marks``: the footnotes the accuracy and cost tables use.
+    """
+
+    first: str
+    roc_max: float
+    recall_heads: tuple[str, ...]
+    rows: tuple[tuple[str, tuple[LCell, ...]], ...]
+    floors: tuple[float, ...]
+    #: Rows whose Table S floor differs from the first's by 0.005 or more: "name 0.12".
+    other_floors: tuple[str, ...]
+    cost_rows: tuple[tuple[str, tuple[LCell, ...]], ...]
+    marks: tuple[str, ...]
+    cost_marks: tuple[str, ...]
+
+    @property
+    def heads(self) -> tuple[str, ...]:
+        """The accuracy table's headings after ``localizer``."""
+        return (
+            *self.recall_heads,
+            *(h for *_, h in AP_COLUMNS),
+            f"Table S rank fusion - {self.first}",
+        )
+
+
+def _undefined_cell(t: pd.DataFrame, r: pd.Series, column: str, kind: str) -> LCell:
+    return LCell(kind, float("nan"), why=undefined(t, r, column) or "f")
+
+
+def _accuracy_cells(t: pd.DataFrame, r: pd.Series, rec: list[tuple[str, str]]) -> list[LCell]:
+    """One row's recall, AP and paired-difference cells."""
+    cells = [
+        LCell("num", float(r[c])) if r[c] == r[c] else _undefined_cell(t, r, c, "num")
+        for c, _ in rec
+    ]
+    for p, *_ in AP_COLUMNS:
+        v, lo, hi, fl = (float(r[f"{p}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
+        cells.append(
+            LCell("ap", v, lo, hi, fl, str(r[f"{p}_verdict"]))
+            if v == v
+            else _undefined_cell(t, r, f"{p}_ap", "ap")
+        )
+    d, dl, dh = (float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high"))
+    holm_ok = bool(r.get("S_rank_fusion_holm_survives", False))
+    cells.append(LCell("diff", d, dl, dh, holm=holm_ok))
+    return cells
+
+
+def leader_table(t: pd.DataFrame) -> LeaderTable:
+    """Table L (:func:`leaderboard`'s frame, or ``tableL.csv`` read back) for every format."""
+    first = str(t["localizer"].iloc[0])
+    rec = recall_columns(t)
+    rows, costs = [], []
+    for _, r in t.iterrows():
+        rows.append((str(r["localizer"]), tuple(_accuracy_cells(t, r, rec))))
+        costs.append(
+            (
+                str(r["localizer"]),
+                tuple(
+                    LCell("cost", float(r[c]), digits=dg)
+                    if r[c] == r[c]
+                    else _undefined_cell(t, r, c, "cost")
+                    for c, _, dg in COST_COLUMNS
+                ),
+            )
+        )
+    r0 = t.iloc[0]
+    other = tuple(
+        f"{r.localizer} {float(r.S_rank_fusion_floor):.2f}"
+        for r in t.itertuples()
+        if abs(float(r.S_rank_fusion_floor) - float(r0["S_rank_fusion_floor"])) >= 0.005
+    )
+
+    def used(rs: list) -> tuple[str, ...]:
+        return tuple(sorted({c.why for _, cs in rs for c in cs if c.why}))
+
+    return LeaderTable(
+        first,
+        float(t["roc_max"].iloc[0]),
+        tuple(h for _, h in rec),
+        tuple(rows),
+        tuple(float(r0[f"{p}_floor"]) for p, *_ in AP_COLUMNS),
+        other,
+        tuple(costs),
+        used(rows),
+        used(costs),
     )
 
 
@@ -179,7 +297,7 @@ def cost_text(v: float, digits: int) -> str:
     return f"{v:,.0f}" if digits == 0 else f"{v:.{digits}f}"
 
 
-def _footnotes(marks: set[str]) -> list[str]:
+def _footnotes(marks: Iterable[str]) -> list[str]:
     return [f"{m}) -: {WHY[m]}." for m in sorted(marks)]
 
 
@@ -217,33 +335,25 @@ def leaderboard_comparisons_md(t: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _floor_lines(t: pd.DataFrame, rec: list[tuple[str, str]]) -> list[str]:
+def _floor_lines(v: LeaderTable) -> list[str]:
     """Table L's floor row (the first localizer's) and the sentence on the other rows' floors."""
-    first = str(t["localizer"].iloc[0])
-    lines = []
-    r0 = t.iloc[0]
-    lines.append(
-        f"| *floor ({first})* | "
-        + " | " * len(rec)
-        + " | ".join(_pct(float(r0[f"{p}_floor"])) for p, _, _, _, _ in AP_COLUMNS)
-        + " | |"
-    )
-    other = [
-        f"{r.localizer} {float(r.S_rank_fusion_floor):.2f}"
-        for r in t.itertuples()
-        if abs(float(r.S_rank_fusion_floor) - float(r0["S_rank_fusion_floor"])) >= 0.005
-    ]
-    lines.append("")
-    lines.append(
+    lines = [
+        f"| *floor ({v.first})* | "
+        + " | " * len(v.recall_heads)
+        + " | ".join(_pct(f) for f in v.floors)
+        + " | |",
+        "",
         "Floor: the mean AP of random orders of the same samples (within the same strata, "
         "through the same pixel maps). "
         + (
-            "Rows whose Table S floor differs (their boxes differ): " + ", ".join(other) + "."
-            if other
+            "Rows whose Table S floor differs (their boxes differ): "
+            + ", ".join(v.other_floors)
+            + "."
+            if v.other_floors
             else "Every row's Table S floor is the same to two decimals."
         )
-        + f" {MARK_LEGEND}"
-    )
+        + f" {MARK_LEGEND}",
+    ]
     return lines
 
 
@@ -253,84 +363,40 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
     The accuracy table, its floor and its footnotes; then the cost table
     (:mod:`harness.runtime.costs`) with the machine it was measured on.
     """
-    first = str(t["localizer"].iloc[0])
-    roc = float(t["roc_max"].iloc[0])
     if comparisons:
         return leaderboard_comparisons_md(t)
-    heads = [h for _, _, _, _, h in AP_COLUMNS]
-    rec = recall_columns(t)
-    marks: set[str] = set()
-
-    def dash(r: Any, column: str) -> str:
-        m = undefined(t, r, column)
-        assert m is not None
-        marks.add(m)
-        return f"-{m})"
-
+    v = leader_table(t)
     lines = [
         "# Table L: localizers",
         "",
         "One row per localizer and one for all localizers fused by rank (SPEC section 11). "
-        f"Recall@N ({', '.join(h for _, h in rec)}) of the ground-truth place over every ranked "
-        f"query subimage; AP [95% interval] of Table S at RoC-max {roc:.2f} and of Table P; the "
-        f"last column is each row's Table S rank-fusion AP minus {first}'s, paired over the same "
-        "bootstrap resamples of query images. Every localizer is scored on the same query "
-        "images.",
+        f"Recall@N ({', '.join(v.recall_heads)}) of the ground-truth place over every ranked "
+        f"query subimage; AP [95% interval] of Table S at RoC-max {v.roc_max:.2f} and of Table "
+        f"P; the last column is each row's Table S rank-fusion AP minus {v.first}'s, paired over "
+        "the same bootstrap resamples of query images. Every localizer is scored on the same "
+        "query images.",
         "",
-        "| localizer | "
-        + " | ".join(h for _, h in rec)
-        + " | "
-        + " | ".join(heads)
-        + f" | Table S rank fusion - {first} |",
-        "|---|" + "---:|" * (len(rec) + len(heads) + 1),
+        "| localizer | " + " | ".join(v.heads) + " |",
+        "|---|" + "---:|" * len(v.heads),
     ]
-    for r in t.itertuples():
-        diff = (
-            ""
-            if r.S_rank_fusion_diff != r.S_rank_fusion_diff
-            else f"{r.S_rank_fusion_diff:+.2f} [{r.S_rank_fusion_diff_ci_low:+.2f}, "
-            f"{r.S_rank_fusion_diff_ci_high:+.2f}]"
-        )
-        recs = [
-            _pct(getattr(r, c)) if getattr(r, c) == getattr(r, c) else dash(r, c) for c, _ in rec
-        ]
-        aps = [
-            _ap(r, p) if getattr(r, f"{p}_ap") == getattr(r, f"{p}_ap") else dash(r, f"{p}_ap")
-            for p, _, _, _, _ in AP_COLUMNS
-        ]
-        lines.append(f"| {r.localizer} | " + " | ".join(recs + aps) + f" | {diff} |")
-    lines += _floor_lines(t, rec)
-    lines += ["", *_footnotes(marks)] if marks else []
-    lines += ["", *cost_md(t)]
+    lines += [f"| {name} | " + " | ".join(c.text() for c in cs) + " |" for name, cs in v.rows]
+    lines += _floor_lines(v)
+    lines += ["", *_footnotes(v.marks)] if v.marks else []
+    lines += ["", *cost_md(v)]
     return "\n".join(lines) + "\n"
 
 
-def cost_md(t: pd.DataFrame) -> list[str]:
+def cost_md(v: LeaderTable) -> list[str]:
     """Table L's cost table as markdown lines (heading, table, footnotes, machine)."""
-    marks: set[str] = set()
-    lines = [
+    return [
         "## What each localizer costs",
         "",
         "| localizer | " + " | ".join(h for _, h, _ in COST_COLUMNS) + " |",
         "|---|" + "---:|" * len(COST_COLUMNS),
-    ]
-    for r in t.itertuples():
-        cells = []
-        for c, _, d in COST_COLUMNS:
-            v = float(getattr(r, c))
-            if v == v:
-                cells.append(cost_text(v, d))
-            else:
-                m = undefined(t, r, c)
-                assert m is not None
-                marks.add(m)
-                cells.append(f"-{m})")
-        lines.append(f"| {r.localizer} | " + " | ".join(cells) + " |")
-    return [
-        *lines,
+        *(f"| {name} | " + " | ".join(c.text() for c in cs) + " |" for name, cs in v.cost_rows),
         "",
         COST_NOTE,
-        *(["", *_footnotes(marks)] if marks else []),
+        *(["", *_footnotes(v.cost_marks)] if v.cost_marks else []),
     ]
 
 
@@ -350,28 +416,20 @@ def leaderboard_latex(t: pd.DataFrame) -> str:
 
     Undefined cells carry their footnote mark, explained under the table.
     """
-    rec = recall_columns(t)
-    cols = [*(h for _, h in rec), *(h for _, _, _, _, h in AP_COLUMNS)]
+    v = leader_table(t)
+    cols = v.heads[:-1]
     out = [
         r"\begin{tabular}{l" + "r" * len(cols) + "}",
         r"\toprule",
         " & ".join(["Localizer", *(_tex_escape(c) for c in cols)]) + r" \\",
         r"\midrule",
     ]
-    marks: set[str] = set()
 
-    def cell(r: Any, column: str) -> str:
-        v = getattr(r, column)
-        if v == v:
-            return f"{v:.2f}"
-        m = undefined(t, r, column)
-        assert m is not None
-        marks.add(m)
-        return f"--$^{m}$"
+    def cell(c: LCell) -> str:
+        return f"--$^{c.why}$" if c.why else f"{c.value:.2f}"
 
-    for r in t.itertuples():
-        vals = [cell(r, c) for c, _ in rec] + [cell(r, f"{p}_ap") for p, *_ in AP_COLUMNS]
-        out.append(" & ".join([_tex_escape(str(r.localizer)), *vals]) + r" \\")
+    for name, cs in v.rows:
+        out.append(" & ".join([_tex_escape(name), *(cell(c) for c in cs[:-1])]) + r" \\")
     out += [r"\bottomrule", r"\end{tabular}"]
-    out += [rf"\par{{\footnotesize $^{m}$ --: {_tex_escape(WHY[m])}.}}" for m in sorted(marks)]
+    out += [rf"\par{{\footnotesize $^{m}$ --: {_tex_escape(WHY[m])}.}}" for m in v.marks]
     return "\n".join(out) + "\n"

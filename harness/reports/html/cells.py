@@ -7,7 +7,6 @@ is green when its 95% interval lies clear above the floor, grey when it holds it
 from __future__ import annotations
 
 import html
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +16,9 @@ import pandas as pd
 from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
 from harness.reports.change import ChangeTable, change_table, column_label
+from harness.reports.leaderboard import COST_NOTE, WHY, LCell, leader_table
 from harness.reports.render import loc_columns
+from harness.runtime.costs import COST_COLUMNS
 
 
 def esc(x: Any) -> str:
@@ -253,43 +254,29 @@ def heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, w
     )
 
 
-def _table_l_cells(
-    r: pd.Series, rec: list[tuple[str, str]], dash: Callable[[pd.Series, str], str]
-) -> list[str]:
-    """One localizer's cells of Table L: recalls, APs coloured by verdict, the paired difference.
-
-    ``dash``: the cell of an undefined value (``-`` with its footnote mark).
-    """
-    from harness.reports.leaderboard import AP_COLUMNS
-
-    cells = [f"<td>{esc(r['localizer'])}</td>"]
-    for c, _ in rec:
-        x = float(r[c])
-        cells.append(f"<td>{num(x)}</td>" if x == x else dash(r, c))
-    for pfx, *_ in AP_COLUMNS:
-        v, lo, hi, fl = (float(r[f"{pfx}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
-        word = str(r[f"{pfx}_verdict"])
-        if v != v:
-            cells.append(dash(r, f"{pfx}_ap"))
-            continue
-        cells.append(
-            '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
+def _l_cell(c: LCell) -> str:
+    """One cell of Table L as HTML: an AP coloured by its verdict, a difference by its sign."""
+    if c.why:
+        return f'<td title="{esc(WHY[c.why])}">-<sup>{c.why}</sup></td>'
+    v, lo, hi = c.value, c.low, c.high
+    if c.kind == "ap":
+        return (
+            '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, c.floor, c.verdict))
             + num(v)
             + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
             + "</td>"
         )
-    d, dl, dh = (float(r[f"S_rank_fusion_{k}"]) for k in ("diff", "diff_ci_low", "diff_ci_high"))
-    holm_ok = bool(r.get("S_rank_fusion_holm_survives", False))
-    cells.append(
-        "<td></td>"
-        if d != d
-        else f'<td style="background:{diff_colour(dl, dh)}"'
-        + (' data-holm="1"' if holm_ok else "")
-        + f'>{d:+.2f} <span class="ci">[{dl:+.2f}, {dh:+.2f}]</span>'
-        + (" <b>[Holm]</b>" if holm_ok else "")
-        + "</td>"
-    )
-    return cells
+    if c.kind == "diff":
+        return (
+            "<td></td>"
+            if v != v
+            else f'<td style="background:{diff_colour(lo, hi)}"'
+            + (' data-holm="1"' if c.holm else "")
+            + f'>{v:+.2f} <span class="ci">[{lo:+.2f}, {hi:+.2f}]</span>'
+            + (" <b>[Holm]</b>" if c.holm else "")
+            + "</td>"
+        )
+    return f"<td>{c.text()}</td>"
 
 
 def table_l(out: Path, machine: str = "") -> str:
@@ -297,74 +284,46 @@ def table_l(out: Path, machine: str = "") -> str:
 
     Then what each localizer costs; an undefined cell is ``-`` with its reason in a footnote.
     """
-    from harness.reports.leaderboard import (
-        AP_COLUMNS,
-        COST_NOTE,
-        WHY,
-        cost_text,
-        recall_columns,
-        undefined,
-    )
-    from harness.runtime.costs import COST_COLUMNS
-
-    t = pd.read_csv(out / "tableL.csv")
-    first = str(t["localizer"].iloc[0])
-    rec = recall_columns(t)
+    v = leader_table(pd.read_csv(out / "tableL.csv"))
     head = "".join(
-        f"<th>{esc(h)}</th>"
-        for h in (
-            "localizer",
-            *(h for _, h in rec),
-            *(h for *_, h in AP_COLUMNS),
-            f"S rank fusion - {first}",
-        )
+        f"<th>{esc(h)}</th>" for h in ("localizer", *v.heads[:-1], f"S rank fusion - {v.first}")
     )
-    rows = []
-    marks: set[str] = set()
-
-    def dash(r: pd.Series, column: str) -> str:
-        m = undefined(t, r, column) or "f"
-        marks.add(m)
-        return f'<td title="{esc(WHY[m])}">-<sup>{m}</sup></td>'
-
-    for _, r in t.iterrows():
-        rows.append("<tr>" + "".join(_table_l_cells(r, rec, dash)) + "</tr>")
-    r0 = t.iloc[0]
+    rows = [
+        f"<tr><td>{esc(name)}</td>" + "".join(_l_cell(c) for c in cs) + "</tr>"
+        for name, cs in v.rows
+    ]
     rows.append(
-        f'<tr class="floor"><td>floor ({esc(first)})</td>'
-        + "<td></td>" * len(rec)
-        + "".join(f"<td>{num(float(r0[f'{p}_floor']))}</td>" for p, *_ in AP_COLUMNS)
+        f'<tr class="floor"><td>floor ({esc(v.first)})</td>'
+        + "<td></td>" * len(v.recall_heads)
+        + "".join(f"<td>{num(f)}</td>" for f in v.floors)
         + "<td></td></tr>"
     )
-    cost_rows = []
-    for _, r in t.iterrows():
-        cost_rows.append(
-            f"<tr><td>{esc(r['localizer'])}</td>"
-            + "".join(
-                f"<td>{cost_text(float(r[c]), dg)}</td>" if r[c] == r[c] else dash(r, c)
-                for c, _, dg in COST_COLUMNS
-            )
-            + "</tr>"
-        )
+    cost_rows = [
+        f"<tr><td>{esc(name)}</td>" + "".join(_l_cell(c) for c in cs) + "</tr>"
+        for name, cs in v.cost_rows
+    ]
     cost_head = "".join(
         f"<th>{esc(h)}</th>" for h in ("localizer", *(h for _, h, _ in COST_COLUMNS))
     )
     return (
         '<h2 id="tableL">Table L: localizers</h2><p class="note">One row per localizer and '
         "one for all localizers fused by rank (SPEC section 11), every one scored on the same "
-        f"query images. Table S at RoC-max {float(t['roc_max'].iloc[0]):.2f}; each AP with its "
+        f"query images. Table S at RoC-max {v.roc_max:.2f}; each AP with its "
         "95% interval, coloured by SPEC 9's verdict against chance (random orders of the same "
         "samples, and the paired difference from the random baseline); "
-        f"the last column is the paired difference from {esc(first)} in Table S rank fusion over "
+        f"the last column is the paired difference from {esc(v.first)} in Table S rank fusion over "
         "the same bootstrap resamples ([Holm]: it survives Holm's correction over the "
         "localizers' differences). Recall: the ground-truth place ranked within the first N "
-        f'({esc(", ".join(h for _, h in rec))}).</p><table data-table="L"><tr>{head}</tr>'
+        f'({esc(", ".join(v.recall_heads))}).</p><table data-table="L"><tr>{head}</tr>'
         f"{''.join(rows)}</table>"
         f'<h3>What each localizer costs</h3><table data-table="L-cost"><tr>{cost_head}</tr>'
         f'{"".join(cost_rows)}</table><p class="note">{esc(COST_NOTE)}'
         + (f" Measured on: {esc(machine)}." if machine else "")
         + "</p>"
-        + "".join(f'<p class="note"><sup>{m}</sup> -: {esc(WHY[m])}.</p>' for m in sorted(marks))
+        + "".join(
+            f'<p class="note"><sup>{m}</sup> -: {esc(WHY[m])}.</p>'
+            for m in sorted({*v.marks, *v.cost_marks})
+        )
     )
 
 
