@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from harness.detect.table import table_d_markdown
 from harness.evaluate import chance
 from harness.evaluate.metrics import interval, resample_counts
 from harness.records import FRAME_KEY, QUERY_KEY
@@ -442,63 +443,3 @@ def clopper_pearson(k: int, n: int, ci: float = 0.95) -> tuple[float, float]:
     lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
     hi = 1.0 if k == n else float(beta.ppf(1.0 - a, k + 1, n - k))
     return lo, hi
-
-
-def table_d_markdown(t: pd.DataFrame) -> str:
-    """Table D as markdown, with what each column measures and SPEC 9's floor, band, ceiling."""
-    c = t.iloc[0]
-    lines = [
-        "# Table D: change boxes on the annotated query frames"
-        + (f" (boxes: {c.boxes})" if "boxes" in t.columns else ""),
-        "",
-        "Box AP of the detector's change boxes (SPEC 13) against the annotated change boxes, by "
-        "pycocotools' COCOeval: AP at IoU 0.5 with VOC all-point interpolation (the metric of "
-        "'The Change You Want to See', WACV 2023) with its 95% bootstrap interval over annotated "
-        "frames, COCO AP@[.5:.95] and COCO AP@.5 (101-point). Frames annotated no-change "
-        "contribute false positives only.",
-        "",
-        "| | AP50 (VOC all-point) [95% CI] | verdict | COCO AP@[.5:.95] | COCO AP@.5 | frames | "
-        "change boxes | detections |",
-        "|---|---:|---|---:|---:|---:|---:|---:|",
-    ]
-    for r in t.itertuples():
-        lines.append(
-            f"| {r.row} | {r.ap50_voc_all_point:.3f} [{r.ci_low:.3f}, {r.ci_high:.3f}] | "
-            f"{chance.VERDICT_WORDS[r.verdict]} | {r.coco_ap_50_95:.3f} | {r.coco_ap_50:.3f} | "
-            f"{r.annotated_frames} | {r.change_boxes} | {r.detections} |"
-        )
-    lines += [
-        "",
-        "| AP50 of the candidate boxes | value |",
-        "|---|---:|",
-        f"| floor (mean AP50 of random scores on the same candidates, same NMS) | {c.floor:.3f} |",
-        f"| chance band (5th-95th percentile of those draws) | {c.chance_low:.3f}-"
-        f"{c.chance_high:.3f} |",
-        f"| ceiling (candidates scored by their best IoU with a change box, same NMS) | "
-        f"{c.ceiling:.3f} |",
-        f"| candidates' recall at IoU 0.5 (change boxes some candidate meets) | "
-        f"{c.candidate_recall:.3f} |",
-        f"| share of the reachable gap the detector closes, (AP - floor) / (ceiling - floor) | "
-        f"{_pct(c.gap_closed)} |",
-        *(
-            [
-                f"| nominal false-alarm rate (frames whose calibrated score is at most it) | "
-                f"{c.alarm_nominal:g} |",
-                f"| false-alarm rate measured on the {int(c.no_change_frames)} frames annotated "
-                f"no-change [95% exact interval] | {c.alarm_measured:.3f} "
-                f"[{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] |",
-            ]
-            if "alarm_measured" in t.columns and int(c.no_change_frames)
-            else []
-        ),
-        "",
-        f"Verdict (SPEC 9): {chance.MARK_LEGEND}",
-    ]
-    from harness.detect.page import table_d_warnings
-
-    lines += ["", *table_d_warnings(t)]
-    return "\n".join(lines) + "\n"
-
-
-def _pct(v: float) -> str:
-    return "NaN" if v != v else f"{100 * v:.0f}%"

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from harness.detect.calibrate import in_words
-from harness.evaluate.chance import VERDICT_WORDS
+from harness.detect.table import table_d_html
 from harness.imagestore import read_image
 from harness.records import FRAME_KEY
 from harness.reports.html.page import (
@@ -189,45 +189,6 @@ def _annotated_html(
     )
 
 
-def table_d_html(table_d: pd.DataFrame | None) -> str:
-    """Table D with its floor, chance band, ceiling, candidates' recall and false-alarm rates."""
-    if table_d is None:
-        return ""
-    rows = "".join(
-        f"<tr><td>{_e(x.row)}</td><td data-verdict='{_e(x.verdict)}'>"
-        f"{x.ap50_voc_all_point:.3f} [{x.ci_low:.3f}, {x.ci_high:.3f}]</td>"
-        f"<td>{_e(VERDICT_WORDS[x.verdict])}</td>"
-        f"<td>{x.coco_ap_50_95:.3f}</td><td>{x.coco_ap_50:.3f}</td>"
-        f"<td>{x.annotated_frames}</td><td>{x.change_boxes}</td><td>{x.detections}</td></tr>"
-        for x in table_d.itertuples()
-    )
-    c = table_d.iloc[0]
-    gen = f" (boxes: {_e(c.boxes)})" if "boxes" in table_d.columns else ""  # the generator
-    td = (
-        f'<h2 id="tableD">Table D: change boxes on the annotated frames{gen}</h2>'
-        "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
-        "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
-        "no-change give false positives only. Verdict by SPEC 9: above chance only above the "
-        "chance band and clear of the random row (paired).</p>"
-        '<table data-table="D"><tr><th></th><th>AP50 (VOC all-point)</th><th>verdict</th>'
-        "<th>COCO AP@[.5:.95]</th><th>COCO AP@.5</th><th>frames</th><th>change boxes</th>"
-        f"<th>detections</th></tr>{rows}</table>"
-        f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {c.floor:.3f} "
-        f"(mean of random scores, same NMS), chance band {c.chance_low:.3f}-"
-        f"{c.chance_high:.3f}, ceiling {c.ceiling:.3f} (candidates scored by their best IoU), "
-        f"candidates' recall at IoU 0.5 {c.candidate_recall:.3f}.</p>"
-    )
-    if "alarm_measured" in table_d.columns and int(c.no_change_frames):
-        td += (
-            f"<p class='note' data-alarm='{c.alarm_nominal:g}'>Calibrated scores: at a "
-            f"nominal false-alarm rate of {c.alarm_nominal:g}, "
-            f"{c.alarm_measured:.3f} [{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] (95% exact "
-            f"interval) of the {int(c.no_change_frames)} frames annotated no-change are "
-            "flagged.</p>"
-        )
-    return td + "".join(f'<p class="warn">{_e(w)}</p>' for w in table_d_warnings(table_d))
-
-
 def _trajectory_html(frames: pd.DataFrame) -> str:
     if has_poses(frames):
         return (
@@ -284,35 +245,6 @@ def write_detect_page(
     )
     write_text(out / "detect.html", page)
     return out / "detect.html"
-
-
-def table_d_warnings(t: pd.DataFrame) -> list[str]:
-    """What Table D must say in words, from SPEC 9's verdict and the candidates' ceiling."""
-    out = []
-    det = t.iloc[0]
-    if det["verdict"] != "above":
-        out.append(
-            f"WARNING: the detector's AP50 ({det['ap50_voc_all_point']:.3f}): "
-            f"{VERDICT_WORDS[str(det['verdict'])]} (floor {det['floor']:.3f}, chance band "
-            f"{det['chance_low']:.3f}-{det['chance_high']:.3f}, paired difference from the "
-            f"random row [{det['vs_random_ci_low']:+.3f}, {det['vs_random_ci_high']:+.3f}]): its "
-            "boxes locate the annotated changes no better than random scores on the same "
-            "candidates. The frame scores (image AP in Table P of harness reproduce) and the LoC "
-            "maps may still rank changed frames and regions first."
-        )
-    if det["candidate_recall"] == det["candidate_recall"] and det["candidate_recall"] < 0.5:
-        out.append(
-            f"NOTE: only {det['candidate_recall']:.0%} of the annotated change boxes are met at "
-            "IoU 0.5 by any candidate box (fused qBBs are intersections of proposals, usually "
-            f"smaller than a change object): no score could lift AP50 above the ceiling "
-            f"{det['ceiling']:.3f}. The loss is in the boxes, not the localizer."
-        )
-    if int(det["annotated_frames"]) < 30:
-        out.append(
-            f"NOTE: {int(det['annotated_frames'])} annotated query frames: too few for these APs "
-            "to be more than an indication."
-        )
-    return out
 
 
 def has_poses(frames: pd.DataFrame) -> bool:
