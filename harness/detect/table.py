@@ -1,23 +1,119 @@
-"""Table D (SPEC 13.1, section 9 for its floor and ceiling): its markdown, its HTML, its warnings.
+"""Table D (SPEC 13.1, section 9 for its floor and ceiling), built once for every format.
 
-:func:`harness.detect.evaluate.score_detections` computes the table (``tableD.csv``); the markdown
-file and the page (:mod:`harness.detect.page`) show it from here.
+:func:`harness.detect.evaluate.score_detections` computes the table (``tableD.csv``, a row per
+detector and baseline with the candidates' floor, band, ceiling, recall and false-alarm rates);
+:func:`table_d` turns it into a :class:`TableD` (each row's cells as text, the candidates'
+figures, the false-alarm rates, the warnings) that the markdown file and the page
+(:mod:`harness.detect.page`) render.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import pandas as pd
 
 from harness.evaluate.chance import MARK_LEGEND, VERDICT_WORDS
 from harness.reports.html.cells import esc
 
+#: Table D's columns after the row's name (the page's headings drop the `` [95% CI]``).
+COLUMNS = (
+    "AP50 (VOC all-point) [95% CI]",
+    "verdict",
+    "COCO AP@[.5:.95]",
+    "COCO AP@.5",
+    "frames",
+    "change boxes",
+    "detections",
+)
+
+
+@dataclass(frozen=True)
+class DRow:
+    """One row of Table D: its name, SPEC 9's verdict and a text cell per :data:`COLUMNS`."""
+
+    name: str
+    verdict: str
+    cells: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """The calibrated scores' false-alarm rate: nominal, and measured on no-change frames."""
+
+    nominal: float
+    measured: float
+    low: float
+    high: float
+    frames: int
+
+
+@dataclass(frozen=True)
+class TableD:
+    """Table D ready for any format: rows, the candidates' SPEC 9 figures, alarms, warnings."""
+
+    generator: str
+    rows: tuple[DRow, ...]
+    floor: float
+    chance_low: float
+    chance_high: float
+    ceiling: float
+    candidate_recall: float
+    gap_closed: float
+    alarm: Alarm | None
+    warnings: tuple[str, ...]
+
+
+def table_d(t: pd.DataFrame) -> TableD:
+    """Table D (``score_detections``'s frame, or ``tableD.csv`` read back) for every format."""
+    rows = tuple(
+        DRow(
+            str(r.row),
+            str(r.verdict),
+            (
+                f"{r.ap50_voc_all_point:.3f} [{r.ci_low:.3f}, {r.ci_high:.3f}]",
+                VERDICT_WORDS[r.verdict],
+                f"{r.coco_ap_50_95:.3f}",
+                f"{r.coco_ap_50:.3f}",
+                f"{r.annotated_frames}",
+                f"{r.change_boxes}",
+                f"{r.detections}",
+            ),
+        )
+        for r in t.itertuples()
+    )
+    c = t.iloc[0]
+    alarm = (
+        Alarm(
+            float(c.alarm_nominal),
+            float(c.alarm_measured),
+            float(c.alarm_ci_low),
+            float(c.alarm_ci_high),
+            int(c.no_change_frames),
+        )
+        if "alarm_measured" in t.columns and int(c.no_change_frames)
+        else None
+    )
+    return TableD(
+        str(c.boxes) if "boxes" in t.columns else "",
+        rows,
+        float(c.floor),
+        float(c.chance_low),
+        float(c.chance_high),
+        float(c.ceiling),
+        float(c.candidate_recall),
+        float(c.gap_closed),
+        alarm,
+        tuple(table_d_warnings(t)),
+    )
+
 
 def table_d_markdown(t: pd.DataFrame) -> str:
     """Table D as markdown, with what each column measures and SPEC 9's floor, band, ceiling."""
-    c = t.iloc[0]
+    v = table_d(t)
     lines = [
         "# Table D: change boxes on the annotated query frames"
-        + (f" (boxes: {c.boxes})" if "boxes" in t.columns else ""),
+        + (f" (boxes: {v.generator})" if v.generator else ""),
         "",
         "Box AP of the detector's change boxes (SPEC 13) against the annotated change boxes, by "
         "pycocotools' COCOeval: AP at IoU 0.5 with VOC all-point interpolation (the metric of "
@@ -25,44 +121,31 @@ def table_d_markdown(t: pd.DataFrame) -> str:
         "frames, COCO AP@[.5:.95] and COCO AP@.5 (101-point). Frames annotated no-change "
         "contribute false positives only.",
         "",
-        "| | AP50 (VOC all-point) [95% CI] | verdict | COCO AP@[.5:.95] | COCO AP@.5 | frames | "
-        "change boxes | detections |",
+        "| | " + " | ".join(COLUMNS) + " |",
         "|---|---:|---|---:|---:|---:|---:|---:|",
-    ]
-    for r in t.itertuples():
-        lines.append(
-            f"| {r.row} | {r.ap50_voc_all_point:.3f} [{r.ci_low:.3f}, {r.ci_high:.3f}] | "
-            f"{VERDICT_WORDS[r.verdict]} | {r.coco_ap_50_95:.3f} | {r.coco_ap_50:.3f} | "
-            f"{r.annotated_frames} | {r.change_boxes} | {r.detections} |"
-        )
-    lines += [
+        *(f"| {r.name} | " + " | ".join(r.cells) + " |" for r in v.rows),
         "",
         "| AP50 of the candidate boxes | value |",
         "|---|---:|",
-        f"| floor (mean AP50 of random scores on the same candidates, same NMS) | {c.floor:.3f} |",
-        f"| chance band (5th-95th percentile of those draws) | {c.chance_low:.3f}-"
-        f"{c.chance_high:.3f} |",
+        f"| floor (mean AP50 of random scores on the same candidates, same NMS) | {v.floor:.3f} |",
+        f"| chance band (5th-95th percentile of those draws) | {v.chance_low:.3f}-"
+        f"{v.chance_high:.3f} |",
         f"| ceiling (candidates scored by their best IoU with a change box, same NMS) | "
-        f"{c.ceiling:.3f} |",
+        f"{v.ceiling:.3f} |",
         f"| candidates' recall at IoU 0.5 (change boxes some candidate meets) | "
-        f"{c.candidate_recall:.3f} |",
+        f"{v.candidate_recall:.3f} |",
         f"| share of the reachable gap the detector closes, (AP - floor) / (ceiling - floor) | "
-        f"{_pct(c.gap_closed)} |",
-        *(
-            [
-                f"| nominal false-alarm rate (frames whose calibrated score is at most it) | "
-                f"{c.alarm_nominal:g} |",
-                f"| false-alarm rate measured on the {int(c.no_change_frames)} frames annotated "
-                f"no-change [95% exact interval] | {c.alarm_measured:.3f} "
-                f"[{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] |",
-            ]
-            if "alarm_measured" in t.columns and int(c.no_change_frames)
-            else []
-        ),
-        "",
-        f"Verdict (SPEC 9): {MARK_LEGEND}",
+        f"{_pct(v.gap_closed)} |",
     ]
-    lines += ["", *table_d_warnings(t)]
+    if v.alarm:
+        a = v.alarm
+        lines += [
+            f"| nominal false-alarm rate (frames whose calibrated score is at most it) | "
+            f"{a.nominal:g} |",
+            f"| false-alarm rate measured on the {a.frames} frames annotated "
+            f"no-change [95% exact interval] | {a.measured:.3f} [{a.low:.3f}, {a.high:.3f}] |",
+        ]
+    lines += ["", f"Verdict (SPEC 9): {MARK_LEGEND}", "", *v.warnings]
     return "\n".join(lines) + "\n"
 
 
@@ -70,43 +153,41 @@ def _pct(v: float) -> str:
     return "NaN" if v != v else f"{100 * v:.0f}%"
 
 
-def table_d_html(table_d: pd.DataFrame | None) -> str:
+def table_d_html(t: pd.DataFrame | None) -> str:
     """Table D with its floor, chance band, ceiling, candidates' recall and false-alarm rates."""
-    if table_d is None:
+    if t is None:
         return ""
+    v = table_d(t)
     rows = "".join(
-        f"<tr><td>{esc(x.row)}</td><td data-verdict='{esc(x.verdict)}'>"
-        f"{x.ap50_voc_all_point:.3f} [{x.ci_low:.3f}, {x.ci_high:.3f}]</td>"
-        f"<td>{esc(VERDICT_WORDS[x.verdict])}</td>"
-        f"<td>{x.coco_ap_50_95:.3f}</td><td>{x.coco_ap_50:.3f}</td>"
-        f"<td>{x.annotated_frames}</td><td>{x.change_boxes}</td><td>{x.detections}</td></tr>"
-        for x in table_d.itertuples()
+        f"<tr><td>{esc(r.name)}</td><td data-verdict='{esc(r.verdict)}'>{r.cells[0]}</td>"
+        + "".join(f"<td>{esc(c)}</td>" for c in r.cells[1:])
+        + "</tr>"
+        for r in v.rows
     )
-    c = table_d.iloc[0]
-    gen = f" (boxes: {esc(c.boxes)})" if "boxes" in table_d.columns else ""  # the generator
+    head = "".join(f"<th>{h.removesuffix(' [95% CI]')}</th>" for h in COLUMNS)
+    gen = f" (boxes: {esc(v.generator)})" if v.generator else ""
     td = (
         f'<h2 id="tableD">Table D: change boxes on the annotated frames{gen}</h2>'
         "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
         "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
         "no-change give false positives only. Verdict by SPEC 9: above chance only above the "
         "chance band and clear of the random row (paired).</p>"
-        '<table data-table="D"><tr><th></th><th>AP50 (VOC all-point)</th><th>verdict</th>'
-        "<th>COCO AP@[.5:.95]</th><th>COCO AP@.5</th><th>frames</th><th>change boxes</th>"
-        f"<th>detections</th></tr>{rows}</table>"
-        f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {c.floor:.3f} "
-        f"(mean of random scores, same NMS), chance band {c.chance_low:.3f}-"
-        f"{c.chance_high:.3f}, ceiling {c.ceiling:.3f} (candidates scored by their best IoU), "
-        f"candidates' recall at IoU 0.5 {c.candidate_recall:.3f}.</p>"
+        f'<table data-table="D"><tr><th></th>{head}</tr>{rows}</table>'
+        f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {v.floor:.3f} "
+        f"(mean of random scores, same NMS), chance band {v.chance_low:.3f}-"
+        f"{v.chance_high:.3f}, ceiling {v.ceiling:.3f} (candidates scored by their best IoU), "
+        f"candidates' recall at IoU 0.5 {v.candidate_recall:.3f}.</p>"
     )
-    if "alarm_measured" in table_d.columns and int(c.no_change_frames):
+    if v.alarm:
+        a = v.alarm
         td += (
-            f"<p class='note' data-alarm='{c.alarm_nominal:g}'>Calibrated scores: at a "
-            f"nominal false-alarm rate of {c.alarm_nominal:g}, "
-            f"{c.alarm_measured:.3f} [{c.alarm_ci_low:.3f}, {c.alarm_ci_high:.3f}] (95% exact "
-            f"interval) of the {int(c.no_change_frames)} frames annotated no-change are "
+            f"<p class='note' data-alarm='{a.nominal:g}'>Calibrated scores: at a "
+            f"nominal false-alarm rate of {a.nominal:g}, "
+            f"{a.measured:.3f} [{a.low:.3f}, {a.high:.3f}] (95% exact "
+            f"interval) of the {a.frames} frames annotated no-change are "
             "flagged.</p>"
         )
-    return td + "".join(f'<p class="warn">{esc(w)}</p>' for w in table_d_warnings(table_d))
+    return td + "".join(f'<p class="warn">{esc(w)}</p>' for w in v.warnings)
 
 
 def table_d_warnings(t: pd.DataFrame) -> list[str]:
