@@ -16,7 +16,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from harness.config.schema import PairsConfig
-from harness.records import FRAME_KEY, QUERY_KEY
+from harness.records import FRAME_KEY, IMAGE_KEY, QUERY_KEY
 from harness.runtime.cache import write_json, write_parquet
 
 log = logging.getLogger(__name__)
@@ -192,9 +192,7 @@ def build_pairs(
             )
         )
     pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=PAIR_COLUMNS)
-    pairs = pairs.sort_values(["q_session", "q_camera", "q_utime", "r_session"]).reset_index(
-        drop=True
-    )
+    pairs = pairs.sort_values(IMAGE_KEY).reset_index(drop=True)
     summary = _summary(q_all, pairs, matched, unmatched)
     log.info(
         "pairs: %d queries, %d pairs, %d (query, session) without reference",
@@ -238,7 +236,7 @@ def candidate_pairs(
                 }
             )
         )
-    cols = ["q_session", "q_camera", "q_utime", "r_session", "season_pair"]
+    cols = [*IMAGE_KEY, "season_pair"]
     cand = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=cols)
     return cand.sort_values([*QUERY_KEY, "r_session"]).reset_index(drop=True)[cols]
 

@@ -22,6 +22,10 @@ NCLT_SEASONS: dict[str, str] = {
 FRAME_KEY = ["session", "camera", "utime"]
 #: The query frame's key in pair, rank and sample tables.
 QUERY_KEY = ["q_session", "q_camera", "q_utime"]
+#: A query image's key: the query frame and the reference session it is paired with.
+IMAGE_KEY = [*QUERY_KEY, "r_session"]
+#: A query subimage's key in rank tables and imported ranked lists: its image, proposal method, box.
+SUBIMAGE_KEY = [*IMAGE_KEY, "method", "box_id"]
 
 
 def frame_sizes(frames: Any) -> dict[tuple[str, str, int], tuple[int, int]]:

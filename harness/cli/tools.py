@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 from harness.errors import HarnessError
+from harness.records import IMAGE_KEY
 
 log = logging.getLogger("harness")
 
@@ -38,7 +39,7 @@ def cmd_annotations(args: argparse.Namespace) -> int:
         pairs = pd.read_parquet(pairs_path)
     except (OSError, ValueError) as err:
         raise HarnessError(f"{pairs_path}: not a readable parquet pair table ({err})") from None
-    need = ["q_session", "q_camera", "q_utime", "r_session", "r_camera", "r_utime"]
+    need = [*IMAGE_KEY, "r_camera", "r_utime"]
     if [c for c in need if c not in pairs.columns]:
         raise HarnessError(
             f"{pairs_path}: not a pair table (needs columns {need}; the run's is "

@@ -293,7 +293,7 @@ def trajectory_figure(
 
 def _score_timeline(path: Path, fr: pd.DataFrame, top: pd.DataFrame, plt: Any) -> Path:
     """Each query frame's change score in time order (no poses), the most changed numbered."""
-    order = fr.sort_values(["session", "camera", "utime"]).reset_index(drop=True)
+    order = fr.sort_values(FRAME_KEY).reset_index(drop=True)
     pos = {
         k: i
         for i, k in enumerate(zip(order["session"], order["camera"], order["utime"], strict=True))

@@ -27,7 +27,7 @@ from harness.methods import (
     ordered_methods,
     rules_where,
 )
-from harness.records import FRAME_KEY
+from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.runtime.cache import source_fingerprints, stable_hash, write_parquet
 from harness.runtime.progress import progress
 
@@ -259,7 +259,9 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
 
 #: The columns of a sample table before the LoC of each method (``loc_<method>``).
 SAMPLE_COLUMNS = (
-    *("q_session", "q_camera", "q_utime", "r_session", "season_pair", "proposals"),
+    *IMAGE_KEY,
+    "season_pair",
+    "proposals",
     *("x1", "y1", "x2", "y2", "original", "N", "RoC", "SoB"),
 )
 
@@ -359,7 +361,7 @@ def fuse_samples(
     methods = ordered_methods(methods)
     props = sorted(ranks["method"].unique())
     subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
-    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    keys = IMAGE_KEY
     srt = ranks.sort_values(keys, kind="stable")
     kcols = [srt[k].to_numpy() for k in keys]
     method = srt["method"].to_numpy()
@@ -392,7 +394,7 @@ def fuse_samples(
                 counts,
             )
             n_rows = len(part["x1"])
-            for c, v in zip(("q_session", "q_camera", "q_utime", "r_session"), key, strict=True):
+            for c, v in zip(IMAGE_KEY, key, strict=True):
                 cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
             cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
             cols["proposals"].append(np.full(n_rows, name, dtype=object))

@@ -32,7 +32,7 @@ import cv2
 import pandas as pd
 
 from harness.imagestore import read_image, split_uri
-from harness.records import FRAME_KEY, QUERY_KEY
+from harness.records import FRAME_KEY, IMAGE_KEY, QUERY_KEY
 from harness.retrieval import import_file, imported
 from harness.runtime.cache import atomic_dir, write_json, write_parquet, write_text
 from harness.runtime.outdirs import check_replaceable, write_marker
@@ -93,7 +93,7 @@ def write_task(
     out = check_replaceable(out, "task", force=True)
     props = pd.concat(list(proposals.values()), ignore_index=True)
     pk = ["session", "camera", "utime", "method", "box_id", *BOX]
-    q = pairs[["q_session", "q_camera", "q_utime", "r_session", "r_camera"]].merge(
+    q = pairs[[*IMAGE_KEY, "r_camera"]].merge(
         props[pk].rename(
             columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"}
         ),

@@ -32,6 +32,7 @@ from harness.pipeline.stages import (
     retrieval_pair_table,
     session_descriptors,
 )
+from harness.records import IMAGE_KEY
 from harness.retrieval.import_file import ImportSpec
 from harness.runtime.cache import stable_hash
 
@@ -307,9 +308,6 @@ def localizer_fusion(
             "are neither queries nor database rows of its engine (SPEC section 11)."
         )
     return fc, notes
-
-
-IMAGE_KEY = ["q_session", "q_camera", "q_utime", "r_session"]
 
 
 def common_images(p: Context, measured: list[Measured], pairs: Table) -> str | None:

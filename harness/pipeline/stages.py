@@ -35,6 +35,7 @@ from harness.pairs import candidate_pairs, write_pairs
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.proposals.proposers import write_proposals
+from harness.records import SUBIMAGE_KEY
 from harness.reports.write import Block, Reports, write_reports
 from harness.retrieval import described_frames, rank_reference
 from harness.retrieval.import_file import ImportSpec
@@ -417,7 +418,7 @@ def query_ranks(
     return RankTable(df, stable_hash(*keys.ranks(rc, pairs.key, dkeys, precision)), counts)
 
 
-SORT_RANKS = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+SORT_RANKS = SUBIMAGE_KEY
 
 
 def _write_ranks(

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import matplotlib
 
-from harness.records import FRAME_KEY
+from harness.records import FRAME_KEY, IMAGE_KEY
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -94,7 +94,7 @@ def locmap_figures(
         .groupby(FRAME_KEY, as_index=False)["area"]
         .sum()
     )
-    keys = allp[["q_session", "q_camera", "q_utime", "r_session"]].drop_duplicates()
+    keys = allp[IMAGE_KEY].drop_duplicates()
     keys = keys.merge(
         area.rename(columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"})
     )

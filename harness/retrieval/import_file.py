@@ -15,8 +15,9 @@ import numpy as np
 import pandas as pd
 
 from harness.errors import RetrievalError
+from harness.records import SUBIMAGE_KEY
 
-KEY = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+KEY = SUBIMAGE_KEY
 
 
 BOX = ["x1", "y1", "x2", "y2"]

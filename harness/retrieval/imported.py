@@ -47,6 +47,7 @@ import numpy as np
 import pandas as pd
 
 from harness.errors import RetrievalError
+from harness.records import IMAGE_KEY, QUERY_KEY, SUBIMAGE_KEY
 from harness.retrieval.import_file import BOX, KEY, SCORE_KINDS, ImportSpec, Rows, read_import
 from harness.retrieval.places import ground_truth_places
 
@@ -83,7 +84,7 @@ def _check_against_run(
             "repeat a query subimage (same frame, r_session, method, box_id)",
             f"{r.q_session}/{r.q_camera}/{r.q_utime} -> {r.r_session}, {r.method} box {r.box_id}",
         )
-    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    keys = IMAGE_KEY
     m = df.merge(
         pairs[keys + ["r_camera", "r_utime", "season_pair"]], on=keys, how="left", sort=False
     )
@@ -117,7 +118,7 @@ def _check_proposals(m: pd.DataFrame, rows: Rows, proposals: pd.DataFrame) -> No
             "y2": "_y2",
         }
     )
-    j = m.merge(pr, on=["q_session", "q_camera", "q_utime", "method", "box_id"], how="left")
+    j = m.merge(pr, on=[*QUERY_KEY, "method", "box_id"], how="left")
     none = j["_x1"].isna().to_numpy()
     if none.any():
         i = int(np.flatnonzero(none)[0])
@@ -165,7 +166,7 @@ def _check_frame_ids(m: pd.DataFrame, rows: Rows, frames: pd.DataFrame) -> None:
 
 def _pair_hint(r: Any, pairs: pd.DataFrame) -> str:
     """Why a row may match no pair: a unit or a spelling the user can fix."""
-    q = pairs[["q_session", "q_camera", "q_utime", "r_session"]].drop_duplicates()
+    q = pairs[IMAGE_KEY].drop_duplicates()
     if not (q["q_session"] == r.q_session).any():
         return (
             f"; no query frame of session {r.q_session!r}: sessions {sorted(set(q['q_session']))}"
@@ -305,9 +306,7 @@ def ranks_from_import(
     rank = np.minimum(rank, Lq)
     out = _rank_rows(m, rank, Lq, dval, exact, psize)
     counts["ranked"] = n
-    return out.sort_values(
-        ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
-    ).reset_index(drop=True), counts
+    return out.sort_values(SUBIMAGE_KEY).reset_index(drop=True), counts
 
 
 def _databases(proposals: pd.DataFrame | None) -> dict[tuple[str, str, str], set[int]]:
@@ -323,7 +322,7 @@ def _databases(proposals: pd.DataFrame | None) -> dict[tuple[str, str, str], set
 
 def unranked_images(pairs: pd.DataFrame, ranks: pd.DataFrame) -> pd.DataFrame:
     """The query images (query frame x reference session) of ``pairs`` without any rank row."""
-    keys = ["q_session", "q_camera", "q_utime", "r_session"]
+    keys = IMAGE_KEY
     have = ranks[keys].drop_duplicates() if len(ranks) else pd.DataFrame(columns=keys)
     j = pairs[keys].merge(have, on=keys, how="left", indicator=True)
     return j.loc[j["_merge"] == "left_only", keys].reset_index(drop=True)

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 
 from harness.config.schema import RetrievalConfig
 from harness.pairs import thin_by_stride
-from harness.records import FRAME_KEY
+from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
 from harness.retrieval.engines import image_ranks, image_ranks_faiss
 from harness.retrieval.places import ground_truth_places, places_by_order
@@ -32,7 +32,7 @@ RANK_COUNTS = (
     "query_frames_without_subimages",
 )
 
-SORT = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+SORT = SUBIMAGE_KEY
 
 
 def kept_reference_frames(ref_frames: pd.DataFrame, stride_m: float) -> set[int]:

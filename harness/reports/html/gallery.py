@@ -17,7 +17,7 @@ from harness.errors import HarnessError
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
 from harness.methods import FUSION_METHODS, METHOD_LABELS
-from harness.records import FRAME_KEY
+from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.reports.html.cells import NAN, esc
 from harness.reports.overlay import colour_bar
 from harness.runtime.cache import atomic_path
@@ -189,9 +189,7 @@ def gallery_html(
     if localizer is not None and "localizer" in rep.columns:
         rep = rep[rep["localizer"] == localizer]
     fr = frames.set_index(FRAME_KEY)
-    refs = ranks.drop_duplicates(["q_session", "q_camera", "q_utime", "r_session"]).set_index(
-        ["q_session", "q_camera", "q_utime", "r_session"]
-    )
+    refs = ranks.drop_duplicates(IMAGE_KEY).set_index(IMAGE_KEY)
     chg = ann[ann["status"] == "change"]
     cache: dict[tuple, np.ndarray] = {}
 
