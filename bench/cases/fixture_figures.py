@@ -45,8 +45,11 @@ VARIANTS: dict[str, dict[str, dict[str, Any]]] = {
 COMPARED = ("recall_at_1", "clean_recall_at_1", "t1_rank_fusion_005", "ts_rank_fusion_005")
 
 
-def figures(out: Path) -> dict[str, float]:
-    """The quoted figures of one finished run directory, at full precision."""
+def run_tables(out: Path) -> tuple[Any, Any, Any, Any]:
+    """A finished run's pooled localization row, Table I, summary and Table S at RoC-max 0.05.
+
+    Table I and Table S (the summary's rows at RoC-max 0.05) are indexed by method.
+    """
     import pandas as pd
 
     loc = pd.read_csv(out / "localization.csv")
@@ -54,6 +57,12 @@ def figures(out: Path) -> dict[str, float]:
     t1 = pd.read_csv(out / "table1.csv").set_index("method")
     summ = pd.read_parquet(out / "splits" / "summary.parquet")
     ts = summ[(summ["table"] == "S") & (summ["roc_max"].round(6) == 0.05)].set_index("method")
+    return row, t1, summ, ts
+
+
+def figures(out: Path) -> dict[str, float]:
+    """The quoted figures of one finished run directory, at full precision."""
+    row, t1, summ, ts = run_tables(out)
     run = json.loads((out / "run.json").read_text())
     rf = ts.loc["rank_fusion"]
     return {
@@ -89,11 +98,11 @@ def figures(out: Path) -> dict[str, float]:
         "frames_not_described_max": max(run["counts"]["frames_not_described"].values()),
         "train_s": float(run["timings_s"].get("model", 0.0)),
         **_model_info(out, run),
-        **_measured_share(run["counts"].get("rank_counts", {})),
+        **measured_share(run["counts"].get("rank_counts", {})),
     }
 
 
-def _measured_share(counts: Any) -> dict[str, float]:
+def measured_share(counts: Any) -> dict[str, float]:
     """A bf16 ranking's share of (query, frame) comparisons measured exactly (else nothing)."""
 
     def total(c: Any, name: str) -> int:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from .common import DATA, ROOT, emit, nclt_scale_workload, reproduce_subprocess
+from .fixture_figures import measured_share, run_tables
 
 PRECISIONS = ("fp32", "bf16")
 
@@ -34,34 +35,22 @@ def _config(precision: str, where: Path) -> Path:
 
 def _figures(out: Path, run: dict[str, Any]) -> dict[str, float]:
     """R@1 over every query subimage, Table I at RoC-max 0.05 and Table S's rank fusion AP."""
-    import pandas as pd
-
-    loc = pd.read_csv(out / "localization.csv")
-    row = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")].iloc[0]
-    t1 = pd.read_csv(out / "table1.csv").set_index("method")
-    summ = pd.read_parquet(out / "splits" / "summary.parquet")
-    ts = summ[(summ["table"] == "S") & (summ["roc_max"].round(6) == 0.05)].set_index("method")
-    fig = {
+    row, t1, _, ts = run_tables(out)
+    rf = ts.loc["rank_fusion"]
+    return {
         "recall_at_1": float(row["recall_at_1"]),
         "median_r": float(row["median_r"]),
         "t1_rank_fusion_005": float(t1.loc["rank_fusion", "0.05"]),
         "t1_rank_no_fusion_005": float(t1.loc["rank_no_fusion", "0.05"]),
-        "ts_rank_fusion_005": float(ts.loc["rank_fusion", "ap"]),
+        "ts_rank_fusion_005": float(rf["ap"]),
         # SPEC 9: every AP with its interval, its measured floor and chance band
-        "ts_rank_fusion_ci_low_005": float(ts.loc["rank_fusion", "ci_low"]),
-        "ts_rank_fusion_ci_high_005": float(ts.loc["rank_fusion", "ci_high"]),
-        "ts_floor_005": float(ts.loc["rank_fusion", "floor"]),
-        "ts_chance_high_005": float(ts.loc["rank_fusion", "chance_high"]),
+        "ts_rank_fusion_ci_low_005": float(rf["ci_low"]),
+        "ts_rank_fusion_ci_high_005": float(rf["ci_high"]),
+        "ts_floor_005": float(rf["floor"]),
+        "ts_chance_high_005": float(rf["chance_high"]),
         "subimages": int(row["subimages"]),
+        **measured_share(run["counts"].get("rank_counts", {})),
     }
-    counts = run["counts"].get("rank_counts", {})
-    compared = sum(int(c.get("compared", 0)) for c in counts.values() if isinstance(c, dict))
-    if compared:
-        measured = sum(
-            int(c.get("measured_exactly", 0)) for c in counts.values() if isinstance(c, dict)
-        )
-        fig["rank_measured_exactly_share"] = measured / compared
-    return fig
 
 
 def case_precision(quick: bool) -> None:
