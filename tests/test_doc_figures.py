@@ -158,9 +158,13 @@ def test_the_recorded_default_row_is_this_codes_fixture_run(local_run: tuple) ->
     not older than the code; the variants share its stages up to the setting they change)."""
     import importlib
 
+    from .stage_digests import skip_unless_recorded_model
+
     figures = importlib.import_module("bench.cases.fixture_figures").figures
     _, _, out = local_run
     now, rec = figures(out), recorded()["default"]
+    assert set(now) - {"train_s"} <= set(rec), set(now) - set(rec)
+    skip_unless_recorded_model(out)
     for k, x in now.items():
         if k == "train_s":  # a time: the machine's, not the code's
             continue
@@ -174,7 +178,10 @@ def test_the_recorded_default_row_is_this_codes_fixture_run(local_run: tuple) ->
 def test_the_readme_table_s_sentence_is_the_fixture_runs(local_run: tuple) -> None:
     """The README's Table S figures (floor, band, random row, rank fusion and its interval) and the
     positive control in *Changes*, from the run's own summary."""
+    from .stage_digests import skip_unless_recorded_model
+
     _, _, out = local_run
+    skip_unless_recorded_model(out)
     s = pd.read_parquet(out / "splits" / "summary.parquet")
     ts = s[(s["table"] == "S") & (s["roc_max"].round(6) == 0.05)].set_index("method")
     rf, rnd = ts.loc["rank_fusion"], ts.loc["random"]

@@ -81,7 +81,13 @@ def test_inference_encoder_equals_the_trained_encoder() -> None:
     assert torch.allclose(fused, ref, atol=1e-5, rtol=1e-4)
     for step in (1, 2, 6):
         d = AutoencoderDescriptor(
-            DescriptorConfig(input_size=64, input_norm="per_crop", device="cpu", encode_batch=step)
+            DescriptorConfig(
+                input_size=64,
+                input_norm="per_crop",
+                device="cpu",
+                encode_batch=step,
+                precision="fp32",  # the model's own (fp32) arithmetic, on a bf16 CPU too
+            )
         )
         d.model = model
         assert np.allclose(d.encode(_crops(6, 64)), ref.numpy(), atol=1e-5, rtol=1e-4)
