@@ -30,7 +30,11 @@ def histogram(row) -> np.ndarray:
 ref_h = np.stack([histogram(r) for r in refs.itertuples()])
 rows = []
 for q in queries.itertuples():
-    same = (refs.session == q.r_session) & (refs.camera == q.r_camera) & (refs.method == q.method)
+    same = (
+        (refs.session == q.r_session)
+        & (refs.camera == q.r_camera)
+        & (refs.proposal_method == q.proposal_method)
+    )
     db = refs[same]
     dist = np.linalg.norm(ref_h[db.index] - histogram(q), axis=1)
     # a frame's distance is its nearest subimage's; the list holds every frame, best first
@@ -38,7 +42,10 @@ for q in queries.itertuples():
     per_frame = per_frame.sort_values(kind="stable")
     rows.append(
         {
-            **{c: getattr(q, c) for c in ("q_session", "q_camera", "q_utime", "method", "box_id")},
+            **{
+                c: getattr(q, c)
+                for c in ("q_session", "q_camera", "q_utime", "proposal_method", "box_id")
+            },
             **{c: getattr(q, c) for c in ("x1", "y1", "x2", "y2", "r_session")},
             "ranked": " ".join(str(u) for u in per_frame.index),
             "scores": " ".join(f"{d:.9g}" for d in per_frame),  # distances: smaller = closer

@@ -25,7 +25,7 @@ QUERY_KEY = ["q_session", "q_camera", "q_utime"]
 #: A query image's key: the query frame and the reference session it is paired with.
 IMAGE_KEY = [*QUERY_KEY, "r_session"]
 #: A query subimage's key in rank tables and imported ranked lists: its image, proposal method, box.
-SUBIMAGE_KEY = [*IMAGE_KEY, "method", "box_id"]
+SUBIMAGE_KEY = [*IMAGE_KEY, "proposal_method", "box_id"]
 
 
 def frame_sizes(frames: Any) -> dict[tuple[str, str, int], tuple[int, int]]:

@@ -183,7 +183,7 @@ def test_the_readme_table_s_sentence_is_the_fixture_runs(local_run: tuple) -> No
     _, _, out = local_run
     skip_unless_recorded_model(out)
     s = pd.read_parquet(out / "splits" / "summary.parquet")
-    ts = s[(s["table"] == "S") & (s["roc_max"].round(6) == 0.05)].set_index("method")
+    ts = s[(s["table"] == "S") & (s["roc_max"].round(6) == 0.05)].set_index("fusion")
     rf, rnd = ts.loc["rank_fusion"], ts.loc["random"]
     mark = {"above": "▲", "below": "▼"}.get(str(rnd["verdict"]), "○")
     text = _flat(README.read_text())
@@ -199,7 +199,9 @@ def test_the_readme_table_s_sentence_is_the_fixture_runs(local_run: tuple) -> No
         f"of 0 (lower end {rf['vs_random_diff_ci_low']:.3f})",
     ):
         assert phrase in text, phrase
-    ts_all = s[(s["table"] == "S") & (s["method"] == "rank_fusion") & (s["proposals"] == "all")]
+    ts_all = s[
+        (s["table"] == "S") & (s["fusion"] == "rank_fusion") & (s["proposal_method"] == "all")
+    ]
     ts_all = ts_all[ts_all["season_pair"] == "all"]
     assert (ts_all["verdict"] == "above").all(), ts_all[["roc_max", "verdict"]]  # "every RoC-max"
 

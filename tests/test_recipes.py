@@ -53,7 +53,7 @@ def test_recipe_a_toy_descriptor_in_under_30_lines(
     loc = pd.read_csv(tmp_path / "localization.csv")
     assert (
         loc["subimages"].max() > 0
-        and 0 < loc.loc[loc["proposals"] == "all", "recall_at_1"].iloc[0] < 1
+        and 0 < loc.loc[loc["proposal_method"] == "all", "recall_at_1"].iloc[0] < 1
     )
     assert (tmp_path / "table1.csv").exists()
 
@@ -141,9 +141,9 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
         pd.read_parquet(tmp_path / "cache" / "proposals" / k / "proposals.parquet")
         for k in rec["cache_entries"]["proposals"]
     )
-    cen = props[props["method"] == "centre"]
+    cen = props[props["proposal_method"] == "centre"]
     frames = props[["session", "utime"]].drop_duplicates()
-    assert len(cen) == len(frames) and set(props["method"]) == {"grid5", "centre"}
+    assert len(cen) == len(frames) and set(props["proposal_method"]) == {"grid5", "centre"}
     fr = pd.read_parquet(tmp_path / "cache" / "frames" / rec["keys"]["frames"] / "frames.parquet")
     got = cen.merge(fr, on=["session", "camera", "utime"])
     assert np.allclose(got[["x1", "x2"]], np.c_[got["width"] / 4, 3 * got["width"] / 4])
@@ -159,9 +159,9 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
     assert k[0] != k[1] and k[0][2]["options"] == {"centre": {"frac": 0.5}}
     assert "options" not in keys.proposals(p.cfg, "i", [])[2]  # no table: the key of before
     ranks = pd.read_parquet(tmp_path / "ranks.parquet")
-    assert set(ranks["method"]) == {"grid5", "centre"}  # its own rank engine
+    assert set(ranks["proposal_method"]) == {"grid5", "centre"}  # its own rank engine
     loc = pd.read_csv(tmp_path / "localization.csv")
-    assert "centre" in set(loc["proposals"]) and (tmp_path / "table1.csv").exists()
+    assert "centre" in set(loc["proposal_method"]) and (tmp_path / "table1.csv").exists()
     # editing the function changes the proposals' key (its source is hashed into it)
     before = proposals.method_fingerprints(["grid5", "centre"])
     assert before.keys() == {"centre"}  # built-ins are covered by the package's own code key
@@ -196,12 +196,12 @@ def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries
     q, rec = _rerun(local_run, tmp_path, cfg)
     assert q.ran.get("ranks", 0) == 0 and q.ran["samples"] > 0  # ranks reused
     t1 = pd.read_csv(tmp_path / "table1.csv")
-    assert t1["method"].tolist() == ["rank_fusion", "score_max", "best_rank"]  # after SPEC's
+    assert t1["fusion"].tolist() == ["rank_fusion", "score_max", "best_rank"]  # after SPEC's
     assert "best single rank" in (tmp_path / "table1.md").read_text()
     # one sample's LoC by hand: the originals containing the sample box, their largest 1/r'
     key = rec["keys"]["samples"]
     s = pd.read_parquet(tmp_path / "cache" / "samples" / key / "samples.parquet")
-    s = s[(s["proposals"] == "all") & (s["N"] >= 2)].iloc[0]
+    s = s[(s["proposal_method"] == "all") & (s["N"] >= 2)].iloc[0]
     ranks = pd.read_parquet(tmp_path / "ranks.parquet")
     img = ranks[
         (ranks["q_session"] == s.q_session)
@@ -274,7 +274,7 @@ def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registrie
     desc = np.load(tmp_path / "cache" / "colour" / q.used["colour"].pop() / "desc.npy")
     assert desc.shape[1] == 64 and np.allclose((desc**2).sum(1), 1.0, atol=1e-5)
     loc = pd.read_csv(tmp_path / "localization.csv")
-    r1 = loc.loc[loc["proposals"] == "all", "recall_at_1"].iloc[0]
+    r1 = loc.loc[loc["proposal_method"] == "all", "recall_at_1"].iloc[0]
     assert loc["subimages"].max() > 0 and 0 < r1 <= 1
     assert (tmp_path / "table1.csv").exists()
 
@@ -380,7 +380,9 @@ def test_recipe_a_toy_report_table(
     def by_roc_max(cfg: object, blocks: list) -> pd.DataFrame:
         """Table S rank fusion of the first localizer at each RoC-max."""
         s = blocks[0].summary
-        s = s[(s["table"] == "S") & (s["method"] == "rank_fusion") & (s["proposals"] == "all")]
+        s = s[
+            (s["table"] == "S") & (s["fusion"] == "rank_fusion") & (s["proposal_method"] == "all")
+        ]
         s = s[s["split"].str.startswith("roc_max_")]
         return pd.DataFrame(
             {"roc_max": s["roc_max"], "query_images": s["query_images"]}
@@ -425,8 +427,8 @@ def test_recipe_a_toy_report_table(
     summ = pd.read_parquet(tmp_path / "splits" / "summary.parquet")
     want = summ[
         (summ["table"] == "S")
-        & (summ["method"] == "rank_fusion")
-        & (summ["proposals"] == "all")
+        & (summ["fusion"] == "rank_fusion")
+        & (summ["proposal_method"] == "all")
         & summ["split"].str.startswith("roc_max_")
     ]
     assert got["roc_max"].tolist() == want["roc_max"].tolist() == [0.01, 0.02, 0.03, 0.04, 0.05]
@@ -472,7 +474,7 @@ def test_recipe_a_column_of_table_s(local_run: tuple) -> None:
     new["verdict"] = "above"
     summ = pd.concat([summ, new], ignore_index=True)
     # --- end of the recipe (the rest checks it) ---
-    methods = tuple(m for m in summ["method"].unique() if isinstance(m, str))
+    methods = tuple(m for m in summ["fusion"].unique() if isinstance(m, str))
     t = change_table(summ, "S", methods)
     assert t.columns[-1] == 0.5 and t.counts.count("positives") == len(t.columns)
     text = "0.62 [0.50, 0.75]"

@@ -202,7 +202,7 @@ def _overlap_bovw(paths: list[str]) -> None:
             for i in range(len(paths))
             for k, b in enumerate(grid5(1232, 1616))
         ],
-        columns=["session", "camera", "utime", "method", "box_id", "x1", "y1", "x2", "y2"],
+        columns=["session", "camera", "utime", "proposal_method", "box_id", "x1", "y1", "x2", "y2"],
     )
     frames = pd.DataFrame(
         [("s", "c", i, p) for i, p in enumerate(paths)],

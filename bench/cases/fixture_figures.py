@@ -53,10 +53,10 @@ def run_tables(out: Path) -> tuple[Any, Any, Any, Any]:
     import pandas as pd
 
     loc = pd.read_csv(out / "localization.csv")
-    row = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")].iloc[0]
-    t1 = pd.read_csv(out / "table1.csv").set_index("method")
+    row = loc[(loc["proposal_method"] == "all") & (loc["season_pair"] == "all")].iloc[0]
+    t1 = pd.read_csv(out / "table1.csv").set_index("fusion")
     summ = pd.read_parquet(out / "splits" / "summary.parquet")
-    ts = summ[(summ["table"] == "S") & (summ["roc_max"].round(6) == 0.05)].set_index("method")
+    ts = summ[(summ["table"] == "S") & (summ["roc_max"].round(6) == 0.05)].set_index("fusion")
     return row, t1, summ, ts
 
 

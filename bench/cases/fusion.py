@@ -66,7 +66,7 @@ def case_fusion(quick: bool) -> None:
             "r_camera",
             "r_utime",
             "season_pair",
-            "method",
+            "proposal_method",
             "box_id",
             "x1",
             "y1",
@@ -86,7 +86,7 @@ def case_fusion(quick: bool) -> None:
         ann, columns=["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
     )
     samples, _ = fuse_samples(ranks, frames, annotations, 0, 4096)
-    allp = samples[samples["proposals"] == "all"].reset_index(drop=True)
+    allp = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     methods = tuple(c[4:] for c in samples.columns if c.startswith("loc_"))
     cfg = load_config(ROOT / "datasets" / "fixture.toml")
     cfg = dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, bootstrap=0))

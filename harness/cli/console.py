@@ -93,7 +93,7 @@ def print_localization(console, rep, rec, also: bool = False) -> None:
         lt.add_column(lab, justify="right")
     for r in loc[loc["season_pair"] == "all"].itertuples(index=False):
         lt.add_row(
-            r.proposals,
+            r.proposal_method,
             r.season_pair,
             *(
                 str(int(getattr(r, c)))
@@ -117,7 +117,7 @@ def print_block(console, rep, rec) -> None:
     summ = rep.summary
     cmp_ = summ[
         (summ["table"] == "S")
-        & (summ["proposals"] == "all")
+        & (summ["proposal_method"] == "all")
         & (summ["season_pair"] == "all")
         & summ["diff"].notna()
     ]
@@ -132,7 +132,7 @@ def print_block(console, rep, rec) -> None:
         print("  " + holm_sentence(cmp_, "Table S"))
         for r in last.itertuples():
             print(
-                f"  {r.method} - rank_fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, "
+                f"  {r.fusion} - rank_fusion = {r.diff:+.2f} [{r.diff_ci_low:+.2f}, "
                 f"{r.diff_ci_high:+.2f}]"
                 + (
                     f", sign flips in {100 * r.sign_flip_share:.0f}% of resamples"

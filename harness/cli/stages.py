@@ -114,7 +114,7 @@ def cmd_proposals(args: argparse.Namespace) -> int:
         props = session_proposals(p, frames, pairs, ing)
     for s, t in props.items():
         print(
-            f"{s}: {len(t.df)} proposals {t.df.groupby('method').size().to_dict()} -> "
+            f"{s}: {len(t.df)} proposals {t.df.groupby('proposal_method').size().to_dict()} -> "
             f"{p.cache.path('proposals', t.key) / 'proposals.parquet'}"
         )
     return 0

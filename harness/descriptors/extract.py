@@ -107,7 +107,7 @@ def _encoded(
     img = _images(rows, frames)
     # frames must be contiguous for the loader: order by frame, remember the original row
     order = np.lexsort(
-        (rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy())
+        (rows["box_id"].to_numpy(), rows["proposal_method"].to_numpy(), rows["utime"].to_numpy())
     )
     for idx, crops in progress(
         iter_crops(  # with prefetch: the next batches decoded while this one is encoded
@@ -228,11 +228,14 @@ def combine_shards(
         ``{"subimages", "shards", "dim"}``.
     """
     pos = pd.Series(
-        np.arange(len(rows)), index=pd.MultiIndex.from_frame(rows[["method", "utime", "box_id"]])
+        np.arange(len(rows)),
+        index=pd.MultiIndex.from_frame(rows[["proposal_method", "utime", "box_id"]]),
     )
     arr = None
     for d in shard_dirs:
-        idx = read_cached_parquet(d / "index.parquet", columns=["method", "utime", "box_id"])
+        idx = read_cached_parquet(
+            d / "index.parquet", columns=["proposal_method", "utime", "box_id"]
+        )
         v = np.load(d / "desc.npy", mmap_mode="r")
         if arr is None:
             arr = open_memmap_reserved(tmp / "desc.npy", dc.dtype, (len(rows), v.shape[1]))

@@ -315,7 +315,7 @@ def detect_chunk(
         progress=partial(progress, desc="detect", unit="frame"),
         rrf_c=rrf_c,
     )
-    samples = samples[samples["proposals"] == "all"].reset_index(drop=True)
+    samples = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.method}"
     size = frame_sizes(frames)
     orig = _frame_boxes(ranks, frames, opt)

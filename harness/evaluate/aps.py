@@ -111,7 +111,7 @@ class _Pooled:
         b = boot_fn(self.counts) if boot_fn is not None and len(self.counts) else np.full(0, np.nan)
         lo, hi = interval(b, self.cfg.report.ci)
         self.boot[method] = b
-        self.rows.append({**row, "method": method, "ci_low": lo, "ci_high": hi})
+        self.rows.append({**row, "fusion": method, "ci_low": lo, "ci_high": hi})
 
     def finish(self) -> list[dict]:
         """Each row's paired differences from ``rank_fusion`` and from ``random``, and its verdict.
@@ -133,15 +133,15 @@ class _Pooled:
 
     def _paired(self, r: dict, ref_method: str, prefix: str) -> dict[str, float]:
         """``r``'s method minus ``ref_method`` over the same resamples (NaN where undefined)."""
-        ref = next((x for x in self.rows if x["method"] == ref_method), None)
+        ref = next((x for x in self.rows if x["fusion"] == ref_method), None)
         nan = float("nan")
         out = dict.fromkeys(
             ("diff", "diff_ci_low", "diff_ci_high", "sign_flip_share", "p_value"), nan
         )
-        same = r["method"] == ref_method and prefix == ""
-        if ref is not None and not same and len(self.boot[r["method"]]):
+        same = r["fusion"] == ref_method and prefix == ""
+        if ref is not None and not same and len(self.boot[r["fusion"]]):
             out = paired_difference(
-                self.boot[r["method"]],
+                self.boot[r["fusion"]],
                 self.boot[ref_method],
                 r["ap"],
                 ref["ap"],
@@ -193,9 +193,9 @@ def table_i_rows(
                 "table": "I",
                 "split": split.name,
                 "roc_max": split.roc_max,
-                "proposals": proposals,
+                "proposal_method": proposals,
                 "season_pair": season_pair,
-                "method": m,
+                "fusion": m,
                 "ap": ap,
                 **_chance_fields(floor, ap),
                 "ci_low": float("nan"),
@@ -250,7 +250,7 @@ def pooled_rows(
                 "table": table,
                 "split": split.name,
                 "roc_max": split.roc_max,
-                "proposals": "all",
+                "proposal_method": "all",
                 "season_pair": "all",
                 "ap": ap,
                 **_chance_fields(floor, ap),
@@ -293,7 +293,7 @@ def pixel_image_rows(
                     "table": "P",
                     "split": name,
                     "roc_max": float("nan"),
-                    "proposals": "all",
+                    "proposal_method": "all",
                     "season_pair": "all",
                     "ap": ap,
                     **_chance_fields(floor, ap, ceiling),

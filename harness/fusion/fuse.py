@@ -261,7 +261,7 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
 SAMPLE_COLUMNS = (
     *IMAGE_KEY,
     "season_pair",
-    "proposals",
+    "proposal_method",
     *("x1", "y1", "x2", "y2", "original", "N", "RoC", "SoB"),
 )
 
@@ -359,12 +359,12 @@ def fuse_samples(
     )
     counts = {"query_images": 0, "capped_closures": 0}
     methods = ordered_methods(methods)
-    props = sorted(ranks["method"].unique())
+    props = sorted(ranks["proposal_method"].unique())
     subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
     keys = IMAGE_KEY
     srt = ranks.sort_values(keys, kind="stable")
     kcols = [srt[k].to_numpy() for k in keys]
-    method = srt["method"].to_numpy()
+    method = srt["proposal_method"].to_numpy()
     season_pair = srt["season_pair"].to_numpy()
     box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
@@ -397,7 +397,7 @@ def fuse_samples(
             for c, v in zip(IMAGE_KEY, key, strict=True):
                 cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
             cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
-            cols["proposals"].append(np.full(n_rows, name, dtype=object))
+            cols["proposal_method"].append(np.full(n_rows, name, dtype=object))
             for c, v in part.items():
                 cols[c].append(v)
     if not cols["x1"]:

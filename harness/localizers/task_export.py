@@ -5,11 +5,11 @@ that a later ``harness reproduce --out OUT --import NAME=FILE`` reads, so the ro
 match the run by construction and nothing is recomputed:
 
 - ``queries.parquet`` and ``.csv``: one row per query subimage x reference session (a pair):
-  ``q_session, q_camera, q_utime, method, box_id, x1, y1, x2, y2, r_session, r_camera, image,
-  width, height`` (``r_camera``: the pair's reference camera, whose frames to search);
+  ``q_session, q_camera, q_utime, proposal_method, box_id, x1, y1, x2, y2, r_session, r_camera,
+  image, width, height`` (``r_camera``: the pair's reference camera, whose frames to search);
 - ``references.parquet`` and ``.csv``: one row per reference subimage (the database):
-  ``session, camera, utime, method, box_id, x1, y1, x2, y2, image, width, height``;
-- ``databases.csv``: per reference session x camera x method, ``frames``: the ``L`` of a
+  ``session, camera, utime, proposal_method, box_id, x1, y1, x2, y2, image, width, height``;
+- ``databases.csv``: per reference session x camera x proposal method, ``frames``: the ``L`` of a
   complete ranked list;
 - ``schema.md``: the import schema (the rows to write back) and the command that reads them;
 - ``task.json``: counts, the cache keys the task comes from, the image mode.
@@ -92,7 +92,7 @@ def write_task(
         raise ValueError(f"images must be one of {IMAGE_MODES}, got {mode!r}")
     out = check_replaceable(out, "task", force=True)
     props = pd.concat(list(proposals.values()), ignore_index=True)
-    pk = ["session", "camera", "utime", "method", "box_id", *BOX]
+    pk = ["session", "camera", "utime", "proposal_method", "box_id", *BOX]
     q = pairs[[*IMAGE_KEY, "r_camera"]].merge(
         props[pk].rename(
             columns={"session": "q_session", "camera": "q_camera", "utime": "q_utime"}
@@ -100,7 +100,7 @@ def write_task(
         on=QUERY_KEY,
         how="inner",
     )
-    q = q[[*import_file.KEY[:3], "method", "box_id", *BOX, "r_session", "r_camera"]]
+    q = q[[*import_file.KEY[:3], "proposal_method", "box_id", *BOX, "r_session", "r_camera"]]
     q = q.sort_values(import_file.KEY).reset_index(drop=True)
     refs = sorted(set(pairs["r_session"]))
     ref = props.loc[props["session"].isin(refs), pk].sort_values(pk[:5]).reset_index(drop=True)
@@ -112,7 +112,7 @@ def write_task(
     ).drop_duplicates()
     fr = frames.merge(used, on=FRAME_KEY, how="inner")
     dbs = (
-        ref.groupby(["session", "camera", "method"], sort=True)["utime"]
+        ref.groupby(["session", "camera", "proposal_method"], sort=True)["utime"]
         .nunique()
         .reset_index()
         .rename(columns={"session": "r_session", "utime": "frames"})

@@ -63,7 +63,7 @@ def localizer_proposals(
         return props
     return {
         s: Table(
-            t.df[t.df["method"].isin(loc.proposals)].reset_index(drop=True),
+            t.df[t.df["proposal_method"].isin(loc.proposals)].reset_index(drop=True),
             keys.subset(t.key, loc.proposals),
         )
         for s, t in props.items()
@@ -365,7 +365,9 @@ def across_localizers(measured: list[Measured]) -> RankTable:
     ``d`` is dropped (scores of different localizers are not comparable).
     """
     parts = [
-        m.ranks.df.assign(method=m.loc.name + ":" + m.ranks.df["method"].astype(str), d=np.nan)
+        m.ranks.df.assign(
+            proposal_method=m.loc.name + ":" + m.ranks.df["proposal_method"].astype(str), d=np.nan
+        )
         for m in measured
     ]
     df = pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)

@@ -50,7 +50,7 @@ PROPOSAL_COLUMNS = [
     "session",
     "camera",
     "utime",
-    "method",
+    "proposal_method",
     "box_id",
     "x1",
     "y1",
@@ -461,7 +461,7 @@ def _rows(
             "session": f.session,
             "camera": f.camera,
             "utime": np.full(n, f.utime, np.int64),
-            "method": method,
+            "proposal_method": method,
             "box_id": np.arange(n, dtype=np.int32),
             "x1": boxes[:, 0] if n else [],
             "y1": boxes[:, 1] if n else [],
@@ -551,7 +551,7 @@ def _file_proposals(frames: pd.DataFrame, cfg: ProposalsConfig) -> pd.DataFrame:
     fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(
         drop=True
     )
-    fp["method"] = "file"
+    fp["proposal_method"] = "file"
     fp["box_id"] = fp.groupby(FRAME_KEY).cumcount().astype(np.int32)
     return fp[PROPOSAL_COLUMNS]
 
@@ -585,7 +585,7 @@ def compute_proposals(
     df["class"] = df["class"].astype(str)
     return (
         df[PROPOSAL_COLUMNS]
-        .sort_values(["method", "session", "camera", "utime", "box_id"])
+        .sort_values(["proposal_method", "session", "camera", "utime", "box_id"])
         .reset_index(drop=True)
     )
 
@@ -605,7 +605,7 @@ def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: 
     df = compute_proposals(
         frames, cfg, progress=partial(progress, desc=f"proposals {name}", unit="batch")
     )
-    counts = df.groupby("method").size()
+    counts = df.groupby("proposal_method").size()
     empty = [m for m in cfg.methods if len(frames) and int(counts.get(m, 0)) == 0]
     if empty:
         raise HarnessError(
@@ -614,4 +614,4 @@ def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: 
             f"alone; change [proposals.{empty[0]}] or remove it from [proposals] methods"
         )
     write_parquet(tmp / "proposals.parquet", df)
-    return {"rows": len(df), "per_method": df.groupby("method").size().to_dict()}
+    return {"rows": len(df), "per_method": df.groupby("proposal_method").size().to_dict()}

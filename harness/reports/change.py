@@ -94,14 +94,16 @@ def pivot(
     """One table's ``value`` (AP by default), method x column, in SPEC order."""
     spec = CHANGE_TABLES[table]
     main = _pooled(summ, table)
-    t = main.pivot(index="method", columns=spec.column, values=value).reindex(list(methods))
+    t = main.pivot(index="fusion", columns=spec.column, values=value).reindex(list(methods))
     return t.reindex(columns=list(spec.order)) if spec.order else t
 
 
 def _pooled(summ: pd.DataFrame, table: str) -> pd.DataFrame:
     """The table's pooled rows: every proposal method and season pair together."""
     return summ[
-        (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+        (summ["table"] == table)
+        & (summ["proposal_method"] == "all")
+        & (summ["season_pair"] == "all")
     ]
 
 
@@ -165,7 +167,7 @@ class ChangeTable:
         """One field of the rows (``ap``, ``low``, ``high``, ``floor``, ``verdict``) by column."""
         return pd.DataFrame(
             [getattr(r, value) for r in self.rows],
-            index=pd.Index([r.method for r in self.rows], name="method"),
+            index=pd.Index([r.method for r in self.rows], name="fusion"),
             columns=pd.Index(list(self.columns), name=self.spec.column),
         )
 
@@ -197,7 +199,7 @@ def change_table(
     counts = "; ".join(
         f"{column_label(getattr(r, spec.column))}: {r.positives} positives / "
         f"{r.negatives} negatives" + (" (pixels)" if r.split in spec.pixel_columns else "")
-        for r in main[main["method"] == ref].itertuples()
+        for r in main[main["fusion"] == ref].itertuples()
     )
     return ChangeTable(
         spec,

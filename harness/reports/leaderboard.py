@@ -78,8 +78,8 @@ def _cell(summ: pd.DataFrame, table: str, split: str, method: str) -> dict[str, 
     r = summ[
         (summ["table"] == table)
         & (summ["split"] == split)
-        & (summ["method"] == method)
-        & (summ["proposals"] == "all")
+        & (summ["fusion"] == method)
+        & (summ["proposal_method"] == "all")
         & (summ["season_pair"] == "all")
     ]
     if not len(r):
@@ -116,7 +116,11 @@ def leaderboard(
     rows: list[dict[str, Any]] = []
     for b, bt in zip(blocks, boots, strict=True):
         loc = b.localization
-        la = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")] if len(loc) else loc
+        la = (
+            loc[(loc["proposal_method"] == "all") & (loc["season_pair"] == "all")]
+            if len(loc)
+            else loc
+        )
         row: dict[str, Any] = {
             "localizer": b.localizer,
             "roc_max": head.roc_max,

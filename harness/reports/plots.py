@@ -32,7 +32,7 @@ def pr_figure(curves: pd.DataFrame, path: Path, title: str) -> Path:
     """One PNG of the PR curves of ``curves`` (columns method, precision, recall)."""
     fig, ax = plt.subplots(figsize=(5, 4))
     cmap = plt.get_cmap("tab10")
-    for i, (m, gm) in enumerate(curves.groupby("method", sort=False)):
+    for i, (m, gm) in enumerate(curves.groupby("fusion", sort=False)):
         ax.step(gm["recall"], gm["precision"], where="post", label=m, lw=1.4, color=cmap(i % 10))
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")
@@ -51,7 +51,7 @@ def pr_plots(curves: pd.DataFrame, out: Path) -> list[Path]:
     for split, g in curves.groupby("split", sort=True):
         fig, ax = plt.subplots(figsize=(5, 4))
         cmap = plt.get_cmap("tab20")
-        for i, (m, gm) in enumerate(g.groupby("method", sort=False)):
+        for i, (m, gm) in enumerate(g.groupby("fusion", sort=False)):
             extra = m not in FUSION_METHODS  # variants and baselines: dashed
             ax.step(
                 gm["recall"],
@@ -86,7 +86,7 @@ def locmap_figures(
     shown = [m for m in FIG4 if f"loc_{m}" in samples.columns]
     if n <= 0 or not len(samples) or not shown:
         return written
-    allp = samples[samples["proposals"] == "all"]
+    allp = samples[samples["proposal_method"] == "all"]
     chg = ann[ann["status"] == "change"]
     # the query images with the largest annotated change first (ties: key order)
     area = (

@@ -55,7 +55,7 @@ def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str 
         + "\n"
     )
     body = "".join(
-        f"| {r.proposals} | {r.season_pair} | "
+        f"| {r.proposal_method} | {r.season_pair} | "
         + " | ".join(
             str(int(getattr(r, c))) if d == 0 else number(float(getattr(r, c)), d)
             for c, _, d in cols
@@ -79,13 +79,13 @@ def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str 
 
 
 def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = True) -> str:
-    """One row per method id (first column ``method``), one column per split, two decimals.
+    """One row per method id (first column ``fusion``), one column per split, two decimals.
 
     With ``localizer`` a first column names it (a run of several localizers: one CSV, a block of
     rows each; ``header`` only on the first).
     """
     pre = "" if localizer is None else "localizer,"
-    lines = [pre + "method," + ",".join(column_label(c) for c in table.columns)] if header else []
+    lines = [pre + "fusion," + ",".join(column_label(c) for c in table.columns)] if header else []
     cell = "" if localizer is None else (f'"{localizer}",' if "," in localizer else f"{localizer},")
     for m, row in table.iterrows():
         lines.append(
@@ -234,7 +234,9 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
     ]
     for table, spec in CHANGE_TABLES.items():
         main = summ[
-            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+            (summ["table"] == table)
+            & (summ["proposal_method"] == "all")
+            & (summ["season_pair"] == "all")
         ]
         if not len(main):
             continue
@@ -243,7 +245,7 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
             lines.append(f"## {spec.title}, {split}")
             lines.append("")
             for r in g.itertuples():
-                if r.method == "rank_fusion" or r.diff != r.diff:
+                if r.fusion == "rank_fusion" or r.diff != r.diff:
                     continue
                 flips = (
                     f"sign flips in {100 * r.sign_flip_share:.0f}% of resamples"
@@ -254,7 +256,7 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
                 ptxt = "" if p != p else ", p < 0.001" if p < 0.001 else f", p = {p:.3f}"
                 mark = f" {HOLM_MARK}" if getattr(r, "holm_survives", False) else ""
                 lines.append(
-                    f"- {METHOD_LABELS[r.method]} - rank fusion = {r.diff:+.2f} "
+                    f"- {METHOD_LABELS[r.fusion]} - rank fusion = {r.diff:+.2f} "
                     f"[{r.diff_ci_low:+.2f}, {r.diff_ci_high:+.2f}] ({flips}{ptxt}){mark}"
                 )
             lines.append("")
@@ -264,7 +266,7 @@ def comparisons_markdown(summ: pd.DataFrame, methods: tuple[str, ...], localizer
 def localization_latex(loc: pd.DataFrame, localizer: str = "") -> str:
     """The localization table (all season pairs) as a booktabs ``tabular``."""
     ns = recall_ns(loc)
-    t = loc[loc["season_pair"] == "all"].set_index("proposals")[
+    t = loc[loc["season_pair"] == "all"].set_index("proposal_method")[
         [*(f"recall_at_{n}" for n in ns), "median_r", "chance_recall_at_1", "clean_recall_at_1"]
     ]
     t.columns = [*(f"R@{n}" for n in ns), "median r", "R@1 by chance", "clean R@1"]

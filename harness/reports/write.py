@@ -86,12 +86,12 @@ def localization_table(
             )[0]
     df = ranks.assign(_clean=roc <= CLEAN_ROC)
     rows = []
-    for prop, gp in [("all", df), *df.groupby("method", sort=True)]:
+    for prop, gp in [("all", df), *df.groupby("proposal_method", sort=True)]:
         for pair, g in [("all", gp), *gp.groupby("season_pair", sort=True)]:
             c = g[g["_clean"]]
             rows.append(
                 {
-                    "proposals": str(prop),
+                    "proposal_method": str(prop),
                     "season_pair": str(pair),
                     "subimages": len(g),
                     **{f"recall_at_{n}": float((g["rank"] <= n).mean()) for n in recall_at},
@@ -128,12 +128,12 @@ def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
     """
     hits: dict[str, list[str]] = {}
     for split, g in main.groupby("split", sort=False):
-        six = g[g["method"].isin(FUSION_METHODS)].dropna(subset=["ap"])
+        six = g[g["fusion"].isin(FUSION_METHODS)].dropna(subset=["ap"])
         if not len(six):
             continue
         best = six.loc[six["ap"].idxmax()]
         for b in BASELINES:
-            row = g[g["method"] == b]
+            row = g[g["fusion"] == b]
             if (
                 len(row)
                 and np.isfinite(row["ap"].iloc[0])
@@ -143,7 +143,7 @@ def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
                     f"RoC-max {row['roc_max'].iloc[0]:.2f}" if table != "Table P" else f"{split} AP"
                 )
                 hits.setdefault(b, []).append(
-                    f"{name}: {row['ap'].iloc[0]:.2f} vs {best['method']} {best['ap']:.2f}"
+                    f"{name}: {row['ap'].iloc[0]:.2f} vs {best['fusion']} {best['ap']:.2f}"
                 )
     see = (
         "; read Table S (tableS.md), which compares boxes of the same size"
@@ -173,9 +173,9 @@ def holm_columns(summ: pd.DataFrame, alpha: float) -> pd.DataFrame:
         return out
     for _, g in out.groupby("table", sort=False):
         fam = g[
-            (g["proposals"] == "all")
+            (g["proposal_method"] == "all")
             & (g["season_pair"] == "all")
-            & (g["method"] != "rank_fusion")
+            & (g["fusion"] != "rank_fusion")
             & np.isfinite(g["p_value"].to_numpy(np.float64))
         ]
         out.loc[fam.index, "holm_tested"] = len(fam)
@@ -309,7 +309,9 @@ def write_reports(
     files = _Files(out, len(blocks) > 1)
     locs, locs_also = _write_localization(cfg, files, blocks, frames, ann)
     splits = paper_splits(cfg.splits)
-    allps = [b.samples[b.samples["proposals"] == "all"].reset_index(drop=True) for b in blocks]
+    allps = [
+        b.samples[b.samples["proposal_method"] == "all"].reset_index(drop=True) for b in blocks
+    ]
     ids = {g: i for i, g in enumerate(sorted(set().union(*(set(sample_groups(a)) for a in allps))))}
     summaries, curves, boots = _write_splits(cfg, files, blocks, allps, ids, progress(splits))
     results = [
@@ -456,7 +458,9 @@ def _block_reports(
     tables, warnings = {}, {}
     for table, spec in CHANGE_TABLES.items():
         main = summ[
-            (summ["table"] == table) & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+            (summ["table"] == table)
+            & (summ["proposal_method"] == "all")
+            & (summ["season_pair"] == "all")
         ]
         warnings[table] = confound_warnings(main, spec.title) + list(b.notes)
         tables[table] = pivot(summ, table, b.methods)
@@ -586,7 +590,7 @@ def _split_block(
     rep.insert(0, "localizer", b.name)
     summary += pooled_rows(cfg, allp, methods, sp, "I", ids, boots)
     summary += pooled_rows(cfg, allp, methods, sp, "S", ids, boots)
-    for prop, g in samples.groupby("proposals", sort=True):
+    for prop, g in samples.groupby("proposal_method", sort=True):
         if prop != "all":
             summary += table_i_rows(
                 g, sp, methods, "all", str(prop), cfg.report.chance_draws, cfg.seed
@@ -596,7 +600,7 @@ def _split_block(
                 summary += table_i_rows(
                     gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed
                 )
-    allg = rep[rep["proposals"] == "all"]
+    allg = rep[rep["proposal_method"] == "all"]
     for m in methods:
         sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()
         if (allg.loc[sel, "label"] == 1).any():
@@ -605,7 +609,7 @@ def _split_block(
             )
             curves.append(
                 pd.DataFrame(
-                    {"split": sp.name, "method": m, "threshold": thr, "precision": p, "recall": r}
+                    {"split": sp.name, "fusion": m, "threshold": thr, "precision": p, "recall": r}
                 )
             )
     return rep

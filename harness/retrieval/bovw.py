@@ -90,7 +90,7 @@ def _images(rows: pd.DataFrame, frames: pd.DataFrame) -> pd.Series:
 def iter_features(bc: BovwConfig, rows: pd.DataFrame, frames: pd.DataFrame, name: str) -> Any:
     """(row positions in ``rows``, their features), batch by batch, frames decoded once each."""
     order = np.lexsort(
-        (rows["box_id"].to_numpy(), rows["method"].to_numpy(), rows["utime"].to_numpy())
+        (rows["box_id"].to_numpy(), rows["proposal_method"].to_numpy(), rows["utime"].to_numpy())
     )
     img = _images(rows, frames)
     ex = _extractor(bc)

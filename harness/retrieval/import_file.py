@@ -5,6 +5,7 @@ The scoring of its rows against a run is :mod:`harness.retrieval.imported`.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -19,14 +20,20 @@ from harness.records import SUBIMAGE_KEY
 
 KEY = SUBIMAGE_KEY
 
+log = logging.getLogger(__name__)
+
 
 BOX = ["x1", "y1", "x2", "y2"]
 
 
-REQUIRED = [*KEY[:3], "method", "box_id", *BOX, "r_session", "ranked", "L"]
+REQUIRED = [*KEY[:3], "proposal_method", "box_id", *BOX, "r_session", "ranked", "L"]
 
 
 OPTIONAL = ["scores"]
+
+
+#: Columns read under their older names (issue 35's one vocabulary), each with a warning.
+RENAMED = {"method": "proposal_method"}
 
 
 SCORE_KINDS = ("distance", "similarity")
@@ -209,6 +216,10 @@ def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
             "parallel to 'ranked', one score per listed frame, and set [import] score_kind "
             "(SPEC section 12)"
         )
+    for old, new in RENAMED.items():
+        if old in df.columns and new not in df.columns:
+            log.warning("%s: column %r read as %r (its name now): rename it", path, old, new)
+            df = df.rename(columns={old: new})
     miss = [c for c in REQUIRED if c not in df.columns]
     if miss:
         raise RetrievalError(
@@ -216,7 +227,7 @@ def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
         )
     df = df.reset_index(drop=True)
     out = pd.DataFrame(index=df.index)
-    for c in ("q_session", "q_camera", "r_session", "method"):
+    for c in ("q_session", "q_camera", "r_session", "proposal_method"):
         s = df[c]
         bad = s.isna().to_numpy() | (s.astype(str).str.strip() == "").to_numpy()
         rows.fail(bad, f"have no {c}")

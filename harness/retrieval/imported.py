@@ -5,8 +5,8 @@ Input (parquet or CSV), one row per query subimage:
 | column | type | meaning |
 |---|---|---|
 | ``q_session, q_camera, q_utime`` | str, str, int | the query frame (``utime`` in microseconds) |
-| ``method`` | str | the proposal method of the subimage |
-| ``box_id`` | int | the subimage's id within the frame and method |
+| ``proposal_method`` | str | the proposal method of the subimage (old name ``method``: warned) |
+| ``box_id`` | int | the subimage's id within the frame and proposal method |
 | ``x1, y1, x2, y2`` | float | the subimage box in upright pixels (x2, y2 exclusive) |
 | ``r_session`` | str | the reference session searched (the pair's) |
 | ``ranked`` | list of int (parquet) or space-separated ints (CSV) | reference frame utimes, best
@@ -81,8 +81,9 @@ def _check_against_run(
         r = df.loc[df.index[dup][0]]
         rows.fail(
             dup,
-            "repeat a query subimage (same frame, r_session, method, box_id)",
-            f"{r.q_session}/{r.q_camera}/{r.q_utime} -> {r.r_session}, {r.method} box {r.box_id}",
+            "repeat a query subimage (same frame, r_session, proposal_method, box_id)",
+            f"{r.q_session}/{r.q_camera}/{r.q_utime} -> {r.r_session}, {r.proposal_method} "
+            f"box {r.box_id}",
         )
     keys = IMAGE_KEY
     m = df.merge(
@@ -105,8 +106,8 @@ def _check_against_run(
 
 
 def _check_proposals(m: pd.DataFrame, rows: Rows, proposals: pd.DataFrame) -> None:
-    """Each row's box must be the run's proposal of its (query frame, method, box_id)."""
-    pk = ["session", "camera", "utime", "method", "box_id"]
+    """Each row's box must be the run's proposal of its (query frame, proposal_method, box_id)."""
+    pk = ["session", "camera", "utime", "proposal_method", "box_id"]
     pr = proposals[pk + BOX].rename(
         columns={
             "session": "q_session",
@@ -118,16 +119,16 @@ def _check_proposals(m: pd.DataFrame, rows: Rows, proposals: pd.DataFrame) -> No
             "y2": "_y2",
         }
     )
-    j = m.merge(pr, on=[*QUERY_KEY, "method", "box_id"], how="left")
+    j = m.merge(pr, on=[*QUERY_KEY, "proposal_method", "box_id"], how="left")
     none = j["_x1"].isna().to_numpy()
     if none.any():
         i = int(np.flatnonzero(none)[0])
-        known = sorted(set(proposals["method"]))
+        known = sorted(set(proposals["proposal_method"]))
         rows.fail(
             none,
-            "match no proposal of the run (query frame, method, box_id)",
-            f"method {j.loc[i, 'method']!r} box {j.loc[i, 'box_id']}; the run's methods: "
-            f"{known}; `harness task export` lists every query subimage",
+            "match no proposal of the run (query frame, proposal_method, box_id)",
+            f"proposal_method {j.loc[i, 'proposal_method']!r} box {j.loc[i, 'box_id']}; the run's "
+            f"methods: {known}; `harness task export` lists every query subimage",
         )
     off = np.zeros(len(j), bool)
     for a in BOX:
@@ -219,7 +220,7 @@ def _rank_rows(
     psize: np.ndarray,
 ) -> pd.DataFrame:
     """The rank rows in the built-in engine's columns."""
-    cols = [*KEY[:4], "r_camera", "r_utime", "season_pair", "method", "box_id", *BOX]
+    cols = [*KEY[:4], "r_camera", "r_utime", "season_pair", "proposal_method", "box_id", *BOX]
     out = m[cols].copy()
     out["rank"] = rank
     out["L"] = Lq
@@ -276,9 +277,8 @@ def ranks_from_import(
     exact = np.ones(n, bool)
     incomplete = []
     counts = {"rows": n, "gt_missing_from_truncated_list": 0}
-    it = zip(
-        m["ranked"], m["L"], m["r_utime"], m["r_session"], m["r_camera"], m["method"], strict=True
-    )
+    cols = ("ranked", "L", "r_utime", "r_session", "r_camera", "proposal_method")
+    it = zip(*(m[c] for c in cols), strict=True)
     for i, (lst, L, g, rs, rc, meth) in enumerate(it):
         place = places.get((str(rs), str(rc)), {}).get(int(g), np.array([g], np.int64))
         in_db = db.get((str(rs), str(rc), str(meth)))
@@ -313,10 +313,10 @@ def _databases(proposals: pd.DataFrame | None) -> dict[tuple[str, str, str], set
     """(session, camera, method) -> the frames that hold a box of the method."""
     if proposals is None or not len(proposals):
         return {}
-    g = proposals[["session", "camera", "method", "utime"]].drop_duplicates()
+    g = proposals[["session", "camera", "proposal_method", "utime"]].drop_duplicates()
     return {
         (str(s), str(c), str(meth)): set(x["utime"].astype(np.int64).tolist())
-        for (s, c, meth), x in g.groupby(["session", "camera", "method"], sort=True)
+        for (s, c, meth), x in g.groupby(["session", "camera", "proposal_method"], sort=True)
     }
 
 

@@ -109,10 +109,10 @@ def retrieval_pairs(
     for (qs, rs), cand in candidates.groupby(["q_session", "r_session"], sort=True):
         qi = read_cached_parquet(descriptors[qs] / "index.parquet")
         ri = read_cached_parquet(descriptors[rs] / "index.parquet")
-        qsel = qi[qi["method"] == method].reset_index()
+        qsel = qi[qi["proposal_method"] == method].reset_index()
         want = pd.MultiIndex.from_frame(cand[QUERY_KEY].set_axis(FRAME_KEY, axis=1))
         qsel = qsel[pd.MultiIndex.from_frame(qsel[FRAME_KEY]).isin(want)]
-        rsel = ri[ri["method"] == method].reset_index()
+        rsel = ri[ri["proposal_method"] == method].reset_index()
         if not len(qsel) or not len(rsel):
             no_subimage += len(cand)
             continue
@@ -152,7 +152,7 @@ def retrieval_pairs(
     pairs = pairs.reset_index(drop=True)
     summary = {
         "by": "retrieval",
-        "method": method,
+        "proposal_method": method,
         "queries": int(candidates[QUERY_KEY].drop_duplicates().shape[0]),
         "pairs": len(pairs),
         "no_subimage": int(no_subimage),

@@ -123,8 +123,8 @@ def rank_reference(
     ref_idx = read_cached_parquet(descriptors[ref] / "index.parquet")
     ref_desc = _vectors(descriptors[ref])
     out = []
-    for method in sorted(ref_idx["method"].unique()):
-        in_db = (ref_idx["method"] == method).to_numpy().copy()
+    for method in sorted(ref_idx["proposal_method"].unique()):
+        in_db = (ref_idx["proposal_method"] == method).to_numpy().copy()
         if kept is not None:
             in_db &= ref_idx["utime"].isin(kept).to_numpy()
         dbm = np.nonzero(in_db)[0]
@@ -299,7 +299,7 @@ def _rank_query_session(
     q_idx = read_cached_parquet(qdir / "index.parquet")
     q_desc = _vectors(qdir)
     q_idx["row"] = np.arange(len(q_idx))
-    qm = q_idx[q_idx["method"] == method].merge(
+    qm = q_idx[q_idx["proposal_method"] == method].merge(
         g.rename(columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}),
         on=FRAME_KEY,
         how="inner",
@@ -343,7 +343,7 @@ def _rank_query_session(
             "r_camera": qm["r_camera"],
             "r_utime": qm["r_utime"],
             "season_pair": qm["season_pair"],
-            "method": method,
+            "proposal_method": method,
             "box_id": qm["box_id"],
             "x1": qm["x1"],
             "y1": qm["y1"],

@@ -168,7 +168,7 @@ def test_png_store_and_ccw_rotation(run: tuple[Path, Path, str], world: Path) ->
 def test_mser_proposals_faiss_ivf_and_the_training_budget(run: tuple[Path, Path, str]) -> None:
     _, out, _ = run
     ranks = pd.read_parquet(out / "ranks.parquet")
-    assert set(ranks["method"]) == {"grid5", "mser"}
+    assert set(ranks["proposal_method"]) == {"grid5", "mser"}
     rec = json.loads((out / "run.json").read_text())
     text = json.dumps(rec)
     assert '"faiss_nlist": 4' in text and '"faiss_nprobe": 2' in text

@@ -36,7 +36,7 @@ def test_fusion_methods_are_honoured(local_run: tuple, tmp_path: Path) -> None:
         "score_max",
         "random",
     ]  # SPEC order, whatever the config's order
-    assert pd.read_csv(tmp_path / "o" / "table1.csv")["method"].tolist() == [
+    assert pd.read_csv(tmp_path / "o" / "table1.csv")["fusion"].tolist() == [
         "rank_fusion",
         "score_max",
         "random",
@@ -230,7 +230,7 @@ def test_imported_ranks_with_foreign_ids_are_an_error(
                 "q_session": r.q_session,
                 "q_camera": r.q_camera,
                 "q_utime": r.q_utime,
-                "method": r.method,
+                "proposal_method": r.proposal_method,
                 "box_id": r.box_id,
                 "x1": r.x1,
                 "y1": r.y1,

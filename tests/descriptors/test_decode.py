@@ -145,7 +145,8 @@ def test_descriptors_are_the_same_bytes_with_and_without_the_reader_thread(
             rows.append(("s", "Cam5", i, "grid5", b, x1, y1, x1 + 60, y1 + 80))
     fr = pd.DataFrame(frames, columns=["session", "camera", "utime", "image"])
     df = pd.DataFrame(
-        rows, columns=["session", "camera", "utime", "method", "box_id", "x1", "y1", "x2", "y2"]
+        rows,
+        columns=["session", "camera", "utime", "proposal_method", "box_id", "x1", "y1", "x2", "y2"],
     )
     out = {}
     for depth in (0, 2):

@@ -123,7 +123,7 @@ def test_a_run_with_an_onnx_descriptor_as_a_user_types_it(
     assert main([*argv, "--out", str(out)]) == 0
     assert "localizer onnx" in capsys.readouterr().out
     loc = pd.read_csv(out / "localization.csv")
-    row = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")].iloc[0]
+    row = loc[(loc["proposal_method"] == "all") & (loc["season_pair"] == "all")].iloc[0]
     ranks = pd.read_parquet(out / "ranks.parquet")
     assert row["subimages"] == len(ranks)  # every ranked subimage counted
     assert row["recall_at_1"] == pytest.approx((ranks["rank"] == 1).mean(), abs=5e-5)

@@ -98,8 +98,8 @@ def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(
     assert fit["input_dim"] == 1024 and 0.5 < fit["explained_variance"] < 1
     # the price is reported, not hidden: recall@1 of the place drops a little (fixture: 0.278 ->
     # 0.251)
-    full = pd.read_csv(out / "localization.csv").set_index(["proposals", "season_pair"])
-    small = pd.read_csv(tmp_path / "localization.csv").set_index(["proposals", "season_pair"])
+    full = pd.read_csv(out / "localization.csv").set_index(["proposal_method", "season_pair"])
+    small = pd.read_csv(tmp_path / "localization.csv").set_index(["proposal_method", "season_pair"])
     assert (
         0.8 * full.loc[("all", "all"), "recall_at_1"]
         < small.loc[("all", "all"), "recall_at_1"]

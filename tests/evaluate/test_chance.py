@@ -121,7 +121,7 @@ def test_random_is_never_above_chance_and_other_noise_rarely_is() -> None:
         cfg_s = dataclasses.replace(cfg, seed=seed)
         for table in ("I", "S"):
             rows = {
-                r["method"]: r
+                r["fusion"]: r
                 for r in pooled_rows(
                     cfg_s, df, ("rank_fusion", "other_random", "random"), split, table, ids
                 )

@@ -54,7 +54,7 @@ def test_task_export_lists_exactly_the_subimages_ranking_scores(
     out, _ = exported
     q = pd.read_parquet(out / "task" / "queries.parquet")
     ranks = pd.read_parquet(run / "ranks.parquet")
-    key = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+    key = ["q_session", "q_camera", "q_utime", "r_session", "proposal_method", "box_id"]
     assert q.duplicated(key).sum() == 0
     got = set(map(tuple, q[key].to_numpy().tolist()))
     assert got == set(map(tuple, ranks[key].to_numpy().tolist()))  # every rank row, nothing more
@@ -74,8 +74,8 @@ def test_task_export_lists_exactly_the_subimages_ranking_scores(
     assert nclt.startswith(str(out / "task" / "images"))
     # the database sizes are the L of a complete list
     dbs = pd.read_csv(out / "task" / "databases.csv")
-    n = refs.groupby(["session", "method"])["utime"].nunique()
-    assert {(r.r_session, r.method): r.frames for r in dbs.itertuples()} == n.to_dict()
+    n = refs.groupby(["session", "proposal_method"])["utime"].nunique()
+    assert {(r.r_session, r.proposal_method): r.frames for r in dbs.itertuples()} == n.to_dict()
 
 
 def test_the_readme_example_is_the_example_file() -> None:
@@ -121,7 +121,7 @@ def test_import_a_users_localizer_through_the_report_page(
     assert set(summary["localizer"]) == {"hsv"}
     # the localizer works (better than chance) and was scored on every query image
     loc = pd.read_csv(out / "localization.csv")
-    row = loc[(loc["proposals"] == "all") & (loc["season_pair"] == "all")].iloc[0]
+    row = loc[(loc["proposal_method"] == "all") & (loc["season_pair"] == "all")].iloc[0]
     assert row["recall_at_1"] > 2 * row["chance_recall_at_1"]
 
     # the same lists as parquet without scores: no d, so no score methods, and the tables say so
@@ -182,12 +182,14 @@ def _builtin_lists(run: Path) -> pd.DataFrame:
         idx = pd.read_parquet(d / "index.parquet")
         desc[idx["session"].iloc[0]] = (idx, np.load(d / "desc.npy").astype(np.float64))
     rows = []
-    for (qs, rs, m), g in ranks.groupby(["q_session", "r_session", "method"], sort=True):
+    for (qs, rs, m), g in ranks.groupby(["q_session", "r_session", "proposal_method"], sort=True):
         qidx, qd = desc[qs]
         ridx, rd = desc[rs]
-        sel = (ridx["method"] == m).to_numpy()
+        sel = (ridx["proposal_method"] == m).to_numpy()
         db, frame = rd[sel], ridx["utime"].to_numpy()[sel]
-        qrow = qidx.reset_index().set_index(["camera", "utime", "method", "box_id"])["index"]
+        qrow = qidx.reset_index().set_index(["camera", "utime", "proposal_method", "box_id"])[
+            "index"
+        ]
         for r in g.itertuples():
             v = qd[qrow[(r.q_camera, r.q_utime, m, r.box_id)]]
             dist = np.sqrt(((db - v) ** 2).sum(1))
@@ -197,7 +199,7 @@ def _builtin_lists(run: Path) -> pd.DataFrame:
                     "q_session": r.q_session,
                     "q_camera": r.q_camera,
                     "q_utime": r.q_utime,
-                    "method": m,
+                    "proposal_method": m,
                     "box_id": r.box_id,
                     "x1": r.x1,
                     "y1": r.y1,
@@ -221,7 +223,7 @@ def test_an_import_of_the_builtin_engines_lists_reproduces_its_ranks_and_tables(
     out = tmp_path / "o"
     args = _seeded(local_run, out)
     assert main(["reproduce", *args, "--import", f"copy={tmp_path / 'builtin.parquet'}"]) == 0
-    key = ["q_session", "q_camera", "q_utime", "r_session", "method", "box_id"]
+    key = ["q_session", "q_camera", "q_utime", "r_session", "proposal_method", "box_id"]
     want = pd.read_parquet(run / "ranks.parquet").set_index(key).sort_index()
     got = pd.read_parquet(out / "ranks.parquet").set_index(key).sort_index()
     assert got.index.equals(want.index)

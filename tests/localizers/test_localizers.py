@@ -226,7 +226,7 @@ def test_reproduce_prints_table_l_with_a_row_per_localizer_and_the_fused_row(
     summ = pd.read_parquet(out / "splits" / "summary.parquet")
     assert summ["localizer"].unique().tolist() == NAMES
     allb = summ[summ["localizer"] == "all localizers"]
-    assert not {"score_max", "score_sum", "rank_no_fusion"} & set(allb["method"])
+    assert not {"score_max", "score_sum", "rank_no_fusion"} & set(allb["fusion"])
 
 
 def _closure(boxes: list[tuple[float, ...]]) -> set[tuple[float, ...]]:
@@ -370,15 +370,15 @@ def test_positive_control_the_fixture_localizer_is_above_chance(local_run: tuple
     _, rec, _ = local_run
     summ = rec["reports"].summary
     sel = summ[
-        (summ["table"] == "S") & (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+        (summ["table"] == "S") & (summ["proposal_method"] == "all") & (summ["season_pair"] == "all")
     ]
-    s = sel[sel["method"] == "rank_fusion"].set_index("roc_max")
+    s = sel[sel["fusion"] == "rank_fusion"].set_index("roc_max")
     assert len(s) == 5
     cols = ["ap", "chance_high", "vs_random_diff_ci_low", "verdict"]
     assert (s["verdict"] == "above").all(), s[cols]
     assert (s["ap"] > s["chance_high"]).all(), s[cols]
     assert (s["vs_random_diff_ci_low"] > 0).all(), s[cols]
-    at5 = sel[sel["roc_max"].round(6) == 0.05].set_index("method")
+    at5 = sel[sel["roc_max"].round(6) == 0.05].set_index("fusion")
     assert at5.loc["score_max", "verdict"] == "above" and at5.loc["random", "verdict"] == "chance"
 
 

@@ -220,7 +220,7 @@ def test_reproduce_by_retrieval_pairs_as_the_descriptors_say_and_agrees_as_the_r
 
     def rows(session: str) -> tuple[pd.DataFrame, np.ndarray]:
         idx = pd.read_parquet(desc[session] / "index.parquet")
-        keep = (idx["method"] == "grid5").to_numpy()
+        keep = (idx["proposal_method"] == "grid5").to_numpy()
         return idx[keep], np.load(desc[session] / "desc.npy")[keep].astype(np.float64)
 
     qi, qd = rows(row.q_session)
@@ -254,7 +254,7 @@ def test_reproduce_by_retrieval_pairs_as_the_descriptors_say_and_agrees_as_the_r
     r1_pose = pd.read_csv(out / "localization.csv")
 
     def all_r1(df: pd.DataFrame) -> float:
-        sel = (df["proposals"] == "all") & (df["season_pair"] == "all")
+        sel = (df["proposal_method"] == "all") & (df["season_pair"] == "all")
         return float(df[sel]["recall_at_1"].iloc[0])
 
     ci = f"{100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%"

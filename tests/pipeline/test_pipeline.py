@@ -76,7 +76,7 @@ def test_outputs_exist(run: tuple) -> None:
     ):
         assert col in rep.columns
     summ = pd.read_parquet(out / "splits" / "summary.parquet")
-    assert {"all", "grid5", "edges"} <= set(summ["proposals"])
+    assert {"all", "grid5", "edges"} <= set(summ["proposal_method"])
     assert len(set(summ["season_pair"]) - {"all"}) >= 9
 
 
@@ -86,9 +86,9 @@ def regression_diff(out: Path) -> dict[str, float]:
     want = pd.read_csv(ROOT / "tests" / "regression" / "table1.csv", index_col=0)
     assert list(got.index) == list(want.index) and list(got.columns) == list(want.columns)
     loc = pd.read_csv(out / "localization.csv")
-    loc = loc[loc["season_pair"] == "all"].set_index("proposals")
+    loc = loc[loc["season_pair"] == "all"].set_index("proposal_method")
     want_loc = pd.read_csv(ROOT / "tests" / "regression" / "localization.csv").set_index(
-        "proposals"
+        "proposal_method"
     )
     cols = ["recall_at_1", "recall_at_5", "median_r", "clean_recall_at_1"]
     return {
@@ -117,14 +117,14 @@ def test_sample_counts_are_exactly_the_committed_ones(run: tuple) -> None:
     s = pd.read_parquet(out / "splits" / "summary.parquet")
     got = s[
         (s["table"] == "I")
-        & (s["proposals"] == "all")
+        & (s["proposal_method"] == "all")
         & (s["season_pair"] == "all")
-        & s["method"].isin(["rank_fusion", "rank_no_fusion"])
+        & s["fusion"].isin(["rank_fusion", "rank_no_fusion"])
     ]
     want = pd.read_csv(ROOT / "tests" / "regression" / "counts.csv")
-    merged = want.merge(got, on=["method", "roc_max"], suffixes=("", "_got"), how="left")
+    merged = want.merge(got, on=["fusion", "roc_max"], suffixes=("", "_got"), how="left")
     for c in ("positives", "negatives", "left_out", "query_images"):
-        assert (merged[c] == merged[f"{c}_got"]).all(), merged[["method", "roc_max", c, f"{c}_got"]]
+        assert (merged[c] == merged[f"{c}_got"]).all(), merged[["fusion", "roc_max", c, f"{c}_got"]]
 
 
 def test_an_untrained_autoencoder_fails_the_regression(
@@ -148,8 +148,8 @@ def test_the_papers_orderings_show_on_the_fixture(run: tuple) -> None:
     _, _, out = run
     s = pd.read_parquet(out / "splits" / "summary.parquet")
     main = s[
-        (s["table"] == "I") & (s["proposals"] == "all") & (s["season_pair"] == "all")
-    ].set_index(["method", "roc_max"])
+        (s["table"] == "I") & (s["proposal_method"] == "all") & (s["season_pair"] == "all")
+    ].set_index(["fusion", "roc_max"])
     for r in (0.01, 0.03, 0.05):
         ap = {
             m: main.loc[(m, r), "ap"]
@@ -306,7 +306,7 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
 def test_changed_subimages_rank_worse_than_unchanged(run: tuple) -> None:
     _p, _, out = run
     s = pd.read_parquet(out / "splits" / "roc_max_0.05.parquet")
-    orig = s[(s["proposals"] == "all") & s["loc_rank_no_fusion"].notna()]
+    orig = s[(s["proposal_method"] == "all") & s["loc_rank_no_fusion"].notna()]
     changed = orig[orig["RoC"] >= 0.5]["loc_rank_no_fusion"].mean()
     unchanged = orig[orig["RoC"] == 0]["loc_rank_no_fusion"].mean()
     assert changed > 1.5 * unchanged
@@ -441,7 +441,7 @@ def test_stage_files_and_tables_are_identical_to_the_regression(run: tuple) -> N
     tolerant_portable = tuple(t for t in TOLERANT if t.startswith(PORTABLE))
     bad = values_differ(out, p.cfg.data_root, ROOT / "tests" / "regression", tolerant_portable)
     assert not bad, f"{bad}; {regen}"
-    skip_unless_recorded_model(out)  # the rest follows from the model: where it is the recorded one
+    skip_unless_recorded_model(out, regression=True)  # the rest follows from the model
     assert set(got) == set(want["files"]), set(got) ^ set(want["files"])
     bad = values_differ(out, p.cfg.data_root, ROOT / "tests" / "regression")
     assert not bad, f"{bad}; {regen}"
@@ -555,7 +555,7 @@ def test_recall_at_is_the_share_ranked_within_n(run: tuple) -> None:
     frames = pd.read_parquet(next((out / "cache" / "frames").glob("*/frames.parquet")))
     ann = load_annotations(p.cfg.annotations, frames)
     mine = localization_table(ranks, frames, ann, (1, 3, 7))
-    row = mine[(mine["proposals"] == "all") & (mine["season_pair"] == "all")].iloc[0]
+    row = mine[(mine["proposal_method"] == "all") & (mine["season_pair"] == "all")].iloc[0]
     for n in (1, 3, 7):
         assert row[f"recall_at_{n}"] == pytest.approx((ranks["rank"] <= n).mean())
     assert "recall_at_5" not in mine.columns and "clean_recall_at_7" in mine.columns
@@ -580,7 +580,7 @@ def test_a_second_place_radius_ranks_again_without_touching_the_run(
     base = pd.read_csv(tmp_path / "localization.csv")
     wide = pd.read_csv(tmp_path / "localization_also.csv")
     assert set(wide["gt_radius_m"]) == {5.0}
-    key = ["proposals", "season_pair"]
+    key = ["proposal_method", "season_pair"]
     both = base.merge(wide, on=key, suffixes=("", "_also"))
     assert len(both) == len(base)
     assert (both["recall_at_1_also"] >= both["recall_at_1"] - 1e-12).all()

@@ -203,7 +203,7 @@ def test_a_rerun_with_fewer_splits_removes_stale_split_files(
         "pr_roc_max_0.01.png",
         "pr_roc_max_0.05.png",
     ]
-    assert pd.read_csv(tmp_path / "o" / "table1.csv").columns.tolist() == ["method", "0.01", "0.05"]
+    assert pd.read_csv(tmp_path / "o" / "table1.csv").columns.tolist() == ["fusion", "0.01", "0.05"]
 
 
 def test_outputs_take_their_mode_from_the_umask(local_run: tuple) -> None:

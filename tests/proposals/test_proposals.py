@@ -149,7 +149,7 @@ def test_file_proposals_validated(tmp_path: Path) -> None:
         }
     ).to_csv(p, index=False)
     df = compute_proposals(frames, ProposalsConfig(methods=("grid5", "file"), file=str(p)))
-    assert df.groupby("method").size().to_dict() == {"file": 1, "grid5": 5}
+    assert df.groupby("proposal_method").size().to_dict() == {"file": 1, "grid5": 5}
 
 
 def test_reduced_decode_picks_the_smallest_scale_that_holds_the_work_width() -> None:

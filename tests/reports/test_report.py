@@ -157,7 +157,7 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
     out = tmp_path / "corridor"
     shutil.copytree(run, out)
     summ = pd.read_parquet(out / "splits" / "summary.parquet")
-    main_rows = (summ["proposals"] == "all") & (summ["season_pair"] == "all")
+    main_rows = (summ["proposal_method"] == "all") & (summ["season_pair"] == "all")
     t1 = main_rows & (summ["table"] == "I")
     summ.loc[t1, ["ap", "ci_low", "ci_high"]] = 1.0
     ts = main_rows & (summ["table"] == "S")
@@ -168,7 +168,7 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
         "size_prior": (0.05, 0.02, 0.08, -0.16, -0.02),
         "random": (0.12, 0.08, 0.17, 0.0, 0.0),
     }.items():
-        sel = ts & (summ["method"] == method)
+        sel = ts & (summ["fusion"] == method)
         summ.loc[sel, ["ap", "ci_low", "ci_high", "vs_random_diff_ci_low"]] = (ap, lo, hi, dlo)
         summ.loc[sel, "vs_random_diff_ci_high"] = dhi
         summ.loc[sel, "verdict"] = verdict(ap, 0.09, 0.15, dlo, dhi)

@@ -111,7 +111,7 @@ def test_paired_bootstrap_difference_and_sign_flips() -> None:
 
 def _main(rows: list[tuple[str, str, float]]) -> pd.DataFrame:
     return pd.DataFrame(
-        [{"split": sp, "roc_max": float(sp), "method": m, "ap": ap} for sp, m, ap in rows]
+        [{"split": sp, "roc_max": float(sp), "fusion": m, "ap": ap} for sp, m, ap in rows]
     )
 
 
@@ -175,13 +175,13 @@ def test_latex_table_parses_back() -> None:
 def test_fixture_writes_tables_s_and_p_with_intervals_and_comparisons(local_run: tuple) -> None:
     _, rec, out = local_run
     s = pd.read_parquet(out / "splits" / "summary.parquet")
-    pooled = s[(s["proposals"] == "all") & (s["season_pair"] == "all")]
+    pooled = s[(s["proposal_method"] == "all") & (s["season_pair"] == "all")]
     assert set(pooled["table"]) == {"I", "S", "P"}
     for table in ("I", "S", "P"):
         t = pooled[pooled["table"] == table]
-        rf = t[t["method"] == "rank_fusion"]
+        rf = t[t["fusion"] == "rank_fusion"]
         assert (rf["ci_low"] <= rf["ap"] + 1e-9).all() and (rf["ap"] <= rf["ci_high"] + 1e-9).all()
-        others = t[t["method"] != "rank_fusion"]
+        others = t[t["fusion"] != "rank_fusion"]
         assert others["diff"].notna().all() and others["diff_ci_low"].notna().all()
     sp = pooled[pooled["table"] == "P"]
     assert set(sp["split"]) == {"pixel", "image"} and (sp["floor"] > 0).all()

@@ -72,8 +72,8 @@ def test_a_thinned_database_ranks_against_fewer_frames_and_counts_lost_places(
     assert lost == len(full) - len(thin) > 0
     assert (thin["place_size"] >= 1).all() and np.isfinite(thin["d"]).all()
     assert (
-        pd.read_csv(o / "table1.csv")["method"].tolist()
-        == pd.read_csv(out / "table1.csv")["method"].tolist()
+        pd.read_csv(o / "table1.csv")["fusion"].tolist()
+        == pd.read_csv(out / "table1.csv")["fusion"].tolist()
     )
 
 

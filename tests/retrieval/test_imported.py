@@ -44,7 +44,7 @@ PROPOSALS = pd.DataFrame(
         "session": ["A"] + ["B"] * 5,
         "camera": "c",
         "utime": [1, 10, 20, 30, 40, 50],
-        "method": "grid5",
+        "proposal_method": "grid5",
         "box_id": 0,
         "x1": 0.0,
         "y1": 0.0,
@@ -59,7 +59,7 @@ def _csv(tmp: Path, rows: list[dict], name: str = "r.csv") -> Path:
         "q_session": "A",
         "q_camera": "c",
         "q_utime": 1,
-        "method": "grid5",
+        "proposal_method": "grid5",
         "box_id": 0,
         "x1": 0.0,
         "y1": 0.0,
@@ -99,6 +99,18 @@ def test_scores_give_ties_in_the_querys_favour_and_d(tmp_path: Path) -> None:
         kind="similarity",
     )
     assert sim["rank"][0] == 3 and sim["d"][0] == pytest.approx(1 - 0.8)  # d = 1 - s
+
+
+def test_the_old_column_name_method_is_read_with_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    new = _rank(_csv(tmp_path, [{"ranked": "10 40 30 20 50"}]))
+    old = _csv(tmp_path, [{"ranked": "10 40 30 20 50"}], "old.csv")
+    pd.read_csv(old).rename(columns={"proposal_method": "method"}).to_csv(old, index=False)
+    with caplog.at_level("WARNING"):
+        got = _rank(old)
+    pd.testing.assert_frame_equal(got, new)
+    assert "column 'method' read as 'proposal_method'" in caplog.text and "old.csv" in caplog.text
 
 
 def test_a_truncated_list_without_the_place_is_a_bound(tmp_path: Path) -> None:

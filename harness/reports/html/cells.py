@@ -154,7 +154,7 @@ def localization_table(
 
     def rows(df: pd.DataFrame) -> str:
         return "".join(
-            f'<tr><td>{esc(r.proposals)}</td><td class="l">{esc(r.season_pair)}</td>'
+            f'<tr><td>{esc(r.proposal_method)}</td><td class="l">{esc(r.season_pair)}</td>'
             + "".join(
                 f"<td>{int(getattr(r, c))}</td>"
                 if d == 0
@@ -183,9 +183,9 @@ def heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
     """Table I's AP of one method per season pair, at ``split``."""
     d = summ[
         (summ["table"] == "I")
-        & (summ["proposals"] == "all")
+        & (summ["proposal_method"] == "all")
         & (summ["season_pair"] != "all")
-        & (summ["method"] == method)
+        & (summ["fusion"] == method)
         & (summ["split"] == split)
     ]
     if not len(d):
@@ -204,7 +204,7 @@ def heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split
     from harness.evaluate.metrics import stratified_ap
 
     col = f"loc_{method}"
-    allp = rep[(rep["proposals"] == "all") & (rep["label_stratified"] >= 0)]
+    allp = rep[(rep["proposal_method"] == "all") & (rep["label_stratified"] >= 0)]
     if col not in allp.columns or not len(allp):
         return ""
     pairs, floors = {}, {}
@@ -332,7 +332,7 @@ def other_blocks(summ: pd.DataFrame, names: list[str], warnings: dict[str, list[
     parts = []
     for name in names:
         s = summ[summ["localizer"] == name]
-        methods = tuple(m for m in METHOD_LABELS if m in set(s["method"]))
+        methods = tuple(m for m in METHOD_LABELS if m in set(s["fusion"]))
         pre = f"[{name}] "
         for t in ("S", "P"):
             notes = [w[len(pre) :] for w in warnings.get(t, []) if w.startswith(pre)]

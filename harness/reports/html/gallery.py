@@ -185,7 +185,7 @@ def gallery_html(
         return "", []
     rep = pd.read_parquet(split_file)
     rep = rep.reset_index(names="row")
-    rep = rep[rep["proposals"] == "all"]
+    rep = rep[rep["proposal_method"] == "all"]
     if localizer is not None and "localizer" in rep.columns:
         rep = rep[rep["localizer"] == localizer]
     fr = frames.set_index(FRAME_KEY)
@@ -241,7 +241,7 @@ def pr_figure_html(
     from harness.evaluate.metrics import pr_curve
     from harness.reports.plots import pr_figure
 
-    allp = rep[(rep["proposals"] == "all") & (rep[label] >= 0)]
+    allp = rep[(rep["proposal_method"] == "all") & (rep[label] >= 0)]
     curves = []
     for m in FUSION_METHODS:
         col = f"loc_{m}"
@@ -251,7 +251,7 @@ def pr_figure_html(
         y = allp.loc[sel, label].to_numpy() == 1
         if y.any():
             _, prec, rec = pr_curve(y, allp.loc[sel, col].to_numpy())
-            curves.append(pd.DataFrame({"method": m, "precision": prec, "recall": rec}))
+            curves.append(pd.DataFrame({"fusion": m, "precision": prec, "recall": rec}))
     if not curves:
         return "<p class='note'>no positive in this split: no curve</p>", []
     path = pr_figure(pd.concat(curves), out / "report" / f"pr_{tag}.png", title)

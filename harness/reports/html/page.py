@@ -203,20 +203,20 @@ def comparisons_html(summ: pd.DataFrame, methods: tuple[str, ...]) -> str:
     Each difference with its bootstrap interval, coloured by it, and Holm's mark where it holds.
     """
     cmp_rows = summ[
-        (summ["proposals"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()
+        (summ["proposal_method"] == "all") & (summ["season_pair"] == "all") & summ["diff"].notna()
     ]
     cmp_html = ""
     for table in ("S", "P", "I"):  # the fair tables first, the paper's protocol last
         t = cmp_rows[cmp_rows["table"] == table]
         if not len(t):
             continue
-        d = t.pivot(index="method", columns="split", values="diff").reindex(
-            [m for m in methods if m in set(t["method"])]
+        d = t.pivot(index="fusion", columns="split", values="diff").reindex(
+            [m for m in methods if m in set(t["fusion"])]
         )
-        lo = t.pivot(index="method", columns="split", values="diff_ci_low").reindex(d.index)
-        hi = t.pivot(index="method", columns="split", values="diff_ci_high").reindex(d.index)
+        lo = t.pivot(index="fusion", columns="split", values="diff_ci_low").reindex(d.index)
+        hi = t.pivot(index="fusion", columns="split", values="diff_ci_high").reindex(d.index)
         kept = (
-            t.pivot(index="method", columns="split", values="holm_survives")
+            t.pivot(index="fusion", columns="split", values="holm_survives")
             .reindex(d.index)
             .fillna(False)
             .astype(bool)
@@ -405,7 +405,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     if multi:
         loc = loc[loc["localizer"] == lead_name]
         ranks = ranks[ranks["localizer"] == lead_name]
-    methods = tuple(m for m in METHOD_LABELS if m in set(summ["method"]))
+    methods = tuple(m for m in METHOD_LABELS if m in set(summ["fusion"]))
     warnings = block_lines(run.get("warnings", {}), lead_name if multi else None)
     loc_name, fact_rows = run_facts(run, cfg)
     who = f" (localizer: {lead_name}; data: {Path(str(cfg['data_root'])).name})"
