@@ -174,9 +174,12 @@ def _add_detect(sub: Any) -> None:
     p.add_argument("--out", required=True)
     p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
     p.add_argument(
-        "--method",
+        "--fusion",
+        "--method",  # its name before issue 35's one vocabulary
+        dest="fusion",
         default="rank_fusion",
-        help="the rank method whose LoC finds the boxes: rank_fusion, rank_fusion_le2, "
+        help="the fusion rule whose LoC finds the boxes (--method: its old name): rank_fusion, "
+        "rank_fusion_le2, "
         "rank_fusion_le3, one of the field's rules rrf, combmnz, borda, isr (SPEC 14), or a method "
         "registered with detect=True",
     )

@@ -66,7 +66,7 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
     from harness.detect.run import DetectOptions
 
     return DetectOptions(
-        method=args.method,
+        fusion=args.fusion,
         nms_iou=args.nms_iou,
         max_boxes=args.max_boxes,
         top=args.top,

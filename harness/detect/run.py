@@ -3,7 +3,7 @@
 Given a map (reference) session and one or more new (query) sessions of a config, every query
 frame (thinned by ``[pairs] stride_m``) is paired with the map by pose (SPEC section 4), its
 subimages are ranked by the config's localizer(s) (SPEC sections 6 and 11), and the ranks are
-fused (SPEC section 7, ``[detect] method``, default ``rank_fusion``; across localizers when there
+fused (SPEC section 7, ``--fusion``, default ``rank_fusion``; across localizers when there
 are several) into:
 
 - change boxes: the fused qBBs in descending LoC after greedy non-maximum suppression at IoU
@@ -61,7 +61,7 @@ FRAME_RESULT = ["score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_
 class DetectOptions:
     """``harness detect``'s choices (SPEC 13); defaults are SPEC's."""
 
-    method: str = "rank_fusion"
+    fusion: str = "rank_fusion"
     nms_iou: float = 0.5
     max_boxes: int = 10
     chunk_frames: int = 64  # query frames per cached unit (the unit a killed run resumes at)
@@ -311,12 +311,12 @@ def detect_chunk(
         ann,
         opt.seed,
         max_fused,
-        methods=(opt.method, "random"),
+        methods=(opt.fusion, "random"),
         progress=partial(progress, desc="detect", unit="frame"),
         rrf_c=rrf_c,
     )
     samples = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
-    col = f"loc_{opt.method}"
+    col = f"loc_{opt.fusion}"
     size = frame_sizes(frames)
     orig = _frame_boxes(ranks, frames, opt)
     rows, frow, cand_parts = [], [], []
@@ -377,8 +377,8 @@ def check_detect_args(
             f"detect: --map {map_session} and --query {query_sessions}: each session once, the "
             "map not among the queries"
         )
-    if opt.method not in detect_methods():
-        raise ConfigError(f"detect: method {opt.method!r}: one of {', '.join(detect_methods())}")
+    if opt.fusion not in detect_methods():
+        raise ConfigError(f"detect: method {opt.fusion!r}: one of {', '.join(detect_methods())}")
     if rerun is not None:
         check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
     alarm = cfg.detect.alarm if alarm is None else alarm
@@ -447,8 +447,8 @@ def _chunk_units(
             opt.record() | {"chunk_frames": None},
             c0,
             len(part),
-            keys.fusion_method_fingerprints((opt.method,)),
-            *((dcfg.fusion.rrf_c,) if opt.method == "rrf" else ()),
+            keys.fusion_method_fingerprints((opt.fusion,)),
+            *((dcfg.fusion.rrf_c,) if opt.fusion == "rrf" else ()),
         )
         chunk_units.append((key, build))
     return chunk_units

@@ -54,7 +54,7 @@ def register_method(
     samples' cache key, so editing it recomputes them. The same catalogue record as the paper's
     rules (``harness.methods.FusionRule``): ``needs_score`` (it reads ``d``: a localizer without
     scores does not get it), ``across`` (it is defined on the box list of all localizers) and
-    ``detect`` (``harness detect --method`` may use it).
+    ``detect`` (``harness detect --fusion`` may use it).
 
     Raises:
         ValueError: ``name`` is taken.

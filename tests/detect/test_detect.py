@@ -227,17 +227,17 @@ def test_voc_all_point_ap_by_hand() -> None:
 def test_the_detect_flags_are_honoured_as_typed(
     detected: tuple, local_run: tuple, tmp_path: Path
 ) -> None:
-    """``--method``, ``--nms-iou``, ``--max-boxes`` and ``--top`` as the README shows them."""
+    """``--fusion``, ``--nms-iou``, ``--max-boxes`` and ``--top`` as the README shows them."""
     a, _, _ = detected
     out = tmp_path / "flags"
     shutil.copytree(a / "cache", out / "cache")  # the map, model and ranks are reused
     shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
-    flags = ["--method", "rank_fusion_le2", "--nms-iou", "0.2", "--max-boxes", "3", "--top", "4"]
+    flags = ["--fusion", "rank_fusion_le2", "--nms-iou", "0.2", "--max-boxes", "3", "--top", "4"]
     _run(["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
           "--out", str(out), "--data-root", str(local_run[0].cfg.data_root), *flags])  # fmt: skip
     rec = json.loads((out / "detect.json").read_text())
     assert rec["options"] == {
-        "method": "rank_fusion_le2", "nms_iou": 0.2, "max_boxes": 3, "top": 4,
+        "fusion": "rank_fusion_le2", "nms_iou": 0.2, "max_boxes": 3, "top": 4,
         "chunk_frames": 64, "seed": 0, "boxes": "fused", "box_score": "max", "locmap_level": 0.5,
     }  # fmt: skip
     dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
@@ -252,7 +252,7 @@ def test_the_detect_flags_are_honoured_as_typed(
         np.fill_diagonal(iou, 0)
         assert iou.max() <= 0.2 + 1e-9
     assert len(list((out / "locmaps").glob("*.npy"))) == 4  # --top
-    # --method: the scores are another method's LoC than the default run's
+    # --fusion: the scores are another method's LoC than the default run's
     before = pd.DataFrame(json.loads((a / "detections.json").read_text()))
     assert not np.allclose(
         before.groupby("image_id")["score"].max().to_numpy(),
@@ -318,7 +318,7 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
 def test_rerun_recording_reads_back_with_the_sdk(
     detected: tuple, local_run: tuple, tmp_path: Path
 ) -> None:
-    """``harness detect ... --method rrf --rerun OUT.rrd`` as the README shows it (issue 38): the
+    """``harness detect ... --fusion rrf --rerun OUT.rrd`` as the README shows it (issue 38): the
     recording, read back with the Rerun SDK, holds the map trajectory, every query frame on the
     ``utime`` timeline with its image, its change boxes (those of ``detections.json``), its LoC map
     and its score; a file that is not a recording of ours is never replaced."""
@@ -334,13 +334,13 @@ def test_rerun_recording_reads_back_with_the_sdk(
     argv = typed.group(0).split()[1:]
     argv[argv.index("--out") + 1] = str(out)
     argv[argv.index("--rerun") + 1] = str(rrd)
-    assert argv[argv.index("--method") + 1] == "rrf"
+    assert argv[argv.index("--fusion") + 1] == "rrf"
     argv += ["--data-root", str(local_run[0].cfg.data_root)]
     assert f"rerun {typed.group(0).split()[-1]}" in " ".join(readme.split())  # how to open it
     printed = _run(argv)
     assert f"rerun recording: {rrd}" in printed
     rec = json.loads((out / "detect.json").read_text())
-    assert rec["options"]["method"] == "rrf"
+    assert rec["options"]["fusion"] == "rrf"
     frames = pd.read_parquet(out / "frames.parquet")
     dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
     reader = rerun_chunk.RrdReader(rrd)
@@ -619,7 +619,7 @@ def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected:
         (["--alarm", "1.5"], "--alarm 1.5"),
         (["--boxes", "pixels"], "--boxes 'pixels': one of fused, locmap, proposals, segments"),
         (["--box-score", "median"], "box_score 'median': one of max, mean, contrast"),
-        (["--method", "score_max"], "method 'score_max': one of rank_fusion"),
+        (["--fusion", "score_max"], "method 'score_max': one of rank_fusion"),
         (["--rerun", "/nonexistent-folder/x.rrd"], "does not exist"),
     ],
 )
@@ -677,14 +677,14 @@ def test_a_registered_fusion_method_is_usable_by_detect(
         world = str(local_run[0].cfg.data_root)
         argv = ["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query",
                 QUERY, "--out", str(out), "--data-root", world]  # fmt: skip
-        _run([*argv, "--method", "best_rank"])
-        assert json.loads((out / "detect.json").read_text())["options"]["method"] == "best_rank"
+        _run([*argv, "--method", "best_rank"])  # the flag's old name still works
+        assert json.loads((out / "detect.json").read_text())["options"]["fusion"] == "best_rank"
         dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
         before = pd.DataFrame(json.loads((a / "detections.json").read_text()))
         assert (dets["score"] >= 1.0).all()  # 1 / r' >= 1 for every box
         assert dets["score"].max() < before["score"].max()  # one list's 1/r', not N * sum(1/r')
         capsys.readouterr()
-        assert main([*argv, "--method", "no_detect"]) == 1
+        assert main([*argv, "--fusion", "no_detect"]) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("ERROR:") and "no_detect" in err[0]
         assert "best_rank" in err[0]  # the registered one is offered
