@@ -129,9 +129,9 @@ def cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
 
 @dataclass(frozen=True)
 class ChangeRow:
-    """One method's line of a change table: per column its AP, interval, floor and verdict."""
+    """One fusion rule's line of a change table: per column its AP, interval, floor and verdict."""
 
-    method: str
+    fusion: str
     label: str
     #: A variant or baseline: shown after the six methods, past a rule.
     extra: bool
@@ -167,7 +167,7 @@ class ChangeTable:
         """One field of the rows (``ap``, ``low``, ``high``, ``floor``, ``verdict``) by column."""
         return pd.DataFrame(
             [getattr(r, value) for r in self.rows],
-            index=pd.Index([r.method for r in self.rows], name="fusion"),
+            index=pd.Index([r.fusion for r in self.rows], name="fusion"),
             columns=pd.Index(list(self.columns), name=self.spec.column),
         )
 
