@@ -217,7 +217,12 @@ def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
             "(SPEC section 12)"
         )
     for old, new in RENAMED.items():
-        if old in df.columns and new not in df.columns:
+        if old in df.columns and new in df.columns:
+            raise RetrievalError(
+                f"{path}: columns {old!r} and {new!r} both given; {old!r} is {new!r}'s old name: "
+                "keep one"
+            )
+        if old in df.columns:
             log.warning("%s: column %r read as %r (its name now): rename it", path, old, new)
             df = df.rename(columns={old: new})
     miss = [c for c in REQUIRED if c not in df.columns]

@@ -111,6 +111,12 @@ def test_the_old_column_name_method_is_read_with_a_warning(
         got = _rank(old)
     pd.testing.assert_frame_equal(got, new)
     assert "column 'method' read as 'proposal_method'" in caplog.text and "old.csv" in caplog.text
+    both = pd.read_csv(old).assign(proposal_method="grid5")
+    both.to_csv(old, index=False)
+    with pytest.raises(
+        RetrievalError, match=r"old.csv: columns 'method' and 'proposal_method' both"
+    ):
+        _rank(old)
 
 
 def test_a_truncated_list_without_the_place_is_a_bound(tmp_path: Path) -> None:
