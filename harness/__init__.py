@@ -7,6 +7,11 @@ The pipeline's chain is :mod:`harness.pipeline.chain`; the method contract is SP
 from importlib.metadata import PackageNotFoundError
 from importlib.metadata import version as _v
 
+from harness import kernels
+
+# before anything imports numpy, torch, OpenCV or faiss: the same kernels on every CPU of the kind
+kernels.LOADED_BEFORE[:] = kernels.pin()
+
 __all__ = ["__version__"]
 try:
     __version__ = _v("dbl-harness")

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
+import os
+import shutil
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +35,14 @@ def small_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def default_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The default fixture (what `make reproduce-table` uses)."""
-    return generate(tmp_path_factory.mktemp("default") / "fx", FixtureSpec())
+    """The default fixture (what `make reproduce-table` uses), one for every worker: the stage
+    keys of a run hold where its logs are, so workers share runs only on the same world."""
+    shared = _shared_dir(tmp_path_factory)
+    world = shared / "default-world" / "fx"
+    with _locked(shared / "default-world.lock"):
+        if not (world / "fixture.json").exists():
+            generate(world, FixtureSpec())
+    return world
 
 
 @pytest.fixture(scope="session")
@@ -45,8 +56,10 @@ def local_run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> 
 
     out = tmp_path_factory.mktemp("run")
     cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(default_world))
-    p = Pipeline(cfg, out)
-    return p, p.run(), out
+    with shared_stages(tmp_path_factory, "fixture-run", out):
+        p = Pipeline(cfg, out)
+        rec = p.run()
+    return p, rec, out
 
 
 def one_error(capsys: pytest.CaptureFixture) -> str:
@@ -55,3 +68,59 @@ def one_error(capsys: pytest.CaptureFixture) -> str:
     assert err.startswith("ERROR: ") and "Traceback" not in err, err
     assert len(err.strip().splitlines()) == 1, err
     return err
+
+
+def seed_cache(run: Path, out: Path, stages: tuple[str, ...] | None = None) -> Path:
+    """Copy a finished run's stage cache (every stage, or ``stages``) into a new ``out``.
+
+    Entries are keyed by their inputs, config and code, so a test's run into ``out`` reuses what
+    the suite already computed and recomputes only what its own config changes: no test trains a
+    model another already trained (issue 50). Copies, not links: a test may damage its entries.
+    """
+    from harness.runtime.outdirs import MARKER
+
+    out.mkdir(parents=True, exist_ok=True)
+    for d in sorted((run / "cache").iterdir()):
+        if d.is_dir() and (stages is None or d.name in stages):
+            shutil.copytree(d, out / "cache" / d.name, dirs_exist_ok=True)
+    shutil.copy(run / MARKER, out / MARKER)
+    return out
+
+
+def _shared_dir(factory: pytest.TempPathFactory) -> Path:
+    """A folder every worker of this test session sees: under pytest-xdist (``make test`` runs
+    two) the parent of the workers' base folders, else the session's own base folder."""
+    base = factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@contextlib.contextmanager
+def shared_stages(factory: pytest.TempPathFactory, name: str, out: Path) -> Iterator[None]:
+    """Run the block (a pipeline into ``out``) once per test session, whatever the workers.
+
+    Under a lock named ``name``: where another worker already ran it, ``out`` is first seeded
+    with that run's stage cache (:func:`seed_cache`), so the block recomputes only what is not
+    cached (its reports); else, after the block, the run's cache is published for the others.
+    Entries are content-keyed: a seeded entry is exactly what the block would have computed.
+    """
+    shared = _shared_dir(factory)
+    done = shared / f"{name}.stages"
+    with _locked(shared / f"{name}.lock"):
+        if done.is_dir():
+            seed_cache(done, out)
+        yield
+        if not done.is_dir():
+            tmp = shared / f".{name}.{os.getpid()}.tmp"
+            seed_cache(out, tmp)
+            tmp.rename(done)
+
+
+@contextlib.contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """An exclusive lock on ``path`` (created) across the workers, held for the block."""
+    with open(path, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

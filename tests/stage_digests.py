@@ -205,15 +205,17 @@ def values_differ(
 #: The fixture's trained autoencoder: the file every other float figure of a run follows from.
 MODEL = "cache/model/*/autoencoder.pt"
 #: The fixture model the figures quoted in README.md and docs/method.md were measured with (its
-#: digest, and the machine that trained it). ``stages.json`` names its own (it may be re-recorded
-#: on another machine kind: issue 35's renames were).
+#: digest, and what trained it). Since issue 50 every CPU of the kind trains it (the kernels are
+#: pinned at AVX2, ``precision = "auto"`` is fp32): ``stages.json`` records the same model, and
+#: ``tests/kernels`` fails where a CPU trains another.
 DOCS_MODEL = {"digest": "978dd804b216655a", "machine": "torch kernels AVX2, fp32"}
 
 
 def _machine() -> str:
-    from harness.runtime.hardware import has_bf16
+    """What decides the fixture model here: torch's kernel level and the default precision."""
+    from harness.runtime.hardware import resolve_precision
 
-    return f"torch kernels {cpu_capability()}, " + ("bf16" if has_bf16("cpu") else "fp32")
+    return f"torch kernels {cpu_capability()}, {resolve_precision('auto', 'cpu')}"
 
 
 def other_model(out: Path, regression: bool = False) -> str | None:

@@ -215,6 +215,7 @@ PROJECT_TESTS = frozenset(
         "test_bench_command",
         "test_gpu",
         "test_safety_third_pass",
+        "test_lock",
     }
 )
 

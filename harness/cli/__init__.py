@@ -11,6 +11,7 @@ import logging
 import sys
 import traceback
 
+from harness import kernels
 from harness.cli.parser import build_parser
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
@@ -71,6 +72,17 @@ def main(argv: list[str] | None = None) -> int:
     """
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
+    try:
+        kernels.level()
+    except ValueError as err:
+        print(f"ERROR: {err} (the kernels every table is computed with)", file=sys.stderr)
+        return 1
+    if kernels.LOADED_BEFORE and kernels.caps():
+        log.warning(
+            "%s was imported before harness: its kernels are this CPU's own, so tables "
+            "may differ from other machines' (import harness first)",
+            ", ".join(kernels.LOADED_BEFORE),
+        )
     try:
         return int(args.func(args))
     except HarnessError as err:

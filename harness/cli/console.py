@@ -9,6 +9,7 @@ def print_change_table(console, t, run: str) -> None:
     The markdown's cells with intervals and verdict marks, then floor, band and ceiling, the
     legend, the notes and the warnings.
     """
+    from rich.markup import escape
     from rich.table import Table
 
     from harness.evaluate.chance import MARK_LEGEND
@@ -23,7 +24,7 @@ def print_change_table(console, t, run: str) -> None:
         if r.extra and not shown_sep:
             out.add_section()
             shown_sep = True
-        out.add_row(r.label, *r.cells())
+        out.add_row(escape(r.label), *(escape(c) for c in r.cells()))
     out.add_section()
     for label, vals in t.chance:
         out.add_row(label, *vals)
@@ -32,7 +33,7 @@ def print_change_table(console, t, run: str) -> None:
     for n in t.notes:
         console.print(n, markup=False)
     for w in t.warnings:
-        console.print(f"[bold yellow]{w}[/]")
+        console.print(f"[bold yellow]{escape(w)}[/]")
 
 
 def print_table_l(console, t) -> None:
@@ -40,6 +41,7 @@ def print_table_l(console, t) -> None:
 
     Then its cost table; every undefined cell is ``-`` with its reason as a footnote.
     """
+    from rich.markup import escape
     from rich.table import Table
 
     from harness.evaluate.chance import MARK_LEGEND
@@ -52,13 +54,15 @@ def print_table_l(console, t) -> None:
     for c in heads:
         lt.add_column(c, justify="left" if c == "localizer" else "right")
     for name, cs in v.rows:
-        lt.add_row(name, *(c.text() for c in cs))
+        lt.add_row(escape(name), *(escape(c.text()) for c in cs))
     lt.add_section()
     lt.add_row(
         f"floor ({v.first})", *([""] * len(v.recall_heads)), *(f"{f:.2f}" for f in v.floors), ""
     )
     console.print(lt)
     console.print(MARK_LEGEND, markup=False)
+    if v.bounds_note:
+        console.print(f"WARNING: {v.bounds_note}", markup=False)
     ct = Table(title="Table L: what each localizer costs")
     ct.add_column("localizer")
     for _, h, _ in COST_COLUMNS:

@@ -557,6 +557,13 @@ def _check_report(cfg: Config, where: str) -> None:
         rp.chance_draws,
         ">= 200 random orders (SPEC 9: the floor is measured, not the positive rate)",
     )
+    c(
+        type(rp.min_positive_images) is int and rp.min_positive_images >= 1,
+        where,
+        "[report] min_positive_images",
+        rp.min_positive_images,
+        "an integer >= 1 (query images holding a positive before a figure earns a verdict)",
+    )
     c(rp.gallery >= 0, where, "[report] gallery", rp.gallery, ">= 0 thumbnails per method and kind")
     c(
         0 <= rp.headline_roc_max <= 1,

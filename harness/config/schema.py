@@ -279,6 +279,9 @@ class ReportConfig:
     ci: float = 0.95
     # SPEC 9: random orders of the same samples behind every floor and chance band (>= 200)
     chance_draws: int = 200
+    # SPEC 9, evidence before a verdict: a figure whose positives sit in fewer query images than
+    # this (or whose bootstrap cannot vary it) prints "too few positives (n)" and no verdict
+    min_positive_images: int = 5
     locmap_examples: int = 4
     plots: bool = True
     html: bool = True  # write report.html (the one page to look at) after the tables

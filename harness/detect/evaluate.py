@@ -254,6 +254,7 @@ def table_d_chance(
     n_boot: int,
     ci: float,
     seed: int,
+    needed: int = chance.MIN_POSITIVE_IMAGES,
 ) -> dict[str, dict[str, Any]]:
     """SPEC 9 for Table D's AP50: floor, band, ceiling, recall, intervals and verdicts.
 
@@ -266,6 +267,8 @@ def table_d_chance(
         n_boot: bootstrap resamples of annotated frames for the intervals.
         ci: interval level.
         seed: seeds the draws and the resamples.
+        needed: ``[report] min_positive_images``: annotated frames holding a change box before a
+            row earns a verdict (SPEC 9, evidence before a verdict).
 
     Returns:
         per row: ``ap50`` (this matcher's; equal to COCOeval's), ``ci_low``/``ci_high``,
@@ -293,11 +296,14 @@ def table_d_chance(
         ap, boots[row] = _row_ap(per, gts, ids, n_gt, counts, gt_n)
         bl, bh = interval(boots[row], ci)
         out[row] = {"ap50": ap, "ci_low": bl, "ci_high": bh}
+    positive_images = sum(len(gts[i]) > 0 for i in ids)
     for row in dets:
         d = boots[row] - boots.get("random", np.full(len(counts), np.nan))
         dl, dh = interval(d, ci)
         out[row].update({"vs_random_ci_low": dl, "vs_random_ci_high": dh})
-        out[row]["verdict"] = chance.verdict(out[row]["ap50"], lo, hi, dl, dh)
+        ev = chance.Evidence(positive_images, needed)
+        out[row]["positive_images"] = positive_images
+        out[row]["verdict"] = chance.verdict(out[row]["ap50"], lo, hi, dl, dh, ev)
     return out
 
 
@@ -377,6 +383,7 @@ def score_detections(
     seed: int = 0,
     boxes: str = "fused",
     alarm: float = 0.01,
+    needed: int = chance.MIN_POSITIVE_IMAGES,
 ) -> pd.DataFrame | None:
     """Table D: the detector's box APs on the annotated query frames, with SPEC 9's floor.
 
@@ -397,7 +404,7 @@ def score_detections(
     per_row = {kind: _by_image(dets[dets["kind"] == kind], ids, on, "score") for kind in D_ROWS}
     ch = table_d_chance(
         cand, gts, {"detector": per_row["detection"], "random": per_row["random"]}, nms,
-        draws, n_boot, ci, seed,
+        draws, n_boot, ci, seed, needed,
     )  # fmt: skip
     rows = []
     for kind, label in D_ROWS.items():
@@ -420,6 +427,8 @@ def score_detections(
                 "coco_ap_50_95": coco,
                 "coco_ap_50": coco50,
                 "annotated_frames": len(gt["images"]),
+                "positive_images": c["positive_images"],
+                "positive_images_needed": needed,
                 "change_boxes": len(gt["annotations"]),
                 "detections": len(res),
                 "matcher_ap50": c["ap50"],

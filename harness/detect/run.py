@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from harness import kernels
 from harness.config.schema import ALL_LOCALIZERS, Config, SegmentsConfig
 from harness.errors import ConfigError, HarnessError
 from harness.fusion.fuse import fuse_samples, loc_map
@@ -517,6 +518,7 @@ def run_detect(
             alarm,
         )
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
+        record["kernels"] = kernels.report()
         if rerun is not None:
             record["rerun"] = write_rerun(
                 Path(rerun), p.out, frames.df, map_session, fr, dets, entries, opt
@@ -746,6 +748,7 @@ def _table_d(
         cfg.seed,
         opt.boxes,
         alarm,
+        cfg.report.min_positive_images,
     )
 
 

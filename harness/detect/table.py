@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from harness.evaluate.chance import MARK_LEGEND, VERDICT_WORDS
+from harness.evaluate.chance import MARK_LEGEND, VERDICT_WORDS, few_text, few_warning
 from harness.reports.html.cells import esc
 
 #: Table D's columns after the row's name (the page's headings drop the `` [95% CI]``).
@@ -72,7 +72,9 @@ def table_d(t: pd.DataFrame) -> TableD:
             str(r.verdict),
             (
                 f"{r.ap50_voc_all_point:.3f} [{r.ci_low:.3f}, {r.ci_high:.3f}]",
-                VERDICT_WORDS[r.verdict],
+                few_text(int(getattr(r, "positive_images", 0)))
+                if r.verdict == "few"
+                else VERDICT_WORDS[r.verdict],
                 f"{r.coco_ap_50_95:.3f}",
                 f"{r.coco_ap_50:.3f}",
                 f"{r.annotated_frames}",
@@ -194,7 +196,11 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
     """What Table D must say in words, from SPEC 9's verdict and the candidates' ceiling."""
     out = []
     det = t.iloc[0]
-    if det["verdict"] != "above":
+    if det["verdict"] == "few":
+        out.append(
+            few_warning(int((t["verdict"] == "few").sum()), int(det["positive_images_needed"]))
+        )
+    elif det["verdict"] != "above":
         out.append(
             f"WARNING: the detector's AP50 ({det['ap50_voc_all_point']:.3f}): "
             f"{VERDICT_WORDS[str(det['verdict'])]} (floor {det['floor']:.3f}, chance band "

@@ -77,6 +77,15 @@ def sample_groups(df: pd.DataFrame) -> np.ndarray:
     ).to_numpy()
 
 
+def query_frames(groups: np.ndarray) -> int:
+    """The query frames among sample groups (``q_session|q_camera|q_utime|r_session``).
+
+    One frame paired with three reference sessions is three bootstrap units but one piece of
+    evidence: SPEC 9's *evidence before a verdict* counts frames.
+    """
+    return len({str(g).rsplit("|", 1)[0] for g in np.unique(np.asarray(groups, dtype=object))})
+
+
 def stratified_labels(roc: np.ndarray, split: Split) -> np.ndarray:
     """SPEC section 8's size-stratified labels.
 
@@ -122,12 +131,17 @@ class _Pooled:
         for r in self.rows:
             r.update(self._paired(r, "rank_fusion", ""))
             r.update(self._paired(r, "random", "vs_random_"))
+            evidence = chance.Evidence(
+                int(r["positive_images"]), self.cfg.report.min_positive_images
+            )
+            r["positive_images_needed"] = evidence.needed
             r["verdict"] = chance.verdict(
                 r["ap"],
                 r["chance_low"],
                 r["chance_high"],
                 r["vs_random_diff_ci_low"],
                 r["vs_random_diff_ci_high"],
+                evidence,
             )
         return self.rows
 
@@ -172,11 +186,12 @@ def table_i_rows(
     proposals: str,
     draws: int = chance.MIN_DRAWS,
     seed: int = 0,
+    min_positive_images: int = chance.MIN_POSITIVE_IMAGES,
 ) -> list[dict]:
     """Per-split APs without intervals (the breakdowns by proposal method and season pair).
 
     Their floors and chance bands are measured like the pooled ones; without a bootstrap their
-    verdict is ``untested``.
+    verdict is ``untested`` (``few`` where their positives sit in too few query images).
     """
     nan = float("nan")
     rows = []
@@ -188,6 +203,8 @@ def table_i_rows(
         y = lab[sel] == 1
         ap = average_precision(y, loc[sel])
         floor = chance.plain_chance(y, draws, seed)
+        pos_images = query_frames(groups[sel][y])
+        evidence = chance.Evidence(pos_images, min_positive_images)
         rows.append(
             {
                 "table": "I",
@@ -205,7 +222,9 @@ def table_i_rows(
                 "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
                 "positive_rate": float(y.mean()) if len(y) else float("nan"),
                 "query_images": len(np.unique(groups[sel])),
-                "verdict": chance.verdict(ap, floor[1], floor[2], nan, nan),
+                "positive_images": pos_images,
+                "positive_images_needed": min_positive_images,
+                "verdict": chance.verdict(ap, floor[1], floor[2], nan, nan, evidence),
             }
         )
     return rows
@@ -226,7 +245,8 @@ def pooled_rows(
     differences between localizers use the same resamples).
     """
     df = samples
-    gi = np.array([ids[g] for g in sample_groups(df)], np.int64)
+    names = sample_groups(df)
+    gi = np.array([ids[g] for g in names], np.int64)
     roc, sob = df["RoC"].to_numpy(), df["SoB"].to_numpy()
     lab = split_label(roc, sob, split) if table == "I" else stratified_labels(roc, split)
     edges = np.asarray(cfg.splits.sob_strata, np.float64)
@@ -235,6 +255,7 @@ def pooled_rows(
         loc = df[f"loc_{m}"].to_numpy()
         sel = (lab >= 0) & ~np.isnan(loc)
         y, sc, g, sb = lab[sel] == 1, loc[sel], gi[sel], sob[sel]
+        pos_frames = query_frames(names[sel][y])
         draws = cfg.report.chance_draws
         if table == "I":
             ap, floor = average_precision(y, sc), chance.plain_chance(y, draws, cfg.seed)
@@ -259,6 +280,7 @@ def pooled_rows(
                 "left_out": int(((lab < 0) & ~np.isnan(loc)).sum()),
                 "positive_rate": float(y.mean()) if len(y) else float("nan"),
                 "query_images": len(np.unique(g)),
+                "positive_images": pos_frames,
             },
             boot,
         )
@@ -281,11 +303,15 @@ def pixel_image_rows(
     """
     px, img, maps = _pixel_image_scores(samples, frames, ann, methods, ids)
     chance_of = _map_chance(cfg, maps, samples["RoC"].to_numpy(np.float64))
+    names = np.empty(len(ids), dtype=object)
+    for k, v in ids.items():
+        names[v] = k
     rows = []
     for name, data in (("pixel", px), ("image", img)):
         pooled = _Pooled(cfg, ids, f"P:{name}")
         for m in methods:
             ap, g_, extra, boot = _p_ap(name, data[m])
+            extra["positive_images"] = query_frames(names[g_[extra.pop("_positive_groups")]])
             floor, ceiling = chance_of[(name, "orig" if m == "rank_no_fusion" else "fused")]
             pooled.add(
                 m,
@@ -428,6 +454,7 @@ def _p_ap(name: str, d: dict[str, list]) -> tuple[float, np.ndarray, dict, Any]:
             "positives": round(pos_w),
             "negatives": round(tot_w - pos_w),
             "positive_rate": pos_w / tot_w if tot_w else float("nan"),
+            "_positive_groups": y_ & (w_ > 0),
         }
     else:
         s_, y_, g_ = (
@@ -443,6 +470,7 @@ def _p_ap(name: str, d: dict[str, list]) -> tuple[float, np.ndarray, dict, Any]:
             "positives": int(y_.sum()),
             "negatives": int((~y_).sum()),
             "positive_rate": float(y_.mean()) if len(y_) else float("nan"),
+            "_positive_groups": y_,
         }
     return ap, g_, extra, boot
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import zlib
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -37,16 +38,29 @@ VERDICT_WORDS = {
     "chance": "cannot be told from chance",
     "untested": "no interval: not tested against chance",
     "undefined": "undefined (no positive)",
+    "few": "too few positives",
 }
-#: One mark per verdict for narrow cells (markdown, console); LaTeX has its own.
-VERDICT_MARKS = {"above": "▲", "below": "▼", "chance": "○", "untested": "", "undefined": ""}
+#: One mark per verdict for narrow cells (markdown, console); LaTeX has its own. ``few`` has none:
+#: its cell says "too few positives (n)" in words (:func:`few_text`).
+VERDICT_MARKS = {
+    "above": "▲",
+    "below": "▼",
+    "chance": "○",
+    "untested": "",
+    "undefined": "",
+    "few": "",
+}
 VERDICT_TEX = {
     "above": r"$^{\blacktriangle}$",
     "below": r"$^{\blacktriangledown}$",
     "chance": r"$^{\circ}$",
     "untested": "",
     "undefined": "",
+    "few": "",
 }
+#: ``[report] min_positive_images``'s default: the fewest query images holding a positive on
+#: which a figure earns a verdict (SPEC 9, *Evidence before a verdict*).
+MIN_POSITIVE_IMAGES = 5
 #: The legend line under every table that shows the marks.
 MARK_LEGEND = (
     "▲ above chance: AP above the chance band (95th percentile of random orders of the same "
@@ -59,8 +73,36 @@ def _finite(*v: float) -> bool:
     return all(x == x and abs(x) != float("inf") for x in v)
 
 
-def verdict(ap: float, chance_low: float, chance_high: float, vs_lo: float, vs_hi: float) -> str:
-    """SPEC 9's one rule: ``above``, ``below``, ``chance``, ``untested`` or ``undefined``.
+@dataclass(frozen=True)
+class Evidence:
+    """What a figure rests on (SPEC 9, *Evidence before a verdict*).
+
+    ``positive_images``: the query images holding a positive sample of the figure; ``needed``:
+    ``[report] min_positive_images``. A bootstrap over query images can vary a figure only when
+    at least two of them hold a positive (with one, every resample that holds it holds the same
+    positives), so the figure earns a verdict with at least ``max(needed, 2)``. (Whether the
+    resamples' values happen to differ is no test: a perfect AP over 24 positive images is 1.00 in
+    every resample, and is still evidence.)
+    """
+
+    positive_images: int
+    needed: int = MIN_POSITIVE_IMAGES
+
+    @property
+    def enough(self) -> bool:
+        """Whether the figure may carry a verdict at all."""
+        return self.positive_images >= max(self.needed, 2)
+
+
+def verdict(
+    ap: float,
+    chance_low: float,
+    chance_high: float,
+    vs_lo: float,
+    vs_hi: float,
+    evidence: Evidence | None = None,
+) -> str:
+    """SPEC 9's one rule: ``above``, ``below``, ``chance``, ``few``, ``untested``, ``undefined``.
 
     Args:
         ap: the figure.
@@ -69,9 +111,13 @@ def verdict(ap: float, chance_low: float, chance_high: float, vs_lo: float, vs_h
         vs_lo: the low end of its paired bootstrap difference from the ``random`` baseline (NaN
             when no bootstrap was drawn: then the figure is ``untested``, never above).
         vs_hi: the high end of that interval.
+        evidence: what the figure rests on: too few positive query images (so few that the
+            bootstrap cannot vary the figure) give ``few`` (no verdict, no colour) whatever the AP.
     """
     if not _finite(ap, chance_low, chance_high):
         return "undefined"
+    if evidence is not None and not evidence.enough:
+        return "few"
     if not _finite(vs_lo, vs_hi):
         return "untested"
     if ap > chance_high and vs_lo > 0:
@@ -79,6 +125,21 @@ def verdict(ap: float, chance_low: float, chance_high: float, vs_lo: float, vs_h
     if ap < chance_low and vs_hi < 0:
         return "below"
     return "chance"
+
+
+def few_text(n: int) -> str:
+    """A ``few`` cell's words: ``too few positives (n)``, n the positive query images."""
+    return f"{VERDICT_WORDS['few']} ({int(n)})"
+
+
+def few_warning(cells: int, needed: int) -> str:
+    """The line under a table with ``cells`` cells of verdict ``few``."""
+    return (
+        f"WARNING: {cells} cell{'s' if cells != 1 else ''} rest on fewer than {max(needed, 2)} "
+        "query images holding a positive, too few for the bootstrap over query images to vary "
+        'them: each shows its AP with "too few positives (n)" and no verdict or colour (SPEC 9, '
+        "evidence before a verdict; [report] min_positive_images)."
+    )
 
 
 def draw_seed(seed: int, *key: object) -> int:

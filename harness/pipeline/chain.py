@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness import __version__
+from harness import __version__, kernels
 from harness.config.schema import ALL_LOCALIZERS, Config
 from harness.errors import ConfigError, HarnessError, RetrievalError
 from harness.methods import ordered_methods, rules_where
@@ -373,6 +373,7 @@ def run_record(
     return {
         "config": asdict(p.cfg),
         "versions": _versions(),
+        "kernels": kernels.report(),
         "seed": p.cfg.seed,
         "argv": sys.argv,
         "localizers": [localizer_record(m.loc, multi) for m in measured],

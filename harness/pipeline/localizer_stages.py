@@ -297,6 +297,16 @@ def localizer_fusion(
         )
     inexact = int(info.get("gt_missing_from_truncated_list", 0))
     if inexact:
+        share = inexact / max(len(ranks.df), 1)
+        log.warning(  # once on the console; each of the localizer's tables carries the note
+            "%d of %d query subimages (%.0f%%) of localizer %s have a truncated list without "
+            "their place: their rank is a bound (exact = False), and every figure of this "
+            "localizer rests on bounds, not ranks (Table L marks it [bounds])",
+            inexact,
+            len(ranks.df),
+            100 * share,
+            loc.name,
+        )
         notes.append(
             f"NOTE: {inexact} of {len(ranks.df)} query subimages of localizer {loc.name} have a "
             "truncated list without their place: their rank is a bound (exact = False)."

@@ -18,7 +18,7 @@ from typing import Any
 
 import pandas as pd
 
-from harness.evaluate.chance import VERDICT_MARKS
+from harness.evaluate.chance import MIN_POSITIVE_IMAGES, VERDICT_MARKS, few_text, few_warning
 from harness.methods import FUSION_METHODS, METHOD_LABELS
 
 
@@ -94,6 +94,8 @@ def pivot(
     """One table's ``value`` (AP by default), method x column, in SPEC order."""
     spec = CHANGE_TABLES[table]
     main = _pooled(summ, table)
+    if value not in main.columns:  # a summary written before the column existed
+        main = main.assign(**{value: float("nan")})
     t = main.pivot(index="fusion", columns=spec.column, values=value).reindex(list(methods))
     return t.reindex(columns=list(spec.order)) if spec.order else t
 
@@ -117,11 +119,16 @@ def column_label(c: Any) -> str:
     return f"{c:.2f}" if isinstance(c, float) else str(c)
 
 
-def cell(v: float, lo: float, hi: float, verdict: str = "") -> str:
-    """An AP cell as text: ``AP [interval] mark`` (the verdict's mark), ``NaN`` where undefined."""
+def cell(v: float, lo: float, hi: float, verdict: str = "", positive_images: float = 0) -> str:
+    """An AP cell as text: ``AP [interval] mark`` (the verdict's mark), ``NaN`` where undefined.
+
+    A ``few`` verdict shows no mark but ``too few positives (n)`` (SPEC 9).
+    """
     if v != v:
         return "NaN"
     mark = VERDICT_MARKS.get(verdict, "")
+    if verdict == "few":
+        mark = few_text(int(positive_images))
     return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
         f" {mark}" if mark else ""
     )
@@ -140,10 +147,17 @@ class ChangeRow:
     high: tuple[float, ...]
     floor: tuple[float, ...]
     verdict: tuple[str, ...]
+    #: Per column, the query images holding a positive (SPEC 9's evidence before a verdict).
+    positive_images: tuple[float, ...]
 
     def cells(self) -> list[str]:
         """The row's AP cells as the markdown and the console show them."""
-        return [cell(*v) for v in zip(self.ap, self.low, self.high, self.verdict, strict=True)]
+        return [
+            cell(*v)
+            for v in zip(
+                self.ap, self.low, self.high, self.verdict, self.positive_images, strict=True
+            )
+        ]
 
 
 @dataclass(frozen=True)
@@ -182,7 +196,8 @@ def change_table(
     """Table ``table`` (``I``, ``S`` or ``P``) of a run's summary, for every format."""
     spec = CHANGE_TABLES[table]
     piv = {
-        v: pivot(summ, table, methods, v) for v in ("ap", "ci_low", "ci_high", "floor", "verdict")
+        v: pivot(summ, table, methods, v)
+        for v in ("ap", "ci_low", "ci_high", "floor", "verdict", "positive_images")
     }
     cols = list(piv["ap"].columns)
     rows = tuple(
@@ -201,6 +216,10 @@ def change_table(
         f"{r.negatives} negatives" + (" (pixels)" if r.split in spec.pixel_columns else "")
         for r in main[main["fusion"] == ref].itertuples()
     )
+    few = sum(v == "few" for r in rows for v in r.verdict)
+    if few:
+        needed = _needed(summ)
+        warnings = (*warnings, few_warning(few, needed))
     return ChangeTable(
         spec,
         tuple(cols),
@@ -212,6 +231,12 @@ def change_table(
         tuple(warnings),
         localizer,
     )
+
+
+def _needed(summ: pd.DataFrame) -> int:
+    """``[report] min_positive_images`` of the run that wrote ``summ`` (its default if unknown)."""
+    col = summ.get("positive_images_needed")
+    return int(col.max()) if col is not None and len(col) else MIN_POSITIVE_IMAGES
 
 
 def box_sets(methods: tuple[str, ...] | list[str]) -> list[tuple[str, str]]:

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.evaluate.chance import MARK_LEGEND, VERDICT_MARKS
+from harness.evaluate.chance import MARK_LEGEND, VERDICT_MARKS, few_text
 from harness.evaluate.metrics import holm, paired_difference
 from harness.evaluate.splits import Split
 from harness.reports.texfmt import tex_escape as _tex_escape
@@ -88,13 +88,27 @@ def _cell(summ: pd.DataFrame, table: str, split: str, method: str) -> dict[str, 
             **dict.fromkeys(("ap", "ci_low", "ci_high", "floor", "chance_high"), nan),
             "verdict": "undefined",
             "query_images": 0,
+            "positive_images": 0,
         }
     x = r.iloc[0]
     return {
         **{k: float(x[k]) for k in ("ap", "ci_low", "ci_high", "floor", "chance_high")},
         "verdict": str(x["verdict"]),
         "query_images": int(x["query_images"]),
+        "positive_images": int(x.get("positive_images", 0)),
     }
+
+
+def _bound_share(la: pd.DataFrame) -> float:
+    """The share of a block's ranks that are bounds (0 for a table written before the column)."""
+    if not len(la) or "bound_share" not in la.columns:
+        return 0.0
+    return float(la["bound_share"].iloc[0])
+
+
+def bound_name(name: str, share: float) -> str:
+    """A Table L row's name, marked where its figures rest on bounds rather than ranks."""
+    return f"{name} [bounds: {100 * share:.0f}%]" if share > 0 else name
 
 
 def leaderboard(
@@ -129,11 +143,13 @@ def leaderboard(
                 for n in cfg.report.recall_at
             },
             "subimages": int(la["subimages"].iloc[0]) if len(la) else 0,
+            "bound_share": _bound_share(la),
         }
         for prefix, table, split, method, _ in AP_COLUMNS:
             c = _cell(b.summary, table, head.name if split == "headline" else split, method)
             for k in ("ap", "ci_low", "ci_high", "floor", "chance_high", "verdict"):
                 row[f"{prefix}_{k}"] = c[k]
+            row[f"{prefix}_positive_images"] = c["positive_images"]
             if prefix == "S_rank_fusion":
                 row["query_images"] = c["query_images"]
         mine = bt.get(("S", head.name, "rank_fusion"), np.zeros(0))
@@ -181,6 +197,8 @@ class LCell:
     holm: bool = False
     digits: int = 2
     why: str = ""
+    #: An AP's query images holding a positive (said in a ``few`` cell, SPEC 9).
+    positive_images: int = 0
 
     def text(self) -> str:
         """The cell as the markdown and the console show it (``-<mark>)`` where undefined)."""
@@ -194,6 +212,8 @@ class LCell:
         if self.kind == "num":
             return _pct(v)
         mark = VERDICT_MARKS.get(self.verdict, "")
+        if self.verdict == "few":
+            mark = few_text(self.positive_images)
         return (f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if lo == lo else f"{v:.2f}") + (
             f" {mark}" if mark else ""
         )
@@ -217,6 +237,19 @@ class LeaderTable:
     cost_rows: tuple[tuple[str, tuple[LCell, ...]], ...]
     marks: tuple[str, ...]
     cost_marks: tuple[str, ...]
+    #: Per row computed on bounds (:func:`bound_name`): "name: n% of ... are bounds".
+    bounds: tuple[str, ...] = ()
+
+    @property
+    def bounds_note(self) -> str:
+        """The sentence under the table for rows marked ``[bounds: n%]`` (empty without one)."""
+        if not self.bounds:
+            return ""
+        return (
+            "[bounds: n%]: " + "; ".join(self.bounds) + ". An imported list truncated before "
+            "the true place gives only a bound on its rank (SPEC section 12): that row's recall "
+            "and APs are computed on bounds, not ranks, and are not comparable with the others."
+        )
 
     @property
     def heads(self) -> tuple[str, ...]:
@@ -240,8 +273,11 @@ def _accuracy_cells(t: pd.DataFrame, r: pd.Series, rec: list[tuple[str, str]]) -
     ]
     for p, *_ in AP_COLUMNS:
         v, lo, hi, fl = (float(r[f"{p}_{k}"]) for k in ("ap", "ci_low", "ci_high", "floor"))
+        n = r.get(f"{p}_positive_images", 0)
         cells.append(
-            LCell("ap", v, lo, hi, fl, str(r[f"{p}_verdict"]))
+            LCell(
+                "ap", v, lo, hi, fl, str(r[f"{p}_verdict"]), positive_images=int(n if n == n else 0)
+            )
             if v == v
             else _undefined_cell(t, r, f"{p}_ap", "ap")
         )
@@ -256,8 +292,10 @@ def leader_table(t: pd.DataFrame) -> LeaderTable:
     first = str(t["localizer"].iloc[0])
     rec = recall_columns(t)
     rows, costs = [], []
-    for _, r in t.iterrows():
-        rows.append((str(r["localizer"]), tuple(_accuracy_cells(t, r, rec))))
+    shares = t["bound_share"] if "bound_share" in t.columns else pd.Series(0.0, index=t.index)
+    for (_, r), share in zip(t.iterrows(), shares, strict=True):
+        name = bound_name(str(r["localizer"]), float(share))
+        rows.append((name, tuple(_accuracy_cells(t, r, rec))))
         costs.append(
             (
                 str(r["localizer"]),
@@ -279,6 +317,12 @@ def leader_table(t: pd.DataFrame) -> LeaderTable:
     def used(rs: list) -> tuple[str, ...]:
         return tuple(sorted({c.why for _, cs in rs for c in cs if c.why}))
 
+    bounds = tuple(
+        f"{r['localizer']}: {100 * float(sh):.0f}% of its query subimages' ranks are bounds"
+        for (_, r), sh in zip(t.iterrows(), shares, strict=True)
+        if float(sh) > 0
+    )
+
     return LeaderTable(
         first,
         float(t["roc_max"].iloc[0]),
@@ -289,6 +333,7 @@ def leader_table(t: pd.DataFrame) -> LeaderTable:
         tuple(costs),
         used(rows),
         used(costs),
+        bounds,
     )
 
 
@@ -385,6 +430,7 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
     ]
     lines += [f"| {name} | " + " | ".join(c.text() for c in cs) + " |" for name, cs in v.rows]
     lines += _floor_lines(v)
+    lines += ["", f"**{v.bounds_note}**"] if v.bounds_note else []
     lines += ["", *_footnotes(v.marks)] if v.marks else []
     lines += ["", *cost_md(v)]
     return "\n".join(lines) + "\n"
@@ -436,4 +482,6 @@ def leaderboard_latex(t: pd.DataFrame) -> str:
         out.append(" & ".join([_tex_escape(name), *(cell(c) for c in cs[:-1])]) + r" \\")
     out += [r"\bottomrule", r"\end{tabular}"]
     out += [rf"\par{{\footnotesize $^{m}$ --: {_tex_escape(WHY[m])}.}}" for m in v.marks]
+    if v.bounds_note:
+        out.append(rf"\par{{\footnotesize {_tex_escape(v.bounds_note)}}}")
     return "\n".join(out) + "\n"

@@ -8,11 +8,12 @@ page (:mod:`harness.reports.html.page`) read the same pivots and intros.
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from harness.evaluate.chance import MARK_LEGEND, VERDICT_TEX
+from harness.evaluate.chance import MARK_LEGEND, VERDICT_TEX, few_text
 from harness.methods import FUSION_METHODS, METHOD_LABELS
 from harness.reports.change import CHANGE_TABLES, ChangeTable, column_label, number
 from harness.reports.texfmt import tex_escape as _tex_escape
@@ -134,7 +135,14 @@ def table_markdown(t: ChangeTable) -> str:
 
 def change_latex(t: ChangeTable) -> str:
     """A change table as a booktabs ``tabular``: APs with verdict marks, then the chance rows."""
-    return table_latex(t.frame(), t.spec.corner, t.localizer, t.frame("verdict"), list(t.chance))
+    return table_latex(
+        t.frame(),
+        t.spec.corner,
+        t.localizer,
+        t.frame("verdict"),
+        list(t.chance),
+        t.frame("positive_images"),
+    )
 
 
 def table_latex(
@@ -143,12 +151,14 @@ def table_latex(
     localizer: str = "",
     verdicts: pd.DataFrame | None = None,
     extra: list[tuple[str, list[str]]] | None = None,
+    positive_images: pd.DataFrame | None = None,
 ) -> str:
     """A booktabs ``tabular`` of one table.
 
     Two decimals; the variants and baselines come after a rule. The localizer is named in a
-    comment line above it. ``verdicts`` (the same shape) add SPEC 9's marks; ``extra`` rows
-    (floor, chance band, ceiling) come after a last rule.
+    comment line above it. ``verdicts`` (the same shape) add SPEC 9's marks, and a ``few`` cell
+    says "too few positives (n)" with ``positive_images``' n; ``extra`` rows (floor, chance band,
+    ceiling) come after a last rule.
     """
     cols = list(t.columns)
     out = [f"% localizer: {localizer}"] if localizer else []
@@ -168,7 +178,7 @@ def table_latex(
             first_extra = False
         label = METHOD_LABELS.get(str(m), str(m))
         marks = (
-            [VERDICT_TEX.get(str(verdicts.loc[m, c]), "") for c in cols]
+            [_tex_mark(verdicts, positive_images, m, c) for c in cols]
             if verdicts is not None
             else [""] * len(cols)
         )
@@ -191,6 +201,15 @@ def table_latex(
         ]
     out += [r"\bottomrule", r"\end{tabular}"]
     return "\n".join(out) + "\n"
+
+
+def _tex_mark(verdicts: pd.DataFrame, positives: pd.DataFrame | None, m: Any, c: Any) -> str:
+    """A LaTeX cell's verdict mark, or ``few``'s words in small type."""
+    v = str(verdicts.loc[m, c])
+    if v == "few":
+        n = positives.loc[m, c] if positives is not None else float("nan")
+        return r" {\scriptsize " + _tex_escape(few_text(int(n) if n == n else 0)) + "}"
+    return VERDICT_TEX.get(v, "")
 
 
 #: How the comparisons mark a difference that survives Holm's correction over its table.

@@ -108,6 +108,10 @@ def localization_table(
                     "median_place_size": float(g["place_size"].median())
                     if "place_size" in g.columns
                     else 1.0,
+                    # ranks that are only bounds: a truncated imported list without the place
+                    "bound_share": float((~g["exact"].astype(bool)).mean())
+                    if "exact" in g.columns and len(g)
+                    else 0.0,
                 }
             )
     return pd.DataFrame(rows)
@@ -593,13 +597,15 @@ def _split_block(
     for prop, g in samples.groupby("proposal_method", sort=True):
         if prop != "all":
             summary += table_i_rows(
-                g, sp, methods, "all", str(prop), cfg.report.chance_draws, cfg.seed
-            )
+                g, sp, methods, "all", str(prop), cfg.report.chance_draws, cfg.seed,
+                cfg.report.min_positive_images,
+            )  # fmt: skip
         else:
             for pair, gp in g.groupby("season_pair", sort=True):
                 summary += table_i_rows(
-                    gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed
-                )
+                    gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed,
+                    cfg.report.min_positive_images,
+                )  # fmt: skip
     allg = rep[rep["proposal_method"] == "all"]
     for m in methods:
         sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()

@@ -1,21 +1,11 @@
-"""What the machine's processors can do: the native bf16 products ``precision = "auto"`` uses."""
+"""What the machine's processors can do (native bf16 products), and what ``precision`` means."""
 
 from __future__ import annotations
 
-from pathlib import Path
+from harness.kernels import cpu_flags
 
 #: CPU flags of a native bf16 matrix product (AVX512-BF16 dot products, AMX tiles).
 CPU_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
-
-
-def cpu_flags() -> frozenset[str]:
-    """The first processor's flags from ``/proc/cpuinfo`` (empty where there is none)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return frozenset()
-    line = next((x for x in text.splitlines() if x.partition(":")[0].strip() == "flags"), "")
-    return frozenset(line.partition(":")[2].split())
 
 
 def has_bf16(device: str) -> bool:
@@ -28,18 +18,14 @@ def has_bf16(device: str) -> bool:
 
 
 def resolve_precision(precision: str, device: str) -> str:
-    """``fp32`` or ``bf16``, what ``precision`` means on ``device``.
+    """``fp32`` or ``bf16``, what ``precision`` means (``device`` is kept for the callers).
 
-    ``auto`` is bf16 where the device (``auto``: CUDA when present) multiplies bf16 natively,
-    fp32 elsewhere; the other values are themselves.
+    ``auto`` is fp32 on every device (issue 50): a table must not depend on whether the machine
+    multiplies bf16 natively, so bf16 is used only where asked for by name (``python -m bench
+    --only precision`` measures what it costs and gains).
     """
-    if precision != "auto":
-        return precision
-    if device == "auto":
-        import torch
-
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    return "bf16" if has_bf16(device) else "fp32"
+    del device
+    return "fp32" if precision == "auto" else precision
 
 
 def rank_precision(precision: str) -> str:

@@ -25,6 +25,8 @@ from harness.detect.evaluate import _voc_all_point
 from harness.detect.run import change_boxes_nms
 from harness.evaluate import chance
 
+from ..conftest import shared_stages
+
 ROOT = Path(__file__).resolve().parents[2]
 MAP, QUERY = "2012-01-22", "2012-03-31"
 
@@ -46,7 +48,9 @@ def detected(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tupl
     shutil.copy(run / ".dbl-harness.json", a / ".dbl-harness.json")
     world = ["--data-root", str(p.cfg.data_root)]
     cmd = ["detect", "--map", MAP, "--query", QUERY]
-    _run([*cmd[:1], "--config", "datasets/fixture-detect.toml", *cmd[1:], "--out", str(a), *world])
+    with shared_stages(tmp_path_factory, "detect-run", a):  # the Ray test's local run shares it
+        _run([*cmd[:1], "--config", "datasets/fixture-detect.toml", *cmd[1:], "--out", str(a),
+              *world])  # fmt: skip
     shutil.copytree(a / "cache", b / "cache")  # the same pairs, proposals, model and ranks
     shutil.copy(a / ".dbl-harness.json", b / ".dbl-harness.json")
     printed = _run(  # the README's second command: two new sessions, Table D

@@ -251,3 +251,44 @@ def test_task_export_with_images_source_names_the_stored_files_and_their_rotatio
     upright = cv2.rotate(stored, cv2.ROTATE_90_CLOCKWISE)
     assert upright.shape[:2] == (nclt["height"], nclt["width"])
     assert set(q.loc[q["q_session"] != "2012-01-22", "rotation"]) == {"none"}
+
+
+def test_lists_cut_before_their_place_make_bounds_said_in_a_warning_and_table_l(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """Issue 50's adversarial check: lists truncated so that they never hold the true place (a
+    list of one where it ranks first) give bounds, not ranks: one WARNING line on the console with
+    the count and share, and Table L (markdown, page) marks that localizer's row ``[bounds]``."""
+    _, _, run = local_run
+    key = ["q_session", "q_camera", "q_utime", "r_session", "proposal_method", "box_id"]
+    lists = _builtin_lists(run).merge(
+        pd.read_parquet(run / "ranks.parquet")[[*key, "rank"]], on=key
+    )
+    cut = [r[: max(int(k) - 1, 1)] for r, k in zip(lists["ranked"], lists["rank"], strict=True)]
+    lists["scores"] = [s[: len(r)] for s, r in zip(lists["scores"], cut, strict=True)]
+    lists["ranked"] = cut
+    lists.drop(columns="rank").to_parquet(tmp_path / "cut.parquet")
+    bounds, total = int((lists["rank"] > 1).sum()), len(lists)
+    out = tmp_path / "o"
+    args = _seeded(local_run, out)
+    # the README's several-localizers config, its autoencoder beside the cut lists (Table L)
+    multi = (ROOT / "datasets" / "fixture-localizers.toml").read_text()
+    multi = multi[: multi.index('[[localizers]]\nname = "bovw')].replace(
+        '"annotations/', f'"{ROOT}/annotations/'
+    )
+    cfg, lists_file = tmp_path / "cut.toml", tmp_path / "cut.parquet"
+    cfg.write_text(f'{multi}\n[[localizers]]\nname = "cut"\nimport = {{ file = "{lists_file}" }}\n')
+    args[args.index("--config") + 1] = str(cfg)
+    assert main(["reproduce", *args]) == 0
+    printed = " ".join(capsys.readouterr().out.split())  # the console wraps long log lines
+    line = f"{bounds} of {total} query subimages ({100 * bounds / total:.0f}%) of localizer cut"
+    assert printed.count(line) == 1, printed[-3000:]
+    assert "WARNING" in printed.split(line)[0][-30:]
+    share = 100 * (
+        1 - pd.read_parquet(out / "ranks.parquet").query("localizer == 'cut'")["exact"].mean()
+    )
+    md = (out / "tableL.md").read_text()
+    assert f"| cut [bounds: {share:.0f}%] |" in md and "computed on bounds, not ranks" in md
+    assert "| autoencoder |" in md  # the exact localizer is not marked
+    page = (out / "report.html").read_text()
+    assert 'data-bounds="L"' in page and "cut [bounds:" in page

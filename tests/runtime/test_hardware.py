@@ -12,17 +12,14 @@ from harness.pipeline import keys
 from harness.runtime import hardware
 
 
-def test_auto_is_bf16_only_where_the_cpu_multiplies_bf16_natively(monkeypatch) -> None:
+def test_auto_is_fp32_on_every_cpu_and_bf16_only_by_name(monkeypatch) -> None:
+    """Issue 50: ``auto`` never changes a table, so it is fp32 even where bf16 is native."""
     assert hardware.resolve_precision("fp32", "cpu") == "fp32"
     assert hardware.resolve_precision("bf16", "cpu") == "bf16"  # asked for: emulated if need be
-    for flags, want in (
-        ({"avx2", "fma"}, "fp32"),
-        ({"avx2", "avx512f", "avx512_bf16"}, "bf16"),
-        ({"amx_tile", "amx_bf16"}, "bf16"),
-        (set(), "fp32"),
-    ):
+    for flags in ({"avx2", "fma"}, {"avx2", "avx512f", "avx512_bf16"}, {"amx_bf16"}, set()):
         monkeypatch.setattr(hardware, "cpu_flags", lambda f=flags: frozenset(f))
-        assert hardware.resolve_precision("auto", "cpu") == want
+        assert hardware.resolve_precision("auto", "cpu") == "fp32"
+        assert hardware.resolve_precision("auto", "auto") == "fp32"
 
 
 def test_this_machines_flags_are_read_from_proc_cpuinfo() -> None:
@@ -43,9 +40,11 @@ def test_fp32_keeps_the_keys_of_before_and_bf16_changes_them(monkeypatch) -> Non
     bf = dataclasses.replace(dc, precision="bf16")
     assert keys.descriptor_options(bf)["precision"] == "bf16"
     assert keys.model_options(bf)["precision"] == "bf16"
-    # auto on a CPU with AVX512-BF16 is the bf16 key: a cache moved there is not reused
+    # auto on a CPU with AVX512-BF16 keeps the fp32 key: the same model and cache as elsewhere
     monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
-    assert keys.descriptor_options(dc) == keys.descriptor_options(bf)
+    assert keys.descriptor_options(dc) == keys.descriptor_options(
+        dataclasses.replace(dc, precision="fp32")
+    )
 
 
 @pytest.mark.parametrize("value", ["fp16", "BF16", ""])

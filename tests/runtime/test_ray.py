@@ -13,7 +13,7 @@ import pytest
 from harness.errors import ConfigError
 from harness.pipeline.chain import Pipeline
 
-from ..conftest import no_figures
+from ..conftest import no_figures, shared_stages
 
 ray = pytest.importorskip("ray")
 
@@ -167,7 +167,7 @@ def test_the_cli_hands_the_ray_executor_to_the_pipeline(
 
 
 def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
-    local_run: tuple, executor: object, tmp_path: Path
+    local_run: tuple, executor: object, tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
     """``harness detect --executor ray``: the detect chunks (and the stages) run on Ray workers."""
 
@@ -183,7 +183,8 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
     local, ray_out = tmp_path / "local", tmp_path / "ray"
     shutil.copytree(out / "cache" / "ingest", local / "cache" / "ingest")
     shutil.copy(out / ".dbl-harness.json", local / ".dbl-harness.json")
-    runs["local"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], local, opt, None)
+    with shared_stages(tmp_path_factory, "detect-run", local):  # tests/detect's model and ranks
+        runs["local"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], local, opt, None)
     # the stages before detect's chunks from the local run (their Ray runs are test_ray_run_...)
     shutil.copytree(local / "cache", ray_out / "cache", ignore=shutil.ignore_patterns("detect"))
     shutil.copy(out / ".dbl-harness.json", ray_out / ".dbl-harness.json")

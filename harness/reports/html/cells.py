@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from harness.evaluate.chance import few_text
 from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
 from harness.reports.change import ChangeTable, change_table, column_label
@@ -47,6 +48,7 @@ VERDICTS = {
     "below": "below chance: under the chance band and clear below the random baseline (paired)",
     "untested": "no interval: not tested against chance; the shade shows the distance only",
     "undefined": "undefined (no positive)",
+    "few": "too few query images hold a positive for a verdict (SPEC 9): no colour",
 }
 
 
@@ -60,6 +62,8 @@ def verdict(ap: float, floor: float, word: str) -> tuple[str, str]:
     """
     if ap != ap or floor != floor or word == "undefined":
         return "undefined", "#f0f0f0"
+    if word == "few":  # evidence before a verdict (SPEC 9): no colour at all
+        return "few", "#ffffff"
     up = ap >= floor
     room = (1.0 - floor) if up else floor
     t = float(np.clip(abs(ap - floor) / room if room > 0 else 0.0, 0.0, 1.0))
@@ -88,7 +92,9 @@ LEGEND = (
     '<span class="sw" style="background:rgb(241,163,160)"></span> red: below chance, '
     "symmetrically. The floor is the mean AP of those random orders, not the positive rate. "
     "Paired differences: green or red when their interval is clear of 0, white when it holds 0. "
-    "A cell without an interval is paler and decides nothing.</div>"
+    'A cell without an interval is paler and decides nothing. A white cell saying "too few '
+    'positives (n)" rests on fewer query images holding a positive than [report] '
+    "min_positive_images (or on a bootstrap that cannot vary it): it has no verdict.</div>"
 )
 
 
@@ -123,8 +129,11 @@ def change_html(t: ChangeTable, who: str = "") -> str:
             )
             + f"{num(ap)}"
             + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
+            + (f' <span class="few">{esc(few_text(int(n)))}</span>' if ver == "few" else "")
             + "</td>"
-            for ap, lo, hi, floor, ver in zip(r.ap, r.low, r.high, r.floor, r.verdict, strict=True)
+            for ap, lo, hi, floor, ver, n in zip(
+                r.ap, r.low, r.high, r.floor, r.verdict, r.positive_images, strict=True
+            )
         )
         rows.append(f"<tr><td>{esc(r.label)}</td>{cells}</tr>")
     rows += [
@@ -264,6 +273,11 @@ def _l_cell(c: LCell) -> str:
             '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, c.floor, c.verdict))
             + num(v)
             + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
+            + (
+                f' <span class="few">{esc(few_text(c.positive_images))}</span>'
+                if c.verdict == "few"
+                else ""
+            )
             + "</td>"
         )
     if c.kind == "diff":
@@ -316,7 +330,8 @@ def table_l(out: Path, machine: str = "") -> str:
         "localizers' differences). Recall: the ground-truth place ranked within the first N "
         f'({esc(", ".join(v.recall_heads))}).</p><table data-table="L"><tr>{head}</tr>'
         f"{''.join(rows)}</table>"
-        f'<h3>What each localizer costs</h3><table data-table="L-cost"><tr>{cost_head}</tr>'
+        + (f'<p class="warn" data-bounds="L">{esc(v.bounds_note)}</p>' if v.bounds_note else "")
+        + f'<h3>What each localizer costs</h3><table data-table="L-cost"><tr>{cost_head}</tr>'
         f'{"".join(cost_rows)}</table><p class="note">{esc(COST_NOTE)}'
         + (f" Measured on: {esc(machine)}." if machine else "")
         + "</p>"
