@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import ast
 import re
+import subprocess
+import sys
 import tomllib
 from importlib.metadata import PackageNotFoundError, version
 
@@ -101,3 +103,18 @@ def test_mser_proposals_find_regions_on_a_textured_frame() -> None:
         cv2.rectangle(img, (x, y), (x + int(rng.integers(10, 60)), y + 30), colour, -1)
     boxes, _ = mser_boxes(img, MserConfig())
     assert len(boxes) >= 6, (cv2.__version__, len(boxes))
+
+
+def test_the_opencv_measurement_runs_as_the_readme_types_it(tmp_path) -> None:
+    """``python -m bench.opencv_calls --out A.json`` (``--quick``: the small frame once), then
+    ``--compare A B``: a markdown row per call, the same bytes against itself."""
+    run = [sys.executable, "-m", "bench.opencv_calls"]
+    out = tmp_path / "a.json"
+    subprocess.run([*run, "--quick", "--out", str(out)], cwd=ROOT, check=True, capture_output=True)
+    table = subprocess.run(
+        [*run, "--compare", str(out), str(out)], cwd=ROOT, check=True, capture_output=True,
+        text=True,
+    ).stdout  # fmt: skip
+    rows = [x for x in table.splitlines() if x.startswith("| 240x320")]
+    assert len(rows) >= 20 and all("| yes |" in x for x in rows), table
+    assert any("MSER" in x for x in rows) and any("SIFT" in x for x in rows)
