@@ -68,6 +68,37 @@ def _orb(gray: np.ndarray) -> tuple:
     return np.array([k.pt + (k.size, k.angle) for k in kp], np.float64), desc
 
 
+def _local(gray: np.ndarray) -> tuple:
+    """The local localizer's calls (SPEC 13.3): ORB matches, a RANSAC homography, the warp, an
+    ECC fit, the gradient magnitude, a pyramid level and template matching."""
+    h, w = gray.shape
+    moved = np.roll(gray, (3, 5), axis=(0, 1))
+    orb = cv2.ORB_create(nfeatures=500)
+    kq, dq = orb.detectAndCompute(moved, None)
+    km, dm = orb.detectAndCompute(gray, None)
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(dq, dm, k=2)
+    good = [a for a, *b in knn if b and a.distance < 0.75 * b[0].distance]
+    src = np.array([kq[g.queryIdx].pt for g in good], np.float32).reshape(-1, 1, 2)
+    dst = np.array([km[g.trainIdx].pt for g in good], np.float32).reshape(-1, 1, 2)
+    H, _ = cv2.findHomography(src, dst, cv2.RANSAC, 3.0, maxIters=2000, confidence=0.995)
+    corners = np.array([[[0.0, 0.0]], [[w, 0.0]], [[w, h]], [[0.0, h]]])
+    moved_corners = cv2.perspectiveTransform(corners, H)
+    f32 = gray.astype(np.float32)
+    g = cv2.magnitude(cv2.Sobel(f32, cv2.CV_32F, 1, 0), cv2.Sobel(f32, cv2.CV_32F, 0, 1))
+    warped = cv2.warpPerspective(g, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    small = cv2.pyrDown(cv2.pyrDown(f32))
+    try:
+        cc, warp = cv2.findTransformECC(
+            small, np.roll(small, 1, axis=1), np.eye(2, 3, dtype=np.float32),
+            cv2.MOTION_AFFINE, (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4),
+            None, 5,
+        )  # fmt: skip
+    except cv2.error:
+        cc, warp = float("nan"), None
+    ncc = cv2.matchTemplate(g[40:200, 40:200], g[60:120, 60:120], cv2.TM_CCOEFF_NORMED)
+    return H, moved_corners, warped, cc, warp, ncc
+
+
 def _mser(gray: np.ndarray) -> tuple:
     regions, boxes = cv2.MSER_create().detectRegions(gray)
     return np.asarray(boxes), len(regions)
@@ -208,6 +239,8 @@ def calls(rgb: np.ndarray, net: Path) -> dict[str, Callable[[], Any]]:
         "KeyPoint grid, SIFT_create().compute (dense SIFT)": lambda: _dense_sift(gray),
         "ORB_create().detectAndCompute": lambda: _orb(gray),
         "MSER_create().detectRegions": lambda: _mser(gray),
+        "local: ORB + BFMatcher, findHomography, perspectiveTransform, warpPerspective, "
+        "findTransformECC, magnitude, pyrDown, matchTemplate": lambda: _local(gray),
         "imencode/imdecode (JPEG q90, PNG, TIFF, IMREAD_REDUCED_COLOR_2/4/8)": lambda: _png_jpeg(
             bgr
         ),

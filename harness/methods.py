@@ -127,7 +127,9 @@ SPECIAL_PROPOSALS = ("grid5", "yolo", "file")
 #: The built-in per-image proposers (``proposals`` registers their functions).
 BUILTIN_PROPOSERS = ("edges", "mser", "segments")
 #: ``harness detect``'s box generators (SPEC 13.1, ``[detect] boxes``), the default first.
-BOX_GENERATORS = ("fused", "locmap", "proposals", "segments")
+BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
+#: What ranks ``harness detect``'s subimages: the local localizer (SPEC 13.3) or the config's.
+DETECT_LOCALIZERS = ("local", "config")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
 #: Per-image proposal methods: name -> function (built-in ones and ``proposals.register_method``).

@@ -22,6 +22,7 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
     "ranking": ("ranking", ("harness/retrieval",)),
     "localizers": ("localizers", ("harness", "bench/nclt_localizers.toml")),
     "detect": ("detect", ("harness", "bench/nclt_detect.toml")),
+    "local": ("local", ("harness/localizers/local.py", "harness/imagestore.py")),
     "fusion": (
         "fusion",
         (

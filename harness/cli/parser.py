@@ -189,6 +189,12 @@ def _add_detect(sub: Any) -> None:
         "(default: [detect] boxes)",
     )
     p.add_argument(
+        "--localizer",
+        choices=("local", "config"),
+        help="what ranks the subimages: local (each colour region ranked inside its paired map "
+        "frame, SPEC 13.3) or config (the config's localizers) (default: [detect] localizer)",
+    )
+    p.add_argument(
         "--box-score",
         help=f"how a generator other than fused scores a box from the LoC map: "
         f"{', '.join(BOX_SCORES)} (default: [detect] box_score)",

@@ -75,6 +75,8 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
         box_score=args.box_score or cfg.detect.box_score,
         locmap_level=cfg.detect.locmap_level,
         segments=cfg.proposals.segments,
+        localizer=getattr(args, "localizer", None) or cfg.detect.localizer,
+        local=cfg.detect.local,
     )
 
 

@@ -12,11 +12,21 @@ import re
 from pathlib import Path
 from typing import Any
 
-from harness.config.schema import PRECISIONS, BovwConfig, Config, DescriptorConfig
+from harness.config.schema import (
+    ALIGNERS,
+    FEATURE_IMAGES,
+    KEYPOINTS,
+    PRECISIONS,
+    BovwConfig,
+    Config,
+    DescriptorConfig,
+    LocalConfig,
+)
 from harness.errors import ConfigError
 from harness.methods import (
     BOX_GENERATORS,
     BOX_SCORES,
+    DETECT_LOCALIZERS,
     known_fusion_methods,
     known_proposal_methods,
 )
@@ -606,6 +616,14 @@ def _check_detect(cfg: Config, where: str) -> None:
     )
     c(0 < dt.alarm < 1, where, "[detect] alarm", dt.alarm, "(0, 1): a false-alarm rate")
     c(
+        dt.localizer in DETECT_LOCALIZERS,
+        where,
+        "[detect] localizer",
+        dt.localizer,
+        " or ".join(DETECT_LOCALIZERS),
+    )
+    check_local(dt.local, f"{where} [detect.local]")
+    c(
         0 < dt.locmap_level < 1,
         where,
         "[detect] locmap_level",
@@ -659,3 +677,38 @@ def _device(device: str, where: str, key: str) -> None:
             f"{where}: {key} = {device!r}, but torch sees no CUDA device on this machine; use "
             "'auto' (CUDA where there is one, else the CPU) or 'cpu'"
         )
+
+
+def check_local(lc: LocalConfig, where: str) -> LocalConfig:
+    """``lc`` unchanged, after checking every option (one ConfigError naming the first bad one)."""
+    check_value(
+        len(lc.align) > 0 and all(a in ALIGNERS for a in lc.align)
+        and len(set(lc.align)) == len(lc.align),
+        where, "align", list(lc.align), f"a chain of distinct {', '.join(ALIGNERS)}",
+    )  # fmt: skip
+    check_value(lc.keypoints in KEYPOINTS, where, "keypoints", lc.keypoints, " or ".join(KEYPOINTS))
+    check_value(lc.image in FEATURE_IMAGES, where, "image", lc.image, " or ".join(FEATURE_IMAGES))
+    check_value(lc.max_keypoints >= 50, where, "max_keypoints", lc.max_keypoints, ">= 50")
+    check_value(lc.min_inliers >= 4, where, "min_inliers", lc.min_inliers, ">= 4")
+    check_value(
+        0 < lc.max_corner_shift <= 1, where, "max_corner_shift", lc.max_corner_shift, "(0, 1]"
+    )
+    check_value(-1 <= lc.ecc_min_cc <= 1, where, "ecc_min_cc", lc.ecc_min_cc, "[-1, 1]")
+    check_value(
+        -1 <= lc.identity_min_ncc <= 1, where, "identity_min_ncc", lc.identity_min_ncc, "[-1, 1]"
+    )
+    check_value(0 <= lc.grow <= 4, where, "grow", lc.grow, "[0, 4]")
+    check_value(lc.min_grow_px >= 1, where, "min_grow_px", lc.min_grow_px, ">= 1")
+    check_value(0 <= lc.tolerance <= 1, where, "tolerance", lc.tolerance, "[0, 1]")
+    check_value(lc.min_tolerance_px >= 0, where, "min_tolerance_px", lc.min_tolerance_px, ">= 0")
+    check_value(
+        lc.window_over_tolerance >= 1,
+        where,
+        "window_over_tolerance",
+        lc.window_over_tolerance,
+        ">= 1",
+    )
+    check_value(lc.work_side >= 32, where, "work_side", lc.work_side, ">= 32")
+    check_value(lc.max_template_px >= 4, where, "max_template_px", lc.max_template_px, ">= 4")
+    check_value(lc.frames_per_unit >= 1, where, "frames_per_unit", lc.frames_per_unit, ">= 1")
+    return lc

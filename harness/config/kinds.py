@@ -15,9 +15,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from harness.config.check import check_bovw, check_value
+from harness.config.check import check_bovw, check_local, check_value
 from harness.config.paths import resolve_config_path
-from harness.config.schema import BovwConfig, DescriptorConfig, LocalizerImportConfig
+from harness.config.schema import (
+    BovwConfig,
+    DescriptorConfig,
+    LocalConfig,
+    LocalizerImportConfig,
+)
 from harness.errors import ConfigError
 
 __all__ = ["LOCALIZER_KINDS", "LocalizerKind", "register_localizer_kind"]
@@ -73,6 +78,10 @@ def _import(im: LocalizerImportConfig, where: str, base: Path, root: Path) -> Lo
     return dataclasses.replace(im, file=str(resolve_config_path(im.file, base, root)))
 
 
+def _local(lc: LocalConfig, where: str, base: Path, root: Path) -> LocalConfig:
+    return check_local(lc, f"{where}.local")
+
+
 def _name_only(de: DescriptorConfig) -> dict[str, Any]:
     return {"descriptor": de.name}
 
@@ -84,6 +93,7 @@ LOCALIZER_KINDS: dict[str, LocalizerKind] = {
         LocalizerKind("descriptor", DescriptorConfig, _descriptor, _name_only),
         LocalizerKind("bovw", BovwConfig, _bovw),
         LocalizerKind("import", LocalizerImportConfig, _import),
+        LocalizerKind("local", LocalConfig, _local),
     )
 }
 

@@ -32,6 +32,7 @@ from harness.config.schema import (
     FusionConfig,
     ImportConfig,
     IngestConfig,
+    LocalConfig,
     LocalizerConfig,
     MserConfig,
     PairsConfig,
@@ -149,6 +150,7 @@ _NESTED: dict[tuple[str, str], type] = {
     ("ProposalsConfig", "mser"): MserConfig,
     ("ProposalsConfig", "edges"): EdgesConfig,
     ("ProposalsConfig", "segments"): SegmentsConfig,
+    ("DetectConfig", "local"): LocalConfig,
 }
 
 _SECTIONS: dict[str, type] = {

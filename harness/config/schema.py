@@ -295,11 +295,61 @@ class ReportConfig:
     gt_radius_also: float = 0.0
 
 
+#: The alignment chain's links, in the order they are usually tried.
+ALIGNERS = ("homography", "ecc", "identity")
+FEATURE_IMAGES = ("gradient", "gray")
+KEYPOINTS = ("orb", "sift")
+
+
+@dataclass(frozen=True)
+class LocalConfig:
+    """A ``local`` localizer's options (SPEC 13.3, :mod:`harness.localizers.local`).
+
+    ``[[localizers]] local = {...}`` or ``[detect.local]``.
+    """
+
+    # the alignment chain, tried in order; a pair none of them accepts is "not aligned"
+    align: tuple[str, ...] = ("homography", "identity")
+    # the homography's local features: "orb" (measured as good as SIFT here, and cheaper) or "sift"
+    keypoints: str = "orb"
+    max_keypoints: int = 800
+    # a homography is accepted with at least this many RANSAC inliers ...
+    min_inliers: int = 12
+    # ... and a plausible warp: no frame corner moves more than this share of the frame diagonal
+    max_corner_shift: float = 0.35
+    # ECC's correlation (enhanced correlation coefficient) at which its affine fit is accepted
+    ecc_min_cc: float = 0.6
+    # identity is accepted where the two work images correlate at least this much (an overlap)
+    identity_min_ncc: float = 0.0
+    # the image matched: "gradient" (Sobel magnitude, robust to light and season) or "gray"
+    image: str = "gradient"
+    # the search window: the box grown by this share of its width / height on each side ...
+    grow: float = 0.25
+    min_grow_px: int = 4
+    # ... and the tolerance around the expected position: this share of the frame's diagonal
+    # (what alignment leaves scales with the frame), at least min_tolerance_px ...
+    tolerance: float = 0.015
+    min_tolerance_px: int = 1
+    # ... and the window grows at least this many tolerances on each side
+    window_over_tolerance: int = 1
+    # also match the map's patch in the query frame and keep the worse rank (removed objects)
+    both_directions: bool = True
+    # frames whose longer side exceeds this are worked on at 1/2, 1/4 or 1/8 of their size
+    work_side: int = 400
+    # a box whose shorter side exceeds this is matched on a coarser pyramid level (halved until
+    # it is not): the resolution the box needs, not more
+    max_template_px: int = 32
+    # query frames per cached unit (the unit a killed run resumes at); not in the key
+    frames_per_unit: int = 64
+
+
 @dataclass(frozen=True)
 class DetectConfig:
     """``[detect]``: how ``harness detect`` turns LoC into change boxes (SPEC 13.1)."""
 
-    # the box generator: "fused" (the fused qBBs, SPEC 13), "locmap" (connected regions of the
+    # the box generator: "subimages" (the ranked subimages, each scored by its own r: with the
+    # local localizer, the frame's colour regions, SPEC 13.3), "fused" (the fused qBBs, SPEC 13),
+    # "locmap" (connected regions of the
     # thresholded LoC map), "proposals" (the original proposals scored by the LoC inside) or
     # "segments" (the frame's colour regions, [proposals.segments], scored by the LoC inside)
     boxes: str = "fused"
@@ -311,6 +361,11 @@ class DetectConfig:
     # the nominal false-alarm rate: boxes and frames whose calibrated score (exceedance) is at
     # most this are alarms (alarms.csv; harness detect --alarm overrides it)
     alarm: float = 0.01
+    # what ranks the subimages: "local" (each subimage of the frame's colour regions ranked inside
+    # its paired map frame, SPEC 13.3, with [detect.local]) or "config" (the config's localizers)
+    localizer: str = "config"
+    # the local localizer's options (harness.localizers.local.LocalConfig)
+    local: LocalConfig = field(default_factory=LocalConfig)
 
 
 @dataclass(frozen=True)

@@ -304,7 +304,55 @@ def table_d_chance(
         ev = chance.Evidence(positive_images, needed)
         out[row]["positive_images"] = positive_images
         out[row]["verdict"] = chance.verdict(out[row]["ap50"], lo, hi, dl, dh, ev)
+    base = [b for b in NO_PIXEL if b in dets]
+    if "detector" in dets and base:  # SPEC 13.3: above only when clear of the best no-pixel row
+        best = max(base, key=lambda b: (out[b]["ap50"], b))
+        bl, bh = interval(boots["detector"] - boots[best], ci)
+        out["detector"].update(
+            {"best_no_pixel": best, "vs_no_pixel_ci_low": bl, "vs_no_pixel_ci_high": bh}
+        )
+        if out["detector"]["verdict"] == "above" and not bl > 0:
+            out["detector"]["verdict"] = "baseline"
     return out
+
+
+#: Table D's baselines that read no pixel (SPEC 13.3): the candidates scored by their area, and
+#: by how many of the frame's candidates overlap them.
+NO_PIXEL = ("size_prior", "cover_count")
+
+
+def no_pixel_scores(boxes: np.ndarray) -> dict[str, np.ndarray]:
+    """Each no-pixel baseline's scores of one frame's candidate boxes (x1 y1 x2 y2)."""
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    cover = (iou_matrix(b, b) > 0).sum(axis=1).astype(np.float64) if len(b) else np.zeros(0)
+    return {"size_prior": area, "cover_count": cover}
+
+
+def _no_pixel_dets(
+    cand: dict[int, np.ndarray], nms: Any
+) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
+    """Per no-pixel baseline and image id, the (boxes, scores) the detector's NMS keeps."""
+    out: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {b: {} for b in NO_PIXEL}
+    for i, boxes in cand.items():
+        for name, sc in no_pixel_scores(boxes).items():
+            keep = np.asarray(nms(boxes, sc), np.int64)
+            out[name][i] = (boxes[keep], sc[keep])
+    return out
+
+
+def _results_of(per: dict[int, tuple[np.ndarray, np.ndarray]]) -> list[dict[str, Any]]:
+    """COCO results of per-image (boxes, scores)."""
+    return [
+        {
+            "image_id": int(i),
+            "category_id": 1,
+            "score": float(s),
+            "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])],
+        }
+        for i in sorted(per)
+        for b, s in zip(*per[i], strict=True)
+    ]
 
 
 def _by_image(
@@ -326,6 +374,11 @@ def _by_image(
 
 #: Table D's rows: the detector and the random baseline (one draw of random scores, same NMS).
 D_ROWS = {"detection": "detector", "random": "random scores, same boxes (one draw)"}
+#: ... then the baselines that read no pixel (SPEC 13.3), on the same candidates, same NMS.
+NO_PIXEL_ROWS = {
+    "size_prior": "box area alone (no pixel)",
+    "cover_count": "cover count alone (no pixel)",
+}
 
 
 def _coco_results(
@@ -402,15 +455,20 @@ def score_detections(
     cand = {i: b for i, (b, _) in _by_image(cands, ids, on, "loc").items()}
     cand.update({i: np.zeros((0, 4)) for i in on - set(cand)})
     per_row = {kind: _by_image(dets[dets["kind"] == kind], ids, on, "score") for kind in D_ROWS}
+    nopix = _no_pixel_dets(cand, nms)
     ch = table_d_chance(
-        cand, gts, {"detector": per_row["detection"], "random": per_row["random"]}, nms,
-        draws, n_boot, ci, seed, needed,
+        cand, gts, {"detector": per_row["detection"], "random": per_row["random"], **nopix},
+        nms, draws, n_boot, ci, seed, needed,
     )  # fmt: skip
     rows = []
-    for kind, label in D_ROWS.items():
-        res = _coco_results(dets[dets["kind"] == kind], ids, on)
+    for kind, label in {**D_ROWS, **NO_PIXEL_ROWS}.items():
+        res = (
+            _coco_results(dets[dets["kind"] == kind], ids, on)
+            if kind in D_ROWS
+            else _results_of(nopix[kind])
+        )
         voc, coco, coco50 = coco_eval(gt, res)
-        c = ch["detector" if kind == "detection" else "random"]
+        c = ch[{"detection": "detector"}.get(kind, kind)]
         rows.append(
             {
                 "row": label,
@@ -432,6 +490,9 @@ def score_detections(
                 "change_boxes": len(gt["annotations"]),
                 "detections": len(res),
                 "matcher_ap50": c["ap50"],
+                "best_no_pixel": c.get("best_no_pixel", ""),
+                "vs_no_pixel_ci_low": c.get("vs_no_pixel_ci_low", np.nan),
+                "vs_no_pixel_ci_high": c.get("vs_no_pixel_ci_high", np.nan),
             }
         )
     t = pd.DataFrame(rows)

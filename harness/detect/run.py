@@ -34,7 +34,13 @@ import numpy as np
 import pandas as pd
 
 from harness import kernels
-from harness.config.schema import ALL_LOCALIZERS, Config, SegmentsConfig
+from harness.config.schema import (
+    ALL_LOCALIZERS,
+    Config,
+    LocalConfig,
+    LocalizerConfig,
+    SegmentsConfig,
+)
 from harness.errors import ConfigError, HarnessError
 from harness.fusion.fuse import fuse_samples, loc_map
 from harness.imagestore import read_image
@@ -52,6 +58,10 @@ from harness.runtime.cache import (
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
+
+#: The proposal method ``harness detect``'s local localizer ranks: the frame's colour regions,
+#: which meet most change objects (docs/method.md, *Detect*).
+LOCAL_PROPOSALS = "segments"
 
 #: A frame's result after its frame key and map session: its score (the largest LoC), the kept
 #: boxes and fused samples, and the best box.
@@ -72,13 +82,23 @@ class DetectOptions:
     box_score: str = "max"  # locmap / proposals / segments: max, mean or contrast of the LoC
     locmap_level: float = 0.5  # locmap: the level, a share of the frame's LoC range
     segments: SegmentsConfig = field(default_factory=SegmentsConfig)  # [proposals.segments]
+    localizer: str = "config"  # [detect] localizer: "local" (SPEC 13.3) or "config"
+    local: LocalConfig = field(default_factory=LocalConfig)  # [detect.local]
 
     def record(self) -> dict[str, Any]:
         """The options as ``detect.json`` and the cache keys hold them (``segments`` where used)."""
         out = dataclasses.asdict(self)
-        if self.boxes != "segments":
+        if self.boxes != "segments" and self.localizer != "local":
             del out["segments"]
+        if self.localizer != "local":  # the paper's detector: its record (and keys) as before
+            del out["local"], out["localizer"]
         return out
+
+    def local_localizer(self) -> LocalizerConfig | None:
+        """The local localizer ``[detect] localizer = "local"`` measures (None: the config's)."""
+        if self.localizer != "local":
+            return None
+        return LocalizerConfig("local", "local", (LOCAL_PROPOSALS,), self.local)
 
 
 def change_boxes_nms(
@@ -228,6 +248,9 @@ def _frame_boxes_of(
     fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     if opt.boxes == "fused":
         boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
+    elif opt.boxes == "subimages":  # each ranked subimage scored by its own r (SPEC 13.3)
+        boxes, loc = orig[:, :4], orig[:, 4]
+        rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(len(boxes))
     else:
         boxes, loc = candidate_boxes(
             opt.boxes, fused, floc, orig, *size, opt.box_score, opt.locmap_level
@@ -279,6 +302,14 @@ def _frame_boxes(
     Its original proposals (the rows of ``ranks``), or, for ``segments``, the colour regions of
     its image (:func:`harness.proposals.proposers.segment_boxes`, read one frame at a time).
     """
+    if opt.boxes == "subimages":  # (x1, y1, x2, y2, r): r the mean over localizers of a box
+        return {
+            (str(k[0]), str(k[1]), int(k[2])): g.groupby(["x1", "y1", "x2", "y2"], sort=True)["r"]
+            .mean()
+            .reset_index()
+            .to_numpy(np.float64)
+            for k, g in ranks.groupby(QUERY_KEY, sort=False)
+        }
     out = {
         (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
         for k, g in ranks.groupby(QUERY_KEY, sort=False)
@@ -396,10 +427,13 @@ def check_detect_args(
     return alarm
 
 
-def _measure(p: Any, map_session: str, query_sessions: list[str]) -> tuple[Any, Any, Any, list]:
+def _measure(
+    p: Any, map_session: str, query_sessions: list[str], local: LocalizerConfig | None
+) -> tuple[Any, Any, Any, list]:
     """Frames, annotations, pairs and each localizer's ranks and fusion.
 
-    Pairs by pose, or by retrieval where the config says so (SPEC 13.2).
+    Pairs by pose, or by retrieval where the config says so (SPEC 13.2). ``local``: the local
+    localizer that ranks every pair's subimages instead of the config's (SPEC 13.3).
     """
     from harness.pipeline.chain import pairs_by_retrieval, until_annotations
     from harness.pipeline.localizer_stages import Measured, localizer_fusion, localizer_ranks
@@ -410,16 +444,34 @@ def _measure(p: Any, map_session: str, query_sessions: list[str]) -> tuple[Any, 
         pairs, m = pairs_by_retrieval(
             p, ingested, frames, ann, False, (map_session, tuple(query_sessions))
         )
-        measured = [m]
+        if local is None:
+            return frames, ann, pairs, [m]
     else:
         ingested, frames, ann, pairs = detect_pairs(p, map_session, query_sessions)
-        props = session_proposals(p, frames, pairs, ingested)
-        measured = []
-        for loc in p.localizer_list:
-            ranks = localizer_ranks(p, loc, frames, pairs, props)
-            fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
-            measured.append(Measured(loc, ranks, fusion, notes))
+    props = session_proposals(p, frames, pairs, ingested)
+    measured = []
+    for loc in (local,) if local is not None else p.localizer_list:
+        ranks = localizer_ranks(p, loc, frames, pairs, props)
+        fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
+        measured.append(Measured(loc, ranks, fusion, notes))
     return frames, ann, pairs, measured
+
+
+def _detect_config(
+    cfg: Config, map_session: str, query_sessions: list[str], opt: DetectOptions
+) -> Config:
+    """The config ``detect`` runs: its sessions, every query frame, and the local proposals."""
+    keep = [s for s in cfg.sessions if s.name in (map_session, *query_sessions)]
+    dcfg = dataclasses.replace(
+        cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
+    )
+    if opt.localizer == "local" and LOCAL_PROPOSALS not in cfg.proposals.methods:
+        methods = (*cfg.proposals.methods, LOCAL_PROPOSALS)
+        dcfg = dataclasses.replace(
+            dcfg,
+            proposals=dataclasses.replace(cfg.proposals, methods=methods, segments=opt.segments),
+        )
+    return dcfg
 
 
 def _chunk_units(
@@ -478,10 +530,7 @@ def run_detect(
 
     opt = opt or DetectOptions()
     alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
-    keep = [s for s in cfg.sessions if s.name in (map_session, *query_sessions)]
-    dcfg = dataclasses.replace(
-        cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
-    )
+    dcfg = _detect_config(cfg, map_session, query_sessions, opt)
     t0 = time.perf_counter()
     p = Pipeline(
         dcfg,
@@ -491,7 +540,9 @@ def run_detect(
         train_sessions=(map_session,),  # the model sees the map alone, never the new session
     )
     with p.locked():
-        frames, ann, pairs, measured = _measure(p, map_session, query_sessions)
+        frames, ann, pairs, measured = _measure(
+            p, map_session, query_sessions, opt.local_localizer()
+        )
         ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
         names_l = [m.loc.name for m in measured]
         chunk_units = _chunk_units(ranks, frames.df, opt, dcfg)
@@ -518,6 +569,9 @@ def run_detect(
             alarm,
         )
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
+        al = measured[0].ranks.alignment if len(measured) == 1 else None
+        if al is not None:
+            record["alignment"] = _write_alignment(p.out, al)
         record["kernels"] = kernels.report()
         if rerun is not None:
             record["rerun"] = write_rerun(
@@ -529,6 +583,24 @@ def run_detect(
         record["ms_per_query_frame"] = round(1000 * record["total_s"] / max(len(fr), 1), 2)
         write_json(p.out / "detect.json", record)
     return record
+
+
+def _write_alignment(out: Path, al: pd.DataFrame) -> dict[str, int]:
+    """``alignment.csv`` (each pair's method, inliers and score) and its counts by method.
+
+    A pair no link of the chain accepts is ``none``: its query frame gets no rank, so no box and
+    no score (SPEC 13.3); a WARNING line counts them.
+    """
+    write_text(out / "alignment.csv", al.to_csv(index=False, float_format="%.6g"))
+    counts = {str(k): int(v) for k, v in al["align"].value_counts().sort_index().items()}
+    if counts.get("none"):
+        log.warning(
+            "%d of %d pairs could not be aligned: their query frames carry no change score and "
+            "no box (alignment.csv lists them)",
+            counts["none"],
+            len(al),
+        )
+    return counts
 
 
 def detect_pairs(

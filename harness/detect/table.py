@@ -147,8 +147,16 @@ def table_d_markdown(t: pd.DataFrame) -> str:
             f"| false-alarm rate measured on the {a.frames} frames annotated "
             f"no-change [95% exact interval] | {a.measured:.3f} [{a.low:.3f}, {a.high:.3f}] |",
         ]
-    lines += ["", f"Verdict (SPEC 9): {MARK_LEGEND}", "", *v.warnings]
+    lines += ["", f"Verdict (SPEC 9): {MARK_LEGEND} {NO_PIXEL_RULE}", "", *v.warnings]
     return "\n".join(lines) + "\n"
+
+
+#: SPEC 13.3's addition to the verdict legend of Table D.
+NO_PIXEL_RULE = (
+    "The detector is above chance only when its paired bootstrap difference from the best "
+    "no-pixel row (box area, cover count: the same candidates ranked without reading a pixel) "
+    "is also clear above 0; otherwise it says so (SPEC 13.3)."
+)
 
 
 def _pct(v: float) -> str:
@@ -173,7 +181,8 @@ def table_d_html(t: pd.DataFrame | None) -> str:
         "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
         "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
         "no-change give false positives only. Verdict by SPEC 9: above chance only above the "
-        "chance band and clear of the random row (paired).</p>"
+        "chance band and clear of the random row (paired); the detector also clear of the best "
+        "no-pixel row (SPEC 13.3).</p>"
         f'<table data-table="D"><tr><th></th>{head}</tr>{rows}</table>'
         f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {v.floor:.3f} "
         f"(mean of random scores, same NMS), chance band {v.chance_low:.3f}-"
@@ -200,7 +209,7 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
         out.append(
             few_warning(int((t["verdict"] == "few").sum()), int(det["positive_images_needed"]))
         )
-    elif det["verdict"] != "above":
+    elif det["verdict"] not in ("above", "baseline"):
         out.append(
             f"WARNING: the detector's AP50 ({det['ap50_voc_all_point']:.3f}): "
             f"{VERDICT_WORDS[str(det['verdict'])]} (floor {det['floor']:.3f}, chance band "
@@ -210,6 +219,7 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
             "candidates. The frame scores (image AP in Table P of harness reproduce) and the LoC "
             "maps may still rank changed frames and regions first."
         )
+    out += _no_pixel_warnings(t)
     if det["candidate_recall"] == det["candidate_recall"] and det["candidate_recall"] < 0.5:
         out.append(
             f"NOTE: only {det['candidate_recall']:.0%} of the annotated change boxes are met at "
@@ -221,5 +231,29 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
         out.append(
             f"NOTE: {int(det['annotated_frames'])} annotated query frames: too few for these APs "
             "to be more than an indication."
+        )
+    return out
+
+
+def _no_pixel_warnings(t: pd.DataFrame) -> list[str]:
+    """SPEC 13.3: a WARNING where a no-pixel baseline comes within 0.02 of the detector."""
+    if "best_no_pixel" not in t.columns:
+        return []
+    det, out = t.iloc[0], []
+    for r in t.iloc[2:].itertuples():
+        gap = float(det["ap50_voc_all_point"]) - float(r.ap50_voc_all_point)
+        if gap < 0.02:
+            out.append(
+                f"WARNING: {r.row} reaches AP50 {r.ap50_voc_all_point:.3f}, "
+                + ("above" if gap < 0 else "within 0.02 of")
+                + f" the detector's {det['ap50_voc_all_point']:.3f}: these boxes can be ranked "
+                "this well without reading a pixel (the confound Table I warns about), so the "
+                "detector's AP says little about what it sees."
+            )
+    if det["verdict"] == "baseline":
+        out.append(
+            f"WARNING: the detector is above chance but not clear of the best no-pixel baseline "
+            f"({det['best_no_pixel']}; paired difference [{det['vs_no_pixel_ci_low']:+.3f}, "
+            f"{det['vs_no_pixel_ci_high']:+.3f}]): no verdict above it (SPEC 13.3)."
         )
     return out

@@ -39,6 +39,7 @@ VERDICT_WORDS = {
     "untested": "no interval: not tested against chance",
     "undefined": "undefined (no positive)",
     "few": "too few positives",
+    "baseline": "above chance, not above a no-pixel baseline",
 }
 #: One mark per verdict for narrow cells (markdown, console); LaTeX has its own. ``few`` has none:
 #: its cell says "too few positives (n)" in words (:func:`few_text`).
@@ -49,6 +50,7 @@ VERDICT_MARKS = {
     "untested": "",
     "undefined": "",
     "few": "",
+    "baseline": "△",
 }
 VERDICT_TEX = {
     "above": r"$^{\blacktriangle}$",
@@ -57,6 +59,7 @@ VERDICT_TEX = {
     "untested": "",
     "undefined": "",
     "few": "",
+    "baseline": r"$^{\vartriangle}$",
 }
 #: ``[report] min_positive_images``'s default: the fewest query images holding a positive on
 #: which a figure earns a verdict (SPEC 9, *Evidence before a verdict*).

@@ -221,7 +221,7 @@ def until_ranks(
         if not len(ranks.df):
             raise RetrievalError(f"localizer {loc.name}: no query subimage got a rank")
         fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
-        costs = measured_costs(p, loc, p.trail[start:], ranks, pairs, props)
+        costs = measured_costs(p, loc, p.trail[start:], ranks, pairs, props, frames)
         also = p.cfg.report.gt_radius_also
         ranks_also = ranks_at_radius(p, also, loc, frames, pairs, props) if also > 0 else None
         measured.append(Measured(loc, ranks, fusion, notes, costs, ranks_also))

@@ -59,6 +59,8 @@ class RankTable:
     df: pd.DataFrame
     key: str
     counts: dict[str, dict[str, int]]
+    #: The ``local`` kind's alignment of each pair (method, inliers, score); None for others.
+    alignment: pd.DataFrame | None = None
 
 
 @dataclass

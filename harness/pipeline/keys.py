@@ -280,6 +280,12 @@ def bovw_words(vocab_key: str, proposals_key: str, shard_keys: list[str]) -> Par
     return (vocab_key, proposals_key, shard_keys)
 
 
+def local_ranks(lc: Any, pairs_key: str, proposal_keys: list[str], c0: int, n: int) -> Parts:
+    """A unit of a local localizer's ranks: its options (less the unit size), pairs, proposals."""
+    opts = {k: v for k, v in dataclasses.asdict(lc).items() if k != "frames_per_unit"}
+    return ("local_ranks", opts, pairs_key, proposal_keys, c0, n)
+
+
 def subset(table_key: str, methods: tuple[str, ...]) -> str:
     """The key of a proposal table cut to a localizer's ``methods`` (SPEC section 11)."""
     return stable_hash("proposal-subset", table_key, sorted(methods))

@@ -20,6 +20,7 @@ import pandas as pd
 from harness.config.kinds import LOCALIZER_KINDS
 from harness.config.schema import FusionConfig, LocalizerConfig, RetrievalConfig
 from harness.errors import ConfigError, RetrievalError
+from harness.localizers.local import write_local_ranks
 from harness.methods import rules_where
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
@@ -32,9 +33,9 @@ from harness.pipeline.stages import (
     retrieval_pair_table,
     session_descriptors,
 )
-from harness.records import IMAGE_KEY
+from harness.records import IMAGE_KEY, QUERY_KEY
 from harness.retrieval.import_file import ImportSpec
-from harness.runtime.cache import stable_hash
+from harness.runtime.cache import read_cached_parquet, stable_hash
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +187,54 @@ def import_kind_ranks(
     )
 
 
+@kind_ranks("local")
+def local_kind_ranks(
+    p: Context,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    mine: dict[str, Table],
+    rc: RetrievalConfig,
+) -> RankTable:
+    """Kind ``local``: each subimage ranked inside its paired map frame (SPEC 13.3).
+
+    Units of ``frames_per_unit`` pairs; each writes its rank rows and its pairs' alignments.
+    ``rc`` does not enter: the place is the paired frame itself.
+    """
+    del rc
+    lc = loc.options
+    qs = sorted(set(pairs.df["q_session"]))
+    props = pd.concat([mine[s].df for s in qs], ignore_index=True) if qs else pd.DataFrame()
+    pkeys = [mine[s].key for s in qs]
+    step = max(1, lc.frames_per_unit)
+    units: list[tuple[tuple[Any, ...], Build]] = []
+    for c0 in range(0, len(pairs.df), step):
+        chunk = pairs.df.iloc[c0 : c0 + step].reset_index(drop=True)
+        sel = props.merge(
+            chunk[QUERY_KEY].rename(
+                columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}
+            ),
+            on=["session", "camera", "utime"],
+        )
+        build = partial(write_local_ranks, lc, chunk, frames.df, sel)
+        units.append((keys.local_ranks(lc, pairs.key, pkeys, c0, len(chunk)), build))
+    parts, aligns = [], []
+    counts: dict[str, int] = {}
+    for entry in p.units("ranks", units):
+        parts.append(read_cached_parquet(entry.path / "ranks.parquet"))
+        aligns.append(read_cached_parquet(entry.path / "alignment.parquet"))
+        for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
+            counts[k] = counts.get(k, 0) + v
+    parts = [d for d in parts if len(d)]
+    df = (
+        pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
+        if parts
+        else pd.DataFrame()
+    )
+    alignment = pd.concat(aligns, ignore_index=True) if aligns else pd.DataFrame()
+    return RankTable(df, stable_hash("local", *[u[0] for u in units]), {"local": counts}, alignment)
+
+
 def localizer_ranks(
     p: Context,
     loc: LocalizerConfig,
@@ -253,8 +302,14 @@ def measured_costs(
     ranks: RankTable,
     pairs: Table,
     props: dict[str, Table],
+    frames: Table | None = None,
 ) -> dict[str, float]:
-    """Table L's cost cells of a localizer from the entries its stages used (``trail``)."""
+    """Table L's cost cells of a localizer from the entries its stages used (``trail``).
+
+    A ``local`` localizer stores no descriptor: its map is the map frames' image files (their
+    mean size, from ``frames``), and it encodes and builds nothing; its rank time is the whole
+    of its work (alignment and matching).
+    """
     from harness.runtime.costs import localizer_costs
 
     mine = localizer_proposals(p, loc, props)
@@ -262,9 +317,24 @@ def measured_costs(
     ref_rows = [mine[s].df for s in refs if s in mine]
     ref_sub = sum(len(df) for df in ref_rows)
     ref_frames = sum(len(df[["camera", "utime"]].drop_duplicates()) for df in ref_rows)
-    return localizer_costs(
+    costs = localizer_costs(
         trail, len(ranks.df), ref_sub, ref_frames, imported=loc.import_ is not None
     )
+    if loc.kind == "local" and frames is not None:  # no descriptor, no model, no encoding:
+        costs.update(descriptor_bytes=0.0, encode_ms=0.0, build_s=0.0)  # the map is its pixels
+        costs["map_kib_per_frame"] = map_image_kib(frames.df, pairs.df)
+    return costs
+
+
+def map_image_kib(frames: pd.DataFrame, pairs: pd.DataFrame) -> float:
+    """The mean size (KiB) of the image files of the map frames ``pairs`` use."""
+    used = frames.merge(
+        pairs[["r_session", "r_camera", "r_utime"]].drop_duplicates(),
+        left_on=["session", "camera", "utime"],
+        right_on=["r_session", "r_camera", "r_utime"],
+    )
+    sizes = [Path(str(u).split("#rot=")[0]).stat().st_size for u in used["image"]]
+    return float(np.mean(sizes)) / 1024.0 if sizes else float("nan")
 
 
 def localizer_fusion(

@@ -110,7 +110,12 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
     _, out, printed = detected
     assert "# Table D" in printed
     t = pd.read_csv(out / "tableD.csv")
-    assert t["row"].tolist() == ["detector", "random scores, same boxes (one draw)"]
+    assert t["row"].tolist() == [
+        "detector",
+        "random scores, same boxes (one draw)",
+        "box area alone (no pixel)",  # SPEC 13.3: the baselines that read no pixel
+        "cover count alone (no pixel)",
+    ]
     images = {
         (i["session"], i["camera"], i["utime"]): i
         for i in json.loads((out / "images.json").read_text())["images"]
@@ -621,7 +626,10 @@ def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected:
     [
         (["--alarm", "0"], "--alarm 0.0: a false-alarm rate in (0, 1)"),
         (["--alarm", "1.5"], "--alarm 1.5"),
-        (["--boxes", "pixels"], "--boxes 'pixels': one of fused, locmap, proposals, segments"),
+        (
+            ["--boxes", "pixels"],
+            "--boxes 'pixels': one of fused, locmap, proposals, segments, subimages",
+        ),
         (["--box-score", "median"], "box_score 'median': one of max, mean, contrast"),
         (["--fusion", "score_max"], "method 'score_max': one of rank_fusion"),
         (["--rerun", "/nonexistent-folder/x.rrd"], "does not exist"),
@@ -741,3 +749,51 @@ def test_detect_by_retrieval_says_how_often_it_agrees_with_the_pose_pairs(
         f"{ci}; a random map frame: {100 * agree['chance_share']:.0f}%)" in readme
     ), agree
     assert f"(a random map frame: {100 * agree['chance_share']:.0f}%)" in printed
+
+
+def test_local_detection_by_localization_as_typed(
+    detected: tuple, local_run: tuple, tmp_path: Path
+) -> None:
+    """``--localizer local --boxes subimages`` (SPEC 13.3): every colour region ranked inside its
+    paired map frame, each pair's alignment written, Table D with its no-pixel rows, as the README
+    quotes it."""
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    typed = re.search(r"harness detect --config datasets/fixture\.toml [^`]*--localizer local "
+                      r"--boxes subimages", readme)  # fmt: skip
+    assert typed, "the README shows the command"
+    assert "--out results/detect-local" in typed.group(0)
+    out = _scored_again(detected, local_run, tmp_path / "local", "--localizer", "local",
+                        "--boxes", "subimages")  # fmt: skip
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"]["localizer"] == "local" and rec["options"]["boxes"] == "subimages"
+    assert rec["options"]["local"]["align"] == ["homography", "identity"]
+    al = pd.read_csv(out / "alignment.csv")
+    assert len(al) == rec["query_frames"] and set(al["align"]) <= {"homography", "identity"}
+    assert sum(rec["alignment"].values()) == len(al)
+    hom = al[al["align"] == "homography"]
+    assert (hom["inliers"] >= 12).all()  # [detect.local] min_inliers
+    assert (al.loc[al["align"] == "identity", "inliers"] == 0).all()
+    t = pd.read_csv(out / "tableD.csv")
+    assert t["row"].tolist() == [
+        "detector",
+        "random scores, same boxes (one draw)",
+        "box area alone (no pixel)",
+        "cover count alone (no pixel)",
+    ]
+    d = t.iloc[0]
+    assert d.ap50_voc_all_point > d.chance_high  # above chance on the fixture ...
+    assert d.best_no_pixel in ("size_prior", "cover_count")
+    # ... and the verdict says whether it clears the best no-pixel row too (SPEC 13.3)
+    assert d.verdict == ("above" if d.vs_no_pixel_ci_low > 0 else "baseline")
+    md = (out / "tableD.md").read_text()
+    assert "box area alone (no pixel)" in md and "(boxes: subimages)" in md
+    page = (out / "detect.html").read_text()  # the command's last output, the page
+    assert "boxes: subimages" in page and "cover count alone (no pixel)" in page
+    from ..stage_digests import skip_unless_recorded_model
+
+    skip_unless_recorded_model(local_run[2])
+    assert (
+        f"reaches AP50 {d.ap50_voc_all_point:.3f} [{d.ci_low:.3f}, {d.ci_high:.3f}] against a "
+        f"chance band up to {d.chance_high:.3f}; box area alone reaches "
+        f"{t.iloc[2].ap50_voc_all_point:.3f} and cover count {t.iloc[3].ap50_voc_all_point:.3f}"
+    ) in readme

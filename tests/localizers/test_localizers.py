@@ -54,7 +54,7 @@ def _config(tmp_path: Path, localizers: str) -> Path:
 @pytest.mark.parametrize(
     ("entry", "says"),
     [
-        ('[[localizers]]\nname = "a"\n', "exactly one of descriptor, bovw or import"),
+        ('[[localizers]]\nname = "a"\n', "exactly one of descriptor, bovw, import or local"),
         (
             '[[localizers]]\nname = "a"\nbovw = {}\ndescriptor = { name = "hog" }\n',
             "exactly one of",
@@ -93,8 +93,13 @@ def test_without_localizers_a_config_measures_its_descriptor(tmp_path: Path) -> 
     assert (loc.name, loc.kind, loc.proposals) == ("autoencoder", "descriptor", ("grid5", "edges"))
     assert loc.descriptor == cfg.descriptor
     multi = load_config(MULTI_TOML)
-    assert [x.name for x in multi.localizer_set()] == ["autoencoder", "bovw-rootsift", "thumb"]
-    assert [x.kind for x in multi.localizer_set()] == ["descriptor", "bovw", "descriptor"]
+    assert [x.name for x in multi.localizer_set()] == [
+        "autoencoder",
+        "bovw-rootsift",
+        "thumb",
+        "local",
+    ]
+    assert [x.kind for x in multi.localizer_set()] == ["descriptor", "bovw", "descriptor", "local"]
 
 
 # ---------------------------------------------------------------- the BoVW engine
@@ -160,12 +165,12 @@ def test_features_rootsift_orb_and_a_featureless_crop() -> None:
     assert sp.issparse(bow_vectors([np.array([1])], np.ones(4))[0])
 
 
-# ---------------------------------------------------------------- three localizers, one run
+# ---------------------------------------------------------------- four localizers, one run
 
 
 @pytest.fixture(scope="module")
 def multi_run(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
-    """``reproduce`` of the three-localizer config plus the README's imported list, as typed."""
+    """``reproduce`` of the four-localizer config plus the README's imported list, as typed."""
     p, _, run = local_run
     base = tmp_path_factory.mktemp("multi")
     out = base / "run"
@@ -199,7 +204,7 @@ def multi_run(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tup
     return out, buf.getvalue()
 
 
-NAMES = ["autoencoder", "bovw-rootsift", "thumb", "hsv", "all localizers"]
+NAMES = ["autoencoder", "bovw-rootsift", "thumb", "local", "hsv", "all localizers"]
 
 
 def test_reproduce_prints_table_l_with_a_row_per_localizer_and_the_fused_row(
@@ -420,11 +425,11 @@ def test_an_image_some_localizer_did_not_rank_is_an_error_unless_allowed(
     assert len(m[0].ranks.df) == len(hole) and m[0].ranks.key != "k1"
 
 
-def test_the_readme_command_runs_as_typed_with_its_three_localizers(
+def test_the_readme_command_runs_as_typed_with_its_four_localizers(
     multi_run: tuple[Path, str], local_run: tuple, tmp_path: Path, monkeypatch, capsys
 ) -> None:
     """The README's bare command (``--data-root`` added: the fixture lives in a temporary folder),
-    from the repository root, on the four-localizer run's cache: Table L with three rows."""
+    from the repository root, on the five-localizer run's cache: Table L with four rows."""
     run, _ = multi_run
     out = tmp_path / "fixture-localizers"
     shutil.copytree(run / "cache", out / "cache")
@@ -439,7 +444,13 @@ def test_the_readme_command_runs_as_typed_with_its_three_localizers(
     assert main(argv) == 0
     printed = capsys.readouterr().out
     t = pd.read_csv(out / "tableL.csv")
-    assert t["localizer"].tolist() == ["autoencoder", "bovw-rootsift", "thumb", "all localizers"]
+    assert t["localizer"].tolist() == [
+        "autoencoder",
+        "bovw-rootsift",
+        "thumb",
+        "local",
+        "all localizers",
+    ]
     assert "Table L" in printed and all(n in printed for n in t["localizer"])
     assert 'data-table="L"' in (out / "report.html").read_text()
     # one localizer into the same directory: Table L's files go, a file of the user's stays

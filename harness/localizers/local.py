@@ -1,0 +1,374 @@
+"""The ``local`` localizer (SPEC 13.3): each subimage ranked inside its paired map frame.
+
+The robot knows where it is: the pair names the map frame a query frame should look like. What
+it asks here is whether each *part* of its view still localizes where it should, the fine stage
+of a hierarchical localizer one level below the paper's retrieval:
+
+1. :func:`align_pair` aligns the map frame to the query frame: a homography from SIFT (or ORB)
+   matches with RANSAC, accepted only with enough inliers and a plausible warp; else an affine
+   ECC fit (``cv2.findTransformECC``); else identity where the two frames still overlap; else the
+   pair is *not aligned* and its subimages get no rank (counted).
+2. :func:`box_rank`: a subimage's gradient-magnitude crop is matched (``cv2.matchTemplate``,
+   ``TM_CCOEFF_NORMED``) over a window of the warped map frame around its own position (the box
+   grown by ``grow`` of its size on each side, at least ``min_grow_px``); its ``rank`` is one plus
+   the number of window positions that match better than the best position within the tolerance
+   (``tolerance`` of the box's shorter side, at least ``min_tolerance_px``) of the expected one,
+   ``L`` the number of window positions, ``r = rank / L`` as every localizer's (SPEC 6).
+3. The same from map to query (a removed object exists only in the map frame); the subimage
+   keeps the worse (larger) ``r``.
+
+Work happens at the resolution the boxes need: frames whose longer side exceeds ``work_side``
+are decoded reduced (a JPEG at 1/2, 1/4 or 1/8 of its size, :func:`harness.imagestore.read_image`)
+and the boxes scaled with them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from harness.config.schema import LocalConfig
+from harness.imagestore import read_image
+from harness.records import FRAME_KEY
+from harness.runtime.cache import write_parquet
+
+__all__ = [
+    "Alignment",
+    "align_pair",
+    "box_rank",
+    "feature_image",
+    "pair_ranks",
+    "write_local_ranks",
+]
+
+# ---------------------------------------------------------------------------------- alignment
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """How a pair was aligned: ``H`` maps query pixels to map pixels (None: not aligned)."""
+
+    method: str  # homography, ecc, identity or "none"
+    inliers: int
+    score: float  # the homography's inlier share, ECC's correlation, identity's NCC
+    H: np.ndarray | None
+
+
+def _plausible(H: np.ndarray, w: int, h: int, max_shift: float) -> bool:
+    """Whether ``H`` moves no corner of a ``w`` x ``h`` frame over ``max_shift`` of its diagonal."""
+    if not np.all(np.isfinite(H)) or abs(float(np.linalg.det(H[:2, :2]))) < 1e-6:
+        return False
+    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64).reshape(-1, 1, 2)
+    moved = cv2.perspectiveTransform(corners, H).reshape(-1, 2)
+    shift = np.hypot(*(moved - corners.reshape(-1, 2)).T)
+    return bool(shift.max() <= max_shift * math.hypot(w, h))
+
+
+def _homography(q: np.ndarray, m: np.ndarray, lc: LocalConfig) -> Alignment | None:
+    det: Any = (
+        cv2.SIFT_create(nfeatures=lc.max_keypoints)  # type: ignore[attr-defined]
+        if lc.keypoints == "sift"
+        else cv2.ORB_create(nfeatures=lc.max_keypoints)  # type: ignore[attr-defined]
+    )
+    kq, dq = det.detectAndCompute(q, None)
+    km, dm = det.detectAndCompute(m, None)
+    if dq is None or dm is None or len(kq) < lc.min_inliers or len(km) < lc.min_inliers:
+        return None
+    norm = cv2.NORM_L2 if lc.keypoints == "sift" else cv2.NORM_HAMMING
+    knn = cv2.BFMatcher(norm).knnMatch(dq, dm, k=2)
+    good = [a for a, *b in knn if b and a.distance < 0.75 * b[0].distance]
+    if len(good) < lc.min_inliers:
+        return None
+    src = np.array([kq[g.queryIdx].pt for g in good], np.float32).reshape(-1, 1, 2)
+    dst = np.array([km[g.trainIdx].pt for g in good], np.float32).reshape(-1, 1, 2)
+    H, mask = cv2.findHomography(src, dst, cv2.RANSAC, 3.0, maxIters=2000, confidence=0.995)
+    if H is None or mask is None:
+        return None
+    n = int(mask.sum())
+    h, w = q.shape[:2]
+    if n < lc.min_inliers or not _plausible(H, w, h, lc.max_corner_shift):
+        return None
+    return Alignment("homography", n, n / len(good), H)
+
+
+def _ecc(q: np.ndarray, m: np.ndarray, lc: LocalConfig) -> Alignment | None:
+    warp = np.eye(2, 3, dtype=np.float32)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
+    try:  # warp maps map (template) pixels to query (input) pixels
+        cc, warp = cv2.findTransformECC(  # type: ignore[call-overload]
+            m.astype(np.float32), q.astype(np.float32), warp, cv2.MOTION_AFFINE, crit, None, 5
+        )
+    except cv2.error:
+        return None
+    W = np.vstack([warp.astype(np.float64), [0.0, 0.0, 1.0]])
+    try:
+        H = np.linalg.inv(W)
+    except np.linalg.LinAlgError:
+        return None
+    h, w = q.shape[:2]
+    if cc < lc.ecc_min_cc or not _plausible(H, w, h, lc.max_corner_shift):
+        return None
+    return Alignment("ecc", 0, float(cc), H)
+
+
+def _identity(q: np.ndarray, m: np.ndarray, lc: LocalConfig) -> Alignment | None:
+    if q.shape != m.shape:
+        return None
+    ncc = float(cv2.matchTemplate(q, m, cv2.TM_CCOEFF_NORMED)[0, 0])
+    return Alignment("identity", 0, ncc, np.eye(3)) if ncc >= lc.identity_min_ncc else None
+
+
+_ALIGN = {"homography": _homography, "ecc": _ecc, "identity": _identity}
+
+
+def _fit(q: np.ndarray, m: np.ndarray, H: np.ndarray) -> float:
+    """NCC of the query's and the warped map's gradient images where the warped map has pixels."""
+    h, w = q.shape
+    fq, fm = feature_image(q, "gradient"), feature_image(m, "gradient")
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    warped = cv2.warpPerspective(fm, H, (w, h), flags=flags)
+    valid = cv2.warpPerspective(np.ones_like(q), H, (w, h), flags=flags) > 0
+    if valid.mean() < 0.5:
+        return -1.0
+    a, b = fq[valid], warped[valid]
+    a, b = a - a.mean(), b - b.mean()
+    den = float(np.sqrt((a * a).sum() * (b * b).sum()))
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def align_pair(q_gray: np.ndarray, m_gray: np.ndarray, lc: LocalConfig) -> Alignment:
+    """The first link of ``lc.align`` that accepts the pair (uint8 gray images of one size).
+
+    A warp (homography, ECC) is accepted only where it fits the pair's gradient images better
+    than identity does (their NCC over the overlap): a fit that converged to a wrong warp moves
+    every box off its place, which is worse than the small parallax it was meant to remove.
+    """
+    warps = [a for a in lc.align if a != "identity"]
+    ident = _fit(q_gray, m_gray, np.eye(3)) if warps and q_gray.shape == m_gray.shape else -1.0
+    for name in lc.align:
+        got = _ALIGN[name](q_gray, m_gray, lc)
+        if got is None:
+            continue
+        if got.H is not None and name != "identity" and _fit(q_gray, m_gray, got.H) <= ident:
+            continue
+        return got
+    return Alignment("none", 0, float("nan"), None)
+
+
+# ------------------------------------------------------------------------------------ ranking
+
+
+def feature_image(gray: np.ndarray, kind: str) -> np.ndarray:
+    """The image a subimage is matched on: Sobel gradient magnitude or the gray levels (float32)."""
+    g: np.ndarray = gray.astype(np.float32)
+    if kind == "gray":
+        return g
+    b = cv2.GaussianBlur(g, (3, 3), 0)
+    return np.asarray(
+        cv2.magnitude(cv2.Sobel(b, cv2.CV_32F, 1, 0), cv2.Sobel(b, cv2.CV_32F, 0, 1)), np.float32
+    )
+
+
+def _rank_in(
+    src: np.ndarray, dst: np.ndarray, valid: np.ndarray, box: tuple[int, int, int, int],
+    lc: LocalConfig, diagonal: float,
+) -> tuple[int, int, float] | None:  # fmt: skip
+    """(rank, L, best NCC) of ``src``'s patch ``box`` searched in ``dst`` around the same place."""
+    x1, y1, x2, y2 = box
+    tw, th = x2 - x1, y2 - y1
+    h, w = dst.shape[:2]
+    t = max(lc.min_tolerance_px, round(lc.tolerance * diagonal))
+    g = max(lc.min_grow_px, round(lc.grow * max(tw, th)), lc.window_over_tolerance * t)
+    wx0, wy0, wx1, wy1 = max(0, x1 - g), max(0, y1 - g), min(w, x2 + g), min(h, y2 + g)
+    if wx1 - wx0 <= tw or wy1 - wy0 <= th:
+        return None
+    if valid[y1:y2, x1:x2].mean() < 0.9:  # the expected place is outside the other frame
+        return None
+    res = cv2.matchTemplate(dst[wy0:wy1, wx0:wx1], src[y1:y2, x1:x2], cv2.TM_CCOEFF_NORMED)
+    ex, ey = x1 - wx0, y1 - wy0  # the expected position in the response
+    near = res[max(0, ey - t) : ey + t + 1, max(0, ex - t) : ex + t + 1]
+    best = float(near.max())
+    return int((res > best).sum()) + 1, int(res.size), best
+
+
+def box_rank(
+    q: np.ndarray, m: np.ndarray, valid: np.ndarray, box: tuple[int, int, int, int],
+    lc: LocalConfig, diagonal: float | None = None,
+) -> tuple[int, int, float] | None:  # fmt: skip
+    """A query box's local (rank, L, best NCC): query to map, and map to query where asked.
+
+    ``q``: the query's feature image; ``m``: the map's, warped into the query's pixels;
+    ``valid``: where the warped map has pixels. The worse (larger) ``r`` of the two directions
+    is kept. None: the box is too small or its window leaves the frame (counted by the caller).
+    ``diagonal``: the frame diagonal the tolerance is a share of, in these pixels (None: ``q``'s).
+    """
+    diagonal = math.hypot(*q.shape[:2]) if diagonal is None else diagonal
+    x1, y1, x2, y2 = box
+    if x2 - x1 < 2 or y2 - y1 < 2:
+        return None
+    fwd = _rank_in(q, m, valid, box, lc, diagonal)
+    if fwd is None or not lc.both_directions:
+        return fwd
+    back = _rank_in(m, q, valid, box, lc, diagonal)
+    if back is None:
+        return fwd
+    return fwd if fwd[0] / fwd[1] >= back[0] / back[1] else back
+
+
+def _work(uri: str, width: int, height: int, work_side: int) -> tuple[np.ndarray, float]:
+    """A frame's gray work image and its scale (work pixels per frame pixel)."""
+    reduce = 1
+    while reduce < 8 and max(width, height) / (reduce * 2) >= work_side:
+        reduce *= 2
+    gray = cv2.cvtColor(read_image(uri, reduce), cv2.COLOR_RGB2GRAY)
+    return gray, gray.shape[1] / float(width)
+
+
+def pair_ranks(
+    q_uri: str, m_uri: str, size: tuple[int, int], boxes: np.ndarray, lc: LocalConfig
+) -> tuple[Alignment, np.ndarray]:
+    """One pair's alignment and each query box's (rank, L, best NCC), NaN rows where none.
+
+    ``size``: the frames' (width, height); ``boxes``: (n, 4) in frame pixels.
+    """
+    q, s = _work(q_uri, *size, lc.work_side)
+    m, _ = _work(m_uri, *size, lc.work_side)
+    if m.shape != q.shape:
+        m = cv2.resize(m, (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
+    al = align_pair(q, m, lc)
+    out = np.full((len(boxes), 3), np.nan)
+    if al.H is None:
+        return al, out
+    fq, fm = feature_image(q, lc.image), feature_image(m, lc.image)
+    h, w = q.shape
+    Hs = al.H  # the alignment ran on the work images: H is in work pixels
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    warped = cv2.warpPerspective(fm, Hs, (w, h), flags=flags, borderValue=0)
+    valid = cv2.warpPerspective(np.ones_like(q), Hs, (w, h), flags=flags, borderValue=0) > 0
+    levels = [(fq, warped, valid)]
+    for i, b in enumerate(np.asarray(boxes, np.float64).reshape(-1, 4) * s):
+        side, k = min(b[2] - b[0], b[3] - b[1]), 0
+        while side / 2**k > lc.max_template_px and min(levels[k][0].shape) >= 16:
+            k += 1
+            if k == len(levels):  # the next pyramid level, built once per pair
+                a, m_, v = levels[-1]
+                levels.append((cv2.pyrDown(a), cv2.pyrDown(m_), cv2.pyrDown(v.astype(
+                    np.float32)) > 0.99))  # fmt: skip
+        lq, lm, lv = levels[k]
+        lh, lw = lq.shape
+        x1, y1, x2, y2 = (round(v / 2**k) for v in b)
+        box = (min(max(x1, 0), lw), min(max(y1, 0), lh), min(max(x2, 0), lw), min(max(y2, 0), lh))
+        got = box_rank(lq, lm, lv, box, lc, math.hypot(w, h) / 2**k)
+        if got is not None:
+            out[i] = got
+    return al, out
+
+
+#: The counters of a unit of local ranks.
+LOCAL_COUNTS = (
+    "query_subimages",
+    "ranked",
+    "no_rank_pair_not_aligned",
+    "no_rank_box_too_small_or_outside",
+    "pairs_homography",
+    "pairs_ecc",
+    "pairs_identity",
+    "pairs_not_aligned",
+)
+
+
+def _rank_rows(pair: Any, b: pd.DataFrame, g: np.ndarray) -> pd.DataFrame:
+    """The rank rows (SPEC 6's columns) of one pair's ranked boxes ``b`` and their ``g``."""
+    rank, L = g[:, 0].astype(np.int64), g[:, 1].astype(np.int64)
+    return pd.DataFrame(
+        {
+            "q_session": pair.q_session,
+            "q_camera": pair.q_camera,
+            "q_utime": np.full(len(b), int(pair.q_utime), np.int64),
+            "r_session": pair.r_session,
+            "r_camera": pair.r_camera,
+            "r_utime": np.full(len(b), int(pair.r_utime), np.int64),
+            "season_pair": pair.season_pair,
+            "proposal_method": b["proposal_method"].to_numpy(),
+            "box_id": b["box_id"].to_numpy(),
+            **{c: b[c].to_numpy(np.float64) for c in ("x1", "y1", "x2", "y2")},
+            "rank": rank,
+            "L": L,
+            "r": rank / L,
+            "r_desc": (L + 1 - rank) / L,
+            "d": 1.0 - g[:, 2],  # 1 - the best NCC within the tolerance
+            "exact": True,
+            "place_size": np.ones(len(b), np.int64),
+        }
+    )
+
+
+def write_local_ranks(
+    lc: LocalConfig, pairs: pd.DataFrame, frames: pd.DataFrame, props: pd.DataFrame, tmp: Path
+) -> dict[str, int]:
+    """One unit's rank rows (``ranks.parquet``) and alignments (``alignment.parquet``).
+
+    ``pairs``: the unit's pairs; ``props``: the query sessions' proposals (every method).
+    """
+    fr = frames.set_index(FRAME_KEY)
+    counts = dict.fromkeys(LOCAL_COUNTS, 0)
+    by_frame = {k: g for k, g in props.groupby(FRAME_KEY, sort=False)}
+
+    def one(row: Any) -> tuple[Alignment, pd.DataFrame, np.ndarray]:
+        qk = (row.q_session, row.q_camera, int(row.q_utime))
+        boxes = by_frame.get(qk)
+        boxes = boxes if boxes is not None else props.iloc[:0]
+        qf, mf = fr.loc[qk], fr.loc[(row.r_session, row.r_camera, int(row.r_utime))]
+        xy = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+        al, got = pair_ranks(
+            str(qf["image"]), str(mf["image"]), (int(qf["width"]), int(qf["height"])), xy, lc
+        )
+        return al, boxes, got
+
+    workers = max(1, min(len(pairs), os.cpu_count() or 1))
+    with ThreadPoolExecutor(workers) as pool:  # OpenCV releases the GIL: pairs run side by side
+        done = list(pool.map(one, pairs.itertuples(index=False)))
+    rows, aligns = [], []
+    for row, (al, boxes, got) in zip(pairs.itertuples(index=False), done, strict=True):
+        counts["query_subimages"] += len(boxes)
+        counts[f"pairs_{al.method if al.H is not None else 'not_aligned'}"] += 1
+        aligns.append(
+            (row.q_session, row.q_camera, int(row.q_utime), row.r_session, row.r_camera,
+             int(row.r_utime), al.method, al.inliers, al.score)
+        )  # fmt: skip
+        if al.H is None:
+            counts["no_rank_pair_not_aligned"] += len(boxes)
+            continue
+        ok = np.isfinite(got[:, 0])
+        counts["no_rank_box_too_small_or_outside"] += int((~ok).sum())
+        counts["ranked"] += int(ok.sum())
+        if ok.any():
+            rows.append(_rank_rows(row, boxes[ok], got[ok]))
+    df = pd.concat(rows, ignore_index=True) if rows else pd.DataFrame()
+    write_parquet(tmp / "ranks.parquet", df)
+    write_parquet(
+        tmp / "alignment.parquet",
+        pd.DataFrame(
+            aligns,
+            columns=[
+                "q_session",
+                "q_camera",
+                "q_utime",
+                "r_session",
+                "r_camera",
+                "r_utime",
+                "align",
+                "inliers",
+                "align_score",
+            ],
+        ),
+    )
+    return counts
