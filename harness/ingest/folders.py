@@ -49,6 +49,33 @@ def seconds_to_ns(text: str, where: str) -> int:
         raise ValueError(f"{where}: {text.strip()!r} is not a time in seconds") from None
 
 
+#: An integer file name's unit by its size (a time since the Unix epoch): at least 1e17 is in ns
+#: (EuRoC's ``1403715273262142976``), 1e14 us, 1e11 ms, else seconds.
+INTEGER_UNITS = ((10**17, 1), (10**14, 1_000), (10**11, 1_000_000), (0, 1_000_000_000))
+#: The largest time a frame can have: int64 nanoseconds.
+MAX_NS = 2**63 - 1
+
+
+def stem_to_ns(stem: str, where: str) -> int:
+    """A file name's time in ns, or a ValueError past int64 nanoseconds.
+
+    A decimal number is seconds (TUM); an integer is in ns, us, ms or s by its size
+    (:data:`INTEGER_UNITS`).
+    """
+    text = stem.strip()
+    if text.isdigit():
+        v = int(text)
+        ns = v * next(f for lo, f in INTEGER_UNITS if v >= lo)
+    else:
+        ns = seconds_to_ns(text, where)
+    if not 0 <= ns <= MAX_NS:
+        raise ValueError(
+            f"{where}: the file name {text!r} read as a time is {ns} ns, outside 0 to 2^63 - 1 "
+            "ns; name the files by time in ns, us, ms or s, or list their times in times.txt"
+        )
+    return ns
+
+
 def _images_in(d: Path) -> list[Path]:
     return sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
@@ -307,9 +334,10 @@ class ImagesFolder(_Folder):
 
     The images lie in the folder itself, in file-name order. Their times: ``times.txt`` (one time
     in seconds per image, in name order, as KITTI writes it) if present; else the file names where
-    every one is a number of seconds (``1305031102.175304.png``, as TUM names them); else one
-    second apart from 0. Asked after the formats with a trajectory, so a TUM, KITTI or EuRoC
-    folder is never taken for images alone.
+    every one is a number: decimal seconds (``1305031102.175304.png``, as TUM names them) or an
+    integer in ns, us, ms or s by its size (``1403715273262142976.png``, as EuRoC names them;
+    :func:`stem_to_ns`); else one second apart from 0. Asked after the formats with a
+    trajectory, so a TUM, KITTI or EuRoC folder is never taken for images alone.
     """
 
     name = "images"
@@ -327,7 +355,7 @@ class ImagesFolder(_Folder):
             if len(times) != len(files):
                 raise ValueError(f"{path}: {len(files)} images but {len(times)} lines in times.txt")
         elif files and all(_is_float(f.stem) for f in files):
-            times = [seconds_to_ns(f.stem, str(f)) for f in files]
+            times = [stem_to_ns(f.stem, str(f)) for f in files]
         else:
             times = [i * 1_000_000_000 for i in range(len(files))]
         if any(b <= a for a, b in itertools.pairwise(times)):

@@ -207,3 +207,37 @@ def test_a_malformed_euroc_file_is_one_ingest_error_naming_the_line(
     err = one_error(capsys)
     assert "line 3" in err and str(gt) in err
     assert not (out / "frames.parquet").exists()
+
+
+@pytest.mark.parametrize(
+    ("stems", "utimes"),
+    [  # EuRoC's ns, then us, ms and whole seconds since the epoch, each read by its size
+        (["1403715273262142976", "1403715273312142976"], [1403715273262142, 1403715273312142]),
+        (["1403715273262142", "1403715273312142"], [1403715273262142, 1403715273312142]),
+        (["1403715273262", "1403715273312"], [1403715273262000, 1403715273312000]),
+        (["1403715273", "1403715274"], [1403715273000000, 1403715274000000]),
+    ],
+)
+def test_an_image_folder_named_by_integer_times_reads_them_by_their_size(
+    tmp_path: Path, stems: list[str], utimes: list[int]
+) -> None:
+    import cv2
+
+    folder = tmp_path / "cam"
+    folder.mkdir()
+    for s in stems:
+        cv2.imwrite(str(folder / f"{s}.png"), np.full((8, 12, 3), 100, np.uint8))
+    _, fr = _ingest(folder, tmp_path / "o", "s")
+    assert fr["utime"].tolist() == utimes
+
+
+def test_a_file_name_past_int64_nanoseconds_is_one_ingest_error_naming_it(tmp_path: Path) -> None:
+    import cv2
+
+    folder = tmp_path / "cam"
+    folder.mkdir()
+    name = "99999999999999999999"
+    cv2.imwrite(str(folder / f"{name}.png"), np.full((8, 12, 3), 100, np.uint8))
+    with pytest.raises(IngestError, match=rf"{name}\.png: the file name '{name}' read as a time"):
+        _ingest(folder, tmp_path / "o", "s")
+    assert not (tmp_path / "o" / "frames.parquet").exists()
