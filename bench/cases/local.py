@@ -59,7 +59,8 @@ def _kernels(frames: pd.DataFrame, props: pd.DataFrame, lc: LocalConfig) -> floa
     """ms per frame of the stage's kernels alone, on the sizes it works on.
 
     Two reduced JPEG decodes (``IMREAD_REDUCED_GRAYSCALE_4``: 404 x 308 for ``work_side`` 400),
-    ORB keypoints of both and their matching (the homography's features), the gradient images,
+    ORB keypoints of both at the alignment's level (``align_side``) and their matching (the
+    homography's features), the gradient images,
     and every ``cv2.matchTemplate`` call both ways at the pyramid level each box is matched on.
     """
     t0 = time.perf_counter()
@@ -68,7 +69,10 @@ def _kernels(frames: pd.DataFrame, props: pd.DataFrame, lc: LocalConfig) -> floa
     for i in range(n):
         paths = frames.loc[frames["utime"] == i, "image"].tolist()
         imgs = [cv2.imread(p, cv2.IMREAD_REDUCED_GRAYSCALE_4) for p in paths]
-        feats = [orb.detectAndCompute(g, None) for g in imgs]
+        small = list(imgs)
+        while max(small[0].shape) > lc.align_side:  # alignment's pyramid level
+            small = [cv2.pyrDown(g) for g in small]
+        feats = [orb.detectAndCompute(g, None) for g in small]
         if feats[0][1] is not None and feats[1][1] is not None:
             cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(feats[0][1], feats[1][1], k=2)
         levels = [[feature_image(g, lc.image) for g in imgs]]

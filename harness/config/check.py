@@ -709,6 +709,7 @@ def check_local(lc: LocalConfig, where: str) -> LocalConfig:
         ">= 1",
     )
     check_value(lc.work_side >= 32, where, "work_side", lc.work_side, ">= 32")
+    check_value(lc.align_side >= 32, where, "align_side", lc.align_side, ">= 32")
     check_value(lc.max_template_px >= 4, where, "max_template_px", lc.max_template_px, ">= 4")
     check_value(lc.frames_per_unit >= 1, where, "frames_per_unit", lc.frames_per_unit, ">= 1")
     return lc

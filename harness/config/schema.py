@@ -336,6 +336,8 @@ class LocalConfig:
     both_directions: bool = True
     # frames whose longer side exceeds this are worked on at 1/2, 1/4 or 1/8 of their size
     work_side: int = 400
+    # ... and aligned on a pyramid level whose longer side is at most this
+    align_side: int = 320
     # a box whose shorter side exceeds this is matched on a coarser pyramid level (halved until
     # it is not): the resolution the box needs, not more
     max_template_px: int = 32

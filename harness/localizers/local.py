@@ -36,7 +36,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import LocalConfig
-from harness.imagestore import read_image
+from harness.imagestore import read_image, split_uri
 from harness.records import FRAME_KEY
 from harness.runtime.cache import write_parquet
 
@@ -46,6 +46,7 @@ __all__ = [
     "box_rank",
     "feature_image",
     "pair_ranks",
+    "read_gray",
     "write_local_ranks",
 ]
 
@@ -129,16 +130,21 @@ def _identity(q: np.ndarray, m: np.ndarray, lc: LocalConfig) -> Alignment | None
 _ALIGN = {"homography": _homography, "ecc": _ecc, "identity": _identity}
 
 
-def _fit(q: np.ndarray, m: np.ndarray, H: np.ndarray) -> float:
-    """NCC of the query's and the warped map's gradient images where the warped map has pixels."""
-    h, w = q.shape
-    fq, fm = feature_image(q, "gradient"), feature_image(m, "gradient")
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    warped = cv2.warpPerspective(fm, H, (w, h), flags=flags)
-    valid = cv2.warpPerspective(np.ones_like(q), H, (w, h), flags=flags) > 0
-    if valid.mean() < 0.5:
-        return -1.0
-    a, b = fq[valid], warped[valid]
+def _fit(fq: np.ndarray, fm: np.ndarray, H: np.ndarray | None) -> float:
+    """NCC of the query's and the warped map's gradient images where the warped map has pixels.
+
+    ``fq``, ``fm``: the gradient images; ``H`` None: identity (no warp).
+    """
+    if H is None:
+        a, b = fq.ravel(), fm.ravel()
+    else:
+        h, w = fq.shape
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        warped = cv2.warpPerspective(fm, H, (w, h), flags=flags)
+        valid = cv2.warpPerspective(np.ones(fq.shape, np.uint8), H, (w, h), flags=flags) > 0
+        if valid.mean() < 0.5:
+            return -1.0
+        a, b = fq[valid], warped[valid]
     a, b = a - a.mean(), b - b.mean()
     den = float(np.sqrt((a * a).sum() * (b * b).sum()))
     return float((a * b).sum() / den) if den > 0 else 0.0
@@ -150,14 +156,38 @@ def align_pair(q_gray: np.ndarray, m_gray: np.ndarray, lc: LocalConfig) -> Align
     A warp (homography, ECC) is accepted only where it fits the pair's gradient images better
     than identity does (their NCC over the overlap): a fit that converged to a wrong warp moves
     every box off its place, which is worse than the small parallax it was meant to remove.
+    Images longer than ``lc.align_side`` are aligned on a pyramid level no longer than it, and
+    the warp is scaled back.
     """
+    f = 1
+    while max(q_gray.shape) / f > lc.align_side and min(q_gray.shape) / f >= 64:
+        f *= 2
+    if f > 1:
+        q, m = q_gray, m_gray
+        for _ in range(f.bit_length() - 1):
+            q, m = cv2.pyrDown(q), cv2.pyrDown(m)
+        got = _align_at(q, m, lc)
+        if got.H is None:
+            return got
+        S = np.diag([float(f), float(f), 1.0])
+        return Alignment(got.method, got.inliers, got.score, S @ got.H @ np.linalg.inv(S))
+    return _align_at(q_gray, m_gray, lc)
+
+
+def _align_at(q_gray: np.ndarray, m_gray: np.ndarray, lc: LocalConfig) -> Alignment:
+    """:func:`align_pair` at the images' own size."""
     warps = [a for a in lc.align if a != "identity"]
-    ident = _fit(q_gray, m_gray, np.eye(3)) if warps and q_gray.shape == m_gray.shape else -1.0
+    fq = feature_image(q_gray, "gradient") if warps else None
+    fm = feature_image(m_gray, "gradient") if warps else None
+    ident = -1.0
+    if fq is not None and fm is not None and q_gray.shape == m_gray.shape:
+        ident = _fit(fq, fm, None)
     for name in lc.align:
         got = _ALIGN[name](q_gray, m_gray, lc)
         if got is None:
             continue
-        if got.H is not None and name != "identity" and _fit(q_gray, m_gray, got.H) <= ident:
+        warp = name != "identity" and got.H is not None
+        if warp and fq is not None and fm is not None and _fit(fq, fm, got.H) <= ident:
             continue
         return got
     return Alignment("none", 0, float("nan"), None)
@@ -181,7 +211,8 @@ def _rank_in(
     src: np.ndarray, dst: np.ndarray, valid: np.ndarray, box: tuple[int, int, int, int],
     lc: LocalConfig, diagonal: float,
 ) -> tuple[int, int, float] | None:  # fmt: skip
-    """(rank, L, best NCC) of ``src``'s patch ``box`` searched in ``dst`` around the same place."""
+    """``valid``: the integral image (``cv2.integral``) of where the warped map has pixels."""
+    # (rank, L, best NCC) of src's patch box searched in dst around the same place
     x1, y1, x2, y2 = box
     tw, th = x2 - x1, y2 - y1
     h, w = dst.shape[:2]
@@ -190,7 +221,8 @@ def _rank_in(
     wx0, wy0, wx1, wy1 = max(0, x1 - g), max(0, y1 - g), min(w, x2 + g), min(h, y2 + g)
     if wx1 - wx0 <= tw or wy1 - wy0 <= th:
         return None
-    if valid[y1:y2, x1:x2].mean() < 0.9:  # the expected place is outside the other frame
+    inside = valid[y2, x2] - valid[y1, x2] - valid[y2, x1] + valid[y1, x1]
+    if inside / float(tw * th) < 0.9:  # the expected place is outside the other frame
         return None
     res = cv2.matchTemplate(dst[wy0:wy1, wx0:wx1], src[y1:y2, x1:x2], cv2.TM_CCOEFF_NORMED)
     ex, ey = x1 - wx0, y1 - wy0  # the expected position in the response
@@ -203,11 +235,21 @@ def box_rank(
     q: np.ndarray, m: np.ndarray, valid: np.ndarray, box: tuple[int, int, int, int],
     lc: LocalConfig, diagonal: float | None = None,
 ) -> tuple[int, int, float] | None:  # fmt: skip
+    """:func:`_box_rank` with ``valid`` a boolean image of where the warped map has pixels."""
+    ii = cv2.integral(np.asarray(valid, np.uint8), sdepth=cv2.CV_32S)
+    return _box_rank(q, m, ii, box, lc, diagonal)
+
+
+def _box_rank(
+    q: np.ndarray, m: np.ndarray, valid: np.ndarray, box: tuple[int, int, int, int],
+    lc: LocalConfig, diagonal: float | None = None,
+) -> tuple[int, int, float] | None:  # fmt: skip
     """A query box's local (rank, L, best NCC): query to map, and map to query where asked.
 
     ``q``: the query's feature image; ``m``: the map's, warped into the query's pixels;
-    ``valid``: where the warped map has pixels. The worse (larger) ``r`` of the two directions
-    is kept. None: the box is too small or its window leaves the frame (counted by the caller).
+    ``valid``: the integral image of where the warped map has pixels. The worse (larger) ``r``
+    of the two directions is kept. None: the box is too small or its window leaves the frame
+    (counted by the caller).
     ``diagonal``: the frame diagonal the tolerance is a share of, in these pixels (None: ``q``'s).
     """
     diagonal = math.hypot(*q.shape[:2]) if diagonal is None else diagonal
@@ -228,8 +270,28 @@ def _work(uri: str, width: int, height: int, work_side: int) -> tuple[np.ndarray
     reduce = 1
     while reduce < 8 and max(width, height) / (reduce * 2) >= work_side:
         reduce *= 2
-    gray = cv2.cvtColor(read_image(uri, reduce), cv2.COLOR_RGB2GRAY)
+    gray = read_gray(uri, reduce) if reduce > 1 else None
+    if gray is None:
+        gray = cv2.cvtColor(read_image(uri, reduce), cv2.COLOR_RGB2GRAY)
     return gray, gray.shape[1] / float(width)
+
+
+def read_gray(uri: str, reduce: int) -> np.ndarray | None:
+    """A JPEG decoded straight to gray at 1/``reduce``, upright (less work than colour).
+
+    None for any other file: the caller decodes it in colour.
+    """
+    path, rot = split_uri(uri)
+    if not path.lower().endswith((".jpg", ".jpeg")):
+        return None
+    flag = {2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
+            8: cv2.IMREAD_REDUCED_GRAYSCALE_8}[reduce]  # fmt: skip
+    gray = cv2.imread(path, flag)
+    if gray is None:
+        return None  # the colour path says what is wrong with the file
+    turn = {"cw": cv2.ROTATE_90_CLOCKWISE, "ccw": cv2.ROTATE_90_COUNTERCLOCKWISE,
+            "180": cv2.ROTATE_180}.get(rot)  # fmt: skip
+    return np.ascontiguousarray(cv2.rotate(gray, turn) if turn is not None else gray)
 
 
 def pair_ranks(
@@ -254,6 +316,7 @@ def pair_ranks(
     warped = cv2.warpPerspective(fm, Hs, (w, h), flags=flags, borderValue=0)
     valid = cv2.warpPerspective(np.ones_like(q), Hs, (w, h), flags=flags, borderValue=0) > 0
     levels = [(fq, warped, valid)]
+    integrals = [cv2.integral(valid.astype(np.uint8), sdepth=cv2.CV_32S)]
     for i, b in enumerate(np.asarray(boxes, np.float64).reshape(-1, 4) * s):
         side, k = min(b[2] - b[0], b[3] - b[1]), 0
         while side / 2**k > lc.max_template_px and min(levels[k][0].shape) >= 16:
@@ -262,11 +325,12 @@ def pair_ranks(
                 a, m_, v = levels[-1]
                 levels.append((cv2.pyrDown(a), cv2.pyrDown(m_), cv2.pyrDown(v.astype(
                     np.float32)) > 0.99))  # fmt: skip
-        lq, lm, lv = levels[k]
+                integrals.append(cv2.integral(levels[-1][2].astype(np.uint8), sdepth=cv2.CV_32S))
+        lq, lm, _ = levels[k]
         lh, lw = lq.shape
         x1, y1, x2, y2 = (round(v / 2**k) for v in b)
         box = (min(max(x1, 0), lw), min(max(y1, 0), lh), min(max(x2, 0), lw), min(max(y2, 0), lh))
-        got = box_rank(lq, lm, lv, box, lc, math.hypot(w, h) / 2**k)
+        got = _box_rank(lq, lm, integrals[k], box, lc, math.hypot(w, h) / 2**k)
         if got is not None:
             out[i] = got
     return al, out

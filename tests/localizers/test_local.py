@@ -188,3 +188,28 @@ def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
     assert out["detector"]["vs_no_pixel_ci_low"] == out["detector"]["vs_no_pixel_ci_high"] == 0
     assert out["detector"]["verdict"] in ("baseline", "chance", "few")
     assert out["detector"]["verdict"] != "above"
+
+
+def test_large_frames_align_on_a_pyramid_level_and_decode_gray(tmp_path) -> None:
+    """``align_side``: a 640 x 480 pair aligns at 320 x 240 and the warp is scaled back to the
+    work pixels; a JPEG's reduced gray decode is what ``read_gray`` returns, turned upright."""
+    from harness.localizers.local import read_gray
+
+    rng = np.random.default_rng(4)
+    m = cv2.resize(rng.integers(0, 256, (48, 64)).astype(np.uint8), (640, 480), cv2.INTER_CUBIC)
+    Hq = np.array([[1.0, 0.0, 12.0], [0.0, 1.0, 8.0], [0.0, 0.0, 1.0]])
+    q = cv2.warpPerspective(m, Hq, (640, 480))
+    lc = LocalConfig(align=("homography",), keypoints="sift", align_side=320)
+    al = align_pair(q, m, lc)
+    assert al.method == "homography" and al.H is not None
+    pts = np.array([[[100.0, 100.0]], [[500.0, 300.0]]])
+    err = np.abs(
+        cv2.perspectiveTransform(pts, al.H) - cv2.perspectiveTransform(pts, np.linalg.inv(Hq))
+    )
+    assert err.max() < 2.0, err
+    path = tmp_path / "f.jpg"
+    cv2.imwrite(str(path), cv2.cvtColor(m, cv2.COLOR_GRAY2BGR))
+    want = cv2.imread(str(path), cv2.IMREAD_REDUCED_GRAYSCALE_2)
+    assert np.array_equal(read_gray(str(path), 2), want)
+    assert np.array_equal(read_gray(f"{path}#rot=cw", 2), cv2.rotate(want, cv2.ROTATE_90_CLOCKWISE))
+    assert read_gray(str(tmp_path / "f.png"), 2) is None
