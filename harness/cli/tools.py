@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import Any
 
 from harness.errors import HarnessError
 from harness.records import IMAGE_KEY
@@ -55,6 +56,33 @@ def cmd_annotations(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_folder(console: Any, info: dict[str, Any]) -> None:
+    """``harness inspect DIR``'s table of a folder session and its config lines."""
+    from rich.table import Table
+
+    t = Table(title="Folder")
+    t.add_column("")
+    t.add_column("")
+    sizes = ", ".join(f"{k} ({v})" for k, v in info["sizes"].items())
+    first = "" if info["first_s"] is None else f"{info['first_s']:.3f}"
+    for k, v in (
+        ("images", str(info["images"])),
+        ("sizes (width x height)", sizes),
+        ("first / last", f"{info['first']} / {info['last']}"),
+        ("file names", info["names"] + (" (times.txt used)" if info["times_file"] else "")),
+        ("times increase in name order", "yes" if info["in_order"] else "NO"),
+        (
+            "span s / rate Hz / first s",
+            f"{info['span_s']:.2f} / {info['rate_hz']:.2f} / {first}",
+        ),
+        ("poses", str(info["poses"]) if info["poses"] else "none (no trajectory)"),
+    ):
+        t.add_row(k, v)
+    console.print(t)
+    console.print("[bold]config lines[/]")
+    console.print(info["suggested_config"], markup=False, highlight=False)
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     """``harness inspect``: topics, image encodings and the tf tree of a log."""
     import json
@@ -70,6 +98,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         return 0
     console = Console(width=max(Console().width, 140))
     console.print(f"[bold]{info['path']}[/] ({info['format']})")
+    if "names" in info:  # a folder session
+        _print_folder(console, info)
+        return 0
     if info["format"] == "nclt":
         t = Table(title="NCLT sessions")
         for c in ("session", "cameras (images)", "ground-truth rows"):

@@ -241,3 +241,32 @@ def test_a_file_name_past_int64_nanoseconds_is_one_ingest_error_naming_it(tmp_pa
     with pytest.raises(IngestError, match=rf"{name}\.png: the file name '{name}' read as a time"):
         _ingest(folder, tmp_path / "o", "s")
     assert not (tmp_path / "o" / "frames.parquet").exists()
+
+
+def test_inspect_describes_an_image_folder_as_the_readme_says(tmp_path: Path, capsys) -> None:
+    """``harness inspect DIR`` on a folder of images (issue 53): count, sizes, how the names read
+    as times, their order, span and rate, and the session lines; ``--json`` the same as data."""
+    import json
+
+    import cv2
+
+    from harness.cli import main
+
+    folder = tmp_path / "cam0"
+    folder.mkdir()
+    for i in range(5):
+        name = f"{1403715273262142976 + i * 50_000_000}.png"
+        cv2.imwrite(str(folder / name), np.full((24, 32, 3), 10 * i, np.uint8))
+    assert main(["inspect", str(folder)]) == 0
+    out = capsys.readouterr().out
+    for want in ("(images)", "32x24 (5)", "integers, times in ns", "20.00", "none (no trajectory)",
+                 "[[sessions]]", f'source = "{folder}"'):  # fmt: skip
+        assert want in out, want
+    assert main(["inspect", str(folder), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["images"], info["sizes"], info["in_order"]) == (5, {"32x24": 5}, True)
+    assert info["first"] == "1403715273262142976.png" and info["span_s"] == 0.2
+    (folder / "notes.png").write_bytes(b"not an image")
+    assert main(["inspect", str(folder)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR:") and "notes.png" in err
