@@ -204,6 +204,27 @@ def _trajectory_html(frames: pd.DataFrame) -> str:
     )
 
 
+def alignment_html(al: pd.DataFrame | None, shown: int = 10) -> str:
+    """How the local localizer's pairs were aligned, and the frames it could not align."""
+    if al is None or not len(al):
+        return ""
+    counts = al["align"].value_counts().sort_index()
+    how = ", ".join(f"{k} {int(v)}" for k, v in counts.items() if k != "none")
+    html = f"<p class='note' data-align='all'>Pairs aligned (SPEC 13.3): {_e(how)}.</p>"
+    bad = al[al["align"] == "none"]
+    if len(bad):
+        names = ", ".join(
+            f"{r.q_session} {r.q_camera} {int(r.q_utime)}" for r in bad.head(shown).itertuples()
+        )
+        more = f" and {len(bad) - shown} more" if len(bad) > shown else ""
+        html += (
+            f"<p class='warn' data-align='none'>could not align {len(bad)} of {len(al)} pairs: "
+            f"their frames carry no change score and no box, never a wrong one (alignment.csv): "
+            f"{_e(names)}{more}.</p>"
+        )
+    return html
+
+
 def write_detect_page(
     out: Path,
     fr: pd.DataFrame,
@@ -215,8 +236,12 @@ def write_detect_page(
     map_session: str,
     localizers: list[str],
     ann: pd.DataFrame | None = None,
+    alignment: pd.DataFrame | None = None,
 ) -> Path:
     """Write ``out/detect.html`` and its thumbnails; return the page's path.
+
+    ``alignment``: the local localizer's pairs and how each was aligned (SPEC 13.3); the page says
+    how many could not be aligned, and which.
 
     Where a frame is annotated, its annotated change boxes are drawn in red beside the detections
     (yellow), and a section shows the annotated change frames (up to ``ANNOTATED_SHOWN``).
@@ -236,6 +261,7 @@ def write_detect_page(
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
         "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "
         "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
+        + alignment_html(alignment)
         + _trajectory_html(frames)
         + table_d_html(table_d)
         + _annotated_html(out, fr, dets, truth)

@@ -553,6 +553,8 @@ def run_detect(
         fr = pd.concat(
             [read_cached_parquet(e.path / "frames.parquet") for e in entries], ignore_index=True
         )
+        al = measured[0].ranks.alignment if len(measured) == 1 else None
+        aligned = _write_alignment(p.out, al) if al is not None else None
         record = write_outputs(
             p,
             dcfg,
@@ -567,11 +569,11 @@ def run_detect(
             opt,
             names_l,
             alarm,
+            al,
         )
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
-        al = measured[0].ranks.alignment if len(measured) == 1 else None
-        if al is not None:
-            record["alignment"] = _write_alignment(p.out, al)
+        if aligned is not None:
+            record["alignment"] = aligned
         record["kernels"] = kernels.report()
         if rerun is not None:
             record["rerun"] = write_rerun(
@@ -838,6 +840,7 @@ def write_outputs(
     opt: DetectOptions,
     localizers: list[str],
     alarm: float = 0.01,
+    alignment: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
     """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
 
@@ -875,7 +878,7 @@ def write_outputs(
     from harness.detect.page import write_detect_page
 
     page = write_detect_page(
-        out, fr, top, dets, frames, maps, table_d, map_session, localizers, ann=ann
+        out, fr, top, dets, frames, maps, table_d, map_session, localizers, ann, alignment
     )
     return {
         "config": cfg.name,

@@ -789,6 +789,7 @@ def test_local_detection_by_localization_as_typed(
     assert "box area alone (no pixel)" in md and "(boxes: subimages)" in md
     page = (out / "detect.html").read_text()  # the command's last output, the page
     assert "boxes: subimages" in page and "cover count alone (no pixel)" in page
+    assert "data-align='all'" in page and "Pairs aligned (SPEC 13.3)" in page
     from ..stage_digests import skip_unless_recorded_model
 
     skip_unless_recorded_model(local_run[2])

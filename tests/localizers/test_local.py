@@ -213,3 +213,25 @@ def test_large_frames_align_on_a_pyramid_level_and_decode_gray(tmp_path) -> None
     assert np.array_equal(read_gray(str(path), 2), want)
     assert np.array_equal(read_gray(f"{path}#rot=cw", 2), cv2.rotate(want, cv2.ROTATE_90_CLOCKWISE))
     assert read_gray(str(tmp_path / "f.png"), 2) is None
+
+
+def test_the_page_says_which_pairs_could_not_be_aligned() -> None:
+    """SPEC 13.3: a pair no link of the chain accepts is named on the page, never scored."""
+    import pandas as pd
+
+    from harness.detect.page import alignment_html
+
+    al = pd.DataFrame(
+        {
+            "q_session": ["q", "q", "q"],
+            "q_camera": ["Cam5"] * 3,
+            "q_utime": [1, 2, 3],
+            "align": ["homography", "none", "identity"],
+            "inliers": [40, 0, 0],
+        }
+    )
+    html = alignment_html(al)
+    assert "homography 1, identity 1" in html
+    assert "could not align 1 of 3 pairs" in html and "q Cam5 2" in html
+    assert "could not align" not in alignment_html(al[al["align"] != "none"])
+    assert alignment_html(None) == ""
