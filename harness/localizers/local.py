@@ -37,7 +37,7 @@ import pandas as pd
 
 from harness.config.schema import LocalConfig
 from harness.imagestore import read_image, split_uri
-from harness.records import FRAME_KEY
+from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.runtime.cache import write_parquet
 
 __all__ = [
@@ -336,6 +336,9 @@ def pair_ranks(
     return al, out
 
 
+#: ``alignment.parquet``/``alignment.csv``: the pair, then how it was aligned.
+ALIGNMENT_COLUMNS = [*IMAGE_KEY, "r_camera", "r_utime", "align", "inliers", "align_score"]
+
 #: The counters of a unit of local ranks.
 LOCAL_COUNTS = (
     "query_subimages",
@@ -422,17 +425,7 @@ def write_local_ranks(
         tmp / "alignment.parquet",
         pd.DataFrame(
             aligns,
-            columns=[
-                "q_session",
-                "q_camera",
-                "q_utime",
-                "r_session",
-                "r_camera",
-                "r_utime",
-                "align",
-                "inliers",
-                "align_score",
-            ],
+            columns=ALIGNMENT_COLUMNS,
         ),
     )
     return counts

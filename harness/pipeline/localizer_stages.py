@@ -25,7 +25,7 @@ from harness.methods import rules_where
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.pipeline.stages import (
-    SORT_RANKS,
+    concat_ranks,
     descriptor_model,
     descriptor_projection,
     imported_ranks,
@@ -225,14 +225,9 @@ def local_kind_ranks(
         aligns.append(read_cached_parquet(entry.path / "alignment.parquet"))
         for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
             counts[k] = counts.get(k, 0) + v
-    parts = [d for d in parts if len(d)]
-    df = (
-        pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
-        if parts
-        else pd.DataFrame()
-    )
     alignment = pd.concat(aligns, ignore_index=True) if aligns else pd.DataFrame()
-    return RankTable(df, stable_hash("local", *[u[0] for u in units]), {"local": counts}, alignment)
+    key = stable_hash("local", *[u[0] for u in units])
+    return RankTable(concat_ranks(parts), key, {"local": counts}, alignment)
 
 
 def localizer_ranks(
@@ -450,5 +445,5 @@ def across_localizers(measured: list[Measured]) -> RankTable:
         )
         for m in measured
     ]
-    df = pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
+    df = concat_ranks(parts)
     return RankTable(df, stable_hash("all-localizers", [m.ranks.key for m in measured]), {})

@@ -409,16 +409,19 @@ def query_ranks(
         c = counts.setdefault(ref, {})
         for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
             c[k] = c.get(k, 0) + v
-    parts = [d for d in parts if len(d)]
-    df = (
-        pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
-        if parts
-        else pd.DataFrame()
-    )
+    df = concat_ranks(parts)
     return RankTable(df, stable_hash(*keys.ranks(rc, pairs.key, dkeys, precision)), counts)
 
 
 SORT_RANKS = SUBIMAGE_KEY
+
+
+def concat_ranks(parts: list[pd.DataFrame]) -> pd.DataFrame:
+    """Units' rank rows as one table in subimage order (empty units left out)."""
+    parts = [d for d in parts if len(d)]
+    if not parts:
+        return pd.DataFrame()
+    return pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
 
 
 def _write_ranks(

@@ -14,6 +14,8 @@ from harness.config.schema import LocalConfig
 from harness.errors import ConfigError
 from harness.localizers.local import align_pair, box_rank, feature_image, pair_ranks
 
+from .test_localizers import _config
+
 W, H = 96, 72
 SHIFT = (2, 1)  # the query is the map moved 2 px right and 1 px down: within the tolerance
 OBJECT = (56, 20, 76, 44)  # pasted into the query only
@@ -115,22 +117,6 @@ def test_bad_options_are_one_config_error() -> None:
         check_local(LocalConfig(align=("sift",)), "[detect.local]")
     with pytest.raises(ConfigError, match="tolerance"):
         check_local(LocalConfig(tolerance=2.0), "[detect.local]")
-
-
-def _config(tmp_path, extra: str):
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[2]
-    text = (root / "datasets" / "fixture.toml").read_text()
-    cfg = tmp_path / "c.toml"
-    cfg.write_text(
-        text.replace(
-            'data_root = "datasets/fixture"', f'data_root = "{root}/datasets/fixture"'
-        ).replace('annotations = "annotations', f'annotations = "{root}/annotations')
-        + "\n"
-        + extra
-    )
-    return cfg
 
 
 def test_the_config_reads_detect_local_and_a_local_localizer(tmp_path) -> None:
