@@ -311,8 +311,7 @@ def table_d_chance(
         out["detector"].update(
             {"best_no_pixel": best, "vs_no_pixel_ci_low": bl, "vs_no_pixel_ci_high": bh}
         )
-        if out["detector"]["verdict"] == "above" and not bl > 0:
-            out["detector"]["verdict"] = "baseline"
+        out["detector"]["verdict"] = chance.versus_no_pixel(out["detector"]["verdict"], bl)
     return out
 
 

@@ -553,8 +553,7 @@ def run_detect(
         fr = pd.concat(
             [read_cached_parquet(e.path / "frames.parquet") for e in entries], ignore_index=True
         )
-        al = measured[0].ranks.alignment if len(measured) == 1 else None
-        aligned = _write_alignment(p.out, al) if al is not None else None
+        al, aligned = _alignment(p.out, measured)
         record = write_outputs(
             p,
             dcfg,
@@ -572,8 +571,7 @@ def run_detect(
             al,
         )
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
-        if aligned is not None:
-            record["alignment"] = aligned
+        record.update(aligned)
         record["kernels"] = kernels.report()
         if rerun is not None:
             record["rerun"] = write_rerun(
@@ -585,6 +583,25 @@ def run_detect(
         record["ms_per_query_frame"] = round(1000 * record["total_s"] / max(len(fr), 1), 2)
         write_json(p.out / "detect.json", record)
     return record
+
+
+def _alignment(out: Path, measured: list[Any]) -> tuple[pd.DataFrame | None, dict[str, Any]]:
+    """The local localizer's alignments and what ``detect.json`` says of them (SPEC 13.3).
+
+    Returns the pairs' alignments (None without a local localizer) and the record's
+    ``alignment`` (pairs by method) and ``local_counts`` (subimages ranked and dropped, by
+    reason). Without one, an ``alignment.csv`` that an earlier run here recorded is removed.
+    """
+    al = measured[0].ranks.alignment if len(measured) == 1 else None
+    if al is None:
+        old = out / "detect.json"
+        if old.is_file() and "alignment" in json.loads(old.read_text()):
+            (out / "alignment.csv").unlink(missing_ok=True)
+        return None, {}
+    return al, {
+        "alignment": _write_alignment(out, al),
+        "local_counts": measured[0].ranks.counts.get("local", {}),
+    }
 
 
 def _write_alignment(out: Path, al: pd.DataFrame) -> dict[str, int]:

@@ -97,6 +97,16 @@ class Evidence:
         return self.positive_images >= max(self.needed, 2)
 
 
+def versus_no_pixel(verdict_id: str, vs_low: float) -> str:
+    """SPEC 13.3 on top of :func:`verdict`: ``above`` only when also clear of the no-pixel rows.
+
+    A detector above chance stays ``above`` only when the low end of its paired bootstrap
+    difference from the best no-pixel baseline is above 0; else ``baseline`` (above chance, not
+    above a baseline that reads no pixel: no colour).
+    """
+    return "baseline" if verdict_id == "above" and not vs_low > 0 else verdict_id
+
+
 def verdict(
     ap: float,
     chance_low: float,

@@ -790,11 +790,21 @@ def test_local_detection_by_localization_as_typed(
     page = (out / "detect.html").read_text()  # the command's last output, the page
     assert "boxes: subimages" in page and "cover count alone (no pixel)" in page
     assert "data-align='all'" in page and "Pairs aligned (SPEC 13.3)" in page
+    # the paper's detector into the same directory: the local run's alignment.csv goes with it
+    _run(["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
+          "--query", "2012-08-04", "--out", str(out), "--data-root",
+          str(local_run[0].cfg.data_root), "--localizer", "config"])  # fmt: skip
+    assert not (out / "alignment.csv").exists()
+    assert "alignment" not in json.loads((out / "detect.json").read_text())
     from ..stage_digests import skip_unless_recorded_model
 
     skip_unless_recorded_model(local_run[2])
     assert (
         f"reaches AP50 {d.ap50_voc_all_point:.3f} [{d.ci_low:.3f}, {d.ci_high:.3f}] against a "
         f"chance band up to {d.chance_high:.3f}; box area alone reaches "
-        f"{t.iloc[2].ap50_voc_all_point:.3f} and cover count {t.iloc[3].ap50_voc_all_point:.3f}"
+        f"{t.iloc[2].ap50_voc_all_point:.3f} and cover count {t.iloc[3].ap50_voc_all_point:.3f} "
+        f"(floor {d.floor:.3f}, ceiling {d.ceiling:.3f};"
     ) in readme
+    c = rec["local_counts"]  # every subimage ranked or counted by its reason
+    dropped = c["no_rank_box_too_small_or_outside"] + c["no_rank_pair_not_aligned"]
+    assert c["ranked"] == c["query_subimages"] - dropped > 0
