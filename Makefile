@@ -58,7 +58,7 @@ lock:  ## Upgrade requirements.lock deliberately (then make test, and commit it 
 # threads sleep rather than spin (OMP_WAIT_POLICY: scheduling only, no result changes).
 TEST_WORKERS ?= 2
 test: $(STAMP)  ## Run the whole test suite (CI runs exactly this)
-	OMP_WAIT_POLICY=PASSIVE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile
+	OMP_WAIT_POLICY=PASSIVE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 lint: $(STAMP)  ## ruff (rules, line length 100, formatting) and mypy (strict on the numeric kernels)
 	$(BIN)/ruff check harness tests bench examples

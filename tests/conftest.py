@@ -124,3 +124,47 @@ def _locked(path: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+#: The file that computes the shared fixture run (:func:`local_run`) first: ``make test`` hands
+#: it to one worker while the other runs the files that need no fixture run (issue 50: that
+#: worker waited 48 s on the run's lock before). Then the rest, those measured longest first (the
+#: measured CPU seconds of ``pytest --durations`` on this project's machine, rounded), so that
+#: the two workers end together; files not listed run last, in collection order.
+FIRST = "tests/detect/test_detect.py"
+LONGEST_FIRST = (
+    "tests/localizers/test_localizers.py",  # 145 s
+    "tests/localizers/test_byo_localizer.py",  # 99
+    "tests/pipeline/test_pipeline.py",  # 93
+    "tests/retrieval/test_db_stride.py",  # 74
+    "tests/runtime/test_ray.py",  # 70 (after test_detect: it shares the detect run)
+    "tests/kernels/test_kernels.py",  # 64
+    "tests/pairs/test_no_poses.py",  # 47
+    "tests/test_recipes.py",  # 45
+    "tests/runtime/test_safety_cache.py",  # 23
+    "tests/pipeline/test_safety_outputs.py",  # 21
+    "tests/evaluate/test_evidence.py",  # 16
+    "tests/descriptors/test_projection.py",  # 16
+)
+#: The fixtures that need the shared fixture run (or its world).
+SHARED_RUNS = {"local_run", "default_world"}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Order the test files for two workers (``--dist loadfile --no-loadscope-reorder``): see
+    :data:`FIRST`. Tests keep their order inside a file."""
+    files: dict[str, list[pytest.Item]] = {}
+    for item in items:
+        files.setdefault(item.nodeid.split("::")[0], []).append(item)
+
+    def rank(f: str) -> tuple[int, int]:
+        if f == FIRST:
+            return 0, 0
+        if not any(SHARED_RUNS & set(getattr(i, "fixturenames", ())) for i in files[f]):
+            return 1, 0
+        if f in LONGEST_FIRST:
+            return 2, LONGEST_FIRST.index(f)
+        return 3, 0
+
+    order = sorted(files, key=rank)  # stable: collection order within a rank
+    items[:] = [i for f in order for i in files[f]]
