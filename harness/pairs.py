@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -246,14 +246,129 @@ def write_pairs(
     cfg: PairsConfig,
     seasons: dict[str, str],
     queries: pd.DataFrame | None,
+    names: pd.DataFrame | None,
     tmp: Path,
 ) -> dict:
-    """Build the pairs (:func:`build_pairs`) into ``tmp/pairs.parquet`` and ``tmp/summary.json``.
+    """Build the pairs into ``tmp/pairs.parquet`` and ``tmp/summary.json``.
+
+    By pose (:func:`build_pairs`), or by name or order (:func:`declared_pairs`, with the frames'
+    ``names``).
 
     Returns:
         The pairing summary (queries, pairs, drops by reason).
     """
-    pairs, summary = build_pairs(frames, cfg, seasons, queries)
+    if cfg.by in DECLARED:
+        if names is None:
+            raise ValueError(f"[pairs] by = {cfg.by!r} needs the frames' file names")
+        pairs, summary = declared_pairs(frames, names, cfg.by, seasons, queries)
+    else:
+        pairs, summary = build_pairs(frames, cfg, seasons, queries)
     write_parquet(tmp / "pairs.parquet", pairs)
     write_json(tmp / "summary.json", summary)
     return summary
+
+
+#: The pairing modes of sessions without poses that the user declares (SPEC 13.2).
+DECLARED = ("name", "order")
+#: The pairing modes that pair with the run's localizer (SPEC 13.2).
+BY_RETRIEVAL = ("retrieval", "sequence")
+
+
+def declared_pairs(
+    frames: pd.DataFrame,
+    names: pd.DataFrame,
+    by: str,
+    seasons: dict[str, str],
+    queries: pd.DataFrame | None = None,
+) -> tuple[pd.DataFrame, dict]:
+    """Pairs by file name or by order (SPEC 13.2), of every query frame with each other session.
+
+    ``by = "name"``: the reference frame whose file has the query's file name without its folder
+    and suffix (``a/0001.png`` pairs with ``b/0001.jpg``); ``by = "order"``: the i-th frame of
+    each session in file-name order (a session's frames are in time order, and a folder's times
+    increase with its file names). A query without such a frame is counted, not paired. The user
+    declares these pairs: their ``pair_confidence`` is 1.
+
+    Args:
+        frames: the frame table (all sessions; poses not needed).
+        names: ``session, camera, utime, name`` of the frames that have a file name.
+        by: ``name`` or ``order``.
+        seasons: session -> season code, for ``season_pair``.
+        queries: optional frame keys restricting the query frames.
+
+    Returns:
+        (pairs with PAIR_COLUMNS and ``pair_confidence``, the summary).
+    """
+    fr = frames.sort_values(FRAME_KEY).reset_index(drop=True)
+    fr = fr.merge(names[[*FRAME_KEY, "name"]], on=FRAME_KEY, how="left")
+    fr["order"] = fr.groupby("session", sort=False).cumcount()
+    fr["stem"] = [
+        PurePosixPath(n).stem if isinstance(n, str) else None for n in fr["name"].to_numpy()
+    ]
+    q_all = (
+        fr.merge(queries[FRAME_KEY].drop_duplicates(), on=FRAME_KEY, how="inner")
+        if queries is not None
+        else fr
+    )
+    on = "stem" if by == "name" else "order"
+    out = []
+    matched: Counter[str] = Counter()
+    unmatched: Counter[str] = Counter()
+    for rs in sorted(fr["session"].unique()):
+        ref = fr[(fr["session"] == rs) & fr[on].notna()].drop_duplicates(on)
+        q = q_all[q_all["session"] != rs]
+        m = q.merge(ref[[on, "session", "camera", "utime"]], on=on, how="left", suffixes=("", "_r"))
+        sp = [f"{seasons.get(s, s)}->{seasons.get(rs, rs)}" for s in m["session"]]
+        hit = m["utime_r"].notna().to_numpy()
+        for s, ok in zip(sp, hit, strict=True):
+            (matched if ok else unmatched)[s] += 1
+        h = m[hit]
+        out.append(
+            pd.DataFrame(
+                {
+                    "q_session": h["session"].to_numpy(),
+                    "q_camera": h["camera"].to_numpy(),
+                    "q_utime": h["utime"].to_numpy(np.int64),
+                    "r_session": rs,
+                    "r_camera": h["camera_r"].to_numpy(),
+                    "r_utime": h["utime_r"].to_numpy(np.int64),
+                    "distance_m": np.nan,
+                    "yaw_diff_deg": np.nan,
+                    "season_pair": np.array(sp, dtype=object)[hit],
+                    "pair_confidence": 1.0,
+                }
+            )
+        )
+    cols = [*PAIR_COLUMNS, "pair_confidence"]
+    pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=cols)
+    pairs = _pose_columns(pairs, fr).sort_values(IMAGE_KEY).reset_index(drop=True)[cols]
+    summary = {**_summary(q_all, pairs, matched, unmatched), "by": by}
+    log.info(
+        "pairs by %s: %d queries, %d pairs, %d (query, session) without a map image of the same %s",
+        by,
+        len(q_all),
+        len(pairs),
+        sum(unmatched.values()),
+        "name" if by == "name" else "place in the order",
+    )
+    return pairs, summary
+
+
+def _pose_columns(pairs: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
+    """``distance_m`` and ``yaw_diff_deg`` of declared pairs where both frames have poses."""
+    pose = frames.set_index(FRAME_KEY)[["x", "y", "yaw"]]
+    q = pose.reindex(pd.MultiIndex.from_frame(pairs[QUERY_KEY].set_axis(FRAME_KEY, axis=1)))
+    r = pose.reindex(
+        pd.MultiIndex.from_frame(
+            pairs[["r_session", "r_camera", "r_utime"]].set_axis(FRAME_KEY, axis=1)
+        )
+    )
+    pairs = pairs.copy()
+    pairs["distance_m"] = np.hypot(
+        q["x"].to_numpy(np.float64) - r["x"].to_numpy(np.float64),
+        q["y"].to_numpy(np.float64) - r["y"].to_numpy(np.float64),
+    )
+    pairs["yaw_diff_deg"] = yaw_diff_deg(
+        q["yaw"].to_numpy(np.float64), r["yaw"].to_numpy(np.float64)
+    )
+    return pairs

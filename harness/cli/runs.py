@@ -104,10 +104,35 @@ def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
     return run_config(args), args.map, list(args.query)
 
 
+def _print_most_changed(out: Path, top: int) -> None:
+    """The ``top`` most changed frames of a detect run, by file name where there are names.
+
+    Uncertain pairs are left out (SPEC 13.2).
+    """
+    from harness.detect.calibrate import in_words
+
+    fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False)
+    if "uncertain_pair" in fr.columns:
+        fr = fr[~fr["uncertain_pair"]]
+    fr = fr.head(top)
+    named = "name" in fr.columns
+    print(
+        f"most changed frames ({'file name' if named else 'session camera utime'}: score, "
+        "calibrated, top box):"
+    )
+    for r in fr.itertuples():
+        words = in_words(r.exceedance, "frames")
+        label = r.name if named and r.name else f"{r.session} {r.camera} {r.utime}"
+        print(
+            f"  {label}: {r.score:.4g} ({words}), "
+            f"[{r.top_x1:.0f}, {r.top_y1:.0f}, {r.top_x2:.0f}, {r.top_y2:.0f}]"
+        )
+
+
 def cmd_detect(args: argparse.Namespace) -> int:
     """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
-    from harness.detect.calibrate import in_words
     from harness.detect.run import run_detect
+    from harness.pipeline.chain import PAIRED_BY
     from harness.runtime.executors import make_executor
 
     check_executor_flags(args)
@@ -131,14 +156,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         f"map {rec['map']}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
         f"ms per query frame ({rec['total_s']:.1f} s)"
     )
-    fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False).head(args.top)
-    print("most changed frames (session camera utime: score, calibrated, top box):")
-    for r in fr.itertuples():
-        words = in_words(r.exceedance, "frames")
-        print(
-            f"  {r.session} {r.camera} {r.utime}: {r.score:.4g} ({words}), "
-            f"[{r.top_x1:.0f}, {r.top_y1:.0f}, {r.top_x2:.0f}, {r.top_y2:.0f}]"
-        )
+    _print_most_changed(out, args.top)
     al = rec["alarm"]
     print(
         f"alarms at a nominal false-alarm rate of {al['rate']:g}: {al['frames']} frames, "
@@ -146,8 +164,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
     )
     agree = rec.get("pairing", {}).get("agreement_with_pose_pairs")
     if rec.get("pairing"):
+        by = rec["pairing"]["by"]
         print(
-            "pairs by retrieval (SPEC 13.2): each query frame with the map frame it retrieves best"
+            f"pairs by {by} (SPEC 13.2): each query frame's reference is {PAIRED_BY[by]}"
             + (
                 f"; {agree['agree']} of {agree['compared']} ({100 * agree['share']:.0f}%, 95% "
                 f"interval {100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%) "
@@ -156,6 +175,13 @@ def cmd_detect(args: argparse.Namespace) -> int:
                 if agree and agree["compared"]
                 else " (no poses to compare with)"
             )
+        )
+    if rec.get("uncertain_pairs"):
+        print(
+            f"uncertain pairs: {rec['uncertain_pairs']} of {rec['query_frames']} query frames "
+            f"have a pair_confidence under {rec['min_pair_confidence']:g} ([pairs] "
+            "min_pair_confidence): flagged in frames.csv (uncertain_pair), left out of the most "
+            "changed frames, marked on the page"
         )
     if rec.get("table_d"):
         print((out / "tableD.md").read_text())

@@ -16,6 +16,7 @@ from harness.config.schema import (
     ALIGNERS,
     FEATURE_IMAGES,
     KEYPOINTS,
+    PAIR_MODES,
     PRECISIONS,
     BovwConfig,
     Config,
@@ -220,23 +221,37 @@ def _check_pairs(cfg: Config, where: str) -> None:
         pa.queries,
         "'annotated' or 'all'",
     )
-    c(pa.by in ("pose", "retrieval"), where, "[pairs] by", pa.by, "'pose' or 'retrieval'")
+    c(
+        pa.by in PAIR_MODES,
+        where,
+        "[pairs] by",
+        pa.by,
+        " or ".join(repr(m) for m in PAIR_MODES),
+    )
     c(pa.place_frames >= 0, where, "[pairs] place_frames", pa.place_frames, ">= 0 frames")
-    if pa.by == "retrieval":
+    c(pa.sequence_frames >= 1, where, "[pairs] sequence_frames", pa.sequence_frames, ">= 1")
+    c(
+        0 <= pa.min_pair_confidence <= 1,
+        where,
+        "[pairs] min_pair_confidence",
+        pa.min_pair_confidence,
+        "in [0, 1]",
+    )
+    if pa.by != "pose":
         rc, rp = cfg.retrieval, cfg.report
         c(
             rc.db_stride_m == 0,
             where,
             "[retrieval] db_stride_m",
             rc.db_stride_m,
-            "0 with [pairs] by = 'retrieval' (a database thinned by distance needs poses)",
+            f"0 with [pairs] by = {pa.by!r} (a database thinned by distance needs poses)",
         )
         c(
             rp.gt_radius_also == 0,
             where,
             "[report] gt_radius_also",
             rp.gt_radius_also,
-            "0 with [pairs] by = 'retrieval' (a place radius needs poses)",
+            f"0 with [pairs] by = {pa.by!r} (a place radius needs poses)",
         )
 
 

@@ -61,6 +61,10 @@ class IngestConfig:
     verify_images: bool = False
 
 
+#: ``[pairs] by``: how a query frame finds its map frame (SPEC 4 and 13.2).
+PAIR_MODES = ("pose", "name", "order", "retrieval", "sequence")
+
+
 @dataclass(frozen=True)
 class PairsConfig:
     """``[pairs]``: cross-season pairing (SPEC section 4; degrees, metres)."""
@@ -69,12 +73,20 @@ class PairsConfig:
     max_distance_m: float | None = 10.0
     stride_m: float = 0.0
     queries: str = "annotated"  # "annotated": only annotated query frames; "all": every frame
-    # "pose": the nearest viewpoint by pose (SPEC 4); "retrieval": the map frame the query's
-    # subimages retrieve best with the run's localizer (SPEC 13.2: sessions without poses)
+    # "pose": the nearest viewpoint by pose (SPEC 4); sessions without poses (SPEC 13.2):
+    # "name": the map image of the same file name (stem); "order": the i-th image of each session
+    # in file-name order; "retrieval": the map frame the query's subimages retrieve best with the
+    # run's localizer; "sequence": the same retrieval scored over runs of consecutive frames
+    # (SeqSLAM), for two traverses of one route
     by: str = "pose"
-    # by = "retrieval": the ground-truth place is the paired frame and this many neighbours on
-    # each side in the map's order (SPEC 13.2)
+    # by other than "pose": the ground-truth place is the paired frame and this many neighbours
+    # on each side in the map's order (SPEC 13.2)
     place_frames: int = 2
+    # a pair whose pair_confidence is below this is an "uncertain pair": flagged in frames.csv,
+    # left out of detect's most-changed list and marked on the page (SPEC 13.2)
+    min_pair_confidence: float = 0.05
+    # by = "sequence": the query frames of one sequence window (centred on the frame)
+    sequence_frames: int = 11
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,14 @@ def exceedance(null: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def in_words(p: float, what: str) -> str:
-    """``1 in 1,000 {what} scores this high`` (the exceedance as a person reads it)."""
+    """``1 in 1,000 {what} scores this high`` (the exceedance as a person reads it).
+
+    From a share of one in five up, where "1 in n" reads oddly ("1 in 1 frames"), the share
+    itself: ``60% of {what} score this high``.
+    """
     if p != p:
         return f"no calibrated score ({what})"
+    if p > 0.2:
+        return f"{100 * p:.0f}% of {what} score this high"
     n = max(1, round(1.0 / p))
     return f"1 in {n:,} {what} scores this high"

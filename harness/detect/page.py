@@ -98,8 +98,12 @@ def _query_thumb(
     truth: dict[tuple[str, str, int], list[tuple]],
     k: tuple[str, str, int],
     image: str,
+    file_name: str = "",
 ) -> tuple[str, str]:
-    """(caption, thumbnail) of a query frame: detections in yellow, annotated changes in red."""
+    """(caption, thumbnail) of a query frame: detections in yellow, annotated changes in red.
+
+    The caption names the frame by its file name where it has one (SPEC 13.2).
+    """
     q = read_image(image).copy()
     for x1, y1, x2, y2 in _frame_boxes(dets, k):
         cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (255, 220, 0), 2)
@@ -107,7 +111,8 @@ def _query_thumb(
         cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (230, 30, 30), 1)
     what = "change boxes in yellow" + (", annotated changes in red" if k in truth else "")
     name = f"{k[0]}_{k[1]}_{k[2]}"
-    return (f"query {k[0]} {k[2]} ({what})", _thumb(q, out / "detect" / f"{name}_q.jpg"))
+    label = file_name or f"{k[0]} {k[2]}"
+    return (f"query {label} ({what})", _thumb(q, out / "detect" / f"{name}_q.jpg"))
 
 
 def _figures(cells: list[tuple[str, str]]) -> str:
@@ -130,11 +135,13 @@ def _place_html(
     """One most-changed place: query frame | the map frame it was paired with | its LoC map."""
     k = (str(r.session), str(r.camera), int(r.utime))
     name = f"{k[0]}_{k[1]}_{k[2]}"
-    cells = [_query_thumb(out, dets, truth, k, str(r.image))]
+    q_name, m_name = str(getattr(r, "name", "") or ""), str(getattr(r, "r_name", "") or "")
+    cells = [_query_thumb(out, dets, truth, k, str(r.image), q_name)]
     mk = (map_session, str(r.r_camera), int(r.r_utime)) if r.r_utime == r.r_utime else None
     if mk is not None and mk in fk.index:
         mimg = read_image(str(fk.loc[mk, "image"]))
-        cells.append((f"map {mk[0]} {mk[2]}", _thumb(mimg, out / "detect" / f"{name}_m.jpg")))
+        m_label = m_name or f"{mk[0]} {mk[2]}"
+        cells.append((f"map {m_label}", _thumb(mimg, out / "detect" / f"{name}_m.jpg")))
     if k in maps:
         bgr = cv2.imread(str(maps[k]))
         assert bgr is not None, maps[k]  # written by this run
@@ -145,9 +152,16 @@ def _place_html(
                 _thumb(over, out / "detect" / f"{name}_l.jpg"),
             )
         )
+    where = f", at ({r.x:.1f}, {r.y:.1f}) m" if np.isfinite([r.x, r.y]).all() else ""
+    title = _e(q_name) if q_name else f"{_e(k[0])} {_e(k[1])} {k[2]}"
+    uncertain = (
+        f' <span class="uncertain">(uncertain pair: confidence {r.pair_confidence:.2f})</span>'
+        if getattr(r, "uncertain_pair", False)
+        else ""
+    )
     return (
-        f'<h3 id="place{i}">{i}. {_e(k[0])} {_e(k[1])} {k[2]}: change score {r.score:.3g}, '
-        f"{int(r.boxes)} change boxes, at ({r.x:.1f}, {r.y:.1f}) m</h3>"
+        f'<h3 id="place{i}">{i}. {title}: change score {r.score:.3g}, '
+        f"{int(r.boxes)} change boxes{where}{uncertain}</h3>"
         + (
             f'<p class="note" data-calibrated="{r.exceedance:.6g}">Calibrated: '
             f"{_e(in_words(r.exceedance, 'frames of this run'))}; its top box: "
@@ -266,11 +280,36 @@ def write_detect_page(
         + table_d_html(table_d)
         + _annotated_html(out, fr, dets, truth)
         + f'<h2 id="places">The {len(top)} most changed places</h2>'
+        + _uncertain_html(fr)
         + "".join(places)
         + "</body></html>\n"
     )
     write_text(out / "detect.html", page)
     return out / "detect.html"
+
+
+def _uncertain_html(fr: pd.DataFrame) -> str:
+    """How many uncertain pairs the most-changed list leaves out, naming them (SPEC 13.2)."""
+    if "uncertain_pair" not in fr.columns or not fr["uncertain_pair"].any():
+        return ""
+    bad = fr[fr["uncertain_pair"]]
+    label = [
+        str(n) if n else f"{s} {c} {u}"
+        for s, c, u, n in zip(
+            bad["session"],
+            bad["camera"],
+            bad["utime"],
+            bad.get("name", [""] * len(bad)),
+            strict=True,
+        )
+    ]
+    shown = ", ".join(label[:20]) + (f" and {len(label) - 20} more" if len(label) > 20 else "")
+    return (
+        f'<p class="note uncertain" data-uncertain="{len(bad)}">Uncertain pairs: {len(bad)} of '
+        f"{len(fr)} query frames were paired with a map frame that another place matches almost "
+        "as well (pair_confidence under [pairs] min_pair_confidence), so their change scores may "
+        f"compare different places; they are left out of this list: {_e(shown)}.</p>"
+    )
 
 
 def has_poses(frames: pd.DataFrame) -> bool:

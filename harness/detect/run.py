@@ -44,7 +44,9 @@ from harness.config.schema import (
 from harness.errors import ConfigError, HarnessError
 from harness.fusion.fuse import fuse_samples, loc_map
 from harness.imagestore import read_image
+from harness.ingest.names import session_names, with_names
 from harness.methods import BOX_GENERATORS, BOX_SCORES
+from harness.pairs import BY_RETRIEVAL
 from harness.pipeline import keys
 from harness.proposals.proposers import segment_boxes
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
@@ -62,6 +64,9 @@ log = logging.getLogger(__name__)
 #: The proposal method ``harness detect``'s local localizer ranks: the frame's colour regions,
 #: which meet most change objects (docs/method.md, *Detect*).
 LOCAL_PROPOSALS = "segments"
+
+#: What a pair not made by pose adds to its query frame's row (SPEC 13.2).
+PAIR_EXTRA = ("pair_confidence", "uncertain_pair")
 
 #: A frame's result after its frame key and map session: its score (the largest LoC), the kept
 #: boxes and fused samples, and the best box.
@@ -439,7 +444,7 @@ def _measure(
     from harness.pipeline.localizer_stages import Measured, localizer_fusion, localizer_ranks
     from harness.pipeline.stages import session_proposals
 
-    if p.cfg.pairs.by == "retrieval":  # sessions without poses (SPEC 13.2)
+    if p.cfg.pairs.by in BY_RETRIEVAL:  # sessions without poses (SPEC 13.2)
         ingested, frames, ann = until_annotations(p)
         pairs, m = pairs_by_retrieval(
             p, ingested, frames, ann, False, (map_session, tuple(query_sessions))
@@ -713,27 +718,50 @@ def _frame_name(s: str, c: str, u: int) -> str:
 
 
 def _frame_table(
-    out: Path, fr: pd.DataFrame, frames: pd.DataFrame, pairs: pd.DataFrame
+    out: Path,
+    fr: pd.DataFrame,
+    frames: pd.DataFrame,
+    pairs: pd.DataFrame,
+    names: pd.DataFrame,
+    sources: dict[str, str],
+    min_pair_confidence: float = 0.0,
 ) -> tuple[pd.DataFrame, dict[tuple[str, str, int], int]]:
     """The query frames with pose, image and map frame, numbered; ``images.json`` (COCO).
+
+    Frames read from folders keep their file names (SPEC 13.2): ``name`` (the query image's)
+    and ``r_name`` (its map image's) columns, and the COCO ``file_name`` (with ``path``, the
+    file itself); a log's frame keeps the stored image as its ``file_name``. Pairs not made by
+    pose carry their ``pair_confidence``, and ``uncertain_pair`` where it is below
+    ``min_pair_confidence``.
 
     Returns the frames and the COCO image id of each frame key.
     """
     fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "yaw", "image", "width", "height"]], on=FRAME_KEY)
+    extra = [c for c in PAIR_EXTRA[:1] if c in pairs.columns]
     fr = fr.merge(
-        pairs[[*QUERY_KEY, "r_camera", "r_utime"]].rename(
+        pairs[[*QUERY_KEY, "r_camera", "r_utime", *extra]].rename(
             columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}
         ),
         on=FRAME_KEY,
         how="left",
     )
+    if "pair_confidence" in fr.columns:
+        fr["uncertain_pair"] = fr["pair_confidence"].to_numpy(np.float64) < min_pair_confidence
+    if len(names):
+        fr = with_names(fr, names, FRAME_KEY, "name")
+        fr = with_names(fr, names, ["r_session", "r_camera", "r_utime"], "r_name")
     fr = fr.sort_values(FRAME_KEY).reset_index(drop=True)
     fr.insert(0, "image_id", np.arange(1, len(fr) + 1))
     ids = {(s, c, int(u)): int(i) for i, s, c, u in fr[["image_id", *FRAME_KEY]].to_numpy()}
     images = [
         {
             "id": int(r.image_id),
-            "file_name": str(r.image).split("#")[0],
+            "file_name": getattr(r, "name", "") or str(r.image).split("#")[0],
+            **(
+                {"path": str(Path(sources[str(r.session)]) / str(r.name))}
+                if getattr(r, "name", "")
+                else {}
+            ),
             "width": int(r.width),
             "height": int(r.height),
             "session": str(r.session),
@@ -843,6 +871,16 @@ def _table_d(
     )
 
 
+def _frame_columns(fr: pd.DataFrame) -> list[str]:
+    """The columns of ``frames.parquet`` / ``frames.csv``.
+
+    With file names and pair confidence where the frames have them (SPEC 13.2).
+    """
+    named = [c for c in ("name", "r_name", *PAIR_EXTRA) if c in fr.columns]
+    where = ["x", "y", "yaw", "r_session", "r_camera", "r_utime"]
+    return ["image_id", *FRAME_KEY, *where, *named, *FRAME_RESULT, "exceedance"]
+
+
 def write_outputs(
     p: Any,
     cfg: Config,
@@ -864,29 +902,19 @@ def write_outputs(
     Also the alarms at the nominal false-alarm rate ``alarm`` (``alarms.csv``, SPEC 13.1).
     """
     out = p.out
-    fr, ids = _frame_table(out, fr, frames, pairs)
+    names = session_names(cfg.sessions)
+    sources = {sc.name: sc.source for sc in cfg.sessions}
+    fr, ids = _frame_table(out, fr, frames, pairs, names, sources, cfg.pairs.min_pair_confidence)
     fr, dets = _calibrated(fr, dets, entries)
     det = dets[dets["kind"] == "detection"]
     results = _coco_results(det, ids)
     write_text(out / "detections.json", json.dumps(results))
-    table = fr[
-        [
-            "image_id",
-            *FRAME_KEY,
-            "x",
-            "y",
-            "yaw",
-            "r_session",
-            "r_camera",
-            "r_utime",
-            *FRAME_RESULT,
-            "exceedance",
-        ]
-    ]
+    table = fr[_frame_columns(fr)]
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
     flagged_f, flagged_b = _write_alarms(out, fr, det, alarm)
-    top = fr.sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
+    sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
+    top = fr[sure].sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
     maps = locmaps(out, top, entries, dets)
     from harness.detect.page import trajectory_figure
 
@@ -905,6 +933,9 @@ def write_outputs(
         "fused_across": ALL_LOCALIZERS if len(localizers) > 1 else None,
         "options": opt.record(),
         "query_frames": len(fr),
+        # SPEC 13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
+        "uncertain_pairs": int((~sure).sum()),
+        "min_pair_confidence": cfg.pairs.min_pair_confidence,
         "detections": len(results),
         # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)
         "alarm": {"rate": alarm, "frames": len(flagged_f), "boxes": len(flagged_b)},

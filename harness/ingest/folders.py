@@ -374,3 +374,19 @@ class ImagesFolder(_Folder):
 FOLDER_FORMATS: dict[str, _Folder] = {
     r.name: r for r in (TumFolder(), KittiFolder(), EurocFolder(), ImagesFolder())
 }
+
+
+def frame_names(path: Path, fmt: str) -> dict[int, str]:
+    """Each image's name by its frame time (utime, µs): its path relative to the session folder.
+
+    The names SPEC 13.2 keeps through every output and pairs by (``[pairs] by = "name"``). The
+    times are the ones the ingester gives the frames (:meth:`_Folder.images`, in µs as the frame
+    table counts them); an image whose µs repeats an earlier one's is the ingester's duplicate
+    and keeps the first name.
+    """
+    root = Path(path)
+    out: dict[int, str] = {}
+    for ns, f in FOLDER_FORMATS[fmt].images(root):
+        rel = Path(f).relative_to(root) if Path(f).is_relative_to(root) else Path(f)
+        out.setdefault(ns // 1000, rel.as_posix())
+    return out

@@ -30,7 +30,7 @@ from harness import __version__, kernels
 from harness.config.schema import ALL_LOCALIZERS, Config
 from harness.errors import ConfigError, HarnessError, RetrievalError
 from harness.methods import ordered_methods, rules_where
-from harness.pairs import build_pairs
+from harness.pairs import BY_RETRIEVAL, DECLARED, build_pairs
 from harness.pipeline.context import Context, Entry, Table, localizer_record
 from harness.pipeline.localizer_stages import (
     Measured,
@@ -119,13 +119,32 @@ def until_pairs(p: Context) -> tuple[dict[str, Entry], Table, Table, Table]:
     Returns:
         (ingest entries, frames, annotations, pairs).
     """
-    if p.cfg.pairs.by == "retrieval":
+    if p.cfg.pairs.by in BY_RETRIEVAL:
         raise ConfigError(
-            "[pairs] by = 'retrieval': the pairs come from the localizer's descriptors; "
+            f"[pairs] by = {p.cfg.pairs.by!r}: the pairs come from the localizer's descriptors; "
             "harness rank, reproduce and detect make them (pairs and proposals alone cannot)"
         )
     ingested, frames, ann = until_annotations(p)
-    return ingested, frames, ann, query_pairs(p, frames, ann)
+    pairs = query_pairs(p, frames, ann)
+    if p.cfg.pairs.by in DECLARED:
+        p.pairing = {"by": p.cfg.pairs.by, "place_frames": p.cfg.pairs.place_frames}
+        _pose_agreement(p, frames, ann, pairs)
+    return ingested, frames, ann, pairs
+
+
+def _pose_agreement(p: Context, frames: Table, ann: Table, pairs: Table) -> None:
+    """How often pairs not made by pose agree with the pose pairs (SPEC 13.2), into ``p.pairing``.
+
+    Only where every frame has a pose.
+    """
+    posed = frames.df[["x", "y", "yaw"]].notna().all(axis=1)
+    if posed.all() and len(frames.df):
+        queries = ann.df if p.cfg.pairs.queries == "annotated" else None
+        by_pose, _ = build_pairs(frames.df, p.cfg.pairs, p.cfg.seasons(), queries)
+        within = p.cfg.pairs.max_distance_m or 10.0
+        p.pairing["agreement_with_pose_pairs"] = pose_agreement(
+            pairs.df, by_pose, frames.df, within
+        )
 
 
 def pairs_by_retrieval(
@@ -162,32 +181,39 @@ def pairs_by_retrieval(
     pairs, ranks = retrieval_ranks(p, locs[0], frames, cand, props)
     if not len(ranks.df):
         raise RetrievalError(f"localizer {locs[0].name}: no query subimage got a rank")
-    p.pairing = {"by": "retrieval", "place_frames": p.cfg.pairs.place_frames}
-    posed = frames.df[["x", "y", "yaw"]].notna().all(axis=1)
-    if posed.all() and len(frames.df):
-        queries = ann.df if p.cfg.pairs.queries == "annotated" else None
-        by_pose, _ = build_pairs(frames.df, p.cfg.pairs, p.cfg.seasons(), queries)
-        within = p.cfg.pairs.max_distance_m or 10.0
-        p.pairing["agreement_with_pose_pairs"] = pose_agreement(
-            pairs.df, by_pose, frames.df, within
-        )
+    p.pairing = {"by": p.cfg.pairs.by, "place_frames": p.cfg.pairs.place_frames}
+    _pose_agreement(p, frames, ann, pairs)
     fusion, notes = localizer_fusion(p, locs[0], ranks, len(pairs.df))
     notes.append(pairing_note(p.pairing))
     costs = measured_costs(p, locs[0], p.trail[start:], ranks, pairs, props)
     return pairs, Measured(locs[0], ranks, fusion, notes, costs)
 
 
+#: How each pairing mode without poses chooses a query's map frame, for the notes (SPEC 13.2).
+PAIRED_BY = {
+    "retrieval": "the map frame this localizer retrieves best",
+    "sequence": "the map frame this localizer retrieves best over a run of consecutive frames",
+    "name": "the map image of the same file name",
+    "order": "the map image at the same place in file-name order",
+}
+
+
 def pairing_note(pairing: dict[str, Any]) -> str:
-    """What pairs by retrieval mean for the tables, in words (SPEC 13.2)."""
+    """What pairs without poses mean for the tables, in words (SPEC 13.2)."""
+    by = pairing["by"]
     note = (
-        "Pairs by retrieval (SPEC 13.2): each query frame's reference is the map frame this "
-        f"localizer retrieves best, and its place that frame and {pairing['place_frames']} "
-        "neighbours each side, so R@N measures the localizer against its own choice (optimistic)."
+        f"Pairs by {by} (SPEC 13.2): each query frame's reference is {PAIRED_BY[by]}, and its "
+        f"place that frame and {pairing['place_frames']} neighbours each side"
+    )
+    note += (
+        ", so R@N measures the localizer against its own choice (optimistic)."
+        if by in BY_RETRIEVAL
+        else "."
     )
     agree = pairing.get("agreement_with_pose_pairs")
     if agree and agree["compared"]:
         note += (
-            f" Where poses exist, {agree['agree']} of {agree['compared']} retrieval pairs "
+            f" Where poses exist, {agree['agree']} of {agree['compared']} {by} pairs "
             f"({100 * agree['share']:.0f}%, 95% interval {100 * agree['share_ci_low']:.0f}-"
             f"{100 * agree['share_ci_high']:.0f}%) lie within {agree['within_m']:g} m of the pose "
             f"pair; a map frame drawn at random would in {100 * agree['chance_share']:.0f}%."
@@ -206,7 +232,7 @@ def until_ranks(
     Returns:
         (ingest entries, frames, annotations, pairs, one :class:`Measured` per localizer).
     """
-    if p.cfg.pairs.by == "retrieval":
+    if p.cfg.pairs.by in BY_RETRIEVAL:
         ingested, frames, ann = until_annotations(p)
         pairs, m = pairs_by_retrieval(p, ingested, frames, ann, check)
         return ingested, frames, ann, pairs, [m]
@@ -221,6 +247,8 @@ def until_ranks(
         if not len(ranks.df):
             raise RetrievalError(f"localizer {loc.name}: no query subimage got a rank")
         fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
+        if p.pairing:
+            notes.append(pairing_note(p.pairing))
         costs = measured_costs(p, loc, p.trail[start:], ranks, pairs, props, frames)
         also = p.cfg.report.gt_radius_also
         ranks_also = ranks_at_radius(p, also, loc, frames, pairs, props) if also > 0 else None

@@ -17,7 +17,7 @@ from typing import Any
 
 import pandas as pd
 
-from harness.config.schema import DescriptorConfig, FusionConfig, RetrievalConfig
+from harness.config.schema import Config, DescriptorConfig, FusionConfig, RetrievalConfig
 from harness.descriptors import make_descriptor
 from harness.descriptors.extract import (
     combine_shards,
@@ -31,7 +31,8 @@ from harness.imagestore import local_uri
 from harness.ingest import combine_frames, ingest_session
 from harness.ingest.annotations import COLUMNS, load_annotations
 from harness.ingest.annotations import validate as validate_annotations
-from harness.pairs import candidate_pairs, write_pairs
+from harness.ingest.names import session_names
+from harness.pairs import DECLARED, candidate_pairs, write_pairs
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.proposals.proposers import write_proposals
@@ -224,9 +225,21 @@ def annotation_table(p: Context, frames: Table) -> Table:
 def query_pairs(p: Context, frames: Table, ann: Table) -> Table:
     """Frames (+ annotations) -> a reference viewpoint per query frame and season (SPEC 4)."""
     queries = ann.df if p.cfg.pairs.queries == "annotated" else None
-    build = partial(write_pairs, frames.df, p.cfg.pairs, p.cfg.seasons(), queries)
+    build = partial(_write_pairs, frames.df, p.cfg, queries)
     entry = p.unit("pairs", keys.pairs(p.cfg, frames.key, ann.key), build)
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
+
+
+def _write_pairs(
+    frames: pd.DataFrame, cfg: Config, queries: pd.DataFrame | None, tmp: Path
+) -> dict:
+    """The pairs stage's build.
+
+    The folder sessions' file names are read only where pairs need them (``[pairs] by =
+    "name"`` or ``"order"``).
+    """
+    names = session_names(cfg.sessions) if cfg.pairs.by in DECLARED else None
+    return write_pairs(frames, cfg.pairs, cfg.seasons(), queries, names, tmp)
 
 
 def candidate_table(p: Context, frames: Table, ann: Table) -> Table:
@@ -246,7 +259,14 @@ def retrieval_pair_table(
     """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2)."""
     paths = {s: e.path for s, e in described.items()}
     build = partial(
-        write_retrieval_pairs, cand.df, paths, frames.df, method, p.cfg.retrieval.memory_mb
+        write_retrieval_pairs,
+        cand.df,
+        paths,
+        frames.df,
+        method,
+        p.cfg.retrieval.memory_mb,
+        p.cfg.pairs.place_frames,
+        p.cfg.pairs.sequence_frames if p.cfg.pairs.by == "sequence" else 0,
     )
     dkeys = {s: e.key for s, e in described.items()}
     entry = p.unit("pairs_retrieval", (cand.key, dkeys, method), build)
@@ -396,7 +416,7 @@ def query_ranks(
                 paths,
                 frames.df,
                 device,
-                p.cfg.pairs.place_frames if p.cfg.pairs.by == "retrieval" else None,
+                p.cfg.pairs.place_frames if p.cfg.pairs.by != "pose" else None,
                 precision,
             )
             key = keys.ranks_unit(rc, ref, pairs.key, dkeys, c0, len(chunk), precision)

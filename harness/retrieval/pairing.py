@@ -11,12 +11,15 @@ bounded by ``memory_mb`` whatever the sessions' sizes.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from harness.errors import RetrievalError
 from harness.pairs import PAIR_COLUMNS, yaw_diff_deg
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
@@ -29,27 +32,18 @@ def _frame_blocks(frame_of_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return frame_of_row[starts], starts
 
 
-def best_frames(
+def _mean_blocks(
     q_desc: np.ndarray,
     q_frame: np.ndarray,
     db_desc: np.ndarray,
     db_frame: np.ndarray,
-    *,
-    chunk_rows: int = 8192,
-    memory_mb: float = 256.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each query frame's best database frame by mean per-frame minimum squared distance.
+    chunk_rows: int,
+    memory_mb: float,
+) -> Iterator[tuple[np.ndarray, np.ndarray, int, int, np.ndarray]]:
+    """The frame distances of each group of query frames, the database streamed in chunks.
 
-    Args:
-        q_desc: (n, D) query subimage descriptors, rows grouped by frame.
-        q_frame: (n,) the frame id of each query row.
-        db_desc: (m, D) database subimage descriptors (array or float16 memmap), grouped by frame.
-        db_frame: (m,) the frame id of each database row.
-        chunk_rows: database rows per pass (cut at frame boundaries).
-        memory_mb: budget of the (query frames x database frames) sums.
-
-    Returns:
-        (query frame ids, their best database frame ids, the best mean squared distance).
+    Yields (query frame ids, database frame ids, g0, g1, the (g1 - g0, n_db) distances): the
+    mean over a query frame's rows of the least squared distance to each database frame's rows.
     """
     qf_ids, q_starts = _frame_blocks(np.asarray(q_frame))
     db_ids, db_starts = _frame_blocks(np.asarray(db_frame))
@@ -63,8 +57,6 @@ def best_frames(
     db_cuts.append(len(db_ids))
     bounds = np.r_[db_starts, len(db_frame)]
     q_bounds = np.r_[q_starts, len(q_frame)]
-    best = np.zeros(len(qf_ids), np.int64)
-    score = np.zeros(len(qf_ids), np.float64)
     for g0 in range(0, len(qf_ids), group):
         g1 = min(len(qf_ids), g0 + group)
         r0, r1 = int(q_bounds[g0]), int(q_bounds[g1])
@@ -78,10 +70,133 @@ def best_frames(
             d2 = qn[:, None] + (blk.astype(np.float64) ** 2).sum(1)[None, :] - 2.0 * (q @ blk.T)
             mins = np.minimum.reduceat(np.maximum(d2, 0.0), bounds[c0:c1] - a, axis=1)
             np.add.at(sums[:, c0:c1], rows_frame, mins)
-        mean = sums / q_count[g0:g1, None]
-        best[g0:g1] = db_ids[np.argmin(mean, axis=1)]
-        score[g0:g1] = mean.min(axis=1)
-    return qf_ids, best, score
+        yield qf_ids, db_ids, g0, g1, sums / q_count[g0:g1, None]
+
+
+def _best_and_rival(mean: np.ndarray, exclude: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(argmin, min, the least value more than ``exclude`` columns from the argmin) per row."""
+    arg = np.argmin(mean, axis=1)
+    pos = np.arange(mean.shape[1])
+    rival = np.where(np.abs(pos[None, :] - arg[:, None]) > exclude, mean, np.inf)
+    second = rival.min(axis=1) if rival.shape[1] else np.full(len(mean), np.inf)
+    return arg, mean[np.arange(len(mean)), arg], second
+
+
+def best_frames(
+    q_desc: np.ndarray,
+    q_frame: np.ndarray,
+    db_desc: np.ndarray,
+    db_frame: np.ndarray,
+    *,
+    chunk_rows: int = 8192,
+    memory_mb: float = 256.0,
+    exclude: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each query frame's best database frame by mean per-frame minimum squared distance.
+
+    Also the runner-up: the least distance among the database frames more than ``exclude``
+    frames away from the best one in database order (its own place's neighbours are no rival),
+    inf where there is none.
+
+    Args:
+        q_desc: (n, D) query subimage descriptors, rows grouped by frame.
+        q_frame: (n,) the frame id of each query row.
+        db_desc: (m, D) database subimage descriptors (array or float16 memmap), grouped by frame.
+        db_frame: (m,) the frame id of each database row.
+        chunk_rows: database rows per pass (cut at frame boundaries).
+        memory_mb: budget of the (query frames x database frames) sums.
+        exclude: the runner-up lies more than this many frames from the best one.
+
+    Returns:
+        (query frame ids, their best database frame ids, the best mean squared distance, the
+        runner-up's).
+    """
+    qf_ids, _ = _frame_blocks(np.asarray(q_frame))
+    best = np.zeros(len(qf_ids), np.int64)
+    score = np.zeros(len(qf_ids), np.float64)
+    second = np.full(len(qf_ids), np.inf)
+    for _, db_ids, g0, g1, mean in _mean_blocks(
+        q_desc, q_frame, db_desc, db_frame, chunk_rows, memory_mb
+    ):
+        arg, score[g0:g1], second[g0:g1] = _best_and_rival(mean, exclude)
+        best[g0:g1] = db_ids[arg]
+    return qf_ids, best, score, second
+
+
+#: The speeds (map frames per query frame) a sequence may run at (SeqSLAM's velocity range).
+SEQUENCE_SPEEDS = (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)
+
+
+def sequence_scores(mean: np.ndarray, window: int) -> np.ndarray:
+    """SeqSLAM's sequence score of every (query frame, map frame) pair (SPEC 13.2).
+
+    ``mean`` is the (n_q, n_db) frame distance matrix, both sessions in time order. The score of
+    (i, j) is the least, over the speeds :data:`SEQUENCE_SPEEDS`, of the mean distance along the
+    straight line through (i, j) over the ``window`` query frames centred on i (the map frame of
+    query frame ``i + k`` being ``j + round(v k)``); frames past either end take no part.
+    """
+    nq, nd = mean.shape
+    half = max(window, 1) // 2
+    best = np.full((nq, nd), np.inf)
+    for v in SEQUENCE_SPEEDS:
+        acc = np.zeros((nq, nd))
+        cnt = np.zeros((nq, nd))
+        for k in range(-half, half + 1):
+            off = round(v * k)
+            i0, i1 = max(0, -k), min(nq, nq - k)  # rows i with i + k inside
+            j0, j1 = max(0, -off), min(nd, nd - off)
+            if i0 >= i1 or j0 >= j1:
+                continue
+            acc[i0:i1, j0:j1] += mean[i0 + k : i1 + k, j0 + off : j1 + off]
+            cnt[i0:i1, j0:j1] += 1
+        best = np.minimum(best, np.divide(acc, cnt, out=np.full((nq, nd), np.inf), where=cnt > 0))
+    return best
+
+
+def sequence_frames(
+    q_desc: np.ndarray,
+    q_frame: np.ndarray,
+    db_desc: np.ndarray,
+    db_frame: np.ndarray,
+    *,
+    window: int,
+    chunk_rows: int = 8192,
+    memory_mb: float = 256.0,
+    exclude: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`best_frames` by sequence: each query frame's map frame by :func:`sequence_scores`.
+
+    The whole (query frames x map frames) distance matrix is held (8 bytes a cell); frame ids
+    are in time order (the sessions' frame order).
+
+    Raises:
+        RetrievalError: the matrix is over ``memory_mb``.
+    """
+    qf_ids, _ = _frame_blocks(np.asarray(q_frame))
+    db_ids, _ = _frame_blocks(np.asarray(db_frame))
+    need = 8 * len(qf_ids) * len(db_ids) / 2**20
+    if need > memory_mb:
+        raise RetrievalError(
+            f"[pairs] by = 'sequence': {len(qf_ids)} x {len(db_ids)} frames need a {need:.0f} "
+            f"MB distance matrix, over [retrieval] memory_mb = {memory_mb:g}; raise it"
+        )
+    mean = np.zeros((len(qf_ids), len(db_ids)))
+    for _, _, g0, g1, m in _mean_blocks(q_desc, q_frame, db_desc, db_frame, chunk_rows, memory_mb):
+        mean[g0:g1] = m
+    arg, score, second = _best_and_rival(sequence_scores(mean, window), exclude)
+    return qf_ids, db_ids[arg], score, second
+
+
+def pair_confidence(best: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """``1 - best / runner-up`` of squared distances, in [0, 1] (SPEC 13.2).
+
+    0 where another place matches as well as the chosen one, 1 where the best match is exact;
+    1 without a rival.
+    """
+    b, s = np.asarray(best, np.float64), np.asarray(second, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(np.isfinite(s) & (s > 0), 1.0 - b / s, 1.0)
+    return np.clip(c, 0.0, 1.0)
 
 
 def retrieval_pairs(
@@ -90,8 +205,13 @@ def retrieval_pairs(
     frames: pd.DataFrame,
     method: str,
     memory_mb: float = 256.0,
+    place_frames: int = 2,
+    window: int = 0,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Pair each candidate query frame with its best frame of each reference session.
+
+    Each pair's ``pair_confidence`` (:func:`pair_confidence`) compares its distance with the
+    best frame's outside the pair's place (``place_frames`` each side).
 
     Args:
         candidates: query frames and the reference sessions to pair them with (``q_session``,
@@ -100,6 +220,9 @@ def retrieval_pairs(
         frames: the frame table (poses, where there are, give ``distance_m`` and ``yaw_diff_deg``).
         method: the proposal method whose subimages compare frames.
         memory_mb: the budget of one group's frame sums.
+        place_frames: the pair's place, frames each side (no rival for the confidence).
+        window: 0: each query frame alone (``by = "retrieval"``); else the query frames of a
+            sequence window (``by = "sequence"``, :func:`sequence_frames`).
 
     Returns:
         (pairs with ``PAIR_COLUMNS`` plus ``retrieval_d2``, a summary of counts).
@@ -122,27 +245,17 @@ def retrieval_pairs(
         r_ids = rsel.groupby(["camera", "utime"], sort=False).ngroup().to_numpy()
         qdesc = np.load(descriptors[qs] / "desc.npy", mmap_mode="r")
         rdesc = np.load(descriptors[rs] / "desc.npy", mmap_mode="r")
-        qf, bf, d2 = best_frames(
+        find = partial(sequence_frames, window=window) if window else best_frames
+        qf, bf, d2, d2_second = find(
             qdesc[qsel["index"].to_numpy()],
             q_ids,
             rdesc[rsel["index"].to_numpy()],
             r_ids,
             memory_mb=memory_mb,
+            exclude=place_frames,
         )
-        qkeys = qsel.drop_duplicates(["camera", "utime"])[["camera", "utime"]].to_numpy()
-        rkeys = rsel.drop_duplicates(["camera", "utime"])[["camera", "utime"]].to_numpy()
         no_subimage += len(cand) - len(qf)
-        part = pd.DataFrame(
-            {
-                "q_session": qs,
-                "q_camera": qkeys[qf, 0].astype(str),
-                "q_utime": qkeys[qf, 1].astype(np.int64),
-                "r_session": rs,
-                "r_camera": rkeys[bf, 0].astype(str),
-                "r_utime": rkeys[bf, 1].astype(np.int64),
-                "retrieval_d2": d2,
-            }
-        )
+        part = _pair_rows(qs, rs, qsel, rsel, qf, bf, d2, d2_second)
         part = part.merge(
             cand[[*QUERY_KEY, "r_session", "season_pair"]], on=[*QUERY_KEY, "r_session"]
         )
@@ -151,13 +264,40 @@ def retrieval_pairs(
     pairs = _with_poses(pairs, frames).sort_values([*QUERY_KEY, "r_session"])
     pairs = pairs.reset_index(drop=True)
     summary = {
-        "by": "retrieval",
+        "by": "sequence" if window else "retrieval",
         "proposal_method": method,
         "queries": int(candidates[QUERY_KEY].drop_duplicates().shape[0]),
         "pairs": len(pairs),
         "no_subimage": int(no_subimage),
     }
-    return pairs[[*PAIR_COLUMNS, "retrieval_d2"]], summary
+    return pairs[[*PAIR_COLUMNS, "retrieval_d2", "pair_confidence"]], summary
+
+
+def _pair_rows(
+    qs: str,
+    rs: str,
+    qsel: pd.DataFrame,
+    rsel: pd.DataFrame,
+    qf: np.ndarray,
+    bf: np.ndarray,
+    d2: np.ndarray,
+    d2_second: np.ndarray,
+) -> pd.DataFrame:
+    """The pairs of one (query session, map session) from the frame ids the matching chose."""
+    qkeys = qsel.drop_duplicates(["camera", "utime"])[["camera", "utime"]].to_numpy()
+    rkeys = rsel.drop_duplicates(["camera", "utime"])[["camera", "utime"]].to_numpy()
+    return pd.DataFrame(
+        {
+            "q_session": qs,
+            "q_camera": qkeys[qf, 0].astype(str),
+            "q_utime": qkeys[qf, 1].astype(np.int64),
+            "r_session": rs,
+            "r_camera": rkeys[bf, 0].astype(str),
+            "r_utime": rkeys[bf, 1].astype(np.int64),
+            "retrieval_d2": d2,
+            "pair_confidence": pair_confidence(d2, d2_second),
+        }
+    )
 
 
 def _with_poses(pairs: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
@@ -182,10 +322,14 @@ def write_retrieval_pairs(
     frames: pd.DataFrame,
     method: str,
     memory_mb: float,
+    place_frames: int,
+    window: int,
     tmp: Path,
 ) -> dict[str, Any]:
     """:func:`retrieval_pairs` into ``tmp/pairs.parquet`` and ``tmp/summary.json``."""
-    pairs, summary = retrieval_pairs(candidates, descriptors, frames, method, memory_mb)
+    pairs, summary = retrieval_pairs(
+        candidates, descriptors, frames, method, memory_mb, place_frames, window
+    )
     write_parquet(tmp / "pairs.parquet", pairs)
     write_json(tmp / "summary.json", summary)
     return summary

@@ -545,6 +545,8 @@ def test_exceedance_and_its_words_by_hand() -> None:
     assert got[:3].tolist() == [2 / 5, 3 / 5, 5 / 5] and np.isnan(got[3])
     assert exceedance(np.zeros(0), np.array([1.0])).tolist() == [1.0]
     assert in_words(0.001, "candidate boxes") == "1 in 1,000 candidate boxes scores this high"
+    assert in_words(0.2, "frames") == "1 in 5 frames scores this high"
+    assert in_words(1.0, "frames") == "100% of frames score this high"  # not "1 in 1 frames"
     from harness.detect.evaluate import clopper_pearson
 
     lo, hi = clopper_pearson(3, 10)  # the textbook interval of 3 in 10
