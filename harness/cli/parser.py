@@ -149,17 +149,8 @@ def _add_stage_commands(sub: Any) -> None:
         p.set_defaults(func=func)
 
 
-def _add_detect(sub: Any) -> None:
-    """``harness detect``."""
-    p = sub.add_parser(
-        "detect", help="what changed: the detector on new sessions against a map session"
-    )
-    p.add_argument(
-        "--config",
-        help="sessions, localizer(s); annotations optional (with --map-images: the settings alone)",
-    )
-    p.add_argument("--map", help="the map (reference) session of the config")
-    p.add_argument("--query", action="append", help="a new session (repeat for several)")
+def _add_folders(p: Any) -> None:
+    """``harness detect``'s image folders and their annotations (SPEC 13.2)."""
     p.add_argument(
         "--map-images",
         metavar="DIR",
@@ -171,6 +162,32 @@ def _add_detect(sub: Any) -> None:
         action="append",
         help="a folder of new images (repeat for several): sessions 'query', 'query2', ...",
     )
+    p.add_argument(
+        "--annotations",
+        metavar="FILE",
+        help="annotations of the new frames (replaces the config's): by session, camera, utime, "
+        "or by image file name (an image column) for image folders",
+    )
+    p.add_argument(
+        "--masks",
+        metavar="DIR",
+        help="change masks as annotations (replaces [masks] folder): one 0/255 image per "
+        "annotated image, named like it",
+    )
+
+
+def _add_detect(sub: Any) -> None:
+    """``harness detect``."""
+    p = sub.add_parser(
+        "detect", help="what changed: the detector on new sessions against a map session"
+    )
+    p.add_argument(
+        "--config",
+        help="sessions, localizer(s); annotations optional (with --map-images: the settings alone)",
+    )
+    p.add_argument("--map", help="the map (reference) session of the config")
+    p.add_argument("--query", action="append", help="a new session (repeat for several)")
+    _add_folders(p)
     p.add_argument("--out", required=True)
     p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
     p.add_argument(

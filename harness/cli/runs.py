@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -95,13 +96,29 @@ def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
         if args.map is not None or args.query:
             raise HarnessError("--map/--query name config sessions; with image folders, omit them")
         base = run_config(args) if args.config else None
-        return image_folders_config(Path(args.map_images), list(args.query_images), base)
+        cfg, m, q = image_folders_config(Path(args.map_images), list(args.query_images), base)
+        return _annotated(cfg, args), m, q
     if args.config is None or args.map is None or not args.query:
         raise HarnessError(
             "detect needs --config with --map and --query, or --map-images DIR and "
             "--query-images DIR"
         )
-    return run_config(args), args.map, list(args.query)
+    return _annotated(run_config(args), args), args.map, list(args.query)
+
+
+def _annotated(cfg: Any, args: argparse.Namespace) -> Any:
+    """``cfg`` with ``--annotations`` and ``--masks`` in place of its own (checked here)."""
+    from harness.errors import AnnotationError
+    from harness.inputs import check_input
+
+    if args.annotations:
+        path = check_input(Path(args.annotations), "annotation file", AnnotationError)
+        cfg = dataclasses.replace(cfg, annotations=Path(path).resolve())
+    if args.masks:
+        d = check_input(Path(args.masks), "mask folder", AnnotationError, directory=True)
+        masks = dataclasses.replace(cfg.masks, folder=str(Path(d).resolve()))
+        cfg = dataclasses.replace(cfg, masks=masks)
+    return cfg
 
 
 def _print_most_changed(out: Path, top: int) -> None:
@@ -126,6 +143,26 @@ def _print_most_changed(out: Path, top: int) -> None:
         print(
             f"  {label}: {r.score:.4g} ({words}), "
             f"[{r.top_x1:.0f}, {r.top_y1:.0f}, {r.top_x2:.0f}, {r.top_y2:.0f}]"
+        )
+
+
+def _print_alarms(al: dict[str, Any]) -> None:
+    """What the nominal false-alarm rate flags (SPEC 13.1), and where nothing is, in words."""
+    n = al.get("of_frames", 0)
+    print(
+        f"alarms at a nominal false-alarm rate of {al['rate']:g}: {al['frames']} of {n} frames "
+        f"and {al['boxes']} of {al.get('of_boxes', 0)} change boxes exceed it (alarms.csv)"
+    )
+    if not al["frames"]:
+        least = 2 / (n + 1) if n else 1.0  # the top frame is in its own null (SPEC 13.1)
+        print(
+            "no frame exceeds the alarm rate: no change detected in this run at that rate"
+            + (
+                f" (with {n} frames the least calibrated score is 2/{n + 1} = {least:.3g}, above "
+                f"{al['rate']:g}: pass --alarm {least:.2g} or more to flag any)"
+                if least > al["rate"]
+                else ""
+            )
         )
 
 
@@ -157,11 +194,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         f"ms per query frame ({rec['total_s']:.1f} s)"
     )
     _print_most_changed(out, args.top)
-    al = rec["alarm"]
-    print(
-        f"alarms at a nominal false-alarm rate of {al['rate']:g}: {al['frames']} frames, "
-        f"{al['boxes']} change boxes (alarms.csv)"
-    )
+    _print_alarms(rec["alarm"])
     agree = rec.get("pairing", {}).get("agreement_with_pose_pairs")
     if rec.get("pairing"):
         by = rec["pairing"]["by"]

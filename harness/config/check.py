@@ -150,6 +150,8 @@ def validate(cfg: Config, where: str) -> None:
     """
     _check_fusion(cfg, where)
     _check_pairs(cfg, where)
+    mk = cfg.masks.min_mask_area
+    check_value(mk >= 1, where, "[masks] min_mask_area", mk, ">= 1 pixel")
     _check_ingest_keys(cfg, where)
     _check_retrieval(cfg, where)
     _check_seeds(cfg, where)

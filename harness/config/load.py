@@ -34,6 +34,7 @@ from harness.config.schema import (
     IngestConfig,
     LocalConfig,
     LocalizerConfig,
+    MasksConfig,
     MserConfig,
     PairsConfig,
     ProjectionConfig,
@@ -166,6 +167,7 @@ _SECTIONS: dict[str, type] = {
     "detect": DetectConfig,
     "fixture": FixtureConfig,
     "import": ImportConfig,
+    "masks": MasksConfig,
 }
 #: TOML tables whose field name differs (``import`` is a Python keyword).
 _FIELD = {"import": "import_"}
@@ -178,6 +180,19 @@ def project_root(start: Path) -> Path:
         if (d / "pyproject.toml").exists():
             return d
     return start
+
+
+def _resolve_paths(kwargs: dict[str, Any], base: Path, root: Path) -> None:
+    """A user's network and mask folder: relative to the project, like the annotations."""
+    de = kwargs.get("descriptor")
+    if de is not None and de.path:
+        net = resolve_config_path(de.path, base, root)
+        kwargs["descriptor"] = dataclasses.replace(de, path=str(net))
+    mk = kwargs.get("masks")
+    if mk is not None and mk.folder:
+        kwargs["masks"] = dataclasses.replace(
+            mk, folder=str(resolve_config_path(mk.folder, base, root))
+        )
 
 
 def parse_config(
@@ -225,10 +240,7 @@ def parse_config(
             kwargs[_FIELD.get(section, section)] = _build(
                 cls, doc[section], f"{where}: [{section}]"
             )
-    de = kwargs.get("descriptor")
-    if de is not None and de.path:  # a user's network: relative to the project, like annotations
-        net = resolve_config_path(de.path, base, root)
-        kwargs["descriptor"] = dataclasses.replace(de, path=str(net))
+    _resolve_paths(kwargs, base, root)
     cfg = Config(
         name=str(doc["name"]),
         data_root=root,
@@ -360,8 +372,9 @@ def image_folders_config(
     ``query``, ``query2``, ... Every query frame is paired as ``cfg``'s ``[pairs] by`` says, or,
     where it says ``pose`` (the default, and there are no poses), by name where the folders share
     file names, else by sequence with the localizer (:func:`folder_pairing`). Every other
-    setting is ``cfg``'s (a ``--config``), or the defaults; its sessions, annotations and fixture
-    are not used.
+    setting is ``cfg``'s (a ``--config``), or the defaults; its sessions and fixture are not used,
+    its annotations and masks are (rows naming their image, SPEC 13.2; rows of its own sessions
+    are left out).
 
     Returns:
         (the config, the map session's name, the query sessions' names).
@@ -386,7 +399,7 @@ def image_folders_config(
     out = dataclasses.replace(
         base,
         sessions=tuple(SessionConfig(**s) for s in sessions),
-        annotations=None,
+        annotations=base.annotations,
         fixture=dataclasses.replace(base.fixture, generate=False),
         pairs=dataclasses.replace(base.pairs, by=by, queries="all"),
     )

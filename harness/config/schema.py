@@ -476,6 +476,19 @@ class LocalizerConfig:
 
 
 @dataclass(frozen=True)
+class MasksConfig:
+    """``[masks]``: change masks as annotations (SPEC 13.2).
+
+    ``folder``: one 0/255 image per annotated image of a folder session, named like it; its
+    8-connected components of at least ``min_mask_area`` pixels are change boxes, an all-zero
+    mask a no-change image.
+    """
+
+    folder: str | None = None
+    min_mask_area: int = 16
+
+
+@dataclass(frozen=True)
 class Config:
     """A whole run's configuration, as loaded from TOML and checked (:func:`load_config`)."""
 
@@ -494,6 +507,7 @@ class Config:
     splits: SplitsConfig = field(default_factory=SplitsConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
     detect: DetectConfig = field(default_factory=DetectConfig)
+    masks: MasksConfig = field(default_factory=MasksConfig)
     fixture: FixtureConfig = field(default_factory=FixtureConfig)
     import_: ImportConfig = field(default_factory=ImportConfig)  # the TOML table [import]
     # [[localizers]]; empty: one localizer named after [descriptor] (:meth:`localizer_set`)

@@ -99,17 +99,21 @@ def _query_thumb(
     k: tuple[str, str, int],
     image: str,
     file_name: str = "",
+    alarmed: bool = True,
 ) -> tuple[str, str]:
     """(caption, thumbnail) of a query frame: detections in yellow, annotated changes in red.
 
-    The caption names the frame by its file name where it has one (SPEC 13.2).
+    The caption names the frame by its file name where it has one (SPEC 13.2). A frame whose
+    calibrated score does not reach the alarm rate (``alarmed`` False, SPEC 13.1) shows no
+    change box: "no change detected".
     """
     q = read_image(image).copy()
-    for x1, y1, x2, y2 in _frame_boxes(dets, k):
+    for x1, y1, x2, y2 in _frame_boxes(dets, k) if alarmed else []:
         cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (255, 220, 0), 2)
     for x1, y1, x2, y2 in truth.get(k, []):
         cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (230, 30, 30), 1)
-    what = "change boxes in yellow" + (", annotated changes in red" if k in truth else "")
+    what = "change boxes in yellow" if alarmed else "no change detected at the alarm rate"
+    what += ", annotated changes in red" if k in truth else ""
     name = f"{k[0]}_{k[1]}_{k[2]}"
     label = file_name or f"{k[0]} {k[2]}"
     return (f"query {label} ({what})", _thumb(q, out / "detect" / f"{name}_q.jpg"))
@@ -136,7 +140,8 @@ def _place_html(
     k = (str(r.session), str(r.camera), int(r.utime))
     name = f"{k[0]}_{k[1]}_{k[2]}"
     q_name, m_name = str(getattr(r, "name", "") or ""), str(getattr(r, "r_name", "") or "")
-    cells = [_query_thumb(out, dets, truth, k, str(r.image), q_name)]
+    alarmed = bool(getattr(r, "alarmed", True))
+    cells = [_query_thumb(out, dets, truth, k, str(r.image), q_name, alarmed)]
     mk = (map_session, str(r.r_camera), int(r.r_utime)) if r.r_utime == r.r_utime else None
     if mk is not None and mk in fk.index:
         mimg = read_image(str(fk.loc[mk, "image"]))
@@ -159,9 +164,10 @@ def _place_html(
         if getattr(r, "uncertain_pair", False)
         else ""
     )
+    found = f"{int(r.boxes)} change boxes" if alarmed else "no change detected at the alarm rate"
     return (
-        f'<h3 id="place{i}">{i}. {title}: change score {r.score:.3g}, '
-        f"{int(r.boxes)} change boxes{where}{uncertain}</h3>"
+        f'<h3 id="place{i}" data-alarmed="{int(alarmed)}">{i}. {title}: change score '
+        f"{r.score:.3g}, {found}{where}{uncertain}</h3>"
         + (
             f'<p class="note" data-calibrated="{r.exceedance:.6g}">Calibrated: '
             f"{_e(in_words(r.exceedance, 'frames of this run'))}; its top box: "

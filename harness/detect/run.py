@@ -913,6 +913,7 @@ def write_outputs(
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
     flagged_f, flagged_b = _write_alarms(out, fr, det, alarm)
+    fr["alarmed"] = fr["exceedance"].to_numpy(np.float64) <= alarm  # the page's, SPEC 13.1
     sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
     top = fr[sure].sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
     maps = locmaps(out, top, entries, dets)
@@ -938,7 +939,13 @@ def write_outputs(
         "min_pair_confidence": cfg.pairs.min_pair_confidence,
         "detections": len(results),
         # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)
-        "alarm": {"rate": alarm, "frames": len(flagged_f), "boxes": len(flagged_b)},
+        "alarm": {
+            "rate": alarm,
+            "frames": len(flagged_f),
+            "boxes": len(flagged_b),
+            "of_frames": len(fr),
+            "of_boxes": len(det),
+        },
         "outputs": {
             "detections": str(out / "detections.json"),
             "images": str(out / "images.json"),

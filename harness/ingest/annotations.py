@@ -23,6 +23,7 @@ import pandas as pd
 
 from harness.errors import AnnotationError
 from harness.imagestore import read_image
+from harness.ingest.names import frames_by_image
 from harness.inputs import check_input, read_text
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import atomic_dir, write_json
@@ -150,8 +151,19 @@ def validate(
     return df[COLUMNS].sort_values(keys + ["x1", "y1"], na_position="first").reset_index(drop=True)
 
 
-def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataFrame:
-    """Read and validate a canonical annotation CSV (UTF-8; errors name the file's own line)."""
+def load_annotations(
+    path: Path,
+    frames: pd.DataFrame | None = None,
+    names: pd.DataFrame | None = None,
+    skip_sessions: tuple[str, ...] = (),
+) -> pd.DataFrame:
+    """Read and validate a canonical annotation CSV (UTF-8; errors name the file's own line).
+
+    A CSV of a folder session may name each row's image (an ``image`` column, the path relative
+    to the folder, instead of ``session, camera, utime``; SPEC 13.2): ``names`` (the folder
+    sessions' file names) give the frame keys (:func:`harness.ingest.names.frames_by_image`,
+    ``skip_sessions`` the map's).
+    """
     path = check_input(path, "annotation file", AnnotationError)
     raw = path.read_bytes()
     try:
@@ -189,6 +201,11 @@ def load_annotations(path: Path, frames: pd.DataFrame | None = None) -> pd.DataF
     for c in ("x1", "y1", "x2", "y2"):
         if c in df.columns:
             df[c] = df[c].map(lambda v: np.nan if str(v).strip() == "" else v)
+    if "image" in df.columns and "utime" not in df.columns:
+        where = [f"line {n}" for n in lines]
+        none = pd.DataFrame(columns=[*FRAME_KEY, "name"])
+        df = frames_by_image(df, none if names is None else names, None, skip_sessions,
+                             str(path), where)  # fmt: skip
     return validate(df, frames, str(path), np.asarray(lines, np.int64))
 
 

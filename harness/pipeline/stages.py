@@ -31,12 +31,13 @@ from harness.imagestore import local_uri
 from harness.ingest import combine_frames, ingest_session
 from harness.ingest.annotations import COLUMNS, load_annotations
 from harness.ingest.annotations import validate as validate_annotations
-from harness.ingest.names import session_names
+from harness.ingest.masks import folder_digest, read_masks
+from harness.ingest.names import frames_by_image, session_names
 from harness.pairs import DECLARED, candidate_pairs, write_pairs
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.proposals.proposers import write_proposals
-from harness.records import SUBIMAGE_KEY
+from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.reports.write import Block, Reports, write_reports
 from harness.retrieval import described_frames, rank_reference
 from harness.retrieval.import_file import ImportSpec
@@ -210,16 +211,49 @@ def frame_table(p: Context, ingested: dict[str, Entry]) -> Table:
 
 
 def annotation_table(p: Context, frames: Table) -> Table:
-    """The annotation file, checked against the frames; its key is the file's content hash."""
-    if p.cfg.annotations is None:  # harness detect without annotations: no frame is annotated
-        return Table(validate_annotations(pd.DataFrame(columns=COLUMNS), None, "none"), "none")
+    """The annotations (file, mask folder or both), checked against the frames.
+
+    Rows that name their image (``image``: a folder session's file, SPEC 13.2) and masks
+    (``[masks] folder``) get their frame keys from the folder sessions' file names; a frame
+    annotated in both is an error. The key is the contents' hash.
+    """
+    parts, digests = [], []
+    names = session_names(p.cfg.sessions)
+    skip = getattr(p, "train_sessions", None) or ()
     path = p.cfg.annotations
-    if p.annotations_optional:  # harness detect: the rows of the sessions it reads
-        every = load_annotations(path)
-        names = {s.name for s in p.cfg.sessions}
-        mine = every[every["session"].isin(names)].reset_index(drop=True)
-        return Table(validate_annotations(mine, frames.df, str(path)), content_sha(path))
-    return Table(load_annotations(path, frames.df), content_sha(path))
+    if path is not None:
+        if p.annotations_optional:  # harness detect: the rows of the sessions it reads
+            every = load_annotations(path, None, names, skip)
+            every = every[every["session"].isin({s.name for s in p.cfg.sessions})]
+            every = validate_annotations(every.reset_index(drop=True), frames.df, str(path))
+        else:
+            every = load_annotations(path, frames.df, names, skip)
+        parts.append(every)
+        digests.append(content_sha(path))
+    mk = p.cfg.masks
+    if mk.folder is not None:
+        rows, counts = read_masks(Path(mk.folder), mk.min_mask_area)
+        at = [f"mask {n}" for n in rows["image"]]
+        parts.append(frames_by_image(rows, names, frames.df, skip, mk.folder, at))
+        digests.append(stable_hash("masks", folder_digest(Path(mk.folder)), mk.min_mask_area))
+        log.info("masks: %s: %s", mk.folder, counts)
+    if not parts:  # harness detect without annotations: no frame is annotated
+        return Table(validate_annotations(pd.DataFrame(columns=COLUMNS), None, "none"), "none")
+    if len(parts) == 1 and path is not None:
+        return Table(parts[0], digests[0])
+    both = pd.concat([x[COLUMNS] for x in parts], ignore_index=True)
+    if len(parts) == 2:
+        twice = set(map(tuple, parts[0][FRAME_KEY].to_numpy())) & set(
+            map(tuple, parts[1][FRAME_KEY].to_numpy())
+        )
+        if twice:
+            s, c, u = sorted(twice)[0]
+            raise AnnotationError(
+                f"{mk.folder}: frame {s} {c} {u} is annotated both in {path} and by a mask"
+            )
+    where = str(mk.folder) if path is None else f"{path} + {mk.folder}"
+    key = digests[0] if len(digests) == 1 else stable_hash(*digests)
+    return Table(validate_annotations(both, frames.df, where), key)
 
 
 def query_pairs(p: Context, frames: Table, ann: Table) -> Table:

@@ -1,4 +1,4 @@
-"""Sessions without poses (SPEC 13.2): folders of images alone, pairs by retrieval.
+"""Sessions without poses (SPEC 13.2): image folders, their pairs, masks and file names.
 
 The README's two-folder command runs here as typed, on images the test writes; the pairing's
 kernel is checked against a brute-force computation, the place by order by hand, and the images
@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -240,6 +241,48 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     page = (out2 / "detect.html").read_text()
     assert f"<figcaption>query {top} (" in page and f"<figcaption>map {top}<" in page
     assert f">1. {top}: change score" in page
+    # the local localizer on folders paired by name: no model, every subimage ranked in its pair
+    argv_local = ["detect", "--map-images", str(tmp_path / "same-map"), "--query-images",
+                  str(tmp_path / "same-new"), "--localizer", "local", "--boxes", "subimages",
+                  "--out", str(tmp_path / "out-local")]  # fmt: skip
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(argv_local) == 0
+    rec_l = json.loads((tmp_path / "out-local" / "detect.json").read_text())
+    assert rec_l["pairing"]["by"] == "name" and rec_l["localizers"] == ["local"]
+    assert not (tmp_path / "out-local" / "cache" / "model").exists()
+    assert sum(rec_l["local_counts"].values()) > 0
+    # six frames: no calibrated score reaches the 1% alarm rate, and the run says so (SPEC 13.1)
+    assert "alarms at a nominal false-alarm rate of 0.01: 0 of 6 frames and 0 of" in printed
+    assert "no change detected in this run at that rate (with 6 frames the least" in printed
+    assert 'data-alarmed="0"' in page and 'data-alarmed="1"' not in page
+    assert "no change detected at the alarm rate" in page
+    # the README's annotated forms, as typed, on the first run's folders and into its run
+    # directory (its model and descriptors are reused): a mask with a change and an empty one,
+    # then an annotation CSV by file name
+    (tmp_path / "masks").mkdir()
+    h, w = cv2.imread(str(tmp_path / "new" / "q00.png")).shape[:2]
+    mask = np.zeros((h, w), np.uint8)
+    mask[h // 4 : h // 2, w // 4 : w // 2] = 255
+    cv2.imwrite(str(tmp_path / "masks" / "q00.png"), mask)
+    cv2.imwrite(str(tmp_path / "masks" / "q01.png"), np.zeros((h, w), np.uint8))
+    csv = tmp_path / "ann.csv"
+    csv.write_text("image,status,x1,y1,x2,y2,label\nq00.png,change,2,3,20,30,box\n"
+                   "q01.png,no-change,,,,,\n")  # fmt: skip
+    for flag, value in (("--masks", tmp_path / "masks"), ("--annotations", csv)):
+        line = next(x for x in README.splitlines() if x.startswith("harness detect --map-images")
+                    and flag in x)  # fmt: skip
+        argv = line.split()[1:]
+        for k, v in (("--map-images", tmp_path / "map"), ("--query-images", tmp_path / "new"),
+                     (flag, value), ("--out", out)):  # fmt: skip
+            argv[argv.index(k) + 1] = str(v)
+        with contextlib.redirect_stdout(io.StringIO()):
+            assert main(argv) == 0, flag
+        d = pd.read_csv(out / "tableD.csv")
+        assert (int(d["annotated_frames"].iloc[0]), int(d["change_boxes"].iloc[0])) == (2, 1)
+    assert (
+        not (out / "cache" / "model").exists()
+        or len(list((out / "cache" / "model").iterdir())) == 1
+    )
 
 
 def test_image_folder_flags_are_checked_in_one_line(tmp_path: Path, capsys) -> None:
@@ -403,3 +446,61 @@ def test_each_pairing_mode_agrees_with_the_pose_pairs_as_the_readme_quotes(
             f"{100 * a['share_ci_low']:.0f}-{100 * a['share_ci_high']:.0f}%) |"
         )
         assert quoted in flat, quoted
+
+
+def test_a_mask_becomes_its_components_boxes_and_an_empty_one_a_no_change_row(
+    tmp_path: Path,
+) -> None:
+    """SPEC 13.2's masks by hand: two blobs and one speck under ``min_mask_area``."""
+    from harness.ingest.masks import mask_boxes, read_masks
+
+    m = np.zeros((40, 60), np.uint8)
+    m[5:15, 10:30] = 255  # 200 pixels: a box [10, 5, 30, 15]
+    m[20:36, 40:44] = 255  # 64 pixels: [40, 20, 44, 36]
+    m[38, 2] = 255  # 1 pixel: under the area
+    boxes, small = mask_boxes(m, 16)
+    assert sorted(map(tuple, boxes.tolist())) == [(10, 5, 30, 15), (40, 20, 44, 36)]
+    assert small == 1
+    (tmp_path / "m").mkdir()
+    cv2.imwrite(str(tmp_path / "m" / "a.png"), m)
+    cv2.imwrite(str(tmp_path / "m" / "b.png"), np.zeros((40, 60), np.uint8))
+    rows, counts = read_masks(tmp_path / "m", 16)
+    assert counts == {"masks": 2, "no_change": 1, "change_boxes": 2, "small_components": 1}
+    assert rows.groupby("image")["status"].agg(list).to_dict() == {
+        "a.png": ["change", "change"],
+        "b.png": ["no-change"],
+    }
+    assert set(rows["mask_width"]) == {60} and set(rows["mask_height"]) == {40}
+
+
+def test_rows_that_name_their_image_find_their_frame_or_say_why_in_one_line() -> None:
+    from harness.errors import AnnotationError
+    from harness.ingest.names import frames_by_image
+
+    names = pd.DataFrame(
+        {
+            "session": ["map", "map", "query", "query2"],
+            "camera": "Cam5",
+            "utime": [1, 2, 1, 5],
+            "name": ["a.png", "b.png", "a.jpg", "c.png"],
+        }
+    )
+    frames = names.assign(width=60, height=40)
+    rows = pd.DataFrame({"image": ["a.png", "c.png"], "status": ["no-change", "no-change"]})
+    got = frames_by_image(rows, names, frames, {"map"}, "f.csv")
+    assert got[["session", "utime"]].values.tolist() == [["query", 1], ["query2", 5]]
+    for bad, says in (
+        (pd.DataFrame({"image": ["zz.png"]}), "f.csv: line 2: no image named 'zz.png'"),
+        (pd.DataFrame({"image": ["a.png"]}), None),  # the map's is skipped: the query's
+        (pd.DataFrame({"image": ["b.png"], "mask_width": [61], "mask_height": [40]}),
+         "the mask is 61 x 40 pixels, its image 'b.png' 60 x 40"),
+    ):  # fmt: skip
+        if says is None:
+            assert frames_by_image(bad, names, frames, {"map"}, "f.csv")["session"].tolist() == [
+                "query"
+            ]
+            continue
+        with pytest.raises(AnnotationError, match=re.escape(says)):
+            frames_by_image(bad, names, frames, {"map"}, "f.csv")
+    with pytest.raises(AnnotationError, match="in several sessions"):
+        frames_by_image(pd.DataFrame({"image": ["a.png"]}), names, frames, set(), "f.csv")
