@@ -273,6 +273,11 @@ def _write_pairs(
     "name"`` or ``"order"``).
     """
     names = session_names(cfg.sessions) if cfg.pairs.by in DECLARED else None
+    if cfg.pairs.by == "name" and names is not None and not len(names):
+        raise ConfigError(
+            "[pairs] by = 'name' pairs images by their file names, and no session is a folder "
+            "of images (logs have no file names): use by = 'order', 'sequence' or 'retrieval'"
+        )
     return write_pairs(frames, cfg.pairs, cfg.seasons(), queries, names, tmp)
 
 

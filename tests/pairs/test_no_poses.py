@@ -304,6 +304,22 @@ def test_image_folder_flags_are_checked_in_one_line(tmp_path: Path, capsys) -> N
         assert says in one_error(capsys)
 
 
+def test_pairs_by_name_of_sessions_without_file_names_is_one_error(
+    default_world: Path, tmp_path: Path, capsys
+) -> None:
+    from ..conftest import ROOT, one_error
+
+    cfg = (ROOT / "datasets" / "fixture.toml").read_text()
+    cfg = cfg.replace('queries = "annotated"', 'queries = "annotated"\nby = "name"')
+    cfg = cfg.replace('"annotations/', f'"{ROOT}/annotations/')
+    (tmp_path / "c.toml").write_text(cfg)
+    argv = ["pairs", "--config", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o"),
+            "--data-root", str(default_world)]  # fmt: skip
+    assert main(argv) == 1
+    err = one_error(capsys)
+    assert "by = 'name'" in err and "no session is a folder of images" in err
+
+
 @pytest.mark.parametrize("key", ["db_stride_m", "gt_radius_also"])
 def test_retrieval_pairs_refuse_what_needs_poses(tmp_path: Path, key: str, capsys) -> None:
     from ..conftest import ROOT, one_error
