@@ -34,6 +34,11 @@ PAIR_COLUMNS = [
 ]
 
 
+def season_pairs(q_sessions: Any, r_session: str, seasons: dict[str, str]) -> list[str]:
+    """``season_pair`` of each query session against ``r_session``: ``"WI->SU"``."""
+    return [f"{seasons.get(s, s)}->{seasons.get(r_session, r_session)}" for s in q_sessions]
+
+
 def yaw_diff_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Absolute heading difference in degrees, in [0, 180], wrap-around at +-180 handled."""
     d = (np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi
@@ -170,7 +175,7 @@ def build_pairs(
             cfg.max_yaw_diff_deg,
             cfg.max_distance_m,
         )
-        sp = [f"{seasons.get(s, s)}->{seasons.get(rs, rs)}" for s in q["session"]]
+        sp = season_pairs(q["session"], rs, seasons)
         for s, ok in zip(sp, idx >= 0, strict=True):
             (matched if ok else unmatched)[s] += 1
         hit = idx >= 0
@@ -230,9 +235,7 @@ def candidate_pairs(
                     "q_camera": q["camera"].to_numpy(),
                     "q_utime": q["utime"].to_numpy(np.int64),
                     "r_session": rs,
-                    "season_pair": [
-                        f"{seasons.get(s, s)}->{seasons.get(rs, rs)}" for s in q["session"]
-                    ],
+                    "season_pair": season_pairs(q["session"], rs, seasons),
                 }
             )
         )
@@ -318,7 +321,7 @@ def declared_pairs(
         ref = fr[(fr["session"] == rs) & fr[on].notna()].drop_duplicates(on)
         q = q_all[q_all["session"] != rs]
         m = q.merge(ref[[on, "session", "camera", "utime"]], on=on, how="left", suffixes=("", "_r"))
-        sp = [f"{seasons.get(s, s)}->{seasons.get(rs, rs)}" for s in m["session"]]
+        sp = season_pairs(m["session"], rs, seasons)
         hit = m["utime_r"].notna().to_numpy()
         for s, ok in zip(sp, hit, strict=True):
             (matched if ok else unmatched)[s] += 1
@@ -341,7 +344,7 @@ def declared_pairs(
         )
     cols = [*PAIR_COLUMNS, "pair_confidence"]
     pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=cols)
-    pairs = _pose_columns(pairs, fr).sort_values(IMAGE_KEY).reset_index(drop=True)[cols]
+    pairs = pose_columns(pairs, fr).sort_values(IMAGE_KEY).reset_index(drop=True)[cols]
     summary = {**_summary(q_all, pairs, matched, unmatched), "by": by}
     log.info(
         "pairs by %s: %d queries, %d pairs, %d (query, session) without a map image of the same %s",
@@ -354,8 +357,11 @@ def declared_pairs(
     return pairs, summary
 
 
-def _pose_columns(pairs: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
-    """``distance_m`` and ``yaw_diff_deg`` of declared pairs where both frames have poses."""
+def pose_columns(pairs: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
+    """``pairs`` with ``distance_m`` and ``yaw_diff_deg`` from the frames' poses (NaN without).
+
+    For pairs not made by pose (by name, order, retrieval or sequence) where poses exist.
+    """
     pose = frames.set_index(FRAME_KEY)[["x", "y", "yaw"]]
     q = pose.reindex(pd.MultiIndex.from_frame(pairs[QUERY_KEY].set_axis(FRAME_KEY, axis=1)))
     r = pose.reindex(

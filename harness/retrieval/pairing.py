@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from harness.errors import RetrievalError
-from harness.pairs import PAIR_COLUMNS, yaw_diff_deg
+from harness.pairs import PAIR_COLUMNS, pose_columns
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
 
@@ -261,7 +261,7 @@ def retrieval_pairs(
         )
         out.append(part)
     pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=PAIR_COLUMNS)
-    pairs = _with_poses(pairs, frames).sort_values([*QUERY_KEY, "r_session"])
+    pairs = pose_columns(pairs, frames).sort_values([*QUERY_KEY, "r_session"])
     pairs = pairs.reset_index(drop=True)
     summary = {
         "by": "sequence" if window else "retrieval",
@@ -298,22 +298,6 @@ def _pair_rows(
             "pair_confidence": pair_confidence(d2, d2_second),
         }
     )
-
-
-def _with_poses(pairs: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
-    """``distance_m`` and ``yaw_diff_deg`` of each pair from the frames' poses (NaN without)."""
-    pose = frames.set_index(FRAME_KEY)[["x", "y", "yaw"]]
-    qp = pose.reindex(pd.MultiIndex.from_frame(pairs[QUERY_KEY].set_axis(FRAME_KEY, axis=1)))
-    rp = pose.reindex(
-        pd.MultiIndex.from_arrays(
-            [pairs["r_session"], pairs["r_camera"], pairs["r_utime"]], names=FRAME_KEY
-        )
-    )
-    pairs["distance_m"] = np.hypot(
-        qp["x"].to_numpy() - rp["x"].to_numpy(), qp["y"].to_numpy() - rp["y"].to_numpy()
-    )
-    pairs["yaw_diff_deg"] = yaw_diff_deg(qp["yaw"].to_numpy(), rp["yaw"].to_numpy())
-    return pairs
 
 
 def write_retrieval_pairs(
