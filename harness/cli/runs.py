@@ -218,6 +218,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
         )
     if rec.get("table_d"):
         print((out / "tableD.md").read_text())
+    if rec.get("table_d_pixel"):
+        print((out / "tableD_pixel.md").read_text())
     print(
         f"outputs in {out}: detections.json + images.json (COCO), frames.parquet/.csv, "
         f"locmaps/, trajectory.png, detect.html"

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from harness.detect.calibrate import in_words
+from harness.detect.pixels import pixel_html
 from harness.detect.table import table_d_html
 from harness.imagestore import read_image
 from harness.records import FRAME_KEY
@@ -252,7 +253,7 @@ def write_detect_page(
     dets: pd.DataFrame,
     frames: pd.DataFrame,
     maps: dict[tuple[str, str, int], Path],
-    table_d: pd.DataFrame | None,
+    tables: tuple[pd.DataFrame | None, pd.DataFrame | None],
     map_session: str,
     localizers: list[str],
     ann: pd.DataFrame | None = None,
@@ -260,6 +261,7 @@ def write_detect_page(
 ) -> Path:
     """Write ``out/detect.html`` and its thumbnails; return the page's path.
 
+    ``tables``: Table D and its pixel AP against masks (either None where there is none).
     ``alignment``: the local localizer's pairs and how each was aligned (SPEC 13.3); the page says
     how many could not be aligned, and which.
 
@@ -283,7 +285,8 @@ def write_detect_page(
         "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
         + alignment_html(alignment)
         + _trajectory_html(frames)
-        + table_d_html(table_d)
+        + table_d_html(tables[0])
+        + pixel_html(tables[1])
         + _annotated_html(out, fr, dets, truth)
         + f'<h2 id="places">The {len(top)} most changed places</h2>'
         + _uncertain_html(fr)

@@ -41,6 +41,7 @@ from harness.config.schema import (
     LocalizerConfig,
     SegmentsConfig,
 )
+from harness.detect.pixels import write_pixel_table
 from harness.errors import ConfigError, HarnessError
 from harness.fusion.fuse import fuse_samples, loc_map
 from harness.imagestore import read_image
@@ -871,6 +872,10 @@ def _table_d(
     )
 
 
+#: ``detect.json``'s ``alarm``: the nominal rate, the frames and boxes it flags, of how many.
+ALARM_FIELDS = ("rate", "frames", "boxes", "of_frames", "of_boxes")
+
+
 def _frame_columns(fr: pd.DataFrame) -> list[str]:
     """The columns of ``frames.parquet`` / ``frames.csv``.
 
@@ -921,11 +926,13 @@ def write_outputs(
 
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
     table_d = _table_d(out, cfg, fr, ann, dets, ids, entries, opt, alarm) if len(ann) else None
+    pixel = write_pixel_table(out, cfg, names, map_session, entries, fr)
     from harness.detect.page import write_detect_page
 
     page = write_detect_page(
-        out, fr, top, dets, frames, maps, table_d, map_session, localizers, ann, alignment
-    )
+        out, fr, top, dets, frames, maps, (table_d, pixel), map_session, localizers, ann,
+        alignment,
+    )  # fmt: skip
     return {
         "config": cfg.name,
         "map": map_session,
@@ -939,13 +946,9 @@ def write_outputs(
         "min_pair_confidence": cfg.pairs.min_pair_confidence,
         "detections": len(results),
         # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)
-        "alarm": {
-            "rate": alarm,
-            "frames": len(flagged_f),
-            "boxes": len(flagged_b),
-            "of_frames": len(fr),
-            "of_boxes": len(det),
-        },
+        "alarm": dict(
+            zip(ALARM_FIELDS, (alarm, *map(len, (flagged_f, flagged_b, fr, det))), strict=True)
+        ),
         "outputs": {
             "detections": str(out / "detections.json"),
             "images": str(out / "images.json"),
@@ -955,6 +958,8 @@ def write_outputs(
             "locmaps": [str(m) for m in maps.values()],
         },
         "table_d": table_d.to_dict(orient="records") if table_d is not None else None,
+        # SPEC 13.2: the LoC maps' pixel AP against the masks (tableD_pixel.csv)
+        "table_d_pixel": pixel.to_dict(orient="records") if pixel is not None else None,
         "stage_units_run": p.ran,
         "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
     }

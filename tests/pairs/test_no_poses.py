@@ -280,6 +280,16 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
             assert main(argv) == 0, flag
         d = pd.read_csv(out / "tableD.csv")
         assert (int(d["annotated_frames"].iloc[0]), int(d["change_boxes"].iloc[0])) == (2, 1)
+        rec = json.loads((out / "detect.json").read_text())
+        if flag == "--masks":  # the masks are also the truth of a pixel AP (SPEC 13.2)
+            px = pd.read_csv(out / "tableD_pixel.csv")
+            assert list(px["masked_frames"].unique()) == [2] and len(rec["table_d_pixel"]) == 4
+            # the change is a quarter by a quarter of q00: 1/16 of one image's pixels in two
+            assert px["positive_rate"].iloc[0] == pytest.approx(1 / 32, abs=1e-4)
+            assert set(px["verdict"]) == {"few"}  # one positive image earns no verdict
+            assert "data-table='DP'" in (out / "detect.html").read_text()
+        else:
+            assert rec["table_d_pixel"] is None and not (out / "tableD_pixel.csv").exists()
     assert (
         not (out / "cache" / "model").exists()
         or len(list((out / "cache" / "model").iterdir())) == 1
@@ -491,6 +501,45 @@ def test_a_mask_becomes_its_components_boxes_and_an_empty_one_a_no_change_row(
         "b.png": ["no-change"],
     }
     assert set(rows["mask_width"]) == {60} and set(rows["mask_height"]) == {40}
+
+
+def test_pixel_ap_of_a_loc_map_against_a_mask_by_hand() -> None:
+    """SPEC 9's pixel AP on a 10 x 10 image whose 4 x 4 corner changed, two nested boxes.
+
+    The small box [0, 0, 4, 4] owns the 16 change pixels, the large one [0, 0, 10, 10] the other
+    84. Scored small over large, the change pixels come first: AP 1. Scored the other way round,
+    the 84 unchanged pixels come first and precision never exceeds 16/100: AP 0.16. The ceiling
+    scores each box by its share of change pixels (1 and 0.16): AP 1.
+    """
+    from harness.detect.pixels import box_change_fraction, masked_frame, pixel_table
+
+    mask = np.zeros((10, 10), np.uint8)
+    mask[:4, :4] = 255
+    boxes = np.array([[0, 0, 4, 4], [0, 0, 10, 10]], np.float64)
+    f = masked_frame(boxes, np.array([0.9, 0.1]), mask)
+    assert f.area.sum() == 100
+    assert sorted(zip(f.owner.tolist(), f.positive.tolist(), f.area.tolist(), strict=True)) == [
+        (0, True, 16.0),
+        (1, False, 84.0),
+    ]
+    assert box_change_fraction(boxes, mask > 0).tolist() == [1.0, 0.16]
+    t = pixel_table([f], draws=50, n_boot=20, ci=0.95, seed=0).set_index("row")
+    assert t.loc["detector (LoC map)", "pixel_ap"] == pytest.approx(1.0)
+    assert t["ceiling"].iloc[0] == pytest.approx(1.0)
+    assert t["positive_rate"].iloc[0] == pytest.approx(0.16)
+    assert t.loc["detector (LoC map)", "verdict"] == "few"  # one image: no verdict (SPEC 9)
+    swapped = masked_frame(boxes, np.array([0.1, 0.9]), mask)
+    t2 = pixel_table([swapped], draws=50, n_boot=20, ci=0.95, seed=0).set_index("row")
+    assert t2.loc["detector (LoC map)", "pixel_ap"] == pytest.approx(0.16)
+    # box area ranks the large box first, as the swapped LoC does
+    assert t2.loc["size_prior (box area, no pixel read)", "pixel_ap"] == pytest.approx(0.16)
+    # an image no box covers: every pixel takes the lowest score; a mask with no change adds
+    # negatives only
+    empty = masked_frame(np.zeros((0, 4)), np.zeros(0), np.zeros((10, 10), np.uint8))
+    t3 = pixel_table([f, empty], draws=50, n_boot=20, ci=0.95, seed=0).set_index("row")
+    assert t3["positive_rate"].iloc[0] == pytest.approx(16 / 200)
+    # the empty image's 100 pixels tie with the large box's at the lowest LoC
+    assert t3.loc["detector (LoC map)", "pixel_ap"] == pytest.approx(1.0)
 
 
 def test_rows_that_name_their_image_find_their_frame_or_say_why_in_one_line() -> None:

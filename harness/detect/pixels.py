@@ -1,0 +1,345 @@
+"""Pixel AP of ``harness detect``'s LoC maps against change masks (SPEC 9 and 13.2).
+
+Where annotations come as a mask folder, the masks themselves are the truth of a pixel AP: each
+pixel of a masked query image takes the LoC of the smallest sample box holding it (the LoC map
+the page shows; a pixel no box covers takes the lowest LoC of the run), a pixel is positive where
+its mask is non-zero, and the pixels of every masked image are pooled into one 101-point AP.
+
+Pixels of one image that share their owning box and their label form one region weighted by its
+pixel count, so every figure costs a sort of regions, not of pixels. SPEC 9's floor and chance
+band: the same boxes scored at random through the same maps; its ceiling: every box scored by its
+change fraction under the mask (its RoC). The baselines that read no pixel (SPEC 13.3) score each
+box by its area and by its cover count through the same maps; the detector's verdict is SPEC 9's
+rule, and ``above`` only when it is also clear of the best of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from harness.config.schema import Config
+from harness.detect.evaluate import NO_PIXEL, no_pixel_scores
+from harness.errors import AnnotationError
+from harness.evaluate import chance
+from harness.evaluate.metrics import (
+    bootstrap_aps,
+    interval,
+    resample_counts,
+    weighted_average_precision,
+)
+from harness.fusion.fuse import loc_map
+from harness.ingest.names import frames_by_image
+from harness.inputs import IMAGE_SUFFIXES
+from harness.records import FRAME_KEY, QUERY_KEY
+from harness.reports.html.cells import esc
+from harness.runtime.cache import read_cached_parquet, write_text
+
+#: The rows of the pixel table: the detector's LoC map, one random scoring of the same boxes
+#: (the paired test's reference) and the no-pixel baselines.
+PIXEL_ROWS = {
+    "detector": "detector (LoC map)",
+    "random": "random (random box scores)",
+    "size_prior": "size_prior (box area, no pixel read)",
+    "cover_count": "cover_count (boxes overlapping it, no pixel read)",
+}
+
+
+@dataclass(frozen=True)
+class MaskedFrame:
+    """One masked query image cut into regions: pixels that share an owning box and a label.
+
+    ``owner`` is the index of the smallest of ``boxes`` holding the region (-1: no box covers
+    it); ``roc`` each box's share of change pixels (the ceiling's scores).
+    """
+
+    area: np.ndarray
+    positive: np.ndarray
+    owner: np.ndarray
+    boxes: np.ndarray
+    loc: np.ndarray
+    roc: np.ndarray
+
+
+def box_change_fraction(boxes: np.ndarray, positive: np.ndarray) -> np.ndarray:
+    """Each box's share of positive pixels, a pixel inside when its centre is (as in the maps)."""
+    h, w = positive.shape
+    ii = cv2.integral(positive.astype(np.uint8)).astype(np.float64)
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    u0 = np.clip(np.ceil(b[:, 0] - 0.5), 0, w).astype(np.int64)
+    u1 = np.clip(np.ceil(b[:, 2] - 0.5), 0, w).astype(np.int64)
+    v0 = np.clip(np.ceil(b[:, 1] - 0.5), 0, h).astype(np.int64)
+    v1 = np.clip(np.ceil(b[:, 3] - 0.5), 0, h).astype(np.int64)
+    inside = ii[v1, u1] - ii[v0, u1] - ii[v1, u0] + ii[v0, u0]
+    n = (u1 - u0).clip(0) * (v1 - v0).clip(0)
+    return np.divide(inside, n, out=np.zeros(len(b)), where=n > 0)
+
+
+def masked_frame(boxes: np.ndarray, loc: np.ndarray, mask: np.ndarray) -> MaskedFrame:
+    """The regions of one image: its sample boxes and their LoC against its mask."""
+    positive = (mask.max(axis=2) if mask.ndim == 3 else mask) > 0
+    h, w = positive.shape
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    own = loc_map(b, np.arange(len(b), dtype=np.float64), w, h)  # each pixel's smallest box
+    owner = np.where(np.isfinite(own), own, -1).astype(np.int64)
+    codes, area = np.unique((owner + 1) * 2 + positive, return_counts=True)
+    return MaskedFrame(
+        area.astype(np.float64),
+        (codes % 2).astype(bool),
+        codes // 2 - 1,
+        b,
+        np.asarray(loc, np.float64),
+        box_change_fraction(b, positive),
+    )
+
+
+def mask_frames(
+    folder: Path, names: pd.DataFrame, skip_sessions: list[str]
+) -> dict[tuple[str, str, int], Path]:
+    """Each masked query frame's mask file, by the names :func:`frames_by_image` matches."""
+    files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    rows = pd.DataFrame({"image": [f.name for f in files]})
+    keyed = frames_by_image(rows, names, None, skip_sessions, str(folder), [f.name for f in files])
+    return {
+        (str(s), str(c), int(u)): f
+        for (s, c, u), f in zip(
+            keyed[["session", "camera", "utime"]].to_numpy(), files, strict=True
+        )
+    }
+
+
+class _Regions:
+    """Every masked frame's regions laid end to end, scored through their owning boxes."""
+
+    def __init__(self, frames: list[MaskedFrame]) -> None:
+        self.y = np.concatenate([f.positive for f in frames]) if frames else np.zeros(0, bool)
+        self.w = np.concatenate([f.area for f in frames]) if frames else np.zeros(0)
+        self.g = np.concatenate(
+            [np.full(len(f.area), i) for i, f in enumerate(frames)] or [np.zeros(0, np.int64)]
+        )
+        starts = np.cumsum([0] + [len(f.boxes) for f in frames])
+        self.unit = np.concatenate(
+            [np.where(f.owner >= 0, f.owner + starts[i], -1) for i, f in enumerate(frames)]
+            or [np.zeros(0, np.int64)]
+        )
+        self.n = int(starts[-1])
+        self.boxes = np.concatenate([f.boxes for f in frames]) if frames else np.zeros((0, 4))
+        self.scores = {
+            "detector": np.concatenate([f.loc for f in frames]) if frames else np.zeros(0),
+            "ceiling": np.concatenate([f.roc for f in frames]) if frames else np.zeros(0),
+        }
+        for name in NO_PIXEL:
+            self.scores[name] = np.concatenate(
+                [no_pixel_scores(f.boxes)[name] for f in frames] or [np.zeros(0)]
+            )
+        self.positive_images = len({int(g) for g in self.g[self.y & (self.w > 0)]})
+
+    def region_scores(self, s: np.ndarray) -> np.ndarray:
+        """(b, regions) scores of (b, units) box scores; uncovered regions the row's lowest."""
+        s = np.atleast_2d(np.asarray(s, np.float64))
+        ok = np.isfinite(s)
+        low = np.where(ok, s, np.inf).min(axis=1, keepdims=True, initial=np.inf)
+        low = np.where(np.isfinite(low), low, 0.0)
+        s = np.where(ok, s, low)  # a box without a LoC (unaligned) scores as no box
+        return np.where(self.unit[None, :] >= 0, s[:, np.maximum(self.unit, 0)], low)
+
+    def aps(self, s: np.ndarray) -> np.ndarray:
+        """Pixel AP of each row of (b, units) box scores."""
+        return chance.aps_of_rows(self.y, self.region_scores(s), self.w)
+
+
+def pixel_table(
+    frames: list[MaskedFrame],
+    draws: int,
+    n_boot: int,
+    ci: float,
+    seed: int,
+    needed: int = chance.MIN_POSITIVE_IMAGES,
+) -> pd.DataFrame:
+    """The pixel AP rows (:data:`PIXEL_ROWS`) with SPEC 9's floor, band, ceiling and verdicts.
+
+    Args:
+        frames: the masked query images.
+        draws: random scorings of the boxes for the floor and band.
+        n_boot: bootstrap resamples of the masked images for the intervals.
+        ci: interval level.
+        seed: seeds the draws, the random row and the resamples.
+        needed: ``[report] min_positive_images`` (SPEC 9, evidence before a verdict).
+    """
+    r = _Regions(frames)
+    k = (r.n, len(frames))
+    floor, lo, hi = chance.summarise(
+        chance.random_draws(r.aps, r.n, draws, chance.draw_seed(seed, "DP", *k))
+    )
+    ceiling = float(r.aps(r.scores["ceiling"])[0]) if r.n else float("nan")
+    r.scores["random"] = np.random.default_rng(chance.draw_seed(seed, "DP-random", *k)).random(r.n)
+    counts = resample_counts(len(frames), n_boot, chance.draw_seed(seed, "DP-boot", len(frames)))
+    ap, boot = {}, {}
+    for row in PIXEL_ROWS:
+        s = r.region_scores(r.scores[row])[0]
+        ap[row] = weighted_average_precision(r.y, s, r.w)
+        boot[row] = bootstrap_aps(r.y, s, r.g, counts, weights=r.w)
+    best = max(NO_PIXEL, key=lambda b: (ap[b], b))
+    total = float(r.w.sum())
+    rows = []
+    for row, label in PIXEL_ROWS.items():
+        bl, bh = interval(boot[row], ci)
+        dl, dh = interval(boot[row] - boot["random"], ci)
+        v = chance.verdict(ap[row], lo, hi, dl, dh, chance.Evidence(r.positive_images, needed))
+        nl, nh = interval(boot[row] - boot[best], ci) if row == "detector" else (np.nan, np.nan)
+        rows.append(
+            {
+                "row": label,
+                "pixel_ap": ap[row],
+                "ci_low": bl,
+                "ci_high": bh,
+                "floor": floor,
+                "chance_low": lo,
+                "chance_high": hi,
+                "ceiling": ceiling,
+                "gap_closed": chance.gap_closed(ap[row], floor, ceiling),
+                "vs_random_ci_low": dl,
+                "vs_random_ci_high": dh,
+                "verdict": chance.versus_no_pixel(v, nl) if row == "detector" else v,
+                "positive_rate": float(r.w[r.y].sum()) / total if total else np.nan,
+                "masked_frames": len(frames),
+                "positive_images": r.positive_images,
+                "positive_images_needed": needed,
+                "best_no_pixel": best if row == "detector" else "",
+                "vs_no_pixel_ci_low": nl,
+                "vs_no_pixel_ci_high": nh,
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def pixel_markdown(t: pd.DataFrame) -> str:
+    """The pixel table as markdown, with its floor, band, ceiling and what it measures."""
+    d = t.iloc[0]
+    cells = [
+        f"| {r.row} | {r.pixel_ap:.3f} [{r.ci_low:.3f}, {r.ci_high:.3f}] | "
+        + (
+            chance.few_text(int(r.positive_images))
+            if r.verdict == "few"
+            else chance.VERDICT_WORDS[str(r.verdict)]
+        )
+        + " |"
+        for r in t.itertuples()
+    ]
+    lines = [
+        "# Table D, pixels: the LoC maps against the change masks",
+        "",
+        f"Pixel AP (SPEC 9: 101-point, the pixels of the {int(d['masked_frames'])} masked query "
+        "images pooled; each pixel takes the LoC of the smallest box holding it, a pixel no box "
+        "covers the lowest LoC; positive where its mask is non-zero) with its 95% bootstrap "
+        "interval over masked images.",
+        "",
+        "| | pixel AP [95% CI] | verdict |",
+        "|---|---:|---|",
+        *cells,
+        "",
+        "| pixel AP of these boxes | value |",
+        "|---|---:|",
+        f"| positive rate (change pixels among all pixels) | {d['positive_rate']:.4f} |",
+        f"| floor (mean pixel AP of random box scores, same maps) | {d['floor']:.3f} |",
+        f"| chance band (5th-95th percentile of those draws) | {d['chance_low']:.3f}-"
+        f"{d['chance_high']:.3f} |",
+        f"| ceiling (boxes scored by their share of change pixels, same maps) | "
+        f"{d['ceiling']:.3f} |",
+        "",
+        f"Verdict (SPEC 9): {chance.MARK_LEGEND}",
+    ]
+    if d["verdict"] == "few":
+        few = int((t["verdict"] == "few").sum())
+        lines += ["", chance.few_warning(few, int(d["positive_images_needed"]))]
+    elif d["verdict"] == "baseline":
+        lines += [
+            "",
+            f"WARNING: the detector's pixel AP is above chance but not clear of the best no-pixel "
+            f"baseline ({d['best_no_pixel']}; paired difference [{d['vs_no_pixel_ci_low']:+.3f}, "
+            f"{d['vs_no_pixel_ci_high']:+.3f}]): no verdict above it (SPEC 13.3).",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def pixel_html(t: pd.DataFrame | None) -> str:
+    """The pixel table for the page, verdicts as ``data-verdict`` cells."""
+    if t is None:
+        return ""
+    d = t.iloc[0]
+    rows = "".join(
+        f"<tr><td>{esc(r.row)}</td><td data-verdict='{esc(r.verdict)}'>{r.pixel_ap:.3f} "
+        f"[{r.ci_low:.3f}, {r.ci_high:.3f}]</td><td>"
+        + esc(
+            chance.few_text(int(r.positive_images))
+            if r.verdict == "few"
+            else chance.VERDICT_WORDS[str(r.verdict)]
+        )
+        + "</td></tr>"
+        for r in t.itertuples()
+    )
+    return (
+        '<h2 id="tableDP">Table D, pixels: the LoC maps against the change masks</h2>'
+        f"<p class='note'>Pixel AP (SPEC 9) of the {int(d['masked_frames'])} masked query "
+        "images' pixels pooled, each pixel the LoC of the smallest box holding it, positive where "
+        "its mask is non-zero; 95% bootstrap interval over masked images.</p>"
+        "<table data-table='DP'><tr><th></th><th>pixel AP</th><th>verdict</th></tr>"
+        f"{rows}</table><p class='note' data-chance='DP'>Positive rate "
+        f"{d['positive_rate']:.4f}; floor {d['floor']:.3f} (random box scores, same maps), "
+        f"chance band {d['chance_low']:.3f}-{d['chance_high']:.3f}, ceiling {d['ceiling']:.3f} "
+        "(boxes scored by their share of change pixels).</p>"
+    )
+
+
+def write_pixel_table(
+    out: Path,
+    cfg: Config,
+    names: pd.DataFrame,
+    map_session: str,
+    entries: list[Any],
+    run_frames: pd.DataFrame,
+) -> pd.DataFrame | None:
+    """``tableD_pixel.csv`` / ``.md`` from ``[masks] folder``'s masks of this run's query frames.
+
+    ``entries`` are the detect chunks (their ``samples.parquet``: boxes and ``loc``), read one at
+    a time for the masked frames only; a masked frame without a sample box counts all its pixels
+    uncovered. None where no mask names a frame of the run (and an earlier run's table in
+    ``out`` is removed).
+    """
+    files: dict[tuple[str, str, int], Path] = {}
+    if cfg.masks.folder is not None:
+        ran = set(map(tuple, run_frames[FRAME_KEY].to_numpy().tolist()))
+        every = mask_frames(Path(cfg.masks.folder), names, [map_session])
+        files = {k: f for k, f in every.items() if k in ran}
+    if not files:  # an earlier run's table into this run directory is not this run's
+        for stale in ("tableD_pixel.csv", "tableD_pixel.md"):
+            (out / stale).unlink(missing_ok=True)
+        return None
+    boxes: dict[tuple[str, str, int], tuple[np.ndarray, np.ndarray]] = {}
+    want = pd.MultiIndex.from_tuples(sorted(files))
+    for e in entries:
+        s = read_cached_parquet(e.path / "samples.parquet")
+        s = s[pd.MultiIndex.from_frame(s[QUERY_KEY]).isin(want)]
+        for key, g in s.groupby(QUERY_KEY, sort=True):
+            k = (str(key[0]), str(key[1]), int(key[2]))
+            boxes[k] = (
+                g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
+                g["loc"].to_numpy(np.float64),
+            )
+    frames = []
+    for k in sorted(files):
+        b, loc = boxes.get(k, (np.zeros((0, 4)), np.zeros(0)))
+        mask = cv2.imread(str(files[k]), cv2.IMREAD_UNCHANGED)
+        if mask is None:  # read as annotations a moment ago: changed on disk since
+            raise AnnotationError(f"{files[k]}: not a readable mask image")
+        frames.append(masked_frame(b, loc, mask))
+    r = cfg.report
+    t = pixel_table(frames, r.chance_draws, r.bootstrap, r.ci, cfg.seed, r.min_positive_images)
+    write_text(out / "tableD_pixel.csv", t.to_csv(index=False, float_format="%.4f"))
+    write_text(out / "tableD_pixel.md", pixel_markdown(t))
+    return t
