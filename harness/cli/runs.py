@@ -75,6 +75,7 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
         boxes=args.boxes or cfg.detect.boxes,
         box_score=args.box_score or cfg.detect.box_score,
         locmap_level=cfg.detect.locmap_level,
+        min_box_side=cfg.detect.min_box_side,
         segments=cfg.proposals.segments,
         localizer=getattr(args, "localizer", None) or cfg.detect.localizer,
         local=cfg.detect.local,
@@ -215,6 +216,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
             f"have a pair_confidence under {rec['min_pair_confidence']:g} ([pairs] "
             "min_pair_confidence): flagged in frames.csv (uncertain_pair), left out of the most "
             "changed frames, marked on the page"
+        )
+    if rec.get("thin_boxes_dropped"):
+        print(
+            f"dropped {rec['thin_boxes_dropped']} candidate boxes under "
+            f"{rec['options']['min_box_side']:g} px a side ([detect] min_box_side)"
         )
     if rec.get("table_d"):
         print((out / "tableD.md").read_text())

@@ -648,6 +648,13 @@ def _check_detect(cfg: Config, where: str) -> None:
         "(0, 1): a share of each frame's LoC range",
     )
     c(
+        0 <= dt.min_box_side < 1e4,
+        where,
+        "[detect] min_box_side",
+        dt.min_box_side,
+        "pixels a side, >= 0 (0: keep every box)",
+    )
+    c(
         len(rp.recall_at) > 0
         and all(n >= 1 for n in rp.recall_at)
         and list(rp.recall_at) == sorted(set(rp.recall_at)),

@@ -372,6 +372,9 @@ class DetectConfig:
     box_score: str = "max"
     # locmap: the level, as a share of the frame's LoC range (lo + level * (hi - lo))
     locmap_level: float = 0.5
+    # the narrowest change box, pixels a side: thinner candidates (slivers where fused qBBs
+    # barely overlap) are dropped before NMS and counted (detect.json: thin_boxes_dropped)
+    min_box_side: float = 2.0
     # the nominal false-alarm rate: boxes and frames whose calibrated score (exceedance) is at
     # most this are alarms (alarms.csv; harness detect --alarm overrides it)
     alarm: float = 0.01

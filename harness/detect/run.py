@@ -87,6 +87,7 @@ class DetectOptions:
     boxes: str = "fused"  # the box generator (SPEC 13.1, [detect] boxes)
     box_score: str = "max"  # locmap / proposals / segments: max, mean or contrast of the LoC
     locmap_level: float = 0.5  # locmap: the level, a share of the frame's LoC range
+    min_box_side: float = 2.0  # [detect] min_box_side: thinner candidates are dropped
     segments: SegmentsConfig = field(default_factory=SegmentsConfig)  # [proposals.segments]
     localizer: str = "config"  # [detect] localizer: "local" (SPEC 13.3) or "config"
     local: LocalConfig = field(default_factory=LocalConfig)  # [detect.local]
@@ -245,11 +246,12 @@ def _frame_boxes_of(
     size: tuple[int, int],
     fk: tuple[str, str, int],
     opt: DetectOptions,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One frame's candidate boxes and scores by ``opt.boxes``, kept by NMS, and the random row.
 
     ``g``: the frame's fused qBBs, ``floc`` their LoC; ``orig``: its original proposals. Returns
-    candidates, their scores, the indices kept, the indices kept for random scores, those scores.
+    candidates, their scores, the indices kept, the indices kept for random scores, those scores
+    and how many candidates were thinner than ``opt.min_box_side`` (dropped before all of it).
     """
     fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     if opt.boxes == "fused":
@@ -263,9 +265,11 @@ def _frame_boxes_of(
         )
         # the random row: uniform scores on the same candidates, seeded by the frame
         rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(len(boxes))
+    wide = np.minimum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) >= opt.min_box_side
+    boxes, loc, rnd = boxes[wide], loc[wide], rnd[wide]
     keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
     rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
-    return boxes, loc, keep, rand, rnd
+    return boxes, loc, keep, rand, rnd, int((~wide).sum())
 
 
 def _write_chunk(
@@ -357,11 +361,12 @@ def detect_chunk(
     col = f"loc_{opt.fusion}"
     size = frame_sizes(frames)
     orig = _frame_boxes(ranks, frames, opt)
-    rows, frow, cand_parts = [], [], []
+    rows, frow, cand_parts, thin = [], [], [], 0
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
         floc = g[col].to_numpy(np.float64)
-        boxes, loc, keep, rand, rnd = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt)
+        boxes, loc, keep, rand, rnd, n_thin = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt)
+        thin += n_thin
         for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
             for j, i in enumerate(idx):
                 rows.append((*key[:3], kind, j, *boxes[i], float(sc[i])))
@@ -387,7 +392,11 @@ def detect_chunk(
             )
         )
     _write_chunk(tmp, cand_parts, rows, frow, samples, col)
-    return {"frames": len(frow), "capped_closures": int(counts.get("capped_closures", 0))}
+    return {
+        "frames": len(frow),
+        "capped_closures": int(counts.get("capped_closures", 0)),
+        "thin_boxes_dropped": thin,
+    }
 
 
 def check_detect_args(
@@ -577,6 +586,11 @@ def run_detect(
             al,
         )
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
+        # candidates thinner than [detect] min_box_side, dropped before NMS and Table D
+        record["thin_boxes_dropped"] = sum(
+            int(p.cache.manifest("detect", e.key)["info"].get("thin_boxes_dropped", 0))
+            for e in entries
+        )
         record.update(aligned)
         record["kernels"] = kernels.report()
         if rerun is not None:

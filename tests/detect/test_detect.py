@@ -79,9 +79,17 @@ def test_detect_without_annotations_writes_every_output(detected: tuple) -> None
         x, y, w, h = d["bbox"]
         assert d["category_id"] == 1 and w > 0 and h > 0
         assert x >= 0 and y >= 0 and x + w <= size[d["image_id"]][0] + 1e-9
-    # the frame's score is its largest LoC, and its first box is the highest-scored detection
+    # the frame's score is its largest LoC (SPEC 13); its best detection is the largest LoC of
+    # its boxes at least [detect] min_box_side (2 px) a side: slivers are dropped before NMS
     best = pd.DataFrame(dets).groupby("image_id")["score"].max()
-    np.testing.assert_allclose(fr.set_index("image_id").loc[best.index, "score"], best.to_numpy())
+    f = fr.set_index("image_id").loc[best.index]
+    cached = (out / "cache" / "detect").glob("*/samples.parquet")
+    samples = pd.concat(map(pd.read_parquet, cached), ignore_index=True)
+    wide = np.minimum(samples["x2"] - samples["x1"], samples["y2"] - samples["y1"]) >= 2
+    np.testing.assert_allclose(f["score"], samples.groupby("q_utime")["loc"].max()[f["utime"]])
+    np.testing.assert_allclose(best, samples[wide].groupby("q_utime")["loc"].max()[f["utime"]])
+    thin = json.loads((out / "detect.json").read_text())["thin_boxes_dropped"]
+    assert thin == int((~wide).sum()) > 0
     maps = sorted((out / "locmaps").glob("*.npy"))
     assert len(maps) == 10 and np.load(maps[0]).dtype == np.float16
     assert len(list((out / "locmaps").glob("*.png"))) == 10
@@ -248,6 +256,7 @@ def test_the_detect_flags_are_honoured_as_typed(
     assert rec["options"] == {
         "fusion": "rank_fusion_le2", "nms_iou": 0.2, "max_boxes": 3, "top": 4,
         "chunk_frames": 64, "seed": 0, "boxes": "fused", "box_score": "max", "locmap_level": 0.5,
+        "min_box_side": 2.0,
     }  # fmt: skip
     dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))
     assert dets.groupby("image_id").size().max() == 3  # --max-boxes
