@@ -130,6 +130,9 @@ BUILTIN_PROPOSERS = ("edges", "mser", "segments")
 BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
 #: What ranks ``harness detect``'s subimages: the local localizer (SPEC 13.3) or the config's.
 DETECT_LOCALIZERS = ("local", "config")
+#: What a candidate box's score is fused with (``[detect] box_prior``, SPEC 13.3): its area, or
+#: nothing (the score alone, as the paper's detector).
+BOX_PRIORS = ("area", "none")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
 #: Per-image proposal methods: name -> function (built-in ones and ``proposals.register_method``).

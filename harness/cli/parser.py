@@ -8,7 +8,7 @@ from typing import Any
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
 from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
-from harness.methods import BOX_GENERATORS, BOX_SCORES
+from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -210,6 +210,12 @@ def _add_detect(sub: Any) -> None:
         choices=("local", "config"),
         help="what ranks the subimages: local (each colour region ranked inside its paired map "
         "frame, SPEC 13.3) or config (the config's localizers) (default: [detect] localizer)",
+    )
+    p.add_argument(
+        "--box-prior",
+        choices=BOX_PRIORS,
+        help="what a box's score is fused with: area (its percentile by area in its frame, "
+        "SPEC 13.3) or none (the score alone, the paper's detector) (default: [detect] box_prior)",
     )
     p.add_argument(
         "--box-score",

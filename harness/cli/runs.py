@@ -79,6 +79,7 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
         segments=cfg.proposals.segments,
         localizer=getattr(args, "localizer", None) or cfg.detect.localizer,
         local=cfg.detect.local,
+        box_prior=getattr(args, "box_prior", None) or cfg.detect.box_prior,
     )
 
 

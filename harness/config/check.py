@@ -26,6 +26,7 @@ from harness.config.schema import (
 from harness.errors import ConfigError
 from harness.methods import (
     BOX_GENERATORS,
+    BOX_PRIORS,
     BOX_SCORES,
     DETECT_LOCALIZERS,
     known_fusion_methods,
@@ -640,6 +641,13 @@ def _check_detect(cfg: Config, where: str) -> None:
         " or ".join(DETECT_LOCALIZERS),
     )
     check_local(dt.local, f"{where} [detect.local]")
+    c(
+        dt.box_prior in BOX_PRIORS,
+        where,
+        "[detect] box_prior",
+        dt.box_prior,
+        " or ".join(BOX_PRIORS),
+    )
     c(
         0 < dt.locmap_level < 1,
         where,

@@ -366,7 +366,7 @@ class DetectConfig:
     # "locmap" (connected regions of the
     # thresholded LoC map), "proposals" (the original proposals scored by the LoC inside) or
     # "segments" (the frame's colour regions, [proposals.segments], scored by the LoC inside)
-    boxes: str = "fused"
+    boxes: str = "subimages"
     # locmap / proposals / segments: a box's score from the LoC map, "max" or "mean" inside it,
     # or "contrast" (the mean inside less the mean of the ring around it, half the box wide)
     box_score: str = "max"
@@ -380,7 +380,10 @@ class DetectConfig:
     alarm: float = 0.01
     # what ranks the subimages: "local" (each subimage of the frame's colour regions ranked inside
     # its paired map frame, SPEC 13.3, with [detect.local]) or "config" (the config's localizers)
-    localizer: str = "config"
+    localizer: str = "local"
+    # a prior a box's score is fused with: "area" (the mean of the box's percentile among its
+    # frame's candidates by score and by area, SPEC 13.3: docs/method.md measures it) or "none"
+    box_prior: str = "area"
     # the local localizer's options (harness.localizers.local.LocalConfig)
     local: LocalConfig = field(default_factory=LocalConfig)
 

@@ -32,6 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pandas as pd
+from scipy.stats import rankdata
 
 from harness import kernels
 from harness.config.schema import (
@@ -84,12 +85,13 @@ class DetectOptions:
     chunk_frames: int = 64  # query frames per cached unit (the unit a killed run resumes at)
     top: int = 10  # most changed places on the map and the page
     seed: int = 0
-    boxes: str = "fused"  # the box generator (SPEC 13.1, [detect] boxes)
+    boxes: str = "subimages"  # the box generator (SPEC 13.1, [detect] boxes)
     box_score: str = "max"  # locmap / proposals / segments: max, mean or contrast of the LoC
     locmap_level: float = 0.5  # locmap: the level, a share of the frame's LoC range
     min_box_side: float = 2.0  # [detect] min_box_side: thinner candidates are dropped
     segments: SegmentsConfig = field(default_factory=SegmentsConfig)  # [proposals.segments]
-    localizer: str = "config"  # [detect] localizer: "local" (SPEC 13.3) or "config"
+    localizer: str = "local"  # [detect] localizer: "local" (SPEC 13.3) or "config"
+    box_prior: str = "area"  # [detect] box_prior: "area" or "none" (SPEC 13.3)
     local: LocalConfig = field(default_factory=LocalConfig)  # [detect.local]
 
     def record(self) -> dict[str, Any]:
@@ -239,6 +241,26 @@ def _all_no_change(qk: pd.DataFrame) -> pd.DataFrame:
     )
 
 
+def with_area_prior(boxes: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Scores fused with box area (``[detect] box_prior = "area"``, SPEC 13.3).
+
+    Each box's score becomes the mean of its percentile among the frame's scored boxes by
+    ``score`` and by area (``(rank - 0.5) / n``, ties sharing their mean rank); a box without a
+    finite score keeps none. Within-frame percentiles put every frame on one scale, so the
+    pooled ranking does not follow whichever frames happen to score high overall; the area
+    part is the prior a no-pixel baseline reads, so Table D's paired test against box area
+    alone measures what the pixels add.
+    """
+    out = np.full(len(score), np.nan)
+    ok = np.isfinite(score)
+    n = int(ok.sum())
+    if n:
+        b = boxes[ok]
+        area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+        out[ok] = ((rankdata(score[ok]) - 0.5) / n + (rankdata(area) - 0.5) / n) / 2
+    return out
+
+
 def _frame_boxes_of(
     g: pd.DataFrame,
     floc: np.ndarray,
@@ -267,6 +289,8 @@ def _frame_boxes_of(
         rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(len(boxes))
     wide = np.minimum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) >= opt.min_box_side
     boxes, loc, rnd = boxes[wide], loc[wide], rnd[wide]
+    if opt.box_prior == "area":
+        loc = with_area_prior(boxes, loc)
     keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
     rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
     return boxes, loc, keep, rand, rnd, int((~wide).sum())
@@ -485,6 +509,8 @@ def _detect_config(
         dcfg = dataclasses.replace(
             dcfg,
             proposals=dataclasses.replace(cfg.proposals, methods=methods, segments=opt.segments),
+            # the config's localizers (pairs by retrieval or sequence) keep their own proposals
+            localizers=cfg.localizer_set(),
         )
     return dcfg
 
