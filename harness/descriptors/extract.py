@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
-from tqdm import tqdm
 
 from harness.config.schema import DescriptorConfig, ProjectionConfig
 from harness.descriptors.base import Descriptor, make_descriptor, normalize
@@ -24,7 +23,7 @@ from harness.descriptors.projection import fit_projection, load_projection, proj
 from harness.errors import HarnessError, RetrievalError
 from harness.records import FRAME_KEY
 from harness.runtime.cache import open_memmap_reserved, read_cached_parquet, write_parquet
-from harness.runtime.progress import progress
+from harness.runtime.progress import progress, progress_bar
 
 #: torch's threads while a model trains. The weights' last bits depend on the thread count (on
 #: the fixture one thread trains 978b9a45b447dc88, two 978dd804b216655a: measured), so every
@@ -97,14 +96,7 @@ def train_model(
         if dc.train_samples > 0
         else dc.epochs * steps_per_epoch
     )
-    bar = tqdm(
-        total=total,
-        desc="autoencoder training",
-        unit="step",
-        mininterval=1.0,
-        leave=False,
-        disable=None,
-    )
+    bar = progress_bar(total, "autoencoder training", "step")
     with training_threads():
         info = desc.fit(data, tmp, progress=bar.update)
     bar.close()
