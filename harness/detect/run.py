@@ -612,11 +612,7 @@ def run_detect(
             al,
         )
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
-        # candidates thinner than [detect] min_box_side, dropped before NMS and Table D
-        record["thin_boxes_dropped"] = sum(
-            int(p.cache.manifest("detect", e.key)["info"].get("thin_boxes_dropped", 0))
-            for e in entries
-        )
+        record["thin_boxes_dropped"] = _thin_boxes(p, entries)
         record.update(aligned)
         record["kernels"] = kernels.report()
         if rerun is not None:
@@ -629,6 +625,13 @@ def run_detect(
         record["ms_per_query_frame"] = round(1000 * record["total_s"] / max(len(fr), 1), 2)
         write_json(p.out / "detect.json", record)
     return record
+
+
+def _thin_boxes(p: Any, entries: list[Any]) -> int:
+    """Candidates thinner than ``[detect] min_box_side``, dropped before NMS and Table D."""
+    return sum(
+        int(p.cache.manifest("detect", e.key)["info"].get("thin_boxes_dropped", 0)) for e in entries
+    )
 
 
 def _alignment(out: Path, measured: list[Any]) -> tuple[pd.DataFrame | None, dict[str, Any]]:
