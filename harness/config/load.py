@@ -363,12 +363,6 @@ def folder_pairing(map_dir: Path, query_dirs: list[Path]) -> str:
     return "name"
 
 
-#: ``harness detect --map-images/--query-images``'s ``[descriptor]`` without ``--config``: the
-#: training budget of ``datasets/nclt.toml`` (6,000 sample-steps, early stopping on held-out
-#: crops), so the model that pairs a folder by sequence costs the same whatever its size.
-FOLDER_DESCRIPTOR = {"train_samples": 6000}
-
-
 def image_folders_config(
     map_dir: Path, query_dirs: list[Path], cfg: Config | None = None
 ) -> tuple[Config, str, list[str]]:
@@ -400,13 +394,7 @@ def image_folders_config(
         {"name": n, "source": str(d.expanduser().resolve()), "format": "images", "season": n}
         for n, d in zip(names, dirs, strict=True)
     ]
-    base = cfg or parse_config(
-        # without --config: the paper's 256 x 256 autoencoder on a budget of sample-steps with
-        # early stopping (datasets/nclt.toml's), not 4 epochs over every crop
-        {"name": "image-folders", "sessions": sessions, "descriptor": FOLDER_DESCRIPTOR},
-        Path.cwd(),
-        where,
-    )
+    base = cfg or parse_config({"name": "image-folders", "sessions": sessions}, Path.cwd(), where)
     by = base.pairs.by if base.pairs.by != "pose" else folder_pairing(dirs[0], dirs[1:])
     out = dataclasses.replace(
         base,
