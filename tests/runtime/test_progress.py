@@ -9,12 +9,19 @@ import pytest
 from harness.runtime import progress as pr
 
 
-def test_off_a_terminal_progress_is_a_log_line_every_ten_seconds(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
-) -> None:
+@pytest.fixture
+def clock(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """No terminal, and a clock the test moves by hand (``clock[0]`` seconds)."""
     now = [0.0]
     monkeypatch.setattr(pr, "_terminal", lambda: False)
     monkeypatch.setattr(pr.time, "monotonic", lambda: now[0])
+    return now
+
+
+def test_off_a_terminal_progress_is_a_log_line_every_ten_seconds(
+    clock: list[float], caplog: pytest.LogCaptureFixture
+) -> None:
+    now = clock
     items = list(range(30))
     seen = []
     with caplog.at_level(logging.INFO, logger=pr.__name__):
@@ -31,11 +38,9 @@ def test_off_a_terminal_progress_is_a_log_line_every_ten_seconds(
 
 
 def test_short_work_logs_nothing_and_a_bar_by_hand_counts_steps(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+    clock: list[float], caplog: pytest.LogCaptureFixture
 ) -> None:
-    now = [0.0]
-    monkeypatch.setattr(pr, "_terminal", lambda: False)
-    monkeypatch.setattr(pr.time, "monotonic", lambda: now[0])
+    now = clock
     with caplog.at_level(logging.INFO, logger=pr.__name__):
         list(pr.progress(iter(range(5)), "quick"))  # 0 s: no line; no length: no total
         bar = pr.progress_bar(400, "autoencoder training", "step")
