@@ -15,6 +15,7 @@ rule, and ``above`` only when it is also clear of the best of them.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,8 @@ from harness.inputs import IMAGE_SUFFIXES
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.reports.html.cells import esc
 from harness.runtime.cache import read_cached_parquet, write_text
+
+log = logging.getLogger(__name__)
 
 #: The rows of the pixel table: the detector's LoC map, one random scoring of the same boxes
 #: (the paired test's reference) and the no-pixel baselines.
@@ -316,6 +319,12 @@ def write_pixel_table(
         ran = set(map(tuple, run_frames[FRAME_KEY].to_numpy().tolist()))
         every = mask_frames(Path(cfg.masks.folder), names, [map_session])
         files = {k: f for k, f in every.items() if k in ran}
+        if len(files) < len(every):  # e.g. frames thinned out by [pairs] stride_m
+            log.info(
+                "pixel AP: %d of %d masks name a frame this run did not detect on, left out",
+                len(every) - len(files),
+                len(every),
+            )
     if not files:  # an earlier run's table into this run directory is not this run's
         for stale in ("tableD_pixel.csv", "tableD_pixel.md"):
             (out / stale).unlink(missing_ok=True)

@@ -460,6 +460,8 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
 ) -> None:
     """``--boxes proposals`` (SPEC 13.1): every change box is an original proposal of its frame,
     Table D names the generator and its candidates are those proposals."""
+    opt = json.loads((paper_detected / "detect.json").read_text())["options"]  # PAPER passed on
+    assert "localizer" not in opt and (opt["boxes"], opt["box_prior"]) == ("fused", "none")
     paper = pd.read_csv(paper_detected / "tableD.csv").iloc[0]  # the paper's detector, quoted
     assert paper.verdict == "chance"
     readme_ = " ".join((ROOT / "README.md").read_text().split())
@@ -507,9 +509,18 @@ def test_boxes_segments_with_contrast_as_typed(
     from harness.imagestore import read_image
     from harness.proposals.proposers import segment_boxes
 
-    out = _scored_again(paper_detected, local_run, tmp_path / "segments", "--boxes", "segments",
-                        "--box-score", "contrast")  # fmt: skip
+    # the README's command as typed (its --out here, the fixture's --data-root added)
+    lines = (ROOT / "README.md").read_text().splitlines()
+    typed = next(x for x in lines if x.startswith("harness detect") and "detect-segments" in x)
+    argv = typed.split()[1:]
+    out = tmp_path / "segments"
+    argv[argv.index("--out") + 1] = str(out)
+    shutil.copytree(paper_detected / "cache", out / "cache")  # the paper run's model and ranks
+    shutil.copy(paper_detected / ".dbl-harness.json", out / ".dbl-harness.json")
+    _run([*argv, "--data-root", str(local_run[0].cfg.data_root)])
     rec = json.loads((out / "detect.json").read_text())
+    # the paper's detector: no local options in its record, its score unfused with area
+    assert "localizer" not in rec["options"] and rec["options"]["box_prior"] == "none"
     assert (rec["options"]["boxes"], rec["options"]["box_score"]) == ("segments", "contrast")
     t = pd.read_csv(out / "tableD.csv")
     assert (t["boxes"] == "segments").all()
