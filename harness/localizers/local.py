@@ -202,9 +202,16 @@ def feature_image(gray: np.ndarray, kind: str) -> np.ndarray:
     if kind == "gray":
         return g
     b = cv2.GaussianBlur(g, (3, 3), 0)
-    return np.asarray(
-        cv2.magnitude(cv2.Sobel(b, cv2.CV_32F, 1, 0), cv2.Sobel(b, cv2.CV_32F, 0, 1)), np.float32
-    )
+    gx = np.asarray(cv2.Sobel(b, cv2.CV_32F, 1, 0), np.float32)
+    gy = np.asarray(cv2.Sobel(b, cv2.CV_32F, 0, 1), np.float32)
+    # numpy, not cv2.magnitude: OpenCV's result depends on where its output buffer starts (its
+    # vector and scalar paths round differently, and numpy places the buffer anew each run), so
+    # the same frames gave other ranks from run to run; IEEE products, sum and square root give
+    # the same bits on every run and every CPU
+    gx *= gx
+    gy *= gy
+    gx += gy
+    return np.sqrt(gx, out=gx)
 
 
 def _rank_in(

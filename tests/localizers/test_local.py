@@ -221,3 +221,21 @@ def test_the_page_says_which_pairs_could_not_be_aligned() -> None:
     assert "could not align 1 of 3 pairs" in html and "q Cam5 2" in html
     assert "could not align" not in alignment_html(al[al["align"] != "none"])
     assert alignment_html(None) == ""
+
+
+def test_the_gradient_image_is_the_same_bits_wherever_its_buffers_lie() -> None:
+    """The gradient magnitude is IEEE's (products, sum, square root in float32), not
+    ``cv2.magnitude``'s: OpenCV's result depends on where its output buffer starts (measured:
+    4 different results for 16 placements of the same inputs), so the same frames gave other
+    ranks from run to run."""
+    gray = _texture(3)
+    b = cv2.GaussianBlur(gray.astype(np.float32), (3, 3), 0)
+    gx, gy = cv2.Sobel(b, cv2.CV_32F, 1, 0), cv2.Sobel(b, cv2.CV_32F, 0, 1)
+    want = np.sqrt(gx * gx + gy * gy)
+    for offset in range(0, 64, 4):  # the input placed at every 4-byte offset of a cache line
+        buf = np.zeros(gray.size + 128, np.uint8)
+        start = (-buf.ctypes.data) % 64 + offset
+        placed = buf[start : start + gray.size].reshape(gray.shape)
+        placed[...] = gray
+        got = feature_image(placed, "gradient")
+        assert got.dtype == np.float32 and got.tobytes() == want.tobytes(), offset
