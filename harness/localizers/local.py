@@ -228,14 +228,13 @@ def _rank_in(
     wx0, wy0, wx1, wy1 = max(0, x1 - g), max(0, y1 - g), min(w, x2 + g), min(h, y2 + g)
     if wx1 - wx0 <= tw or wy1 - wy0 <= th:
         return None
-    inside = valid[y2, x2] - valid[y1, x2] - valid[y2, x1] + valid[y1, x1]
+    inside = int(valid[y2, x2]) - int(valid[y1, x2]) - int(valid[y2, x1]) + int(valid[y1, x1])
     if inside / float(tw * th) < 0.9:  # the expected place is outside the other frame
         return None
     res = cv2.matchTemplate(dst[wy0:wy1, wx0:wx1], src[y1:y2, x1:x2], cv2.TM_CCOEFF_NORMED)
     ex, ey = x1 - wx0, y1 - wy0  # the expected position in the response
-    near = res[max(0, ey - t) : ey + t + 1, max(0, ex - t) : ex + t + 1]
-    best = float(near.max())
-    return int((res > best).sum()) + 1, int(res.size), best
+    best = cv2.minMaxLoc(res[max(0, ey - t) : ey + t + 1, max(0, ex - t) : ex + t + 1])[1]
+    return int(np.count_nonzero(res > best)) + 1, int(res.size), best
 
 
 def box_rank(
@@ -324,23 +323,40 @@ def pair_ranks(
     valid = cv2.warpPerspective(np.ones_like(q), Hs, (w, h), flags=flags, borderValue=0) > 0
     levels = [(fq, warped, valid)]
     integrals = [cv2.integral(valid.astype(np.uint8), sdepth=cv2.CV_32S)]
-    for i, b in enumerate(np.asarray(boxes, np.float64).reshape(-1, 4) * s):
-        side, k = min(b[2] - b[0], b[3] - b[1]), 0
-        while side / 2**k > lc.max_template_px and min(levels[k][0].shape) >= 16:
-            k += 1
-            if k == len(levels):  # the next pyramid level, built once per pair
-                a, m_, v = levels[-1]
-                levels.append((cv2.pyrDown(a), cv2.pyrDown(m_), cv2.pyrDown(v.astype(
-                    np.float32)) > 0.99))  # fmt: skip
-                integrals.append(cv2.integral(levels[-1][2].astype(np.uint8), sdepth=cv2.CV_32S))
-        lq, lm, _ = levels[k]
+    b = np.asarray(boxes, np.float64).reshape(-1, 4) * s
+    k = _levels(np.minimum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]), (h, w), lc.max_template_px)
+    at = np.round(b / np.exp2(k)[:, None])  # half to even, as round() is
+    for i, (ki, (x1, y1, x2, y2)) in enumerate(zip(k.tolist(), at.tolist(), strict=True)):
+        while ki >= len(levels):  # the next pyramid level, built once per pair
+            a, m_, v = levels[-1]
+            levels.append((cv2.pyrDown(a), cv2.pyrDown(m_), cv2.pyrDown(v.astype(
+                np.float32)) > 0.99))  # fmt: skip
+            integrals.append(cv2.integral(levels[-1][2].astype(np.uint8), sdepth=cv2.CV_32S))
+        lq, lm, _ = levels[ki]
         lh, lw = lq.shape
-        x1, y1, x2, y2 = (round(v / 2**k) for v in b)
-        box = (min(max(x1, 0), lw), min(max(y1, 0), lh), min(max(x2, 0), lw), min(max(y2, 0), lh))
-        got = _box_rank(lq, lm, integrals[k], box, lc, math.hypot(w, h) / 2**k)
+        box = (min(max(int(x1), 0), lw), min(max(int(y1), 0), lh), min(max(int(x2), 0), lw),
+               min(max(int(y2), 0), lh))  # fmt: skip
+        got = _box_rank(lq, lm, integrals[ki], box, lc, math.hypot(w, h) / 2**ki)
         if got is not None:
             out[i] = got
     return al, out
+
+
+def _levels(side: np.ndarray, shape: tuple[int, int], max_px: int) -> np.ndarray:
+    """Each box's pyramid level, from its shorter ``side`` (level 0's pixels).
+
+    Halved until the side is at most ``max_px``, but never past a level whose shorter image
+    side is under 16 px (``shape``: level 0's).
+    """
+    k = np.zeros(len(side), np.int64)
+    h, w, level = *shape, 0
+    while min(h, w) >= 16:  # a box may go one level further than this one
+        deeper = side / 2**level > max_px
+        if not deeper.any():
+            break
+        k += deeper
+        h, w, level = (h + 1) // 2, (w + 1) // 2, level + 1
+    return k
 
 
 #: ``alignment.parquet``/``alignment.csv``: the pair, then how it was aligned.
@@ -359,18 +375,26 @@ LOCAL_COUNTS = (
 )
 
 
-def _rank_rows(pair: Any, b: pd.DataFrame, g: np.ndarray) -> pd.DataFrame:
-    """The rank rows (SPEC 6's columns) of one pair's ranked boxes ``b`` and their ``g``."""
+def _rank_rows(
+    pairs: pd.DataFrame, props: pd.DataFrame, which: np.ndarray, at: np.ndarray, g: np.ndarray
+) -> pd.DataFrame:
+    """The rank rows (SPEC 6's columns) of a unit's ranked boxes, in one table.
+
+    Row ``i`` is ``props`` row ``at[i]``, ranked in the pair of ``pairs`` row ``which[i]``, with
+    its (rank, L, best NCC) ``g[i]``.
+    """
     rank, L = g[:, 0].astype(np.int64), g[:, 1].astype(np.int64)
+    b = props.iloc[at]
+    p = pairs.iloc[which]
     return pd.DataFrame(
         {
-            "q_session": pair.q_session,
-            "q_camera": pair.q_camera,
-            "q_utime": np.full(len(b), int(pair.q_utime), np.int64),
-            "r_session": pair.r_session,
-            "r_camera": pair.r_camera,
-            "r_utime": np.full(len(b), int(pair.r_utime), np.int64),
-            "season_pair": pair.season_pair,
+            "q_session": p["q_session"].to_numpy(),
+            "q_camera": p["q_camera"].to_numpy(),
+            "q_utime": p["q_utime"].to_numpy(np.int64),
+            "r_session": p["r_session"].to_numpy(),
+            "r_camera": p["r_camera"].to_numpy(),
+            "r_utime": p["r_utime"].to_numpy(np.int64),
+            "season_pair": p["season_pair"].to_numpy(),
             "proposal_method": b["proposal_method"].to_numpy(),
             "box_id": b["box_id"].to_numpy(),
             **{c: b[c].to_numpy(np.float64) for c in ("x1", "y1", "x2", "y2")},
@@ -379,8 +403,8 @@ def _rank_rows(pair: Any, b: pd.DataFrame, g: np.ndarray) -> pd.DataFrame:
             "r": rank / L,
             "r_desc": (L + 1 - rank) / L,
             "d": 1.0 - g[:, 2],  # 1 - the best NCC within the tolerance
-            "exact": True,
-            "place_size": np.ones(len(b), np.int64),
+            "exact": np.ones(len(g), bool),
+            "place_size": np.ones(len(g), np.int64),
         }
     )
 
@@ -392,41 +416,51 @@ def write_local_ranks(
 
     ``pairs``: the unit's pairs; ``props``: the query sessions' proposals (every method).
     """
-    fr = frames.set_index(FRAME_KEY)
-    counts = dict.fromkeys(LOCAL_COUNTS, 0)
-    by_frame = {k: g for k, g in props.groupby(FRAME_KEY, sort=False)}
+    pairs = pairs.reset_index(drop=True)
+    times = np.union1d(pairs["q_utime"].to_numpy(np.int64), pairs["r_utime"].to_numpy(np.int64))
+    mine = frames.loc[frames["utime"].isin(times), [*FRAME_KEY, "image", "width", "height"]]
+    files = {  # a frame's (image, width, height), looked up without pandas in the worker threads
+        (s, c, int(u)): (str(i), int(w), int(h))
+        for s, c, u, i, w, h in mine.itertuples(index=False, name=None)
+    }
+    at_frame = props.groupby(FRAME_KEY, sort=False).indices
+    xy = props[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    none = np.zeros(0, np.int64)
 
-    def one(row: Any) -> tuple[Alignment, pd.DataFrame, np.ndarray]:
-        qk = (row.q_session, row.q_camera, int(row.q_utime))
-        boxes = by_frame.get(qk)
-        boxes = boxes if boxes is not None else props.iloc[:0]
-        qf, mf = fr.loc[qk], fr.loc[(row.r_session, row.r_camera, int(row.r_utime))]
-        xy = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-        al, got = pair_ranks(
-            str(qf["image"]), str(mf["image"]), (int(qf["width"]), int(qf["height"])), xy, lc
-        )
-        return al, boxes, got
+    def one(row: tuple) -> tuple[Alignment, np.ndarray, np.ndarray]:
+        qs, qc, qu, rs, rc, ru = row
+        at = at_frame.get((qs, qc, int(qu)), none)
+        q_img, w, h = files[(qs, qc, int(qu))]
+        al, got = pair_ranks(q_img, files[(rs, rc, int(ru))][0], (w, h), xy[at], lc)
+        return al, at, got
 
+    keys = pairs[["q_session", "q_camera", "q_utime", "r_session", "r_camera", "r_utime"]]
     workers = max(1, min(len(pairs), os.cpu_count() or 1))
     with ThreadPoolExecutor(workers) as pool:  # OpenCV releases the GIL: pairs run side by side
-        done = list(pool.map(one, pairs.itertuples(index=False)))
-    rows, aligns = [], []
-    for row, (al, boxes, got) in zip(pairs.itertuples(index=False), done, strict=True):
-        counts["query_subimages"] += len(boxes)
+        done = list(pool.map(one, keys.itertuples(index=False, name=None)))
+    counts = dict.fromkeys(LOCAL_COUNTS, 0)
+    aligns, which, ats, gots = [], [], [], []
+    for i, (row, (al, at, got)) in enumerate(zip(pairs.itertuples(index=False), done, strict=True)):
+        counts["query_subimages"] += len(at)
         counts[f"pairs_{al.method if al.H is not None else 'not_aligned'}"] += 1
         aligns.append(
             (row.q_session, row.q_camera, int(row.q_utime), row.r_session, row.r_camera,
              int(row.r_utime), al.method, al.inliers, al.score)
         )  # fmt: skip
         if al.H is None:
-            counts["no_rank_pair_not_aligned"] += len(boxes)
+            counts["no_rank_pair_not_aligned"] += len(at)
             continue
         ok = np.isfinite(got[:, 0])
         counts["no_rank_box_too_small_or_outside"] += int((~ok).sum())
         counts["ranked"] += int(ok.sum())
-        if ok.any():
-            rows.append(_rank_rows(row, boxes[ok], got[ok]))
-    df = pd.concat(rows, ignore_index=True) if rows else pd.DataFrame()
+        which.append(np.full(int(ok.sum()), i, np.int64))
+        ats.append(at[ok])
+        gots.append(got[ok])
+    df = (
+        _rank_rows(pairs, props, np.concatenate(which), np.concatenate(ats), np.concatenate(gots))
+        if counts["ranked"]
+        else pd.DataFrame()
+    )
     write_parquet(tmp / "ranks.parquet", df)
     write_parquet(
         tmp / "alignment.parquet",
