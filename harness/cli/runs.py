@@ -64,7 +64,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
     """``harness detect``'s options: the flags as typed, ``[detect]`` where a flag is not given."""
-    from harness.detect.run import DetectOptions
+    from harness.detect.options import DetectOptions
 
     return DetectOptions(
         fusion=args.fusion,

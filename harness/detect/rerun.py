@@ -19,6 +19,7 @@ and options, so the same run names the same recording.
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from harness.detect.options import DetectOptions
 from harness.errors import ConfigError
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
@@ -202,3 +204,60 @@ def write_recording(
 def recording_id(out: Path, options: dict[str, Any]) -> str:
     """The recording's id: the run's folder name and its options (the same run, the same id)."""
     return "dbl-harness-" + stable_hash(Path(out).name, options, length=16)
+
+
+def check_rerun_target(path: Path) -> None:
+    """Refuse a ``--rerun`` path that exists and is not a recording ``harness detect`` wrote.
+
+    Raises:
+        ConfigError: the path is a folder, or a file of someone else's (never replaced).
+    """
+    if path.is_dir():
+        raise ConfigError(f"--rerun {path}: is a folder; give the .rrd file to write")
+    if not path.exists():
+        if not path.parent.is_dir():
+            raise ConfigError(f"--rerun {path}: its folder {path.parent} does not exist")
+        return
+    rr = rerun_sdk()
+    from rerun.chunk import RrdReader
+
+    try:
+        apps = {s.application_id for s in RrdReader(path).recordings()}
+    except Exception:  # an unreadable or foreign file: not ours to replace
+        apps = set()
+    del rr
+    if apps != {APPLICATION}:
+        raise ConfigError(
+            f"--rerun {path}: exists and is not a recording harness detect wrote; it is never "
+            "replaced: remove it or choose another path"
+        )
+
+
+def write_rerun(
+    path: Path,
+    out: Path,
+    frames: pd.DataFrame,
+    map_session: str,
+    fr: pd.DataFrame,
+    dets: pd.DataFrame,
+    entries: list[Any],
+    opt: DetectOptions,
+) -> dict[str, Any]:
+    """The run's Rerun recording at ``path``, written beside it and moved into place whole."""
+    check_rerun_target(path)
+    fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "image"]], on=FRAME_KEY)
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        counts = write_recording(
+            tmp,
+            frames,
+            map_session,
+            fr,
+            dets,
+            entries,
+            recording_id(out, opt.record()),
+        )
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return {"path": str(path), **counts}

@@ -21,8 +21,8 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
+from harness.detect.boxes import change_boxes_nms
 from harness.detect.evaluate import _voc_all_point
-from harness.detect.run import change_boxes_nms
 from harness.evaluate import chance
 
 from ..conftest import shared_stages
@@ -402,7 +402,7 @@ def test_rerun_recording_reads_back_with_the_sdk(
 
 def test_box_generators_on_a_loc_map_known_by_hand() -> None:
     """SPEC 13.1's generators on a 20 x 10 frame whose left half has LoC 1 and right half 5."""
-    from harness.detect.run import candidate_boxes
+    from harness.detect.boxes import candidate_boxes
 
     fused = np.array([[0, 0, 10, 10], [10, 0, 20, 10]], np.float64)
     loc = np.array([1.0, 5.0])
@@ -576,7 +576,7 @@ def test_segment_boxes_frame_coloured_objects_on_a_textured_scene() -> None:
 def test_contrast_prefers_the_box_that_frames_the_hot_region() -> None:
     """``contrast``: the mean inside less the ring's mean. On a map hot in one 10 x 10 square, the
     box on the square beats one twice as large around it and one half on it; ``max`` ties them."""
-    from harness.detect.run import _inside
+    from harness.detect.boxes import _inside
 
     m = np.ones((60, 60))
     m[20:30, 20:30] = 9.0

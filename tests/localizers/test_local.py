@@ -147,8 +147,8 @@ def test_the_config_reads_detect_local_and_a_local_localizer(tmp_path) -> None:
 def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
     """Table D's rows that read no pixel (SPEC 13.3): a box's area, and how many of the frame's
     candidates overlap it (itself included); the detector is above only when clear of the best."""
+    from harness.detect.boxes import change_boxes_nms
     from harness.detect.evaluate import no_pixel_scores, table_d_chance
-    from harness.detect.run import change_boxes_nms
 
     boxes = np.array([[0, 0, 10, 10], [5, 5, 25, 15], [40, 40, 44, 60]], np.float64)
     s = no_pixel_scores(boxes)

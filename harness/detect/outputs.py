@@ -1,0 +1,344 @@
+"""``harness detect``'s outputs: frames, detections, alarms, Table D, LoC maps, page, JSON."""
+
+from __future__ import annotations
+
+import json
+import logging
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from harness.config.schema import (
+    ALL_LOCALIZERS,
+    Config,
+)
+from harness.detect.boxes import change_boxes_nms
+from harness.detect.chunk import FRAME_RESULT
+from harness.detect.options import DetectOptions
+from harness.detect.pixels import write_pixel_table
+from harness.fusion.fuse import loc_map
+from harness.imagestore import read_image
+from harness.ingest.names import session_names, with_names
+from harness.records import FRAME_KEY, QUERY_KEY
+from harness.runtime.cache import (
+    read_cached_parquet,
+    write_json,
+    write_parquet,
+    write_text,
+)
+
+log = logging.getLogger(__name__)
+
+
+#: What a pair not made by pose adds to its query frame's row (SPEC 13.2).
+PAIR_EXTRA = ("pair_confidence", "uncertain_pair")
+
+
+def _frame_name(s: str, c: str, u: int) -> str:
+    return f"{s}_{c}_{u}"
+
+
+def _frame_table(
+    out: Path,
+    fr: pd.DataFrame,
+    frames: pd.DataFrame,
+    pairs: pd.DataFrame,
+    names: pd.DataFrame,
+    sources: dict[str, str],
+    min_pair_confidence: float = 0.0,
+) -> tuple[pd.DataFrame, dict[tuple[str, str, int], int]]:
+    """The query frames with pose, image and map frame, numbered; ``images.json`` (COCO).
+
+    Frames read from folders keep their file names (SPEC 13.2): ``name`` (the query image's)
+    and ``r_name`` (its map image's) columns, and the COCO ``file_name`` (with ``path``, the
+    file itself); a log's frame keeps the stored image as its ``file_name``. Pairs not made by
+    pose carry their ``pair_confidence``, and ``uncertain_pair`` where it is below
+    ``min_pair_confidence``.
+
+    Returns the frames and the COCO image id of each frame key.
+    """
+    fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "yaw", "image", "width", "height"]], on=FRAME_KEY)
+    extra = [c for c in PAIR_EXTRA[:1] if c in pairs.columns]
+    fr = fr.merge(
+        pairs[[*QUERY_KEY, "r_camera", "r_utime", *extra]].rename(
+            columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}
+        ),
+        on=FRAME_KEY,
+        how="left",
+    )
+    if "pair_confidence" in fr.columns:
+        fr["uncertain_pair"] = fr["pair_confidence"].to_numpy(np.float64) < min_pair_confidence
+    if len(names):
+        fr = with_names(fr, names, FRAME_KEY, "name")
+        fr = with_names(fr, names, ["r_session", "r_camera", "r_utime"], "r_name")
+    fr = fr.sort_values(FRAME_KEY).reset_index(drop=True)
+    fr.insert(0, "image_id", np.arange(1, len(fr) + 1))
+    ids = {(s, c, int(u)): int(i) for i, s, c, u in fr[["image_id", *FRAME_KEY]].to_numpy()}
+    images = [
+        {
+            "id": int(r.image_id),
+            "file_name": getattr(r, "name", "") or str(r.image).split("#")[0],
+            **(
+                {"path": str(Path(sources[str(r.session)]) / str(r.name))}
+                if getattr(r, "name", "")
+                else {}
+            ),
+            "width": int(r.width),
+            "height": int(r.height),
+            "session": str(r.session),
+            "camera": str(r.camera),
+            "utime": int(r.utime),
+            "rotation": str(r.image).split("#rot=")[1] if "#rot=" in str(r.image) else "none",
+        }
+        for r in fr.itertuples()
+    ]
+    write_json(
+        out / "images.json",
+        {"images": images, "categories": [{"id": 1, "name": "change", "supercategory": "change"}]},
+    )
+    return fr, ids
+
+
+def _calibrated(
+    fr: pd.DataFrame, dets: pd.DataFrame, entries: list[Any]
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Calibrated scores (SPEC 13.1), in ``exceedance`` columns.
+
+    Each box against every candidate box of the run, each frame against every frame, one chunk's
+    candidates at a time.
+    """
+    from harness.detect.calibrate import exceedance
+
+    null = np.concatenate(
+        [read_cached_parquet(e.path / "candidates.parquet")["loc"].to_numpy() for e in entries]
+        or [np.zeros(0)]
+    )
+    dets = dets.assign(
+        exceedance=np.where(
+            dets["kind"] == "detection", exceedance(null, dets["score"].to_numpy()), np.nan
+        )
+    )
+    fr = fr.assign(exceedance=exceedance(fr["score"].to_numpy(), fr["score"].to_numpy()))
+    return fr, dets
+
+
+def _coco_results(det: pd.DataFrame, ids: dict[tuple[str, str, int], int]) -> list[dict]:
+    """The change boxes as COCO results (``detections.json``), with their calibrated scores."""
+    return [
+        {
+            "image_id": ids[(str(r.session), str(r.camera), int(r.utime))],
+            "category_id": 1,
+            "bbox": [float(r.x1), float(r.y1), float(r.x2 - r.x1), float(r.y2 - r.y1)],
+            "score": float(r.score),
+            "exceedance": float(r.exceedance),
+        }
+        for r in det.itertuples()
+    ]
+
+
+def _write_alarms(
+    out: Path, fr: pd.DataFrame, det: pd.DataFrame, alarm: float
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``alarms.csv``: the frames and boxes flagged at the nominal false-alarm rate ``alarm``."""
+    flagged_f = fr[fr["exceedance"] <= alarm]
+    flagged_b = det[det["exceedance"] <= alarm]
+    alarms = pd.concat(
+        [
+            flagged_f.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
+            flagged_b.assign(kind="box")[
+                ["kind", *FRAME_KEY, "x1", "y1", "x2", "y2", "score", "exceedance"]
+            ],
+        ],
+        ignore_index=True,
+    ).sort_values(["kind", "exceedance", *FRAME_KEY, "x1", "y1"], kind="stable")
+    write_text(out / "alarms.csv", alarms.to_csv(index=False, float_format="%.6g"))
+    return flagged_f, flagged_b
+
+
+def _nms(boxes: np.ndarray, scores: np.ndarray, nms_iou: float, max_boxes: int) -> np.ndarray:
+    """The detector's NMS as a function of (boxes, scores), for Table D's chance draws."""
+    return change_boxes_nms(boxes, scores, nms_iou, max_boxes)
+
+
+def _table_d(
+    out: Path,
+    cfg: Config,
+    fr: pd.DataFrame,
+    ann: pd.DataFrame,
+    dets: pd.DataFrame,
+    ids: dict[tuple[str, str, int], int],
+    entries: list[Any],
+    opt: DetectOptions,
+    alarm: float,
+) -> pd.DataFrame:
+    """Table D on the annotated frames, from the candidates of those frames only."""
+    from harness.detect.evaluate import score_detections
+
+    annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
+    cands = []
+    for e in entries:  # candidates of the annotated frames only, one chunk at a time
+        sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
+        cands.append(sm[pd.MultiIndex.from_frame(sm[QUERY_KEY]).isin(annotated)])
+    return score_detections(
+        out,
+        fr,
+        ann,
+        dets,
+        ids,
+        pd.concat(cands, ignore_index=True),
+        partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes),
+        cfg.report.chance_draws,
+        cfg.report.bootstrap,
+        cfg.report.ci,
+        cfg.seed,
+        opt.boxes,
+        alarm,
+        cfg.report.min_positive_images,
+    )
+
+
+#: ``detect.json``'s ``alarm``: the nominal rate, the frames and boxes it flags, of how many.
+ALARM_FIELDS = ("rate", "frames", "boxes", "of_frames", "of_boxes")
+
+
+def _frame_columns(fr: pd.DataFrame) -> list[str]:
+    """The columns of ``frames.parquet`` / ``frames.csv``.
+
+    With file names and pair confidence where the frames have them (SPEC 13.2).
+    """
+    named = [c for c in ("name", "r_name", *PAIR_EXTRA) if c in fr.columns]
+    where = ["x", "y", "yaw", "r_session", "r_camera", "r_utime"]
+    return ["image_id", *FRAME_KEY, *where, *named, *FRAME_RESULT, "exceedance"]
+
+
+def write_outputs(
+    p: Any,
+    cfg: Config,
+    map_session: str,
+    queries: list[str],
+    frames: pd.DataFrame,
+    pairs: pd.DataFrame,
+    ann: pd.DataFrame,
+    dets: pd.DataFrame,
+    fr: pd.DataFrame,
+    entries: list[Any],
+    opt: DetectOptions,
+    localizers: list[str],
+    alarm: float = 0.01,
+    alignment: pd.DataFrame | None = None,
+) -> dict[str, Any]:
+    """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
+
+    Also the alarms at the nominal false-alarm rate ``alarm`` (``alarms.csv``, SPEC 13.1).
+    """
+    out = p.out
+    names = session_names(cfg.sessions)
+    sources = {sc.name: sc.source for sc in cfg.sessions}
+    fr, ids = _frame_table(out, fr, frames, pairs, names, sources, cfg.pairs.min_pair_confidence)
+    fr, dets = _calibrated(fr, dets, entries)
+    det = dets[dets["kind"] == "detection"]
+    results = _coco_results(det, ids)
+    write_text(out / "detections.json", json.dumps(results))
+    table = fr[_frame_columns(fr)]
+    write_parquet(out / "frames.parquet", table)
+    write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
+    flagged_f, flagged_b = _write_alarms(out, fr, det, alarm)
+    fr["alarmed"] = fr["exceedance"].to_numpy(np.float64) <= alarm  # the page's, SPEC 13.1
+    sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
+    top = fr[sure].sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
+    maps = locmaps(out, top, entries, dets)
+    from harness.detect.page import trajectory_figure
+
+    traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
+    table_d = _table_d(out, cfg, fr, ann, dets, ids, entries, opt, alarm) if len(ann) else None
+    pixel = write_pixel_table(out, cfg, names, map_session, entries, fr)
+    from harness.detect.page import write_detect_page
+
+    page = write_detect_page(
+        out, fr, top, dets, frames, maps, (table_d, pixel), map_session, localizers, ann,
+        alignment,
+    )  # fmt: skip
+    return {
+        "config": cfg.name,
+        "map": map_session,
+        "queries": queries,
+        "localizers": localizers,
+        "fused_across": ALL_LOCALIZERS if len(localizers) > 1 else None,
+        "options": opt.record(),
+        "query_frames": len(fr),
+        # SPEC 13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
+        "uncertain_pairs": int((~sure).sum()),
+        "min_pair_confidence": cfg.pairs.min_pair_confidence,
+        "detections": len(results),
+        # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)
+        "alarm": dict(
+            zip(ALARM_FIELDS, (alarm, *map(len, (flagged_f, flagged_b, fr, det))), strict=True)
+        ),
+        "outputs": {
+            "detections": str(out / "detections.json"),
+            "images": str(out / "images.json"),
+            "frames": str(out / "frames.parquet"),
+            "trajectory": str(traj),
+            "page": str(page),
+            "locmaps": [str(m) for m in maps.values()],
+        },
+        "table_d": table_d.to_dict(orient="records") if table_d is not None else None,
+        # SPEC 13.2: the LoC maps' pixel AP against the masks (tableD_pixel.csv)
+        "table_d_pixel": pixel.to_dict(orient="records") if pixel is not None else None,
+        "stage_units_run": p.ran,
+        "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
+    }
+
+
+def locmaps(
+    out: Path, top: pd.DataFrame, entries: list[Any], dets: pd.DataFrame
+) -> dict[tuple[str, str, int], Path]:
+    """LoC maps of the ``top`` frames: float16 ``.npy`` and a colour overlay with its bar."""
+    from harness.reports.overlay import colour_bar
+
+    want = set(map(tuple, top[FRAME_KEY].to_numpy().tolist()))
+    d = out / "locmaps"
+    d.mkdir(exist_ok=True)
+    written: dict[tuple[str, str, int], Path] = {}
+    for e in entries:
+        s = read_cached_parquet(e.path / "samples.parquet")
+        for key, g in s.groupby(QUERY_KEY, sort=True):
+            k = (str(key[0]), str(key[1]), int(key[2]))
+            if k not in want:
+                continue
+            r = top[(top["session"] == k[0]) & (top["camera"] == k[1]) & (top["utime"] == k[2])]
+            img = read_image(str(r["image"].iloc[0]))
+            h, w = img.shape[:2]
+            m = loc_map(
+                g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
+                g["loc"].to_numpy(np.float64),
+                w,
+                h,
+            )
+            name = _frame_name(*k)
+            np.save(d / f"{name}.npy", m.astype(np.float16))
+            lo, hi = float(np.nanmin(m)), float(np.nanmax(m))
+            norm = np.nan_to_num((m - lo) / (hi - lo) if hi > lo else np.zeros_like(m))
+            heat = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
+            over = (0.45 * img + 0.55 * heat).astype(np.uint8)
+            over[~np.isfinite(m)] = img[~np.isfinite(m)]
+            b = dets[
+                (dets["kind"] == "detection")
+                & (dets["session"] == k[0])
+                & (dets["camera"] == k[1])
+                & (dets["utime"] == k[2])
+            ]
+            for x1, y1, x2, y2 in b[["x1", "y1", "x2", "y2"]].to_numpy():
+                cv2.rectangle(
+                    over, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (0, 255, 255), 1
+                )
+            up = max(1, int(np.ceil(240 / w)))  # small frames: enlarged so the bar is legible
+            big = cv2.resize(over, (w * up, h * up), interpolation=cv2.INTER_NEAREST)
+            panel = np.vstack([big, colour_bar(w * up, lo, hi)])
+            cv2.imwrite(str(d / f"{name}.png"), panel[..., ::-1])
+            written[k] = d / f"{name}.png"
+    return written
