@@ -237,3 +237,15 @@ def test_tests_mirror_the_packages() -> None:
     assert misplaced == []
     dirs = {d.name for d in tests.iterdir() if (d / "__init__.py").is_file()}
     assert dirs <= packages and {"detect", "pipeline", "ingest"} <= dirs
+
+
+def test_no_assert_checks_a_value_in_the_package() -> None:
+    """Checks are errors that say what is wrong (issue 51): ``python -O`` drops an ``assert``, and
+    an ``AssertionError`` names no file, row or option."""
+    found = [
+        f"{path.relative_to(ROOT)}:{node.lineno}"
+        for path in _modules().values()
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Assert)
+    ]
+    assert found == []

@@ -19,6 +19,7 @@ import pandas as pd
 from harness.detect.calibrate import in_words
 from harness.detect.pixels import pixel_html
 from harness.detect.table import table_d_html
+from harness.errors import HarnessError
 from harness.imagestore import read_image
 from harness.records import FRAME_KEY
 from harness.reports.html.page import (
@@ -150,7 +151,8 @@ def _place_html(
         cells.append((f"map {m_label}", _thumb(mimg, out / "detect" / f"{name}_m.jpg")))
     if k in maps:
         bgr = cv2.imread(str(maps[k]))
-        assert bgr is not None, maps[k]  # written by this run
+        if bgr is None:
+            raise HarnessError(f"{maps[k]}: this run's LoC overlay cannot be read back")
         over = bgr[..., ::-1]
         cells.append(
             (

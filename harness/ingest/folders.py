@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.errors import IngestError
 from harness.inputs import IMAGE_SUFFIXES
 
 IMAGE_TOPIC = "/camera/image/compressed"
@@ -238,7 +239,8 @@ class TumFolder(_Folder):
     def poses(self, path: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
         """(time ns, position (3,), quaternion x, y, z, w) of every pose."""
         f = _first(path, self.TRAJ)
-        assert f is not None
+        if f is None:
+            raise IngestError(f"{path}: no trajectory file ({', '.join(self.TRAJ)})")
         out = []
         for i, r in _rows(f):
             if len(r) != 8:

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -56,6 +56,20 @@ class Measured:
     ranks_also: RankTable | None = None  # at [report] gt_radius_also (the localization table)
 
 
+T = TypeVar("T")
+
+
+def _options(loc: LocalizerConfig, value: T | None) -> T:
+    """A localizer's options of its kind (the config loader sets them for that kind).
+
+    Raises:
+        ConfigError: they are missing (a config built by hand without them).
+    """
+    if value is None:
+        raise ConfigError(f"localizer {loc.name!r} of kind {loc.kind!r}: its options are missing")
+    return value
+
+
 def localizer_proposals(
     p: Context, loc: LocalizerConfig, props: dict[str, Table]
 ) -> dict[str, Table]:
@@ -77,11 +91,11 @@ def bovw_vocabulary(
     """Reference-session subimages -> a bag-of-words vocabulary and its IDF (SPEC section 11)."""
     from harness.retrieval.bovw import train_vocabulary
 
-    assert loc.bovw is not None
+    bc = _options(loc, loc.bovw)
     refs = sorted(set(pairs.df["r_session"]))
     rows = pd.concat([props[s].df for s in refs], ignore_index=True)
-    build = partial(train_vocabulary, loc.bovw, frames.df, rows)
-    return p.unit("bovw_vocab", keys.bovw_vocab(loc.bovw, [props[s].key for s in refs]), build)
+    build = partial(train_vocabulary, bc, frames.df, rows)
+    return p.unit("bovw_vocab", keys.bovw_vocab(bc, [props[s].key for s in refs]), build)
 
 
 def bovw_words(
@@ -94,8 +108,7 @@ def bovw_words(
     """
     from harness.retrieval.bovw import combine_word_shards, encode_words
 
-    bc = loc.bovw
-    assert bc is not None
+    bc = _options(loc, loc.bovw)
 
     def shard(s: str, rows: pd.DataFrame, ut: list[int], label: str) -> tuple[Any, Build]:
         fr = frames.df[frames.df["session"] == s]
@@ -145,8 +158,7 @@ def descriptor_kind_ranks(
     rc: RetrievalConfig,
 ) -> RankTable:
     """Kind ``descriptor``: model, projection, descriptors, then the ranking engine."""
-    dc = loc.descriptor
-    assert dc is not None  # the config's kind says so
+    dc = _options(loc, loc.descriptor)
     model = descriptor_model(p, dc, frames, mine)
     projection = descriptor_projection(p, dc, frames, pairs, mine, model)
     described = session_descriptors(p, dc, frames, mine, model, projection)
@@ -180,8 +192,7 @@ def import_kind_ranks(
     rc: RetrievalConfig,
 ) -> RankTable:
     """Kind ``import``: a user's ranked lists, checked and scored (SPEC 12)."""
-    im = loc.import_
-    assert im is not None  # the config's kind says so
+    im = _options(loc, loc.import_)
     return imported_ranks(
         p, frames, pairs, mine, ImportSpec(loc.name, Path(im.file)), im.score_kind, rc
     )
@@ -244,7 +255,8 @@ def localizer_ranks(
     """
     mine = localizer_proposals(p, loc, props)
     ranks = LOCALIZER_KINDS[loc.kind].ranks
-    assert ranks is not None  # attached here, or given at registration
+    if ranks is None:
+        raise ConfigError(f"localizer kind {loc.kind!r} was registered without a ranks function")
     return ranks(p, loc, frames, pairs, mine, p.cfg.retrieval if rc is None else rc)
 
 
@@ -265,8 +277,7 @@ def retrieval_ranks(
             f"[pairs] by = 'retrieval' pairs frames with the run's descriptor; localizer "
             f"{loc.name} is of kind {loc.kind!r}"
         )
-    mine, dc = localizer_proposals(p, loc, props), loc.descriptor
-    assert dc is not None
+    mine, dc = localizer_proposals(p, loc, props), _options(loc, loc.descriptor)
     model = descriptor_model(p, dc, frames, mine)
     projection = descriptor_projection(p, dc, frames, cand, mine, model)
     described = session_descriptors(p, dc, frames, mine, model, projection)
@@ -407,8 +418,7 @@ def common_images(p: Context, measured: list[Measured], pairs: Table) -> str | N
     if keep.all():
         return None
     lost = int((~keep).sum())
-    assert first_missing is not None
-    name, ex = first_missing
+    name, ex = first_missing or ("?", ("?", "?", "?", "?"))  # set where keep first went False
     if not p.cfg.import_.allow_unranked_images:
         raise RetrievalError(
             f"localizer {name!r} ranks no subimage of query image {ex[0]}/{ex[1]}/{ex[2]} -> "

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.errors import ConfigError
+from harness.errors import ConfigError, HarnessError
 from harness.evaluate.aps import (
     pixel_image_rows,
     pooled_rows,
@@ -302,9 +302,11 @@ def write_reports(
     those of a one-localizer run; with several, each CSV gains a ``localizer`` column, each
     markdown/LaTeX file a section per block, and Table L (``tableL.*``) is written.
     """
-    assert frames is not None and ann is not None
+    if frames is None or ann is None:
+        raise HarnessError("write_reports: the run's frames and annotations are needed")
     if isinstance(samples, pd.DataFrame):
-        assert ranks is not None
+        if ranks is None:
+            raise HarnessError("write_reports: one localizer's samples need its ranks")
         blocks = [
             Block(localizer, samples, ranks, ordered_methods(cfg.fusion.methods), list(notes))
         ]

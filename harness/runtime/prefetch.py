@@ -13,6 +13,8 @@ import threading
 from collections.abc import Iterable, Iterator
 from typing import TypeVar
 
+from harness.errors import HarnessError
+
 T = TypeVar("T")
 
 _DONE = object()
@@ -55,7 +57,8 @@ def prefetched(items: Iterable[T], depth: int) -> Iterator[T]:
         while True:
             ok, x = box.get()
             if not ok:
-                assert isinstance(x, BaseException)
+                if not isinstance(x, BaseException):  # the producer sends (False, its error)
+                    raise HarnessError(f"prefetch: the producer stopped with {x!r}, not an error")
                 raise x
             if x is _DONE:
                 return
