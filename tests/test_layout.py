@@ -249,3 +249,18 @@ def test_no_assert_checks_a_value_in_the_package() -> None:
         if isinstance(node, ast.Assert)
     ]
     assert found == []
+
+
+def test_no_parameter_is_named_method() -> None:
+    """One vocabulary (issue 51): a proposal method is a ``proposer``, a fusion method a
+    ``fusion_rule``; a parameter named ``method`` said one in some functions and the other in
+    the rest."""
+    found = [
+        f"{path.relative_to(ROOT)}:{node.lineno} {node.name}"
+        for path in _modules().values()
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and "method"
+        in [a.arg for a in [*node.args.posonlyargs, *node.args.args, *node.args.kwonlyargs]]
+    ]
+    assert found == []

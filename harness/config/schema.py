@@ -161,15 +161,15 @@ class ProposalsConfig:
     # a registered method's [proposals.<name>] table, built as its options dataclass
     options: dict[str, Any] = field(default_factory=dict)
 
-    def options_of(self, method: str) -> Any:
+    def options_of(self, proposer: str) -> Any:
         """A registered method's options: its ``[proposals.<method>]`` table, or the defaults.
 
         Raises:
-            KeyError: ``method`` was registered without options.
+            KeyError: ``proposer`` was registered without options.
         """
         from harness.methods import PROPOSER_OPTIONS
 
-        return self.options[method] if method in self.options else PROPOSER_OPTIONS[method]()
+        return self.options[proposer] if proposer in self.options else PROPOSER_OPTIONS[proposer]()
 
 
 @dataclass(frozen=True)

@@ -114,13 +114,13 @@ class _Pooled:
         self.boot: dict[str, np.ndarray] = {}
 
     def add(
-        self, method: str, row: dict, boot_fn: Callable[[np.ndarray], np.ndarray] | None
+        self, fusion_rule: str, row: dict, boot_fn: Callable[[np.ndarray], np.ndarray] | None
     ) -> None:
         """``boot_fn(counts)`` gives the method's AP in every resample (None: no interval)."""
         b = boot_fn(self.counts) if boot_fn is not None and len(self.counts) else np.full(0, np.nan)
         lo, hi = interval(b, self.cfg.report.ci)
-        self.boot[method] = b
-        self.rows.append({**row, "fusion": method, "ci_low": lo, "ci_high": hi})
+        self.boot[fusion_rule] = b
+        self.rows.append({**row, "fusion": fusion_rule, "ci_low": lo, "ci_high": hi})
 
     def finish(self) -> list[dict]:
         """Each row's paired differences from ``rank_fusion`` and from ``random``, and its verdict.

@@ -126,7 +126,7 @@ def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
 
 def loc_from_cover(
     cover: np.ndarray,
-    method: str,
+    fusion_rule: str,
     *,
     r: np.ndarray,
     d: np.ndarray,
@@ -134,14 +134,14 @@ def loc_from_cover(
     seed: int = 0,
     rrf_c: float = 60.0,
 ) -> np.ndarray:
-    """LoC of the fused boxes (rows of ``cover``) by fusion method ``method`` (its catalogue entry).
+    """LoC of the fused boxes (rows of ``cover``) by the rule ``fusion_rule`` (its catalogue entry).
 
     Higher is more likely changed. The paper's rules and a user's are looked up alike
     (``harness.methods.FUSION_RULES``; the built-in functions are in :mod:`harness.fusion.rules`).
 
     Args:
         cover: (m, n) bool: original box k contains fused box i.
-        method: a ``cover`` method (not ``rank_no_fusion``, ``size_prior``, ``random``: see
+        fusion_rule: a ``cover`` rule (not ``rank_no_fusion``, ``size_prior``, ``random``: see
             :func:`image_loc`).
         r: (n,) normalised ranks ``rank / L`` of the originals.
         d: (n,) exact L2 distances of the originals to their ground-truth place.
@@ -153,11 +153,13 @@ def loc_from_cover(
         ValueError: not a ``cover`` method, or ``L`` missing where the method needs it.
         ConfigError: a registered method returned other than one finite LoC per fused box.
     """
-    spec = FUSION_RULES.get(method)
+    spec = FUSION_RULES.get(fusion_rule)
     if spec is None or spec.kind != "cover" or spec.loc is None:
-        raise ValueError(f"unknown fused-set method {method!r}; known: {rules_where(kind='cover')}")
+        raise ValueError(
+            f"unknown fused-set method {fusion_rule!r}; known: {rules_where(kind='cover')}"
+        )
     if spec.needs_lengths and L is None:
-        raise ValueError(f"{method} needs the rank-list lengths L (r' = (L + 1 - rank) / L)")
+        raise ValueError(f"{fusion_rule} needs the rank-list lengths L (r' = (L + 1 - rank) / L)")
     lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
     options = {"seed": seed, "rrf_c": rrf_c}
     loc = np.asarray(
@@ -174,35 +176,37 @@ def loc_from_cover(
         return loc
     if loc.shape != (len(cover),) or not np.isfinite(loc).all():
         raise ConfigError(
-            f"fusion method {method!r} returned LoC of shape {loc.shape}, expected "
+            f"fusion method {fusion_rule!r} returned LoC of shape {loc.shape}, expected "
             f"({len(cover)},): one finite value per fused box"
         )
     return loc
 
 
-def image_loc(fused: np.ndarray, method: str, width: float, height: float, seed: int) -> np.ndarray:
+def image_loc(
+    fused: np.ndarray, fusion_rule: str, width: float, height: float, seed: int
+) -> np.ndarray:
     """The baselines that need the image rather than ranks: ``size_prior`` (1 - SoB) and ``random``.
 
     Args:
         fused: (m, 4) sample boxes.
-        method: ``size_prior`` or ``random``.
+        fusion_rule: ``size_prior`` or ``random``.
         width: the image width in pixels.
         height: the image height in pixels.
         seed: the query image's seed (``random``: uniform in [0, 1), reproducible per image).
     """
-    if method == "size_prior":
+    if fusion_rule == "size_prior":
         area = (fused[:, 2] - fused[:, 0]) * (fused[:, 3] - fused[:, 1])
         return np.asarray(1.0 - area / float(width * height), np.float64)
-    if method == "random":
+    if fusion_rule == "random":
         return np.random.default_rng(seed).random(len(fused))
-    raise ValueError(f"{method!r} is not an image baseline (size_prior, random)")
+    raise ValueError(f"{fusion_rule!r} is not an image baseline (size_prior, random)")
 
 
 def fuse(
     boxes: np.ndarray,
     r: np.ndarray,
     d: np.ndarray,
-    method: str,
+    fusion_rule: str,
     seed: int = 0,
     max_boxes: int | None = None,
     *,
@@ -214,7 +218,7 @@ def fuse(
         boxes: (n, 4) original boxes of all proposal methods.
         r: (n,) normalised ranks in (0, 1].
         d: (n,) L2 distances to the ground-truth place.
-        method: any method id of SPEC section 7 except ``size_prior`` and ``random``
+        fusion_rule: any method id of SPEC section 7 except ``size_prior`` and ``random``
             (:func:`image_loc`).
         seed: seeds the random cover subsets of the ``le`` methods.
         max_boxes: cap on the intersection closure (:func:`intersection_closure`); None: none.
@@ -226,16 +230,16 @@ def fuse(
     boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
     r = np.asarray(r, np.float64)
     d = np.asarray(d, np.float64)
-    if method == "rank_no_fusion":
+    if fusion_rule == "rank_no_fusion":
         return boxes.copy(), r.copy()
-    if method not in rules_where(kind="cover"):
+    if fusion_rule not in rules_where(kind="cover"):
         raise ValueError(
             f"fuse() computes {[m for m in known_methods() if m not in IMAGE_BASELINES]}, got "
-            f"{method!r} (size_prior, random: image_loc)"
+            f"{fusion_rule!r} (size_prior, random: image_loc)"
         )
     fused, _ = intersection_closure(boxes, max_boxes)
     cover = cover_matrix(fused, boxes)
-    return fused, loc_from_cover(cover, method, r=r, d=d, L=L, seed=seed)
+    return fused, loc_from_cover(cover, fusion_rule, r=r, d=d, L=L, seed=seed)
 
 
 def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -293,7 +293,7 @@ def candidate_table(p: Context, frames: Table, ann: Table) -> Table:
 
 
 def retrieval_pair_table(
-    p: Context, frames: Table, cand: Table, described: dict[str, Entry], method: str
+    p: Context, frames: Table, cand: Table, described: dict[str, Entry], proposer: str
 ) -> Table:
     """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2)."""
     paths = {s: e.path for s, e in described.items()}
@@ -302,13 +302,13 @@ def retrieval_pair_table(
         cand.df,
         paths,
         frames.df,
-        method,
+        proposer,
         p.cfg.retrieval.memory_mb,
         p.cfg.pairs.place_frames,
         p.cfg.pairs.sequence_frames if p.cfg.pairs.by == "sequence" else 0,
     )
     dkeys = {s: e.key for s, e in described.items()}
-    entry = p.unit("pairs_retrieval", (cand.key, dkeys, method), build)
+    entry = p.unit("pairs_retrieval", (cand.key, dkeys, proposer), build)
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
 
 

@@ -436,7 +436,7 @@ def method_fingerprints(methods: Sequence[str]) -> dict[str, str]:
     return source_fingerprints(IMAGE_METHODS, methods)
 
 
-def _checked(method: str, frame: Any, boxes: Any, scores: Any) -> tuple[np.ndarray, np.ndarray]:
+def _checked(proposer: str, frame: Any, boxes: Any, scores: Any) -> tuple[np.ndarray, np.ndarray]:
     """A proposer's output as float64 (k, 4) boxes and (k,) scores, or an error naming both.
 
     Raises:
@@ -445,14 +445,14 @@ def _checked(method: str, frame: Any, boxes: Any, scores: Any) -> tuple[np.ndarr
     b, s = np.asarray(boxes, np.float64), np.asarray(scores, np.float64)
     if b.ndim != 2 or b.shape[1] != 4 or s.shape != (len(b),) or not np.isfinite(b).all():
         raise ConfigError(
-            f"proposal method {method!r} on frame {frame.session}/{frame.camera}/{frame.utime}: "
+            f"proposal method {proposer!r} on frame {frame.session}/{frame.camera}/{frame.utime}: "
             f"expected finite boxes (k, 4) and scores (k,), got {b.shape} and {s.shape}"
         )
     return b, s
 
 
 def _rows(
-    f: Any, method: str, boxes: np.ndarray, scores: np.ndarray, classes: list[str]
+    f: Any, proposer: str, boxes: np.ndarray, scores: np.ndarray, classes: list[str]
 ) -> pd.DataFrame:
     """Proposal rows of one frame ``f`` and method (PROPOSAL_COLUMNS)."""
     n = len(boxes)
@@ -461,7 +461,7 @@ def _rows(
             "session": f.session,
             "camera": f.camera,
             "utime": np.full(n, f.utime, np.int64),
-            "proposal_method": method,
+            "proposal_method": proposer,
             "box_id": np.arange(n, dtype=np.int32),
             "x1": boxes[:, 0] if n else [],
             "y1": boxes[:, 1] if n else [],

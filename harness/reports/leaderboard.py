@@ -74,11 +74,11 @@ def headline_split(splits: Sequence[Split], roc_max: float) -> Split:
     return min(splits, key=lambda s: abs(s.roc_max - roc_max))
 
 
-def _cell(summ: pd.DataFrame, table: str, split: str, method: str) -> dict[str, Any]:
+def _cell(summ: pd.DataFrame, table: str, split: str, fusion_rule: str) -> dict[str, Any]:
     r = summ[
         (summ["table"] == table)
         & (summ["split"] == split)
-        & (summ["fusion"] == method)
+        & (summ["fusion"] == fusion_rule)
         & (summ["proposal_method"] == "all")
         & (summ["season_pair"] == "all")
     ]

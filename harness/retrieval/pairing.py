@@ -203,7 +203,7 @@ def retrieval_pairs(
     candidates: pd.DataFrame,
     descriptors: dict[str, Path],
     frames: pd.DataFrame,
-    method: str,
+    proposer: str,
     memory_mb: float = 256.0,
     place_frames: int = 2,
     window: int = 0,
@@ -218,7 +218,7 @@ def retrieval_pairs(
             ``q_camera``, ``q_utime``, ``r_session``, ``r_camera``, ``season_pair``).
         descriptors: each session's descriptor entry (``desc.npy`` + ``index.parquet``).
         frames: the frame table (poses, where there are, give ``distance_m`` and ``yaw_diff_deg``).
-        method: the proposal method whose subimages compare frames.
+        proposer: the proposal method whose subimages compare frames.
         memory_mb: the budget of one group's frame sums.
         place_frames: the pair's place, frames each side (no rival for the confidence).
         window: 0: each query frame alone (``by = "retrieval"``); else the query frames of a
@@ -232,10 +232,10 @@ def retrieval_pairs(
     for (qs, rs), cand in candidates.groupby(["q_session", "r_session"], sort=True):
         qi = read_cached_parquet(descriptors[qs] / "index.parquet")
         ri = read_cached_parquet(descriptors[rs] / "index.parquet")
-        qsel = qi[qi["proposal_method"] == method].reset_index()
+        qsel = qi[qi["proposal_method"] == proposer].reset_index()
         want = pd.MultiIndex.from_frame(cand[QUERY_KEY].set_axis(FRAME_KEY, axis=1))
         qsel = qsel[pd.MultiIndex.from_frame(qsel[FRAME_KEY]).isin(want)]
-        rsel = ri[ri["proposal_method"] == method].reset_index()
+        rsel = ri[ri["proposal_method"] == proposer].reset_index()
         if not len(qsel) or not len(rsel):
             no_subimage += len(cand)
             continue
@@ -265,7 +265,7 @@ def retrieval_pairs(
     pairs = pairs.reset_index(drop=True)
     summary = {
         "by": "sequence" if window else "retrieval",
-        "proposal_method": method,
+        "proposal_method": proposer,
         "queries": int(candidates[QUERY_KEY].drop_duplicates().shape[0]),
         "pairs": len(pairs),
         "no_subimage": int(no_subimage),
@@ -304,7 +304,7 @@ def write_retrieval_pairs(
     candidates: pd.DataFrame,
     descriptors: dict[str, Path],
     frames: pd.DataFrame,
-    method: str,
+    proposer: str,
     memory_mb: float,
     place_frames: int,
     window: int,
@@ -312,7 +312,7 @@ def write_retrieval_pairs(
 ) -> dict[str, Any]:
     """:func:`retrieval_pairs` into ``tmp/pairs.parquet`` and ``tmp/summary.json``."""
     pairs, summary = retrieval_pairs(
-        candidates, descriptors, frames, method, memory_mb, place_frames, window
+        candidates, descriptors, frames, proposer, memory_mb, place_frames, window
     )
     write_parquet(tmp / "pairs.parquet", pairs)
     write_json(tmp / "summary.json", summary)

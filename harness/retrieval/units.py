@@ -284,7 +284,7 @@ def _ranks_by_engine(
 
 def _rank_query_session(
     rc: RetrievalConfig,
-    method: str,
+    proposer: str,
     g: pd.DataFrame,
     qdir: Path,
     db: np.ndarray,
@@ -294,12 +294,12 @@ def _rank_query_session(
     engine: tuple[str, str],
     counts: dict[str, int],
 ) -> pd.DataFrame | None:
-    """Rank rows of one query session's subimages of ``method`` (``g``: its pairs); None if none."""
+    """Rank rows of a query session's subimages of ``proposer`` (``g``: its pairs); None if none."""
     have = set(np.unique(db_frame).tolist())
     q_idx = read_cached_parquet(qdir / "index.parquet")
     q_desc = _vectors(qdir)
     q_idx["row"] = np.arange(len(q_idx))
-    qm = q_idx[q_idx["proposal_method"] == method].merge(
+    qm = q_idx[q_idx["proposal_method"] == proposer].merge(
         g.rename(columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}),
         on=FRAME_KEY,
         how="inner",
@@ -343,7 +343,7 @@ def _rank_query_session(
             "r_camera": qm["r_camera"],
             "r_utime": qm["r_utime"],
             "season_pair": qm["season_pair"],
-            "proposal_method": method,
+            "proposal_method": proposer,
             "box_id": qm["box_id"],
             "x1": qm["x1"],
             "y1": qm["y1"],

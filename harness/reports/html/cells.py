@@ -188,13 +188,13 @@ def localization_table(
     )
 
 
-def heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
+def heatmap(summ: pd.DataFrame, fusion_rule: str, split: str) -> str:
     """Table I's AP of one method per season pair, at ``split``."""
     d = summ[
         (summ["table"] == "I")
         & (summ["proposal_method"] == "all")
         & (summ["season_pair"] != "all")
-        & (summ["fusion"] == method)
+        & (summ["fusion"] == fusion_rule)
         & (summ["split"] == split)
     ]
     if not len(d):
@@ -203,16 +203,16 @@ def heatmap(summ: pd.DataFrame, method: str, split: str) -> str:
         d.set_index("season_pair")["ap"].to_dict(),
         d.set_index("season_pair")["floor"].to_dict(),
         "heatmapI",
-        f"{METHOD_LABELS[method]}, Table I (the paper's protocol), {split}",
+        f"{METHOD_LABELS[fusion_rule]}, Table I (the paper's protocol), {split}",
     )
 
 
-def heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split: str) -> str:
+def heatmap_stratified(rep: pd.DataFrame, fusion_rule: str, edges: list[float], split: str) -> str:
     """Table S's AP of one method per season pair (query season down, reference across)."""
     from harness.evaluate.chance import MIN_DRAWS, stratified_chance
     from harness.evaluate.metrics import stratified_ap
 
-    col = f"loc_{method}"
+    col = f"loc_{fusion_rule}"
     allp = rep[(rep["proposal_method"] == "all") & (rep["label_stratified"] >= 0)]
     if col not in allp.columns or not len(allp):
         return ""
@@ -226,7 +226,7 @@ def heatmap_stratified(rep: pd.DataFrame, method: str, edges: list[float], split
         pairs,
         floors,
         "heatmap",
-        f"{METHOD_LABELS[method]}, Table S (size-stratified), {split}",
+        f"{METHOD_LABELS[fusion_rule]}, Table S (size-stratified), {split}",
     )
 
 
