@@ -264,3 +264,33 @@ def test_no_parameter_is_named_method() -> None:
         in [a.arg for a in [*node.args.posonlyargs, *node.args.args, *node.args.kwonlyargs]]
     ]
     assert found == []
+
+
+#: The libraries a function may import where it needs them (issue 51), each for a reason: heavy to
+#: import where most commands never use them (torch, faiss, scipy's submodules, matplotlib,
+#: pycocotools), optional extras (ray, rerun) or the readers of one log format (mcap, lz4,
+#: rosbags), and rich for one console table. Every other import, the package's own above all,
+#: sits at the top of its module, where a reader sees what the module depends on.
+LAZY_IMPORTS = frozenset(
+    {"torch", "faiss", "scipy", "matplotlib", "pycocotools", "ray", "rerun", "mcap", "lz4",
+     "rosbags", "rich"}
+)  # fmt: skip
+
+
+def test_function_level_imports_are_the_justified_ones() -> None:
+    found = []
+    for name, path in _modules().items():
+        if name.startswith("harness.cli"):  # the commands import their stage where they run it
+            continue
+        for fn in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+                continue
+            for node in ast.walk(fn):
+                if isinstance(node, ast.ImportFrom):
+                    tops = [("." if node.level else "") + (node.module or "").split(".")[0]]
+                elif isinstance(node, ast.Import):
+                    tops = [a.name.split(".")[0] for a in node.names]
+                else:
+                    continue
+                found += [f"{name}.{fn.name}: {t}" for t in tops if t not in LAZY_IMPORTS]
+    assert found == []

@@ -48,6 +48,7 @@ from harness.config.schema import (
 )
 from harness.errors import ConfigError
 from harness.inputs import IMAGE_SUFFIXES, read_text
+from harness.methods import PROPOSER_OPTIONS
 
 __all__ = ["load_config", "parse_config", "parse_localizers", "project_root"]
 
@@ -137,8 +138,6 @@ def _build(cls: type[T], data: Any, where: str) -> T:
 
 def _method_options(data: dict[str, Any], where: str) -> tuple[dict[str, Any], dict[str, Any]]:
     """``[proposals]`` without the tables of registered methods, and those tables built."""
-    from harness.methods import PROPOSER_OPTIONS
-
     if "options" in data:
         raise ConfigError(f"{where}: unknown key(s) ['options']; a method's table is its name")
     mine = {k: v for k, v in data.items() if k in PROPOSER_OPTIONS}

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from harness.methods import ALL_METHODS
+from harness.methods import ALL_METHODS, PROPOSER_OPTIONS
+from harness.records import season_of
 
 #: A localizer's name: it heads tables and names files (never a path).
 LOCALIZER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,63}$")
@@ -167,8 +168,6 @@ class ProposalsConfig:
         Raises:
             KeyError: ``proposer`` was registered without options.
         """
-        from harness.methods import PROPOSER_OPTIONS
-
         return self.options[proposer] if proposer in self.options else PROPOSER_OPTIONS[proposer]()
 
 
@@ -534,6 +533,4 @@ class Config:
 
     def seasons(self) -> dict[str, str]:
         """Session name -> season code (``WI``, ``SP``, ``SU``, ``AU``)."""
-        from harness.records import season_of
-
         return {s.name: s.season or season_of(s.name) for s in self.sessions}

@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from harness.config.schema import DescriptorConfig
@@ -96,8 +97,6 @@ class OnnxDescriptor(NetworkDescriptor):
     name = "onnx"
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
-        import cv2
-
         if self._net is None:
             try:
                 self._net = cv2.dnn.readNetFromONNX(str(Path(self.cfg.path)))

@@ -15,6 +15,8 @@ pycocotools on the run's own detections), so that 200 draws cost seconds, not 20
 
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +43,6 @@ def coco_eval(gt: dict[str, Any], dets: list[dict[str, Any]]) -> tuple[float, fl
     integrated from its per-detection matches at IoU 0.5. Frames without a change box count as
     images with no ground truth: their detections are false positives only.
     """
-    import contextlib
-    import io
-
     from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
 

@@ -17,13 +17,17 @@ from harness.config.schema import (
     Config,
 )
 from harness.detect.boxes import change_boxes_nms
+from harness.detect.calibrate import exceedance
 from harness.detect.chunk import FRAME_RESULT
+from harness.detect.evaluate import score_detections
 from harness.detect.options import DetectOptions
+from harness.detect.page import trajectory_figure, write_detect_page
 from harness.detect.pixels import write_pixel_table
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
 from harness.ingest.names import session_names, with_names
 from harness.records import FRAME_KEY, QUERY_KEY
+from harness.reports.overlay import colour_bar
 from harness.runtime.cache import (
     read_cached_parquet,
     write_json,
@@ -111,8 +115,6 @@ def _calibrated(
     Each box against every candidate box of the run, each frame against every frame, one chunk's
     candidates at a time.
     """
-    from harness.detect.calibrate import exceedance
-
     null = np.concatenate(
         [read_cached_parquet(e.path / "candidates.parquet")["loc"].to_numpy() for e in entries]
         or [np.zeros(0)]
@@ -176,8 +178,6 @@ def _table_d(
     alarm: float,
 ) -> pd.DataFrame:
     """Table D on the annotated frames, from the candidates of those frames only."""
-    from harness.detect.evaluate import score_detections
-
     annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
     cands = []
     for e in entries:  # candidates of the annotated frames only, one chunk at a time
@@ -251,12 +251,10 @@ def write_outputs(
     sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
     top = fr[sure].sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
     maps = locmaps(out, top, entries, dets)
-    from harness.detect.page import trajectory_figure
 
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
     table_d = _table_d(out, cfg, fr, ann, dets, ids, entries, opt, alarm) if len(ann) else None
     pixel = write_pixel_table(out, cfg, names, map_session, entries, fr)
-    from harness.detect.page import write_detect_page
 
     page = write_detect_page(
         out, fr, top, dets, frames, maps, (table_d, pixel), map_session, localizers, ann,
@@ -298,8 +296,6 @@ def locmaps(
     out: Path, top: pd.DataFrame, entries: list[Any], dets: pd.DataFrame
 ) -> dict[tuple[str, str, int], Path]:
     """LoC maps of the ``top`` frames: float16 ``.npy`` and a colour overlay with its bar."""
-    from harness.reports.overlay import colour_bar
-
     want = set(map(tuple, top[FRAME_KEY].to_numpy().tolist()))
     d = out / "locmaps"
     d.mkdir(exist_ok=True)

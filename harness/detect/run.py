@@ -40,9 +40,18 @@ from harness.detect.options import LOCAL_PROPOSALS, DetectOptions
 from harness.detect.outputs import write_outputs
 from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
-from harness.methods import BOX_GENERATORS, BOX_SCORES
+from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
 from harness.pairs import BY_RETRIEVAL
 from harness.pipeline import keys
+from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
+from harness.pipeline.context import Table
+from harness.pipeline.localizer_stages import (
+    Measured,
+    across_localizers,
+    localizer_fusion,
+    localizer_ranks,
+)
+from harness.pipeline.stages import session_proposals
 from harness.records import QUERY_KEY
 from harness.runtime.cache import (
     read_cached_parquet,
@@ -50,6 +59,7 @@ from harness.runtime.cache import (
     write_json,
     write_text,
 )
+from harness.runtime.executors import LocalExecutor
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +78,6 @@ def check_detect_args(
         ConfigError: an unknown or repeated session, the map among the queries, an unknown
             method or box generator, a rate or NMS option out of range.
     """
-    from harness.methods import detect_methods
-
     names = [s.name for s in cfg.sessions]
     for s in [map_session, *query_sessions]:
         if s not in names:
@@ -105,10 +113,6 @@ def _measure(
     Pairs by pose, or by retrieval where the config says so (SPEC 13.2). ``local``: the local
     localizer that ranks every pair's subimages instead of the config's (SPEC 13.3).
     """
-    from harness.pipeline.chain import pairs_by_retrieval, until_annotations
-    from harness.pipeline.localizer_stages import Measured, localizer_fusion, localizer_ranks
-    from harness.pipeline.stages import session_proposals
-
     if p.cfg.pairs.by in BY_RETRIEVAL:  # sessions without poses (SPEC 13.2)
         ingested, frames, ann = until_annotations(p)
         pairs, m = pairs_by_retrieval(
@@ -196,10 +200,6 @@ def run_detect(
     Raises:
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
-    from harness.pipeline.chain import Pipeline
-    from harness.pipeline.localizer_stages import across_localizers
-    from harness.runtime.executors import LocalExecutor
-
     opt = opt or DetectOptions()
     alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
     dcfg = _detect_config(cfg, map_session, query_sessions, opt)
@@ -306,9 +306,6 @@ def detect_pairs(
     p: Any, map_session: str, query_sessions: list[str]
 ) -> tuple[dict[str, Any], Any, Any, Any]:
     """Ingest, frames, annotations and the pairs by pose of the queries with the map alone."""
-    from harness.pipeline.chain import until_pairs
-    from harness.pipeline.context import Table
-
     ingested, frames, ann, pairs_all = until_pairs(p)
     sel = (pairs_all.df["r_session"] == map_session) & pairs_all.df["q_session"].isin(
         query_sessions

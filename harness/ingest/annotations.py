@@ -26,7 +26,7 @@ from harness.imagestore import read_image
 from harness.ingest.names import frames_by_image
 from harness.inputs import check_input, read_text
 from harness.records import FRAME_KEY, QUERY_KEY
-from harness.runtime.cache import atomic_dir, write_json
+from harness.runtime.cache import atomic_dir, atomic_path, write_json
 from harness.runtime.outdirs import check_file_replaceable, check_replaceable, write_marker
 
 COLUMNS = ["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
@@ -346,7 +346,6 @@ def import_annotations(
     if fmt not in IMPORTERS:
         raise AnnotationError(f"unknown annotation format {fmt!r}; known: {sorted(IMPORTERS)}")
     df = validate(IMPORTERS[fmt](Path(src)).reset_index(drop=True), frames, str(src))
-    from harness.runtime.cache import atomic_path
 
     with atomic_path(Path(out)) as tmp:
         df.to_csv(tmp, index=False, float_format="%.2f")

@@ -17,8 +17,17 @@ import numpy as np
 from harness.errors import IngestError
 from harness.imagestore import header_size
 from harness.ingest.folders import FOLDER_FORMATS, INTEGER_UNITS
-from harness.ingest.logs import IMAGE_TYPES, detect_format, list_topics, uri_safe_path
+from harness.ingest.images import compressed_size
+from harness.ingest.logs import (
+    IMAGE_TYPES,
+    READ_ERRORS,
+    detect_format,
+    list_topics,
+    typestore_for,
+    uri_safe_path,
+)
 from harness.ingest.poses import POSE_TYPES, stamp_us
+from harness.ingest.tf import TfTree
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 
@@ -49,9 +58,6 @@ def inspect_log(path: Path) -> dict[str, Any]:
     if fmt in FOLDER_FORMATS:
         return inspect_folder(path, fmt)
     from rosbags.highlevel import AnyReader
-
-    from harness.ingest.logs import READ_ERRORS, typestore_for
-    from harness.ingest.tf import TfTree
 
     with uri_safe_path(path) as readable:
         topics = list_topics(readable, fmt)
@@ -120,8 +126,6 @@ def inspect_log(path: Path) -> dict[str, Any]:
 def _image_info(msg: Any, msgtype: str) -> dict[str, Any]:
     info: dict[str, Any] = {"frame_id": str(msg.header.frame_id)}
     if msgtype.endswith("CompressedImage"):
-        from harness.ingest.images import compressed_size
-
         data = bytes(np.asarray(msg.data, dtype=np.uint8))
         w: int | None
         h: int | None

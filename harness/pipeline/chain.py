@@ -20,9 +20,11 @@ import platform
 import sys
 import time
 from dataclasses import asdict
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pandas as pd
 
@@ -56,6 +58,7 @@ from harness.pipeline.stages import (
     session_proposals,
 )
 from harness.records import FRAME_KEY
+from harness.reports.html.page import write_html_report
 from harness.reports.write import Block, Reports
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.pairing import pose_agreement
@@ -317,8 +320,6 @@ def run_all(p: Context) -> dict[str, Any]:
     )
     write_json(p.out / "run.json", record)
     if p.cfg.report.html:
-        from harness.reports.html.page import write_html_report
-
         t_html = time.perf_counter()
         record["report_html"] = str(write_html_report(p.out))
         p.timings["report_html"] = time.perf_counter() - t_html
@@ -454,10 +455,7 @@ def ingest_summary(path: Path) -> dict[str, Any]:
 
 
 def _versions() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    import cv2
-    import torch
+    import torch  # heavy: only where a run records its versions
 
     def ver(dist: str) -> str:
         try:

@@ -34,8 +34,10 @@ from harness.pipeline.stages import (
     session_descriptors,
 )
 from harness.records import IMAGE_KEY, QUERY_KEY
+from harness.retrieval.bovw import combine_word_shards, encode_words, train_vocabulary
 from harness.retrieval.import_file import ImportSpec
 from harness.runtime.cache import read_cached_parquet, stable_hash
+from harness.runtime.costs import localizer_costs
 
 log = logging.getLogger(__name__)
 
@@ -89,8 +91,6 @@ def bovw_vocabulary(
     p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
 ) -> Entry:
     """Reference-session subimages -> a bag-of-words vocabulary and its IDF (SPEC section 11)."""
-    from harness.retrieval.bovw import train_vocabulary
-
     bc = _options(loc, loc.bovw)
     refs = sorted(set(pairs.df["r_session"]))
     rows = pd.concat([props[s].df for s in refs], ignore_index=True)
@@ -106,8 +106,6 @@ def bovw_words(
     Returns:
         The entries, and how many subimages had no feature (no vector, counted).
     """
-    from harness.retrieval.bovw import combine_word_shards, encode_words
-
     bc = _options(loc, loc.bovw)
 
     def shard(s: str, rows: pd.DataFrame, ut: list[int], label: str) -> tuple[Any, Build]:
@@ -316,8 +314,6 @@ def measured_costs(
     mean size, from ``frames``), and it encodes and builds nothing; its rank time is the whole
     of its work (alignment and matching).
     """
-    from harness.runtime.costs import localizer_costs
-
     mine = localizer_proposals(p, loc, props)
     refs = sorted(set(pairs.df["r_session"]))
     ref_rows = [mine[s].df for s in refs if s in mine]

@@ -18,7 +18,7 @@ from typing import Any
 import pandas as pd
 
 from harness.config.schema import Config, DescriptorConfig, FusionConfig, RetrievalConfig
-from harness.descriptors import make_descriptor
+from harness.descriptors import REGISTRY, make_descriptor
 from harness.descriptors.extract import (
     combine_shards,
     encode_shard,
@@ -26,13 +26,17 @@ from harness.descriptors.extract import (
     train_model,
 )
 from harness.errors import AnnotationError, ConfigError, IngestError, RetrievalError
+from harness.fixture import FixtureSpec, generate
+from harness.fixture.generate import read_spec
 from harness.fusion.fuse import write_samples
 from harness.imagestore import local_uri
 from harness.ingest import combine_frames, ingest_session
 from harness.ingest.annotations import COLUMNS, load_annotations
 from harness.ingest.annotations import validate as validate_annotations
+from harness.ingest.logs import detect_format, known_formats
 from harness.ingest.masks import folder_digest, read_masks
 from harness.ingest.names import frames_by_image, session_names
+from harness.inputs import check_input
 from harness.pairs import DECLARED, candidate_pairs, write_pairs
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
@@ -41,7 +45,7 @@ from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.reports.write import Block, Reports, write_reports
 from harness.retrieval import described_frames, rank_reference
 from harness.retrieval.import_file import ImportSpec
-from harness.retrieval.imported import unranked_images
+from harness.retrieval.imported import unranked_images, write_imported_ranks
 from harness.retrieval.pairing import write_retrieval_pairs
 from harness.runtime.cache import (
     content_sha,
@@ -78,7 +82,6 @@ def generate_fixture(p: Context) -> None:
             "real data, "
             "or point data_root (--data-root) at a new directory"
         )
-    from harness.fixture import FixtureSpec, generate
 
     log.info("fixture: generating into %s", root)
     spec = FixtureSpec.chosen(fx)
@@ -100,8 +103,6 @@ def check_fixture_spec(p: Context) -> None:
         ConfigError: it was generated with other settings (naming them); it is never replaced
             silently: the message says to remove it so that the next run generates it again.
     """
-    from harness.fixture.generate import read_spec
-
     fx, root = p.cfg.fixture, p.cfg.data_root
     try:
         have = read_spec(root)
@@ -133,9 +134,6 @@ def check_names(p: Context) -> None:
     Raises:
         ConfigError: An unknown descriptor or log format, naming the known ones.
     """
-    from harness.descriptors import REGISTRY
-    from harness.ingest.logs import known_formats
-
     cfg = p.cfg
     for loc in p.localizer_list:
         if loc.descriptor is not None and loc.descriptor.name not in REGISTRY:
@@ -160,9 +158,6 @@ def preflight(p: Context) -> None:
     Raises:
         HarnessError: Naming the key or the file and what is wrong.
     """
-    from harness.ingest.logs import detect_format
-    from harness.inputs import check_input
-
     cfg = p.cfg
     for sc in cfg.sessions:
         src = Path(sc.source)
@@ -518,8 +513,6 @@ def imported_ranks(
     a query image of the pairs without any row is an error unless ``[import]
     allow_unranked_images`` (then it is counted).
     """
-    from harness.retrieval.imported import write_imported_ranks
-
     if not Path(spec.path).is_file():
         raise RetrievalError(f"{spec.path}: --import file not found (localizer {spec.name!r})")
     allprops = pd.concat([t.df for t in props.values()], ignore_index=True)

@@ -17,6 +17,7 @@ paired difference with its interval).
 
 from __future__ import annotations
 
+import importlib
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -79,8 +80,6 @@ BUILTIN_MODULES: tuple[str, ...] = ()
 
 def load_builtin() -> dict[str, TableSpec]:
     """Import :data:`BUILTIN_MODULES` (each registers its table once) and return the registry."""
-    import importlib
-
     for name in BUILTIN_MODULES:
         importlib.import_module(name)
     return TABLES

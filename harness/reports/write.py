@@ -36,6 +36,13 @@ from harness.methods import BASELINES, FUSION_METHODS, ordered_methods
 from harness.records import QUERY_KEY, frame_sizes
 from harness.reports import tables as report_tables
 from harness.reports.change import CHANGE_TABLES, change_table, pivot
+from harness.reports.leaderboard import (
+    leaderboard,
+    leaderboard_csv,
+    leaderboard_latex,
+    leaderboard_md,
+)
+from harness.reports.plots import locmap_figures, pr_plots
 from harness.reports.render import (
     CLEAN_ROC,
     change_latex,
@@ -511,13 +518,6 @@ def _write_comparisons(
     table_l = None
     cmp_md = "\n".join(comparisons_markdown(r.summary, r.methods, r.localizer) for r in results)
     if files.multi:
-        from harness.reports.leaderboard import (
-            leaderboard,
-            leaderboard_csv,
-            leaderboard_latex,
-            leaderboard_md,
-        )
-
         table_l = leaderboard(cfg, results, boots, splits)
         files.text("tableL.csv", leaderboard_csv(table_l))
         files.text("tableL.md", leaderboard_md(table_l, cfg))
@@ -551,8 +551,6 @@ def _write_plots(
     ann: pd.DataFrame,
 ) -> None:
     """The first block's PR curves (``plots/``) and LoC-map figures (``locmaps/``)."""
-    from harness.reports.plots import locmap_figures, pr_plots
-
     if curves:
         for png in pr_plots(pd.concat(curves, ignore_index=True), files.out / "plots"):
             files.put(png)

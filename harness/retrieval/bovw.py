@@ -30,6 +30,7 @@ from harness.config.schema import BovwConfig
 from harness.descriptors.crops import iter_crops
 from harness.errors import RetrievalError
 from harness.records import FRAME_KEY
+from harness.retrieval.engines import frame_layout, place_columns
 from harness.runtime.cache import read_cached_parquet, write_parquet
 from harness.runtime.progress import progress
 
@@ -289,8 +290,6 @@ def bovw_ranks(
     Returns:
         ``rank`` (n,) int64, ``L`` (n,) int64, ``dist`` (n,) float64 (= ``d``).
     """
-    from harness.retrieval.engines import frame_layout, place_columns
-
     db_frame, gt_frame = np.asarray(db_frame), np.asarray(gt_frame)
     if query.shape[1] != db.shape[1]:
         raise RetrievalError(f"vocabularies disagree: query {query.shape}, database {db.shape}")

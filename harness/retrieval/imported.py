@@ -50,6 +50,7 @@ from harness.errors import RetrievalError
 from harness.records import IMAGE_KEY, QUERY_KEY, SUBIMAGE_KEY
 from harness.retrieval.import_file import BOX, KEY, SCORE_KINDS, ImportSpec, Rows, read_import
 from harness.retrieval.places import ground_truth_places
+from harness.runtime.cache import write_parquet
 
 log = logging.getLogger(__name__)
 
@@ -353,8 +354,6 @@ def write_imported_ranks(
     Returns:
         The import counters, and whether the file has scores.
     """
-    from harness.runtime.cache import write_parquet
-
     df, rows = read_import(spec.path)
     ranks, counts = ranks_from_import(
         df, rows, pairs, frames, proposals, radius_m, max_yaw_deg, score_kind

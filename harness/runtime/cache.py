@@ -27,6 +27,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from harness import __version__
 from harness.errors import CacheError
 from harness.runtime.outdirs import TEMP_TAG
 
@@ -66,8 +67,6 @@ def code_fingerprint(package_dir: Path | None = None) -> str:
     entry that older code computed: correctness first, at the price of recomputing after a code
     change. Modules in :data:`NOT_IN_STAGES` are left out.
     """
-    from harness import __version__
-
     root = Path(package_dir) if package_dir is not None else PACKAGE_DIR
     h = hashlib.sha256(__version__.encode())
     for f in sorted(root.rglob("*.py")):

@@ -10,6 +10,7 @@ stage does (decoding the frame and cutting the crops count as encoding), on the 
 from __future__ import annotations
 
 import json
+import os
 import platform
 from collections.abc import Iterable
 from pathlib import Path
@@ -122,7 +123,6 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    import os
 
     n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     gpu = "no GPU"

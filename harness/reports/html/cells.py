@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.evaluate.chance import few_text
+from harness.evaluate.chance import MIN_DRAWS, few_text, stratified_chance
+from harness.evaluate.metrics import stratified_ap
 from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
 from harness.reports.change import ChangeTable, change_table, column_label
@@ -209,9 +210,6 @@ def heatmap(summ: pd.DataFrame, fusion_rule: str, split: str) -> str:
 
 def heatmap_stratified(rep: pd.DataFrame, fusion_rule: str, edges: list[float], split: str) -> str:
     """Table S's AP of one method per season pair (query season down, reference across)."""
-    from harness.evaluate.chance import MIN_DRAWS, stratified_chance
-    from harness.evaluate.metrics import stratified_ap
-
     col = f"loc_{fusion_rule}"
     allp = rep[(rep["proposal_method"] == "all") & (rep["label_stratified"] >= 0)]
     if col not in allp.columns or not len(allp):

@@ -14,12 +14,14 @@ import numpy as np
 import pandas as pd
 
 from harness.errors import HarnessError
+from harness.evaluate.metrics import pr_curve
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
 from harness.methods import FUSION_METHODS, METHOD_LABELS
 from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.reports.html.cells import NAN, esc
 from harness.reports.overlay import colour_bar
+from harness.reports.plots import pr_figure
 from harness.runtime.cache import atomic_path
 
 #: Height of each panel of a gallery thumbnail, pixels.
@@ -238,9 +240,6 @@ def pr_figure_html(
     out: Path, rep: pd.DataFrame, label: str, tag: str, title: str
 ) -> tuple[str, list[Path]]:
     """One PR figure of the six methods on ``rep``'s ``label`` column (proposals = all)."""
-    from harness.evaluate.metrics import pr_curve
-    from harness.reports.plots import pr_figure
-
     allp = rep[(rep["proposal_method"] == "all") & (rep[label] >= 0)]
     curves = []
     for m in FUSION_METHODS:

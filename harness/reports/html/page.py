@@ -26,6 +26,7 @@ from typing import Any
 import pandas as pd
 
 from harness.imagestore import local_uri
+from harness.ingest.annotations import load_annotations
 from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
 from harness.reports.change import CHANGE_TABLES, change_table
@@ -364,8 +365,6 @@ def page_figures(
 
 def run_frames(out: Path, run: dict[str, Any]) -> tuple[pd.DataFrame, Any]:
     """The run's frames (image paths as this machine reads them) and its annotations."""
-    from harness.ingest.annotations import load_annotations
-
     cfg = run["config"]
     frames = pd.read_parquet(out / "cache" / "frames" / run["keys"]["frames"] / "frames.parquet")
     frames["image"] = [local_uri(u, out, Path(cfg["data_root"])) for u in frames["image"]]
