@@ -22,7 +22,10 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
     "ranking": ("ranking", ("harness/retrieval",)),
     "localizers": ("localizers", ("harness", "bench/nclt_localizers.toml")),
     "detect": ("detect", ("harness", "bench/nclt_detect.toml")),
-    "local": ("local", ("harness/localizers/local.py", "harness/imagestore.py")),
+    "local": (
+        "local",
+        ("harness/localizers/local.py", "harness/localizers/align.py", "harness/imagestore.py"),
+    ),
     "fusion": (
         "fusion",
         (

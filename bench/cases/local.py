@@ -19,7 +19,8 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import LocalConfig
-from harness.localizers.local import feature_image, write_local_ranks
+from harness.localizers.align import feature_image
+from harness.localizers.local import write_local_ranks
 
 from .common import emit
 

@@ -12,7 +12,8 @@ import pytest
 from harness.config.check import check_local
 from harness.config.schema import LocalConfig
 from harness.errors import ConfigError
-from harness.localizers.local import align_pair, box_rank, feature_image, pair_ranks
+from harness.localizers.align import align_pair, feature_image
+from harness.localizers.local import box_rank, pair_ranks
 
 from .test_localizers import _config
 
