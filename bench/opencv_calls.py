@@ -70,7 +70,7 @@ def _orb(gray: np.ndarray) -> tuple:
 
 def _local(gray: np.ndarray) -> tuple:
     """The local localizer's calls (SPEC 13.3): ORB matches, a RANSAC homography, the warp, an
-    ECC fit, the gradient magnitude, a pyramid level and template matching."""
+    ECC fit, the Sobel gradients, a pyramid level, template matching and its best score."""
     h, w = gray.shape
     moved = np.roll(gray, (3, 5), axis=(0, 1))
     orb = cv2.ORB_create(nfeatures=500)
@@ -84,7 +84,8 @@ def _local(gray: np.ndarray) -> tuple:
     corners = np.array([[[0.0, 0.0]], [[w, 0.0]], [[w, h]], [[0.0, h]]])
     moved_corners = cv2.perspectiveTransform(corners, H)
     f32 = gray.astype(np.float32)
-    g = cv2.magnitude(cv2.Sobel(f32, cv2.CV_32F, 1, 0), cv2.Sobel(f32, cv2.CV_32F, 0, 1))
+    gx, gy = cv2.Sobel(f32, cv2.CV_32F, 1, 0), cv2.Sobel(f32, cv2.CV_32F, 0, 1)
+    g = np.sqrt(gx * gx + gy * gy)  # the harness's magnitude (not cv2.magnitude: see align.py)
     warped = cv2.warpPerspective(g, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
     small = cv2.pyrDown(cv2.pyrDown(f32))
     try:
@@ -96,7 +97,7 @@ def _local(gray: np.ndarray) -> tuple:
     except cv2.error:
         cc, warp = float("nan"), None
     ncc = cv2.matchTemplate(g[40:200, 40:200], g[60:120, 60:120], cv2.TM_CCOEFF_NORMED)
-    return H, moved_corners, warped, cc, warp, ncc
+    return H, moved_corners, warped, cc, warp, ncc, cv2.minMaxLoc(ncc)
 
 
 def _mser(gray: np.ndarray) -> tuple:
@@ -240,7 +241,7 @@ def calls(rgb: np.ndarray, net: Path) -> dict[str, Callable[[], Any]]:
         "ORB_create().detectAndCompute": lambda: _orb(gray),
         "MSER_create().detectRegions": lambda: _mser(gray),
         "local: ORB + BFMatcher, findHomography, perspectiveTransform, warpPerspective, "
-        "findTransformECC, magnitude, pyrDown, matchTemplate": lambda: _local(gray),
+        "findTransformECC, pyrDown, matchTemplate, minMaxLoc": lambda: _local(gray),
         "imencode/imdecode (JPEG q90, PNG, TIFF, IMREAD_REDUCED_COLOR_2/4/8)": lambda: _png_jpeg(
             bgr
         ),
