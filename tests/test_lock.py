@@ -93,7 +93,7 @@ def test_mser_proposals_find_regions_on_a_textured_frame() -> None:
     import cv2
 
     from harness.config.schema import MserConfig
-    from harness.proposals.proposers import mser_boxes
+    from harness.proposals.builtin import mser_boxes
 
     rng = np.random.default_rng(0)
     img = np.full((240, 320, 3), 90, np.uint8)

@@ -58,7 +58,7 @@ def _grid5_reduced(paths: list[str]) -> None:
     import pandas as pd
 
     from harness.descriptors.crops import iter_crops
-    from harness.proposals.proposers import grid5
+    from harness.proposals.builtin import grid5
 
     boxes = grid5(1232, 1616)
     df = pd.DataFrame(
@@ -141,7 +141,7 @@ def _overlap(paths: list[str]) -> None:
     from harness.descriptors import AutoencoderDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder
     from harness.descriptors.crops import iter_crops
-    from harness.proposals.proposers import grid5
+    from harness.proposals.builtin import grid5
 
     boxes = grid5(1232, 1616)
     df = pd.DataFrame(
@@ -193,7 +193,7 @@ def _overlap_bovw(paths: list[str]) -> None:
     import pandas as pd
 
     from harness.config.schema import BovwConfig
-    from harness.proposals.proposers import grid5
+    from harness.proposals.builtin import grid5
     from harness.retrieval.bovw import iter_features
 
     rows = pd.DataFrame(

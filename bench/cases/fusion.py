@@ -20,7 +20,7 @@ def case_fusion(quick: bool) -> None:
     from harness.evaluate.metrics import average_precision
     from harness.evaluate.splits import label, paper_splits
     from harness.fusion.fuse import fuse_samples
-    from harness.proposals.proposers import grid5
+    from harness.proposals.builtin import grid5
 
     rng = np.random.default_rng(0)
     n_img = 50 if quick else 200

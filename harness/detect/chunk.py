@@ -16,7 +16,7 @@ from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_pr
 from harness.detect.options import DetectOptions
 from harness.fusion.fuse import fuse_samples
 from harness.imagestore import read_image
-from harness.proposals.proposers import segment_boxes
+from harness.proposals.builtin import segment_boxes
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
 from harness.runtime.cache import (
     stable_hash,
@@ -122,7 +122,7 @@ def _frame_boxes(
     """Each query frame's boxes for the ``proposals`` or ``segments`` generator.
 
     Its original proposals (the rows of ``ranks``), or, for ``segments``, the colour regions of
-    its image (:func:`harness.proposals.proposers.segment_boxes`, read one frame at a time).
+    its image (:func:`harness.proposals.builtin.segment_boxes`, read one frame at a time).
     """
     if opt.boxes == "subimages":  # (x1, y1, x2, y2, r): r the mean over localizers of a box
         return {

@@ -30,7 +30,7 @@ def test_the_reduction_keeps_every_box_at_the_input_size() -> None:
     assert reduction(boxes, 64) == 8
     assert reduction(np.array([[0, 0, 200, 900]], float), 256) == 1  # 200 < 256: full frame
     assert reduction(np.zeros((0, 4)), 256) == 1
-    from harness.proposals.proposers import grid5
+    from harness.proposals.builtin import grid5
 
     # grid5 on an NCLT frame: the centre box (410 x 538) at full scale, the others at 1/2
     assert levels(grid5(1232, 1616), 256).tolist() == [1, 2, 2, 2, 2]
@@ -52,7 +52,7 @@ def test_a_reduced_frame_has_the_size_and_pixels_of_the_full_one_shrunk(tmp_path
 def test_reduced_crops_and_descriptors_equal_the_full_frames_within_the_tolerance(
     tmp_path: Path,
 ) -> None:
-    from harness.proposals.proposers import grid5
+    from harness.proposals.builtin import grid5
 
     rows = []
     rng = np.random.default_rng(1)

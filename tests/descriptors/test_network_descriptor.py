@@ -20,7 +20,7 @@ from harness.config.schema import DescriptorConfig, YoloConfig
 from harness.descriptors import make_descriptor
 from harness.descriptors.network import pool
 from harness.errors import ConfigError
-from harness.proposals.proposers import YoloProposer
+from harness.proposals.yolo import YoloProposer
 
 from ..conftest import ROOT
 from ..proposals.test_proposals import TinyYolo

@@ -507,7 +507,7 @@ def test_boxes_segments_with_contrast_as_typed(
     of its frame, the candidates meet most change boxes, and the README quotes Table D as run."""
     from harness.config.schema import SegmentsConfig
     from harness.imagestore import read_image
-    from harness.proposals.proposers import segment_boxes
+    from harness.proposals.builtin import segment_boxes
 
     # the README's command as typed (its --out here, the fixture's --data-root added)
     lines = (ROOT / "README.md").read_text().splitlines()
@@ -555,7 +555,7 @@ def test_segment_boxes_frame_coloured_objects_on_a_textured_scene() -> None:
     the checkered one whole (its cells merged by the closings); the same image, the same boxes."""
     from harness.config.schema import SegmentsConfig
     from harness.detect.evaluate import iou_matrix
-    from harness.proposals.proposers import segment_boxes
+    from harness.proposals.builtin import segment_boxes
 
     rng = np.random.default_rng(0)
     img = np.empty((160, 120, 3), np.uint8)

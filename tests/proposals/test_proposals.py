@@ -14,14 +14,10 @@ import torch
 
 from harness.config.schema import EdgesConfig, ProposalsConfig, YoloConfig
 from harness.errors import AnnotationError, ConfigError
-from harness.proposals.proposers import (
-    YoloProposer,
-    compute_proposals,
-    edge_boxes,
-    grid5,
-    load_file_proposals,
-    nms,
-)
+from harness.proposals.builtin import edge_boxes, grid5, nms
+from harness.proposals.file import load_file_proposals
+from harness.proposals.proposers import compute_proposals
+from harness.proposals.yolo import YoloProposer
 
 
 def test_grid5_by_hand() -> None:

@@ -1,0 +1,160 @@
+"""The built-in proposers (SPEC 5): ``grid5`` and OpenCV's ``mser``, ``segments`` and ``edges``.
+
+``grid5`` gives the paper's five fixed boxes; the others need no weights. :func:`nms` is the
+non-maximum suppression every proposer uses.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from harness.config.schema import (
+    EdgesConfig,
+    MserConfig,
+    SegmentsConfig,
+)
+
+
+def grid5(width: float, height: float) -> np.ndarray:
+    """The five fixed boxes of SPEC section 5 as a (5, 4) float array ``x1, y1, x2, y2``."""
+    w, h = float(width), float(height)
+    return np.array(
+        [
+            [w / 3, h / 3, 2 * w / 3, 2 * h / 3],
+            [0.0, 0.0, 2 * w / 3, 2 * h / 3],
+            [w / 3, 0.0, w, 2 * h / 3],
+            [0.0, h / 3, 2 * w / 3, h],
+            [w / 3, h / 3, w, h],
+        ],
+        dtype=np.float64,
+    )
+
+
+def nms(
+    boxes: np.ndarray, scores: np.ndarray, iou: float, classes: np.ndarray | None = None
+) -> np.ndarray:
+    """Indices kept by (class-aware) non-maximum suppression, highest score first; ties by index."""
+    if len(boxes) == 0:
+        return np.zeros(0, np.int64)
+    xywh = np.column_stack(
+        [boxes[:, 0], boxes[:, 1], boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]]
+    )
+    cls = np.zeros(len(boxes), np.int32) if classes is None else classes.astype(np.int32)
+    kept = cv2.dnn.NMSBoxesBatched(
+        xywh.tolist(), scores.astype(float).tolist(), cls.tolist(), -1e9, float(iou)
+    )
+    keep = np.asarray(kept, np.int64).ravel()
+    order = np.lexsort((keep, -scores[keep]))
+    return keep[order]
+
+
+def _working_copy(rgb: np.ndarray, work_width: int) -> tuple[np.ndarray, float]:
+    """``rgb`` shrunk to at most ``work_width`` pixels wide (area interpolation), and the scale."""
+    h, w = rgb.shape[:2]
+    scale = min(1.0, work_width / w)
+    if scale >= 1:
+        return rgb, scale
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), scale
+
+
+def mser_boxes(rgb: np.ndarray, cfg: MserConfig) -> tuple[np.ndarray, np.ndarray]:
+    """MSER region boxes in full-image pixels, scored by their area fraction; (k, 4), (k,)."""
+    h, w = rgb.shape[:2]
+    small, scale = _working_copy(rgb, cfg.work_width)
+    gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    sa = gray.shape[0] * gray.shape[1]
+    mser = cv2.MSER_create(  # type: ignore[attr-defined]  # not in OpenCV's stubs
+        5, max(8, int(cfg.min_area_frac * sa * 0.3)), int(cfg.max_area_frac * sa)
+    )
+    _, bb = mser.detectRegions(gray)
+    if len(bb) == 0:
+        return np.zeros((0, 4)), np.zeros(0)
+    bb = np.asarray(bb, np.float64).reshape(-1, 4) / scale
+    boxes = np.column_stack([bb[:, 0], bb[:, 1], bb[:, 0] + bb[:, 2], bb[:, 1] + bb[:, 3]])
+    boxes = np.clip(boxes, 0, [w, h, w, h])
+    frac = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]) / (w * h)
+    ok = (frac >= cfg.min_area_frac) & (frac <= cfg.max_area_frac)
+    boxes, frac = np.round(boxes[ok], 2), frac[ok]
+    boxes, idx = np.unique(boxes, axis=0, return_index=True)
+    frac = frac[idx]
+    keep = nms(boxes, frac, cfg.nms_iou)[: cfg.max_boxes]
+    return boxes[keep], frac[keep]
+
+
+def segment_boxes(rgb: np.ndarray, cfg: SegmentsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes of colour regions in full-image pixels, scored by their area fraction; (k, 4), (k,).
+
+    The pixels of a copy ``work_width`` wide (CIELAB, lightly blurred) fall into ``cfg.k`` colour
+    clusters by faiss k-means (seeded); each cluster's mask, closed with each kernel of
+    ``cfg.closings`` so that the cells of a textured object merge, gives the bounding boxes of its
+    8-connected regions (``cv2.connectedComponentsWithStats``). A new object of its own colours
+    is a region of its own, whatever the edges of the scene around it.
+    """
+    import faiss
+
+    h, w = rgb.shape[:2]
+    small, scale = _working_copy(rgb, cfg.work_width)
+    lab = cv2.cvtColor(cv2.GaussianBlur(small, (0, 0), 0.8), cv2.COLOR_RGB2Lab)
+    px = np.ascontiguousarray(lab.reshape(-1, 3), np.float32)
+    k = max(1, min(cfg.k, len(px) // 39))  # faiss wants 39 points per centroid
+    km = faiss.Kmeans(3, k, niter=20, seed=cfg.seed, verbose=False)
+    km.train(px)
+    labels = km.index.search(px, 1)[1].reshape(lab.shape[:2])
+    area = float(lab.shape[0] * lab.shape[1])
+    found = []
+    for c in range(k):
+        mask = (labels == c).astype(np.uint8)
+        for size in cfg.closings:
+            m = (
+                mask
+                if size <= 1
+                else cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((size, size), np.uint8))
+            )
+            n, _, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+            found.append(stats[1:n, :4])
+    bb = np.unique(np.concatenate(found).astype(np.float64).reshape(-1, 4), axis=0)
+    frac = bb[:, 2] * bb[:, 3] / area
+    bb = bb[(frac >= cfg.min_area_frac) & (frac <= cfg.max_area_frac)]
+    if not len(bb):
+        return np.zeros((0, 4)), np.zeros(0)
+    boxes = np.column_stack([bb[:, 0], bb[:, 1], bb[:, 0] + bb[:, 2], bb[:, 1] + bb[:, 3]])
+    boxes = np.clip(np.round(boxes / scale, 2), 0, [w, h, w, h])
+    frac = bb[:, 2] * bb[:, 3] / area
+    keep = nms(boxes, frac, cfg.nms_iou)[: cfg.max_boxes]
+    return boxes[keep], frac[keep]
+
+
+def edge_boxes(rgb: np.ndarray, cfg: EdgesConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes of closed edge contours at several dilation scales, scored by edge density.
+
+    Returns boxes (k, 4) and scores (k,).
+
+    Canny thresholds follow the image's median grey level; each dilation size merges nearby
+    edges into larger contours, so one image gives parts and whole objects alike.
+    """
+    h, w = rgb.shape[:2]
+    small, scale = _working_copy(rgb, cfg.work_width)
+    gray = cv2.GaussianBlur(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
+    med = float(np.median(gray))
+    edges = cv2.Canny(gray, int(0.33 * med), int(0.66 * med) + 1)
+    found = []
+    for k in cfg.dilations:
+        d = cv2.dilate(edges, np.ones((k, k), np.uint8)) if k > 1 else edges
+        contours, _ = cv2.findContours(d, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        found += [cv2.boundingRect(c) for c in contours]
+    if not found:
+        return np.zeros((0, 4)), np.zeros(0)
+    bb = np.unique(np.asarray(found, np.int64).reshape(-1, 4), axis=0)
+    x1, y1, x2, y2 = bb[:, 0], bb[:, 1], bb[:, 0] + bb[:, 2], bb[:, 1] + bb[:, 3]
+    frac = (x2 - x1) * (y2 - y1) / float(gray.shape[0] * gray.shape[1])
+    ok = (frac >= cfg.min_area_frac) & (frac <= cfg.max_area_frac)
+    x1, y1, x2, y2 = x1[ok], y1[ok], x2[ok], y2[ok]
+    if not len(x1):
+        return np.zeros((0, 4)), np.zeros(0)
+    ii = cv2.integral((edges > 0).astype(np.uint8)).astype(np.float64)
+    density = (ii[y2, x2] - ii[y1, x2] - ii[y2, x1] + ii[y1, x1]) / ((x2 - x1) * (y2 - y1))
+    boxes = np.clip(np.column_stack([x1, y1, x2, y2]) / scale, 0, [w, h, w, h]).astype(np.float64)
+    keep = nms(boxes, density, cfg.nms_iou)[: cfg.max_boxes]
+    return boxes[keep], density[keep]
