@@ -168,7 +168,8 @@ def bf16_candidate_costs(rng: np.random.Generator) -> None:
     import torch
 
     from harness.retrieval import image_ranks
-    from harness.retrieval.engines import _FrameMeasure, frame_layout
+    from harness.retrieval.exact import FrameMeasure
+    from harness.retrieval.layout import frame_layout
     from harness.runtime.hardware import has_bf16
 
     native = has_bf16("cpu")
@@ -194,7 +195,7 @@ def bf16_candidate_costs(rng: np.random.Generator) -> None:
         fp32 = timed(lambda db=db, frame=frame, q=q, gt=gt: image_ranks(q, db, frame, gt))
         per_cell = statistics.median(fp32) / (nq * (m // 16 - 1))
         order, _, starts = frame_layout(frame)
-        measure = _FrameMeasure(q, db, order, np.concatenate([starts, [m]]))
+        measure = FrameMeasure(q, db, order, np.concatenate([starts, [m]]))
         k = 20_000 if dim <= 1024 else 2_000
         qq, ff = rng.integers(0, nq, k), rng.integers(0, m // 16, k)
         measure.frame_min(qq[:100], ff[:100])  # warm the threads and buffers

@@ -1,12 +1,17 @@
 """Retrieval (SPEC section 6): the rank engines and the ranking unit that feeds them.
 
-:mod:`.engines` holds the numeric kernels (exact per-frame minimum ranks, faiss top-k);
-:mod:`.units` turns one reference session and a chunk of pairs into rank rows.
+:mod:`.engines` ranks by exact per-frame minima (its kernels in :mod:`.distances`, its exact
+re-measurement in :mod:`.exact`, the layout it reads in :mod:`.layout`), :mod:`.faiss_search`
+by a faiss top-k search; :mod:`.units` turns one reference session and a chunk of pairs into rank
+rows.
 """
 
 from __future__ import annotations
 
-from harness.retrieval.engines import Ranks, frame_min_sqdist_chunk, image_ranks, image_ranks_faiss
+from harness.retrieval.distances import frame_min_sqdist_chunk
+from harness.retrieval.engines import image_ranks
+from harness.retrieval.faiss_search import image_ranks_faiss
+from harness.retrieval.layout import Ranks
 from harness.retrieval.units import (
     RANK_COUNTS,
     described_frames,

@@ -20,7 +20,8 @@ from harness.config.schema import RetrievalConfig
 from harness.pairs import thin_by_stride
 from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
-from harness.retrieval.engines import image_ranks, image_ranks_faiss
+from harness.retrieval.engines import image_ranks
+from harness.retrieval.faiss_search import image_ranks_faiss
 from harness.retrieval.places import ground_truth_places, places_by_order
 from harness.runtime.cache import read_cached_parquet
 

@@ -260,7 +260,8 @@ def test_d_is_exact_where_the_product_s_error_exceeds_the_distances() -> None:
 def test_the_expansion_error_bound_holds_and_prunes() -> None:
     """``expansion_error_factor``: every fast value lies within its bound; the bound grows with a
     product that may round its inputs (TF32), and is infinite where it would say nothing."""
-    from harness.retrieval.engines import _ExactPlace, expansion_error_factor
+    from harness.retrieval.distances import expansion_error_factor
+    from harness.retrieval.exact import ExactPlace
 
     rng = np.random.default_rng(8)
     dim = 2048
@@ -292,17 +293,17 @@ def test_the_expansion_error_bound_holds_and_prunes() -> None:
     frame = np.repeat(np.arange(20), 16)
     gt = rng.choice(20, 256)
     made: list = []
-    real_init = _ExactPlace.__init__
+    real_init = ExactPlace.__init__
 
-    def spy(self: _ExactPlace, *a: object) -> None:
+    def spy(self: ExactPlace, *a: object) -> None:
         real_init(self, *a)  # type: ignore[arg-type]
         made.append(self)
 
-    _ExactPlace.__init__ = spy  # type: ignore[method-assign]
+    ExactPlace.__init__ = spy  # type: ignore[method-assign]
     try:
         _, _, d = image_ranks(q, db.astype(np.float16), frame, gt)
     finally:
-        _ExactPlace.__init__ = real_init  # type: ignore[method-assign]
+        ExactPlace.__init__ = real_init  # type: ignore[method-assign]
     assert 256 <= made[0].measured < 256 * 4
     np.testing.assert_array_equal(d, _exact_d(q, db.astype(np.float16), frame, [[g] for g in gt]))
 
@@ -310,7 +311,8 @@ def test_the_expansion_error_bound_holds_and_prunes() -> None:
 def test_the_exact_step_reads_database_rows_as_a_device_pass_does() -> None:
     """A CUDA pass measures its pairs from the host arrays (float16 rows, database order): the
     same values as from a chunk's float32 rows."""
-    from harness.retrieval.engines import _ExactPlace, expansion_error_factor
+    from harness.retrieval.distances import expansion_error_factor
+    from harness.retrieval.exact import ExactPlace
 
     rng = np.random.default_rng(9)
     db = rng.standard_normal((40, 500)).astype(np.float16)
@@ -321,7 +323,7 @@ def test_the_exact_step_reads_database_rows_as_a_device_pass_does() -> None:
     v = np.zeros(30, np.float32)  # no pruning: every pair within every bound
     bn = np.full(30, 1e9)
     f = expansion_error_factor(500)
-    host, chunk = _ExactPlace(np.ones(6), f), _ExactPlace(np.ones(6), f)
+    host, chunk = ExactPlace(np.ones(6), f), ExactPlace(np.ones(6), f)
     host.add(ii, v, bn, q, db, order[rows])
     block = db[order].astype(np.float32)
     chunk.add(ii, v, bn, q, block, np.argsort(order)[order[rows]])
@@ -376,7 +378,7 @@ def test_bf16_candidates_give_exact_ranks_and_d(dim: int, scale: float, offset: 
 def test_the_bf16_bound_holds_for_the_product_torch_computes() -> None:
     """:func:`bf16_error_factor` against the values the engine's bf16 path computes (centred,
     bfloat16 product, float32 norms), measured pair by pair: never beyond the bound."""
-    from harness.retrieval.engines import _sqdist_bf16_into, bf16_error_factor
+    from harness.retrieval.distances import bf16_error_factor, sqdist_bf16_into
 
     rng = np.random.default_rng(5)
     for dim, scale in [(16, 1.0), (512, 100.0), (2048, 1e-2)]:
@@ -392,7 +394,7 @@ def test_the_bf16_bound_holds_for_the_product_torch_computes() -> None:
         qn = torch.linalg.vector_norm(qc, dim=1, keepdim=True).square_()
         bn = torch.linalg.vector_norm(bc, dim=1).square_()
         out = torch.empty((40, 300))
-        v = _sqdist_bf16_into(qc.bfloat16(), qn, bc.bfloat16(), bn, out).double().numpy()
+        v = sqdist_bf16_into(qc.bfloat16(), qn, bc.bfloat16(), bn, out).double().numpy()
         true = ((q[:, None, :].astype(np.float64) - b[None].astype(np.float64)) ** 2).sum(2)
         bound = (
             bf16_error_factor(dim)
