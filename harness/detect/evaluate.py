@@ -1,163 +1,40 @@
 """Table D (SPEC 13): ``harness detect``'s change boxes scored on the annotated query frames.
 
-pycocotools' COCOeval does the matching; COCO AP@[.5:.95] and AP@.5 are its statistics, and the
-AP at IoU 0.5 with VOC all-point interpolation (the metric of "The Change You Want to See", WACV
-2023) is integrated from its matches.
+pycocotools' COCOeval does the matching (:mod:`harness.detect.ap`); COCO AP@[.5:.95] and AP@.5
+are its statistics, and the AP at IoU 0.5 with VOC all-point interpolation (the metric of "The
+Change You Want to See", WACV 2023) is integrated from its matches.
 
 SPEC 9 for Table D (:func:`table_d_chance`): the floor is the mean AP50 of ``[report]
 chance_draws`` draws of random scores on the same candidate boxes (the fused qBBs of every
 annotated frame) through the same NMS, the chance band the draws' 5th-95th percentiles; the ceiling
 the same candidates scored by their best IoU with an annotated change box, through the same NMS;
 the candidates' recall is the share of annotated change boxes that some candidate meets at IoU 0.5.
-The draws are matched by :func:`match50`, COCOeval's greedy matching at IoU 0.5 (tested equal to
-pycocotools on the run's own detections), so that 200 draws cost seconds, not 200 COCOevals.
+The draws are matched by :func:`harness.detect.ap.match50`, COCOeval's greedy matching at IoU 0.5
+(tested equal to pycocotools on the run's own detections), so that 200 draws cost seconds, not 200
+COCOevals.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from harness.detect.ap import (
+    clopper_pearson,
+    coco_eval,
+    coco_ground_truth,
+    iou_matrix,
+    match50,
+    weighted_voc,
+)
 from harness.detect.table import table_d_markdown
 from harness.evaluate import chance
 from harness.evaluate.metrics import interval, resample_counts
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import write_json, write_text
-
-
-def _voc_all_point(tp: np.ndarray, scores: np.ndarray, n_gt: int) -> float:
-    """VOC all-point interpolated AP (the area under the monotone precision envelope)."""
-    tp = np.asarray(tp).astype(bool)
-    return _weighted_voc(np.asarray(scores, np.float64), tp, np.ones(len(tp)), float(n_gt))
-
-
-def coco_eval(gt: dict[str, Any], dets: list[dict[str, Any]]) -> tuple[float, float, float]:
-    """(VOC all-point AP at IoU 0.5, COCO AP@[.5:.95], COCO AP@.5) by pycocotools' COCOeval.
-
-    The matching (greedy by score, crowd-free, at IoU 0.5) is COCOeval's; the all-point area is
-    integrated from its per-detection matches at IoU 0.5. Frames without a change box count as
-    images with no ground truth: their detections are false positives only.
-    """
-    from pycocotools.coco import COCO
-    from pycocotools.cocoeval import COCOeval
-
-    n_gt = len(gt["annotations"])
-    if n_gt == 0:
-        return float("nan"), float("nan"), float("nan")
-    with contextlib.redirect_stdout(io.StringIO()):
-        cg = COCO()
-        cg.dataset = gt
-        cg.createIndex()
-        if not dets:
-            return 0.0, 0.0, 0.0
-        cd = cg.loadRes(dets)
-        ev = COCOeval(cg, cd, "bbox")
-        ev.params.maxDets = [1, 10, 100]
-        ev.evaluate()
-        ev.accumulate()
-        ev.summarize()
-    tps, scs = [], []
-    t50 = 0  # iouThrs[0] = 0.5
-    for e in ev.evalImgs:
-        if e is None or e["aRng"] != ev.params.areaRng[0]:
-            continue
-        m = np.asarray(e["dtMatches"])[t50]
-        ign = np.asarray(e["dtIgnore"])[t50].astype(bool)
-        tps.append((m > 0)[~ign])
-        scs.append(np.asarray(e["dtScores"])[~ign])
-    tp = np.concatenate(tps) if tps else np.zeros(0)
-    sc = np.concatenate(scs) if scs else np.zeros(0)
-    return _voc_all_point(tp, sc, n_gt), float(ev.stats[0]), float(ev.stats[1])
-
-
-def coco_ground_truth(
-    fr: pd.DataFrame, ann: pd.DataFrame, ids: dict[tuple[str, str, int], int]
-) -> dict[str, Any]:
-    """The annotated query frames as a COCO ground truth (category 1 = change)."""
-    annotated = ann[FRAME_KEY].drop_duplicates()
-    keyset = {(str(s), str(c), int(u)) for s, c, u in annotated.to_numpy()}
-    imgs = [
-        {"id": ids[k], "width": int(w), "height": int(h)}
-        for k, w, h in zip(
-            map(tuple, fr[FRAME_KEY].to_numpy().tolist()), fr["width"], fr["height"], strict=True
-        )
-        if (str(k[0]), str(k[1]), int(k[2])) in keyset
-    ]
-    anns: list[dict[str, Any]] = []
-    chg = ann[ann["status"] == "change"]
-    for r in chg.itertuples():
-        k = (str(r.session), str(r.camera), int(r.utime))
-        if k not in ids:
-            continue
-        w, h = float(r.x2 - r.x1), float(r.y2 - r.y1)
-        anns.append(
-            {
-                "id": len(anns) + 1,
-                "image_id": ids[k],
-                "category_id": 1,
-                "bbox": [float(r.x1), float(r.y1), w, h],
-                "area": w * h,
-                "iscrowd": 0,
-            }
-        )
-    return {"images": imgs, "annotations": anns, "categories": [{"id": 1, "name": "change"}]}
-
-
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of every box of ``a`` (n, 4: x1 y1 x2 y2) with every box of ``b`` (m, 4), as COCO's."""
-    if not len(a) or not len(b):
-        return np.zeros((len(a), len(b)))
-    iw = np.clip(
-        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
-    )
-    ih = np.clip(
-        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
-    )
-    inter = iw * ih
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    union = area_a[:, None] + area_b[None, :] - inter
-    return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
-
-
-def match50(iou: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """COCOeval's greedy matching at IoU 0.5 of one image's detections, in score order.
-
-    Each detection (rows of ``iou``, taken in ``order``) takes the not yet matched ground-truth box
-    of largest IoU >= 0.5 (the last of equals, as COCOeval's loop does). Returns the true-positive
-    flag of each detection in ``order``.
-    """
-    taken = np.zeros(iou.shape[1], bool)
-    tp = np.zeros(len(order), bool)
-    for j, d in enumerate(order):
-        best, m = 0.5, -1
-        for g in range(iou.shape[1]):
-            if taken[g] or iou[d, g] < best:
-                continue
-            best, m = iou[d, g], g
-        if m >= 0:
-            taken[m] = tp[j] = True
-    return tp
-
-
-def _weighted_voc(scores: np.ndarray, tp: np.ndarray, w: np.ndarray, n_gt: float) -> float:
-    """VOC all-point AP where detection i counts ``w[i]`` times (bootstrap multiplicities)."""
-    if n_gt <= 0:
-        return float("nan")
-    order = np.argsort(-scores, kind="stable")
-    ww, t = w[order], tp[order]
-    ctp, cfp = np.cumsum(ww * t), np.cumsum(ww * ~t)
-    rec = ctp / n_gt
-    prec = ctp / np.maximum(ctp + cfp, np.finfo(np.float64).eps)
-    mrec = np.concatenate([[0.0], rec, [1.0]])
-    mpre = np.maximum.accumulate(np.concatenate([[0.0], prec, [0.0]])[::-1])[::-1]
-    i = np.flatnonzero(mrec[1:] != mrec[:-1])
-    return float(np.sum((mrec[i + 1] - mrec[i]) * mpre[i + 1]))
 
 
 def _frame_dets(
@@ -192,7 +69,7 @@ def _random_score_aps(
             sc.append(s_)
             tp.append(t_)
         s_all, t_all = np.concatenate(sc), np.concatenate(tp)
-        aps[b] = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
+        aps[b] = weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
     return aps
 
 
@@ -213,9 +90,7 @@ def _ceiling(
         s_, t_ = _frame_dets(cands[i], best, gts[i], nms)
         sc.append(s_)
         tp.append(t_)
-    ceiling = _weighted_voc(
-        np.concatenate(sc), np.concatenate(tp), np.ones(sum(map(len, sc))), n_gt
-    )
+    ceiling = weighted_voc(np.concatenate(sc), np.concatenate(tp), np.ones(sum(map(len, sc))), n_gt)
     return ceiling, matched
 
 
@@ -238,9 +113,9 @@ def _row_ap(
         tp.append(t_)
         img.append(np.full(len(scores), k))
     s_all, t_all, g_all = np.concatenate(sc), np.concatenate(tp), np.concatenate(img)
-    ap = _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
+    ap = weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
     return ap, np.array(
-        [_weighted_voc(s_all, t_all, c[g_all].astype(np.float64), float(c @ gt_n)) for c in counts]
+        [weighted_voc(s_all, t_all, c[g_all].astype(np.float64), float(c @ gt_n)) for c in counts]
     )
 
 
@@ -499,15 +374,3 @@ def score_detections(
     write_text(out / "tableD.csv", t.to_csv(index=False, float_format="%.4f"))
     write_text(out / "tableD.md", table_d_markdown(t))
     return t
-
-
-def clopper_pearson(k: int, n: int, ci: float = 0.95) -> tuple[float, float]:
-    """The exact (Clopper-Pearson) interval of a rate of ``k`` in ``n`` at level ``ci``."""
-    from scipy.stats import beta
-
-    if n == 0:
-        return float("nan"), float("nan")
-    a = (1.0 - ci) / 2.0
-    lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
-    hi = 1.0 if k == n else float(beta.ppf(1.0 - a, k + 1, n - k))
-    return lo, hi

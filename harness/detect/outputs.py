@@ -20,8 +20,9 @@ from harness.detect.boxes import change_boxes_nms
 from harness.detect.calibrate import exceedance
 from harness.detect.chunk import FRAME_RESULT
 from harness.detect.evaluate import score_detections
+from harness.detect.figures import trajectory_figure
 from harness.detect.options import DetectOptions
-from harness.detect.page import trajectory_figure, write_detect_page
+from harness.detect.page import write_detect_page
 from harness.detect.pixels import write_pixel_table
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image

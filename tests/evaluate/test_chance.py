@@ -141,7 +141,7 @@ def test_random_is_never_above_chance_and_other_noise_rarely_is() -> None:
 
 def test_match50_is_cocoeval_s_matching() -> None:
     """Table D's fast matcher gives pycocotools' VOC all-point AP50 exactly on random boxes."""
-    from harness.detect.evaluate import _weighted_voc, coco_eval, iou_matrix, match50
+    from harness.detect.ap import coco_eval, iou_matrix, match50, weighted_voc
 
     rng = np.random.default_rng(5)
     for _ in range(15):
@@ -174,6 +174,6 @@ def test_match50_is_cocoeval_s_matching() -> None:
         with contextlib.redirect_stdout(io.StringIO()):
             voc = coco_eval(gt, dets)[0]
         s_all, t_all = np.concatenate(sc), np.concatenate(tp)
-        assert _weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt) == pytest.approx(
+        assert weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt) == pytest.approx(
             voc, abs=1e-12
         )
