@@ -14,12 +14,10 @@ import numpy as np
 import pandas as pd
 
 from harness.evaluate.chance import MARK_LEGEND, VERDICT_TEX, few_text
+from harness.evaluate.localization import CLEAN_ROC
 from harness.methods import FUSION_METHODS, METHOD_LABELS
 from harness.reports.change import CHANGE_TABLES, ChangeTable, column_label, number
 from harness.reports.texfmt import tex_escape as _tex_escape
-
-#: A query subimage is "clean" for the localization table when at most this share of it changed.
-CLEAN_ROC = 0.05
 
 
 def recall_ns(loc: pd.DataFrame) -> list[int]:

@@ -28,12 +28,12 @@ from harness.evaluate.aps import (
     stratified_labels,
     table_i_rows,
 )
-from harness.evaluate.metrics import holm, pr_curve
-from harness.evaluate.splits import Split, paper_splits, roc_sob
+from harness.evaluate.localization import localization_stats
+from harness.evaluate.metrics import pr_curve
+from harness.evaluate.splits import Split, paper_splits
 from harness.evaluate.splits import label as split_label
-from harness.ingest.annotations import change_boxes
-from harness.methods import BASELINES, FUSION_METHODS, ordered_methods
-from harness.records import QUERY_KEY, frame_sizes
+from harness.evaluate.verdicts import confound_warnings, holm_columns
+from harness.methods import ordered_methods
 from harness.reports import tables as report_tables
 from harness.reports.change import CHANGE_TABLES, change_table, pivot
 from harness.reports.leaderboard import (
@@ -44,7 +44,6 @@ from harness.reports.leaderboard import (
 )
 from harness.reports.plots import locmap_figures, pr_plots
 from harness.reports.render import (
-    CLEAN_ROC,
     change_latex,
     comparisons_markdown,
     localization_latex,
@@ -56,142 +55,15 @@ from harness.runtime.cache import write_parquet, write_text
 
 #: What this module defines for callers.
 __all__ = [
-    "WARN_MARGIN",
     "Block",
     "Reports",
-    "confound_warnings",
-    "localization_table",
     "write_reports",
 ]
 
 log = logging.getLogger(__name__)
 
 
-def localization_table(
-    ranks: pd.DataFrame,
-    frames: pd.DataFrame,
-    ann: pd.DataFrame,
-    recall_at: Sequence[int] = (1, 5, 10, 20),
-) -> pd.DataFrame:
-    """Recall@N (``[report] recall_at``) and median r per proposal method x season pair.
-
-    Also over all pairs and all proposal methods (``all``).
-
-    Each statistic is given over all ranked query subimages and over the clean ones (annotated
-    query frames, RoC <= 0.05), next to its chance level: the mean of 1/L (recall@1 of a random
-    ranking) and 0.5 (its median r).
-    """
-    cb = change_boxes(ann)
-    size = frame_sizes(frames)
-    roc = np.full(len(ranks), np.nan)
-    for key, idx in ranks.groupby(QUERY_KEY, sort=False).indices.items():
-        k = (str(key[0]), str(key[1]), int(key[2]))
-        if k in cb:
-            w, h = size[k]
-            roc[idx] = roc_sob(
-                ranks[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)[idx], cb[k], w, h
-            )[0]
-    df = ranks.assign(_clean=roc <= CLEAN_ROC)
-    rows = []
-    for prop, gp in [("all", df), *df.groupby("proposal_method", sort=True)]:
-        for pair, g in [("all", gp), *gp.groupby("season_pair", sort=True)]:
-            c = g[g["_clean"]]
-            rows.append(
-                {
-                    "proposal_method": str(prop),
-                    "season_pair": str(pair),
-                    "subimages": len(g),
-                    **{f"recall_at_{n}": float((g["rank"] <= n).mean()) for n in recall_at},
-                    "median_r": float(g["r"].median()),
-                    "chance_recall_at_1": float((1.0 / g["L"]).mean()),
-                    "clean_subimages": len(c),
-                    **{
-                        f"clean_recall_at_{n}": float((c["rank"] <= n).mean())
-                        if len(c)
-                        else float("nan")
-                        for n in recall_at
-                    },
-                    "clean_median_r": float(c["r"].median()) if len(c) else float("nan"),
-                    "median_place_size": float(g["place_size"].median())
-                    if "place_size" in g.columns
-                    else 1.0,
-                    # ranks that are only bounds: a truncated imported list without the place
-                    "bound_share": float((~g["exact"].astype(bool)).mean())
-                    if "exact" in g.columns and len(g)
-                    else 0.0,
-                }
-            )
-    return pd.DataFrame(rows)
-
-
 # ------------------------------------------------------------------ change tables (I, S, P)
-
-# : A baseline within this of the best of the six methods is reported under the table (SPEC section
-# 7).
-WARN_MARGIN = 0.02
-
-
-def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
-    """SPEC section 7: warn where a baseline that reads no pixel nears the best method.
-
-    Where one comes within 0.02 of the best of the six methods, say so: one line per baseline,
-    naming every split where it happens and both APs.
-    """
-    hits: dict[str, list[str]] = {}
-    for split, g in main.groupby("split", sort=False):
-        six = g[g["fusion"].isin(FUSION_METHODS)].dropna(subset=["ap"])
-        if not len(six):
-            continue
-        best = six.loc[six["ap"].idxmax()]
-        for b in BASELINES:
-            row = g[g["fusion"] == b]
-            if (
-                len(row)
-                and np.isfinite(row["ap"].iloc[0])
-                and row["ap"].iloc[0] >= best["ap"] - WARN_MARGIN
-            ):
-                name = (
-                    f"RoC-max {row['roc_max'].iloc[0]:.2f}" if table != "Table P" else f"{split} AP"
-                )
-                hits.setdefault(b, []).append(
-                    f"{name}: {row['ap'].iloc[0]:.2f} vs {best['fusion']} {best['ap']:.2f}"
-                )
-    see = (
-        "; read Table S (tableS.md), which compares boxes of the same size"
-        if table == "Table I"
-        else ""
-    )
-    return [
-        f"WARNING ({table}): the baseline {b}, which reads no pixel, comes within "
-        f"{WARN_MARGIN} of the best of the six methods "
-        f"({'; '.join(v)}): under this protocol it separates the labels without detecting "
-        f"anything{see}."
-        for b, v in hits.items()
-    ]
-
-
-def holm_columns(summ: pd.DataFrame, alpha: float) -> pd.DataFrame:
-    """Mark the paired differences from rank fusion that survive Holm's correction.
-
-    The family is one table's differences (every method but rank fusion, every pooled column:
-    proposals ``all``, season pair ``all``), ``holm_tested`` of them; ``holm_survives`` marks those
-    rejected at ``alpha`` (``1 - [report] ci``). Rows outside a family are never marked.
-    """
-    out = summ.copy()
-    out["holm_tested"] = 0
-    out["holm_survives"] = False
-    if not len(out) or "p_value" not in out.columns:
-        return out
-    for _, g in out.groupby("table", sort=False):
-        fam = g[
-            (g["proposal_method"] == "all")
-            & (g["season_pair"] == "all")
-            & (g["fusion"] != "rank_fusion")
-            & np.isfinite(g["p_value"].to_numpy(np.float64))
-        ]
-        out.loc[fam.index, "holm_tested"] = len(fam)
-        out.loc[fam.index, "holm_survives"] = holm(fam["p_value"].to_numpy(np.float64), alpha)
-    return out
 
 
 # ------------------------------------------------------------------ all reports
@@ -409,7 +281,7 @@ def _write_localization(
     """
     located = [b for b in blocks if b.ranks is not None]
     locs = {
-        b.name: localization_table(b.ranks, frames, ann, cfg.report.recall_at)
+        b.name: localization_stats(b.ranks, frames, ann, cfg.report.recall_at)
         for b in located
         if b.ranks is not None
     }
@@ -426,7 +298,7 @@ def _write_localization(
     files.text("localization.tex", "\n".join(localization_latex(v, k) for k, v in locs.items()))
     also = cfg.report.gt_radius_also
     locs_also = {
-        b.name: localization_table(b.ranks_also, frames, ann, cfg.report.recall_at)
+        b.name: localization_stats(b.ranks_also, frames, ann, cfg.report.recall_at)
         for b in located
         if b.ranks_also is not None
     }

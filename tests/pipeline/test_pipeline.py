@@ -542,8 +542,8 @@ def test_the_readme_quotes_the_holm_counts_as_comparisons_md_prints_them(run: tu
 def test_recall_at_is_the_share_ranked_within_n(run: tuple) -> None:
     """``[report] recall_at``: one ``recall_at_N`` (and ``clean_``) column per N, each the share of
     query subimages whose place ranks within the first N; the defaults are 1, 5, 10, 20."""
+    from harness.evaluate.localization import localization_stats
     from harness.ingest.annotations import load_annotations
-    from harness.reports.write import localization_table
 
     p, _, out = run
     assert p.cfg.report.recall_at == (1, 5, 10, 20)
@@ -554,7 +554,7 @@ def test_recall_at_is_the_share_ranked_within_n(run: tuple) -> None:
     ranks = pd.read_parquet(out / "ranks.parquet")
     frames = pd.read_parquet(next((out / "cache" / "frames").glob("*/frames.parquet")))
     ann = load_annotations(p.cfg.annotations, frames)
-    mine = localization_table(ranks, frames, ann, (1, 3, 7))
+    mine = localization_stats(ranks, frames, ann, (1, 3, 7))
     row = mine[(mine["proposal_method"] == "all") & (mine["season_pair"] == "all")].iloc[0]
     for n in (1, 3, 7):
         assert row[f"recall_at_{n}"] == pytest.approx((ranks["rank"] <= n).mean())

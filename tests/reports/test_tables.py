@@ -19,8 +19,8 @@ from harness.evaluate.metrics import (
     stratified_ap,
     weighted_average_precision,
 )
+from harness.evaluate.verdicts import confound_warnings
 from harness.reports.render import table_latex
-from harness.reports.write import confound_warnings
 
 EDGES = [0.0, 0.1, 0.5, 1.0]
 
