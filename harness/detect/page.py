@@ -23,9 +23,7 @@ from harness.detect.table import table_d_html
 from harness.errors import HarnessError
 from harness.imagestore import read_image
 from harness.records import FRAME_KEY
-from harness.reports.html.page import (
-    SCRIPT,  # the page reports its own loaded images (browser test)
-)
+from harness.reports.html import SCRIPT  # the page reports its own loaded images (browser test)
 from harness.runtime.cache import write_text
 
 CSS = (

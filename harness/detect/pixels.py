@@ -38,7 +38,7 @@ from harness.fusion.fuse import loc_map
 from harness.ingest.names import frames_by_image
 from harness.inputs import IMAGE_SUFFIXES
 from harness.records import FRAME_KEY, QUERY_KEY
-from harness.reports.html.cells import esc
+from harness.reports.html import esc
 from harness.runtime.cache import read_cached_parquet, write_text
 
 log = logging.getLogger(__name__)

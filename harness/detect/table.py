@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import pandas as pd
 
 from harness.evaluate.chance import MARK_LEGEND, VERDICT_WORDS, few_text, few_warning
-from harness.reports.html.cells import esc
+from harness.reports.html import esc
 
 #: Table D's columns after the row's name (the page's headings drop the `` [95% CI]``).
 COLUMNS = (
