@@ -294,3 +294,32 @@ def test_function_level_imports_are_the_justified_ones() -> None:
                     continue
                 found += [f"{name}.{fn.name}: {t}" for t in tops if t not in LAZY_IMPORTS]
     assert found == []
+
+
+#: The modules still over 400 lines, each a grab-bag issue 51 splits by job; none may join them
+#: and each leaves the list when it is split (the list shrinks, never grows).
+OVER_400_LINES = frozenset(
+    {
+        "harness.config.check",
+        "harness.config.load",
+        "harness.config.schema",
+        "harness.evaluate.aps",
+        "harness.fixture.world",
+        "harness.fixture.writers",
+        "harness.fusion.fuse",
+        "harness.ingest.annotations",
+        "harness.ingest.logs",
+        "harness.pipeline.chain",
+        "harness.pipeline.localizer_stages",
+        "harness.pipeline.stages",
+        "harness.reports.html.page",
+        "harness.reports.leaderboard",
+        "harness.reports.write",
+    }
+)
+
+
+def test_no_module_joins_the_ones_over_400_lines() -> None:
+    over = {name for name, path in _modules().items() if len(path.read_text().splitlines()) > 400}
+    joined, split = sorted(over - OVER_400_LINES), sorted(OVER_400_LINES - over)
+    assert (joined, split) == ([], []), "joined: cut them by job; split: drop them from the list"
