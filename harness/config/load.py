@@ -23,7 +23,7 @@ from harness.config.kinds import LOCALIZER_KINDS
 from harness.config.paths import resolve_config_path
 from harness.config.schema import (
     ALL_LOCALIZERS,
-    LOCALIZER_NAME,
+    LOCALIZER_NAME_RULE,
     Config,
     DescriptorConfig,
     DetectConfig,
@@ -45,6 +45,7 @@ from harness.config.schema import (
     SessionConfig,
     SplitsConfig,
     YoloConfig,
+    is_localizer_name,
 )
 from harness.errors import ConfigError
 from harness.inputs import IMAGE_SUFFIXES, read_text
@@ -290,10 +291,10 @@ def parse_localizers(
         if unknown:
             raise ConfigError(f"{at}: unknown key(s) {unknown}; known: {known}")
         name = item.get("name")
-        if not isinstance(name, str) or not LOCALIZER_NAME.match(name):
+        if not is_localizer_name(name):
             raise ConfigError(
-                f"{at} name = {name!r}: expected a name of letters, digits, '.', '_', '-', '+' "
-                "(it names the localizer in every table)"
+                f"{at} name = {name!r}: expected {LOCALIZER_NAME_RULE} (it names the localizer "
+                "in every table)"
             )
         ways = [k for k in LOCALIZER_KINDS if k in item]
         if len(ways) != 1:

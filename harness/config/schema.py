@@ -15,7 +15,18 @@ from harness.methods import ALL_METHODS, PROPOSER_OPTIONS
 from harness.records import season_of
 
 #: A localizer's name: it heads tables and names files (never a path).
-LOCALIZER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,63}$")
+LOCALIZER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,63}")
+#: What a name that is not one is told (``[[localizers]]`` and ``--import`` alike).
+LOCALIZER_NAME_RULE = (
+    "1-64 ASCII letters, digits, '.', '_', '-' or '+', starting with a letter or digit"
+)
+
+
+def is_localizer_name(name: object) -> bool:
+    """Whether ``name`` may name a localizer: one check for ``[[localizers]]`` and ``--import``."""
+    return isinstance(name, str) and LOCALIZER_NAME.fullmatch(name) is not None
+
+
 #: ``[descriptor] precision``: the encoder's arithmetic (``auto``: bf16 where native).
 PRECISIONS = ("auto", "fp32", "bf16")
 #: The name of the cross-localizer block (SPEC section 11).

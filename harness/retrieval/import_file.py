@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from harness.config.schema import LOCALIZER_NAME_RULE, is_localizer_name
 from harness.errors import RetrievalError
 from harness.records import SUBIMAGE_KEY
 
@@ -65,17 +66,14 @@ def parse_import_arg(text: str) -> ImportSpec:
 def check_localizer_name(name: str, where: str) -> str:
     """A localizer name: shown in tables and used in file names, so a plain word.
 
+    The same rule as ``[[localizers]] name`` (:func:`harness.config.schema.is_localizer_name`).
+
     Raises:
-        RetrievalError: It holds characters other than letters, digits, ``.``, ``_``, ``-``,
-            ``+``, or starts with ``.``, ``-`` or is longer than 64 characters.
+        RetrievalError: It is not 1-64 ASCII letters, digits, ``.``, ``_``, ``-`` or ``+``
+            starting with a letter or digit.
     """
-    ok = bool(name) and len(name) <= 64 and name[0] not in ".-"
-    ok = ok and all(c.isalnum() or c in "._-+" for c in name)
-    if not ok:
-        raise RetrievalError(
-            f"{where}: localizer name {name!r} must be 1-64 letters, digits, '.', '_', '-' or "
-            "'+', not starting with '.' or '-'"
-        )
+    if not is_localizer_name(name):
+        raise RetrievalError(f"{where}: localizer name {name!r}: expected {LOCALIZER_NAME_RULE}")
     return name
 
 

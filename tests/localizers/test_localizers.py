@@ -24,12 +24,13 @@ import scipy.sparse as sp
 from harness.cli import main
 from harness.config.load import load_config
 from harness.config.schema import BovwConfig
-from harness.errors import ConfigError
+from harness.errors import ConfigError, RetrievalError
 from harness.evaluate.chance import stratified_chance
 from harness.evaluate.metrics import average_precision, stratified_ap
 from harness.evaluate.splits import roc_sob
 from harness.ingest.annotations import change_boxes, load_annotations
 from harness.retrieval.bovw import bovw_ranks, bow_vectors, features, frame_similarity
+from harness.retrieval.import_file import parse_import_arg
 
 ROOT = Path(__file__).resolve().parents[2]
 MULTI_TOML = ROOT / "datasets" / "fixture-localizers.toml"
@@ -566,3 +567,16 @@ def test_comparisons_between_localizers_say_which_survive_holm(
         assert line.endswith("[Holm]") == bool(r.S_rank_fusion_holm_survives), line
     readme = " ".join((ROOT / "README.md").read_text().split())
     assert sentence.replace("Table L: ", "") in readme
+
+
+@pytest.mark.parametrize("name", ["_x", "é", "a\n", ".hidden", "-x", "a" * 65, "a b"])
+def test_one_name_check_for_import_and_the_config(name: str, tmp_path: Path) -> None:
+    """``--import NAME=FILE`` and ``[[localizers]] name`` refuse the same names (issue 51:
+    ``_x`` and ``é`` passed ``--import`` and were refused in the config)."""
+    with pytest.raises(RetrievalError, match="localizer name"):
+        parse_import_arg(f"{name}=/x/r.csv")
+    cfg = _config(tmp_path, f"[[localizers]]\nname = {json.dumps(name)}\nbovw = {{}}\n")
+    with pytest.raises(ConfigError, match="expected 1-64 ASCII letters"):
+        load_config(cfg)
+    for ok in ("bovw", "my-netvlad", "A.b_c+1", "a" * 64):
+        assert parse_import_arg(f"{ok}=/x/r.csv").name == ok
