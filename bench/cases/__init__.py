@@ -16,7 +16,12 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
     "ingest": ("ingest", ("harness/ingest",)),
     "crops": (
         "crops",
-        ("harness/descriptors/crops.py", "harness/imagestore.py", "harness/proposals/proposers.py"),
+        (
+            "harness/descriptors/crops.py",
+            "harness/imagestore.py",
+            "harness/proposals/proposers.py",
+            "harness/proposals/builtin.py",
+        ),
     ),
     "descriptor": ("descriptor", ("harness/descriptors",)),
     "ranking": ("ranking", ("harness/retrieval",)),
@@ -32,7 +37,8 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
             "harness/fusion/fuse.py",
             "harness/evaluate/metrics.py",
             "harness/evaluate/splits.py",
-            "harness/reports/write.py",
+            "harness/evaluate/aps.py",
+            "harness/proposals/builtin.py",
         ),
     ),
     "executor": ("executor", ("harness/runtime/executors.py", "harness/runtime/cache.py")),
