@@ -10,7 +10,45 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+
+
+class Registry(dict[str, T]):
+    """One extension point's entries by name, the harness's own and a user's alike (issue 51).
+
+    Every registry of the harness is one: fusion rules, proposers and their options, localizer
+    kinds, log formats, report tables, descriptors. It is a dict, so every reader reads it as
+    one; an entry comes in through :meth:`add` (or :meth:`entry`, the same as a decorator), which
+    refuses a name already taken, among the entries or the names ``reserved`` beside them.
+    """
+
+    def __init__(self, what: str, reserved: Iterable[str] = ()) -> None:
+        super().__init__()
+        self.what = what
+        self.reserved = tuple(reserved)
+
+    def add(self, name: str, entry: T, error: type[Exception] = ValueError) -> T:
+        """Add ``entry`` as ``name`` and return it.
+
+        Raises:
+            ValueError: ``name`` is taken (``error`` instead, where the caller gives one).
+        """
+        if name in self or name in self.reserved:
+            raise error(
+                f"{self.what} {name!r} exists (the name is taken); known: {[*self, *self.reserved]}"
+            )
+        self[name] = entry
+        return entry
+
+    def entry(self, name: str) -> Callable[[T], T]:
+        """:meth:`add` as a decorator: ``@REGISTRY.entry("name")`` above the entry."""
+
+        def register(obj: T) -> T:
+            return self.add(name, obj)
+
+        return register
 
 
 @dataclass(frozen=True)
@@ -52,40 +90,39 @@ def _builtin(name: str, label: str, **kw: Any) -> FusionRule:
 _RANK = {"needs_lengths": True}
 #: Every fusion method, in table order: SPEC section 7's six (Table I's rows), the paper's two
 #: variants, the field's four rules (SPEC 14), the three baselines; then registered ones.
-FUSION_RULES: dict[str, FusionRule] = {
-    r.name: r
-    for r in (
-        _builtin("rank_fusion", "rank fusion", block="table", detect=True, **_RANK),
-        _builtin(
-            "rank_fusion_le2",
-            "rank fusion (<=2)",
-            block="table",
-            detect=True,
-            options=("seed",),
-            **_RANK,
-        ),
-        _builtin(
-            "rank_fusion_le3",
-            "rank fusion (<=3)",
-            block="table",
-            detect=True,
-            options=("seed",),
-            **_RANK,
-        ),
-        _builtin("rank_no_fusion", "rank w/o fusion", kind="unfused", block="table", across=False),
-        _builtin("score_max", "score max", block="table", needs_score=True, across=False),
-        _builtin("score_sum", "score sum", block="table", needs_score=True, across=False),
-        _builtin("rank_fusion_asc", "rank fusion asc (variant 2)"),
-        _builtin("rank_fusion_raw", "rank fusion raw (variant 1)", **_RANK),
-        _builtin("rrf", "RRF (reciprocal rank)", detect=True, options=("rrf_c",), **_RANK),
-        _builtin("combmnz", "CombMNZ", detect=True, **_RANK),
-        _builtin("borda", "Borda count", detect=True, **_RANK),
-        _builtin("isr", "ISR (inverse square rank)", detect=True, **_RANK),
-        _builtin("size_prior", "size prior (no pixel)", kind="image", baseline=True),
-        _builtin("cover_count", "cover count (no pixel)", baseline=True),
-        _builtin("random", "random", kind="image", baseline=True),
-    )
-}
+FUSION_RULES: Registry[FusionRule] = Registry("fusion method")
+for _rule in (
+    _builtin("rank_fusion", "rank fusion", block="table", detect=True, **_RANK),
+    _builtin(
+        "rank_fusion_le2",
+        "rank fusion (<=2)",
+        block="table",
+        detect=True,
+        options=("seed",),
+        **_RANK,
+    ),
+    _builtin(
+        "rank_fusion_le3",
+        "rank fusion (<=3)",
+        block="table",
+        detect=True,
+        options=("seed",),
+        **_RANK,
+    ),
+    _builtin("rank_no_fusion", "rank w/o fusion", kind="unfused", block="table", across=False),
+    _builtin("score_max", "score max", block="table", needs_score=True, across=False),
+    _builtin("score_sum", "score sum", block="table", needs_score=True, across=False),
+    _builtin("rank_fusion_asc", "rank fusion asc (variant 2)"),
+    _builtin("rank_fusion_raw", "rank fusion raw (variant 1)", **_RANK),
+    _builtin("rrf", "RRF (reciprocal rank)", detect=True, options=("rrf_c",), **_RANK),
+    _builtin("combmnz", "CombMNZ", detect=True, **_RANK),
+    _builtin("borda", "Borda count", detect=True, **_RANK),
+    _builtin("isr", "ISR (inverse square rank)", detect=True, **_RANK),
+    _builtin("size_prior", "size prior (no pixel)", kind="image", baseline=True),
+    _builtin("cover_count", "cover count (no pixel)", baseline=True),
+    _builtin("random", "random", kind="image", baseline=True),
+):
+    FUSION_RULES.add(_rule.name, _rule)
 
 
 def rules_where(**flags: Any) -> tuple[str, ...]:
@@ -117,8 +154,12 @@ def detect_methods() -> tuple[str, ...]:
 
 
 def add_rule(rule: FusionRule) -> None:
-    """Put ``rule`` in the catalogue (its label too); ``fusion.register_method`` checks the name."""
-    FUSION_RULES[rule.name] = rule
+    """Put ``rule`` in the catalogue (its label too).
+
+    Raises:
+        ValueError: its name is taken.
+    """
+    FUSION_RULES.add(rule.name, rule)
     METHOD_LABELS[rule.name] = rule.label
 
 
@@ -136,9 +177,9 @@ BOX_PRIORS = ("area", "none")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
 #: Per-image proposal methods: name -> function (built-in ones and ``proposals.register_method``).
-PROPOSERS: dict[str, Callable[..., Any]] = {}
+PROPOSERS: Registry[Callable[..., Any]] = Registry("proposal method", SPECIAL_PROPOSALS)
 #: A registered method's options: name -> the dataclass its ``[proposals.<name>]`` table builds.
-PROPOSER_OPTIONS: dict[str, type] = {}
+PROPOSER_OPTIONS: Registry[type] = Registry("options of proposal method")
 
 
 def known_fusion_methods() -> tuple[str, ...]:

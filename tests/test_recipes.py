@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import re
 import shutil
@@ -289,7 +290,7 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
     from harness.imagestore import read_image
     from harness.ingest import ingest_session, logs
 
-    monkeypatch.setattr(logs, "READERS", dict(logs.READERS))  # undo after
+    monkeypatch.setattr(logs, "READERS", copy.copy(logs.READERS))  # undo after (a Registry still)
     store = get_typestore(Stores.ROS2_HUMBLE)
     # --- the recipe: a reader (detect, topics, messages) registered under a name ---
 
@@ -373,7 +374,9 @@ def test_recipe_a_toy_report_table(
     from harness.cli import main
     from harness.reports import tables as report_tables
 
-    monkeypatch.setattr(report_tables, "TABLES", dict(report_tables.TABLES))  # undone after
+    monkeypatch.setattr(
+        report_tables, "TABLES", copy.copy(report_tables.TABLES)
+    )  # undone after (a Registry still)
     # --- the recipe: a compute function of the report blocks and a spec, registered ---
     from harness.reports.tables import Column, TableSpec
 

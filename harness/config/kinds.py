@@ -24,6 +24,7 @@ from harness.config.schema import (
     LocalizerImportConfig,
 )
 from harness.errors import ConfigError
+from harness.methods import Registry
 
 __all__ = ["LOCALIZER_KINDS", "LocalizerKind", "register_localizer_kind"]
 
@@ -87,15 +88,14 @@ def _name_only(de: DescriptorConfig) -> dict[str, Any]:
 
 
 #: Kind name -> its record, in the order the config's error messages list them.
-LOCALIZER_KINDS: dict[str, LocalizerKind] = {
-    k.name: k
-    for k in (
-        LocalizerKind("descriptor", DescriptorConfig, _descriptor, _name_only),
-        LocalizerKind("bovw", BovwConfig, _bovw),
-        LocalizerKind("import", LocalizerImportConfig, _import),
-        LocalizerKind("local", LocalConfig, _local),
-    )
-}
+LOCALIZER_KINDS: Registry[LocalizerKind] = Registry("localizer kind", ("name", "proposals"))
+for _kind in (
+    LocalizerKind("descriptor", DescriptorConfig, _descriptor, _name_only),
+    LocalizerKind("bovw", BovwConfig, _bovw),
+    LocalizerKind("import", LocalizerImportConfig, _import),
+    LocalizerKind("local", LocalConfig, _local),
+):
+    LOCALIZER_KINDS.add(_kind.name, _kind)
 
 
 def register_localizer_kind(kind: LocalizerKind) -> None:
@@ -104,8 +104,6 @@ def register_localizer_kind(kind: LocalizerKind) -> None:
     Raises:
         ConfigError: a name already taken, or no ranks function.
     """
-    if kind.name in LOCALIZER_KINDS or kind.name in ("name", "proposals"):
-        raise ConfigError(f"localizer kind {kind.name!r}: the name is taken")
     if kind.ranks is None:
         raise ConfigError(f"localizer kind {kind.name!r}: give its ranks function")
-    LOCALIZER_KINDS[kind.name] = kind
+    LOCALIZER_KINDS.add(kind.name, kind, ConfigError)

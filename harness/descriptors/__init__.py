@@ -19,9 +19,9 @@ from harness.descriptors.base import (
 )
 from harness.descriptors.network import OnnxDescriptor, TorchScriptDescriptor
 
-REGISTRY["autoencoder"] = AutoencoderDescriptor
-REGISTRY["torchscript"] = TorchScriptDescriptor
-REGISTRY["onnx"] = OnnxDescriptor
+REGISTRY.add("autoencoder", AutoencoderDescriptor)
+REGISTRY.add("torchscript", TorchScriptDescriptor)
+REGISTRY.add("onnx", OnnxDescriptor)
 
 __all__ = [
     "REGISTRY",

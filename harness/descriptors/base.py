@@ -11,6 +11,7 @@ import numpy as np
 
 from harness.config.schema import DescriptorConfig
 from harness.errors import ConfigError
+from harness.methods import Registry
 
 
 def normalize(x: np.ndarray) -> np.ndarray:
@@ -138,7 +139,10 @@ class ThumbDescriptor(Descriptor):
         return np.asarray(out, np.float32).reshape(len(crops), -1)
 
 
-REGISTRY: dict[str, type[Descriptor]] = {"hog": HogDescriptor, "thumb": ThumbDescriptor}
+#: Descriptors by ``[descriptor] name``; a user's is added with ``REGISTRY.add(name, cls)``.
+REGISTRY: Registry[type[Descriptor]] = Registry("descriptor")
+REGISTRY.add("hog", HogDescriptor)
+REGISTRY.add("thumb", ThumbDescriptor)
 
 
 def make_descriptor(cfg: DescriptorConfig) -> Descriptor:

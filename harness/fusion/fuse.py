@@ -59,8 +59,6 @@ def register_method(
     Raises:
         ValueError: ``name`` is taken.
     """
-    if name in known_methods():
-        raise ValueError(f"fusion method {name!r} exists; known: {list(known_methods())}")
     add_rule(
         FusionRule(name, label, needs_score=needs_score, across=across, detect=detect, loc=loc)
     )

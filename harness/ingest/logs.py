@@ -23,6 +23,7 @@ from harness.errors import CorruptLogError, IngestError, TopicError
 from harness.ingest import salvage as salvage_mod
 from harness.ingest.folders import FOLDER_FORMATS
 from harness.ingest.poses import POSE_TYPES
+from harness.methods import Registry
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 #: What a log reader raises on a damaged or truncated file (reported as damage, never a traceback).
@@ -131,7 +132,7 @@ class LogFormat:
 
 
 #: Every log format by name (a session's ``format``): the built-in ones, then registered ones.
-READERS: dict[str, LogFormat] = {}
+READERS: Registry[LogFormat] = Registry("log format")
 
 
 def register_format(name: str, reader: LogReader) -> None:
@@ -142,9 +143,7 @@ def register_format(name: str, reader: LogReader) -> None:
     Raises:
         ValueError: ``name`` is taken.
     """
-    if name in known_formats():
-        raise ValueError(f"log format {name!r} exists; known: {list(known_formats())}")
-    READERS[name] = LogFormat(name, reader)
+    READERS.add(name, LogFormat(name, reader))
 
 
 def known_formats() -> tuple[str, ...]:
@@ -492,11 +491,11 @@ def _mcap_stream(path: Path, topics: tuple[str, ...], salvage: bool = False) -> 
 def _register_builtins() -> None:
     """The built-in formats, in the order sessions list them; detection asks folders first."""
     order = {"tum": 0, "kitti": 0, "euroc": 0, "ros2": 1, "nclt": 2, "ros1": 3, "mcap": 4}
-    READERS["nclt"] = LogFormat("nclt", NcltLayout(), True, order["nclt"], streams=False)
+    READERS.add("nclt", LogFormat("nclt", NcltLayout(), True, order["nclt"], streams=False))
     for fmt in ("ros1", "ros2", "mcap"):
-        READERS[fmt] = LogFormat(fmt, RosbagsLog(fmt), True, order[fmt])
+        READERS.add(fmt, LogFormat(fmt, RosbagsLog(fmt), True, order[fmt]))
     for name, folder in FOLDER_FORMATS.items():
-        READERS[name] = LogFormat(name, FolderLog(folder), True, order.get(name, 0))
+        READERS.add(name, LogFormat(name, FolderLog(folder), True, order.get(name, 0)))
 
 
 _register_builtins()

@@ -91,7 +91,8 @@ def _segments(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.nda
 #: Proposal methods that read one image at a time, by name (``[proposals] methods``): the
 #: catalogue's registry (``methods.PROPOSERS``), one dict, holding the built-in ones from here on.
 IMAGE_METHODS = PROPOSERS
-IMAGE_METHODS.update({"edges": _edges, "mser": _mser, "segments": _segments})
+for _name, _proposer in (("edges", _edges), ("mser", _mser), ("segments", _segments)):
+    IMAGE_METHODS.add(_name, _proposer)
 
 
 def register_method(name: str, proposer: ImageProposer, options: type | None = None) -> None:
@@ -107,14 +108,13 @@ def register_method(name: str, proposer: ImageProposer, options: type | None = N
         ValueError: ``name`` is taken, or ``options`` is not a dataclass.
     """
     fields = [f.name for f in dataclasses.fields(ProposalsConfig)]  # [proposals]'s own keys
-    taken = (*SPECIAL_METHODS, *IMAGE_METHODS, *fields)
-    if name in taken:
-        raise ValueError(f"proposal method {name!r} exists; known: {list(known_methods())}")
+    if name in fields:
+        raise ValueError(f"proposal method {name!r} exists: a key of [proposals] itself")
     if options is not None and not dataclasses.is_dataclass(options):
         raise ValueError(f"proposal method {name!r}: options must be a dataclass")
-    IMAGE_METHODS[name] = proposer
+    IMAGE_METHODS.add(name, proposer)
     if options is not None:
-        PROPOSER_OPTIONS[name] = options
+        PROPOSER_OPTIONS.add(name, options)
 
 
 known_methods = known_proposal_methods

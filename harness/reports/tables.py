@@ -26,6 +26,7 @@ from typing import Any
 
 import pandas as pd
 
+from harness.methods import Registry
 from harness.reports.texfmt import tex_escape
 
 KINDS = ("text", "int", "num", "ap", "diff")
@@ -72,7 +73,7 @@ class TableSpec:
 
 
 #: Registered tables, in the order they are written and shown.
-TABLES: dict[str, TableSpec] = {}
+TABLES: Registry[TableSpec] = Registry("table")
 #: Modules of the harness that register a table when imported (:func:`load_builtin` imports
 #: them): a table shipped with the harness is a module and a line here.
 BUILTIN_MODULES: tuple[str, ...] = ()
@@ -93,12 +94,10 @@ def register_table(spec: TableSpec) -> None:
     """
     if not re.fullmatch(r"[A-Za-z0-9]+", spec.id) or spec.id in RESERVED_IDS:
         raise ValueError(f"table id {spec.id!r}: letters and digits, not one of {RESERVED_IDS}")
-    if spec.id in TABLES:
-        raise ValueError(f"table {spec.id!r} exists")
     bad = [c.key for c in spec.columns if c.kind not in KINDS]
     if bad:
         raise ValueError(f"table {spec.id!r}: column(s) {bad} of unknown kind; kinds: {KINDS}")
-    TABLES[spec.id] = spec
+    TABLES.add(spec.id, spec)
 
 
 def _num(v: Any, digits: int, sign: bool = False) -> str:
