@@ -148,6 +148,17 @@ ALL_METHODS = FUSION_METHODS + EXTRA_METHODS
 METHOD_LABELS = {n: r.label for n, r in FUSION_RULES.items()}
 
 
+def is_unfused(name: str) -> bool:
+    """Whether fusion rule ``name`` scores the original boxes, one sample each (``unfused``)."""
+    rule = FUSION_RULES.get(name)
+    return rule is not None and rule.kind == "unfused"
+
+
+def unfused(methods: Iterable[str]) -> str | None:
+    """The first of ``methods`` that scores the original boxes (``rank_no_fusion``), or None."""
+    return next((m for m in methods if is_unfused(m)), None)
+
+
 def detect_methods() -> tuple[str, ...]:
     """The methods whose LoC ``harness detect`` can threshold into boxes (registered ones too)."""
     return rules_where(detect=True)

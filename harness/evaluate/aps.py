@@ -28,6 +28,7 @@ from harness.evaluate.metrics import (
 from harness.evaluate.splits import Split
 from harness.evaluate.splits import label as split_label
 from harness.ingest.annotations import change_boxes
+from harness.methods import is_unfused, unfused
 from harness.records import frame_sizes
 
 
@@ -312,7 +313,7 @@ def pixel_image_rows(
         for m in methods:
             ap, g_, extra, boot = _p_ap(name, data[m])
             extra["positive_images"] = query_frames(names[g_[extra.pop("_positive_groups")]])
-            floor, ceiling = chance_of[(name, "orig" if m == "rank_no_fusion" else "fused")]
+            floor, ceiling = chance_of[(name, "orig" if is_unfused(m) else "fused")]
             pooled.add(
                 m,
                 {
@@ -338,10 +339,11 @@ def _box_sets(
 ) -> dict[str, np.ndarray]:
     """A frame's sample rows by box set: the fused qBBs, and the original proposals by LoC."""
     sets = {"fused": idx[in_fused[idx]]}
-    if "rank_no_fusion" in methods:
-        o = idx[np.isfinite(locs["rank_no_fusion"][idx])]
+    nf = unfused(methods)
+    if nf is not None:
+        o = idx[np.isfinite(locs[nf][idx])]
         sets["orig"] = o[
-            np.argsort(-locs["rank_no_fusion"][o], kind="stable")
+            np.argsort(-locs[nf][o], kind="stable")
         ]  # identical boxes: the highest LoC owns their regions
     return sets
 
@@ -385,7 +387,7 @@ def _pixel_image_scores(
     groups = sample_groups(samples)
     boxes = samples[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     locs = {m: samples[f"loc_{m}"].to_numpy(np.float64) for m in methods}
-    fused_methods = [m for m in methods if m != "rank_no_fusion"]
+    fused_methods = [m for m in methods if not is_unfused(m)]
     in_fused = (
         np.isfinite(np.column_stack([locs[m] for m in fused_methods])).any(1)
         if fused_methods
@@ -418,7 +420,7 @@ def _pixel_image_scores(
                 maps[k]["units"].append(v)
                 maps[k]["img_y"].append(bool(len(change)))
         for m in methods:
-            key = "orig" if m == "rank_no_fusion" else "fused"
+            key = "orig" if is_unfused(m) else "fused"
             area, pos, owner = regions[key]
             vals = locs[m][sets[key]]
             px[m]["s"].append(

@@ -23,9 +23,11 @@ from harness.methods import (
     FUSION_RULES,
     FusionRule,
     add_rule,
+    is_unfused,
     known_fusion_methods,
     ordered_methods,
     rules_where,
+    unfused,
 )
 from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.runtime.cache import source_fingerprints, stable_hash, write_parquet
@@ -192,12 +194,10 @@ def image_loc(
         height: the image height in pixels.
         seed: the query image's seed (``random``: uniform in [0, 1), reproducible per image).
     """
-    if fusion_rule == "size_prior":
-        area = (fused[:, 2] - fused[:, 0]) * (fused[:, 3] - fused[:, 1])
-        return np.asarray(1.0 - area / float(width * height), np.float64)
-    if fusion_rule == "random":
-        return np.random.default_rng(seed).random(len(fused))
-    raise ValueError(f"{fusion_rule!r} is not an image baseline (size_prior, random)")
+    spec = FUSION_RULES.get(fusion_rule)
+    if spec is None or spec.kind != "image" or spec.loc is None:
+        raise ValueError(f"{fusion_rule!r} is not an image baseline ({', '.join(IMAGE_BASELINES)})")
+    return np.asarray(spec.loc(fused, width, height, seed), np.float64)
 
 
 def fuse(
@@ -228,7 +228,7 @@ def fuse(
     boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
     r = np.asarray(r, np.float64)
     d = np.asarray(d, np.float64)
-    if fusion_rule == "rank_no_fusion":
+    if is_unfused(fusion_rule):
         return boxes.copy(), r.copy()
     if fusion_rule not in rules_where(kind="cover"):
         raise ValueError(
@@ -302,7 +302,7 @@ def _fuse_image(
     for m in methods:
         if m in IMAGE_BASELINES:
             locs[m] = image_loc(fused, m, w, h, img_seed)
-        elif m != "rank_no_fusion":
+        elif not is_unfused(m):
             locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c)
     # rank_no_fusion: one sample per original box; merged into the fused row of the same box
     fidx = {tuple(bx): i for i, bx in enumerate(fused)}
@@ -322,8 +322,9 @@ def _fuse_image(
     part["N"] = np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64)
     part["RoC"] = np.asarray(roc, np.float64)
     part["SoB"] = np.asarray(sob, np.float64)
-    if "rank_no_fusion" in methods:
-        part["loc_rank_no_fusion"] = np.concatenate([nof, [v for _, v in extra]])
+    nf = unfused(methods)
+    if nf is not None:
+        part[f"loc_{nf}"] = np.concatenate([nof, [v for _, v in extra]])
     for m, v in locs.items():
         part[f"loc_{m}"] = np.concatenate([v, np.full(n_x, np.nan)])
     return part

@@ -150,3 +150,19 @@ rrf = rule("rrf")(_standard("rrf"))
 combmnz = rule("combmnz")(_standard("combmnz"))
 borda = rule("borda")(_standard("borda"))
 isr = rule("isr")(_standard("isr"))
+
+
+# ------------------------------------------------------------- the image baselines (kind "image")
+
+
+@rule("size_prior")
+def size_prior(fused: np.ndarray, width: float, height: float, seed: int) -> np.ndarray:
+    """1 - SoB: a sample's LoC from its size alone (the baseline that reads no pixel)."""
+    area = (fused[:, 2] - fused[:, 0]) * (fused[:, 3] - fused[:, 1])
+    return np.asarray(1.0 - area / float(width * height), np.float64)
+
+
+@rule("random")
+def random_loc(fused: np.ndarray, width: float, height: float, seed: int) -> np.ndarray:
+    """Uniform in [0, 1), reproducible per image (``seed``: the query image's)."""
+    return np.random.default_rng(seed).random(len(fused))

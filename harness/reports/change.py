@@ -19,7 +19,7 @@ from typing import Any
 import pandas as pd
 
 from harness.evaluate.chance import MIN_POSITIVE_IMAGES, VERDICT_MARKS, few_text, few_warning
-from harness.methods import FUSION_METHODS, METHOD_LABELS
+from harness.methods import FUSION_METHODS, METHOD_LABELS, is_unfused, unfused
 
 
 @dataclass(frozen=True)
@@ -241,10 +241,11 @@ def _needed(summ: pd.DataFrame) -> int:
 
 def box_sets(methods: tuple[str, ...] | list[str]) -> list[tuple[str, str]]:
     """(label, reference method) of each sample set a change table's rows are scored on."""
-    fused = next((m for m in methods if m != "rank_no_fusion"), None)
+    fused = next((m for m in methods if not is_unfused(m)), None)
     out = [("fused set", fused)] if fused else []
-    if "rank_no_fusion" in methods:
-        out.append(("original boxes", "rank_no_fusion"))
+    nf = unfused(methods)
+    if nf is not None:
+        out.append(("original boxes", nf))
     return out
 
 
