@@ -570,11 +570,21 @@ def test_comparisons_between_localizers_say_which_survive_holm(
 
 
 @pytest.mark.parametrize("name", ["_x", "é", "a\n", ".hidden", "-x", "a" * 65, "a b"])
-def test_one_name_check_for_import_and_the_config(name: str, tmp_path: Path) -> None:
+def test_one_name_check_for_import_and_the_config(
+    name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """``--import NAME=FILE`` and ``[[localizers]] name`` refuse the same names (issue 51:
     ``_x`` and ``é`` passed ``--import`` and were refused in the config)."""
     with pytest.raises(RetrievalError, match="localizer name"):
         parse_import_arg(f"{name}=/x/r.csv")
+    ranks = tmp_path / "r.csv"
+    ranks.write_text("q_session\n")
+    out = tmp_path / "o"  # as a user types it: one ERROR line, exit 1, nothing written
+    argv = ["reproduce", "--config", str(_config(tmp_path, "")), "--out", str(out)]
+    assert main([*argv, f"--import={name}={ranks}"]) == 1  # = also takes a leading -
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ERROR: --import") and "localizer name" in err[0]
+    assert not out.exists()
     cfg = _config(tmp_path, f"[[localizers]]\nname = {json.dumps(name)}\nbovw = {{}}\n")
     with pytest.raises(ConfigError, match="expected 1-64 ASCII letters"):
         load_config(cfg)
