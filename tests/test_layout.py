@@ -221,9 +221,8 @@ PROJECT_TESTS = frozenset(
 
 
 def test_tests_mirror_the_packages() -> None:
-    """A package's tests live in ``tests/<package>/`` (issue 35; ``tests/pairs/`` for the module
-    ``harness/pairs.py``), so the tree of the tests is the tree of the code; only the project-wide
-    ones sit at the top."""
+    """A package's tests live in ``tests/<package>/`` (issue 35), so the tree of the tests is the
+    tree of the code; only the project-wide ones sit at the top."""
     tests = ROOT / "tests"
     packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
     packages |= {p.stem for p in PACKAGE.glob("*.py") if p.name != "__init__.py"}

@@ -41,7 +41,7 @@ from harness.detect.outputs import write_outputs
 from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
 from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
-from harness.pairs import BY_RETRIEVAL
+from harness.pairs.build import BY_RETRIEVAL
 from harness.pipeline import keys
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
 from harness.pipeline.context import Table

@@ -32,7 +32,7 @@ from harness import __version__, kernels
 from harness.config.schema import ALL_LOCALIZERS, Config
 from harness.errors import ConfigError, HarnessError, RetrievalError
 from harness.methods import ordered_methods, rules_where
-from harness.pairs import BY_RETRIEVAL, DECLARED, build_pairs
+from harness.pairs.build import BY_RETRIEVAL, DECLARED, build_pairs
 from harness.pipeline.context import Context, Entry, Table, localizer_record
 from harness.pipeline.localizer_stages import (
     Measured,

@@ -37,7 +37,7 @@ from harness.ingest.logs import detect_format, known_formats
 from harness.ingest.masks import folder_digest, read_masks
 from harness.ingest.names import frames_by_image, session_names
 from harness.inputs import check_input
-from harness.pairs import DECLARED, candidate_pairs, write_pairs
+from harness.pairs.build import DECLARED, candidate_pairs, write_pairs
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.proposals.proposers import write_proposals

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from harness.errors import RetrievalError
-from harness.pairs import PAIR_COLUMNS, pose_columns
+from harness.pairs.build import PAIR_COLUMNS, pose_columns
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
 

@@ -17,7 +17,7 @@ import pandas as pd
 import scipy.sparse as sp
 
 from harness.config.schema import RetrievalConfig
-from harness.pairs import thin_by_stride
+from harness.pairs.build import thin_by_stride
 from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
 from harness.retrieval.engines import image_ranks

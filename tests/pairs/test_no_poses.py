@@ -119,7 +119,7 @@ def _frames(session: str, utimes: list[int]) -> pd.DataFrame:
 def test_pairs_by_name_and_by_order_as_spec_13_2_declares_them() -> None:
     """Names pair by stem (``a/0007.png`` with ``0007.jpg``), whatever the order; order pairs
     the i-th frames; a query with no such map frame is counted, not paired."""
-    from harness.pairs import declared_pairs
+    from harness.pairs.build import declared_pairs
 
     frames = pd.concat([_frames("map", [10, 20, 30]), _frames("new", [1, 2, 3, 4])])
     names = pd.DataFrame(
@@ -447,7 +447,7 @@ def test_each_pairing_mode_agrees_with_the_pose_pairs_as_the_readme_quotes(
     share of pairs within 10 m of the pose pair, from the fixture run's own descriptors, is the
     README's; sequence beats retrieval (the default for folders that share no names)."""
     from harness.config.schema import PairsConfig
-    from harness.pairs import build_pairs, candidate_pairs, declared_pairs
+    from harness.pairs.build import build_pairs, candidate_pairs, declared_pairs
     from harness.retrieval.pairing import pose_agreement, retrieval_pairs
 
     _, rec, out = local_run
