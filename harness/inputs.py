@@ -59,3 +59,9 @@ def read_text(path: Path | str, what: str, error: type[HarnessError] = HarnessEr
         raise error(
             f"{p}: {what} is not UTF-8 text ({err.reason} at byte {err.start}, line {line})"
         ) from None
+
+
+def resolve_config_path(value: str, base: Path, root: Path) -> Path:
+    """``value`` with ``{data_root}`` and ``~`` expanded, a relative one under ``base``."""
+    p = Path(value.replace("{data_root}", str(root))).expanduser()
+    return p if p.is_absolute() else base / p

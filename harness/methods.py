@@ -1,4 +1,4 @@
-"""Method ids, labels and registries: the bottom of the house (it imports nothing of the harness).
+"""Method ids, labels, registries, the localizer name rule: the bottom of the house.
 
 Every module that needs to know what a fusion or proposal method is called, how it is labelled
 or whether a name is known reads it here, so the config check, the fusion stage, the reports and
@@ -8,6 +8,7 @@ the names live with their stage (``fusion``, ``proposals``), which register them
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -212,3 +213,18 @@ def ordered_methods(methods: Iterable[str]) -> tuple[str, ...]:
     """
     want = set(methods)
     return tuple(m for m in known_fusion_methods() if m in want)
+
+
+#: A localizer's name: it heads tables and names files (never a path).
+LOCALIZER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,63}")
+
+
+#: What a name that is not one is told (``[[localizers]]`` and ``--import`` alike).
+LOCALIZER_NAME_RULE = (
+    "1-64 ASCII letters, digits, '.', '_', '-' or '+', starting with a letter or digit"
+)
+
+
+def is_localizer_name(name: object) -> bool:
+    """Whether ``name`` may name a localizer: one check for ``[[localizers]]`` and ``--import``."""
+    return isinstance(name, str) and LOCALIZER_NAME.fullmatch(name) is not None

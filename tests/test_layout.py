@@ -94,15 +94,21 @@ def test_the_detector_finds_a_circle() -> None:
 def test_no_import_circle_among_harness_modules() -> None:
     graph = import_graph()
     assert "harness.methods" in graph and not graph["harness.methods"]  # the bottom of the house
-    assert "harness.methods" in graph["harness.config.schema"]
+    assert "harness.proposals.config" in graph["harness.config.schema"]
     assert cycles(graph) == []
 
 
 #: The layers, lowest first (issue 35). A module may import its own layer and the layers below,
 #: never one above: data flows up this list, and evaluation never imports presentation.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("harness", "harness.errors", "harness.records", "harness.methods", "harness.inputs"),
-    ("harness.config",),
+    (
+        "harness",
+        "harness.errors",
+        "harness.records",
+        "harness.methods",
+        "harness.inputs",
+        "harness.checks",
+    ),
     ("harness.runtime", "harness.imagestore"),
     ("harness.ingest",),
     ("harness.fixture", "harness.pairs"),
@@ -112,6 +118,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("harness.evaluate",),
     ("harness.fusion",),
     ("harness.localizers",),
+    # the root config assembles every stage's section (``harness/<stage>/config.py``); detect's
+    # section is a leaf module, so it sits here, below the detector it configures
+    ("harness.config", "harness.detect.config"),
     ("harness.reports",),
     ("harness.pipeline",),
     ("harness.detect",),
@@ -131,10 +140,15 @@ def layer_of(module: str) -> int:
 
 
 def test_no_import_goes_up_a_layer() -> None:
+    """No import reaches a layer above; a package whose ``__init__`` imports nothing of the
+    harness (``harness.detect``, entered on the way to its config section) carries nothing up."""
+    graph = import_graph()
+    mods = _modules()
+    empty = {m for m, f in mods.items() if f.name == "__init__.py" and not graph[m]}
     upward = [
         f"{m} (layer {layer_of(m)}) imports {t} (layer {layer_of(t)})"
-        for m, targets in import_graph().items()
-        for t in sorted(targets)
+        for m, targets in graph.items()
+        for t in sorted(targets - empty)
         if layer_of(t) > layer_of(m)
     ]
     assert upward == []
@@ -299,9 +313,6 @@ def test_function_level_imports_are_the_justified_ones() -> None:
 #: and each leaves the list when it is split (the list shrinks, never grows).
 OVER_400_LINES = frozenset(
     {
-        "harness.config.check",
-        "harness.config.load",
-        "harness.config.schema",
         "harness.evaluate.aps",
         "harness.fixture.world",
         "harness.fixture.writers",

@@ -92,8 +92,8 @@ def test_mser_proposals_find_regions_on_a_textured_frame() -> None:
     """The measurement that chose OpenCV 4: 5.0's MSER gave this frame 0-2 boxes."""
     import cv2
 
-    from harness.config.schema import MserConfig
     from harness.proposals.builtin import mser_boxes
+    from harness.proposals.config import MserConfig
 
     rng = np.random.default_rng(0)
     img = np.full((240, 320, 3), 90, np.uint8)

@@ -63,7 +63,7 @@ def test_recipe_a_toy_descriptor_in_under_30_lines(
 def registries():
     """The method catalogue's registries as they were before the test (a recipe adds to them)."""
     from harness import methods
-    from harness.config.kinds import LOCALIZER_KINDS
+    from harness.localizers.kinds import LOCALIZER_KINDS
 
     regs = (
         methods.PROPOSERS,
@@ -221,8 +221,8 @@ def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registrie
     # --- the recipe: options, a ranks function, one registration; a [[localizers]] entry ---
     import cv2
 
-    from harness.config.kinds import LocalizerKind, register_localizer_kind
     from harness.imagestore import read_image
+    from harness.localizers.kinds import LocalizerKind, register_localizer_kind
     from harness.pipeline.stages import query_ranks
     from harness.records import FRAME_KEY
     from harness.runtime.cache import write_parquet
@@ -286,9 +286,9 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
 
     from rosbags.typesys import Stores, get_typestore
 
-    from harness.config.schema import IngestConfig, SessionConfig
     from harness.imagestore import read_image
     from harness.ingest import ingest_session, logs
+    from harness.ingest.config import IngestConfig, SessionConfig
 
     monkeypatch.setattr(logs, "READERS", copy.copy(logs.READERS))  # undo after (a Registry still)
     store = get_typestore(Stores.ROS2_HUMBLE)
@@ -353,10 +353,10 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
 
 
 def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries) -> None:
-    from harness.config.schema import ProposalsConfig
     from harness.errors import ConfigError
     from harness.fusion import fuse as fusion
     from harness.proposals import proposers as proposals
+    from harness.proposals.config import ProposalsConfig
 
     proposals.register_method("bad", lambda rgb, cfg: (np.zeros((2, 3)), np.ones(2)))
     frame = pd.Series({"session": "s", "camera": "Cam5", "utime": 7})

@@ -280,9 +280,9 @@ def test_inspect_of_an_nclt_folder_whose_ground_truth_has_a_non_utf8_byte(
     it), and ingest names the file and line."""
     import shutil
 
-    from harness.config.schema import IngestConfig, SessionConfig
     from harness.errors import IngestError
     from harness.ingest import ingest_session
+    from harness.ingest.config import IngestConfig, SessionConfig
 
     root = tmp_path / "nclt"
     shutil.copytree(small_world / "nclt", root)

@@ -93,7 +93,7 @@ def _edges_reduced(n: int) -> None:
     import cv2
     import pandas as pd
 
-    from harness.config.schema import ProposalsConfig
+    from harness.proposals.config import ProposalsConfig
     from harness.proposals.proposers import _image_proposals
 
     d = DATA / "edges"
@@ -137,9 +137,9 @@ def _overlap(paths: list[str]) -> None:
 
     import pandas as pd
 
-    from harness.config.schema import DescriptorConfig
     from harness.descriptors import AutoencoderDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder
+    from harness.descriptors.config import DescriptorConfig
     from harness.descriptors.crops import iter_crops
     from harness.proposals.builtin import grid5
 
@@ -192,9 +192,9 @@ def _overlap_bovw(paths: list[str]) -> None:
 
     import pandas as pd
 
-    from harness.config.schema import BovwConfig
     from harness.proposals.builtin import grid5
     from harness.retrieval.bovw import iter_features
+    from harness.retrieval.config import BovwConfig
 
     rows = pd.DataFrame(
         [

@@ -15,9 +15,9 @@ def case_descriptor(quick: bool) -> None:
     """Autoencoder encoding throughput and its fraction of the measured matmul FLOP rate."""
     import torch
 
-    from harness.config.schema import DescriptorConfig
     from harness.descriptors import AutoencoderDescriptor, HogDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder, to_tensor
+    from harness.descriptors.config import DescriptorConfig
 
     peak = matmul_gflops()
     print(
@@ -86,9 +86,9 @@ def _bf16(peak: float, quick: bool) -> None:
     the encoder at 256x256 in bf16: native only where the CPU has AVX512-BF16 or AMX."""
     import torch
 
-    from harness.config.schema import DescriptorConfig
     from harness.descriptors import AutoencoderDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder
+    from harness.descriptors.config import DescriptorConfig
     from harness.runtime.hardware import has_bf16
 
     native = has_bf16("cpu")

@@ -15,8 +15,8 @@ def case_fusion(quick: bool) -> None:
     import pandas as pd
 
     from harness.config.load import load_config
-    from harness.config.schema import SplitsConfig
     from harness.evaluate.aps import pixel_image_rows, sample_groups
+    from harness.evaluate.config import SplitsConfig
     from harness.evaluate.metrics import average_precision
     from harness.evaluate.splits import label, paper_splits
     from harness.fusion.fuse import fuse_samples

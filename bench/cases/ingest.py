@@ -12,9 +12,9 @@ from .common import DATA, emit, read_all, size_of, timed
 
 def case_ingest(quick: bool) -> None:
     """Ingest MB/s of each format next to the raw read speed of the same bytes (warm page cache)."""
-    from harness.config.schema import IngestConfig, SessionConfig
     from harness.fixture import FixtureSpec, generate
     from harness.fixture.generate import FORMATS, session_path
+    from harness.ingest.config import IngestConfig, SessionConfig
 
     spec = FixtureSpec(
         frames=16 if quick else 48,

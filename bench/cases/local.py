@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import LocalConfig
 from harness.localizers.align import feature_image
+from harness.localizers.config import LocalConfig
 from harness.localizers.local import write_local_ranks
 
 from .common import emit

@@ -46,10 +46,11 @@ def case_localizers(quick: bool) -> None:
     import faiss
     import torch
 
-    from harness.config.schema import BovwConfig, DescriptorConfig
     from harness.descriptors import AutoencoderDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder
+    from harness.descriptors.config import DescriptorConfig
     from harness.retrieval.bovw import bovw_ranks, features
+    from harness.retrieval.config import BovwConfig
     from harness.retrieval.engines import image_ranks
 
     rng = np.random.default_rng(0)

@@ -12,8 +12,8 @@ from harness.errors import HarnessError
 
 def cmd_fixture(args: argparse.Namespace) -> int:
     """``harness fixture``: generate the synthetic fixture world."""
-    from harness.config.check import check_fixture
     from harness.fixture import FixtureSpec, generate
+    from harness.fixture.config import check_fixture
 
     spec = FixtureSpec.chosen(args)
     check_fixture(
@@ -34,9 +34,8 @@ def cmd_fixture(args: argparse.Namespace) -> int:
 
 def cmd_ingest(args: argparse.Namespace) -> int:
     """``harness ingest``: one log into a frame table and an ingest report."""
-    from harness.config.check import check_ingest, check_session_name
-    from harness.config.schema import IngestConfig, SessionConfig
     from harness.ingest import ingest_session
+    from harness.ingest.config import IngestConfig, SessionConfig, check_ingest, check_session_name
     from harness.runtime.outdirs import check_replaceable, claim_dir
 
     if args.config:

@@ -15,41 +15,28 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from harness.config.check import (
-    check_session_name,
-    validate,
-)
-from harness.config.kinds import LOCALIZER_KINDS
-from harness.config.paths import resolve_config_path
-from harness.config.schema import (
-    ALL_LOCALIZERS,
-    LOCALIZER_NAME_RULE,
-    Config,
-    DescriptorConfig,
-    DetectConfig,
-    EdgesConfig,
-    FixtureConfig,
-    FusionConfig,
-    ImportConfig,
-    IngestConfig,
-    LocalConfig,
-    LocalizerConfig,
-    MasksConfig,
-    MserConfig,
-    PairsConfig,
-    ProjectionConfig,
-    ProposalsConfig,
-    ReportConfig,
-    RetrievalConfig,
-    SegmentsConfig,
-    SessionConfig,
-    SplitsConfig,
-    YoloConfig,
-    is_localizer_name,
-)
+from harness.config.check import validate
+from harness.config.schema import Config
+from harness.descriptors.config import DescriptorConfig, ProjectionConfig
+from harness.detect.config import DetectConfig
 from harness.errors import ConfigError
-from harness.inputs import IMAGE_SUFFIXES, read_text
-from harness.methods import PROPOSER_OPTIONS
+from harness.evaluate.config import ReportConfig, SplitsConfig
+from harness.fixture.config import FixtureConfig
+from harness.fusion.config import FusionConfig
+from harness.ingest.config import IngestConfig, MasksConfig, SessionConfig, check_session_name
+from harness.inputs import IMAGE_SUFFIXES, read_text, resolve_config_path
+from harness.localizers.config import ALL_LOCALIZERS, LocalConfig, LocalizerConfig
+from harness.localizers.kinds import LOCALIZER_KINDS
+from harness.methods import LOCALIZER_NAME_RULE, PROPOSER_OPTIONS, is_localizer_name
+from harness.pairs.config import PairsConfig
+from harness.proposals.config import (
+    EdgesConfig,
+    MserConfig,
+    ProposalsConfig,
+    SegmentsConfig,
+    YoloConfig,
+)
+from harness.retrieval.config import ImportConfig, RetrievalConfig
 
 __all__ = ["load_config", "parse_config", "parse_localizers", "project_root"]
 

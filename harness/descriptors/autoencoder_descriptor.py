@@ -9,7 +9,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from harness.config.schema import DescriptorConfig
 from harness.descriptors.autoencoder import (
     ConvAutoencoder,
     autocast,
@@ -22,6 +21,7 @@ from harness.descriptors.autoencoder import (
     train_budget,
 )
 from harness.descriptors.base import Descriptor
+from harness.descriptors.config import DescriptorConfig
 from harness.runtime.hardware import resolve_precision
 
 

@@ -9,7 +9,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from harness.config.schema import DescriptorConfig
+from harness.descriptors.config import DescriptorConfig
 from harness.errors import ConfigError
 from harness.methods import Registry
 

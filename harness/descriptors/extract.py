@@ -16,8 +16,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from harness.config.schema import DescriptorConfig, ProjectionConfig
 from harness.descriptors.base import Descriptor, make_descriptor, normalize
+from harness.descriptors.config import DescriptorConfig, ProjectionConfig
 from harness.descriptors.crops import iter_crops
 from harness.descriptors.projection import fit_projection, load_projection, project
 from harness.errors import HarnessError, RetrievalError

@@ -16,8 +16,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from harness.config.schema import DescriptorConfig
 from harness.descriptors.base import Descriptor
+from harness.descriptors.config import DescriptorConfig
 from harness.errors import ConfigError, HarnessError
 
 POOLINGS = ("avg", "max", "gem")

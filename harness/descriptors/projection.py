@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from harness.config.schema import ProjectionConfig
 from harness.descriptors.base import normalize
+from harness.descriptors.config import ProjectionConfig
 from harness.errors import ConfigError
 
 #: Variance floor for whitening, relative to the largest component's variance.

@@ -7,11 +7,8 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
-from harness.config.schema import (
-    LocalConfig,
-    LocalizerConfig,
-    SegmentsConfig,
-)
+from harness.localizers.config import LocalConfig, LocalizerConfig
+from harness.proposals.config import SegmentsConfig
 
 log = logging.getLogger(__name__)
 

@@ -12,10 +12,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import (
-    ALL_LOCALIZERS,
-    Config,
-)
+from harness.config.schema import Config
 from harness.detect.boxes import change_boxes_nms
 from harness.detect.calibrate import exceedance
 from harness.detect.chunk import FRAME_RESULT
@@ -27,6 +24,7 @@ from harness.detect.pixels import write_pixel_table
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
 from harness.ingest.names import session_names, with_names
+from harness.localizers.config import ALL_LOCALIZERS
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.reports.overlay import colour_bar
 from harness.runtime.cache import (

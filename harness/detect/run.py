@@ -31,15 +31,13 @@ from typing import Any
 import pandas as pd
 
 from harness import kernels
-from harness.config.schema import (
-    Config,
-    LocalizerConfig,
-)
+from harness.config.schema import Config
 from harness.detect.chunk import detect_chunk
 from harness.detect.options import LOCAL_PROPOSALS, DetectOptions
 from harness.detect.outputs import write_outputs
 from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
+from harness.localizers.config import LocalizerConfig
 from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
 from harness.pairs.build import BY_RETRIEVAL
 from harness.pipeline import keys

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import Config
 from harness.evaluate import chance
+from harness.evaluate.config import EvalSettings
 from harness.evaluate.metrics import (
     average_precision,
     bootstrap_aps,
@@ -106,7 +106,7 @@ class _Pooled:
     Also the paired comparison with ``rank_fusion`` over the same resampled query images.
     """
 
-    def __init__(self, cfg: Config, image_ids: dict[str, int], column: str) -> None:
+    def __init__(self, cfg: EvalSettings, image_ids: dict[str, int], column: str) -> None:
         self.cfg, self.ids, self.column = cfg, image_ids, column
         self.counts = resample_counts(
             len(image_ids), cfg.report.bootstrap, cfg.seed + (zlib.crc32(column.encode()) % 10_000)
@@ -232,7 +232,7 @@ def table_i_rows(
 
 
 def pooled_rows(
-    cfg: Config,
+    cfg: EvalSettings,
     samples: pd.DataFrame,
     methods: tuple[str, ...],
     split: Split,
@@ -291,7 +291,7 @@ def pooled_rows(
 
 
 def pixel_image_rows(
-    cfg: Config,
+    cfg: EvalSettings,
     samples: pd.DataFrame,
     frames: pd.DataFrame,
     ann: pd.DataFrame,
@@ -478,7 +478,7 @@ def _p_ap(name: str, d: dict[str, list]) -> tuple[float, np.ndarray, dict, Any]:
 
 
 def _map_chance(
-    cfg: Config, maps: dict[str, dict[str, list]], roc: np.ndarray
+    cfg: EvalSettings, maps: dict[str, dict[str, list]], roc: np.ndarray
 ) -> dict[tuple[str, str], tuple[tuple[float, float, float], float]]:
     """Table P's floor, chance band and ceiling per (pixel or image, box set), SPEC 9.
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.config.schema import SplitsConfig
+from harness.evaluate.config import SplitsConfig
 
 POSITIVE, NEGATIVE, LEFT_OUT = 1, 0, -1
 

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import FusionConfig
 from harness.errors import ConfigError
 from harness.evaluate.splits import roc_sob
 from harness.fusion import rules  # noqa: F401  (attaches the built-in rules' functions)
+from harness.fusion.config import FusionConfig
 from harness.ingest.annotations import change_boxes
 from harness.methods import (
     ALL_METHODS,

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.poses import interpolate
 from harness.records import FRAME_COLUMNS, FRAME_SCHEMA
 from harness.runtime.cache import write_json, write_parquet

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import CorruptLogError, IngestError
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.frame_table import finish, write_frames
 from harness.ingest.images import (
     compressed_kind,

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from harness.config.schema import SessionConfig
 from harness.errors import AnnotationError, IngestError
+from harness.ingest.config import SessionConfig
 from harness.ingest.folders import FOLDER_FORMATS, frame_names
 from harness.ingest.logs import detect_format
 from harness.records import FRAME_KEY

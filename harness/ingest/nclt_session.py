@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.imagestore import make_uri, stored_size, upright_size
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.frame_table import finish
 from harness.ingest.poses import check_monotonic
 from harness.inputs import read_text

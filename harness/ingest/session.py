@@ -10,7 +10,6 @@ from pathlib import Path
 import pandas as pd
 import pyarrow as pa
 
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.imagestore import (
     DATA_PREFIX,
@@ -20,6 +19,7 @@ from harness.imagestore import (
     portable_uri,
     resolve,
 )
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.log_session import ingest_log
 from harness.ingest.logs import detect_format, known_formats
 from harness.ingest.nclt_session import ingest_nclt

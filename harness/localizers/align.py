@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from harness.config.schema import LocalConfig
+from harness.localizers.config import LocalConfig
 
 __all__ = ["Alignment", "align_pair", "feature_image"]
 

@@ -33,9 +33,9 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import LocalConfig
 from harness.imagestore import read_image, split_uri
 from harness.localizers.align import Alignment, align_pair, feature_image
+from harness.localizers.config import LocalConfig
 from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.runtime.cache import write_parquet
 

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from harness.config.schema import PairsConfig
+from harness.pairs.config import PairsConfig
 from harness.records import FRAME_KEY, IMAGE_KEY, QUERY_KEY
 from harness.runtime.cache import write_json, write_parquet
 

@@ -29,8 +29,9 @@ import numpy as np
 import pandas as pd
 
 from harness import __version__, kernels
-from harness.config.schema import ALL_LOCALIZERS, Config
+from harness.config.schema import Config
 from harness.errors import ConfigError, HarnessError, RetrievalError
+from harness.localizers.config import ALL_LOCALIZERS
 from harness.methods import ordered_methods, rules_where
 from harness.pairs.build import BY_RETRIEVAL, DECLARED, build_pairs
 from harness.pipeline.context import Context, Entry, Table, localizer_record

@@ -19,8 +19,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.kinds import LOCALIZER_KINDS
-from harness.config.schema import Config, LocalizerConfig, LocalizerImportConfig
+from harness.config.schema import Config
+from harness.localizers.config import LocalizerConfig, LocalizerImportConfig
+from harness.localizers.kinds import LOCALIZER_KINDS
 from harness.retrieval.import_file import ImportSpec, parse_import_arg
 from harness.runtime.cache import StageCache, content_sha
 from harness.runtime.executors import LocalExecutor

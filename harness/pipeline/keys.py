@@ -14,18 +14,14 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from harness.config.schema import (
-    BovwConfig,
-    Config,
-    DescriptorConfig,
-    ProjectionConfig,
-    ProposalsConfig,
-    RetrievalConfig,
-    SessionConfig,
-)
+from harness.config.schema import Config
+from harness.descriptors.config import DescriptorConfig, ProjectionConfig
 from harness.fusion.fuse import method_fingerprints as fusion_method_fingerprints
+from harness.ingest.config import SessionConfig
 from harness.ingest.logs import detect_format
+from harness.proposals.config import ProposalsConfig
 from harness.proposals.proposers import method_fingerprints
+from harness.retrieval.config import BovwConfig, RetrievalConfig
 from harness.runtime.cache import content_sha, file_fingerprint, relative_to_root, stable_hash
 from harness.runtime.hardware import resolve_precision
 

@@ -17,9 +17,10 @@ from typing import Any, TypeVar
 import numpy as np
 import pandas as pd
 
-from harness.config.kinds import LOCALIZER_KINDS
-from harness.config.schema import FusionConfig, LocalizerConfig, RetrievalConfig
 from harness.errors import ConfigError, RetrievalError
+from harness.fusion.config import FusionConfig
+from harness.localizers.config import LocalizerConfig
+from harness.localizers.kinds import LOCALIZER_KINDS
 from harness.localizers.local import write_local_ranks
 from harness.methods import rules_where
 from harness.pipeline import keys
@@ -35,6 +36,7 @@ from harness.pipeline.stages import (
 )
 from harness.records import IMAGE_KEY, QUERY_KEY
 from harness.retrieval.bovw import combine_word_shards, encode_words, train_vocabulary
+from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
 from harness.runtime.cache import read_cached_parquet, stable_hash
 from harness.runtime.costs import localizer_costs
@@ -136,7 +138,7 @@ KindRanks = Callable[
 def kind_ranks(name: str) -> Callable[[KindRanks], KindRanks]:
     """Attach the decorated function as the ranks of the built-in kind ``name``.
 
-    The kind's record (:data:`harness.config.kinds.LOCALIZER_KINDS`) holds its options.
+    The kind's record (:data:`harness.localizers.kinds.LOCALIZER_KINDS`) holds its options.
     """
 
     def attach(fn: KindRanks) -> KindRanks:

@@ -17,8 +17,9 @@ from typing import Any
 
 import pandas as pd
 
-from harness.config.schema import Config, DescriptorConfig, FusionConfig, RetrievalConfig
+from harness.config.schema import Config
 from harness.descriptors import REGISTRY, make_descriptor
+from harness.descriptors.config import DescriptorConfig
 from harness.descriptors.extract import (
     combine_shards,
     encode_shard,
@@ -28,6 +29,7 @@ from harness.descriptors.extract import (
 from harness.errors import AnnotationError, ConfigError, IngestError, RetrievalError
 from harness.fixture import FixtureSpec, generate
 from harness.fixture.generate import read_spec
+from harness.fusion.config import FusionConfig
 from harness.fusion.fuse import write_samples
 from harness.imagestore import local_uri
 from harness.ingest import combine_frames, ingest_session
@@ -44,6 +46,7 @@ from harness.proposals.proposers import write_proposals
 from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.reports.write import Block, Reports, write_reports
 from harness.retrieval import described_frames, rank_reference
+from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.imported import unranked_images, write_imported_ranks
 from harness.retrieval.pairing import write_retrieval_pairs

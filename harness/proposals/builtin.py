@@ -9,11 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from harness.config.schema import (
-    EdgesConfig,
-    MserConfig,
-    SegmentsConfig,
-)
+from harness.proposals.config import EdgesConfig, MserConfig, SegmentsConfig
 
 
 def grid5(width: float, height: float) -> np.ndarray:

@@ -25,9 +25,6 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import (
-    ProposalsConfig,
-)
 from harness.errors import ConfigError, HarnessError
 from harness.imagestore import read_image
 from harness.methods import (
@@ -37,6 +34,7 @@ from harness.methods import (
     known_proposal_methods,
 )
 from harness.proposals.builtin import edge_boxes, grid5, mser_boxes, segment_boxes
+from harness.proposals.config import ProposalsConfig
 from harness.proposals.file import load_file_proposals
 from harness.proposals.yolo import YoloProposer
 from harness.records import FRAME_KEY

@@ -8,11 +8,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from harness.config.schema import (
-    YoloConfig,
-)
 from harness.errors import ConfigError
 from harness.proposals.builtin import nms
+from harness.proposals.config import YoloConfig
 
 
 class YoloProposer:

@@ -26,10 +26,10 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from harness.config.schema import BovwConfig
 from harness.descriptors.crops import iter_crops
 from harness.errors import RetrievalError
 from harness.records import FRAME_KEY
+from harness.retrieval.config import BovwConfig
 from harness.retrieval.layout import frame_layout, place_columns
 from harness.runtime.cache import read_cached_parquet, write_parquet
 from harness.runtime.progress import progress

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import LOCALIZER_NAME_RULE, is_localizer_name
 from harness.errors import RetrievalError
+from harness.methods import LOCALIZER_NAME_RULE, is_localizer_name
 from harness.records import SUBIMAGE_KEY
 
 KEY = SUBIMAGE_KEY
@@ -66,7 +66,7 @@ def parse_import_arg(text: str) -> ImportSpec:
 def check_localizer_name(name: str, where: str) -> str:
     """A localizer name: shown in tables and used in file names, so a plain word.
 
-    The same rule as ``[[localizers]] name`` (:func:`harness.config.schema.is_localizer_name`).
+    The same rule as ``[[localizers]] name`` (:func:`harness.methods.is_localizer_name`).
 
     Raises:
         RetrievalError: It is not 1-64 ASCII letters, digits, ``.``, ``_``, ``-`` or ``+``

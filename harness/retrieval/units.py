@@ -16,10 +16,10 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from harness.config.schema import RetrievalConfig
 from harness.pairs.build import thin_by_stride
 from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
+from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.engines import image_ranks
 from harness.retrieval.faiss_search import image_ranks_faiss
 from harness.retrieval.places import ground_truth_places, places_by_order

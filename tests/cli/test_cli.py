@@ -137,7 +137,7 @@ def test_fixture_section_chooses_formats_and_render_scale(tmp_path: Path) -> Non
     import dataclasses
 
     from harness.config.load import load_config
-    from harness.config.schema import FixtureConfig
+    from harness.fixture.config import FixtureConfig
     from harness.pipeline.chain import Pipeline
     from harness.pipeline.stages import frame_table, generate_fixture, ingest_logs
 

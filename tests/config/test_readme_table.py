@@ -6,8 +6,8 @@ import dataclasses
 import re
 from pathlib import Path
 
-from harness.config.kinds import LOCALIZER_KINDS
 from harness.config.load import _NESTED, _SECTIONS
+from harness.localizers.kinds import LOCALIZER_KINDS
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -130,7 +130,7 @@ def test_descriptors_are_the_same_bytes_with_and_without_the_reader_thread(
     tmp_path: Path,
 ) -> None:
     """``[descriptor] prefetch`` changes when frames are decoded, never what is encoded."""
-    from harness.config.schema import DescriptorConfig
+    from harness.descriptors.config import DescriptorConfig
     from harness.descriptors.extract import encode_shard
 
     rng = np.random.default_rng(2)

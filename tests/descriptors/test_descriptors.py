@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from harness.config.schema import DescriptorConfig
 from harness.descriptors import AutoencoderDescriptor, HogDescriptor, ThumbDescriptor, normalize
 from harness.descriptors.autoencoder import (
     ConvAutoencoder,
@@ -17,6 +16,7 @@ from harness.descriptors.autoencoder import (
     load_checkpoint,
     to_tensor,
 )
+from harness.descriptors.config import DescriptorConfig
 from harness.runtime.hardware import resolve_precision
 
 

@@ -16,10 +16,11 @@ import pytest
 import torch
 
 from harness.cli import main
-from harness.config.schema import DescriptorConfig, YoloConfig
 from harness.descriptors import make_descriptor
+from harness.descriptors.config import DescriptorConfig
 from harness.descriptors.network import pool
 from harness.errors import ConfigError
+from harness.proposals.config import YoloConfig
 from harness.proposals.yolo import YoloProposer
 
 from ..conftest import ROOT

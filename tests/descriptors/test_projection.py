@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.config.schema import ProjectionConfig
+from harness.descriptors.config import ProjectionConfig
 from harness.descriptors.projection import fit_projection, load_projection, project
 from harness.errors import ConfigError
 from harness.pipeline.chain import Pipeline

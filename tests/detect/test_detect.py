@@ -505,9 +505,9 @@ def test_boxes_segments_with_contrast_as_typed(
 ) -> None:
     """``--boxes segments --box-score contrast`` (SPEC 13.1): every change box is a colour region
     of its frame, the candidates meet most change boxes, and the README quotes Table D as run."""
-    from harness.config.schema import SegmentsConfig
     from harness.imagestore import read_image
     from harness.proposals.builtin import segment_boxes
+    from harness.proposals.config import SegmentsConfig
 
     # the README's command as typed (its --out here, the fixture's --data-root added)
     lines = (ROOT / "README.md").read_text().splitlines()
@@ -553,9 +553,9 @@ def test_boxes_segments_with_contrast_as_typed(
 def test_segment_boxes_frame_coloured_objects_on_a_textured_scene() -> None:
     """A flat object and a checkered one on a noisy two-tone scene: each gets a box that fits it,
     the checkered one whole (its cells merged by the closings); the same image, the same boxes."""
-    from harness.config.schema import SegmentsConfig
     from harness.detect.ap import iou_matrix
     from harness.proposals.builtin import segment_boxes
+    from harness.proposals.config import SegmentsConfig
 
     rng = np.random.default_rng(0)
     img = np.empty((160, 120, 3), np.uint8)

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from harness.config.schema import SplitsConfig
+from harness.evaluate.config import SplitsConfig
 from harness.evaluate.splits import LEFT_OUT, NEGATIVE, POSITIVE, label, paper_splits, roc_sob
 
 

@@ -11,13 +11,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import CorruptLogError, IngestError, TopicError
 from harness.fixture import build_world, render_frame
 from harness.fixture import writers as W
 from harness.fixture.generate import FORMATS, session_path
 from harness.imagestore import read_image
 from harness.ingest import ingest_session, load_frames
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.poses import interpolate
 from harness.records import FRAME_COLUMNS, Pose
 

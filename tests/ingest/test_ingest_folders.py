@@ -16,10 +16,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.imagestore import read_image
 from harness.ingest import ingest_session, logs
+from harness.ingest.config import IngestConfig, SessionConfig
 
 COLS = ["utime", "x", "y", "z", "roll", "pitch", "yaw", "width", "height"]
 

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from harness.cli import main
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import CorruptLogError, IngestError
 from harness.fixture import writers as W
 from harness.ingest import ingest_session, load_frames
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.records import Pose
 
 from ..safety_common import _log

@@ -16,10 +16,10 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
 from harness.cli import main
-from harness.config.schema import IngestConfig, SessionConfig
 from harness.errors import IngestError
 from harness.fixture import writers as W
 from harness.ingest import ingest_session, load_frames
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.records import Pose
 
 T0 = 1_700_000_000_000_000  # µs

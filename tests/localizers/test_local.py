@@ -9,10 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from harness.config.check import check_local
-from harness.config.schema import LocalConfig
 from harness.errors import ConfigError
 from harness.localizers.align import align_pair, feature_image
+from harness.localizers.config import LocalConfig, check_local
 from harness.localizers.local import box_rank, pair_ranks
 
 from .test_localizers import _config

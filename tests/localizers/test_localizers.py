@@ -23,13 +23,13 @@ import scipy.sparse as sp
 
 from harness.cli import main
 from harness.config.load import load_config
-from harness.config.schema import BovwConfig
 from harness.errors import ConfigError, RetrievalError
 from harness.evaluate.chance import stratified_chance
 from harness.evaluate.metrics import average_precision, stratified_ap
 from harness.evaluate.splits import roc_sob
 from harness.ingest.annotations import change_boxes, load_annotations
 from harness.retrieval.bovw import bovw_ranks, bow_vectors, features, frame_similarity
+from harness.retrieval.config import BovwConfig
 from harness.retrieval.import_file import parse_import_arg
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 
 import harness.proposals  # noqa: F401  (registers the built-in proposers, as a run does)
-from harness.config.kinds import LOCALIZER_KINDS
 from harness.descriptors import REGISTRY as DESCRIPTORS
 from harness.errors import ConfigError
 from harness.ingest.logs import READERS
+from harness.localizers.kinds import LOCALIZER_KINDS
 from harness.methods import FUSION_RULES, PROPOSER_OPTIONS, PROPOSERS, Registry
 from harness.reports.tables import TABLES
 

@@ -33,9 +33,9 @@ def _write_images(folder: Path, images: list[np.ndarray], names: list[str]) -> N
 
 def _session_images(world: Path, fmt_glob: str, tmp: Path, n: int) -> list[np.ndarray]:
     """The first ``n`` upright RGB frames of a fixture session, ingested by the harness."""
-    from harness.config.schema import IngestConfig, SessionConfig
     from harness.imagestore import read_image
     from harness.ingest import ingest_session
+    from harness.ingest.config import IngestConfig, SessionConfig
 
     src = sorted(world.glob(fmt_glob))[0]
     ingest_session(SessionConfig(name="s", source=str(src)), IngestConfig(), tmp)
@@ -44,8 +44,8 @@ def _session_images(world: Path, fmt_glob: str, tmp: Path, n: int) -> list[np.nd
 
 
 def test_an_images_folder_is_a_session_in_name_order_with_no_pose(tmp_path: Path) -> None:
-    from harness.config.schema import IngestConfig, SessionConfig
     from harness.ingest import ingest_session
+    from harness.ingest.config import IngestConfig, SessionConfig
     from harness.ingest.logs import detect_format
 
     rng = np.random.default_rng(0)
@@ -141,7 +141,7 @@ def test_pairs_by_name_and_by_order_as_spec_13_2_declares_them() -> None:
 
 
 def test_frame_names_are_the_files_relative_to_their_folder(tmp_path: Path) -> None:
-    from harness.config.schema import SessionConfig
+    from harness.ingest.config import SessionConfig
     from harness.ingest.names import session_names
 
     rng = np.random.default_rng(0)
@@ -446,8 +446,8 @@ def test_each_pairing_mode_agrees_with_the_pose_pairs_as_the_readme_quotes(
     query of each other session (twelve pairs of traverses), the poses the truth. Each mode's
     share of pairs within 10 m of the pose pair, from the fixture run's own descriptors, is the
     README's; sequence beats retrieval (the default for folders that share no names)."""
-    from harness.config.schema import PairsConfig
     from harness.pairs.build import build_pairs, candidate_pairs, declared_pairs
+    from harness.pairs.config import PairsConfig
     from harness.retrieval.pairing import pose_agreement, retrieval_pairs
 
     _, rec, out = local_run

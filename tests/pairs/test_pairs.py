@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import IngestConfig, PairsConfig, SessionConfig
 from harness.ingest import ingest_session, load_frames
+from harness.ingest.config import IngestConfig, SessionConfig
 from harness.pairs.build import build_pairs, nearest_with_heading, thin_by_stride, yaw_diff_deg
+from harness.pairs.config import PairsConfig
 
 
 def _frames(rows: list[tuple]) -> pd.DataFrame:

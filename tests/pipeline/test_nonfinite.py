@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from harness.config.schema import ProposalsConfig
 from harness.descriptors.autoencoder import ConvAutoencoder, train
 from harness.errors import ConfigError, HarnessError
 from harness.pipeline.chain import Pipeline
+from harness.proposals.config import ProposalsConfig
 from harness.runtime.cache import StageCache
 
 from ..conftest import no_figures

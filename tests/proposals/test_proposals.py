@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 import torch
 
-from harness.config.schema import EdgesConfig, ProposalsConfig, YoloConfig
 from harness.errors import AnnotationError, ConfigError
 from harness.proposals.builtin import edge_boxes, grid5, nms
+from harness.proposals.config import EdgesConfig, ProposalsConfig, YoloConfig
 from harness.proposals.file import load_file_proposals
 from harness.proposals.proposers import compute_proposals
 from harness.proposals.yolo import YoloProposer

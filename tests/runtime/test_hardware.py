@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.config.schema import DescriptorConfig
+from harness.descriptors.config import DescriptorConfig
 from harness.pipeline import keys
 from harness.runtime import hardware
 

@@ -15,16 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from harness.config.check import check_bovw, check_local, check_value
-from harness.config.paths import resolve_config_path
-from harness.config.schema import (
-    BovwConfig,
-    DescriptorConfig,
-    LocalConfig,
-    LocalizerImportConfig,
-)
+from harness.checks import check_value
+from harness.descriptors.config import DescriptorConfig
 from harness.errors import ConfigError
+from harness.inputs import resolve_config_path
+from harness.localizers.config import LocalConfig, LocalizerImportConfig, check_local
 from harness.methods import Registry
+from harness.retrieval.config import BovwConfig, check_bovw
 
 __all__ = ["LOCALIZER_KINDS", "LocalizerKind", "register_localizer_kind"]
 

@@ -1,0 +1,89 @@
+"""``harness detect``'s config: ``[detect]`` (SPEC 13.1 and 13.3) and its checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from harness.checks import check_value
+from harness.localizers.config import LocalConfig, check_local
+from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, DETECT_LOCALIZERS
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """``[detect]``: how ``harness detect`` turns LoC into change boxes (SPEC 13.1)."""
+
+    # the box generator: "subimages" (the ranked subimages, each scored by its own r: with the
+    # local localizer, the frame's colour regions, SPEC 13.3), "fused" (the fused qBBs, SPEC 13),
+    # "locmap" (connected regions of the
+    # thresholded LoC map), "proposals" (the original proposals scored by the LoC inside) or
+    # "segments" (the frame's colour regions, [proposals.segments], scored by the LoC inside)
+    boxes: str = "subimages"
+    # locmap / proposals / segments: a box's score from the LoC map, "max" or "mean" inside it,
+    # or "contrast" (the mean inside less the mean of the ring around it, half the box wide)
+    box_score: str = "max"
+    # locmap: the level, as a share of the frame's LoC range (lo + level * (hi - lo))
+    locmap_level: float = 0.5
+    # the narrowest change box, pixels a side: thinner candidates (slivers where fused qBBs
+    # barely overlap) are dropped before NMS and counted (detect.json: thin_boxes_dropped)
+    min_box_side: float = 2.0
+    # the nominal false-alarm rate: boxes and frames whose calibrated score (exceedance) is at
+    # most this are alarms (alarms.csv; harness detect --alarm overrides it)
+    alarm: float = 0.01
+    # what ranks the subimages: "local" (each subimage of the frame's colour regions ranked inside
+    # its paired map frame, SPEC 13.3, with [detect.local]) or "config" (the config's localizers)
+    localizer: str = "local"
+    # a prior a box's score is fused with: "area" (the mean of the box's percentile among its
+    # frame's candidates by score and by area, SPEC 13.3: docs/method.md measures it) or "none"
+    box_prior: str = "area"
+    # the local localizer's options (harness.localizers.local.LocalConfig)
+    local: LocalConfig = field(default_factory=LocalConfig)
+
+
+def check_detect(dt: DetectConfig, where: str) -> None:
+    """``[detect]`` (SPEC 13.1)."""
+    c = check_value
+    c(
+        dt.boxes in BOX_GENERATORS,
+        where,
+        "[detect] boxes",
+        dt.boxes,
+        f"one of {', '.join(BOX_GENERATORS)} (SPEC 13.1)",
+    )
+    c(
+        dt.box_score in BOX_SCORES,
+        where,
+        "[detect] box_score",
+        dt.box_score,
+        f"one of {', '.join(BOX_SCORES)}",
+    )
+    c(0 < dt.alarm < 1, where, "[detect] alarm", dt.alarm, "(0, 1): a false-alarm rate")
+    c(
+        dt.localizer in DETECT_LOCALIZERS,
+        where,
+        "[detect] localizer",
+        dt.localizer,
+        " or ".join(DETECT_LOCALIZERS),
+    )
+    check_local(dt.local, f"{where} [detect.local]")
+    c(
+        dt.box_prior in BOX_PRIORS,
+        where,
+        "[detect] box_prior",
+        dt.box_prior,
+        " or ".join(BOX_PRIORS),
+    )
+    c(
+        0 < dt.locmap_level < 1,
+        where,
+        "[detect] locmap_level",
+        dt.locmap_level,
+        "(0, 1): a share of each frame's LoC range",
+    )
+    c(
+        0 <= dt.min_box_side < 1e4,
+        where,
+        "[detect] min_box_side",
+        dt.min_box_side,
+        "pixels a side, >= 0 (0: keep every box)",
+    )

@@ -1,0 +1,43 @@
+"""The fusion stage's config: ``[fusion]`` (SPEC 7) and its checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from harness.checks import check_value
+from harness.methods import ALL_METHODS, known_fusion_methods
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """``[fusion]``: the methods of SPEC section 7 that are computed and reported."""
+
+    # computed and reported; SPEC order is kept whatever the order here
+    methods: tuple[str, ...] = ALL_METHODS
+    seed: int = 0
+    max_fused_boxes: int = 4096
+    rrf_c: float = 60.0  # RRF's constant c (SPEC section 14; Cormack et al. 2009 use 60)
+
+
+def check_fusion(fu: FusionConfig, where: str) -> None:
+    """``[fusion]``: known methods, each once, their options."""
+    c = check_value
+    fusion_methods = known_fusion_methods  # SPEC section 7's and registered ones
+
+    bad = [m for m in fu.methods if m not in fusion_methods()]
+    c(
+        not bad and len(fu.methods) > 0,
+        where,
+        "[fusion] methods",
+        list(fu.methods),
+        f"a non-empty list of {list(fusion_methods())}",
+    )
+    c(
+        len(set(fu.methods)) == len(fu.methods),
+        where,
+        "[fusion] methods",
+        list(fu.methods),
+        "each method once",
+    )
+    c(fu.max_fused_boxes >= 1, where, "[fusion] max_fused_boxes", fu.max_fused_boxes, ">= 1")
+    c(fu.rrf_c >= 0, where, "[fusion] rrf_c", fu.rrf_c, "a number >= 0")

@@ -1,0 +1,141 @@
+"""The localizers' config: ``[[localizers]]`` entries, the local localizer's table, checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from harness.checks import check_value
+from harness.descriptors.config import DescriptorConfig
+from harness.retrieval.config import BovwConfig
+
+#: The name of the cross-localizer block (SPEC section 11).
+ALL_LOCALIZERS = "all localizers"
+
+
+#: The alignment chain's links, in the order they are usually tried.
+ALIGNERS = ("homography", "ecc", "identity")
+
+
+FEATURE_IMAGES = ("gradient", "gray")
+
+
+KEYPOINTS = ("orb", "sift")
+
+
+@dataclass(frozen=True)
+class LocalConfig:
+    """A ``local`` localizer's options (SPEC 13.3, :mod:`harness.localizers.local`).
+
+    ``[[localizers]] local = {...}`` or ``[detect.local]``.
+    """
+
+    # the alignment chain, tried in order; a pair none of them accepts is "not aligned"
+    align: tuple[str, ...] = ("homography", "identity")
+    # the homography's local features: "orb" (measured as good as SIFT here, and cheaper) or "sift"
+    keypoints: str = "orb"
+    max_keypoints: int = 800
+    # a homography is accepted with at least this many RANSAC inliers ...
+    min_inliers: int = 12
+    # ... and a plausible warp: no frame corner moves more than this share of the frame diagonal
+    max_corner_shift: float = 0.35
+    # ECC's correlation (enhanced correlation coefficient) at which its affine fit is accepted
+    ecc_min_cc: float = 0.6
+    # identity is accepted where the two work images correlate at least this much (an overlap)
+    identity_min_ncc: float = 0.0
+    # the image matched: "gradient" (Sobel magnitude, robust to light and season) or "gray"
+    image: str = "gradient"
+    # the search window: the box grown by this share of its width / height on each side ...
+    grow: float = 0.25
+    min_grow_px: int = 4
+    # ... and the tolerance around the expected position: this share of the frame's diagonal
+    # (what alignment leaves scales with the frame), at least min_tolerance_px ...
+    tolerance: float = 0.015
+    min_tolerance_px: int = 1
+    # ... and the window grows at least this many tolerances on each side
+    window_over_tolerance: int = 1
+    # also match the map's patch in the query frame and keep the worse rank (removed objects)
+    both_directions: bool = True
+    # frames whose longer side exceeds this are worked on at 1/2, 1/4 or 1/8 of their size
+    work_side: int = 400
+    # ... and aligned on a pyramid level whose longer side is at most this
+    align_side: int = 320
+    # a box whose shorter side exceeds this is matched on a coarser pyramid level (halved until
+    # it is not): the resolution the box needs, not more
+    max_template_px: int = 32
+    # query frames per cached unit (the unit a killed run resumes at); not in the key
+    frames_per_unit: int = 64
+
+
+@dataclass(frozen=True)
+class LocalizerImportConfig:
+    """A localizer's ``import`` table: ranked lists from a file (SPEC section 12)."""
+
+    file: str
+    score_kind: str = "distance"
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """One ``[[localizers]]`` entry (SPEC section 11): a name, proposals and one way to rank.
+
+    ``kind`` names a :data:`harness.localizers.kinds.LOCALIZER_KINDS` record and ``options`` is its
+    sub-table (a ``DescriptorConfig``, ``BovwConfig``, ``LocalizerImportConfig`` or a registered
+    kind's dataclass); ``proposals`` are the ``[proposals] methods`` it uses (all by default).
+    """
+
+    name: str
+    kind: str
+    proposals: tuple[str, ...]
+    options: Any = None
+
+    @property
+    def descriptor(self) -> DescriptorConfig | None:
+        """The options of a ``descriptor`` localizer, else None."""
+        return self.options if self.kind == "descriptor" else None
+
+    @property
+    def bovw(self) -> BovwConfig | None:
+        """The options of a ``bovw`` localizer, else None."""
+        return self.options if self.kind == "bovw" else None
+
+    @property
+    def import_(self) -> LocalizerImportConfig | None:
+        """The options of an ``import`` localizer, else None."""
+        return self.options if self.kind == "import" else None
+
+
+def check_local(lc: LocalConfig, where: str) -> LocalConfig:
+    """``lc`` unchanged, after checking every option (one ConfigError naming the first bad one)."""
+    check_value(
+        len(lc.align) > 0 and all(a in ALIGNERS for a in lc.align)
+        and len(set(lc.align)) == len(lc.align),
+        where, "align", list(lc.align), f"a chain of distinct {', '.join(ALIGNERS)}",
+    )  # fmt: skip
+    check_value(lc.keypoints in KEYPOINTS, where, "keypoints", lc.keypoints, " or ".join(KEYPOINTS))
+    check_value(lc.image in FEATURE_IMAGES, where, "image", lc.image, " or ".join(FEATURE_IMAGES))
+    check_value(lc.max_keypoints >= 50, where, "max_keypoints", lc.max_keypoints, ">= 50")
+    check_value(lc.min_inliers >= 4, where, "min_inliers", lc.min_inliers, ">= 4")
+    check_value(
+        0 < lc.max_corner_shift <= 1, where, "max_corner_shift", lc.max_corner_shift, "(0, 1]"
+    )
+    check_value(-1 <= lc.ecc_min_cc <= 1, where, "ecc_min_cc", lc.ecc_min_cc, "[-1, 1]")
+    check_value(
+        -1 <= lc.identity_min_ncc <= 1, where, "identity_min_ncc", lc.identity_min_ncc, "[-1, 1]"
+    )
+    check_value(0 <= lc.grow <= 4, where, "grow", lc.grow, "[0, 4]")
+    check_value(lc.min_grow_px >= 1, where, "min_grow_px", lc.min_grow_px, ">= 1")
+    check_value(0 <= lc.tolerance <= 1, where, "tolerance", lc.tolerance, "[0, 1]")
+    check_value(lc.min_tolerance_px >= 0, where, "min_tolerance_px", lc.min_tolerance_px, ">= 0")
+    check_value(
+        lc.window_over_tolerance >= 1,
+        where,
+        "window_over_tolerance",
+        lc.window_over_tolerance,
+        ">= 1",
+    )
+    check_value(lc.work_side >= 32, where, "work_side", lc.work_side, ">= 32")
+    check_value(lc.align_side >= 32, where, "align_side", lc.align_side, ">= 32")
+    check_value(lc.max_template_px >= 4, where, "max_template_px", lc.max_template_px, ">= 4")
+    check_value(lc.frames_per_unit >= 1, where, "frames_per_unit", lc.frames_per_unit, ">= 1")
+    return lc

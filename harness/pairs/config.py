@@ -1,0 +1,77 @@
+"""The pairs stage's config: ``[pairs]`` (SPEC 4 and 13.2) and its checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from harness.checks import check_value
+
+#: ``[pairs] by``: how a query frame finds its map frame (SPEC 4 and 13.2).
+PAIR_MODES = ("pose", "name", "order", "retrieval", "sequence")
+
+
+@dataclass(frozen=True)
+class PairsConfig:
+    """``[pairs]``: cross-season pairing (SPEC section 4; degrees, metres)."""
+
+    max_yaw_diff_deg: float = 45.0
+    max_distance_m: float | None = 10.0
+    stride_m: float = 0.0
+    queries: str = "annotated"  # "annotated": only annotated query frames; "all": every frame
+    # "pose": the nearest viewpoint by pose (SPEC 4); sessions without poses (SPEC 13.2):
+    # "name": the map image of the same file name (stem); "order": the i-th image of each session
+    # in file-name order; "retrieval": the map frame the query's subimages retrieve best with the
+    # run's localizer; "sequence": the same retrieval scored over runs of consecutive frames
+    # (SeqSLAM), for two traverses of one route
+    by: str = "pose"
+    # by other than "pose": the ground-truth place is the paired frame and this many neighbours
+    # on each side in the map's order (SPEC 13.2)
+    place_frames: int = 2
+    # a pair whose pair_confidence is below this is an "uncertain pair": flagged in frames.csv,
+    # left out of detect's most-changed list and marked on the page (SPEC 13.2)
+    min_pair_confidence: float = 0.05
+    # by = "sequence": the query frames of one sequence window (centred on the frame)
+    sequence_frames: int = 11
+
+
+def check_pairs(pa: PairsConfig, where: str) -> None:
+    """``[pairs]``: the heading gate, distances, which queries."""
+    c = check_value
+    c(
+        0 < pa.max_yaw_diff_deg <= 180,
+        where,
+        "[pairs] max_yaw_diff_deg",
+        pa.max_yaw_diff_deg,
+        "(0, 180]",
+    )
+    c(
+        pa.max_distance_m is None or pa.max_distance_m > 0,
+        where,
+        "[pairs] max_distance_m",
+        pa.max_distance_m,
+        "> 0 metres",
+    )
+    c(pa.stride_m >= 0, where, "[pairs] stride_m", pa.stride_m, ">= 0 metres")
+    c(
+        pa.queries in ("annotated", "all"),
+        where,
+        "[pairs] queries",
+        pa.queries,
+        "'annotated' or 'all'",
+    )
+    c(
+        pa.by in PAIR_MODES,
+        where,
+        "[pairs] by",
+        pa.by,
+        " or ".join(repr(m) for m in PAIR_MODES),
+    )
+    c(pa.place_frames >= 0, where, "[pairs] place_frames", pa.place_frames, ">= 0 frames")
+    c(pa.sequence_frames >= 1, where, "[pairs] sequence_frames", pa.sequence_frames, ">= 1")
+    c(
+        0 <= pa.min_pair_confidence <= 1,
+        where,
+        "[pairs] min_pair_confidence",
+        pa.min_pair_confidence,
+        "in [0, 1]",
+    )

@@ -1,0 +1,169 @@
+"""The proposals stage's config: ``[proposals]``, its per-method tables (SPEC 5), their checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from harness.checks import check_device, check_range, check_value
+from harness.methods import PROPOSER_OPTIONS, known_proposal_methods
+
+
+@dataclass(frozen=True)
+class YoloConfig:
+    """``[proposals.yolo]``: the supervised proposer (a local TorchScript weights file)."""
+
+    weights: str | None = None
+    conf: float = 0.05
+    iou: float = 0.7
+    imgsz: int = 640
+    batch: int = 8
+    device: str = "auto"
+    max_det: int = 100
+
+
+@dataclass(frozen=True)
+class MserConfig:
+    """``[proposals.mser]``: MSER region proposals (areas as fractions of the image)."""
+
+    max_boxes: int = 12
+    min_area_frac: float = 0.01
+    max_area_frac: float = 0.4
+    nms_iou: float = 0.5
+    work_width: int = 320
+
+
+@dataclass(frozen=True)
+class SegmentsConfig:
+    """``[proposals.segments]``: colour-region proposals (areas as fractions of the image).
+
+    The frame's pixels (CIELAB, on a copy ``work_width`` wide) fall into ``k`` colour clusters
+    (faiss k-means, ``seed``); each cluster's mask is closed with each square kernel of
+    ``closings`` (1: as is) so that the cells of a textured object merge; every 8-connected region
+    gives its bounding box.
+    """
+
+    k: int = 8
+    closings: tuple[int, ...] = (1, 3, 5)
+    min_area_frac: float = 0.002
+    max_area_frac: float = 0.5
+    max_boxes: int = 200
+    nms_iou: float = 0.9
+    work_width: int = 320
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class EdgesConfig:
+    """``[proposals.edges]``: edge-contour proposals (areas as fractions of the image)."""
+
+    max_boxes: int = 12
+    min_area_frac: float = 0.005
+    max_area_frac: float = 0.4
+    nms_iou: float = 0.5
+    work_width: int = 480
+    dilations: tuple[int, ...] = (3, 5, 9)
+
+
+@dataclass(frozen=True)
+class ProposalsConfig:
+    """``[proposals]``: the proposal methods (SPEC section 5) and their sections."""
+
+    methods: tuple[str, ...] = ("grid5", "edges")
+    edges: EdgesConfig = field(default_factory=EdgesConfig)
+    yolo: YoloConfig = field(default_factory=YoloConfig)
+    mser: MserConfig = field(default_factory=MserConfig)
+    segments: SegmentsConfig = field(default_factory=SegmentsConfig)
+    file: str | None = None
+    # decode a JPEG at 1/2, 1/4 or 1/8 of its size where every listed OpenCV method's work_width
+    # still fits (libjpeg's DCT scaling: less work than the full frame); false: the full frame
+    reduced_decode: bool = True
+    # a registered method's [proposals.<name>] table, built as its options dataclass
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def options_of(self, proposer: str) -> Any:
+        """A registered method's options: its ``[proposals.<method>]`` table, or the defaults.
+
+        Raises:
+            KeyError: ``proposer`` was registered without options.
+        """
+        return self.options[proposer] if proposer in self.options else PROPOSER_OPTIONS[proposer]()
+
+
+def check_proposals(pr: ProposalsConfig, where: str) -> None:
+    """``[proposals]``: known methods, the files they need, each method's options."""
+    c = check_value
+    known_methods = known_proposal_methods  # the registry (built-ins and registered methods)
+
+    badp = [m for m in pr.methods if m not in known_methods()]
+    c(
+        not badp and len(pr.methods) > 0,
+        where,
+        "[proposals] methods",
+        list(pr.methods),
+        f"a non-empty list of {list(known_methods())}",
+    )
+    c(
+        "file" not in pr.methods or bool(pr.file),
+        where,
+        "[proposals] file",
+        pr.file,
+        "a path to a box table (the method 'file' is listed)",
+    )
+    c(
+        "yolo" not in pr.methods or bool(pr.yolo.weights),
+        where,
+        "[proposals.yolo] weights",
+        pr.yolo.weights,
+        "a local weights path (the method 'yolo' is listed)",
+    )
+    c(0 <= pr.yolo.conf <= 1, where, "[proposals.yolo] conf", pr.yolo.conf, "[0, 1]")
+    c(0 < pr.yolo.iou <= 1, where, "[proposals.yolo] iou", pr.yolo.iou, "(0, 1]")
+    for key in ("imgsz", "batch", "max_det"):
+        c(
+            getattr(pr.yolo, key) >= 1,
+            where,
+            f"[proposals.yolo] {key}",
+            getattr(pr.yolo, key),
+            ">= 1",
+        )
+    c(
+        pr.yolo.imgsz % 32 == 0,
+        where,
+        "[proposals.yolo] imgsz",
+        pr.yolo.imgsz,
+        "a multiple of 32 (YOLO strides)",
+    )
+    check_device(pr.yolo.device, where, "[proposals.yolo] device")
+    c(
+        all(d >= 1 and d % 2 == 1 for d in pr.edges.dilations) and len(pr.edges.dilations) > 0,
+        where,
+        "[proposals.edges] dilations",
+        list(pr.edges.dilations),
+        "a non-empty list of odd kernel sizes >= 1",
+    )
+    seg = pr.segments
+    c(2 <= seg.k <= 64, where, "[proposals.segments] k", seg.k, "a colour cluster count in [2, 64]")
+    c(
+        all(d >= 1 for d in seg.closings) and len(seg.closings) > 0,
+        where,
+        "[proposals.segments] closings",
+        list(seg.closings),
+        "a non-empty list of kernel sizes >= 1",
+    )
+    for sub_name in ("edges", "mser", "segments"):
+        sub = getattr(pr, sub_name)
+        c(sub.max_boxes >= 1, where, f"[proposals.{sub_name}] max_boxes", sub.max_boxes, ">= 1")
+        c(0 < sub.nms_iou <= 1, where, f"[proposals.{sub_name}] nms_iou", sub.nms_iou, "(0, 1]")
+        c(
+            sub.work_width >= 16,
+            where,
+            f"[proposals.{sub_name}] work_width",
+            sub.work_width,
+            ">= 16 pixels",
+        )
+        check_range(
+            where,
+            f"[proposals.{sub_name}] min_area_frac..max_area_frac",
+            (sub.min_area_frac, sub.max_area_frac),
+        )
