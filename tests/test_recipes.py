@@ -223,7 +223,7 @@ def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registrie
 
     from harness.imagestore import read_image
     from harness.localizers.kinds import LocalizerKind, register_localizer_kind
-    from harness.pipeline.stages import query_ranks
+    from harness.pipeline.rank_stages import query_ranks
     from harness.records import FRAME_KEY
     from harness.runtime.cache import write_parquet
 

@@ -35,9 +35,11 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
         "fusion",
         (
             "harness/fusion/fuse.py",
+            "harness/fusion/samples.py",
             "harness/evaluate/metrics.py",
             "harness/evaluate/splits.py",
             "harness/evaluate/aps.py",
+            "harness/evaluate/pixel_aps.py",
             "harness/proposals/builtin.py",
         ),
     ),

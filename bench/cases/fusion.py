@@ -15,11 +15,12 @@ def case_fusion(quick: bool) -> None:
     import pandas as pd
 
     from harness.config.load import load_config
-    from harness.evaluate.aps import pixel_image_rows, sample_groups
+    from harness.evaluate.aps import sample_groups
     from harness.evaluate.config import SplitsConfig
     from harness.evaluate.metrics import average_precision
+    from harness.evaluate.pixel_aps import pixel_image_rows
     from harness.evaluate.splits import label, paper_splits
-    from harness.fusion.fuse import fuse_samples
+    from harness.fusion.samples import fuse_samples
     from harness.proposals.builtin import grid5
 
     rng = np.random.default_rng(0)

@@ -15,7 +15,7 @@ log = logging.getLogger("harness")
 
 def cmd_annotations(args: argparse.Namespace) -> int:
     """``harness annotations``: export frames for labelling or import a labelled set."""
-    from harness.ingest.annotations import export_for_labelling, import_annotations
+    from harness.ingest.label_formats import export_for_labelling, import_annotations
 
     if args.action == "import":
         frames = None

@@ -14,7 +14,7 @@ import pandas as pd
 
 from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_prior
 from harness.detect.options import DetectOptions
-from harness.fusion.fuse import fuse_samples
+from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image
 from harness.proposals.builtin import segment_boxes
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes

@@ -41,14 +41,10 @@ from harness.localizers.config import LocalizerConfig
 from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
 from harness.pairs.build import BY_RETRIEVAL
 from harness.pipeline import keys
+from harness.pipeline.across import across_localizers, localizer_fusion
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
 from harness.pipeline.context import Table
-from harness.pipeline.localizer_stages import (
-    Measured,
-    across_localizers,
-    localizer_fusion,
-    localizer_ranks,
-)
+from harness.pipeline.localizer_stages import Measured, localizer_ranks
 from harness.pipeline.stages import session_proposals
 from harness.records import QUERY_KEY
 from harness.runtime.cache import (

@@ -18,14 +18,8 @@ from harness.errors import IngestError
 from harness.imagestore import header_size
 from harness.ingest.folders import FOLDER_FORMATS, INTEGER_UNITS
 from harness.ingest.images import compressed_size
-from harness.ingest.logs import (
-    IMAGE_TYPES,
-    READ_ERRORS,
-    detect_format,
-    list_topics,
-    typestore_for,
-    uri_safe_path,
-)
+from harness.ingest.log_types import IMAGE_TYPES, READ_ERRORS, typestore_for, uri_safe_path
+from harness.ingest.logs import detect_format, list_topics
 from harness.ingest.poses import POSE_TYPES, stamp_us
 from harness.ingest.tf import TfTree
 

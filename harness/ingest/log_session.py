@@ -22,7 +22,8 @@ from harness.ingest.images import (
     raw_to_array,
     write_raw,
 )
-from harness.ingest.logs import choose_topics, list_topics, stream, uri_safe_path
+from harness.ingest.log_types import uri_safe_path
+from harness.ingest.logs import choose_topics, list_topics, stream
 from harness.ingest.poses import (
     POSE_TYPES,
     check_monotonic,

@@ -16,55 +16,41 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import platform
-import sys
 import time
-from dataclasses import asdict
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
-import pandas as pd
-
-from harness import __version__, kernels
 from harness.config.schema import Config
 from harness.errors import ConfigError, HarnessError, RetrievalError
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.methods import ordered_methods, rules_where
 from harness.pairs.build import BY_RETRIEVAL, DECLARED, build_pairs
-from harness.pipeline.context import Context, Entry, Table, localizer_record
+from harness.pipeline.across import across_localizers, common_images, localizer_fusion
+from harness.pipeline.context import Context, Entry, Table
 from harness.pipeline.localizer_stages import (
     Measured,
-    across_localizers,
-    common_images,
-    localizer_fusion,
     localizer_ranks,
     measured_costs,
     ranks_at_radius,
     retrieval_ranks,
 )
+from harness.pipeline.preflight import check_names, generate_fixture, preflight
+from harness.pipeline.record import run_record
 from harness.pipeline.stages import (
     annotation_table,
     candidate_table,
     change_tables,
-    check_names,
     frame_table,
     fused_samples,
-    generate_fixture,
     ingest_logs,
-    preflight,
     query_pairs,
     session_proposals,
 )
-from harness.records import FRAME_KEY
+from harness.reports.blocks import Block
 from harness.reports.html.page import write_html_report
-from harness.reports.write import Block, Reports
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.pairing import pose_agreement
 from harness.runtime.cache import stable_hash, write_json
-from harness.runtime.costs import cost_record, machine
 from harness.runtime.executors import LocalExecutor
 from harness.runtime.outdirs import read_run_record
 
@@ -73,11 +59,9 @@ __all__ = [
     "Pipeline",
     "check_inputs",
     "check_localizer_set",
-    "ingest_summary",
     "load_run",
     "reproduce",
     "run_all",
-    "run_record",
     "until_pairs",
     "until_ranks",
 ]
@@ -372,109 +356,7 @@ def check_inputs(p: Context, ann: Table, pairs: Table) -> None:
         )
 
 
-def run_record(
-    p: Context,
-    ingested: dict[str, Entry],
-    frames: Table,
-    ann: Table,
-    pairs: Table,
-    measured: list[Measured],
-    block_keys: dict[str, dict[str, str]],
-    n_samples: int,
-    reports: Reports,
-    seconds: float,
-) -> dict[str, Any]:
-    """What ``run.json`` records.
-
-    Config, versions, timings, counts, keys, warnings, cache entries. With several localizers the
-    rank counters and keys are given per localizer (``keys.localizers``).
-    """
-    multi = len(measured) > 1
-    first = measured[0]
-    rank_counts: Any = (
-        {m.loc.name: m.ranks.counts for m in measured} if multi else first.ranks.counts
-    )
-    unranked = sum(
-        int(c.get("unranked_query_images", 0))
-        for m in measured
-        for c in m.ranks.counts.values()
-        if isinstance(c, dict)
-    )
-    return {
-        "config": asdict(p.cfg),
-        "versions": _versions(),
-        "kernels": kernels.report(),
-        "seed": p.cfg.seed,
-        "argv": sys.argv,
-        "localizers": [localizer_record(m.loc, multi) for m in measured],
-        "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
-        "total_s": round(seconds, 3),
-        "stage_units_run": p.ran,
-        "executor": p.executor.describe(),
-        "counts": {
-            "frames": len(frames.df),
-            "annotated_frames": int(ann.df[FRAME_KEY].drop_duplicates().shape[0]),
-            "pairs": len(pairs.df),
-            "frames_not_described": dict(sorted(p.not_described.items())),
-            "ranked_subimages": sum(len(m.ranks.df) for m in measured),
-            "unranked_query_images": unranked,
-            "samples": n_samples,
-            "rank_counts": rank_counts,
-        },
-        **({"pairing": p.pairing} if p.pairing else {}),
-        "keys": {
-            "frames": frames.key,
-            "pairs": pairs.key,
-            **block_keys[first.loc.name],
-            **({"localizers": block_keys} if multi else {}),
-        },
-        "localization": reports.localization.to_dict(orient="records"),
-        # Table L's cost columns, and the machine they were measured on
-        "costs": {
-            "machine": machine(),
-            "localizers": {m.loc.name: cost_record(m.costs) for m in measured},
-        },
-        "warnings": reports.warnings,
-        "ingest": {
-            name: ingest_summary(e.path / "ingest_report.json") for name, e in ingested.items()
-        },
-        "cache_entries": {stage: sorted(keys_) for stage, keys_ in sorted(p.used.items())},
-    }
-
-
 # ---------------------------------------------------------------- helpers
-
-
-def ingest_summary(path: Path) -> dict[str, Any]:
-    """What run.json keeps of a session's ingest report: frames written, drops, pose frames."""
-    rep = json.loads(path.read_text())
-    return {
-        k: rep[k]
-        for k in ("format", "frames_written", "dropped", "pose_frames", "salvaged")
-        if k in rep
-    }
-
-
-def _versions() -> dict[str, str]:
-    import torch  # heavy: only where a run records its versions
-
-    def ver(dist: str) -> str:
-        try:
-            return version(dist)
-        except PackageNotFoundError:
-            return "?"
-
-    return {
-        "dbl-harness": __version__,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "pandas": pd.__version__,
-        "torch": torch.__version__,
-        "opencv": cv2.__version__,
-        "rosbags": ver("rosbags"),
-        "mcap": ver("mcap"),
-        "platform": platform.platform(),
-    }
 
 
 def reproduce(

@@ -18,7 +18,7 @@ from typing import Any
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.descriptors import REGISTRY, make_descriptor
+from harness.descriptors import make_descriptor
 from harness.descriptors.config import DescriptorConfig
 from harness.descriptors.extract import (
     combine_shards,
@@ -26,163 +26,34 @@ from harness.descriptors.extract import (
     fit_projection_unit,
     train_model,
 )
-from harness.errors import AnnotationError, ConfigError, IngestError, RetrievalError
-from harness.fixture import FixtureSpec, generate
-from harness.fixture.generate import read_spec
+from harness.errors import AnnotationError, ConfigError
 from harness.fusion.config import FusionConfig
-from harness.fusion.fuse import write_samples
+from harness.fusion.samples import write_samples
 from harness.imagestore import local_uri
 from harness.ingest import combine_frames, ingest_session
 from harness.ingest.annotations import COLUMNS, load_annotations
 from harness.ingest.annotations import validate as validate_annotations
-from harness.ingest.logs import detect_format, known_formats
 from harness.ingest.masks import folder_digest, read_masks
 from harness.ingest.names import frames_by_image, session_names
-from harness.inputs import check_input
 from harness.pairs.build import DECLARED, candidate_pairs, write_pairs
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.proposals.proposers import write_proposals
-from harness.records import FRAME_KEY, SUBIMAGE_KEY
-from harness.reports.write import Block, Reports, write_reports
-from harness.retrieval import described_frames, rank_reference
-from harness.retrieval.config import RetrievalConfig
-from harness.retrieval.import_file import ImportSpec
-from harness.retrieval.imported import unranked_images, write_imported_ranks
+from harness.records import FRAME_KEY
+from harness.reports.blocks import Block, Reports
+from harness.reports.write import write_reports
+from harness.retrieval import described_frames
 from harness.retrieval.pairing import write_retrieval_pairs
 from harness.runtime.cache import (
     content_sha,
     read_cached_parquet,
     stable_hash,
-    write_parquet,
-    write_text,
 )
-from harness.runtime.hardware import rank_precision
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------- the stages, in data-flow order
-
-
-def generate_fixture(p: Context) -> None:
-    """Generate the fixture into ``data_root`` when ``[fixture] generate`` and it is absent.
-
-    An existing fixture is reused as it is. A ``data_root`` that exists and holds anything else
-    is never touched: that is someone's data, and the error says so.
-    """
-    fx, root = p.cfg.fixture, p.cfg.data_root
-    if not fx.generate:
-        return
-    if (root / "fixture.json").exists():
-        check_fixture_spec(p)
-        return
-    if root.exists() and (not root.is_dir() or any(root.iterdir())):
-        raise ConfigError(
-            f"{root}: [fixture] generate = true, but data_root exists and holds no "
-            "generated fixture "
-            "(no fixture.json); the harness never writes into it. Set generate = false for "
-            "real data, "
-            "or point data_root (--data-root) at a new directory"
-        )
-
-    log.info("fixture: generating into %s", root)
-    spec = FixtureSpec.chosen(fx)
-    t0 = time.perf_counter()
-    try:
-        generate(root, spec, formats=fx.formats or None)
-    except ValueError as err:
-        raise ConfigError(f"[fixture] {err}") from None
-    p.timings["fixture"] = time.perf_counter() - t0
-    if p.cfg.annotations is not None and not p.cfg.annotations.exists():
-        p.cfg.annotations.parent.mkdir(parents=True, exist_ok=True)
-        write_text(p.cfg.annotations, (root / "annotations.csv").read_text())
-
-
-def check_fixture_spec(p: Context) -> None:
-    """An existing generated fixture must be the one ``[fixture]`` describes.
-
-    Raises:
-        ConfigError: it was generated with other settings (naming them); it is never replaced
-            silently: the message says to remove it so that the next run generates it again.
-    """
-    fx, root = p.cfg.fixture, p.cfg.data_root
-    try:
-        have = read_spec(root)
-    except (OSError, ValueError, KeyError):
-        return  # an unreadable record: ingest reports what is wrong with the data
-    want = {
-        "seed": fx.seed,
-        "frames": fx.frames,
-        "width": fx.width,
-        "height": fx.height,
-        "objects": fx.objects,
-        "loop_scale": fx.loop_scale,
-        "render_scale": fx.render_scale,
-    }
-    diff = {k: (have.get(k), v) for k, v in want.items() if k in have and have.get(k) != v}
-    if diff:
-        raise ConfigError(
-            f"{root}: a fixture generated with other [fixture] settings ("
-            + ", ".join(f"{k} {a!r} there, {b!r} in the config" for k, (a, b) in diff.items())
-            + f"); remove {root} (the harness generated it) and run again to regenerate it"
-        )
-
-
-def check_names(p: Context) -> None:
-    """Registry names of the config, checked before the fixture is generated or anything read.
-
-    A descriptor registered at run time counts.
-
-    Raises:
-        ConfigError: An unknown descriptor or log format, naming the known ones.
-    """
-    cfg = p.cfg
-    for loc in p.localizer_list:
-        if loc.descriptor is not None and loc.descriptor.name not in REGISTRY:
-            where = "[descriptor]" if not cfg.localizers else f"localizer {loc.name}: descriptor"
-            raise ConfigError(
-                f"{where} name = {loc.descriptor.name!r}: unknown; known: {sorted(REGISTRY)}"
-            )
-    for sc in cfg.sessions:
-        if sc.format != "auto" and sc.format not in known_formats():
-            raise ConfigError(
-                f"sessions {sc.name}: format = {sc.format!r}: unknown; known: "
-                f"{list(known_formats())}"
-            )
-
-
-def preflight(p: Context) -> None:
-    """Every input the config names checked before any stage runs (nothing half done).
-
-    Every session's log (present, readable, of a known format, an NCLT session's camera), the
-    annotation file and a proposal table.
-
-    Raises:
-        HarnessError: Naming the key or the file and what is wrong.
-    """
-    cfg = p.cfg
-    for sc in cfg.sessions:
-        src = Path(sc.source)
-        check_input(src, f"log of session {sc.name}", IngestError, directory=src.is_dir())
-        fmt = detect_format(src) if sc.format == "auto" else sc.format
-        cams = src / "images" / sc.name / "lb3"
-        if fmt == "nclt" and not (cams / sc.camera).is_dir():
-            found = sorted(d.name for d in cams.glob("*") if d.is_dir()) if cams.is_dir() else []
-            raise ConfigError(
-                f"sessions {sc.name}: camera = {sc.camera!r}: no {cams / sc.camera}; cameras "
-                f"found: {found or 'none'} (names are case-sensitive)"
-            )
-    if cfg.annotations is None:
-        if not p.annotations_optional:
-            raise ConfigError(
-                "missing required key 'annotations': the tables measure change against an "
-                "annotation file (harness detect runs without one)"
-            )
-    else:
-        check_input(cfg.annotations, "annotation file", AnnotationError)
-    if "file" in cfg.proposals.methods and cfg.proposals.file:
-        check_input(cfg.proposals.file, "[proposals] file", ConfigError)
 
 
 def ingest_logs(p: Context) -> dict[str, Entry]:
@@ -403,155 +274,6 @@ def session_descriptors(
 
     stages = ("descriptor_shards", "descriptors")
     return p.sharded(stages, props, dc.shard_frames, shard, combine, gpu=True)[0]
-
-
-def ranks_device(rc: RetrievalConfig, dev: str) -> str:
-    """The exact engine's device: CUDA when ``dev`` (the descriptor's) allows it and one exists."""
-    import torch
-
-    return (
-        "cuda"
-        if rc.engine == "exact" and dev in ("auto", "cuda") and torch.cuda.is_available()
-        else "cpu"
-    )
-
-
-def query_ranks(
-    p: Context,
-    frames: Table,
-    pairs: Table,
-    described: dict[str, Entry],
-    rc: RetrievalConfig,
-    device: str = "auto",
-    precision: str = "fp32",
-) -> RankTable:
-    """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
-
-    Units: (reference session, chunk of ``query_frames_per_shard`` pairs); one engine per
-    proposal method inside each. ``rc``: the ``[retrieval]`` to rank under (the run's, or
-    ``gt_radius_also``'s). ``device``: the descriptor's (``[descriptor] device``); the exact
-    engine runs on CUDA where it allows and one is present. ``precision``: the descriptor's
-    (``[descriptor] precision``), for the exact engine's candidate product
-    (:func:`harness.runtime.hardware.rank_precision`).
-    """
-    dkeys = {s: e.key for s, e in described.items()}
-    paths, device = {s: e.path for s, e in described.items()}, ranks_device(rc, device)
-    precision = rank_precision(precision) if rc.engine == "exact" else "fp32"
-    units: list[tuple[tuple[Any, ...], Build]] = []
-    unit_ref = []
-    step = max(1, rc.query_frames_per_shard)
-    for ref in [s.name for s in p.cfg.sessions]:
-        sub = pairs.df[pairs.df["r_session"] == ref].reset_index(drop=True)
-        for c0 in range(0, max(len(sub), 1), step):
-            chunk = sub.iloc[c0 : c0 + step]
-            build = partial(
-                _write_ranks,
-                rc,
-                p.cfg.pairs.max_yaw_diff_deg,
-                chunk,
-                ref,
-                paths,
-                frames.df,
-                device,
-                p.cfg.pairs.place_frames if p.cfg.pairs.by != "pose" else None,
-                precision,
-            )
-            key = keys.ranks_unit(rc, ref, pairs.key, dkeys, c0, len(chunk), precision)
-            units.append((key, build))
-            unit_ref.append(ref)
-    parts: list[pd.DataFrame] = []
-    counts: dict[str, dict[str, int]] = {}
-    for ref, entry in zip(unit_ref, p.units("ranks", units, gpu=True), strict=True):
-        parts.append(read_cached_parquet(entry.path / "ranks.parquet"))
-        c = counts.setdefault(ref, {})
-        for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
-            c[k] = c.get(k, 0) + v
-    df = concat_ranks(parts)
-    return RankTable(df, stable_hash(*keys.ranks(rc, pairs.key, dkeys, precision)), counts)
-
-
-SORT_RANKS = SUBIMAGE_KEY
-
-
-def concat_ranks(parts: list[pd.DataFrame]) -> pd.DataFrame:
-    """Units' rank rows as one table in subimage order (empty units left out)."""
-    parts = [d for d in parts if len(d)]
-    if not parts:
-        return pd.DataFrame()
-    return pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
-
-
-def _write_ranks(
-    rc: Any,
-    max_yaw_deg: float,
-    pairs: pd.DataFrame,
-    ref: str,
-    descriptors: dict[str, Path],
-    frames: pd.DataFrame,
-    device: str,
-    place_frames: int | None,
-    precision: str,
-    tmp: Path,
-) -> dict[str, int]:
-    """One ranking unit (:func:`harness.retrieval.rank_reference`) into ``tmp/ranks.parquet``."""
-    df, counts = rank_reference(
-        rc, max_yaw_deg, pairs, ref, descriptors, frames, device, place_frames, precision
-    )
-    write_parquet(tmp / "ranks.parquet", df)
-    return counts
-
-
-def imported_ranks(
-    p: Context,
-    frames: Table,
-    pairs: Table,
-    props: dict[str, Table],
-    spec: ImportSpec,
-    score_kind: str,
-    rc: RetrievalConfig,
-) -> RankTable:
-    """Ranks from a user's localizer (``--import NAME=FILE`` or an ``import`` localizer).
-
-    Checked against the run (SPEC 12): every row must be a proposal of the run and match a pair;
-    a query image of the pairs without any row is an error unless ``[import]
-    allow_unranked_images`` (then it is counted).
-    """
-    if not Path(spec.path).is_file():
-        raise RetrievalError(f"{spec.path}: --import file not found (localizer {spec.name!r})")
-    allprops = pd.concat([t.df for t in props.values()], ignore_index=True)
-    build = partial(
-        write_imported_ranks,
-        spec,
-        pairs.df,
-        frames.df,
-        allprops,
-        rc.gt_radius_m,
-        p.cfg.pairs.max_yaw_diff_deg,
-        score_kind,
-    )
-    key = keys.ranks_import(
-        p.cfg,
-        rc,
-        spec.name,
-        content_sha(spec.path),
-        pairs.key,
-        [t.key for t in props.values()],
-        score_kind,
-    )
-    entry = p.unit("ranks", key, build)
-    df = read_cached_parquet(entry.path / "ranks.parquet")
-    info = dict(p.cache.manifest("ranks", entry.key)["info"])
-    missing = unranked_images(pairs.df, df)
-    info["unranked_query_images"] = len(missing)
-    if len(missing) and not p.cfg.import_.allow_unranked_images:
-        ex = missing.iloc[0]
-        raise RetrievalError(
-            f"{spec.path}: localizer {spec.name!r} ranks no subimage of {len(missing)} of "
-            f"{len(pairs.df)} query images (e.g. {ex.q_session}/{ex.q_camera}/{ex.q_utime} -> "
-            f"{ex.r_session}); every localizer is scored on the same images: rank them, or set "
-            "[import] allow_unranked_images = true to leave them out of every table (counted)"
-        )
-    return RankTable(df, entry.key, {"import": info})
 
 
 def fused_samples(

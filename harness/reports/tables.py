@@ -2,7 +2,7 @@
 
 A table is a :class:`TableSpec`: an id (its files are ``table<id>.csv|md|tex``), a title, an
 intro, its columns and a ``compute`` function of the run's config and report blocks (one
-:class:`~harness.reports.write.Reports` per localizer, SPEC section 11) returning one row per line
+:class:`~harness.reports.blocks.Reports` per localizer, SPEC section 11) returning one row per line
 of the table, or None where the run has nothing for it. :func:`register_table` adds it;
 ``write_reports`` then writes its three files, ``harness reproduce`` prints it after the other
 tables and the report page shows it (its AP cells coloured against their floors like every other

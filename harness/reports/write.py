@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -21,27 +20,20 @@ import pandas as pd
 
 from harness.config.schema import Config
 from harness.errors import ConfigError, HarnessError
-from harness.evaluate.aps import (
-    pixel_image_rows,
-    pooled_rows,
-    sample_groups,
-    stratified_labels,
-    table_i_rows,
-)
+from harness.evaluate.aps import pooled_rows, sample_groups, stratified_labels, table_i_rows
+from harness.evaluate.leaderboard import leaderboard
 from harness.evaluate.localization import localization_stats
 from harness.evaluate.metrics import pr_curve
+from harness.evaluate.pixel_aps import pixel_image_rows
 from harness.evaluate.splits import Split, paper_splits
 from harness.evaluate.splits import label as split_label
 from harness.evaluate.verdicts import confound_warnings, holm_columns
 from harness.methods import ordered_methods
 from harness.reports import tables as report_tables
+from harness.reports.blocks import Block, Reports
 from harness.reports.change import CHANGE_TABLES, change_table, pivot
-from harness.reports.leaderboard import (
-    leaderboard,
-    leaderboard_csv,
-    leaderboard_latex,
-    leaderboard_md,
-)
+from harness.reports.files import ReportFiles, remove_old_reports
+from harness.reports.leaderboard import leaderboard_csv, leaderboard_latex, leaderboard_md
 from harness.reports.plots import locmap_figures, pr_plots
 from harness.reports.render import (
     change_latex,
@@ -51,14 +43,10 @@ from harness.reports.render import (
     table_csv,
     table_markdown,
 )
-from harness.runtime.cache import write_parquet, write_text
+from harness.runtime.cache import write_parquet
 
 #: What this module defines for callers.
-__all__ = [
-    "Block",
-    "Reports",
-    "write_reports",
-]
+__all__ = ["write_reports"]
 
 log = logging.getLogger(__name__)
 
@@ -67,98 +55,6 @@ log = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------ all reports
-
-
-def _remove_stale(directory: Path, pattern: str, keep: set[Path]) -> int:
-    """Remove files matching ``pattern`` in ``directory`` that are not in ``keep``.
-
-    ``directory`` lies inside the harness's own run directory.
-    """
-    n = 0
-    if directory.is_dir():
-        for p in directory.glob(pattern):
-            if p.is_file() and p.resolve() not in keep:
-                p.unlink()
-                n += 1
-    return n
-
-
-#: The files a table is written to (``<stem>.csv`` and so on).
-TABLE_SUFFIXES = ("csv", "md", "tex")
-
-
-def _remove_unwritten(paths: Sequence[Path], keep: set[Path]) -> int:
-    """Remove those of ``paths`` (the harness's own file names) that this run did not write.
-
-    Only these exact names: a file of the user's beside them (``tableL.notes``) is left alone.
-    """
-    gone = [p for p in paths if p.is_file() and p.resolve() not in keep]
-    for p in gone:
-        p.unlink()
-    return len(gone)
-
-
-@dataclass
-class Block:
-    """One block of the tables: a localizer's boxes, or every localizer's (``all localizers``).
-
-    ``ranks`` is None for the cross-localizer block (it has no localization table of its own);
-    ``methods`` are the fusion methods computed for it; ``notes`` are printed under its tables.
-    """
-
-    name: str
-    samples: pd.DataFrame
-    ranks: pd.DataFrame | None
-    methods: tuple[str, ...]
-    notes: list[str] = field(default_factory=list)
-    # Table L's cost cells (harness.runtime.costs)
-    costs: dict[str, float] = field(default_factory=dict)
-    ranks_also: pd.DataFrame | None = None  # the ranks at [report] gt_radius_also
-
-
-@dataclass
-class Reports:
-    """What a run's reports hold, for the caller to print.
-
-    With several localizers, ``blocks`` holds each block's own :class:`Reports` (the fields
-    above hold their concatenation, or the first block's tables) and ``table_l`` the leaderboard.
-    """
-
-    summary: pd.DataFrame
-    localization: pd.DataFrame
-    tables: dict[str, pd.DataFrame]
-    warnings: dict[str, list[str]]
-    methods: tuple[str, ...]
-    localizer: str = ""
-    blocks: list[Reports] = field(default_factory=list)
-    table_l: pd.DataFrame | None = None
-    costs: dict[str, float] = field(default_factory=dict)
-    localization_also: pd.DataFrame | None = None  # at [report] gt_radius_also
-
-
-@dataclass
-class _Files:
-    """The files one call of :func:`write_reports` writes (the rest of ``out`` is stale)."""
-
-    out: Path
-    multi: bool
-    written: set[Path] = field(default_factory=set)
-
-    def put(self, path: Path) -> Path:
-        """``path`` (under ``out``), recorded as written by this run."""
-        self.written.add(path.resolve())
-        return path
-
-    def text(self, name: str, text: str) -> None:
-        """Write ``out/name`` atomically and record it."""
-        write_text(self.put(self.out / name), text)
-
-    def tag(self, df: pd.DataFrame, name: str) -> pd.DataFrame:
-        """``df`` with a first ``localizer`` column where the run has several localizers."""
-        if self.multi and "localizer" not in df.columns:
-            df = df.copy()
-            df.insert(0, "localizer", name)
-        return df
 
 
 def write_reports(
@@ -191,7 +87,7 @@ def write_reports(
         ]
     else:
         blocks = list(samples)
-    files = _Files(out, len(blocks) > 1)
+    files = ReportFiles(out, len(blocks) > 1)
     locs, locs_also = _write_localization(cfg, files, blocks, frames, ann)
     splits = paper_splits(cfg.splits)
     allps = [
@@ -219,7 +115,7 @@ def write_reports(
     _write_registered(cfg, files, results)
     if cfg.report.plots:
         _write_plots(cfg, files, curves[0], blocks[0].samples, frames, ann)
-    _remove_old(files)
+    remove_old_reports(files)
     if not files.multi:
         return results[0]
     first = results[0]
@@ -240,7 +136,7 @@ def write_reports(
 
 def _write_splits(
     cfg: Config,
-    files: _Files,
+    files: ReportFiles,
     blocks: list[Block],
     allps: list[pd.DataFrame],
     ids: dict,
@@ -270,7 +166,7 @@ def _write_splits(
 
 def _write_localization(
     cfg: Config,
-    files: _Files,
+    files: ReportFiles,
     blocks: list[Block],
     frames: pd.DataFrame,
     ann: pd.DataFrame,
@@ -361,7 +257,7 @@ def _block_reports(
     )
 
 
-def _write_change_tables(files: _Files, results: list[Reports]) -> None:
+def _write_change_tables(files: ReportFiles, results: list[Reports]) -> None:
     """Tables I, S and P (``table1``, ``tableS``, ``tableP``) as CSV, markdown and LaTeX."""
     for table, spec in CHANGE_TABLES.items():
         views = [
@@ -381,7 +277,7 @@ def _write_change_tables(files: _Files, results: list[Reports]) -> None:
 
 def _write_comparisons(
     cfg: Config,
-    files: _Files,
+    files: ReportFiles,
     results: list[Reports],
     boots: list[dict[tuple[str, str, str], np.ndarray]],
     splits: list[Split],
@@ -399,7 +295,7 @@ def _write_comparisons(
     return table_l
 
 
-def _write_registered(cfg: Config, files: _Files, results: list[Reports]) -> None:
+def _write_registered(cfg: Config, files: ReportFiles, results: list[Reports]) -> None:
     """The registered tables (harness/reports/tables.py) that have rows for this run."""
     for spec in report_tables.load_builtin().values():
         try:
@@ -416,7 +312,7 @@ def _write_registered(cfg: Config, files: _Files, results: list[Reports]) -> Non
 
 def _write_plots(
     cfg: Config,
-    files: _Files,
+    files: ReportFiles,
     curves: list[pd.DataFrame],
     samples: pd.DataFrame,
     frames: pd.DataFrame,
@@ -430,21 +326,6 @@ def _write_plots(
         samples, frames, ann, files.out / "locmaps", cfg.report.locmap_examples
     ):
         files.put(png)
-
-
-def _remove_old(files: _Files) -> None:
-    """Remove the reports of an earlier run into ``out`` that this run did not write."""
-    out, written = files.out, files.written
-    stale = _remove_stale(out / "splits", "*.parquet", written) + _remove_stale(
-        out / "plots", "pr_*.png", written
-    )
-    stale += _remove_stale(out / "locmaps", "*", written)
-    stems = ["tableL", "localization_also", *(spec.stem for spec in report_tables.TABLES.values())]
-    stale += _remove_unwritten([out / f"{t}.{x}" for t in stems for x in TABLE_SUFFIXES], written)
-    if stale:
-        log.info(
-            "reports: removed %d file(s) of an earlier run that this run no longer writes", stale
-        )
 
 
 def _split_block(

@@ -139,7 +139,8 @@ def test_fixture_section_chooses_formats_and_render_scale(tmp_path: Path) -> Non
     from harness.config.load import load_config
     from harness.fixture.config import FixtureConfig
     from harness.pipeline.chain import Pipeline
-    from harness.pipeline.stages import frame_table, generate_fixture, ingest_logs
+    from harness.pipeline.preflight import generate_fixture
+    from harness.pipeline.stages import frame_table, ingest_logs
 
     cfg = load_config(ROOT / "datasets" / "fixture.toml", data_root=str(tmp_path / "world"))
     fx = FixtureConfig(

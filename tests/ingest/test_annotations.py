@@ -10,16 +10,13 @@ import pandas as pd
 import pytest
 
 from harness.errors import AnnotationError
-from harness.ingest.annotations import (
-    COLUMNS,
-    change_boxes,
+from harness.ingest.annotations import COLUMNS, change_boxes, image_name, validate
+from harness.ingest.label_formats import (
     export_for_labelling,
-    image_name,
     import_annotations,
     import_coco,
     import_cvat,
     import_voc,
-    validate,
 )
 
 FRAMES = pd.DataFrame(

@@ -403,7 +403,7 @@ def test_nclt_missing_camera_lists_what_exists(small_world: Path, tmp_path: Path
 
 
 def test_tf_with_several_children_needs_a_choice(tmp_path: Path) -> None:
-    from harness.fixture.writers import ROS2, tf_msg
+    from harness.fixture.messages import ROS2, tf_msg
 
     path = tmp_path / "tf.mcap"
     poses = [Pose(1_000_000 + i * 50_000, float(i), 0.0, 0.0, 0.0, 0.0, 0.0) for i in range(5)]

@@ -10,7 +10,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.evaluate.aps import pixel_regions
 from harness.evaluate.metrics import (
     average_precision,
     bootstrap_aps,
@@ -19,6 +18,7 @@ from harness.evaluate.metrics import (
     stratified_ap,
     weighted_average_precision,
 )
+from harness.evaluate.pixel_aps import pixel_regions
 from harness.evaluate.verdicts import confound_warnings
 from harness.reports.render import table_latex
 

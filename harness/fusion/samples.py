@@ -1,0 +1,207 @@
+"""The samples stage (SPEC 7): every query image's fused boxes with their LoC, one table per run.
+
+Each image's proposals and ranks become fused sets (:func:`harness.fusion.fuse.fuse`), one row a
+box and method, written in query-frame chunks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.evaluate.splits import roc_sob
+from harness.fusion import rules  # noqa: F401  (attaches the built-in rules' functions)
+from harness.fusion.config import FusionConfig
+from harness.fusion.fuse import (
+    IMAGE_BASELINES,
+    cover_matrix,
+    image_loc,
+    intersection_closure,
+    loc_from_cover,
+)
+from harness.ingest.annotations import change_boxes
+from harness.methods import (
+    ALL_METHODS,
+    is_unfused,
+    ordered_methods,
+    unfused,
+)
+from harness.records import FRAME_KEY, IMAGE_KEY
+from harness.runtime.cache import stable_hash, write_parquet
+from harness.runtime.progress import progress
+
+#: The columns of a sample table before the LoC of each method (``loc_<method>``).
+SAMPLE_COLUMNS = (
+    *IMAGE_KEY,
+    "season_pair",
+    "proposal_method",
+    *("x1", "y1", "x2", "y2", "original", "N", "RoC", "SoB"),
+)
+
+
+def _runs(kcols: list[np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(start, end) of each run of equal keys in the sorted key columns ``kcols``."""
+    change = np.zeros(n, bool)
+    for kc in kcols:
+        change[1:] |= kc[1:] != kc[:-1]
+    starts = np.concatenate([[0], np.nonzero(change)[0]]) if n else np.zeros(0, np.int64)
+    return starts, np.append(starts[1:], n)
+
+
+def _fuse_image(
+    boxes: np.ndarray,
+    rdl: tuple[np.ndarray, np.ndarray, np.ndarray],
+    methods: tuple[str, ...],
+    size: tuple[Any, Any],
+    change: np.ndarray,
+    img_seed: int,
+    max_boxes: int,
+    rrf_c: float,
+    counts: dict[str, Any],
+) -> dict[str, np.ndarray]:
+    """The sample columns of one query image and proposal set, from its boxes' ``r, d, L``.
+
+    Rows: the fused boxes, then the duplicate originals. Columns: the box, ``original``, ``N``,
+    ``RoC``, ``SoB`` and ``loc_<method>`` per method (``change``: the image's change boxes).
+    """
+    r, d, L = rdl
+    w, h = size
+    fused, capped = intersection_closure(boxes, max_boxes)
+    counts["capped_closures"] += int(capped)
+    cover = cover_matrix(fused, boxes)
+    locs = {}
+    for m in methods:
+        if m in IMAGE_BASELINES:
+            locs[m] = image_loc(fused, m, w, h, img_seed)
+        elif not is_unfused(m):
+            locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c)
+    # rank_no_fusion: one sample per original box; merged into the fused row of the same box
+    fidx = {tuple(bx): i for i, bx in enumerate(fused)}
+    nof = np.full(len(fused), np.nan)
+    extra = []
+    for k, bx in enumerate(map(tuple, boxes)):
+        i = fidx[bx]
+        if np.isnan(nof[i]):
+            nof[i] = r[k]
+        else:
+            extra.append((bx, r[k]))
+    all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
+    roc, sob = roc_sob(all_boxes, change, w, h)
+    n_x = len(extra)
+    part = {c: all_boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))}
+    part["original"] = np.concatenate([~np.isnan(nof), np.ones(n_x, bool)])
+    part["N"] = np.concatenate([cover.sum(1), np.ones(n_x, np.int64)]).astype(np.int64)
+    part["RoC"] = np.asarray(roc, np.float64)
+    part["SoB"] = np.asarray(sob, np.float64)
+    nf = unfused(methods)
+    if nf is not None:
+        part[f"loc_{nf}"] = np.concatenate([nof, [v for _, v in extra]])
+    for m, v in locs.items():
+        part[f"loc_{m}"] = np.concatenate([v, np.full(n_x, np.nan)])
+    return part
+
+
+def fuse_samples(
+    ranks: pd.DataFrame,
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
+    seed: int,
+    max_boxes: int,
+    methods: Sequence[str] = ALL_METHODS,
+    progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+    rrf_c: float = 60.0,
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Samples of every annotated query image (one per pair) with the LoC of each method.
+
+    Samples are built for all proposal methods together (``proposals = all``) and, where there
+    are several, for each alone. Columns: the query image's key, ``season_pair``, ``proposals``,
+    the box, ``original`` (an original box rather than only an intersection), ``N``, ``RoC``,
+    ``SoB`` and ``loc_<method>`` for each of ``methods``. ``rank_no_fusion`` has values on
+    original boxes only (an original box that is also another's fused box shares its row; a
+    duplicate original gets a row of its own), the fused-set methods on fused boxes only.
+
+    Works on numpy columns of ``ranks`` sorted once by query image (stable, so each image's rows
+    keep their order) and builds one table at the end: no per-image pandas objects.
+    """
+    cb = change_boxes(ann)
+    size = dict(
+        zip(
+            frames[FRAME_KEY].itertuples(index=False, name=None),
+            frames[["width", "height"]].to_numpy(),
+            strict=True,
+        )
+    )
+    counts = {"query_images": 0, "capped_closures": 0}
+    methods = ordered_methods(methods)
+    props = sorted(ranks["proposal_method"].unique())
+    subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
+    keys = IMAGE_KEY
+    srt = ranks.sort_values(keys, kind="stable")
+    kcols = [srt[k].to_numpy() for k in keys]
+    method = srt["proposal_method"].to_numpy()
+    season_pair = srt["season_pair"].to_numpy()
+    box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
+    L_all = srt["L"].to_numpy(np.float64)
+    starts, ends = _runs(kcols, len(srt))
+    cols: dict[str, list[Any]] = {c: [] for c in (*SAMPLE_COLUMNS, *(f"loc_{m}" for m in methods))}
+    for a, b in progress(list(zip(starts, ends, strict=True))):
+        key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
+        qkey = key[:3]
+        if qkey not in cb:
+            continue
+        counts["query_images"] += 1
+        w, h = size[qkey]
+        for name, ms in subsets:
+            sel = np.isin(method[a:b], ms)
+            if not sel.any():
+                continue
+            part = _fuse_image(
+                box_all[a:b][sel],
+                (r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]),
+                methods,
+                (w, h),
+                cb[qkey],
+                int(stable_hash(seed, key, name, length=8), 16),
+                max_boxes,
+                rrf_c,
+                counts,
+            )
+            n_rows = len(part["x1"])
+            for c, v in zip(IMAGE_KEY, key, strict=True):
+                cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))
+            cols["season_pair"].append(np.full(n_rows, season_pair[a], dtype=object))
+            cols["proposal_method"].append(np.full(n_rows, name, dtype=object))
+            for c, v in part.items():
+                cols[c].append(v)
+    if not cols["x1"]:
+        return pd.DataFrame(), counts
+    df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})
+    return df, counts
+
+
+def write_samples(
+    ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, fc: FusionConfig, tmp: Path
+) -> dict[str, int]:
+    """Build the samples (:func:`fuse_samples` with ``[fusion]``) into ``tmp/samples.parquet``.
+
+    Returns:
+        The fusion counters (query images, capped closures).
+    """
+    df, counts = fuse_samples(
+        ranks,
+        frames,
+        ann,
+        fc.seed,
+        fc.max_fused_boxes,
+        methods=ordered_methods(fc.methods),
+        progress=partial(progress, desc="fusion", unit="image"),
+        rrf_c=fc.rrf_c,
+    )
+    write_parquet(tmp / "samples.parquet", df)
+    return counts
