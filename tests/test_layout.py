@@ -320,3 +320,66 @@ def test_no_module_over_400_lines() -> None:
         if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES
     )
     assert over == [], "cut them by job"
+
+
+#: The functions that may take 9 or more parameters (issue 51: at most five): the rank engines
+#: and the bootstrap, numeric kernels whose tuning options are keyword-only with defaults. Any
+#: other long parameter list is grouped into a record (``DetectRun``, ``RankSettings``,
+#: ``TrainSettings``, ``ChanceSettings`` ...).
+MANY_PARAMETERS = frozenset(
+    {
+        "harness.retrieval.engines.image_ranks",
+        "harness.retrieval.engines._rank_group",
+        "harness.retrieval.faiss_search.image_ranks_faiss",
+        "harness.evaluate.metrics.bootstrap_aps",
+    }
+)
+
+
+def _parameter_count(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    a = fn.args
+    names = [x.arg for x in (*a.posonlyargs, *a.args, *a.kwonlyargs)]
+    n = len(names) + (a.vararg is not None) + (a.kwarg is not None)
+    return n - (bool(names) and names[0] in ("self", "cls"))
+
+
+def test_few_functions_take_nine_or_more_parameters() -> None:
+    many = {
+        f"{name}.{fn.name}"
+        for name, path in _modules().items()
+        for fn in ast.walk(ast.parse(path.read_text()))
+        if isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef) and _parameter_count(fn) >= 9
+    }
+    assert len(MANY_PARAMETERS) <= 5 and many <= MANY_PARAMETERS, sorted(many - MANY_PARAMETERS)
+
+
+#: What a renderer of ``harness.reports`` may take from the layers that compute (issue 51:
+#: evaluate computes, reports render): words, marks and constants, and the LoC map's drawing.
+#: ``harness.reports.write`` alone calls the computations, to write their results to files first.
+RENDER_IMPORTS = frozenset(
+    {
+        "MARK_LEGEND",
+        "VERDICT_MARKS",
+        "VERDICT_TEX",
+        "MIN_POSITIVE_IMAGES",
+        "few_text",
+        "few_warning",
+        "CLEAN_ROC",
+        "AP_COLUMNS",
+        "loc_map",
+    }
+)
+
+
+def test_reports_render_what_evaluate_computed() -> None:
+    computing = ("harness.evaluate", "harness.fusion")
+    found = [
+        f"{name}: {node.module}.{a.name}"
+        for name, path in _modules().items()
+        if name.startswith("harness.reports") and name != "harness.reports.write"
+        for node in _imports(path)
+        if (node.module or "").startswith(computing)
+        for a in node.names
+        if a.name not in RENDER_IMPORTS
+    ]
+    assert found == []

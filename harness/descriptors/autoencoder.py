@@ -11,6 +11,7 @@ import csv
 import logging
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
 
@@ -118,23 +119,46 @@ def inference_encoder(model: ConvAutoencoder) -> nn.Sequential:
     return nn.Sequential(*layers).to(next(model.parameters()).device).eval()
 
 
-def train(
-    model: ConvAutoencoder,
-    data: np.ndarray,
-    epochs: int,
-    batch_size: int,
-    lr: float,
-    seed: int,
-    device: torch.device,
-    progress: Callable | None = None,
-    per_crop: bool = False,
-    bf16: bool = False,
-) -> list[tuple[int, int, float]]:
-    """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE.
+@dataclass(frozen=True)
+class TrainSettings:
+    """How the autoencoder trains, whatever its length (``[descriptor]``).
 
-    ``bf16``: the forward pass under ``torch.autocast`` in bfloat16 (weights and optimizer stay
-    float32). Returns (epoch, step, loss) rows.
+    ``progress`` is called with each step's sample count; ``per_crop`` normalises each crop by
+    its own mean and spread; ``bf16`` runs the forward pass under ``torch.autocast`` in bfloat16
+    (weights and optimizer stay float32).
     """
+
+    batch_size: int
+    lr: float
+    seed: int
+    device: torch.device
+    progress: Callable | None = None
+    per_crop: bool = False
+    bf16: bool = False
+
+
+@dataclass(frozen=True)
+class EarlyStop:
+    """A training budget's early stopping (``[descriptor]`` holdout, eval_every, patience).
+
+    A seeded ``holdout`` share of the crops is never trained on and is measured every
+    ``eval_every`` steps; ``patience`` evaluations without improvement stop it.
+    """
+
+    holdout: float = 0.1
+    eval_every: int = 50
+    patience: int = 4
+
+
+def train(
+    model: ConvAutoencoder, data: np.ndarray, epochs: int, settings: TrainSettings
+) -> list[tuple[int, int, float]]:
+    """Train on uint8 crops (N, S, S, 3) (an array or a memmap) with MSE for ``epochs`` passes.
+
+    Returns (epoch, step, loss) rows.
+    """
+    batch_size, lr, seed, device = settings.batch_size, settings.lr, settings.seed, settings.device
+    progress, per_crop, bf16 = settings.progress, settings.per_crop, settings.bf16
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     # channels-last: 2x faster steps on CPU than NCHW (not in torch's stubs for Module.to)
@@ -211,16 +235,8 @@ def train_budget(
     model: ConvAutoencoder,
     data: np.ndarray,
     samples: int,
-    batch_size: int,
-    lr: float,
-    seed: int,
-    device: torch.device,
-    holdout: float = 0.1,
-    eval_every: int = 50,
-    patience: int = 4,
-    progress: Callable | None = None,
-    per_crop: bool = False,
-    bf16: bool = False,
+    settings: TrainSettings,
+    stop: EarlyStop = EarlyStop(),
 ) -> tuple[list[tuple[int, int, float]], dict]:
     """Train on a budget of ``samples`` sample-steps (not epochs), with early stopping.
 
@@ -230,6 +246,9 @@ def train_budget(
     length. Returns (epoch, step, loss) rows (epoch = passes over the training crops so far) and a
     summary: steps run, held-out loss curve, best step, whether it stopped early.
     """
+    batch_size, lr, seed, device = settings.batch_size, settings.lr, settings.seed, settings.device
+    progress, per_crop, bf16 = settings.progress, settings.per_crop, settings.bf16
+    holdout, eval_every, patience = stop.holdout, stop.eval_every, stop.patience
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     hold, train_idx = split_holdout(len(data), holdout, g)

@@ -11,6 +11,8 @@ import torch
 
 from harness.descriptors.autoencoder import (
     ConvAutoencoder,
+    EarlyStop,
+    TrainSettings,
     autocast,
     inference_encoder,
     load_checkpoint,
@@ -82,35 +84,15 @@ class AutoencoderDescriptor(Descriptor):
         model = ConvAutoencoder(tuple(self.cfg.channels))
         per_crop = self.cfg.input_norm == "per_crop"
         extra: dict = {}
-        if self.cfg.train_samples > 0:  # a budget in samples with early stopping on held-out crops
-            history, extra = train_budget(
-                model,
-                crops,
-                self.cfg.train_samples,
-                self.cfg.batch_size,
-                self.cfg.lr,
-                self.cfg.seed,
-                self.device,
-                self.cfg.holdout,
-                self.cfg.eval_every,
-                self.cfg.patience,
-                progress,
-                per_crop,
-                self.bf16,
-            )
+        c = self.cfg
+        settings = TrainSettings(
+            c.batch_size, c.lr, c.seed, self.device, progress, per_crop, self.bf16
+        )
+        if c.train_samples > 0:  # a budget in samples with early stopping on held-out crops
+            stop = EarlyStop(c.holdout, c.eval_every, c.patience)
+            history, extra = train_budget(model, crops, c.train_samples, settings, stop)
         else:
-            history = train(
-                model,
-                crops,
-                self.cfg.epochs,
-                self.cfg.batch_size,
-                self.cfg.lr,
-                self.cfg.seed,
-                self.device,
-                progress,
-                per_crop,
-                self.bf16,
-            )
+            history = train(model, crops, c.epochs, settings)
         save_checkpoint(
             out_dir / self.CHECKPOINT,
             model,

@@ -16,6 +16,7 @@ COCOevals.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -124,11 +125,7 @@ def table_d_chance(
     gts: dict[int, np.ndarray],
     dets: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
     nms: Any,
-    draws: int,
-    n_boot: int,
-    ci: float,
-    seed: int,
-    needed: int = chance.MIN_POSITIVE_IMAGES,
+    settings: chance.ChanceSettings,
 ) -> dict[str, dict[str, Any]]:
     """SPEC 9 for Table D's AP50: floor, band, ceiling, recall, intervals and verdicts.
 
@@ -137,18 +134,16 @@ def table_d_chance(
         gts: the annotated change boxes of each annotated image id (empty: no-change).
         dets: per row (``detector``, ``random``) and image id, the (boxes, scores) it kept.
         nms: ``nms(boxes, scores) -> kept indices`` (the detector's own NMS and cap).
-        draws: random score draws for the floor.
-        n_boot: bootstrap resamples of annotated frames for the intervals.
-        ci: interval level.
-        seed: seeds the draws and the resamples.
-        needed: ``[report] min_positive_images``: annotated frames holding a change box before a
-            row earns a verdict (SPEC 9, evidence before a verdict).
+        settings: the random score draws for the floor, the bootstrap resamples of annotated
+            frames and their interval level, the seed of both, and the annotated frames holding
+            a change box before a row earns a verdict (SPEC 9, evidence before a verdict).
 
     Returns:
         per row: ``ap50`` (this matcher's; equal to COCOeval's), ``ci_low``/``ci_high``,
         ``vs_random_ci_low``/``_high``, ``verdict``; under ``"chance"``: ``floor``, ``chance_low``,
         ``chance_high``, ``ceiling``, ``candidate_recall``.
     """
+    draws, n_boot, ci, seed = settings.draws, settings.n_boot, settings.ci, settings.seed
     ids = sorted(gts)
     n_gt = sum(len(gts[i]) for i in ids)
     rng = np.random.default_rng(chance.draw_seed(seed, "D", n_gt, len(ids)))
@@ -175,7 +170,7 @@ def table_d_chance(
         d = boots[row] - boots.get("random", np.full(len(counts), np.nan))
         dl, dh = interval(d, ci)
         out[row].update({"vs_random_ci_low": dl, "vs_random_ci_high": dh})
-        ev = chance.Evidence(positive_images, needed)
+        ev = chance.Evidence(positive_images, settings.needed)
         out[row]["positive_images"] = positive_images
         out[row]["verdict"] = chance.verdict(out[row]["ap50"], lo, hi, dl, dh, ev)
     base = [b for b in NO_PIXEL if b in dets]
@@ -295,27 +290,39 @@ def _alarm_columns(
         t["alarm_ci_low"], t["alarm_ci_high"] = clopper_pearson(k, len(q), ci)
 
 
+@dataclass(frozen=True)
+class TableDInputs:
+    """What Table D scores: frames, annotations, the detector's boxes, candidates and NMS.
+
+    ``ids`` maps a frame key to its COCO image id; ``cands`` are the candidate boxes (every
+    candidate of the annotated frames, keyed by ``q_session, q_camera, q_utime``); ``nms`` the
+    detector's NMS (see :func:`table_d_chance`).
+    """
+
+    fr: pd.DataFrame
+    ann: pd.DataFrame
+    dets: pd.DataFrame
+    ids: dict[tuple[str, str, int], int]
+    cands: pd.DataFrame
+    nms: Any
+
+
 def score_detections(
     out: Path,
-    fr: pd.DataFrame,
-    ann: pd.DataFrame,
-    dets: pd.DataFrame,
-    ids: dict[tuple[str, str, int], int],
-    cands: pd.DataFrame,
-    nms: Any,
-    draws: int = chance.MIN_DRAWS,
-    n_boot: int = 1000,
-    ci: float = 0.95,
-    seed: int = 0,
+    inputs: TableDInputs,
+    settings: chance.ChanceSettings,
     boxes: str = "fused",
     alarm: float = 0.01,
-    needed: int = chance.MIN_POSITIVE_IMAGES,
 ) -> pd.DataFrame | None:
     """Table D: the detector's box APs on the annotated query frames, with SPEC 9's floor.
 
-    ``cands`` are the candidate boxes (every fused qBB of the annotated frames, keyed by
-    ``q_session, q_camera, q_utime``); ``nms`` the detector's NMS (see :func:`table_d_chance`).
+    ``boxes`` names the generator (a column of the table); ``alarm`` is the nominal false-alarm
+    rate the alarm columns measure.
     """
+    fr, ann, dets, ids, cands, nms = (
+        inputs.fr, inputs.ann, inputs.dets, inputs.ids, inputs.cands, inputs.nms
+    )  # fmt: skip
+    ci, needed = settings.ci, settings.needed
     gt = coco_ground_truth(fr, ann, ids)
     if not gt["images"]:
         return None
@@ -331,7 +338,7 @@ def score_detections(
     nopix = _no_pixel_dets(cand, nms)
     ch = table_d_chance(
         cand, gts, {"detector": per_row["detection"], "random": per_row["random"], **nopix},
-        nms, draws, n_boot, ci, seed, needed,
+        nms, settings,
     )  # fmt: skip
     rows = []
     for kind, label in {**D_ROWS, **NO_PIXEL_ROWS}.items():

@@ -7,6 +7,9 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
+import pandas as pd
+
+from harness.config.schema import Config
 from harness.localizers.config import LocalConfig, LocalizerConfig
 from harness.proposals.config import SegmentsConfig
 
@@ -51,3 +54,28 @@ class DetectOptions:
         if self.localizer != "local":
             return None
         return LocalizerConfig("local", "local", (LOCAL_PROPOSALS,), self.local)
+
+
+@dataclass(frozen=True)
+class DetectRun:
+    """One detect run as its outputs read it: its pipeline, options and inputs (SPEC 13).
+
+    ``p`` is the run's :class:`~harness.pipeline.chain.Pipeline` (its ``out``, ``ran`` and
+    ``timings``); ``cfg`` the detect config; ``localizers`` the names whose ranks it fused;
+    ``frames``, ``pairs`` and ``ann`` the frame table, the query frames' pairs with the map and the
+    annotations (empty without); ``entries`` the detect chunks' cache entries; ``alarm`` the
+    nominal false-alarm rate; ``alignment`` the local localizer's pairs (None without one).
+    """
+
+    p: Any
+    cfg: Config
+    opt: DetectOptions
+    map_session: str
+    queries: list[str]
+    localizers: list[str]
+    frames: pd.DataFrame
+    pairs: pd.DataFrame
+    ann: pd.DataFrame
+    entries: list[Any]
+    alarm: float = 0.01
+    alignment: pd.DataFrame | None = None

@@ -12,15 +12,15 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.schema import Config
 from harness.detect.boxes import change_boxes_nms
 from harness.detect.calibrate import exceedance
 from harness.detect.chunk import FRAME_RESULT
-from harness.detect.evaluate import score_detections
+from harness.detect.evaluate import TableDInputs, score_detections
 from harness.detect.figures import trajectory_figure
-from harness.detect.options import DetectOptions
+from harness.detect.options import DetectRun
 from harness.detect.page import write_detect_page
 from harness.detect.pixels import write_pixel_table
+from harness.evaluate.chance import ChanceSettings
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
 from harness.ingest.names import session_names, with_names
@@ -166,38 +166,18 @@ def _nms(boxes: np.ndarray, scores: np.ndarray, nms_iou: float, max_boxes: int) 
 
 
 def _table_d(
-    out: Path,
-    cfg: Config,
-    fr: pd.DataFrame,
-    ann: pd.DataFrame,
-    dets: pd.DataFrame,
-    ids: dict[tuple[str, str, int], int],
-    entries: list[Any],
-    opt: DetectOptions,
-    alarm: float,
+    run: DetectRun, fr: pd.DataFrame, dets: pd.DataFrame, ids: dict[tuple[str, str, int], int]
 ) -> pd.DataFrame:
     """Table D on the annotated frames, from the candidates of those frames only."""
+    out, cfg, ann, entries, opt = run.p.out, run.cfg, run.ann, run.entries, run.opt
     annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
     cands = []
     for e in entries:  # candidates of the annotated frames only, one chunk at a time
         sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
         cands.append(sm[pd.MultiIndex.from_frame(sm[QUERY_KEY]).isin(annotated)])
-    return score_detections(
-        out,
-        fr,
-        ann,
-        dets,
-        ids,
-        pd.concat(cands, ignore_index=True),
-        partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes),
-        cfg.report.chance_draws,
-        cfg.report.bootstrap,
-        cfg.report.ci,
-        cfg.seed,
-        opt.boxes,
-        alarm,
-        cfg.report.min_positive_images,
-    )
+    nms = partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes)
+    inputs = TableDInputs(fr, ann, dets, ids, pd.concat(cands, ignore_index=True), nms)
+    return score_detections(out, inputs, ChanceSettings.of(cfg), opt.boxes, run.alarm)
 
 
 #: ``detect.json``'s ``alarm``: the nominal rate, the frames and boxes it flags, of how many.
@@ -214,26 +194,14 @@ def _frame_columns(fr: pd.DataFrame) -> list[str]:
     return ["image_id", *FRAME_KEY, *where, *named, *FRAME_RESULT, "exceedance"]
 
 
-def write_outputs(
-    p: Any,
-    cfg: Config,
-    map_session: str,
-    queries: list[str],
-    frames: pd.DataFrame,
-    pairs: pd.DataFrame,
-    ann: pd.DataFrame,
-    dets: pd.DataFrame,
-    fr: pd.DataFrame,
-    entries: list[Any],
-    opt: DetectOptions,
-    localizers: list[str],
-    alarm: float = 0.01,
-    alignment: pd.DataFrame | None = None,
-) -> dict[str, Any]:
+def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[str, Any]:
     """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
 
-    Also the alarms at the nominal false-alarm rate ``alarm`` (``alarms.csv``, SPEC 13.1).
+    ``dets`` and ``fr`` are the chunks' boxes and frame rows. Also the alarms at the nominal
+    false-alarm rate ``run.alarm`` (``alarms.csv``, SPEC 13.1).
     """
+    p, cfg, opt, map_session, queries = run.p, run.cfg, run.opt, run.map_session, run.queries
+    frames, pairs, ann, entries, alarm = run.frames, run.pairs, run.ann, run.entries, run.alarm
     out = p.out
     names = session_names(cfg.sessions)
     sources = {sc.name: sc.source for sc in cfg.sessions}
@@ -252,19 +220,16 @@ def write_outputs(
     maps = locmaps(out, top, entries, dets)
 
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
-    table_d = _table_d(out, cfg, fr, ann, dets, ids, entries, opt, alarm) if len(ann) else None
+    table_d = _table_d(run, fr, dets, ids) if len(ann) else None
     pixel = write_pixel_table(out, cfg, names, map_session, entries, fr)
 
-    page = write_detect_page(
-        out, fr, top, dets, frames, maps, (table_d, pixel), map_session, localizers, ann,
-        alignment,
-    )  # fmt: skip
+    page = write_detect_page(run, (fr, top, dets), maps, (table_d, pixel))
     return {
         "config": cfg.name,
         "map": map_session,
         "queries": queries,
-        "localizers": localizers,
-        "fused_across": ALL_LOCALIZERS if len(localizers) > 1 else None,
+        "localizers": run.localizers,
+        "fused_across": ALL_LOCALIZERS if len(run.localizers) > 1 else None,
         "options": opt.record(),
         "query_frames": len(fr),
         # SPEC 13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list

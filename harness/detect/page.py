@@ -18,6 +18,7 @@ import pandas as pd
 
 from harness.detect.calibrate import in_words
 from harness.detect.figures import has_poses
+from harness.detect.options import DetectRun
 from harness.detect.pixels import pixel_html
 from harness.detect.table import table_d_html
 from harness.errors import HarnessError
@@ -248,29 +249,25 @@ def alignment_html(al: pd.DataFrame | None, shown: int = 10) -> str:
 
 
 def write_detect_page(
-    out: Path,
-    fr: pd.DataFrame,
-    top: pd.DataFrame,
-    dets: pd.DataFrame,
-    frames: pd.DataFrame,
+    run: DetectRun,
+    results: tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame],
     maps: dict[tuple[str, str, int], Path],
     tables: tuple[pd.DataFrame | None, pd.DataFrame | None],
-    map_session: str,
-    localizers: list[str],
-    ann: pd.DataFrame | None = None,
-    alignment: pd.DataFrame | None = None,
 ) -> Path:
     """Write ``out/detect.html`` and its thumbnails; return the page's path.
 
-    ``tables``: Table D and its pixel AP against masks (either None where there is none).
-    ``alignment``: the local localizer's pairs and how each was aligned (SPEC 13.3); the page says
-    how many could not be aligned, and which.
+    ``results``: the frame rows, the most changed of them and the boxes; ``maps``: the LoC maps
+    of those; ``tables``: Table D and its pixel AP against masks (either None where there is
+    none). The run's ``alignment`` holds the local localizer's pairs and how each was aligned
+    (SPEC 13.3); the page says how many could not be aligned, and which.
 
     Where a frame is annotated, its annotated change boxes are drawn in red beside the detections
     (yellow), and a section shows the annotated change frames (up to ``ANNOTATED_SHOWN``).
     """
+    out, frames, map_session, localizers = run.p.out, run.frames, run.map_session, run.localizers
+    fr, top, dets = results
     fk = frames.set_index(FRAME_KEY)
-    truth = _truth_boxes(ann)
+    truth = _truth_boxes(run.ann)
     places = [
         _place_html(out, i, r, dets, truth, fk, maps, map_session)
         for i, r in enumerate(top.itertuples(), start=1)
@@ -284,7 +281,7 @@ def write_detect_page(
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
         "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "
         "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
-        + alignment_html(alignment)
+        + alignment_html(run.alignment)
         + _trajectory_html(frames)
         + table_d_html(tables[0])
         + pixel_html(tables[1])

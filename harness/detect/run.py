@@ -33,7 +33,7 @@ import pandas as pd
 from harness import kernels
 from harness.config.schema import Config
 from harness.detect.chunk import detect_chunk
-from harness.detect.options import LOCAL_PROPOSALS, DetectOptions
+from harness.detect.options import LOCAL_PROPOSALS, DetectOptions, DetectRun
 from harness.detect.outputs import write_outputs
 from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
@@ -220,22 +220,11 @@ def run_detect(
             [read_cached_parquet(e.path / "frames.parquet") for e in entries], ignore_index=True
         )
         al, aligned = _alignment(p.out, measured)
-        record = write_outputs(
-            p,
-            dcfg,
-            map_session,
-            query_sessions,
-            frames.df,
-            pairs.df,
-            ann.df,
-            dets,
-            fr,
-            entries,
-            opt,
-            names_l,
-            alarm,
-            al,
-        )
+        run = DetectRun(
+            p, dcfg, opt, map_session, query_sessions, names_l, frames.df, pairs.df, ann.df,
+            entries, alarm, al,
+        )  # fmt: skip
+        record = write_outputs(run, dets, fr)
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
         record["thin_boxes_dropped"] = _thin_boxes(p, entries)
         record.update(aligned)

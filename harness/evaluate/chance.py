@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from harness.evaluate.config import EvalSettings
 from harness.evaluate.metrics import RECALL_GRID
 
 #: The fewest random orders a floor may rest on (SPEC 9).
@@ -74,6 +75,28 @@ MARK_LEGEND = (
 
 def _finite(*v: float) -> bool:
     return all(x == x and abs(x) != float("inf") for x in v)
+
+
+@dataclass(frozen=True)
+class ChanceSettings:
+    """How a table's SPEC 9 figures are measured (``[report]`` and the run's seed).
+
+    ``draws`` random orders for the floor, ``n_boot`` bootstrap resamples of query images for
+    the intervals at level ``ci``, ``seed`` for both, and ``needed`` positive images before a
+    figure earns a verdict (``[report] min_positive_images``).
+    """
+
+    draws: int = MIN_DRAWS
+    n_boot: int = 1000
+    ci: float = 0.95
+    seed: int = 0
+    needed: int = MIN_POSITIVE_IMAGES
+
+    @classmethod
+    def of(cls, cfg: EvalSettings) -> ChanceSettings:
+        """A run's: ``[report]`` chance_draws, bootstrap, ci, min_positive_images, and its seed."""
+        rp = cfg.report
+        return cls(rp.chance_draws, rp.bootstrap, rp.ci, cfg.seed, rp.min_positive_images)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,6 @@ import numpy as np
 import pandas as pd
 
 from harness.evaluate.splits import roc_sob
-from harness.fusion import rules  # noqa: F401  (attaches the built-in rules' functions)
 from harness.fusion.config import FusionConfig
 from harness.fusion.fuse import (
     IMAGE_BASELINES,
@@ -56,21 +55,19 @@ def _runs(kcols: list[np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
 def _fuse_image(
     boxes: np.ndarray,
     rdl: tuple[np.ndarray, np.ndarray, np.ndarray],
-    methods: tuple[str, ...],
-    size: tuple[Any, Any],
-    change: np.ndarray,
-    img_seed: int,
-    max_boxes: int,
-    rrf_c: float,
+    image: tuple[tuple[Any, Any], np.ndarray, int],
+    rules: tuple[tuple[str, ...], int, float],
     counts: dict[str, Any],
 ) -> dict[str, np.ndarray]:
     """The sample columns of one query image and proposal set, from its boxes' ``r, d, L``.
 
-    Rows: the fused boxes, then the duplicate originals. Columns: the box, ``original``, ``N``,
-    ``RoC``, ``SoB`` and ``loc_<method>`` per method (``change``: the image's change boxes).
+    ``image``: its size, its change boxes and its seed; ``rules``: the fusion rules, the most
+    fused boxes and RRF's constant. Rows: the fused boxes, then the duplicate originals.
+    Columns: the box, ``original``, ``N``, ``RoC``, ``SoB`` and ``loc_<method>`` per method.
     """
     r, d, L = rdl
-    w, h = size
+    (w, h), change, img_seed = image
+    methods, max_boxes, rrf_c = rules
     fused, capped = intersection_closure(boxes, max_boxes)
     counts["capped_closures"] += int(capped)
     cover = cover_matrix(fused, boxes)
@@ -164,12 +161,8 @@ def fuse_samples(
             part = _fuse_image(
                 box_all[a:b][sel],
                 (r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]),
-                methods,
-                (w, h),
-                cb[qkey],
-                int(stable_hash(seed, key, name, length=8), 16),
-                max_boxes,
-                rrf_c,
+                ((w, h), cb[qkey], int(stable_hash(seed, key, name, length=8), 16)),
+                (methods, max_boxes, rrf_c),
                 counts,
             )
             n_rows = len(part["x1"])

@@ -51,14 +51,16 @@ def finish(
     sc: SessionConfig,
     ic: IngestConfig,
     tmp: Path,
-    img_t: np.ndarray,
-    uris: list[str],
-    sizes: np.ndarray,
-    pose_t: np.ndarray,
-    pose_v: np.ndarray,
+    images: tuple[np.ndarray, list[str], np.ndarray],
+    poses: tuple[np.ndarray, np.ndarray],
     report: dict,
 ) -> pd.DataFrame:
-    """Interpolate poses at image times, drop and count, write the frame table and the report."""
+    """Interpolate poses at image times, drop and count, write the frame table and the report.
+
+    ``images``: the images' times, URIs and sizes; ``poses``: the pose times and values.
+    """
+    img_t, uris, sizes = images
+    pose_t, pose_v = poses
     finite = np.isfinite(pose_v).all(axis=1)
     report["dropped"]["non_finite_pose"] = int((~finite).sum())
     pose_t, pose_v = pose_t[finite], pose_v[finite]

@@ -272,7 +272,7 @@ def _ingest_log_from(
     check_monotonic(
         pose_t, f"{src}: {pose_topics[0]}", "pose", numbers=pose_arr[:, 7].astype(np.int64)
     )
-    return finish(sc, ic, tmp, img_arr, r.uris, size_arr, pose_t, pose_arr[:, 1:7], report)
+    return finish(sc, ic, tmp, (img_arr, r.uris, size_arr), (pose_t, pose_arr[:, 1:7]), report)
 
 
 def _tf_ends(

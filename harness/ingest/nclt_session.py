@@ -121,4 +121,5 @@ def ingest_nclt(sc: SessionConfig, ic: IngestConfig, tmp: Path, report: dict) ->
         sizes.append(upright_size(w, h, rot))
         uris.append(make_uri(p.resolve(), rot))
     img_t = np.array([t for t, _ in files], np.int64)
-    return finish(sc, ic, tmp, img_t, uris, np.array(sizes, np.int64), pose_t, pose_v, report)
+    images = (img_t, uris, np.array(sizes, np.int64))
+    return finish(sc, ic, tmp, images, (pose_t, pose_v), report)

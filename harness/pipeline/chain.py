@@ -35,7 +35,7 @@ from harness.pipeline.localizer_stages import (
     retrieval_ranks,
 )
 from harness.pipeline.preflight import check_names, generate_fixture, preflight
-from harness.pipeline.record import run_record
+from harness.pipeline.record import RunOutcome, run_record
 from harness.pipeline.stages import (
     annotation_table,
     candidate_table,
@@ -291,18 +291,8 @@ def run_all(p: Context) -> dict[str, Any]:
         keys_[ALL_LOCALIZERS] = {"ranks": ranks_all.key, "samples": samples.key}
         n_samples += len(samples.df)
     reports = change_tables(p, blocks, frames, ann)
-    record = run_record(
-        p,
-        ingested,
-        frames,
-        ann,
-        pairs,
-        measured,
-        keys_,
-        n_samples,
-        reports,
-        time.perf_counter() - t0,
-    )
+    outcome = RunOutcome(keys_, n_samples, reports, time.perf_counter() - t0)
+    record = run_record(p, (ingested, frames, ann, pairs, measured), outcome)
     write_json(p.out / "run.json", record)
     if p.cfg.report.html:
         t_html = time.perf_counter()

@@ -15,10 +15,10 @@ from harness.errors import RetrievalError
 from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.records import SUBIMAGE_KEY
-from harness.retrieval import rank_reference
 from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.imported import unranked_images, write_imported_ranks
+from harness.retrieval.units import RankSettings, rank_reference
 from harness.runtime.cache import (
     content_sha,
     read_cached_parquet,
@@ -67,18 +67,14 @@ def query_ranks(
         sub = pairs.df[pairs.df["r_session"] == ref].reset_index(drop=True)
         for c0 in range(0, max(len(sub), 1), step):
             chunk = sub.iloc[c0 : c0 + step]
-            build = partial(
-                _write_ranks,
+            settings = RankSettings(
                 rc,
                 p.cfg.pairs.max_yaw_diff_deg,
-                chunk,
-                ref,
-                paths,
-                frames.df,
                 device,
                 p.cfg.pairs.place_frames if p.cfg.pairs.by != "pose" else None,
                 precision,
             )
+            build = partial(_write_ranks, settings, chunk, ref, paths, frames.df)
             key = keys.ranks_unit(rc, ref, pairs.key, dkeys, c0, len(chunk), precision)
             units.append((key, build))
             unit_ref.append(ref)
@@ -105,21 +101,15 @@ def concat_ranks(parts: list[pd.DataFrame]) -> pd.DataFrame:
 
 
 def _write_ranks(
-    rc: Any,
-    max_yaw_deg: float,
+    settings: RankSettings,
     pairs: pd.DataFrame,
     ref: str,
     descriptors: dict[str, Path],
     frames: pd.DataFrame,
-    device: str,
-    place_frames: int | None,
-    precision: str,
     tmp: Path,
 ) -> dict[str, int]:
     """One ranking unit (:func:`harness.retrieval.rank_reference`) into ``tmp/ranks.parquet``."""
-    df, counts = rank_reference(
-        rc, max_yaw_deg, pairs, ref, descriptors, frames, device, place_frames, precision
-    )
+    df, counts = rank_reference(settings, pairs, ref, descriptors, frames)
     write_parquet(tmp / "ranks.parquet", df)
     return counts
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import platform
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -23,24 +23,30 @@ from harness.records import FRAME_KEY
 from harness.reports.blocks import Reports
 from harness.runtime.costs import cost_record, machine
 
+#: What :func:`harness.pipeline.chain.until_ranks` gives: the ingested sessions, the frames, the
+#: annotations, the pairs and each localizer's measured ranks.
+Ranked = tuple[dict[str, Entry], Table, Table, Table, list[Measured]]
 
-def run_record(
-    p: Context,
-    ingested: dict[str, Entry],
-    frames: Table,
-    ann: Table,
-    pairs: Table,
-    measured: list[Measured],
-    block_keys: dict[str, dict[str, str]],
-    n_samples: int,
-    reports: Reports,
-    seconds: float,
-) -> dict[str, Any]:
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What a run wrote after its ranks: each block's keys, the samples, the reports, its time."""
+
+    block_keys: dict[str, dict[str, str]]
+    n_samples: int
+    reports: Reports
+    seconds: float
+
+
+def run_record(p: Context, ranked: Ranked, outcome: RunOutcome) -> dict[str, Any]:
     """What ``run.json`` records.
 
     Config, versions, timings, counts, keys, warnings, cache entries. With several localizers the
     rank counters and keys are given per localizer (``keys.localizers``).
     """
+    ingested, frames, ann, pairs, measured = ranked
+    block_keys, n_samples = outcome.block_keys, outcome.n_samples
+    reports, seconds = outcome.reports, outcome.seconds
     multi = len(measured) > 1
     first = measured[0]
     rank_counts: Any = (

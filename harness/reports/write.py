@@ -19,16 +19,16 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.errors import ConfigError, HarnessError
+from harness.errors import ConfigError
 from harness.evaluate.aps import pooled_rows, sample_groups, stratified_labels, table_i_rows
+from harness.evaluate.breakdowns import pr_curves, season_pair_aps
 from harness.evaluate.leaderboard import leaderboard
 from harness.evaluate.localization import localization_stats
-from harness.evaluate.metrics import pr_curve
 from harness.evaluate.pixel_aps import pixel_image_rows
 from harness.evaluate.splits import Split, paper_splits
 from harness.evaluate.splits import label as split_label
 from harness.evaluate.verdicts import confound_warnings, holm_columns
-from harness.methods import ordered_methods
+from harness.methods import FUSION_METHODS
 from harness.reports import tables as report_tables
 from harness.reports.blocks import Block, Reports
 from harness.reports.change import CHANGE_TABLES, change_table, pivot
@@ -60,33 +60,21 @@ log = logging.getLogger(__name__)
 def write_reports(
     cfg: Config,
     out: Path,
-    samples: pd.DataFrame | Sequence[Block],
-    ranks: pd.DataFrame | None = None,
-    frames: pd.DataFrame | None = None,
-    ann: pd.DataFrame | None = None,
+    blocks: Sequence[Block],
+    frames: pd.DataFrame,
+    ann: pd.DataFrame,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
-    localizer: str = "",
-    notes: Sequence[str] = (),
 ) -> Reports:
     """Write every report of a run into ``out``.
 
-    ``samples`` is one localizer's sample table (with ``ranks``, ``localizer`` and ``notes``), or
-    a list of :class:`Block` (SPEC section 11: one per localizer, then ``all localizers``). A
-    localizer is named in every heading and in a ``localizer`` column of the split reports and
-    the summary; ``notes`` are printed under every change table. With one block the files are
-    those of a one-localizer run; with several, each CSV gains a ``localizer`` column, each
-    markdown/LaTeX file a section per block, and Table L (``tableL.*``) is written.
+    ``blocks`` are the run's :class:`Block` (SPEC section 11: one per localizer, then ``all
+    localizers`` where there are several). A localizer is named in every heading and in a
+    ``localizer`` column of the split reports and the summary; a block's ``notes`` are printed
+    under its change tables. With one block the files are those of a one-localizer run; with
+    several, each CSV gains a ``localizer`` column, each markdown/LaTeX file a section per block,
+    and Table L (``tableL.*``) is written.
     """
-    if frames is None or ann is None:
-        raise HarnessError("write_reports: the run's frames and annotations are needed")
-    if isinstance(samples, pd.DataFrame):
-        if ranks is None:
-            raise HarnessError("write_reports: one localizer's samples need its ranks")
-        blocks = [
-            Block(localizer, samples, ranks, ordered_methods(cfg.fusion.methods), list(notes))
-        ]
-    else:
-        blocks = list(samples)
+    blocks = list(blocks)
     files = ReportFiles(out, len(blocks) > 1)
     locs, locs_also = _write_localization(cfg, files, blocks, frames, ann)
     splits = paper_splits(cfg.splits)
@@ -96,7 +84,13 @@ def write_reports(
     ids = {g: i for i, g in enumerate(sorted(set().union(*(set(sample_groups(a)) for a in allps))))}
     summaries, curves, boots = _write_splits(cfg, files, blocks, allps, ids, progress(splits))
     results = [
-        _block_reports(cfg, b, summaries[bi], allps[bi], frames, ann, ids, locs, locs_also)
+        _block_reports(
+            cfg,
+            b,
+            summaries[bi] + pixel_image_rows(cfg, allps[bi], frames, ann, b.methods, ids),
+            locs,
+            locs_also,
+        )
         for bi, b in enumerate(blocks)
     ]
     summ_all = pd.concat([r.summary for r in results], ignore_index=True)
@@ -151,17 +145,51 @@ def _write_splits(
     summaries: list[list[dict]] = [[] for _ in blocks]
     curves: list[list[pd.DataFrame]] = [[] for _ in blocks]
     boots: list[dict[tuple[str, str, str], np.ndarray]] = [{} for _ in blocks]
+    page: list[list[tuple[pd.DataFrame, pd.DataFrame]]] = [[] for _ in blocks]
     for sp in splits:
         reps = []
         for bi, b in enumerate(blocks):
             rep = _split_block(cfg, b, allps[bi], sp, ids, summaries[bi], curves[bi], boots[bi])
             reps.append(rep)
+            page[bi].append(_page_breakdowns(cfg, b.methods, rep, sp.name))
         write_parquet(
             files.put(files.out / "splits" / f"{sp.name}.parquet"),
             pd.concat(reps, ignore_index=True),
         )
         del reps
+    _write_breakdowns(files, blocks, page)
     return summaries, curves, boots
+
+
+def _page_breakdowns(
+    cfg: Config, methods: Sequence[str], rep: pd.DataFrame, split: str
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """One block's breakdowns at one split for the page: PR curves and AP per season pair.
+
+    Both under Table S's labels; the season pairs for Table I's six methods.
+    """
+    allg = rep[rep["proposal_method"] == "all"]
+    curves = pr_curves(allg, methods, "label_stratified", split)
+    six = [m for m in methods if m in FUSION_METHODS]
+    chance = (cfg.report.chance_draws, cfg.seed)
+    pairs = season_pair_aps(allg, six, split, cfg.splits.sob_strata, chance)
+    return (pd.concat(curves, ignore_index=True) if curves else pd.DataFrame()), pairs
+
+
+def _write_breakdowns(
+    files: ReportFiles, blocks: list[Block], page: list[list[tuple[pd.DataFrame, pd.DataFrame]]]
+) -> None:
+    """``splits/pr_curves_stratified.parquet`` and ``splits/season_pairs_stratified.parquet``."""
+    for k, stem in enumerate(("pr_curves_stratified", "season_pairs_stratified")):
+        parts = [
+            files.tag(pb[k], b.name)
+            for b, pbs in zip(blocks, page, strict=True)
+            for pb in pbs
+            if len(pb[k])
+        ]
+        if parts:
+            path = files.put(files.out / "splits" / f"{stem}.parquet")
+            write_parquet(path, pd.concat(parts, ignore_index=True))
 
 
 def _write_localization(
@@ -225,15 +253,10 @@ def _block_reports(
     cfg: Config,
     b: Block,
     rows: list[dict],
-    allp: pd.DataFrame,
-    frames: pd.DataFrame,
-    ann: pd.DataFrame,
-    ids: dict,
     locs: dict[str, pd.DataFrame],
     locs_also: dict[str, pd.DataFrame],
 ) -> Reports:
-    """One block's summary (split rows, pixel and image rows, Holm), Tables I/S/P, warnings."""
-    rows += pixel_image_rows(cfg, allp, frames, ann, b.methods, ids)
+    """One block's summary (its split, pixel and image rows, with Holm), Tables I/S/P, warnings."""
     summ = holm_columns(pd.DataFrame(rows), 1.0 - cfg.report.ci)
     summ.insert(0, "localizer", b.name)
     tables, warnings = {}, {}
@@ -359,16 +382,5 @@ def _split_block(
                     gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed,
                     cfg.report.min_positive_images,
                 )  # fmt: skip
-    allg = rep[rep["proposal_method"] == "all"]
-    for m in methods:
-        sel = (allg["label"] >= 0) & allg[f"loc_{m}"].notna()
-        if (allg.loc[sel, "label"] == 1).any():
-            thr, p, r = pr_curve(
-                allg.loc[sel, "label"].to_numpy() == 1, allg.loc[sel, f"loc_{m}"].to_numpy()
-            )
-            curves.append(
-                pd.DataFrame(
-                    {"split": sp.name, "fusion": m, "threshold": thr, "precision": p, "recall": r}
-                )
-            )
+    curves += pr_curves(rep[rep["proposal_method"] == "all"], methods, "label", sp.name)
     return rep

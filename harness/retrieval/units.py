@@ -9,6 +9,7 @@ frames then stand in for G). Every query subimage that gets no rank is counted b
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -84,35 +85,59 @@ def described_frames(
     return out
 
 
+@dataclass(frozen=True)
+class RankSettings:
+    """How a ranking unit ranks.
+
+    ``rc`` is ``[retrieval]``; ``max_yaw_deg`` the pairing heading limit (degrees), also the
+    place's; ``device`` ``"cpu"`` or ``"cuda"`` for the exact engine; ``place_frames``, with pairs
+    by retrieval (SPEC 13.2), makes the place G and this many frames each side in the map's order
+    (:func:`places_by_order`), None by pose (SPEC 6); ``precision`` is the exact engine's
+    candidate product (``fp32`` or ``bf16``; ``bf16`` adds the counters ``compared`` and
+    ``measured_exactly``, :func:`image_ranks`).
+    """
+
+    rc: RetrievalConfig
+    max_yaw_deg: float
+    device: str = "cpu"
+    place_frames: int | None = None
+    precision: str = "fp32"
+
+
+@dataclass(frozen=True)
+class ReferenceDb:
+    """One proposer's database in the reference session.
+
+    Its vectors (``db``), the frame of each row (``db_frame``), each paired reference frame's
+    place by camera (``places``) and the frames a thinned database keeps (``kept``, None: all).
+    """
+
+    db: Any
+    db_frame: np.ndarray
+    places: dict[Any, dict[int, np.ndarray]]
+    kept: set[int] | None
+
+
 def rank_reference(
-    rc: RetrievalConfig,
-    max_yaw_deg: float,
+    settings: RankSettings,
     pairs: pd.DataFrame,
     ref: str,
     descriptors: dict[str, Path],
     frames: pd.DataFrame,
-    device: str,
-    place_frames: int | None = None,
-    precision: str = "fp32",
 ) -> tuple[pd.DataFrame, dict[str, int]]:
     """Rank rows of every query subimage of ``pairs`` against reference session ``ref``.
 
     Args:
-        rc: ``[retrieval]``.
-        max_yaw_deg: The pairing heading limit (degrees), also the place's.
+        settings: How the unit ranks.
         pairs: Pairs whose reference session is ``ref``.
         ref: The reference session.
         descriptors: Each session's descriptor entry (``desc.npy`` + ``index.parquet``).
         frames: The frame table (poses of the reference frames).
-        device: ``"cpu"`` or ``"cuda"`` for the exact engine.
-        place_frames: pairs by retrieval (SPEC 13.2): the place is G and this many frames each
-            side in the map's order (:func:`places_by_order`); None: by pose (SPEC 6).
-        precision: The exact engine's candidate product (``fp32`` or ``bf16``); ``bf16`` adds
-            the counters ``compared`` and ``measured_exactly`` (:func:`image_ranks`).
 
     Returns:
         The rank rows (sorted by query image, method, box) and the unit's counters.
     """
+    rc, max_yaw_deg, place_frames = settings.rc, settings.max_yaw_deg, settings.place_frames
     counts = dict.fromkeys(RANK_COUNTS, 0)
     if not len(pairs):
         return pd.DataFrame(), counts
@@ -142,11 +167,8 @@ def rank_reference(
                 method,
                 g,
                 descriptors[qs],
-                db,
-                db_frame,
-                places,
-                kept,
-                (device, precision),
+                ReferenceDb(db, db_frame, places, kept),
+                (settings.device, settings.precision),
                 counts,
             )
             if part is not None:
@@ -288,14 +310,12 @@ def _rank_query_session(
     proposer: str,
     g: pd.DataFrame,
     qdir: Path,
-    db: np.ndarray,
-    db_frame: np.ndarray,
-    places: dict[Any, dict[int, np.ndarray]],
-    kept: set[int] | None,
+    ref_db: ReferenceDb,
     engine: tuple[str, str],
     counts: dict[str, int],
 ) -> pd.DataFrame | None:
     """Rank rows of a query session's subimages of ``proposer`` (``g``: its pairs); None if none."""
+    db, db_frame, places, kept = ref_db.db, ref_db.db_frame, ref_db.places, ref_db.kept
     have = set(np.unique(db_frame).tolist())
     q_idx = read_cached_parquet(qdir / "index.parquet")
     q_desc = _vectors(qdir)

@@ -172,7 +172,7 @@ def test_thumbnail_values_on_a_flat_grey_crop() -> None:
 def test_training_on_a_sample_budget_with_early_stopping(tmp_path: Path) -> None:
     """A budget in samples bounds the steps whatever the crop count; held-out crops stop it early
     once their loss stops improving, and the best weights are kept. Seeded: the same twice."""
-    from harness.descriptors.autoencoder import train_budget
+    from harness.descriptors.autoencoder import EarlyStop, TrainSettings, train_budget
 
     x = _crops(64, 32)
     runs = []
@@ -183,13 +183,8 @@ def test_training_on_a_sample_budget_with_early_stopping(tmp_path: Path) -> None
             model,
             x,
             samples=40 * 8,
-            batch_size=8,
-            lr=3e-3,
-            seed=0,
-            device=torch.device("cpu"),
-            holdout=0.25,
-            eval_every=5,
-            patience=100,
+            settings=TrainSettings(batch_size=8, lr=3e-3, seed=0, device=torch.device("cpu")),
+            stop=EarlyStop(holdout=0.25, eval_every=5, patience=100),
         )
         runs.append((hist, info))
     hist, info = runs[0]
@@ -210,12 +205,7 @@ def test_training_on_a_sample_budget_with_early_stopping(tmp_path: Path) -> None
         model,
         x,
         samples=200 * 8,
-        batch_size=8,
-        lr=5.0,
-        seed=0,
-        device=torch.device("cpu"),
-        holdout=0.25,
-        eval_every=2,
-        patience=1,
+        settings=TrainSettings(batch_size=8, lr=5.0, seed=0, device=torch.device("cpu")),
+        stop=EarlyStop(holdout=0.25, eval_every=2, patience=1),
     )
     assert info["stopped_early"] and info["steps"] < 200

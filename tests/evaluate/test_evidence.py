@@ -147,7 +147,9 @@ def test_table_d_uses_the_same_rule(tmp_path: Path) -> None:
         "detector": {0: (box, np.array([1.0])), 1: (box + 40, np.array([0.1]))},
         "random": {0: (box, np.array([0.2])), 1: (box + 40, np.array([0.9]))},
     }
-    res = table_d_chance(cands, gts, dets, lambda b, s: np.argsort(-s), 200, 200, 0.95, 0)
+    res = table_d_chance(
+        cands, gts, dets, lambda b, s: np.argsort(-s), chance.ChanceSettings(200, 200, 0.95, 0)
+    )
     assert res["detector"]["ap50"] == 1.0
     assert res["detector"]["verdict"] == "few" and res["detector"]["positive_images"] == 1
 

@@ -149,6 +149,7 @@ def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
     candidates overlap it (itself included); the detector is above only when clear of the best."""
     from harness.detect.boxes import change_boxes_nms
     from harness.detect.evaluate import no_pixel_scores, table_d_chance
+    from harness.evaluate.chance import ChanceSettings
 
     boxes = np.array([[0, 0, 10, 10], [5, 5, 25, 15], [40, 40, 44, 60]], np.float64)
     s = no_pixel_scores(boxes)
@@ -169,7 +170,7 @@ def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
         "size_prior": area,
         "cover_count": {i: (cands[i], no_pixel_scores(cands[i])["cover_count"]) for i in cands},
     }
-    out = table_d_chance(cands, gts, dets, nms, 50, 50, 0.95, 0)
+    out = table_d_chance(cands, gts, dets, nms, ChanceSettings(50, 50, 0.95, 0))
     assert out["detector"]["best_no_pixel"] == "size_prior"
     assert out["detector"]["vs_no_pixel_ci_low"] == out["detector"]["vs_no_pixel_ci_high"] == 0
     assert out["detector"]["verdict"] in ("baseline", "chance", "few")

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.descriptors.autoencoder import ConvAutoencoder, train
+from harness.descriptors.autoencoder import ConvAutoencoder, TrainSettings, train
 from harness.errors import ConfigError, HarnessError
 from harness.pipeline.chain import Pipeline
 from harness.proposals.config import ProposalsConfig
@@ -32,7 +32,12 @@ def test_a_diverged_training_stops_with_its_step_and_value() -> None:
     with pytest.raises(
         HarnessError, match=r"training loss is (nan|inf) at step \d+: training diverged"
     ):
-        train(ConvAutoencoder(channels=(4, 4, 4)), data, 50, 8, 1e30, 0, torch.device("cpu"))
+        train(
+            ConvAutoencoder(channels=(4, 4, 4)),
+            data,
+            50,
+            TrainSettings(8, 1e30, 0, torch.device("cpu")),
+        )
 
 
 def test_nan_descriptors_stop_the_descriptor_stage(

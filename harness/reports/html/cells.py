@@ -13,8 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.evaluate.chance import MIN_DRAWS, few_text, stratified_chance
-from harness.evaluate.metrics import stratified_ap
+from harness.evaluate.chance import few_text
 from harness.methods import METHOD_LABELS
 from harness.reports import tables as report_tables
 from harness.reports.change import ChangeTable, change_table, column_label
@@ -208,18 +207,17 @@ def heatmap(summ: pd.DataFrame, fusion_rule: str, split: str) -> str:
     )
 
 
-def heatmap_stratified(rep: pd.DataFrame, fusion_rule: str, edges: list[float], split: str) -> str:
-    """Table S's AP of one method per season pair (query season down, reference across)."""
-    col = f"loc_{fusion_rule}"
-    allp = rep[(rep["proposal_method"] == "all") & (rep["label_stratified"] >= 0)]
-    if col not in allp.columns or not len(allp):
+def heatmap_stratified(rows: pd.DataFrame, fusion_rule: str, split: str) -> str:
+    """Table S's AP of one method per season pair (query season down, reference across).
+
+    ``rows``: the split's rows of ``splits/season_pairs_stratified.parquet``
+    (:func:`harness.evaluate.breakdowns.season_pair_aps`).
+    """
+    d = rows[rows["fusion"] == fusion_rule] if len(rows) else rows
+    if not len(d):
         return ""
-    pairs, floors = {}, {}
-    for pair, g in allp.groupby("season_pair", sort=True):
-        g = g[g[col].notna()]
-        y, sob = g["label_stratified"].to_numpy() == 1, g["SoB"].to_numpy()
-        pairs[pair] = stratified_ap(y, g[col].to_numpy(), sob, edges)[0]
-        floors[pair] = stratified_chance(y, sob, np.asarray(edges), MIN_DRAWS, 0)[0]
+    pairs = dict(zip(d["season_pair"].astype(str), d["ap"].astype(float), strict=True))
+    floors = dict(zip(d["season_pair"].astype(str), d["floor"].astype(float), strict=True))
     return heat_table(
         pairs,
         floors,

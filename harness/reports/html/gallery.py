@@ -6,6 +6,7 @@ Each gallery entry is query | reference | LoC map, with the map's colour bar und
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +15,6 @@ import numpy as np
 import pandas as pd
 
 from harness.errors import HarnessError
-from harness.evaluate.metrics import pr_curve
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
 from harness.methods import FUSION_METHODS, METHOD_LABELS
@@ -80,25 +80,35 @@ def stratum(sob: float, edges: list[float]) -> str:
     return f"SoB [{edges[k]:g}, {edges[k + 1]:g}{close}"
 
 
-def _example(
-    out: Path,
-    r: Any,
-    m: str,
-    kind: str,
-    rep: pd.DataFrame,
-    tables: tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame],
-    image: Callable[[tuple], np.ndarray],
-    tag: str,
-    where: tuple[Path, list[float] | None, bool],
-) -> tuple[str, str]:
+@dataclass(frozen=True)
+class GalleryInputs:
+    """What one gallery reads: where it writes, the split report's rows and the run's tables.
+
+    ``fr``: frames by key; ``refs``: the reference of each query image; ``chg``: the change
+    annotations; ``image``: a frame's pixels by key; ``tag``: ``S`` or ``I``; ``split_file``,
+    ``edges``, ``stratified``: the split report, the size strata's edges, whether the labels
+    are stratified.
+    """
+
+    out: Path
+    rep: pd.DataFrame
+    fr: pd.DataFrame
+    refs: pd.DataFrame
+    chg: pd.DataFrame
+    image: Callable[[tuple], np.ndarray]
+    tag: str
+    split_file: Path
+    edges: list[float] | None
+    stratified: bool
+
+
+def _example(g: GalleryInputs, r: Any, m: str, kind: str) -> tuple[str, str]:
     """One worst case of method ``m``: its thumbnail under ``out/report/`` and its figure.
 
-    ``tables``: frames (by key), the reference of each query image, the change annotations;
-    ``where``: the split report, the size strata's edges, whether the labels are stratified.
     Returns the thumbnail's file name and the figure's HTML.
     """
-    fr, refs, chg = tables
-    split_file, edges, stratified = where
+    out, rep, fr, refs, chg, image, tag = g.out, g.rep, g.fr, g.refs, g.chg, g.image, g.tag
+    split_file, edges, stratified = g.split_file, g.edges, g.stratified
     col = f"loc_{m}"
     qk = (r.q_session, r.q_camera, int(r.q_utime))
     rk = refs.loc[(r.q_session, r.q_camera, int(r.q_utime), r.r_session)]
@@ -169,18 +179,17 @@ def gallery_html(
     out: Path,
     split_file: Path | None,
     n: int,
-    frames: pd.DataFrame,
-    ann: pd.DataFrame,
-    ranks: pd.DataFrame,
+    run: tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame],
     label: str = "label_stratified",
     edges: list[float] | None = None,
     localizer: str | None = None,
 ) -> tuple[str, list[Path]]:
     """The highest-LoC false positives and lowest-LoC missed changes per method, as thumbnails.
 
-    ``label``: ``label_stratified`` (Table S's labels: RoC only; each example names its size
-    stratum) or ``label`` (Table I's).
+    ``run``: the run's frames, annotations and ranks. ``label``: ``label_stratified`` (Table S's
+    labels: RoC only; each example names its size stratum) or ``label`` (Table I's).
     """
+    frames, ann, ranks = run
     stratified = label == "label_stratified"
     tag, anchor = ("S", "gallery") if stratified else ("I", "galleryI")
     if n <= 0 or split_file is None:
@@ -200,6 +209,7 @@ def gallery_html(
             cache[key] = read_image(fr.loc[key, "image"])
         return cache[key]
 
+    g = GalleryInputs(out, rep, fr, refs, chg, image, tag, split_file, edges, stratified)
     parts, written = [], []
     (out / "report").mkdir(exist_ok=True)
     for m in [m for m in FUSION_METHODS if f"loc_{m}" in rep.columns]:
@@ -213,17 +223,7 @@ def gallery_html(
             ("missed change: the lowest LoC among positives", misses),
         ):
             for r in rows.itertuples():
-                name, fig = _example(
-                    out,
-                    r,
-                    m,
-                    kind,
-                    rep,
-                    (fr, refs, chg),
-                    image,
-                    tag,
-                    (split_file, edges, stratified),
-                )
+                name, fig = _example(g, r, m, kind)
                 written.append(out / "report" / name)
                 figs.append(fig)
         parts.append(
@@ -236,24 +236,20 @@ def gallery_html(
     return f'<{heading} id="{anchor}">{title}</{heading}>' + intro + "".join(parts), written
 
 
-def pr_figure_html(
-    out: Path, rep: pd.DataFrame, label: str, tag: str, title: str
-) -> tuple[str, list[Path]]:
-    """One PR figure of the six methods on ``rep``'s ``label`` column (proposals = all)."""
-    allp = rep[(rep["proposal_method"] == "all") & (rep[label] >= 0)]
-    curves = []
-    for m in FUSION_METHODS:
-        col = f"loc_{m}"
-        if col not in allp.columns:
-            continue
-        sel = allp[col].notna()
-        y = allp.loc[sel, label].to_numpy() == 1
-        if y.any():
-            _, prec, rec = pr_curve(y, allp.loc[sel, col].to_numpy())
-            curves.append(pd.DataFrame({"fusion": m, "precision": prec, "recall": rec}))
-    if not curves:
+def pr_figure_html(out: Path, curves: pd.DataFrame, tag: str, title: str) -> tuple[str, list[Path]]:
+    """One PR figure of Table I's six methods from ``curves`` (one split's, as written).
+
+    ``curves``: rows of ``splits/pr_curves*.parquet`` (``fusion``, ``precision``, ``recall``).
+    """
+    have = set(curves["fusion"]) if len(curves) else set()
+    parts = [
+        curves.loc[curves["fusion"] == m, ["fusion", "precision", "recall"]]
+        for m in FUSION_METHODS
+        if m in have
+    ]
+    if not parts:
         return "<p class='note'>no positive in this split: no curve</p>", []
-    path = pr_figure(pd.concat(curves), out / "report" / f"pr_{tag}.png", title)
+    path = pr_figure(pd.concat(parts, ignore_index=True), out / "report" / f"pr_{tag}.png", title)
     return (
         f'<figure><img src="report/{esc(path.name)}" alt="{esc(title)}">'
         f"<figcaption>{esc(title)}</figcaption></figure>",

@@ -169,28 +169,51 @@ def page_figures(
     split_name = split_file.stem if split_file is not None else ""
     pr_s, pr_files = (
         pr_figure_html(
-            out, rep, "label_stratified", "S", f"Table S labels (RoC only), {split_name}"
+            out,
+            written_rows(out, "pr_curves_stratified", split_name, only),
+            "S",
+            f"Table S labels (RoC only), {split_name}",
         )
         if rep is not None
         else ("", [])
     )
     pr_i, pr_files_i = (
-        pr_figure_html(out, rep, "label", "I", f"Table I labels (the paper's), {split_name}")
+        pr_figure_html(
+            out,
+            written_rows(out, "pr_curves", split_name, only),
+            "I",
+            f"Table I labels (the paper's), {split_name}",
+        )
         if rep is not None
         else ("", [])
     )
     gallery_s, thumbs = gallery_html(
-        out, split_file, n, frames, ann, ranks, "label_stratified", edges, only
+        out, split_file, n, (frames, ann, ranks), "label_stratified", edges, only
     )
     # the paper's protocol is collapsed at the end: one example per method and kind is enough there
     gallery_i, thumbs_i = gallery_html(
-        out, split_file, min(n, 1), frames, ann, ranks, "label", edges, only
+        out, split_file, min(n, 1), (frames, ann, ranks), "label", edges, only
     )
     keep = {p.resolve() for p in [*thumbs, *thumbs_i, *pr_files, *pr_files_i]}
     for p in (out / "report").glob("*") if (out / "report").is_dir() else []:
         if p.suffix in (".jpg", ".png") and p.resolve() not in keep:
             p.unlink()  # images of an earlier page that this page no longer shows
     return pr_s, pr_i, gallery_s, gallery_i
+
+
+def written_rows(out: Path, stem: str, split: str, localizer: str | None) -> pd.DataFrame:
+    """The rows of ``splits/<stem>.parquet`` at ``split`` (of ``localizer`` where given).
+
+    Empty where the run wrote no such file (no positive in any split).
+    """
+    path = out / "splits" / f"{stem}.parquet"
+    if not path.is_file():
+        return pd.DataFrame(columns=["split", "fusion"])
+    df = pd.read_parquet(path)
+    df = df[df["split"] == split]
+    if localizer is not None and "localizer" in df.columns:
+        df = df[df["localizer"] == localizer]
+    return df.reset_index(drop=True)
 
 
 def run_frames(out: Path, run: dict[str, Any]) -> tuple[pd.DataFrame, Any]:
@@ -251,7 +274,8 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     pr_s, pr_i, gallery_s, gallery_i = page_figures(
         out, split_file, rep, n, (*run_frames(out, run), ranks), edges, only
     )
-    heat_s = heatmap_stratified(rep, lead, edges, split_name) if rep is not None else ""
+    pairs_s = written_rows(out, "season_pairs_stratified", split_name, only)
+    heat_s = heatmap_stratified(pairs_s, lead, split_name) if rep is not None else ""
     protocol = protocol_section(
         summ, methods, warnings.get("I", []), who, heatmap(summ, lead, split_name), pr_i, gallery_i
     )
