@@ -192,6 +192,8 @@ BOX_SCORES = ("max", "mean", "contrast")
 PROPOSERS: Registry[Callable[..., Any]] = Registry("proposal method", SPECIAL_PROPOSALS)
 #: A registered method's options: name -> the dataclass its ``[proposals.<name>]`` table builds.
 PROPOSER_OPTIONS: Registry[type] = Registry("options of proposal method")
+#: A registered fusion rule's options: name -> the dataclass its ``[fusion.<name>]`` table builds.
+FUSION_OPTIONS: Registry[type] = Registry("options of fusion method")
 
 
 def known_fusion_methods() -> tuple[str, ...]:

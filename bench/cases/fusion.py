@@ -20,6 +20,7 @@ def case_fusion(quick: bool) -> None:
     from harness.evaluate.metrics import average_precision
     from harness.evaluate.pixel_aps import pixel_image_rows
     from harness.evaluate.splits import label, paper_splits
+    from harness.fusion.config import FusionConfig
     from harness.fusion.samples import fuse_samples
     from harness.proposals.builtin import grid5
 
@@ -86,7 +87,8 @@ def case_fusion(quick: bool) -> None:
     annotations = pd.DataFrame(
         ann, columns=["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
     )
-    samples, _ = fuse_samples(ranks, frames, annotations, 0, 4096)
+    fc = FusionConfig(seed=0, max_fused_boxes=4096)
+    samples, _ = fuse_samples(ranks, frames, annotations, fc)
     allp = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     methods = tuple(c[4:] for c in samples.columns if c.startswith("loc_"))
     cfg = load_config(ROOT / "datasets" / "fixture.toml")
@@ -94,7 +96,7 @@ def case_fusion(quick: bool) -> None:
     ids = {g: i for i, g in enumerate(sorted(set(sample_groups(allp))))}
 
     def fusion() -> None:
-        fuse_samples(ranks, frames, annotations, 0, 4096)
+        fuse_samples(ranks, frames, annotations, fc)
 
     def labels_ap() -> None:
         for sp in paper_splits(SplitsConfig()):

@@ -84,6 +84,10 @@ def main(argv: list[str] | None = None) -> int:
             ", ".join(kernels.LOADED_BEFORE),
         )
     try:
+        if args.plugin:  # before any config is read: it may name what they register
+            from harness.config.plugins import load_plugins
+
+            load_plugins(args.plugin, "--plugin")
         return int(args.func(args))
     except HarnessError as err:
         print(f"ERROR: {err}", file=sys.stderr)

@@ -23,8 +23,20 @@ def check_executor_flags(args: argparse.Namespace) -> None:
     """``--executor``, ``--address`` and ``--ray-cpus`` together, for every command with them."""
     if args.executor != "ray" and (args.address is not None or args.ray_cpus is not None):
         raise HarnessError("--address and --ray-cpus need --executor ray")
+
     if args.ray_cpus is not None and args.ray_cpus < 1:
         raise HarnessError(f"--ray-cpus {args.ray_cpus}: must be >= 1")
+
+
+def check_plugins_local(args: argparse.Namespace) -> None:
+    """Plugins (``--plugin`` or a config's ``plugins``) run on the local executor only."""
+    from harness.config.plugins import LOADED
+
+    if args.executor == "ray" and LOADED:
+        raise HarnessError(
+            "plugins run on the local executor only: Ray's workers would not import the plugin "
+            "files, so the methods they register would be unknown there; drop --executor ray"
+        )
 
 
 def pipeline_of(args: argparse.Namespace):
@@ -34,6 +46,7 @@ def pipeline_of(args: argparse.Namespace):
 
     check_executor_flags(args)
     cfg = run_config(args)  # validated before any executor or directory is set up
+    check_plugins_local(args)
     rank_import = None
     if getattr(args, "rank_import", None):
         from harness.retrieval.import_file import parse_import_arg

@@ -17,6 +17,14 @@ def build_parser() -> argparse.ArgumentParser:
         prog="harness", description="Detection-by-Localization benchmark harness"
     )
     ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument(
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="FILE.py",
+        help="a Python file of yours that registers methods (a fusion rule, a proposer, a "
+        "localizer kind, a log format); repeatable; before the command",
+    )
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     _add_fixture(sub)

@@ -7,7 +7,13 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from harness.cli.common import check_executor_flags, pd_read, pipeline_of, run_config
+from harness.cli.common import (
+    check_executor_flags,
+    check_plugins_local,
+    pd_read,
+    pipeline_of,
+    run_config,
+)
 from harness.cli.console import print_block, print_localization, print_table_l
 from harness.errors import HarnessError
 
@@ -89,7 +95,7 @@ def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
     Named in ``--config``, or two (or more) folders of images (``--map-images``,
     ``--query-images``; ``--config`` then gives the settings alone).
     """
-    from harness.config.load import image_folders_config
+    from harness.config.folders import image_folders_config
 
     folders = args.map_images is not None or args.query_images
     if folders:
@@ -178,6 +184,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     if args.top < 0:
         raise HarnessError(f"--top {args.top}: must be >= 0 places")
     cfg, map_session, queries = detect_sessions(args)
+    check_plugins_local(args)
     opt = detect_options(args, cfg)
     rec = run_detect(
         cfg,

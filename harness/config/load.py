@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from harness.config.check import validate
+from harness.config.plugins import load_plugins
 from harness.config.schema import Config
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
 from harness.detect.config import DetectConfig
@@ -24,10 +25,10 @@ from harness.evaluate.config import ReportConfig, SplitsConfig
 from harness.fixture.config import FixtureConfig
 from harness.fusion.config import FusionConfig
 from harness.ingest.config import IngestConfig, MasksConfig, SessionConfig, check_session_name
-from harness.inputs import IMAGE_SUFFIXES, read_text, resolve_config_path
+from harness.inputs import read_text, resolve_config_path
 from harness.localizers.config import ALL_LOCALIZERS, LocalConfig, LocalizerConfig
 from harness.localizers.kinds import LOCALIZER_KINDS
-from harness.methods import LOCALIZER_NAME_RULE, PROPOSER_OPTIONS, is_localizer_name
+from harness.methods import FUSION_OPTIONS, LOCALIZER_NAME_RULE, PROPOSER_OPTIONS, is_localizer_name
 from harness.pairs.config import PairsConfig
 from harness.proposals.config import (
     EdgesConfig,
@@ -104,8 +105,8 @@ def _build(cls: type[T], data: Any, where: str) -> T:
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     hints = typing.get_type_hints(cls)
     extra: dict[str, Any] = {}
-    if cls is ProposalsConfig:  # a registered method's own table, [proposals.<name>]
-        data, extra = _method_options(data, where)
+    if cls in _OPTION_TABLES:  # a registered method's own table, [proposals.<name>]
+        data, extra = _method_options(data, _OPTION_TABLES[cls], where)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
@@ -124,13 +125,26 @@ def _build(cls: type[T], data: Any, where: str) -> T:
         raise ConfigError(f"{where}: {err}") from None
 
 
-def _method_options(data: dict[str, Any], where: str) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``[proposals]`` without the tables of registered methods, and those tables built."""
+def _method_options(
+    data: dict[str, Any], registry: dict[str, type], where: str
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A section without the tables of registered methods, and those tables built.
+
+    ``[proposals.<method>]`` and ``[fusion.<rule>]``: each registered method's options
+    dataclass (``registry``) built from its table.
+    """
     if "options" in data:
         raise ConfigError(f"{where}: unknown key(s) ['options']; a method's table is its name")
-    mine = {k: v for k, v in data.items() if k in PROPOSER_OPTIONS}
-    rest = {k: v for k, v in data.items() if k not in PROPOSER_OPTIONS}
-    return rest, {k: _build(PROPOSER_OPTIONS[k], v, f"{where}.{k}") for k, v in mine.items()}
+    mine = {k: v for k, v in data.items() if k in registry}
+    rest = {k: v for k, v in data.items() if k not in registry}
+    return rest, {k: _build(registry[k], v, f"{where}.{k}") for k, v in mine.items()}
+
+
+#: Sections whose registered methods bring a table of their own.
+_OPTION_TABLES: dict[type, dict[str, type]] = {
+    ProposalsConfig: PROPOSER_OPTIONS,
+    FusionConfig: FUSION_OPTIONS,
+}
 
 
 _NESTED: dict[tuple[str, str], type] = {
@@ -189,10 +203,15 @@ def parse_config(
 
     Relative paths resolve against ``base``.
     """
-    top_keys = {"name", "data_root", "annotations", "sessions", "seed", "localizers", *_SECTIONS}
+    top_keys = {"name", "data_root", "annotations", "sessions", "seed", "localizers", "plugins"}
+    top_keys |= set(_SECTIONS)
     unknown = sorted(set(doc) - top_keys)
     if unknown:
         raise ConfigError(f"{where}: unknown top-level key(s) {unknown}; known: {sorted(top_keys)}")
+    plugins = doc.get("plugins", [])
+    if not isinstance(plugins, list) or not all(isinstance(p, str) for p in plugins):
+        raise ConfigError(f"{where}: plugins = {plugins!r}: expected a list of .py file paths")
+    load_plugins([base / Path(p).expanduser() for p in plugins], f"{where}: plugins")
     for required in ("name", "sessions"):
         if required not in doc:
             raise ConfigError(f"{where}: missing required key {required!r}")
@@ -323,72 +342,3 @@ def load_config(path: Path, data_root: str | None = None) -> Config:
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     return parse_config(doc, project_root(path.parent), str(path), data_root)
-
-
-#: The share of a query folder's images that must have a map image of the same name (stem) for
-#: two folders to be paired by name by default (SPEC 13.2).
-SHARED_NAMES = 0.5
-
-
-def folder_pairing(map_dir: Path, query_dirs: list[Path]) -> str:
-    """``[pairs] by`` for folders without poses where the config does not say (SPEC 13.2).
-
-    ``name`` where every query folder shares names with the map (:data:`SHARED_NAMES` of its
-    images), else ``sequence``: on the fixture's twelve pairs of traverses, every frame a query,
-    it pairs 95% of the frames within 10 m of the pose pair, retrieval 68% and order 0%
-    (docs/method.md, *Pairs without poses*).
-    """
-
-    def stems(d: Path) -> set[str]:
-        return {p.stem for p in Path(d).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
-
-    have = stems(map_dir)
-    for d in query_dirs:
-        mine = stems(d)
-        if not mine or len(mine & have) < SHARED_NAMES * len(mine):
-            return "sequence"
-    return "name"
-
-
-def image_folders_config(
-    map_dir: Path, query_dirs: list[Path], cfg: Config | None = None
-) -> tuple[Config, str, list[str]]:
-    """The config of ``harness detect --map-images DIR --query-images DIR`` (SPEC 13.2).
-
-    The folders are sessions of images alone (format ``images``): the map is ``map``, the queries
-    ``query``, ``query2``, ... Every query frame is paired as ``cfg``'s ``[pairs] by`` says, or,
-    where it says ``pose`` (the default, and there are no poses), by name where the folders share
-    file names, else by sequence with the localizer (:func:`folder_pairing`). Every other
-    setting is ``cfg``'s (a ``--config``), or the defaults; its sessions and fixture are not used,
-    its annotations and masks are (rows naming their image, SPEC 13.2; rows of its own sessions
-    are left out).
-
-    Returns:
-        (the config, the map session's name, the query sessions' names).
-    """
-    names = ["map", *(f"query{i + 1 if i else ''}" for i in range(len(query_dirs)))]
-    dirs = [Path(map_dir), *map(Path, query_dirs)]
-    where = "--map-images/--query-images"
-    for d in dirs:
-        if not d.is_dir():
-            raise ConfigError(f"{where}: {d} is not a folder of images")
-        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in d.iterdir()):
-            raise ConfigError(
-                f"{where}: {d} holds no image file ({', '.join(IMAGE_SUFFIXES)}) in the folder "
-                "itself"
-            )
-    sessions = [
-        {"name": n, "source": str(d.expanduser().resolve()), "format": "images", "season": n}
-        for n, d in zip(names, dirs, strict=True)
-    ]
-    base = cfg or parse_config({"name": "image-folders", "sessions": sessions}, Path.cwd(), where)
-    by = base.pairs.by if base.pairs.by != "pose" else folder_pairing(dirs[0], dirs[1:])
-    out = dataclasses.replace(
-        base,
-        sessions=tuple(SessionConfig(**s) for s in sessions),
-        annotations=base.annotations,
-        fixture=dataclasses.replace(base.fixture, generate=False),
-        pairs=dataclasses.replace(base.pairs, by=by, queries="all"),
-    )
-    validate(out, where)
-    return out, names[0], names[1:]

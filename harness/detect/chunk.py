@@ -5,6 +5,7 @@ Each chunk is a cache unit (an interrupted run resumes at the next one).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from functools import partial
 from pathlib import Path
@@ -14,6 +15,7 @@ import pandas as pd
 
 from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_prior
 from harness.detect.options import DetectOptions
+from harness.fusion.config import FusionConfig
 from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image
 from harness.proposals.builtin import segment_boxes
@@ -147,11 +149,13 @@ def detect_chunk(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
     opt: DetectOptions,
-    max_fused: int,
-    rrf_c: float,
+    fusion: FusionConfig,
     tmp: Path,
 ) -> dict[str, int]:
     """Fusion, change boxes and frame scores of one chunk of query frames into ``tmp``.
+
+    ``fusion``: the config's ``[fusion]`` (the cap on fused boxes, RRF's constant, a registered
+    rule's options); the rule and seed are ``opt``'s.
 
     ``boxes.parquet``: every change box (frame key, rank within the frame, box, LoC);
     ``frames.parquet``: one row per frame (key, map frame, score, boxes, samples); and, for the
@@ -163,11 +167,8 @@ def detect_chunk(
         ranks,
         frames,
         ann,
-        opt.seed,
-        max_fused,
-        methods=(opt.fusion, "random"),
+        dataclasses.replace(fusion, methods=(opt.fusion, "random"), seed=opt.seed),
         progress=partial(progress, desc="detect", unit="frame"),
-        rrf_c=rrf_c,
     )
     samples = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.fusion}"

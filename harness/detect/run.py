@@ -31,6 +31,7 @@ from typing import Any
 import pandas as pd
 
 from harness import kernels
+from harness.config.plugins import plugin_record
 from harness.config.schema import Config
 from harness.detect.chunk import detect_chunk
 from harness.detect.options import LOCAL_PROPOSALS, DetectOptions, DetectRun
@@ -157,13 +158,9 @@ def _chunk_units(
         part = qframes.iloc[c0 : c0 + opt.chunk_frames]
         mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(pd.MultiIndex.from_frame(part))
         build = partial(
-            detect_chunk,
-            ranks.df[mask].reset_index(drop=True),
-            frames,
-            opt,
-            dcfg.fusion.max_fused_boxes,
-            dcfg.fusion.rrf_c,
+            detect_chunk, ranks.df[mask].reset_index(drop=True), frames, opt, dcfg.fusion
         )
+        rule_options = dcfg.fusion.options_of(opt.fusion)
         key = (
             "detect",
             ranks.key,
@@ -172,6 +169,7 @@ def _chunk_units(
             len(part),
             keys.fusion_method_fingerprints((opt.fusion,)),
             *((dcfg.fusion.rrf_c,) if opt.fusion == "rrf" else ()),
+            *((dataclasses.asdict(rule_options),) if rule_options is not None else ()),
         )
         chunk_units.append((key, build))
     return chunk_units
@@ -229,6 +227,8 @@ def run_detect(
         record["thin_boxes_dropped"] = _thin_boxes(p, entries)
         record.update(aligned)
         record["kernels"] = kernels.report()
+        if plugin_record():
+            record["plugins"] = plugin_record()
         if rerun is not None:
             record["rerun"] = write_rerun(
                 Path(rerun), p.out, frames.df, map_session, fr, dets, entries, opt

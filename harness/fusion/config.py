@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from harness.checks import check_value
-from harness.methods import ALL_METHODS, known_fusion_methods
+from harness.methods import ALL_METHODS, FUSION_OPTIONS, known_fusion_methods
 
 
 @dataclass(frozen=True)
@@ -17,6 +18,17 @@ class FusionConfig:
     seed: int = 0
     max_fused_boxes: int = 4096
     rrf_c: float = 60.0  # RRF's constant c (SPEC section 14; Cormack et al. 2009 use 60)
+    # a registered rule's [fusion.<name>] table, built as its options dataclass
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def options_of(self, fusion_rule: str) -> Any:
+        """A registered rule's options: its ``[fusion.<rule>]`` table, the defaults, or None.
+
+        None for a rule registered without options (and for every built-in rule).
+        """
+        if fusion_rule in self.options:
+            return self.options[fusion_rule]
+        return FUSION_OPTIONS[fusion_rule]() if fusion_rule in FUSION_OPTIONS else None
 
 
 def check_fusion(fu: FusionConfig, where: str) -> None:

@@ -5,13 +5,17 @@ Also the per-image sample table and pixel-wise LoC maps.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable
+from typing import Any
 
 import numpy as np
 
 from harness.errors import ConfigError
 from harness.fusion import rules  # noqa: F401  (attaches the built-in rules' functions)
+from harness.fusion.config import FusionConfig
 from harness.methods import (
+    FUSION_OPTIONS,
     FUSION_RULES,
     FusionRule,
     add_rule,
@@ -37,6 +41,7 @@ def register_method(
     needs_score: bool = False,
     across: bool = True,
     detect: bool = True,
+    options: type | None = None,
 ) -> None:
     """Add a fused-set fusion method, computed and reported when ``[fusion] methods`` lists it.
 
@@ -44,14 +49,33 @@ def register_method(
     samples' cache key, so editing it recomputes them. The same catalogue record as the paper's
     rules (``harness.methods.FusionRule``): ``needs_score`` (it reads ``d``: a localizer without
     scores does not get it), ``across`` (it is defined on the box list of all localizers) and
-    ``detect`` (``harness detect --fusion`` may use it).
+    ``detect`` (``harness detect --fusion`` may use it). ``options``, a dataclass, is its
+    ``[fusion.<name>]`` table (unknown keys and wrong types rejected at load, part of the
+    samples' key); the function then takes it as the keyword ``options``. Register before the
+    config loads.
 
     Raises:
-        ValueError: ``name`` is taken.
+        ValueError: ``name`` is taken (a key of ``[fusion]`` itself too), or ``options`` is not a
+            dataclass.
     """
+    if name in {f.name for f in dataclasses.fields(FusionConfig)}:
+        raise ValueError(f"fusion method {name!r} exists: a key of [fusion] itself")
+    if options is not None and not dataclasses.is_dataclass(options):
+        raise ValueError(f"fusion method {name!r}: options must be a dataclass")
+    kwargs: tuple[str, ...] = ("options",) if options is not None else ()
     add_rule(
-        FusionRule(name, label, needs_score=needs_score, across=across, detect=detect, loc=loc)
+        FusionRule(
+            name,
+            label,
+            needs_score=needs_score,
+            across=across,
+            detect=detect,
+            options=kwargs,
+            loc=loc,
+        )
     )
+    if options is not None:
+        FUSION_OPTIONS.add(name, options)
 
 
 known_methods = known_fusion_methods
@@ -121,6 +145,7 @@ def loc_from_cover(
     L: np.ndarray | None = None,
     seed: int = 0,
     rrf_c: float = 60.0,
+    options: Any = None,
 ) -> np.ndarray:
     """LoC of the fused boxes (rows of ``cover``) by the rule ``fusion_rule`` (its catalogue entry).
 
@@ -136,6 +161,8 @@ def loc_from_cover(
         L: (n,) rank-list lengths; needed by every rank-fusion method except ``rank_fusion_asc``.
         seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
         rrf_c: the constant of ``rrf`` (SPEC section 14).
+        options: a registered rule's options (its ``[fusion.<rule>]`` table; None: the
+            defaults of the dataclass it registered).
 
     Raises:
         ValueError: not a ``cover`` method, or ``L`` missing where the method needs it.
@@ -149,14 +176,16 @@ def loc_from_cover(
     if spec.needs_lengths and L is None:
         raise ValueError(f"{fusion_rule} needs the rank-list lengths L (r' = (L + 1 - rank) / L)")
     lengths = np.full(len(r), np.nan) if L is None else np.asarray(L, np.float64)
-    options = {"seed": seed, "rrf_c": rrf_c}
+    if options is None and fusion_rule in FUSION_OPTIONS:
+        options = FUSION_OPTIONS[fusion_rule]()
+    kwargs = {"seed": seed, "rrf_c": rrf_c, "options": options}
     loc = np.asarray(
         spec.loc(
             cover,
             np.asarray(r, np.float64),
             np.asarray(d, np.float64),
             lengths,
-            **{k: options[k] for k in spec.options},
+            **{k: kwargs[k] for k in spec.options},
         ),
         np.float64,
     )

@@ -6,7 +6,7 @@ box and method, written in query-frame chunks.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -25,7 +25,6 @@ from harness.fusion.fuse import (
 )
 from harness.ingest.annotations import change_boxes
 from harness.methods import (
-    ALL_METHODS,
     is_unfused,
     ordered_methods,
     unfused,
@@ -56,18 +55,19 @@ def _fuse_image(
     boxes: np.ndarray,
     rdl: tuple[np.ndarray, np.ndarray, np.ndarray],
     image: tuple[tuple[Any, Any], np.ndarray, int],
-    rules: tuple[tuple[str, ...], int, float],
+    rules: tuple[tuple[str, ...], int, float, dict[str, Any]],
     counts: dict[str, Any],
 ) -> dict[str, np.ndarray]:
     """The sample columns of one query image and proposal set, from its boxes' ``r, d, L``.
 
     ``image``: its size, its change boxes and its seed; ``rules``: the fusion rules, the most
-    fused boxes and RRF's constant. Rows: the fused boxes, then the duplicate originals.
-    Columns: the box, ``original``, ``N``, ``RoC``, ``SoB`` and ``loc_<method>`` per method.
+    fused boxes, RRF's constant and each rule's registered options. Rows: the fused boxes, then
+    the duplicate originals. Columns: the box, ``original``, ``N``, ``RoC``, ``SoB`` and
+    ``loc_<method>`` per method.
     """
     r, d, L = rdl
     (w, h), change, img_seed = image
-    methods, max_boxes, rrf_c = rules
+    methods, max_boxes, rrf_c, options = rules
     fused, capped = intersection_closure(boxes, max_boxes)
     counts["capped_closures"] += int(capped)
     cover = cover_matrix(fused, boxes)
@@ -76,7 +76,9 @@ def _fuse_image(
         if m in IMAGE_BASELINES:
             locs[m] = image_loc(fused, m, w, h, img_seed)
         elif not is_unfused(m):
-            locs[m] = loc_from_cover(cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c)
+            locs[m] = loc_from_cover(
+                cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c, options=options[m]
+            )
     # rank_no_fusion: one sample per original box; merged into the fused row of the same box
     fidx = {tuple(bx): i for i, bx in enumerate(fused)}
     nof = np.full(len(fused), np.nan)
@@ -107,13 +109,13 @@ def fuse_samples(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
     ann: pd.DataFrame,
-    seed: int,
-    max_boxes: int,
-    methods: Sequence[str] = ALL_METHODS,
+    fusion: FusionConfig,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
-    rrf_c: float = 60.0,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Samples of every annotated query image (one per pair) with the LoC of each method.
+
+    ``fusion`` gives the methods (any order: SPEC order is kept), the seed, the cap on fused boxes
+    per image, RRF's constant and a registered rule's options.
 
     Samples are built for all proposal methods together (``proposals = all``) and, where there
     are several, for each alone. Columns: the query image's key, ``season_pair``, ``proposals``,
@@ -134,7 +136,10 @@ def fuse_samples(
         )
     )
     counts = {"query_images": 0, "capped_closures": 0}
-    methods = ordered_methods(methods)
+    seed, max_boxes = fusion.seed, fusion.max_fused_boxes
+    methods = ordered_methods(fusion.methods)
+    options = {m: fusion.options_of(m) for m in methods}
+    rules_of = (methods, max_boxes, fusion.rrf_c, options)
     props = sorted(ranks["proposal_method"].unique())
     subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
     keys = IMAGE_KEY
@@ -162,7 +167,7 @@ def fuse_samples(
                 box_all[a:b][sel],
                 (r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]),
                 ((w, h), cb[qkey], int(stable_hash(seed, key, name, length=8), 16)),
-                (methods, max_boxes, rrf_c),
+                rules_of,
                 counts,
             )
             n_rows = len(part["x1"])
@@ -187,14 +192,7 @@ def write_samples(
         The fusion counters (query images, capped closures).
     """
     df, counts = fuse_samples(
-        ranks,
-        frames,
-        ann,
-        fc.seed,
-        fc.max_fused_boxes,
-        methods=ordered_methods(fc.methods),
-        progress=partial(progress, desc="fusion", unit="image"),
-        rrf_c=fc.rrf_c,
+        ranks, frames, ann, fc, progress=partial(progress, desc="fusion", unit="image")
     )
     write_parquet(tmp / "samples.parquet", df)
     return counts

@@ -246,7 +246,7 @@ def samples(cfg: Config, ranks_key: str, ann_key: str) -> Parts:
     return (
         ranks_key,
         ann_key,
-        dataclasses.asdict(cfg.fusion),
+        _without_empty(dataclasses.asdict(cfg.fusion), "options"),
         dataclasses.asdict(cfg.splits),
         fusion_method_fingerprints(cfg.fusion.methods),
     )

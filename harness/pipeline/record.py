@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from harness import __version__, kernels
+from harness.config.plugins import plugin_record
 from harness.pipeline.context import Context, Entry, Table, localizer_record
 from harness.pipeline.localizer_stages import (
     Measured,
@@ -61,6 +62,7 @@ def run_record(p: Context, ranked: Ranked, outcome: RunOutcome) -> dict[str, Any
     return {
         "config": asdict(p.cfg),
         "versions": _versions(),
+        **({"plugins": plugin_record()} if plugin_record() else {}),
         "kernels": kernels.report(),
         "seed": p.cfg.seed,
         "argv": sys.argv,

@@ -1,0 +1,81 @@
+"""The config of ``harness detect`` on two folders of images (SPEC 13.2): no config file."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from harness.config.check import validate
+from harness.config.load import parse_config
+from harness.config.schema import Config
+from harness.errors import ConfigError
+from harness.ingest.config import SessionConfig
+from harness.inputs import IMAGE_SUFFIXES
+
+#: The share of a query folder's images that must have a map image of the same name (stem) for
+#: two folders to be paired by name by default (SPEC 13.2).
+SHARED_NAMES = 0.5
+
+
+def folder_pairing(map_dir: Path, query_dirs: list[Path]) -> str:
+    """``[pairs] by`` for folders without poses where the config does not say (SPEC 13.2).
+
+    ``name`` where every query folder shares names with the map (:data:`SHARED_NAMES` of its
+    images), else ``sequence``: on the fixture's twelve pairs of traverses, every frame a query,
+    it pairs 95% of the frames within 10 m of the pose pair, retrieval 68% and order 0%
+    (docs/method.md, *Pairs without poses*).
+    """
+
+    def stems(d: Path) -> set[str]:
+        return {p.stem for p in Path(d).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+
+    have = stems(map_dir)
+    for d in query_dirs:
+        mine = stems(d)
+        if not mine or len(mine & have) < SHARED_NAMES * len(mine):
+            return "sequence"
+    return "name"
+
+
+def image_folders_config(
+    map_dir: Path, query_dirs: list[Path], cfg: Config | None = None
+) -> tuple[Config, str, list[str]]:
+    """The config of ``harness detect --map-images DIR --query-images DIR`` (SPEC 13.2).
+
+    The folders are sessions of images alone (format ``images``): the map is ``map``, the queries
+    ``query``, ``query2``, ... Every query frame is paired as ``cfg``'s ``[pairs] by`` says, or,
+    where it says ``pose`` (the default, and there are no poses), by name where the folders share
+    file names, else by sequence with the localizer (:func:`folder_pairing`). Every other
+    setting is ``cfg``'s (a ``--config``), or the defaults; its sessions and fixture are not used,
+    its annotations and masks are (rows naming their image, SPEC 13.2; rows of its own sessions
+    are left out).
+
+    Returns:
+        (the config, the map session's name, the query sessions' names).
+    """
+    names = ["map", *(f"query{i + 1 if i else ''}" for i in range(len(query_dirs)))]
+    dirs = [Path(map_dir), *map(Path, query_dirs)]
+    where = "--map-images/--query-images"
+    for d in dirs:
+        if not d.is_dir():
+            raise ConfigError(f"{where}: {d} is not a folder of images")
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in d.iterdir()):
+            raise ConfigError(
+                f"{where}: {d} holds no image file ({', '.join(IMAGE_SUFFIXES)}) in the folder "
+                "itself"
+            )
+    sessions = [
+        {"name": n, "source": str(d.expanduser().resolve()), "format": "images", "season": n}
+        for n, d in zip(names, dirs, strict=True)
+    ]
+    base = cfg or parse_config({"name": "image-folders", "sessions": sessions}, Path.cwd(), where)
+    by = base.pairs.by if base.pairs.by != "pose" else folder_pairing(dirs[0], dirs[1:])
+    out = dataclasses.replace(
+        base,
+        sessions=tuple(SessionConfig(**s) for s in sessions),
+        annotations=base.annotations,
+        fixture=dataclasses.replace(base.fixture, generate=False),
+        pairs=dataclasses.replace(base.pairs, by=by, queries="all"),
+    )
+    validate(out, where)
+    return out, names[0], names[1:]
