@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 T = TypeVar("T")
+F = TypeVar("F", bound=Callable[..., Any])
 
 
 class Registry(dict[str, T]):
@@ -175,10 +176,6 @@ def add_rule(rule: FusionRule) -> None:
     METHOD_LABELS[rule.name] = rule.label
 
 
-#: Proposal methods of the harness that are not per-image functions.
-SPECIAL_PROPOSALS = ("grid5", "yolo", "file")
-#: The built-in per-image proposers (``proposals`` registers their functions).
-BUILTIN_PROPOSERS = ("edges", "mser", "segments")
 #: ``harness detect``'s box generators (SPEC 13.1, ``[detect] boxes``), the default first.
 BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
 #: What ranks ``harness detect``'s subimages: the local localizer (SPEC 13.3) or the config's.
@@ -188,8 +185,77 @@ DETECT_LOCALIZERS = ("local", "config")
 BOX_PRIORS = ("area", "none")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
-#: Per-image proposal methods: name -> function (built-in ones and ``proposals.register_method``).
-PROPOSERS: Registry[Callable[..., Any]] = Registry("proposal method", SPECIAL_PROPOSALS)
+
+
+@dataclass(frozen=True)
+class Proposer:
+    """One proposal method of the catalogue (SPEC section 5): what it reads, and its function.
+
+    Built-in and registered methods are the same record (``proposals.register_method`` makes one
+    that reads the image); the functions behind the built-in ones are attached by
+    :mod:`harness.proposals.proposers`, so this module still imports nothing of the harness.
+    """
+
+    name: str
+    #: ``frame``: boxes from the frame's size alone (``grid5``); ``image``: one upright RGB image
+    #: at a time; ``batch``: a batch of images (a network: ``yolo``); ``table``: a table of the
+    #: user's (``file``). The stage runs each kind its own way; the order lists them.
+    reads: str = "image"
+    #: It works on a copy ``[proposals.<name>] work_width`` wide, so a reduced decode gives it the
+    #: same boxes (``tests/proposals/test_proposals.py``).
+    reducible: bool = False
+    #: What it needs of ``[proposals]``, checked at load: (the key as the error names it, its
+    #: attribute path in the section, what is allowed).
+    requires: tuple[tuple[str, str, str], ...] = ()
+    #: ``frame``: (width, height) -> boxes (k, 4); ``image``: (rgb, [proposals]) -> (boxes,
+    #: scores); ``batch``: [proposals] -> a function of a list of images; ``table``: (frames,
+    #: [proposals]) -> proposal rows. None until attached.
+    run: Callable[..., Any] | None = None
+
+
+def proposer(name: str) -> Callable[[F], F]:
+    """Attach the decorated function as the one of built-in proposal method ``name`` (its record).
+
+    The proposals package decorates its functions with it, as :func:`harness.fusion.rules.rule`
+    does the fusion rules': a built-in method is its record here and its function there.
+    """
+
+    def attach(fn: F) -> F:
+        PROPOSERS[name] = replace(PROPOSERS[name], run=fn)
+        return fn
+
+    return attach
+
+
+#: The order of the kinds in ``known_proposal_methods`` (and in error messages).
+PROPOSER_READS = ("frame", "image", "batch", "table")
+#: Proposal methods by name: built-in, then registered ones (``proposals.register_method``).
+PROPOSERS: Registry[Proposer] = Registry("proposal method")
+for _proposer in (
+    Proposer("grid5", "frame"),
+    Proposer("edges", reducible=True),
+    Proposer("mser", reducible=True),
+    Proposer("segments"),
+    Proposer(
+        "yolo",
+        "batch",
+        requires=(
+            (
+                "[proposals.yolo] weights",
+                "yolo.weights",
+                "a local weights path (the method 'yolo' is listed)",
+            ),
+        ),
+    ),
+    Proposer(
+        "file",
+        "table",
+        requires=(
+            ("[proposals] file", "file", "a path to a box table (the method 'file' is listed)"),
+        ),
+    ),
+):
+    PROPOSERS.add(_proposer.name, _proposer)
 #: A registered method's options: name -> the dataclass its ``[proposals.<name>]`` table builds.
 PROPOSER_OPTIONS: Registry[type] = Registry("options of proposal method")
 #: A registered fusion rule's options: name -> the dataclass its ``[fusion.<name>]`` table builds.
@@ -202,9 +268,8 @@ def known_fusion_methods() -> tuple[str, ...]:
 
 
 def known_proposal_methods() -> tuple[str, ...]:
-    """Every proposal method name ``[proposals] methods`` may list."""
-    image = dict.fromkeys((*BUILTIN_PROPOSERS, *PROPOSERS))
-    return ("grid5", *image, "yolo", "file")
+    """Every proposal method name ``[proposals] methods`` may list, kind by kind (as registered)."""
+    return tuple(sorted(PROPOSERS, key=lambda n: PROPOSER_READS.index(PROPOSERS[n].reads)))
 
 
 def ordered_methods(methods: Iterable[str]) -> tuple[str, ...]:

@@ -225,6 +225,7 @@ PROJECT_TESTS = frozenset(
     {
         "test_layout",
         "test_recipes",
+        "test_recipe_files",
         "test_doc_figures",
         "test_bench_command",
         "test_gpu",

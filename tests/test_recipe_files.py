@@ -166,6 +166,12 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
         ],
     },
     "proposer with an option": {
+        "methods.py": [
+            (
+                '    Proposer("segments"),\n',
+                '    Proposer("centre"),\n',
+            )
+        ],
         "proposals/builtin.py": [
             (
                 "",
@@ -179,7 +185,11 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
                         frac: float = 0.25
 
 
-                    def centre_box(rgb, cfg):
+                    PROPOSER_OPTIONS.add("centre", Centre)
+
+
+                    @proposer("centre")
+                    def centre_proposer(rgb, cfg):
                         """One box, the image's central share ``frac``."""
                         h, w = rgb.shape[:2]
                         f = cfg.options_of("centre").frac
@@ -189,11 +199,7 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
                 ),
             ),
             ("from __future__ import annotations\n", "import dataclasses\n"),
-        ],
-        "proposals/proposers.py": [
-            ('(("edges", _edges), ', '("centre", centre_box), '),
-            ("from harness.proposals.builtin import ", "Centre, centre_box, "),
-            ("IMAGE_METHODS.add(_name, _proposer)\n", 'PROPOSER_OPTIONS.add("centre", Centre)\n'),
+            ("from harness.methods import proposer", ", PROPOSER_OPTIONS"),
         ],
     },
     "localizer kind that caches": {
@@ -300,13 +306,14 @@ from harness.ingest.logs import detect_format
 from harness.localizers.kinds import LOCALIZER_KINDS
 from harness.pipeline import localizer_stages  # attaches the built-in kinds' ranks
 from harness.proposals.config import ProposalsConfig
-from harness.proposals.proposers import IMAGE_METHODS
+from harness.methods import PROPOSERS
+from harness.proposals import proposers  # attaches the built-in proposers' functions
 cover = np.array([[1, 1, 1], [1, 0, 0]], bool)
 r, L = np.array([0.1, 0.5, 0.9]), np.full(3, 10.0)
 opts = FusionConfig().options_of("kth_rank")
 got = loc_from_cover(cover, "kth_rank", r=r, d=np.ones(3), L=L, options=type(opts)(k=2))
 assert opts.k == 2 and np.allclose(got, [10 / 6, 0.0]), got
-boxes, _ = IMAGE_METHODS["centre"](np.zeros((8, 8, 3), np.uint8), ProposalsConfig())
+boxes, _ = PROPOSERS["centre"].run(np.zeros((8, 8, 3), np.uint8), ProposalsConfig())
 assert np.allclose(boxes, [[3, 3, 5, 5]]), boxes
 assert LOCALIZER_KINDS["colour"].ranks is not None
 Path("x.cdrl").write_text("")

@@ -69,6 +69,7 @@ def registries():
         methods.PROPOSERS,
         methods.PROPOSER_OPTIONS,
         methods.FUSION_RULES,
+        methods.FUSION_OPTIONS,
         methods.METHOD_LABELS,
         LOCALIZER_KINDS,
     )
@@ -91,6 +92,7 @@ def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
 
 
 def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registries) -> None:
+    from harness import methods
     from harness.config.check import validate
     from harness.config.load import load_config
     from harness.errors import ConfigError
@@ -172,10 +174,11 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
         h, w = rgb.shape[:2]
         return np.array([[w / 8, h / 8, 7 * w / 8, 7 * h / 8]]), np.ones(1)
 
-    proposals.IMAGE_METHODS["centre"] = centre_edited  # an edit (the registries fixture undoes it)
+    record = methods.PROPOSERS["centre"]
+    methods.PROPOSERS["centre"] = dataclasses.replace(record, run=centre_edited)  # an edit
     after = proposals.method_fingerprints(["grid5", "centre"])
     assert after["centre"] != before["centre"]
-    proposals.IMAGE_METHODS["centre"] = centre
+    methods.PROPOSERS["centre"] = record  # (the registries fixture undoes it anyway)
     assert proposals.method_fingerprints(["centre"]) == before  # the same source, the same key
 
 
@@ -355,13 +358,14 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
 def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries) -> None:
     from harness.errors import ConfigError
     from harness.fusion import fuse as fusion
+    from harness.methods import PROPOSERS
     from harness.proposals import proposers as proposals
     from harness.proposals.config import ProposalsConfig
 
     proposals.register_method("bad", lambda rgb, cfg: (np.zeros((2, 3)), np.ones(2)))
     frame = pd.Series({"session": "s", "camera": "Cam5", "utime": 7})
     with pytest.raises(ConfigError, match=r"'bad' on frame s/Cam5/7: .*\(2, 3\)"):
-        proposals._checked("bad", frame, *proposals.IMAGE_METHODS["bad"](None, ProposalsConfig()))
+        proposals._checked("bad", frame, *PROPOSERS["bad"].run(None, ProposalsConfig()))
     fusion.register_method("flat", lambda cover, r, d, L: np.ones(1), "flat")
     cover = np.ones((3, 2), bool)
     with pytest.raises(ConfigError, match=r"'flat' returned LoC of shape \(1,\), expected \(3,\)"):

@@ -9,9 +9,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from harness.proposals.config import EdgesConfig, MserConfig, SegmentsConfig
+from harness.methods import proposer
+from harness.proposals.config import EdgesConfig, MserConfig, ProposalsConfig, SegmentsConfig
 
 
+@proposer("grid5")
 def grid5(width: float, height: float) -> np.ndarray:
     """The five fixed boxes of SPEC section 5 as a (5, 4) float array ``x1, y1, x2, y2``."""
     w, h = float(width), float(height)
@@ -154,3 +156,21 @@ def edge_boxes(rgb: np.ndarray, cfg: EdgesConfig) -> tuple[np.ndarray, np.ndarra
     boxes = np.clip(np.column_stack([x1, y1, x2, y2]) / scale, 0, [w, h, w, h]).astype(np.float64)
     keep = nms(boxes, density, cfg.nms_iou)[: cfg.max_boxes]
     return boxes[keep], density[keep]
+
+
+@proposer("edges")
+def edges_proposer(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``edges`` with ``[proposals.edges]``."""
+    return edge_boxes(rgb, cfg.edges)
+
+
+@proposer("mser")
+def mser_proposer(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``mser`` with ``[proposals.mser]``."""
+    return mser_boxes(rgb, cfg.mser)
+
+
+@proposer("segments")
+def segments_proposer(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``segments`` with ``[proposals.segments]``."""
+    return segment_boxes(rgb, cfg.segments)

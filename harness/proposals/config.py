@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
 from harness.checks import check_device, check_range, check_value
-from harness.methods import PROPOSER_OPTIONS, known_proposal_methods
+from harness.methods import PROPOSER_OPTIONS, PROPOSERS, known_proposal_methods
 
 
 @dataclass(frozen=True)
@@ -103,20 +104,10 @@ def check_proposals(pr: ProposalsConfig, where: str) -> None:
         list(pr.methods),
         f"a non-empty list of {list(known_methods())}",
     )
-    c(
-        "file" not in pr.methods or bool(pr.file),
-        where,
-        "[proposals] file",
-        pr.file,
-        "a path to a box table (the method 'file' is listed)",
-    )
-    c(
-        "yolo" not in pr.methods or bool(pr.yolo.weights),
-        where,
-        "[proposals.yolo] weights",
-        pr.yolo.weights,
-        "a local weights path (the method 'yolo' is listed)",
-    )
+    for proposer in pr.methods:  # what each listed method needs of the section (its record)
+        for key, attr, allowed in PROPOSERS[proposer].requires:
+            value = functools.reduce(getattr, attr.split("."), pr)
+            c(bool(value), where, key, value, allowed)
     c(0 <= pr.yolo.conf <= 1, where, "[proposals.yolo] conf", pr.yolo.conf, "[0, 1]")
     c(0 < pr.yolo.iou <= 1, where, "[proposals.yolo] iou", pr.yolo.iou, "(0, 1]")
     for key in ("imgsz", "batch", "max_det"):

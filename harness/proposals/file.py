@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.errors import AnnotationError
+from harness.errors import AnnotationError, ConfigError
+from harness.methods import proposer
+from harness.proposals.config import ProposalsConfig
 from harness.records import FRAME_KEY
 
 
@@ -55,3 +57,18 @@ def load_file_proposals(path: Path, frames: pd.DataFrame) -> pd.DataFrame:
             i = int(np.nonzero(mask)[0][0])
             raise AnnotationError(f"{path}: row {i + 1}: {what} ({int(mask.sum())} row(s) in all)")
     return df
+
+
+@proposer("file")
+def file_proposals(frames: pd.DataFrame, cfg: ProposalsConfig) -> pd.DataFrame:
+    """The rows of method ``file``: the user's table, numbered per frame in box order."""
+    if not cfg.file:
+        raise ConfigError("[proposals] method 'file' needs [proposals] file = <path to the table>")
+    fp = load_file_proposals(Path(cfg.file), frames)
+    fp = fp.merge(frames[FRAME_KEY], on=FRAME_KEY)
+    fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(
+        drop=True
+    )
+    fp["proposal_method"] = "file"
+    fp["box_id"] = fp.groupby(FRAME_KEY).cumcount().astype(np.int32)
+    return fp

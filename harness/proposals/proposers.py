@@ -30,21 +30,17 @@ from harness.imagestore import read_image
 from harness.methods import (
     PROPOSER_OPTIONS,
     PROPOSERS,
-    SPECIAL_PROPOSALS,
+    Proposer,
     known_proposal_methods,
 )
-from harness.proposals.builtin import edge_boxes, grid5, mser_boxes, segment_boxes
+from harness.proposals import builtin, file, yolo  # noqa: F401  (attach the built-ins' functions)
 from harness.proposals.config import ProposalsConfig
-from harness.proposals.file import load_file_proposals
-from harness.proposals.yolo import YoloProposer
 from harness.records import FRAME_KEY
 from harness.runtime.cache import source_fingerprints, write_parquet
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
 
-#: Methods with their own code path: grid5 (no pixels), yolo (batched), file (a user's table).
-SPECIAL_METHODS = SPECIAL_PROPOSALS
 PROPOSAL_COLUMNS = [
     "session",
     "camera",
@@ -60,37 +56,9 @@ PROPOSAL_COLUMNS = [
 ]
 
 
-# ---------------------------------------------------------------- YOLO (TorchScript)
-
-
-# ---------------------------------------------------------------- user table
-
-
-# ---------------------------------------------------------------- driver
-
-
 #: A per-image proposer: the upright (H, W, 3) uint8 RGB image and ``[proposals]`` ->
 #: (boxes (k, 4) x1, y1, x2, y2 in pixels, scores (k,), higher = better).
 ImageProposer = Callable[[np.ndarray, ProposalsConfig], tuple[np.ndarray, np.ndarray]]
-
-
-def _edges(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
-    return edge_boxes(rgb, cfg.edges)
-
-
-def _mser(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
-    return mser_boxes(rgb, cfg.mser)
-
-
-def _segments(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
-    return segment_boxes(rgb, cfg.segments)
-
-
-#: Proposal methods that read one image at a time, by name (``[proposals] methods``): the
-#: catalogue's registry (``methods.PROPOSERS``), one dict, holding the built-in ones from here on.
-IMAGE_METHODS = PROPOSERS
-for _name, _proposer in (("edges", _edges), ("mser", _mser), ("segments", _segments)):
-    IMAGE_METHODS.add(_name, _proposer)
 
 
 def register_method(name: str, proposer: ImageProposer, options: type | None = None) -> None:
@@ -110,7 +78,7 @@ def register_method(name: str, proposer: ImageProposer, options: type | None = N
         raise ValueError(f"proposal method {name!r} exists: a key of [proposals] itself")
     if options is not None and not dataclasses.is_dataclass(options):
         raise ValueError(f"proposal method {name!r}: options must be a dataclass")
-    IMAGE_METHODS.add(name, proposer)
+    PROPOSERS.add(name, Proposer(name, "image", run=proposer))
     if options is not None:
         PROPOSER_OPTIONS.add(name, options)
 
@@ -120,7 +88,13 @@ known_methods = known_proposal_methods
 
 def method_fingerprints(methods: Sequence[str]) -> dict[str, str]:
     """The source hash of each listed method registered from outside the package."""
-    return source_fingerprints(IMAGE_METHODS, methods)
+    functions = {n: r.run for n, r in PROPOSERS.items() if r.run is not None}
+    return source_fingerprints(functions, methods)
+
+
+def _of(methods: Sequence[str], reads: str) -> list[Proposer]:
+    """The listed methods that read ``reads``, in the catalogue's order."""
+    return [r for n, r in PROPOSERS.items() if n in methods and r.reads == reads]
 
 
 def _checked(proposer: str, frame: Any, boxes: Any, scores: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -160,12 +134,7 @@ def _rows(
     )
 
 
-#: The per-image methods that may read a reduced decode: each works on a copy ``work_width`` wide
-#: and gives the same boxes from it (``tests/proposals/test_proposals.py``).
-REDUCIBLE = ("edges", "mser")
-
-
-def decode_scale(width: int, cfg: ProposalsConfig, per_image: Sequence[str], yolo: bool) -> int:
+def decode_scale(width: int, cfg: ProposalsConfig, per_image: Sequence[str], batched: bool) -> int:
     """The reduced scale (1, 2, 4 or 8) to decode a frame ``width`` pixels wide (upright) at.
 
     The largest whose width still holds the widest ``work_width`` of the listed OpenCV methods
@@ -173,7 +142,8 @@ def decode_scale(width: int, cfg: ProposalsConfig, per_image: Sequence[str], yol
     off, YOLO or ``segments`` is listed (measured: its colour clusters move with the decode's
     noise) or a registered method reads the image (their sizes are their own).
     """
-    if not cfg.reduced_decode or yolo or any(m not in REDUCIBLE for m in per_image):
+    reducible = [m in PROPOSERS and PROPOSERS[m].reducible for m in per_image]
+    if not cfg.reduced_decode or batched or not all(reducible):
         return 1
     need = max((getattr(cfg, m).work_width for m in per_image), default=width)
     return max((k for k in (1, 2, 4, 8) if -(-int(width) // k) >= need), default=1)
@@ -195,52 +165,52 @@ def _image_proposals(
     methods: list[str],
     progress: Callable[[Iterable], Iterable],
 ) -> list[pd.DataFrame]:
-    """The rows of the methods that read the image: OpenCV's, registered ones, YOLO.
+    """The rows of the methods that read the image, one (OpenCV's, registered) or a batch (YOLO).
 
     Frame batch by frame batch, each image read once, at the scale :func:`decode_scale` allows.
     """
     out: list[pd.DataFrame] = []
-    per_image = [m for m in IMAGE_METHODS if m in methods]
-    if per_image or "yolo" in methods:
-        yolo = YoloProposer(cfg.yolo) if "yolo" in methods else None
-        batch = max(1, cfg.yolo.batch)
-        items = list(frames.itertuples(index=False))
-        for i in progress(range(0, len(items), batch)):
-            chunk = items[i : i + batch]
-            imgs = [
-                read_image(f.image, decode_scale(f.width, cfg, per_image, yolo is not None))
-                for f in chunk
-            ]
-            for m in per_image:
-                for f, im in zip(chunk, imgs, strict=True):
-                    try:
-                        found = IMAGE_METHODS[m](im, cfg)
-                    except cv2.error as err:
-                        raise ConfigError(
-                            f"proposal method {m!r} on frame {f.session}/{f.camera}/{f.utime}: "
-                            f"OpenCV refused it ({str(err).strip().splitlines()[-1][:160]}); "
-                            f"check [proposals.{m}]"
-                        ) from None
-                    b, s = _checked(m, f, *found)
-                    out.append(_rows(f, m, _full_size(b, f, im), s, [""] * len(b)))
-            if yolo is not None:
-                for f, (b, s, c) in zip(chunk, yolo(imgs), strict=True):
-                    out.append(_rows(f, "yolo", b, s, [str(int(k)) for k in c]))
+    per_image = [r.name for r in _of(methods, "image")]
+    batched = [(r.name, r.run(cfg)) for r in _of(methods, "batch") if r.run is not None]
+    if not per_image and not batched:
+        return out
+    batch = max(1, cfg.yolo.batch)
+    items = list(frames.itertuples(index=False))
+    for i in progress(range(0, len(items), batch)):
+        chunk = items[i : i + batch]
+        imgs = [
+            read_image(f.image, decode_scale(f.width, cfg, per_image, bool(batched))) for f in chunk
+        ]
+        for m in per_image:
+            for f, im in zip(chunk, imgs, strict=True):
+                b, s = _one_image(m, f, im, cfg)
+                out.append(_rows(f, m, _full_size(b, f, im), s, [""] * len(b)))
+        for m, net in batched:
+            for f, (b, s, c) in zip(chunk, net(imgs), strict=True):
+                out.append(_rows(f, m, b, s, [str(int(k)) for k in c]))
     return out
 
 
-def _file_proposals(frames: pd.DataFrame, cfg: ProposalsConfig) -> pd.DataFrame:
-    """The rows of method ``file``: the user's table, numbered per frame in box order."""
-    if not cfg.file:
-        raise ConfigError("[proposals] method 'file' needs [proposals] file = <path to the table>")
-    fp = load_file_proposals(Path(cfg.file), frames)
-    fp = fp.merge(frames[FRAME_KEY], on=FRAME_KEY)
-    fp = fp.sort_values(["session", "camera", "utime", "x1", "y1", "x2", "y2"]).reset_index(
-        drop=True
-    )
-    fp["proposal_method"] = "file"
-    fp["box_id"] = fp.groupby(FRAME_KEY).cumcount().astype(np.int32)
-    return fp[PROPOSAL_COLUMNS]
+def _one_image(
+    m: str, f: Any, im: np.ndarray, cfg: ProposalsConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Method ``m``'s boxes and scores on frame ``f``'s image ``im``, checked.
+
+    Raises:
+        ConfigError: OpenCV refused the method's options, or its output is not boxes and scores.
+    """
+    run = PROPOSERS[m].run
+    if run is None:
+        raise ConfigError(f"proposal method {m!r} has no function attached")
+    try:
+        found = run(im, cfg)
+    except cv2.error as err:
+        raise ConfigError(
+            f"proposal method {m!r} on frame {f.session}/{f.camera}/{f.utime}: "
+            f"OpenCV refused it ({str(err).strip().splitlines()[-1][:160]}); "
+            f"check [proposals.{m}]"
+        ) from None
+    return _checked(m, f, *found)
 
 
 def compute_proposals(
@@ -248,7 +218,11 @@ def compute_proposals(
     cfg: ProposalsConfig,
     progress: Callable[[Iterable], Iterable] = lambda it: it,
 ) -> pd.DataFrame:
-    """Proposal rows (PROPOSAL_COLUMNS) of every method in ``cfg.methods`` for every frame."""
+    """Proposal rows (PROPOSAL_COLUMNS) of every method in ``cfg.methods`` for every frame.
+
+    Each method runs as its record says it reads (:class:`harness.methods.Proposer`): the frame's
+    size, its image (one or a batch at a time) or a table of the user's.
+    """
     frames = frames.sort_values(FRAME_KEY).reset_index(drop=True)
     out: list[pd.DataFrame] = []
     methods = list(cfg.methods)
@@ -257,13 +231,12 @@ def compute_proposals(
         raise ConfigError(
             f"[proposals] unknown method(s) {unknown}; known: {list(known_methods())}"
         )
-
-    if "grid5" in methods:
+    for r in _of(methods, "frame"):
         for f in frames.itertuples(index=False):
-            out.append(_rows(f, "grid5", grid5(f.width, f.height), np.ones(5), [""] * 5))
+            boxes = np.asarray(r.run(f.width, f.height), np.float64)  # type: ignore[misc]
+            out.append(_rows(f, r.name, boxes, np.ones(len(boxes)), [""] * len(boxes)))
     out += _image_proposals(frames, cfg, methods, progress)
-    if "file" in methods:
-        out.append(_file_proposals(frames, cfg))
+    out += [r.run(frames, cfg) for r in _of(methods, "table") if r.run is not None]
     df = (
         pd.concat([d for d in out if len(d)], ignore_index=True)
         if out

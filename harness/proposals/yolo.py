@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 
 from harness.errors import ConfigError
+from harness.methods import proposer
 from harness.proposals.builtin import nms
-from harness.proposals.config import YoloConfig
+from harness.proposals.config import ProposalsConfig, YoloConfig
 
 
 class YoloProposer:
@@ -133,3 +134,9 @@ class YoloProposer:
         boxes, score, cls = boxes[area_ok], score[area_ok], cls[area_ok]
         keep = nms(boxes, score, self.cfg.iou, cls)[: self.cfg.max_det]
         return boxes[keep], score[keep].astype(np.float64), cls[keep].astype(np.int64)
+
+
+@proposer("yolo")
+def yolo_proposer(cfg: ProposalsConfig) -> YoloProposer:
+    """``yolo`` with ``[proposals.yolo]``: the network, called on a batch of images."""
+    return YoloProposer(cfg.yolo)

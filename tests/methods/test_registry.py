@@ -9,7 +9,7 @@ from harness.descriptors import REGISTRY as DESCRIPTORS
 from harness.errors import ConfigError
 from harness.ingest.logs import READERS
 from harness.localizers.kinds import LOCALIZER_KINDS
-from harness.methods import FUSION_RULES, PROPOSER_OPTIONS, PROPOSERS, Registry
+from harness.methods import FUSION_RULES, PROPOSER_OPTIONS, PROPOSERS, Proposer, Registry
 from harness.reports.tables import TABLES
 
 
@@ -45,6 +45,6 @@ def test_every_extension_point_is_a_registry_holding_its_built_ins() -> None:
         assert isinstance(reg, Registry), what
         assert builtin is None or builtin in reg, what
     with pytest.raises(ValueError, match="exists"):
-        PROPOSERS.add("grid5", lambda rgb, cfg: None)  # reserved: it has a code path of its own
+        PROPOSERS.add("grid5", Proposer("grid5"))  # a built-in record, as every other
     with pytest.raises(ConfigError, match="localizer kind 'name' exists"):
         LOCALIZER_KINDS.add("name", LOCALIZER_KINDS["local"], ConfigError)

@@ -18,6 +18,7 @@ import torch
 
 from harness.descriptors.autoencoder import ConvAutoencoder, TrainSettings, train
 from harness.errors import ConfigError, HarnessError
+from harness.methods import PROPOSERS
 from harness.pipeline.chain import Pipeline
 from harness.proposals.config import ProposalsConfig
 from harness.runtime.cache import StageCache
@@ -106,9 +107,10 @@ def test_a_flipped_byte_in_a_cache_entry_rebuilds_it_with_a_warning(
 def test_a_method_without_any_box_in_a_session_is_an_error(
     local_run: tuple, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import harness.proposals.proposers as P
+    def none(im: np.ndarray, cfg: ProposalsConfig) -> tuple:
+        return np.zeros((0, 4)), np.zeros(0)
 
-    monkeypatch.setitem(P.IMAGE_METHODS, "edges", lambda im, cfg: (np.zeros((0, 4)), np.zeros(0)))
+    monkeypatch.setitem(PROPOSERS, "edges", dataclasses.replace(PROPOSERS["edges"], run=none))
     p, _, _ = local_run
     with pytest.raises(HarnessError, match=r"method 'edges' gives no box on any of the session"):
         Pipeline(p.cfg, tmp_path / "o").run()
@@ -119,12 +121,10 @@ def test_an_opencv_refusal_names_the_method_and_frame(
 ) -> None:
     import cv2
 
-    import harness.proposals.proposers as P
-
     def refuses(im: np.ndarray, cfg: ProposalsConfig) -> tuple:
         raise cv2.error("OpenCV(5.0) error: (-215:Assertion failed) ksize > 0 in function 'x'")
 
-    monkeypatch.setitem(P.IMAGE_METHODS, "edges", refuses)
+    monkeypatch.setitem(PROPOSERS, "edges", dataclasses.replace(PROPOSERS["edges"], run=refuses))
     p, _, _ = local_run
     with pytest.raises(ConfigError, match=r"proposal method 'edges' on frame .*OpenCV refused it"):
         Pipeline(p.cfg, tmp_path / "o").run()
