@@ -289,7 +289,7 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
                 "from harness.ingest.cdrl_log import CdrLines\n",
             ),
             (
-                'order["nclt"], streams=False))\n',
+                '    READERS.add("nclt", nclt)\n',
                 '    READERS.add("cdrl", LogFormat("cdrl", CdrLines()))\n',
             ),
         ],

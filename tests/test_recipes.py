@@ -290,7 +290,7 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
     from rosbags.typesys import Stores, get_typestore
 
     from harness.imagestore import read_image
-    from harness.ingest import ingest_session, logs
+    from harness.ingest import ingest_session, log_types, logs
     from harness.ingest.config import IngestConfig, SessionConfig
 
     monkeypatch.setattr(logs, "READERS", copy.copy(logs.READERS))  # undo after (a Registry still)
@@ -313,7 +313,7 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
             for rec in map(json.loads, path.read_text().splitlines()):
                 if rec["topic"] in topics:
                     msg = store.deserialize_cdr(base64.b64decode(rec["cdr"]), rec["type"])
-                    yield logs.Message(rec["topic"], rec["type"], rec["t_ns"], msg)
+                    yield log_types.Message(rec["topic"], rec["type"], rec["t_ns"], msg)
 
     logs.register_format("cdrl", CdrLines())
     # --- end of the recipe (the rest checks it) ---

@@ -101,7 +101,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     if "names" in info:  # a folder session
         _print_folder(console, info)
         return 0
-    if info["format"] == "nclt":
+    if "sessions" in info:  # a layout of sessions (nclt)
         t = Table(title="NCLT sessions")
         for c in ("session", "cameras (images)", "ground-truth rows"):
             t.add_column(c)

@@ -19,7 +19,7 @@ from harness.imagestore import header_size
 from harness.ingest.folders import FOLDER_FORMATS, INTEGER_UNITS
 from harness.ingest.images import compressed_size
 from harness.ingest.log_types import IMAGE_TYPES, READ_ERRORS, typestore_for, uri_safe_path
-from harness.ingest.logs import detect_format, list_topics
+from harness.ingest.logs import READERS, detect_format, list_topics
 from harness.ingest.poses import POSE_TYPES, stamp_us
 from harness.ingest.tf import TfTree
 
@@ -47,8 +47,9 @@ def inspect_log(path: Path) -> dict[str, Any]:
     """
     path = Path(path)
     fmt = detect_format(path)
-    if fmt == "nclt":
-        return _inspect_nclt(path)
+    inspect = READERS[fmt].inspect
+    if inspect is not None:  # a layout of its own (nclt)
+        return inspect(path)
     if fmt in FOLDER_FORMATS:
         return inspect_folder(path, fmt)
     from rosbags.highlevel import AnyReader
@@ -171,29 +172,6 @@ def _suggest(
                 f"frames: {', '.join(sorted(tree.frames()))}"
             )
     return "\n".join(lines)
-
-
-def _inspect_nclt(root: Path) -> dict[str, Any]:
-    out: dict[str, Any] = {"path": str(root), "format": "nclt", "sessions": []}
-    for sdir in sorted((root / "images").glob("*")) if (root / "images").is_dir() else []:
-        cams = {c.name: sum(1 for _ in c.iterdir()) for c in sorted((sdir / "lb3").glob("Cam*"))}
-        gt = root / "ground_truth" / f"groundtruth_{sdir.name}.csv"
-        rows = 0
-        if gt.exists():  # counted as bytes: a non-UTF-8 byte is the ingest's to name, by line
-            rows = sum(1 for line in gt.read_bytes().splitlines() if line.strip())
-        out["sessions"].append(
-            {
-                "session": sdir.name,
-                "cameras": cams,
-                "ground_truth_rows": rows,
-                "ground_truth": str(gt) if gt.exists() else None,
-            }
-        )
-    out["suggested_config"] = "\n".join(
-        f'[[sessions]]\nname = "{s["session"]}"\nsource = "{root}"\ncamera = "Cam5"'
-        for s in out["sessions"]
-    )
-    return out
 
 
 #: How :func:`harness.ingest.folders.stem_to_ns` reads an integer file name, by its factor to ns.

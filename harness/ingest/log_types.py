@@ -6,7 +6,7 @@ import contextlib
 import sqlite3
 import struct
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -119,6 +119,15 @@ class LogFormat:
     detect_order: int = 0
     #: False for a session layout of its own (``nclt``): no topics, no message stream.
     streams: bool = True
+    #: A layout's own ingest, (session, [ingest], entry dir, report) -> frames; None: the messages
+    #: are streamed through :func:`harness.ingest.log_session.ingest_log`.
+    ingest: Callable[..., Any] | None = None
+    #: The files a session of this layout reads, by name (its cache key's); None: its source.
+    sources: Callable[..., dict[str, Path]] | None = None
+    #: Checks a session of this layout before any work (its camera, say); None: none.
+    check: Callable[..., None] | None = None
+    #: What ``harness inspect`` says of a path of this layout; None: its topics and messages.
+    inspect: Callable[[Path], dict[str, Any]] | None = None
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from harness.ingest.log_types import (
     LogReader,
     Message,
 )
+from harness.ingest.nclt_session import check_nclt_camera, ingest_nclt, inspect_nclt, nclt_sources
 from harness.ingest.poses import POSE_TYPES
 from harness.ingest.rosbags_log import RosbagsLog
 from harness.methods import Registry
@@ -193,7 +194,18 @@ class NcltLayout:
 def _register_builtins() -> None:
     """The built-in formats, in the order sessions list them; detection asks folders first."""
     order = {"tum": 0, "kitti": 0, "euroc": 0, "ros2": 1, "nclt": 2, "ros1": 3, "mcap": 4}
-    READERS.add("nclt", LogFormat("nclt", NcltLayout(), True, order["nclt"], streams=False))
+    nclt = LogFormat(
+        "nclt",
+        NcltLayout(),
+        True,
+        order["nclt"],
+        streams=False,
+        ingest=ingest_nclt,
+        sources=nclt_sources,
+        check=check_nclt_camera,
+        inspect=inspect_nclt,
+    )
+    READERS.add("nclt", nclt)
     for fmt in ("ros1", "ros2", "mcap"):
         READERS.add(fmt, LogFormat(fmt, RosbagsLog(fmt), True, order[fmt]))
     for name, folder in FOLDER_FORMATS.items():

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from harness.errors import IngestError
+from harness.errors import ConfigError, IngestError
 from harness.imagestore import make_uri, stored_size, upright_size
 from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.frame_table import finish
@@ -123,3 +124,51 @@ def ingest_nclt(sc: SessionConfig, ic: IngestConfig, tmp: Path, report: dict) ->
     img_t = np.array([t for t, _ in files], np.int64)
     images = (img_t, uris, np.array(sizes, np.int64))
     return finish(sc, ic, tmp, images, (pose_t, pose_v), report)
+
+
+def inspect_nclt(root: Path) -> dict[str, Any]:
+    """What ``harness inspect`` says of an NCLT root: its sessions, cameras, ground-truth rows."""
+    out: dict[str, Any] = {"path": str(root), "format": "nclt", "sessions": []}
+    for sdir in sorted((root / "images").glob("*")) if (root / "images").is_dir() else []:
+        cams = {c.name: sum(1 for _ in c.iterdir()) for c in sorted((sdir / "lb3").glob("Cam*"))}
+        gt = root / "ground_truth" / f"groundtruth_{sdir.name}.csv"
+        rows = 0
+        if gt.exists():  # counted as bytes: a non-UTF-8 byte is the ingest's to name, by line
+            rows = sum(1 for line in gt.read_bytes().splitlines() if line.strip())
+        out["sessions"].append(
+            {
+                "session": sdir.name,
+                "cameras": cams,
+                "ground_truth_rows": rows,
+                "ground_truth": str(gt) if gt.exists() else None,
+            }
+        )
+    out["suggested_config"] = "\n".join(
+        f'[[sessions]]\nname = "{s["session"]}"\nsource = "{root}"\ncamera = "Cam5"'
+        for s in out["sessions"]
+    )
+    return out
+
+
+def nclt_sources(sc: SessionConfig) -> dict[str, Path]:
+    """The files an NCLT session reads (its key's): its camera's images and its ground truth."""
+    src = Path(sc.source)
+    return {
+        "images": src / "images" / sc.name / "lb3" / sc.camera,
+        "gt": src / "ground_truth" / f"groundtruth_{sc.name}.csv",
+    }
+
+
+def check_nclt_camera(sc: SessionConfig) -> None:
+    """The session's camera is one of the NCLT root's (before any work).
+
+    Raises:
+        ConfigError: naming the cameras found (names are case-sensitive).
+    """
+    cams = Path(sc.source) / "images" / sc.name / "lb3"
+    if not (cams / sc.camera).is_dir():
+        found = sorted(d.name for d in cams.glob("*") if d.is_dir()) if cams.is_dir() else []
+        raise ConfigError(
+            f"sessions {sc.name}: camera = {sc.camera!r}: no {cams / sc.camera}; cameras "
+            f"found: {found or 'none'} (names are case-sensitive)"
+        )

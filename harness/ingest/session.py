@@ -21,8 +21,7 @@ from harness.imagestore import (
 )
 from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.log_session import ingest_log
-from harness.ingest.logs import detect_format, known_formats
-from harness.ingest.nclt_session import ingest_nclt
+from harness.ingest.logs import READERS, detect_format, known_formats
 from harness.inputs import check_input
 from harness.records import FRAME_KEY, FRAME_SCHEMA
 from harness.runtime.cache import atomic_dir, write_json, write_parquet
@@ -58,10 +57,12 @@ def ingest_session(sc: SessionConfig, ic: IngestConfig, out: Path, force: bool =
         "dropped": {},
     }
     with atomic_dir(Path(out)) as tmp, pixel_limit(ic.max_image_pixels):
-        if fmt == "nclt":
-            df = ingest_nclt(sc, ic, tmp, report)
-        else:
-            df = ingest_log(sc, ic, fmt, tmp, report)
+        layout = READERS[fmt].ingest  # a layout of its own (nclt), else a stream of messages
+        df = (
+            layout(sc, ic, tmp, report)
+            if layout is not None
+            else ingest_log(sc, ic, fmt, tmp, report)
+        )
         report["seconds"] = round(time.perf_counter() - t0, 3)
         write_json(tmp / "ingest_report.json", report)
         write_marker(tmp, "ingest", record_entries=True)

@@ -18,7 +18,7 @@ from harness.config.schema import Config
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
 from harness.fusion.fuse import method_fingerprints as fusion_method_fingerprints
 from harness.ingest.config import SessionConfig
-from harness.ingest.logs import detect_format
+from harness.ingest.logs import READERS, detect_format
 from harness.proposals.config import ProposalsConfig
 from harness.proposals.proposers import method_fingerprints
 from harness.retrieval.config import BovwConfig, RetrievalConfig
@@ -42,11 +42,9 @@ def source_fingerprint(sc: SessionConfig, root: Path | None = None) -> Any:
     """
     src = Path(sc.source)
     fmt = detect_format(src) if sc.format == "auto" else sc.format
-    if fmt == "nclt":
-        return {
-            "images": file_fingerprint(src / "images" / sc.name / "lb3" / sc.camera, root),
-            "gt": file_fingerprint(src / "ground_truth" / f"groundtruth_{sc.name}.csv", root),
-        }
+    rec = READERS.get(fmt)
+    if rec is not None and rec.sources is not None:  # a layout: only the files it reads
+        return {name: file_fingerprint(path, root) for name, path in rec.sources(sc).items()}
     return file_fingerprint(src, root)
 
 

@@ -10,7 +10,7 @@ from harness.descriptors import REGISTRY
 from harness.errors import AnnotationError, ConfigError, IngestError
 from harness.fixture import FixtureSpec, generate
 from harness.fixture.generate import read_spec
-from harness.ingest.logs import detect_format, known_formats
+from harness.ingest.logs import READERS, detect_format, known_formats
 from harness.inputs import check_input
 from harness.pipeline.context import Context
 from harness.runtime.cache import (
@@ -121,13 +121,9 @@ def preflight(p: Context) -> None:
         src = Path(sc.source)
         check_input(src, f"log of session {sc.name}", IngestError, directory=src.is_dir())
         fmt = detect_format(src) if sc.format == "auto" else sc.format
-        cams = src / "images" / sc.name / "lb3"
-        if fmt == "nclt" and not (cams / sc.camera).is_dir():
-            found = sorted(d.name for d in cams.glob("*") if d.is_dir()) if cams.is_dir() else []
-            raise ConfigError(
-                f"sessions {sc.name}: camera = {sc.camera!r}: no {cams / sc.camera}; cameras "
-                f"found: {found or 'none'} (names are case-sensitive)"
-            )
+        rec = READERS.get(fmt)
+        if rec is not None and rec.check is not None:  # a layout's own check (nclt: the camera)
+            rec.check(sc)
     if cfg.annotations is None:
         if not p.annotations_optional:
             raise ConfigError(

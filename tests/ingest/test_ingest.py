@@ -13,6 +13,7 @@ import pytest
 
 from harness.errors import CorruptLogError, IngestError, TopicError
 from harness.fixture import build_world, render_frame
+from harness.fixture import messages as M
 from harness.fixture import writers as W
 from harness.fixture.generate import FORMATS, session_path
 from harness.imagestore import read_image
@@ -287,7 +288,7 @@ def test_ambiguous_topics_ask_for_a_flag(tmp_path: Path) -> None:
         w = Writer(fh)
         w.start(profile="ros2")
         for topic in ("/cam_a/image_raw", "/cam_b/image_raw"):
-            msgdef, _ = W.ROS2.generate_msgdef("sensor_msgs/msg/Image", ros_version=2)
+            msgdef, _ = M.ROS2.generate_msgdef("sensor_msgs/msg/Image", ros_version=2)
             sid = w.register_schema("sensor_msgs/msg/Image", "ros2msg", msgdef.encode())
             w.register_channel(topic, "cdr", sid)
         w.finish()
@@ -300,7 +301,7 @@ def test_unknown_encoding_is_named(tmp_path: Path) -> None:
     poses = [Pose(t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0) for t in (1_000_000, 1_200_000)]
     W.write_mcap(path, [W.LogFrame(1_100_000, np.zeros((4, 4), np.uint8))], poses, encoding="mono8")
     # rewrite the encoding field: serialize by hand with a bogus encoding
-    msg = W.image_msg(W.ROS2, 1_100_000, np.zeros((4, 4), np.uint8), "mono8")
+    msg = M.image_msg(M.ROS2, 1_100_000, np.zeros((4, 4), np.uint8), "mono8")
     msg.encoding = "yuv422_yuy2"
     from mcap.writer import Writer
 
@@ -312,14 +313,14 @@ def test_unknown_encoding_is_named(tmp_path: Path) -> None:
             ("/camera/image_raw", "sensor_msgs/msg/Image"),
             ("/pose", "geometry_msgs/msg/PoseWithCovarianceStamped"),
         ):
-            msgdef, _ = W.ROS2.generate_msgdef(typ, ros_version=2)
+            msgdef, _ = M.ROS2.generate_msgdef(typ, ros_version=2)
             ids[topic] = w.register_channel(
                 topic, "cdr", w.register_schema(typ, "ros2msg", msgdef.encode())
             )
         w.add_message(
             ids["/camera/image_raw"],
             1_100_000_000,
-            bytes(W.ROS2.serialize_cdr(msg, "sensor_msgs/msg/Image")),
+            bytes(M.ROS2.serialize_cdr(msg, "sensor_msgs/msg/Image")),
             1_100_000_000,
         )
         w.finish()
@@ -348,20 +349,20 @@ def test_non_monotonic_image_stamps_are_rejected(tmp_path: Path) -> None:
     from rosbags.rosbag1 import Writer as Writer1
 
     with Writer1(path) as w:
-        ci = w.add_connection("/camera/image_raw", "sensor_msgs/msg/Image", typestore=W.ROS1)
-        co = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=W.ROS1)
+        ci = w.add_connection("/camera/image_raw", "sensor_msgs/msg/Image", typestore=M.ROS1)
+        co = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=M.ROS1)
         for p in poses:
             w.write(
                 co,
                 p.utime * 1000,
-                W.ROS1.serialize_ros1(W.odometry_msg(W.ROS1, p, True), "nav_msgs/msg/Odometry"),
+                M.ROS1.serialize_ros1(M.odometry_msg(M.ROS1, p, True), "nav_msgs/msg/Odometry"),
             )
         for k, f in enumerate(frames):
             w.write(
                 ci,
                 2_000_000_000 + k,
-                W.ROS1.serialize_ros1(
-                    W.image_msg(W.ROS1, f.utime, f.image, "rgb8", True), "sensor_msgs/msg/Image"
+                M.ROS1.serialize_ros1(
+                    M.image_msg(M.ROS1, f.utime, f.image, "rgb8", True), "sensor_msgs/msg/Image"
                 ),
             )
     with pytest.raises(
@@ -429,7 +430,7 @@ def test_tf_with_several_children_needs_a_choice(tmp_path: Path) -> None:
                     bytes(ROS2.serialize_cdr(tf_msg(ROS2, p, child), "tf2_msgs/msg/TFMessage")),
                     p.utime * 1000,
                 )
-        img = W.image_msg(ROS2, 1_100_000, np.zeros((4, 4, 3), np.uint8), "rgb8")
+        img = M.image_msg(ROS2, 1_100_000, np.zeros((4, 4, 3), np.uint8), "rgb8")
         w.add_message(
             ids["/camera/image_raw"],
             1_100_000_000,

@@ -16,6 +16,7 @@ import pytest
 
 from harness.cli import main
 from harness.errors import CorruptLogError, IngestError
+from harness.fixture import messages as M
 from harness.fixture import writers as W
 from harness.ingest import ingest_session, load_frames
 from harness.ingest.config import IngestConfig, SessionConfig
@@ -33,7 +34,7 @@ def _quat_log(
     message carries quaternion ``q``; ``pose_utimes`` replaces the pose stamps."""
     from mcap.writer import Writer
 
-    ts = W.ROS2
+    ts = M.ROS2
     path = tmp / "q.mcap"
     with open(path, "wb") as fh:
         w = Writer(fh)
@@ -49,7 +50,7 @@ def _quat_log(
         rgb = np.zeros((4, 4, 3), np.uint8)
         for i in range(8):
             t = 1_000_000 + i * 50_000
-            msg = W.pose_stamped_msg(
+            msg = M.pose_stamped_msg(
                 ts, Pose(pose_utimes[i] if pose_utimes else t, float(i), 0.0, 0.0, 0.0, 0.0, 0.0)
             )
             if i == 4 and q is not None:
@@ -66,7 +67,7 @@ def _quat_log(
                 publish_time=t * 1000,
             )
             if i % 2:
-                im = W.image_msg(ts, t, rgb, "rgb8")
+                im = M.image_msg(ts, t, rgb, "rgb8")
                 w.add_message(
                     chans["/image"],
                     log_time=t * 1000,

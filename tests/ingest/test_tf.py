@@ -17,6 +17,7 @@ from rosbags.rosbag2 import Writer as Writer2
 
 from harness.cli import main
 from harness.errors import IngestError
+from harness.fixture import messages as M
 from harness.fixture import writers as W
 from harness.ingest import ingest_session, load_frames
 from harness.ingest.config import IngestConfig, SessionConfig
@@ -30,7 +31,7 @@ MOUNT = (0.5, -0.2, 1.0, math.radians(90))  # base_link -> camera_left: a side c
 def _transform(ts, t_us: int, parent: str, child: str, x: float, y: float, z: float, yaw: float):
     T = ts.types
     return T["geometry_msgs/msg/TransformStamped"](
-        header=W._header(ts, t_us, parent, False),
+        header=M._header(ts, t_us, parent, False),
         child_frame_id=child,
         transform=T["geometry_msgs/msg/Transform"](
             translation=T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
@@ -58,7 +59,7 @@ def write_robot_bag(
     """A ROS2 bag as a Nav2 robot records it: /tf holds map -> odom (2 Hz, from localization) and
     odom -> base_link (20 Hz, wheel odometry: x = s metres, yaw = 0.1 s radians at s seconds);
     /tf_static holds the camera mount; images at 5 Hz in frame ``camera_left``."""
-    ts = W.ROS2
+    ts = M.ROS2
     tf_t, tfs_t = f"{slash}tf", f"{slash}tf_static"
     img_t = f"{slash}camera_left/image_raw" + ("/compressed" if image_format else "")
     img_type = "sensor_msgs/msg/CompressedImage" if image_format else "sensor_msgs/msg/Image"
@@ -98,7 +99,7 @@ def write_robot_bag(
     for k in range(1, int(seconds * 5)):
         t = T0 + k * 200_000 + 30_000  # between odometry samples: interpolated
         if image_format:
-            msg = W.compressed_msg(
+            msg = M.compressed_msg(
                 ts,
                 t,
                 rgb,
@@ -106,7 +107,7 @@ def write_robot_bag(
             )
             msg.format = image_format
         else:
-            msg = W.image_msg(ts, t, rgb, "rgb8")
+            msg = M.image_msg(ts, t, rgb, "rgb8")
         msg.header.frame_id = "camera_left"
         msgs.append((t, img_t, msg))
     msgs.sort(key=lambda m: m[0])
@@ -426,7 +427,7 @@ def test_a_transform_that_is_all_nan_drops_its_frames_and_never_re_roots(tmp_pat
 
 
 def test_a_tf_loop_is_named_as_a_loop(tmp_path: Path) -> None:
-    ts = W.ROS2
+    ts = M.ROS2
     path = tmp_path / "loop"
     with Writer2(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
         tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=ts)
@@ -435,7 +436,7 @@ def test_a_tf_loop_is_named_as_a_loop(tmp_path: Path) -> None:
             t = T0 + k * 100_000
             loop = [_transform(ts, t, p, c, 0.0, 0.0, 0.0, 0.0) for p, c in ("ab", "bc", "ca")]
             w.write(tf, t * 1000, ts.serialize_cdr(_tf(ts, *loop), "tf2_msgs/msg/TFMessage"))
-            msg = W.image_msg(ts, t + 50_000, smooth_image(), "rgb8")
+            msg = M.image_msg(ts, t + 50_000, smooth_image(), "rgb8")
             msg.header.frame_id = "a"
             w.write(img, (t + 50_000) * 1000, ts.serialize_cdr(msg, "sensor_msgs/msg/Image"))
     with pytest.raises(
