@@ -43,6 +43,7 @@ TOLERANT = (
     "cache/frames/*/frames.parquet",
     "cache/pairs/*/pairs.parquet",
     "splits/summary.parquet",
+    "splits/season_pairs_stratified.parquet",
 )
 #: Relative and absolute tolerance of that comparison: a few hundred ulps of an AP near 1 or of a
 #: pose in metres, far below the two decimals any table prints.

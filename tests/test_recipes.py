@@ -283,7 +283,7 @@ def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registrie
     assert (tmp_path / "table1.csv").exists()
 
 
-def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch) -> None:
+def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, request) -> None:
     import base64
     import json
 
@@ -293,7 +293,8 @@ def test_recipe_a_toy_log_format(small_world: Path, tmp_path: Path, monkeypatch)
     from harness.ingest import ingest_session, log_types, logs
     from harness.ingest.config import IngestConfig, SessionConfig
 
-    monkeypatch.setattr(logs, "READERS", copy.copy(logs.READERS))  # undo after (a Registry still)
+    before = dict(logs.READERS)  # the registry itself, as the harness's modules hold it
+    request.addfinalizer(lambda: (logs.READERS.clear(), logs.READERS.update(before)))
     store = get_typestore(Stores.ROS2_HUMBLE)
     # --- the recipe: a reader (detect, topics, messages) registered under a name ---
 

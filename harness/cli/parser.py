@@ -202,7 +202,7 @@ def _add_detect(sub: Any) -> None:
         "--fusion",
         "--method",  # its name before issue 35's one vocabulary
         dest="fusion",
-        default="rank_fusion",
+        default=None,
         help="the fusion rule whose LoC finds the boxes (--method: its old name): rank_fusion, "
         "rank_fusion_le2, "
         "rank_fusion_le3, one of the field's rules rrf, combmnz, borda, isr (SPEC 14), or a method "
@@ -237,9 +237,11 @@ def _add_detect(sub: Any) -> None:
         help="the nominal false-alarm rate: boxes and frames whose calibrated score is at most "
         "it go to alarms.csv (default: [detect] alarm, 0.01)",
     )
-    p.add_argument("--nms-iou", type=float, default=0.5)
-    p.add_argument("--max-boxes", type=int, default=10, help="change boxes per frame at most")
-    p.add_argument("--top", type=int, default=10, help="most changed places shown")
+    p.add_argument("--nms-iou", type=float, help="the boxes' NMS IoU ([detect] nms_iou: 0.5)")
+    p.add_argument(
+        "--max-boxes", type=int, help="change boxes per frame at most ([detect] max_boxes: 10)"
+    )
+    p.add_argument("--top", type=int, help="most changed places shown ([detect] top: 10)")
     p.add_argument(
         "--rerun",
         metavar="OUT.rrd",

@@ -69,24 +69,18 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
-    """``harness detect``'s options: the flags as typed, ``[detect]`` where a flag is not given."""
-    from harness.detect.options import DetectOptions
-
-    return DetectOptions(
-        fusion=args.fusion,
-        nms_iou=args.nms_iou,
-        max_boxes=args.max_boxes,
-        top=args.top,
-        seed=cfg.fusion.seed,
-        boxes=args.boxes or cfg.detect.boxes,
-        box_score=args.box_score or cfg.detect.box_score,
-        locmap_level=cfg.detect.locmap_level,
-        min_box_side=cfg.detect.min_box_side,
-        segments=cfg.proposals.segments,
-        localizer=getattr(args, "localizer", None) or cfg.detect.localizer,
-        local=cfg.detect.local,
-        box_prior=getattr(args, "box_prior", None) or cfg.detect.box_prior,
-    )
+    """``harness detect``'s options: ``[detect]``, with each flag as typed in place of its key."""
+    typed = {
+        "fusion": args.fusion,
+        "nms_iou": args.nms_iou,
+        "max_boxes": args.max_boxes,
+        "top": args.top,
+        "boxes": args.boxes,
+        "box_score": args.box_score,
+        "localizer": getattr(args, "localizer", None),
+        "box_prior": getattr(args, "box_prior", None),
+    }
+    return dataclasses.replace(cfg.detect, **{k: v for k, v in typed.items() if v is not None})
 
 
 def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
@@ -181,7 +175,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from harness.runtime.executors import make_executor
 
     check_executor_flags(args)
-    if args.top < 0:
+    if args.top is not None and args.top < 0:
         raise HarnessError(f"--top {args.top}: must be >= 0 places")
     cfg, map_session, queries = detect_sessions(args)
     check_plugins_local(args)

@@ -14,11 +14,12 @@ import numpy as np
 import pandas as pd
 
 from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_prior
-from harness.detect.options import DetectOptions
+from harness.detect.config import DetectConfig
 from harness.fusion.config import FusionConfig
 from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image
 from harness.proposals.builtin import segment_boxes
+from harness.proposals.config import SegmentsConfig
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
 from harness.runtime.cache import (
     stable_hash,
@@ -57,7 +58,8 @@ def _frame_boxes_of(
     orig: np.ndarray,
     size: tuple[int, int],
     fk: tuple[str, str, int],
-    opt: DetectOptions,
+    opt: DetectConfig,
+    seed: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """One frame's candidate boxes and scores by ``opt.boxes``, kept by NMS, and the random row.
 
@@ -70,13 +72,13 @@ def _frame_boxes_of(
         boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
     elif opt.boxes == "subimages":  # each ranked subimage scored by its own r (SPEC 13.3)
         boxes, loc = orig[:, :4], orig[:, 4]
-        rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(len(boxes))
+        rnd = np.random.default_rng(int(stable_hash(seed, fk, length=8), 16)).random(len(boxes))
     else:
         boxes, loc = candidate_boxes(
             opt.boxes, fused, floc, orig, *size, opt.box_score, opt.locmap_level
         )
         # the random row: uniform scores on the same candidates, seeded by the frame
-        rnd = np.random.default_rng(int(stable_hash(opt.seed, fk, length=8), 16)).random(len(boxes))
+        rnd = np.random.default_rng(int(stable_hash(seed, fk, length=8), 16)).random(len(boxes))
     wide = np.minimum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) >= opt.min_box_side
     boxes, loc, rnd = boxes[wide], loc[wide], rnd[wide]
     if opt.box_prior == "area":
@@ -119,7 +121,7 @@ def _write_chunk(
 
 
 def _frame_boxes(
-    ranks: pd.DataFrame, frames: pd.DataFrame, opt: DetectOptions
+    ranks: pd.DataFrame, frames: pd.DataFrame, opt: DetectConfig, segments: SegmentsConfig
 ) -> dict[tuple[str, str, int], np.ndarray]:
     """Each query frame's boxes for the ``proposals`` or ``segments`` generator.
 
@@ -141,21 +143,23 @@ def _frame_boxes(
     if opt.boxes == "segments":
         images = frames.set_index(FRAME_KEY)["image"]
         for k in out:
-            out[k] = segment_boxes(read_image(images.loc[k]), opt.segments)[0]
+            out[k] = segment_boxes(read_image(images.loc[k]), segments)[0]
     return out
 
 
 def detect_chunk(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
-    opt: DetectOptions,
+    opt: DetectConfig,
     fusion: FusionConfig,
+    segments: SegmentsConfig,
     tmp: Path,
 ) -> dict[str, int]:
     """Fusion, change boxes and frame scores of one chunk of query frames into ``tmp``.
 
-    ``fusion``: the config's ``[fusion]`` (the cap on fused boxes, RRF's constant, a registered
-    rule's options); the rule and seed are ``opt``'s.
+    ``opt``: the run's ``[detect]`` (its rule among them); ``fusion``: the config's ``[fusion]``
+    (the seed, the cap on fused boxes, RRF's constant, a registered rule's options);
+    ``segments``: ``[proposals.segments]``, the colour regions of the ``segments`` generator.
 
     ``boxes.parquet``: every change box (frame key, rank within the frame, box, LoC);
     ``frames.parquet``: one row per frame (key, map frame, score, boxes, samples); and, for the
@@ -167,18 +171,19 @@ def detect_chunk(
         ranks,
         frames,
         ann,
-        dataclasses.replace(fusion, methods=(opt.fusion, "random"), seed=opt.seed),
+        dataclasses.replace(fusion, methods=(opt.fusion, "random")),
         progress=partial(progress, desc="detect", unit="frame"),
     )
     samples = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.fusion}"
     size = frame_sizes(frames)
-    orig = _frame_boxes(ranks, frames, opt)
+    orig = _frame_boxes(ranks, frames, opt, segments)
     rows, frow, cand_parts, thin = [], [], [], 0
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
         floc = g[col].to_numpy(np.float64)
-        boxes, loc, keep, rand, rnd, n_thin = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt)
+        found = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt, fusion.seed)
+        boxes, loc, keep, rand, rnd, n_thin = found
         thin += n_thin
         for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
             for j, i in enumerate(idx):

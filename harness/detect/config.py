@@ -2,16 +2,36 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 from harness.checks import check_value
-from harness.localizers.config import LocalConfig, check_local
-from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, DETECT_LOCALIZERS
+from harness.localizers.config import LocalConfig, LocalizerConfig, check_local
+from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, DETECT_LOCALIZERS, rules_where
+
+#: The proposal method ``harness detect``'s local localizer ranks: the frame's colour regions,
+#: which meet most change objects (docs/method.md, *Detect*).
+LOCAL_PROPOSALS = "segments"
 
 
 @dataclass(frozen=True)
 class DetectConfig:
-    """``[detect]``: how ``harness detect`` turns LoC into change boxes (SPEC 13.1)."""
+    """``[detect]``: how ``harness detect`` turns LoC into change boxes (SPEC 13.1).
+
+    The one options record of ``harness detect``: its flags, as typed, replace these fields for a
+    run (``harness.cli.runs.detect_options``), and the run reads nothing else.
+    """
+
+    # the fusion rule whose LoC scores the boxes (one with detect = true; --fusion)
+    fusion: str = "rank_fusion"
+    # the boxes' NMS: the IoU above which the lower-scored box goes, and the boxes kept per frame
+    nms_iou: float = 0.5
+    max_boxes: int = 10
+    # query frames per cached unit (the unit a killed run resumes at)
+    chunk_frames: int = 64
+    # the most changed places shown on the map and the page (--top)
+    top: int = 10
 
     # the box generator: "subimages" (the ranked subimages, each scored by its own r: with the
     # local localizer, the frame's colour regions, SPEC 13.3), "fused" (the fused qBBs, SPEC 13),
@@ -39,10 +59,41 @@ class DetectConfig:
     # the local localizer's options (harness.localizers.local.LocalConfig)
     local: LocalConfig = field(default_factory=LocalConfig)
 
+    def record(self, seed: int, segments: Any) -> dict[str, Any]:
+        """What ``detect.json`` and the chunks' cache keys hold of a run's options.
+
+        ``seed`` (``[fusion] seed``) draws the random baseline; ``segments``
+        (``[proposals.segments]``) is there where the boxes or the local localizer read the colour
+        regions; ``local`` and ``localizer`` only with the local localizer (the paper's detector:
+        its record as before); ``alarm`` is not (the alarms are drawn after the chunks).
+        """
+        mine = dataclasses.asdict(self)
+        out: dict[str, Any] = {k: mine[k] for k in ("fusion", "nms_iou", "max_boxes")}
+        out |= {"chunk_frames": self.chunk_frames, "top": self.top, "seed": seed}
+        out |= {k: mine[k] for k in ("boxes", "box_score", "locmap_level", "min_box_side")}
+        if self.boxes == "segments" or self.localizer == "local":
+            out["segments"] = dataclasses.asdict(segments)
+        out |= {"localizer": self.localizer, "box_prior": self.box_prior, "local": mine["local"]}
+        if self.localizer != "local":
+            del out["local"], out["localizer"]
+        return out
+
+    def local_localizer(self) -> LocalizerConfig | None:
+        """The local localizer ``localizer = "local"`` measures (None: the config's)."""
+        if self.localizer != "local":
+            return None
+        return LocalizerConfig("local", "local", (LOCAL_PROPOSALS,), self.local)
+
 
 def check_detect(dt: DetectConfig, where: str) -> None:
     """``[detect]`` (SPEC 13.1)."""
     c = check_value
+    detect_rules = rules_where(detect=True)
+    c(dt.fusion in detect_rules, where, "[detect] fusion", dt.fusion, ", ".join(detect_rules))
+    c(0 < dt.nms_iou <= 1, where, "[detect] nms_iou", dt.nms_iou, "(0, 1]")
+    c(dt.max_boxes >= 1, where, "[detect] max_boxes", dt.max_boxes, ">= 1 per frame")
+    c(dt.chunk_frames >= 1, where, "[detect] chunk_frames", dt.chunk_frames, ">= 1")
+    c(dt.top >= 0, where, "[detect] top", dt.top, ">= 0 places")
     c(
         dt.boxes in BOX_GENERATORS,
         where,

@@ -230,7 +230,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
         "queries": queries,
         "localizers": run.localizers,
         "fused_across": ALL_LOCALIZERS if len(run.localizers) > 1 else None,
-        "options": opt.record(),
+        "options": opt.record(cfg.fusion.seed, cfg.proposals.segments),
         "query_frames": len(fr),
         # SPEC 13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
         "uncertain_pairs": int((~sure).sum()),

@@ -27,7 +27,6 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.detect.options import DetectOptions
 from harness.errors import ConfigError
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
@@ -241,9 +240,12 @@ def write_rerun(
     fr: pd.DataFrame,
     dets: pd.DataFrame,
     entries: list[Any],
-    opt: DetectOptions,
+    options: dict[str, Any],
 ) -> dict[str, Any]:
-    """The run's Rerun recording at ``path``, written beside it and moved into place whole."""
+    """The run's Rerun recording at ``path``, written beside it and moved into place whole.
+
+    ``options``: the run's options as ``detect.json`` records them (they name the recording).
+    """
     check_rerun_target(path)
     fr = fr.merge(frames[[*FRAME_KEY, "x", "y", "image"]], on=FRAME_KEY)
     tmp = path.with_name(f".{path.name}.partial")
@@ -255,7 +257,7 @@ def write_rerun(
             fr,
             dets,
             entries,
-            recording_id(out, opt.record()),
+            recording_id(out, options),
         )
         os.replace(tmp, path)
     finally:

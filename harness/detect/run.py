@@ -34,7 +34,8 @@ from harness import kernels
 from harness.config.plugins import plugin_record
 from harness.config.schema import Config
 from harness.detect.chunk import detect_chunk
-from harness.detect.options import LOCAL_PROPOSALS, DetectOptions, DetectRun
+from harness.detect.config import LOCAL_PROPOSALS, DetectConfig
+from harness.detect.options import DetectRun
 from harness.detect.outputs import write_outputs
 from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
@@ -63,7 +64,7 @@ def check_detect_args(
     cfg: Config,
     map_session: str,
     query_sessions: list[str],
-    opt: DetectOptions,
+    opt: DetectConfig,
     rerun: Path | None,
     alarm: float | None,
 ) -> float:
@@ -86,7 +87,7 @@ def check_detect_args(
         raise ConfigError(f"detect: method {opt.fusion!r}: one of {', '.join(detect_methods())}")
     if rerun is not None:
         check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
-    alarm = cfg.detect.alarm if alarm is None else alarm
+    alarm = opt.alarm if alarm is None else alarm
     if not 0 < alarm < 1:
         raise ConfigError(f"detect: --alarm {alarm}: a false-alarm rate in (0, 1), e.g. 0.01")
     if opt.boxes not in BOX_GENERATORS:
@@ -127,7 +128,7 @@ def _measure(
 
 
 def _detect_config(
-    cfg: Config, map_session: str, query_sessions: list[str], opt: DetectOptions
+    cfg: Config, map_session: str, query_sessions: list[str], opt: DetectConfig
 ) -> Config:
     """The config ``detect`` runs: its sessions, every query frame, and the local proposals."""
     keep = [s for s in cfg.sessions if s.name in (map_session, *query_sessions)]
@@ -138,7 +139,7 @@ def _detect_config(
         methods = (*cfg.proposals.methods, LOCAL_PROPOSALS)
         dcfg = dataclasses.replace(
             dcfg,
-            proposals=dataclasses.replace(cfg.proposals, methods=methods, segments=opt.segments),
+            proposals=dataclasses.replace(cfg.proposals, methods=methods),
             # the config's localizers (pairs by retrieval or sequence) keep their own proposals
             localizers=cfg.localizer_set(),
         )
@@ -146,7 +147,7 @@ def _detect_config(
 
 
 def _chunk_units(
-    ranks: Any, frames: pd.DataFrame, opt: DetectOptions, dcfg: Config
+    ranks: Any, frames: pd.DataFrame, opt: DetectConfig, dcfg: Config
 ) -> list[tuple[tuple[Any, ...], Any]]:
     """(cache key, build) of each chunk of ``opt.chunk_frames`` query frames.
 
@@ -157,14 +158,14 @@ def _chunk_units(
     for c0 in range(0, len(qframes), opt.chunk_frames):
         part = qframes.iloc[c0 : c0 + opt.chunk_frames]
         mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(pd.MultiIndex.from_frame(part))
-        build = partial(
-            detect_chunk, ranks.df[mask].reset_index(drop=True), frames, opt, dcfg.fusion
-        )
+        chunk = ranks.df[mask].reset_index(drop=True)
+        segments = dcfg.proposals.segments
+        build = partial(detect_chunk, chunk, frames, opt, dcfg.fusion, segments)
         rule_options = dcfg.fusion.options_of(opt.fusion)
         key = (
             "detect",
             ranks.key,
-            opt.record() | {"chunk_frames": None},
+            opt.record(dcfg.fusion.seed, dcfg.proposals.segments) | {"chunk_frames": None},
             c0,
             len(part),
             keys.fusion_method_fingerprints((opt.fusion,)),
@@ -180,7 +181,7 @@ def run_detect(
     map_session: str,
     query_sessions: list[str],
     out: Path,
-    opt: DetectOptions | None = None,
+    opt: DetectConfig | None = None,
     executor: Any = None,
     rerun: Path | None = None,
     alarm: float | None = None,
@@ -192,7 +193,7 @@ def run_detect(
     Raises:
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
-    opt = opt or DetectOptions()
+    opt = opt or cfg.detect
     alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
     dcfg = _detect_config(cfg, map_session, query_sessions, opt)
     t0 = time.perf_counter()
@@ -231,7 +232,7 @@ def run_detect(
             record["plugins"] = plugin_record()
         if rerun is not None:
             record["rerun"] = write_rerun(
-                Path(rerun), p.out, frames.df, map_session, fr, dets, entries, opt
+                Path(rerun), p.out, frames.df, map_session, fr, dets, entries, record["options"]
             )
         if p.pairing:
             record["pairing"] = p.pairing

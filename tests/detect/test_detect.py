@@ -319,7 +319,7 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
     shutil.copytree(a / "cache", o / "cache", ignore=shutil.ignore_patterns("detect"))
     shutil.copy(a / ".dbl-harness.json", o / ".dbl-harness.json")
     cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
-    opt = detect.DetectOptions(chunk_frames=16)
+    opt = detect.DetectConfig(chunk_frames=16)
     real, calls = detect.detect_chunk, {"n": 0}
 
     def dying(*args: object, **kw: object) -> dict[str, int]:

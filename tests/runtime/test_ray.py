@@ -172,14 +172,14 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
     """``harness detect --executor ray``: the detect chunks (and the stages) run on Ray workers."""
 
     from harness.config.load import load_config
-    from harness.detect.options import DetectOptions
+    from harness.detect.config import DetectConfig
     from harness.detect.run import run_detect
 
     from ..conftest import ROOT
 
     p, _, out = local_run
     cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
-    opt = DetectOptions(chunk_frames=16)  # four chunks: four units mapped over the workers
+    opt = DetectConfig(chunk_frames=16)  # four chunks: four units mapped over the workers
     runs = {}
     local, ray_out = tmp_path / "local", tmp_path / "ray"
     shutil.copytree(out / "cache" / "ingest", local / "cache" / "ingest")
