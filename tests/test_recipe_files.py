@@ -11,6 +11,7 @@ differ from the package (at most two each).
 
 from __future__ import annotations
 
+import ast
 import filecmp
 import json
 import os
@@ -18,7 +19,6 @@ import re
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +112,7 @@ def test_four_methods_through_the_users_door_one_file_each(
     t1 = pd.read_csv(out / "table1.csv")
     assert t1["fusion"].tolist() == ["rank_fusion", "kth_rank"]
     assert "k-th best rank" in (out / "table1.md").read_text()
+    assert "k-th best rank" in (out / "report.html").read_text()  # through to the last output
     s = pd.read_parquet(out / "cache" / "samples" / rec["keys"]["samples"] / "samples.parquet")
     s = s[(s["proposal_method"] == "all") & (s["N"] >= 3)].iloc[0]
     img = ranks[
@@ -122,6 +123,22 @@ def test_four_methods_through_the_users_door_one_file_each(
     covers = (img["x1"] <= s.x1) & (img["y1"] <= s.y1) & (img["x2"] >= s.x2) & (img["y2"] >= s.y2)
     inv = sorted((int(L) / (int(L) + 1 - int(k)) for k, L in img.loc[covers, ["rank", "L"]].values))
     assert covers.sum() == s.N and np.isclose(s.loc_kth_rank, inv[-3])  # k = 3, not the default
+
+
+def _example(name: str, *defs: str) -> str:
+    """The source of the top-level definitions ``defs`` of ``examples/plugins/<name>``: a
+    built-in is the user's code, put where the harness keeps its own, with the registration the
+    harness uses there (written once, in the example)."""
+    src = (PLUGINS / name).read_text()
+    lines = src.splitlines(keepends=True)
+    spans = {}
+    for n in ast.parse(src).body:
+        if isinstance(n, ast.ClassDef | ast.FunctionDef):
+            start = min([d.lineno for d in n.decorator_list] + [n.lineno])
+            spans[n.name] = (start, n.end_lineno)
+        elif isinstance(n, ast.Assign) and isinstance(n.targets[0], ast.Name):
+            spans[n.targets[0].id] = (n.lineno, n.end_lineno)
+    return "".join("\n\n" + "".join(lines[spans[d][0] - 1 : spans[d][1]]) for d in defs)
 
 
 #: The harness's own recipe for each method (docs/architecture.md, *Where to add*): the files of
@@ -135,125 +152,32 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
             )
         ],
         "fusion/rules.py": [
-            (
-                "",
-                textwrap.dedent(
-                    '''
-
-                    @dataclasses.dataclass(frozen=True)
-                    class KthRank:
-                        """``[fusion.kth_rank]``."""
-
-                        k: int = 2
-
-
-                    FUSION_OPTIONS.add("kth_rank", KthRank)
-
-
-                    @rule("kth_rank")
-                    def kth_rank(cover, r, d, L, *, options):
-                        """The k-th largest 1/r' among the boxes covering a sample."""
-                        inv = np.where(cover, r_desc_of(r, L)[None, :] ** -1, 0.0)
-                        k = min(options.k, cover.shape[1])
-                        return -np.sort(-inv, axis=1)[:, k - 1]
-                    '''
-                ),
-            ),
-            (
-                "from harness.methods import FUSION_RULES,",
-                " FUSION_OPTIONS,",
-            ),
+            ("", _example("kth_rank.py", "KthRank", "kth_rank")),
+            ("", '\n\nFUSION_OPTIONS.add("kth_rank", KthRank)\nrule("kth_rank")(kth_rank)\n'),
+            ("import dataclasses\n", "from dataclasses import dataclass\n"),
+            ("from harness.methods import FUSION_RULES,", " FUSION_OPTIONS,"),
         ],
     },
     "proposer with an option": {
-        "methods.py": [
-            (
-                '    Proposer("segments"),\n',
-                '    Proposer("centre"),\n',
-            )
-        ],
+        "methods.py": [('    Proposer("segments"),\n', '    Proposer("centre"),\n')],
         "proposals/builtin.py": [
-            (
-                "",
-                textwrap.dedent(
-                    '''
-
-                    @dataclasses.dataclass(frozen=True)
-                    class Centre:
-                        """``[proposals.centre]``."""
-
-                        frac: float = 0.25
-
-
-                    PROPOSER_OPTIONS.add("centre", Centre)
-
-
-                    @proposer("centre")
-                    def centre_proposer(rgb, cfg):
-                        """One box, the image's central share ``frac``."""
-                        h, w = rgb.shape[:2]
-                        f = cfg.options_of("centre").frac
-                        box = [w * (1 - f) / 2, h * (1 - f) / 2, w * (1 + f) / 2, h * (1 + f) / 2]
-                        return np.array([box]), np.ones(1)
-                    '''
-                ),
-            ),
-            ("from __future__ import annotations\n", "import dataclasses\n"),
+            ("", _example("centre.py", "Centre", "centre")),
+            ("", '\n\nPROPOSER_OPTIONS.add("centre", Centre)\nproposer("centre")(centre)\n'),
+            ("from __future__ import annotations\n", "from dataclasses import dataclass\n"),
             ("from harness.methods import proposer", ", PROPOSER_OPTIONS"),
         ],
     },
     "localizer kind that caches": {
         "localizers/kinds.py": [
-            (
-                "from harness.methods import Registry\n",
-                textwrap.dedent(
-                    '''
-
-                    @dataclass(frozen=True)
-                    class Colour:
-                        """A ``colour`` localizer's table."""
-
-                        bins: int = 4
-                    '''
-                ),
-            ),
+            ("from harness.methods import Registry\n", _example("colour.py", "Colour")),
             (
                 '    LocalizerKind("local", LocalConfig, _local),\n',
                 '    LocalizerKind("colour", Colour),\n',
             ),
         ],
         "pipeline/localizer_stages.py": [
-            (
-                "",
-                textwrap.dedent(
-                    '''
-
-                    def _colour(bins, rows, frames, tmp):
-                        """Each subimage's square-rooted RGB histogram into ``tmp``."""
-                        uris = rows.merge(frames[[*FRAME_KEY, "image"]], on=FRAME_KEY)["image"]
-                        out = []
-                        for r, uri in zip(rows.itertuples(), uris, strict=True):
-                            crop = read_image(uri)[int(r.y1) : int(r.y2), int(r.x1) : int(r.x2)]
-                            h = cv2.calcHist([crop], [0, 1, 2], None, [bins] * 3, [0, 256] * 3)
-                            out.append(np.sqrt(h.ravel() / max(h.sum(), 1.0)))
-                        desc = np.asarray(out, np.float32).reshape(len(rows), bins**3)
-                        np.save(tmp / "desc.npy", desc)
-                        write_parquet(tmp / "index.parquet", rows)
-                        return {}
-
-
-                    @kind_ranks("colour")
-                    def colour_kind_ranks(p, loc, f, pairs, props, rc):
-                        """Each subimage's RGB histogram, cached per session, ranked."""
-                        bins = loc.options.bins
-                        described = {
-                            s: p.unit("colour", (bins, t.key), partial(_colour, bins, t.df, f.df))
-                            for s, t in props.items()
-                        }
-                        return query_ranks(p, f, pairs, described, rc)
-                    '''
-                ),
-            ),
+            ("", _example("colour.py", "describe", "colour_ranks")),
+            ("", '\n\nkind_ranks("colour")(colour_ranks)\n'),
             ("import numpy as np\n", "import cv2\n"),
             (
                 "from harness.errors import ConfigError\n",
@@ -267,22 +191,9 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
         ],
     },
     "log format": {
-        "ingest/cdrl_log.py": textwrap.dedent(
-            '''
-            """JSON lines, one {topic, type, t_ns, cdr} record per message."""
-
-
-            class CdrLines:
-                def detect(self, path):
-                    return path.suffix == ".cdrl"
-
-                def topics(self, path):
-                    return {}
-
-                def messages(self, path, topics):
-                    return iter(())
-            '''
-        ).lstrip(),
+        "ingest/cdrl_log.py": '"""JSON lines of CDR messages (examples/plugins/cdrl.py)."""\n\n'
+        "import base64\nimport json\n\nfrom rosbags.typesys import Stores, get_typestore\n\n"
+        "from harness.ingest.log_types import Message\n" + _example("cdrl.py", "STORE", "CdrLines"),
         "ingest/logs.py": [
             (
                 "from harness.ingest.rosbags_log import RosbagsLog\n",

@@ -718,6 +718,36 @@ def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) ->
     assert (opt.boxes, opt.box_score, opt.locmap_level) == ("locmap", "mean", 0.3)
     opt = detect_options(build_parser().parse_args([*base, "--boxes", "proposals"]), cfg)
     assert opt.boxes == "proposals"
+    # the flags' keys too (issue 51: one options record): the table's value, or the flag typed
+    (tmp_path / "c.toml").write_text(
+        text + '\n[detect]\nfusion = "rrf"\nnms_iou = 0.3\nmax_boxes = 4\ntop = 2\n'
+    )
+    cfg = load_config(tmp_path / "c.toml")
+    opt = detect_options(build_parser().parse_args(base), cfg)
+    assert (opt.fusion, opt.nms_iou, opt.max_boxes, opt.top) == ("rrf", 0.3, 4, 2)
+    typed = [*base, "--fusion", "borda", "--nms-iou", "0.6", "--max-boxes", "7", "--top", "0"]
+    opt = detect_options(build_parser().parse_args(typed), cfg)
+    assert (opt.fusion, opt.nms_iou, opt.max_boxes, opt.top) == ("borda", 0.6, 7, 0)
+
+
+@pytest.mark.parametrize(
+    ("key", "says"),
+    [
+        ('fusion = "score_max"', "[detect] fusion = 'score_max' is out of range"),
+        ("nms_iou = 0", "[detect] nms_iou = 0.0 is out of range; allowed: (0, 1]"),
+        ("max_boxes = 0", "[detect] max_boxes = 0"),
+        ("top = -1", "[detect] top = -1"),
+        ("chunk_frames = 0", "[detect] chunk_frames = 0"),
+    ],
+)
+def test_a_bad_detect_key_is_one_error_at_load(tmp_path: Path, key: str, says: str) -> None:
+    from harness.config.load import load_config
+    from harness.errors import ConfigError
+
+    text = (ROOT / "datasets" / "fixture.toml").read_text()
+    (tmp_path / "c.toml").write_text(text + f"\n[detect]\n{key}\n")
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        load_config(tmp_path / "c.toml")
 
 
 def test_a_registered_fusion_method_is_usable_by_detect(
