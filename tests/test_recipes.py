@@ -153,14 +153,13 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
     assert np.allclose(got[["y1", "y2"]], np.c_[got["height"] / 4, 3 * got["height"] / 4])
     # another value of the option: another proposals key (and nothing else of the config)
     other = dataclasses.replace(cfg.proposals, options={"centre": CentreOptions(0.75)})
-    from harness.pipeline import keys
+    from harness.proposals import keys as proposal_keys
 
-    k = [
-        keys.proposals(dataclasses.replace(cfg, proposals=x), "i", [])
-        for x in (cfg.proposals, other)
-    ]
+    k = [proposal_keys.proposals(x, "i", []) for x in (cfg.proposals, other)]
     assert k[0] != k[1] and k[0][2]["options"] == {"centre": {"frac": 0.5}}
-    assert "options" not in keys.proposals(p.cfg, "i", [])[2]  # no table: the key of before
+    assert (
+        "options" not in proposal_keys.proposals(p.cfg.proposals, "i", [])[2]
+    )  # no table: the key of before
     ranks = pd.read_parquet(tmp_path / "ranks.parquet")
     assert set(ranks["proposal_method"]) == {"grid5", "centre"}  # its own rank engine
     loc = pd.read_csv(tmp_path / "localization.csv")

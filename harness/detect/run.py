@@ -33,6 +33,7 @@ import pandas as pd
 from harness import kernels
 from harness.config.plugins import plugin_record
 from harness.config.schema import Config
+from harness.detect import keys as detect_keys
 from harness.detect.chunk import detect_chunk
 from harness.detect.config import LOCAL_PROPOSALS, DetectConfig
 from harness.detect.options import DetectRun
@@ -41,8 +42,8 @@ from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
 from harness.localizers.config import LocalizerConfig
 from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
+from harness.pairs import keys as pair_keys
 from harness.pairs.build import BY_RETRIEVAL
-from harness.pipeline import keys
 from harness.pipeline.across import across_localizers, localizer_fusion
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
 from harness.pipeline.context import Table
@@ -51,7 +52,6 @@ from harness.pipeline.stages import session_proposals
 from harness.records import QUERY_KEY
 from harness.runtime.cache import (
     read_cached_parquet,
-    stable_hash,
     write_json,
     write_text,
 )
@@ -161,17 +161,8 @@ def _chunk_units(
         chunk = ranks.df[mask].reset_index(drop=True)
         segments = dcfg.proposals.segments
         build = partial(detect_chunk, chunk, frames, opt, dcfg.fusion, segments)
-        rule_options = dcfg.fusion.options_of(opt.fusion)
-        key = (
-            "detect",
-            ranks.key,
-            opt.record(dcfg.fusion.seed, dcfg.proposals.segments) | {"chunk_frames": None},
-            c0,
-            len(part),
-            keys.fusion_method_fingerprints((opt.fusion,)),
-            *((dcfg.fusion.rrf_c,) if opt.fusion == "rrf" else ()),
-            *((dataclasses.asdict(rule_options),) if rule_options is not None else ()),
-        )
+        record = opt.record(dcfg.fusion.seed, segments)
+        key = detect_keys.detect_chunk(ranks.key, record, c0, len(part), dcfg.fusion, opt.fusion)
         chunk_units.append((key, build))
     return chunk_units
 
@@ -296,7 +287,7 @@ def detect_pairs(
     )
     pairs = Table(
         pairs_all.df[sel].reset_index(drop=True),
-        stable_hash("detect-pairs", pairs_all.key, map_session, sorted(query_sessions)),
+        pair_keys.selected("detect-pairs", pairs_all.key, map_session, query_sessions),
     )
     if not len(pairs.df):
         raise HarnessError(

@@ -14,13 +14,13 @@ import pandas as pd
 
 from harness.errors import RetrievalError
 from harness.fusion.config import FusionConfig
+from harness.localizers import keys as localizer_keys
 from harness.localizers.config import LocalizerConfig
 from harness.methods import rules_where
 from harness.pipeline.context import Context, RankTable, Table
 from harness.pipeline.localizer_stages import Measured
 from harness.pipeline.rank_stages import concat_ranks
 from harness.records import IMAGE_KEY
-from harness.runtime.cache import stable_hash
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ def common_images(p: Context, measured: list[Measured], pairs: Table) -> str | N
         if not sel.all():
             m.ranks = RankTable(
                 df[sel].reset_index(drop=True),
-                stable_hash("common-images", m.ranks.key, int((~sel).sum())),
+                localizer_keys.common_images(m.ranks.key, int((~sel).sum())),
                 m.ranks.counts,
             )
     return (
@@ -138,4 +138,4 @@ def across_localizers(measured: list[Measured]) -> RankTable:
         for m in measured
     ]
     df = concat_ranks(parts)
-    return RankTable(df, stable_hash("all-localizers", [m.ranks.key for m in measured]), {})
+    return RankTable(df, localizer_keys.all_localizers([m.ranks.key for m in measured]), {})

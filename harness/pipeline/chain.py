@@ -24,6 +24,7 @@ from harness.config.schema import Config
 from harness.errors import ConfigError, HarnessError, RetrievalError
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.methods import ordered_methods, rules_where
+from harness.pairs import keys as pair_keys
 from harness.pairs.build import BY_RETRIEVAL, DECLARED, build_pairs
 from harness.pipeline.across import across_localizers, common_images, localizer_fusion
 from harness.pipeline.context import Context, Entry, Table
@@ -50,7 +51,7 @@ from harness.reports.blocks import Block
 from harness.reports.html.page import write_html_report
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.pairing import pose_agreement
-from harness.runtime.cache import stable_hash, write_json
+from harness.runtime.cache import write_json
 from harness.runtime.executors import LocalExecutor
 from harness.runtime.outdirs import read_run_record
 
@@ -160,7 +161,7 @@ def pairs_by_retrieval(
         sel = (cand.df["r_session"] == detect[0]) & cand.df["q_session"].isin(detect[1])
         cand = Table(
             cand.df[sel].reset_index(drop=True),
-            stable_hash("detect-candidates", cand.key, detect[0], sorted(detect[1])),
+            pair_keys.selected("detect-candidates", cand.key, detect[0], detect[1]),
         )
     if check:
         check_inputs(p, ann, cand)

@@ -19,10 +19,10 @@ import pandas as pd
 
 from harness.errors import ConfigError
 from harness.fusion.config import FusionConfig
+from harness.localizers import keys as localizer_keys
 from harness.localizers.config import LocalizerConfig
 from harness.localizers.kinds import LOCALIZER_KINDS
 from harness.localizers.local import write_local_ranks
-from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.pipeline.rank_stages import concat_ranks, imported_ranks, query_ranks
 from harness.pipeline.stages import (
@@ -31,11 +31,13 @@ from harness.pipeline.stages import (
     retrieval_pair_table,
     session_descriptors,
 )
+from harness.proposals import keys as proposal_keys
 from harness.records import QUERY_KEY
+from harness.retrieval import keys as retrieval_keys
 from harness.retrieval.bovw import combine_word_shards, encode_words, train_vocabulary
 from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
-from harness.runtime.cache import read_cached_parquet, stable_hash
+from harness.runtime.cache import read_cached_parquet
 from harness.runtime.costs import localizer_costs
 
 log = logging.getLogger(__name__)
@@ -80,7 +82,7 @@ def localizer_proposals(
     return {
         s: Table(
             t.df[t.df["proposal_method"].isin(loc.proposals)].reset_index(drop=True),
-            keys.subset(t.key, loc.proposals),
+            proposal_keys.subset(t.key, loc.proposals),
         )
         for s, t in props.items()
     }
@@ -94,7 +96,7 @@ def bovw_vocabulary(
     refs = sorted(set(pairs.df["r_session"]))
     rows = pd.concat([props[s].df for s in refs], ignore_index=True)
     build = partial(train_vocabulary, bc, frames.df, rows)
-    return p.unit("bovw_vocab", keys.bovw_vocab(bc, [props[s].key for s in refs]), build)
+    return p.unit("bovw_vocab", retrieval_keys.bovw_vocab(bc, [props[s].key for s in refs]), build)
 
 
 def bovw_words(
@@ -111,11 +113,11 @@ def bovw_words(
         fr = frames.df[frames.df["session"] == s]
         mine = rows.reset_index(drop=True)
         build = partial(encode_words, bc, vocab.path, fr, mine, f"{loc.name} {label}")
-        return keys.bovw_shard(vocab.key, props[s].key, ut), build
+        return retrieval_keys.bovw_shard(vocab.key, props[s].key, ut), build
 
     def combine(s: str, parts: list[Entry]) -> tuple[Any, Build]:
         build = partial(combine_word_shards, [e.path for e in parts])
-        return keys.bovw_words(vocab.key, props[s].key, [e.key for e in parts]), build
+        return retrieval_keys.bovw_words(vocab.key, props[s].key, [e.key for e in parts]), build
 
     out, done = p.sharded(("bovw_shards", "bovw_words"), props, bc.shard_frames, shard, combine)
     nofeat = sum(
@@ -225,7 +227,7 @@ def local_kind_ranks(
             on=["session", "camera", "utime"],
         )
         build = partial(write_local_ranks, lc, chunk, frames.df, sel)
-        units.append((keys.local_ranks(lc, pairs.key, pkeys, c0, len(chunk)), build))
+        units.append((localizer_keys.local_ranks(lc, pairs.key, pkeys, c0, len(chunk)), build))
     parts, aligns = [], []
     counts: dict[str, int] = {}
     for entry in p.units("ranks", units):
@@ -234,7 +236,7 @@ def local_kind_ranks(
         for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
             counts[k] = counts.get(k, 0) + v
     alignment = pd.concat(aligns, ignore_index=True) if aligns else pd.DataFrame()
-    key = stable_hash("local", *[u[0] for u in units])
+    key = localizer_keys.local_ranks_table([u[0] for u in units])
     return RankTable(concat_ranks(parts), key, {"local": counts}, alignment)
 
 

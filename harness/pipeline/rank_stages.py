@@ -12,9 +12,9 @@ from typing import Any
 import pandas as pd
 
 from harness.errors import RetrievalError
-from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
 from harness.records import SUBIMAGE_KEY
+from harness.retrieval import keys as retrieval_keys
 from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.imported import unranked_images, write_imported_ranks
@@ -75,7 +75,7 @@ def query_ranks(
                 precision,
             )
             build = partial(_write_ranks, settings, chunk, ref, paths, frames.df)
-            key = keys.ranks_unit(rc, ref, pairs.key, dkeys, c0, len(chunk), precision)
+            key = retrieval_keys.ranks_unit(rc, ref, pairs.key, dkeys, c0, len(chunk), precision)
             units.append((key, build))
             unit_ref.append(ref)
     parts: list[pd.DataFrame] = []
@@ -86,7 +86,9 @@ def query_ranks(
         for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
             c[k] = c.get(k, 0) + v
     df = concat_ranks(parts)
-    return RankTable(df, stable_hash(*keys.ranks(rc, pairs.key, dkeys, precision)), counts)
+    return RankTable(
+        df, stable_hash(*retrieval_keys.ranks(rc, pairs.key, dkeys, precision)), counts
+    )
 
 
 SORT_RANKS = SUBIMAGE_KEY
@@ -142,9 +144,10 @@ def imported_ranks(
         p.cfg.pairs.max_yaw_diff_deg,
         score_kind,
     )
-    key = keys.ranks_import(
-        p.cfg,
+    key = retrieval_keys.ranks_import(
         rc,
+        p.cfg.import_,
+        p.cfg.pairs.max_yaw_diff_deg,
         spec.name,
         content_sha(spec.path),
         pairs.key,

@@ -8,7 +8,6 @@ module-level function of the stage's module, bound with :func:`functools.partial
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from functools import partial
@@ -18,6 +17,7 @@ from typing import Any
 import pandas as pd
 
 from harness.config.schema import Config
+from harness.descriptors import keys as descriptor_keys
 from harness.descriptors import make_descriptor
 from harness.descriptors.config import DescriptorConfig
 from harness.descriptors.extract import (
@@ -27,17 +27,20 @@ from harness.descriptors.extract import (
     train_model,
 )
 from harness.errors import AnnotationError, ConfigError
+from harness.fusion import keys as fusion_keys
 from harness.fusion.config import FusionConfig
 from harness.fusion.samples import write_samples
 from harness.imagestore import local_uri
 from harness.ingest import combine_frames, ingest_session
+from harness.ingest import keys as ingest_keys
 from harness.ingest.annotations import COLUMNS, load_annotations
 from harness.ingest.annotations import validate as validate_annotations
-from harness.ingest.masks import folder_digest, read_masks
+from harness.ingest.masks import read_masks
 from harness.ingest.names import frames_by_image, session_names
+from harness.pairs import keys as pair_keys
 from harness.pairs.build import DECLARED, candidate_pairs, write_pairs
-from harness.pipeline import keys
 from harness.pipeline.context import Build, Context, Entry, RankTable, Table
+from harness.proposals import keys as proposal_keys
 from harness.proposals.proposers import write_proposals
 from harness.records import FRAME_KEY
 from harness.reports.blocks import Block, Reports
@@ -47,7 +50,6 @@ from harness.retrieval.pairing import write_retrieval_pairs
 from harness.runtime.cache import (
     content_sha,
     read_cached_parquet,
-    stable_hash,
 )
 from harness.runtime.progress import progress
 
@@ -59,7 +61,11 @@ log = logging.getLogger(__name__)
 def ingest_logs(p: Context) -> dict[str, Entry]:
     """Logs -> one ingest entry per session (``frames.parquet``, images, ``ingest_report.json``)."""
     units: list[tuple[tuple[Any, ...], Build]] = [
-        (keys.ingest(p.cfg, sc), partial(ingest_session, sc, p.cfg.ingest)) for sc in p.cfg.sessions
+        (
+            ingest_keys.ingest(p.cfg.ingest, sc, p.cfg.data_root),
+            partial(ingest_session, sc, p.cfg.ingest),
+        )
+        for sc in p.cfg.sessions
     ]
     return dict(zip([sc.name for sc in p.cfg.sessions], p.units("ingest", units), strict=True))
 
@@ -73,7 +79,7 @@ def frame_table(p: Context, ingested: dict[str, Entry]) -> Table:
         p.cfg.data_root,
         sources=[sc.source for sc in p.cfg.sessions],
     )
-    entry = p.unit("frames", keys.frames([e.key for e in ingested.values()]), build)
+    entry = p.unit("frames", ingest_keys.frames([e.key for e in ingested.values()]), build)
     df = read_cached_parquet(entry.path / "frames.parquet")
     df["image"] = [local_uri(u, p.out, p.cfg.data_root) for u in df["image"]]
     return Table(df, entry.key)
@@ -104,7 +110,7 @@ def annotation_table(p: Context, frames: Table) -> Table:
         rows, counts = read_masks(Path(mk.folder), mk.min_mask_area)
         at = [f"mask {n}" for n in rows["image"]]
         parts.append(frames_by_image(rows, names, frames.df, skip, mk.folder, at))
-        digests.append(stable_hash("masks", folder_digest(Path(mk.folder)), mk.min_mask_area))
+        digests.append(ingest_keys.masks(Path(mk.folder), mk.min_mask_area))
         log.info("masks: %s: %s", mk.folder, counts)
     if not parts:  # harness detect without annotations: no frame is annotated
         return Table(validate_annotations(pd.DataFrame(columns=COLUMNS), None, "none"), "none")
@@ -121,15 +127,18 @@ def annotation_table(p: Context, frames: Table) -> Table:
                 f"{mk.folder}: frame {s} {c} {u} is annotated both in {path} and by a mask"
             )
     where = str(mk.folder) if path is None else f"{path} + {mk.folder}"
-    key = digests[0] if len(digests) == 1 else stable_hash(*digests)
-    return Table(validate_annotations(both, frames.df, where), key)
+    return Table(
+        validate_annotations(both, frames.df, where), ingest_keys.annotation_sources(digests)
+    )
 
 
 def query_pairs(p: Context, frames: Table, ann: Table) -> Table:
     """Frames (+ annotations) -> a reference viewpoint per query frame and season (SPEC 4)."""
     queries = ann.df if p.cfg.pairs.queries == "annotated" else None
     build = partial(_write_pairs, frames.df, p.cfg, queries)
-    entry = p.unit("pairs", keys.pairs(p.cfg, frames.key, ann.key), build)
+    entry = p.unit(
+        "pairs", pair_keys.pairs(p.cfg.pairs, p.cfg.seasons(), frames.key, ann.key), build
+    )
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
 
 
@@ -158,7 +167,7 @@ def candidate_table(p: Context, frames: Table, ann: Table) -> Table:
     """
     queries = ann.df if p.cfg.pairs.queries == "annotated" else None
     cand = candidate_pairs(frames.df, p.cfg.seasons(), queries)
-    return Table(cand, stable_hash("candidates", *keys.pairs(p.cfg, frames.key, ann.key)))
+    return Table(cand, pair_keys.candidates(p.cfg.pairs, p.cfg.seasons(), frames.key, ann.key))
 
 
 def retrieval_pair_table(
@@ -177,7 +186,7 @@ def retrieval_pair_table(
         p.cfg.pairs.sequence_frames if p.cfg.pairs.by == "sequence" else 0,
     )
     dkeys = {s: e.key for s, e in described.items()}
-    entry = p.unit("pairs_retrieval", (cand.key, dkeys, proposer), build)
+    entry = p.unit("pairs_retrieval", pair_keys.by_retrieval(cand.key, dkeys, proposer), build)
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
 
 
@@ -200,7 +209,11 @@ def session_proposals(
         p.not_described[sc.name] = int((frames.df["session"] == sc.name).sum()) - len(fr)
         build = partial(write_proposals, fr, p.cfg.proposals, sc.name)
         used = [(str(c), int(u)) for c, u in zip(fr["camera"], fr["utime"], strict=True)]
-        entry = p.unit("proposals", keys.proposals(p.cfg, ingested[sc.name].key, used), build)
+        entry = p.unit(
+            "proposals",
+            proposal_keys.proposals(p.cfg.proposals, ingested[sc.name].key, used),
+            build,
+        )
         out[sc.name] = Table(read_cached_parquet(entry.path / "proposals.parquet"), entry.key)
     return out
 
@@ -216,7 +229,9 @@ def descriptor_model(
         pd.concat([t.df for t in props.values()], ignore_index=True) if trains else pd.DataFrame()
     )
     build = partial(train_model, dc, frames.df, rows)
-    return p.unit("model", keys.model(dc, trains, [t.key for t in props.values()]), build)
+    return p.unit(
+        "model", descriptor_keys.model(dc, trains, [t.key for t in props.values()]), build
+    )
 
 
 def descriptor_projection(
@@ -240,7 +255,7 @@ def descriptor_projection(
     build = partial(fit_projection_unit, dc, p.cfg.projection, model.path, frames.df, rows)
     return p.unit(
         "projection",
-        keys.projection(p.cfg.projection, dc, model.key, [props[s].key for s in refs]),
+        descriptor_keys.projection(p.cfg.projection, dc, model.key, [props[s].key for s in refs]),
         build,
     )
 
@@ -266,11 +281,13 @@ def session_descriptors(
         fr = frames.df[frames.df["session"] == s]
         path = projection.path if projection else None
         build = partial(encode_shard, dc, model.path, path, fr, rows, label)
-        return keys.descriptor_shard(dc, props[s].key, model.key, ut, fkey), build
+        return descriptor_keys.descriptor_shard(dc, props[s].key, model.key, ut, fkey), build
 
     def combine(s: str, parts: list[Entry]) -> tuple[Any, Build]:
         build = partial(combine_shards, dc, props[s].df, [e.path for e in parts])
-        return keys.descriptors(dc, props[s].key, model.key, [e.key for e in parts]), build
+        return descriptor_keys.descriptors(
+            dc, props[s].key, model.key, [e.key for e in parts]
+        ), build
 
     stages = ("descriptor_shards", "descriptors")
     return p.sharded(stages, props, dc.shard_frames, shard, combine, gpu=True)[0]
@@ -281,9 +298,8 @@ def fused_samples(
 ) -> Table:
     """Ranks + annotations -> a sample per fused box with each method's LoC (SPEC 7-8)."""
     fc = fusion or p.cfg.fusion
-    cfg = p.cfg if fusion is None else dataclasses.replace(p.cfg, fusion=fc)
     build = partial(write_samples, ranks.df, frames.df, ann.df, fc)
-    entry = p.unit("samples", keys.samples(cfg, ranks.key, ann.key), build)
+    entry = p.unit("samples", fusion_keys.samples(fc, p.cfg.splits, ranks.key, ann.key), build)
     return Table(read_cached_parquet(entry.path / "samples.parquet"), entry.key)
 
 

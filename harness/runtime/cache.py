@@ -3,6 +3,10 @@
 Every stage writes into a temporary sibling and renames it into place, so a crash leaves either
 the previous result or the new one, never a half-written file. A stage directory is complete
 when its ``manifest.json`` exists; the manifest is written last.
+
+An entry's key hashes its stage's parts (``harness/<stage>/keys.py``) with the code's fingerprint:
+the keys of the entries it reads and the config it uses, never the options that only change how
+a stage runs (workers, shards, batches, the device): changing those reuses every entry.
 """
 
 from __future__ import annotations
@@ -97,6 +101,15 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     return obj
+
+
+#: A cache key's parts: what a stage's output depends on (``harness/<stage>/keys.py``).
+Parts = tuple[Any, ...]
+
+
+def without_empty(opts: dict[str, Any], name: str) -> dict[str, Any]:
+    """``opts`` without ``name`` when it is empty (a key from before the field keeps its value)."""
+    return {k: v for k, v in opts.items() if k != name or v}
 
 
 def stable_hash(*parts: Any, length: int = 16) -> str:

@@ -15,9 +15,9 @@ from harness.cli import main
 from harness.config import plugins
 from harness.config.load import load_config
 from harness.errors import ConfigError
+from harness.fusion import keys as fusion_keys
 from harness.fusion.config import FusionConfig
 from harness.fusion.fuse import loc_from_cover, register_method
-from harness.pipeline import keys
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -82,8 +82,10 @@ def test_a_plugin_rule_and_its_table(tmp_path: Path, clean) -> None:
     assert np.allclose(loc_from_cover(cover, "scaled", r=r, d=d, L=L), [2.0, 1.0])  # defaults
     # the table is part of the samples' key, and a config without one keeps the key of before
     other = dataclasses.replace(cfg, fusion=dataclasses.replace(cfg.fusion, options={}))
-    assert keys.samples(cfg, "r", "a") != keys.samples(other, "r", "a")
-    assert "options" not in keys.samples(other, "r", "a")[2]
+    assert fusion_keys.samples(cfg.fusion, cfg.splits, "r", "a") != fusion_keys.samples(
+        other.fusion, other.splits, "r", "a"
+    )
+    assert "options" not in fusion_keys.samples(other.fusion, other.splits, "r", "a")[2]
     # loaded once per process: the same file again is no second registration
     assert load_config(conf).fusion.options_of("scaled").by == 2.5
     assert plugins.plugin_record()[-1]["path"] == str((tmp_path / "scaled.py").resolve())

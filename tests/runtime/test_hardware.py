@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from harness.descriptors import keys as descriptor_keys
 from harness.descriptors.config import DescriptorConfig
-from harness.pipeline import keys
+from harness.retrieval import keys as retrieval_keys
 from harness.runtime import hardware
 
 
@@ -32,17 +33,17 @@ def test_fp32_keeps_the_keys_of_before_and_bf16_changes_them(monkeypatch) -> Non
     monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx2"}))
     dc = DescriptorConfig(device="cpu")
     before = {k: v for k, v in dataclasses.asdict(dc).items() if k != "precision"}
-    for opts in (keys.descriptor_options(dc), keys.model_options(dc)):
+    for opts in (descriptor_keys.descriptor_options(dc), descriptor_keys.model_options(dc)):
         assert "precision" not in opts
-    assert keys.descriptor_options(dc) == {
-        k: v for k, v in before.items() if k not in keys.DESCRIPTOR_EXECUTION
+    assert descriptor_keys.descriptor_options(dc) == {
+        k: v for k, v in before.items() if k not in descriptor_keys.DESCRIPTOR_EXECUTION
     }
     bf = dataclasses.replace(dc, precision="bf16")
-    assert keys.descriptor_options(bf)["precision"] == "bf16"
-    assert keys.model_options(bf)["precision"] == "bf16"
+    assert descriptor_keys.descriptor_options(bf)["precision"] == "bf16"
+    assert descriptor_keys.model_options(bf)["precision"] == "bf16"
     # auto on a CPU with AVX512-BF16 keeps the fp32 key: the same model and cache as elsewhere
     monkeypatch.setattr(hardware, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
-    assert keys.descriptor_options(dc) == keys.descriptor_options(
+    assert descriptor_keys.descriptor_options(dc) == descriptor_keys.descriptor_options(
         dataclasses.replace(dc, precision="fp32")
     )
 
@@ -75,12 +76,12 @@ def test_ranking_is_bf16_only_by_name_and_its_keys_say_so(monkeypatch) -> None:
         "bf16",
     ]
     cfg = Config(name="t", data_root=Path("."), annotations=None, sessions=())
-    plain = keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5)
-    assert keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5, "fp32") == plain
-    assert keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5, "bf16") == (
+    plain = retrieval_keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5)
+    assert retrieval_keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5, "fp32") == plain
+    assert retrieval_keys.ranks_unit(cfg.retrieval, "a", "pk", {"a": "k"}, 0, 5, "bf16") == (
         *plain,
         {"precision": "bf16"},
     )
-    assert keys.ranks(cfg.retrieval, "pk", {"a": "k"}, "bf16")[:-1] == keys.ranks(
-        cfg.retrieval, "pk", {"a": "k"}
-    )
+    assert retrieval_keys.ranks(cfg.retrieval, "pk", {"a": "k"}, "bf16")[
+        :-1
+    ] == retrieval_keys.ranks(cfg.retrieval, "pk", {"a": "k"})

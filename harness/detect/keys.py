@@ -1,0 +1,34 @@
+"""The keys of ``harness detect``'s chunks.
+
+A stage's entry lives under ``<out>/cache/<stage>/<key>/``: see :mod:`harness.runtime.cache`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from harness.fusion.config import FusionConfig
+from harness.fusion.fuse import method_fingerprints as fusion_method_fingerprints
+from harness.runtime.cache import Parts
+
+
+def detect_chunk(
+    ranks_key: str, record: dict[str, Any], first: int, n: int, fc: FusionConfig, rule: str
+) -> Parts:
+    """One chunk of ``harness detect``.
+
+    Its ranks, ``[detect]`` (less the chunk size), the chunk's query frames from ``first``, and
+    the fusion rule (its source, ``rrf_c``, its options).
+    """
+    options = fc.options_of(rule)
+    return (
+        "detect",
+        ranks_key,
+        record | {"chunk_frames": None},
+        first,
+        n,
+        fusion_method_fingerprints((rule,)),
+        *((fc.rrf_c,) if rule == "rrf" else ()),
+        *((dataclasses.asdict(options),) if options is not None else ()),
+    )
