@@ -164,6 +164,17 @@ def _imports(f: Path) -> list[ast.ImportFrom]:
     return [n for n in ast.walk(ast.parse(f.read_text())) if isinstance(n, ast.ImportFrom)]
 
 
+def test_the_pipeline_makes_no_key() -> None:
+    """Each stage's cache key is made in its package (``harness/<stage>/keys.py``, issue 51): the
+    modules that compose the stages hash nothing of their own."""
+    makers = [
+        str(f.relative_to(ROOT))
+        for f in sorted((PACKAGE / "pipeline").glob("*.py"))
+        if "stable_hash" in f.read_text() or "content_sha(" in f.read_text()
+    ]
+    assert makers == ["harness/pipeline/context.py"], makers  # a localizer's file, for run.json
+
+
 def test_no_module_imports_a_private_name_of_another() -> None:
     private = [
         f"{f.relative_to(ROOT)}: from {n.module} import {a.name}"

@@ -12,7 +12,13 @@ from typing import Any
 from harness.ingest.config import IngestConfig, SessionConfig
 from harness.ingest.logs import READERS, detect_format
 from harness.ingest.masks import folder_digest
-from harness.runtime.cache import Parts, file_fingerprint, relative_to_root, stable_hash
+from harness.runtime.cache import (
+    Parts,
+    content_sha,
+    file_fingerprint,
+    relative_to_root,
+    stable_hash,
+)
 
 
 def source_fingerprint(sc: SessionConfig, root: Path | None = None) -> Any:
@@ -37,6 +43,11 @@ def ingest(ic: IngestConfig, sc: SessionConfig, data_root: Path | None) -> Parts
 def frames(ingest_keys: list[str]) -> Parts:
     """The frame table: the ingest entries it concatenates."""
     return tuple(ingest_keys)
+
+
+def annotation_file(path: Path) -> str:
+    """The annotations a file gives: its content."""
+    return content_sha(path)
 
 
 def masks(folder: Path, min_mask_area: int) -> str:

@@ -20,9 +20,7 @@ from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.imported import unranked_images, write_imported_ranks
 from harness.retrieval.units import RankSettings, rank_reference
 from harness.runtime.cache import (
-    content_sha,
     read_cached_parquet,
-    stable_hash,
     write_parquet,
 )
 from harness.runtime.hardware import rank_precision
@@ -86,9 +84,7 @@ def query_ranks(
         for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
             c[k] = c.get(k, 0) + v
     df = concat_ranks(parts)
-    return RankTable(
-        df, stable_hash(*retrieval_keys.ranks(rc, pairs.key, dkeys, precision)), counts
-    )
+    return RankTable(df, retrieval_keys.rank_table(rc, pairs.key, dkeys, precision), counts)
 
 
 SORT_RANKS = SUBIMAGE_KEY
@@ -149,7 +145,7 @@ def imported_ranks(
         p.cfg.import_,
         p.cfg.pairs.max_yaw_diff_deg,
         spec.name,
-        content_sha(spec.path),
+        spec.path,
         pairs.key,
         [t.key for t in props.values()],
         score_kind,

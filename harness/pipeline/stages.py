@@ -48,7 +48,6 @@ from harness.reports.write import write_reports
 from harness.retrieval import described_frames
 from harness.retrieval.pairing import write_retrieval_pairs
 from harness.runtime.cache import (
-    content_sha,
     read_cached_parquet,
 )
 from harness.runtime.progress import progress
@@ -104,7 +103,7 @@ def annotation_table(p: Context, frames: Table) -> Table:
         else:
             every = load_annotations(path, frames.df, names, skip)
         parts.append(every)
-        digests.append(content_sha(path))
+        digests.append(ingest_keys.annotation_file(path))
     mk = p.cfg.masks
     if mk.folder is not None:
         rows, counts = read_masks(Path(mk.folder), mk.min_mask_area)

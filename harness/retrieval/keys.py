@@ -6,10 +6,11 @@ A stage's entry lives under ``<out>/cache/<stage>/<key>/``: see :mod:`harness.ru
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 from harness.retrieval.config import BovwConfig, ImportConfig, RetrievalConfig
-from harness.runtime.cache import Parts
+from harness.runtime.cache import Parts, content_sha, stable_hash
 
 #: Retrieval options that only cut the ranking work into units.
 RETRIEVAL_EXECUTION = ("query_frames_per_shard", "memory_mb")
@@ -46,12 +47,19 @@ def ranks(
     return parts if precision == "fp32" else (*parts, {"precision": precision})
 
 
+def rank_table(
+    rc: RetrievalConfig, pairs_key: str, descriptor_keys: dict[str, str], precision: str = "fp32"
+) -> str:
+    """The key of the rank table the ranking units make together: :func:`ranks`' parts."""
+    return stable_hash(*ranks(rc, pairs_key, descriptor_keys, precision))
+
+
 def ranks_import(
     rc: RetrievalConfig,
     imp: ImportConfig,
     max_yaw_diff_deg: float,
     name: str,
-    content_sha: str,
+    file: Path,
     pairs_key: str,
     proposal_keys: list[str],
     score_kind: str,
@@ -65,7 +73,7 @@ def ranks_import(
     return (
         "import",
         name,
-        content_sha,
+        content_sha(file),
         pairs_key,
         sorted(proposal_keys),
         rc.gt_radius_m,
