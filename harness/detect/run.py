@@ -46,7 +46,6 @@ from harness.pairs import keys as pair_keys
 from harness.pairs.build import BY_RETRIEVAL
 from harness.pipeline.across import across_localizers, localizer_fusion
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
-from harness.pipeline.context import Table
 from harness.pipeline.localizer_stages import Measured, localizer_ranks
 from harness.pipeline.stages import session_proposals
 from harness.records import QUERY_KEY
@@ -56,6 +55,7 @@ from harness.runtime.cache import (
     write_text,
 )
 from harness.runtime.executors import LocalExecutor
+from harness.runtime.stage import Table
 
 log = logging.getLogger(__name__)
 

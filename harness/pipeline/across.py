@@ -17,10 +17,11 @@ from harness.fusion.config import FusionConfig
 from harness.localizers import keys as localizer_keys
 from harness.localizers.config import LocalizerConfig
 from harness.methods import rules_where
-from harness.pipeline.context import Context, RankTable, Table
+from harness.pipeline.context import Context
 from harness.pipeline.localizer_stages import Measured
 from harness.pipeline.rank_stages import concat_ranks
 from harness.records import IMAGE_KEY
+from harness.runtime.stage import RankTable, Table
 
 log = logging.getLogger(__name__)
 

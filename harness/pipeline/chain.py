@@ -27,7 +27,7 @@ from harness.methods import ordered_methods, rules_where
 from harness.pairs import keys as pair_keys
 from harness.pairs.build import BY_RETRIEVAL, DECLARED, build_pairs
 from harness.pipeline.across import across_localizers, common_images, localizer_fusion
-from harness.pipeline.context import Context, Entry, Table
+from harness.pipeline.context import Context
 from harness.pipeline.localizer_stages import (
     Measured,
     localizer_ranks,
@@ -54,6 +54,7 @@ from harness.retrieval.pairing import pose_agreement
 from harness.runtime.cache import write_json
 from harness.runtime.executors import LocalExecutor
 from harness.runtime.outdirs import read_run_record
+from harness.runtime.stage import Entry, Table
 
 #: The chain's own names.
 __all__ = [

@@ -1,9 +1,8 @@
-"""The run context every stage takes (:class:`Context`) and the stage outputs' record types.
+"""The run context every stage takes (:class:`Context`) and the run's localizers (SPEC section 11).
 
-``Entry`` (a cache directory and its key), ``Table`` (a stage's table and its key), ``RankTable``
-(rank rows, key, counters) and the run's localizers (SPEC section 11). The stages are in
-:mod:`harness.pipeline.stages` and :mod:`harness.pipeline.localizer_stages`, the chain in
-:mod:`harness.pipeline.chain`.
+A :class:`Context` is the :class:`harness.runtime.stage.Units` a stage function builds its
+entries in; the outputs' records (``Entry``, ``Table``, ``RankTable``) are in
+:mod:`harness.runtime.stage`. The chain is :mod:`harness.pipeline.chain`.
 """
 
 from __future__ import annotations
@@ -11,13 +10,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from harness.config.schema import Config
 from harness.localizers.config import LocalizerConfig, LocalizerImportConfig
@@ -26,42 +24,9 @@ from harness.retrieval.import_file import ImportSpec, parse_import_arg
 from harness.runtime.cache import StageCache, content_sha
 from harness.runtime.executors import LocalExecutor
 from harness.runtime.outdirs import claim_dir, run_lock
+from harness.runtime.stage import Build, CombineUnit, Entry, ShardUnit, Table
 
 log = logging.getLogger(__name__)
-
-Build = Callable[[Path], "dict[str, Any] | None"]
-#: One shard of a sharded stage: (session, its rows, the shard's frames, a progress label)
-#: -> (key parts, build).
-ShardUnit = Callable[[str, pd.DataFrame, list[int], str], "tuple[tuple[Any, ...], Build]"]
-#: A session's combined entry: (session, its shard entries) -> (key parts, build).
-CombineUnit = Callable[[str, "list[Entry]"], "tuple[tuple[Any, ...], Build]"]
-
-
-@dataclass(frozen=True)
-class Entry:
-    """A finished cache entry: its directory and its key."""
-
-    path: Path
-    key: str
-
-
-@dataclass(frozen=True)
-class Table:
-    """A stage's table (read from its cache entry) and the entry's key."""
-
-    df: pd.DataFrame
-    key: str
-
-
-@dataclass(frozen=True)
-class RankTable:
-    """Rank rows of every query subimage, their key, and counters per reference session."""
-
-    df: pd.DataFrame
-    key: str
-    counts: dict[str, dict[str, int]]
-    #: The ``local`` kind's alignment of each pair (method, inliers, score); None for others.
-    alignment: pd.DataFrame | None = None
 
 
 @dataclass

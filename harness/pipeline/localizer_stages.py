@@ -23,7 +23,7 @@ from harness.localizers import keys as localizer_keys
 from harness.localizers.config import LocalizerConfig
 from harness.localizers.kinds import LOCALIZER_KINDS
 from harness.localizers.local import write_local_ranks
-from harness.pipeline.context import Build, Context, Entry, RankTable, Table
+from harness.pipeline.context import Context
 from harness.pipeline.rank_stages import concat_ranks, imported_ranks, query_ranks
 from harness.pipeline.stages import (
     descriptor_model,
@@ -39,6 +39,7 @@ from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
 from harness.runtime.cache import read_cached_parquet
 from harness.runtime.costs import localizer_costs
+from harness.runtime.stage import Build, Entry, RankTable, Table
 
 log = logging.getLogger(__name__)
 

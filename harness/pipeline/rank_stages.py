@@ -12,7 +12,7 @@ from typing import Any
 import pandas as pd
 
 from harness.errors import RetrievalError
-from harness.pipeline.context import Build, Context, Entry, RankTable, Table
+from harness.pipeline.context import Context
 from harness.records import SUBIMAGE_KEY
 from harness.retrieval import keys as retrieval_keys
 from harness.retrieval.config import RetrievalConfig
@@ -24,6 +24,7 @@ from harness.runtime.cache import (
     write_parquet,
 )
 from harness.runtime.hardware import rank_precision
+from harness.runtime.stage import Build, Entry, RankTable, Table
 
 
 def ranks_device(rc: RetrievalConfig, dev: str) -> str:

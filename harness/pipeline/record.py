@@ -16,13 +16,14 @@ import pandas as pd
 
 from harness import __version__, kernels
 from harness.config.plugins import plugin_record
-from harness.pipeline.context import Context, Entry, Table, localizer_record
+from harness.pipeline.context import Context, localizer_record
 from harness.pipeline.localizer_stages import (
     Measured,
 )
 from harness.records import FRAME_KEY
 from harness.reports.blocks import Reports
 from harness.runtime.costs import cost_record, machine
+from harness.runtime.stage import Entry, Table
 
 #: What :func:`harness.pipeline.chain.until_ranks` gives: the ingested sessions, the frames, the
 #: annotations, the pairs and each localizer's measured ranks.

@@ -39,7 +39,7 @@ from harness.ingest.masks import read_masks
 from harness.ingest.names import frames_by_image, session_names
 from harness.pairs import keys as pair_keys
 from harness.pairs.build import DECLARED, candidate_pairs, write_pairs
-from harness.pipeline.context import Build, Context, Entry, RankTable, Table
+from harness.pipeline.context import Context
 from harness.proposals import keys as proposal_keys
 from harness.proposals.proposers import write_proposals
 from harness.records import FRAME_KEY
@@ -51,6 +51,7 @@ from harness.runtime.cache import (
     read_cached_parquet,
 )
 from harness.runtime.progress import progress
+from harness.runtime.stage import Build, Entry, RankTable, Table
 
 log = logging.getLogger(__name__)
 

@@ -395,8 +395,8 @@ def test_an_image_some_localizer_did_not_rank_is_an_error_unless_allowed(
 
     from harness.errors import RetrievalError
     from harness.pipeline.across import common_images
-    from harness.pipeline.context import RankTable, Table
     from harness.pipeline.localizer_stages import Measured
+    from harness.runtime.stage import RankTable, Table
 
     p, _, run = local_run
     ranks = pd.read_parquet(run / "ranks.parquet").drop(columns="localizer")
