@@ -185,7 +185,7 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
             ),
             ("from harness.records import QUERY_KEY\n", "from harness.records import FRAME_KEY\n"),
             (
-                "from harness.runtime.cache import read_cached_parquet, stable_hash\n",
+                "from harness.runtime.cache import read_cached_parquet\n",
                 "from harness.runtime.cache import write_parquet\n",
             ),
         ],

@@ -19,8 +19,8 @@ from harness.localizers.config import LocalizerConfig
 from harness.methods import rules_where
 from harness.pipeline.context import Context
 from harness.pipeline.localizer_stages import Measured
-from harness.pipeline.rank_stages import concat_ranks
 from harness.records import IMAGE_KEY
+from harness.retrieval.stage import concat_ranks
 from harness.runtime.stage import RankTable, Table
 
 log = logging.getLogger(__name__)

@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 import numpy as np
 import pandas as pd
 
+from harness.descriptors.stage import session_descriptors
 from harness.errors import ConfigError
 from harness.fusion.config import FusionConfig
 from harness.localizers import keys as localizer_keys
@@ -24,19 +25,15 @@ from harness.localizers.config import LocalizerConfig
 from harness.localizers.kinds import LOCALIZER_KINDS
 from harness.localizers.local import write_local_ranks
 from harness.pipeline.context import Context
-from harness.pipeline.rank_stages import concat_ranks, imported_ranks, query_ranks
-from harness.pipeline.stages import (
-    descriptor_model,
-    descriptor_projection,
-    retrieval_pair_table,
-    session_descriptors,
-)
+from harness.pipeline.rank_stages import imported_ranks, query_ranks
+from harness.pipeline.stages import descriptor_model, descriptor_projection, retrieval_pair_table
 from harness.proposals import keys as proposal_keys
 from harness.records import QUERY_KEY
 from harness.retrieval import keys as retrieval_keys
 from harness.retrieval.bovw import combine_word_shards, encode_words, train_vocabulary
 from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
+from harness.retrieval.stage import concat_ranks
 from harness.runtime.cache import read_cached_parquet
 from harness.runtime.costs import localizer_costs
 from harness.runtime.stage import Build, Entry, RankTable, Table

@@ -1,0 +1,178 @@
+"""The ranking stages (SPEC 6, 12, 13.2): ranks by descriptors or from a file; pairs by retrieval.
+
+Their keys are made in :mod:`harness.retrieval.keys`; a ranking unit is
+:func:`harness.retrieval.units.rank_reference`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from harness.errors import RetrievalError
+from harness.pairs import keys as pair_keys
+from harness.pairs.config import PairsConfig
+from harness.records import SUBIMAGE_KEY
+from harness.retrieval import keys as retrieval_keys
+from harness.retrieval.config import ImportConfig, RetrievalConfig
+from harness.retrieval.import_file import ImportSpec
+from harness.retrieval.imported import unranked_images, write_imported_ranks
+from harness.retrieval.pairing import write_retrieval_pairs
+from harness.retrieval.units import RankSettings, rank_reference
+from harness.runtime.cache import read_cached_parquet, write_parquet
+from harness.runtime.stage import Build, Entry, RankTable, Table, Units
+
+
+def rank_queries(
+    p: Units,
+    how: RankSettings,
+    refs: Sequence[str],
+    frames: Table,
+    pairs: Table,
+    described: dict[str, Entry],
+) -> RankTable:
+    """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
+
+    Units: (reference session of ``refs``, chunk of ``query_frames_per_shard`` pairs); one engine
+    per proposer inside each. ``how``: the ``[retrieval]`` to rank under, the heading limit, and
+    the engine's device and candidate product as they resolve here.
+    """
+    rc = how.rc
+    dkeys = {s: e.key for s, e in described.items()}
+    paths = {s: e.path for s, e in described.items()}
+    units: list[tuple[tuple[Any, ...], Build]] = []
+    unit_ref = []
+    step = max(1, rc.query_frames_per_shard)
+    for ref in refs:
+        sub = pairs.df[pairs.df["r_session"] == ref].reset_index(drop=True)
+        for c0 in range(0, max(len(sub), 1), step):
+            chunk = sub.iloc[c0 : c0 + step]
+            build = partial(_write_ranks, how, chunk, ref, paths, frames.df)
+            key = retrieval_keys.ranks_unit(
+                rc, ref, pairs.key, dkeys, c0, len(chunk), how.precision
+            )
+            units.append((key, build))
+            unit_ref.append(ref)
+    parts: list[pd.DataFrame] = []
+    counts: dict[str, dict[str, int]] = {}
+    for ref, entry in zip(unit_ref, p.units("ranks", units, gpu=True), strict=True):
+        parts.append(read_cached_parquet(entry.path / "ranks.parquet"))
+        c = counts.setdefault(ref, {})
+        for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
+            c[k] = c.get(k, 0) + v
+    df = concat_ranks(parts)
+    return RankTable(df, retrieval_keys.rank_table(rc, pairs.key, dkeys, how.precision), counts)
+
+
+SORT_RANKS = SUBIMAGE_KEY
+
+
+def concat_ranks(parts: list[pd.DataFrame]) -> pd.DataFrame:
+    """Units' rank rows as one table in subimage order (empty units left out)."""
+    parts = [d for d in parts if len(d)]
+    if not parts:
+        return pd.DataFrame()
+    return pd.concat(parts, ignore_index=True).sort_values(SORT_RANKS).reset_index(drop=True)
+
+
+def _write_ranks(
+    settings: RankSettings,
+    pairs: pd.DataFrame,
+    ref: str,
+    descriptors: dict[str, Path],
+    frames: pd.DataFrame,
+    tmp: Path,
+) -> dict[str, int]:
+    """One ranking unit (:func:`harness.retrieval.rank_reference`) into ``tmp/ranks.parquet``."""
+    df, counts = rank_reference(settings, pairs, ref, descriptors, frames)
+    write_parquet(tmp / "ranks.parquet", df)
+    return counts
+
+
+def imported_ranks(
+    p: Units,
+    rc: RetrievalConfig,
+    imp: ImportConfig,
+    max_yaw_diff_deg: float,
+    frames: Table,
+    pairs: Table,
+    props: dict[str, Table],
+    spec: ImportSpec,
+) -> RankTable:
+    """Ranks from a user's localizer (``--import NAME=FILE`` or an ``import`` localizer).
+
+    Checked against the run (SPEC 12): every row must be a proposal of the run and match a pair;
+    a query image of the pairs without any row is an error unless ``[import]
+    allow_unranked_images`` (then it is counted). ``imp``: ``[import]`` with the localizer's
+    ``score_kind``.
+    """
+    if not Path(spec.path).is_file():
+        raise RetrievalError(f"{spec.path}: --import file not found (localizer {spec.name!r})")
+    allprops = pd.concat([t.df for t in props.values()], ignore_index=True)
+    build = partial(
+        write_imported_ranks,
+        spec,
+        pairs.df,
+        frames.df,
+        allprops,
+        rc.gt_radius_m,
+        max_yaw_diff_deg,
+        imp.score_kind,
+    )
+    key = retrieval_keys.ranks_import(
+        rc,
+        imp,
+        max_yaw_diff_deg,
+        spec.name,
+        spec.path,
+        pairs.key,
+        [t.key for t in props.values()],
+        imp.score_kind,
+    )
+    entry = p.unit("ranks", key, build)
+    df = read_cached_parquet(entry.path / "ranks.parquet")
+    info = dict(p.cache.manifest("ranks", entry.key)["info"])
+    missing = unranked_images(pairs.df, df)
+    info["unranked_query_images"] = len(missing)
+    if len(missing) and not imp.allow_unranked_images:
+        ex = missing.iloc[0]
+        raise RetrievalError(
+            f"{spec.path}: localizer {spec.name!r} ranks no subimage of {len(missing)} of "
+            f"{len(pairs.df)} query images (e.g. {ex.q_session}/{ex.q_camera}/{ex.q_utime} -> "
+            f"{ex.r_session}); every localizer is scored on the same images: rank them, or set "
+            "[import] allow_unranked_images = true to leave them out of every table (counted)"
+        )
+    return RankTable(df, entry.key, {"import": info})
+
+
+def retrieval_pair_table(
+    p: Units,
+    pc: PairsConfig,
+    memory_mb: float,
+    frames: Table,
+    cand: Table,
+    described: dict[str, Entry],
+    proposer: str,
+) -> Table:
+    """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2).
+
+    ``memory_mb``: ``[retrieval] memory_mb``; ``proposer``: the one whose descriptors rank.
+    """
+    paths = {s: e.path for s, e in described.items()}
+    build = partial(
+        write_retrieval_pairs,
+        cand.df,
+        paths,
+        frames.df,
+        proposer,
+        memory_mb,
+        pc.place_frames,
+        pc.sequence_frames if pc.by == "sequence" else 0,
+    )
+    dkeys = {s: e.key for s, e in described.items()}
+    entry = p.unit("pairs_retrieval", pair_keys.by_retrieval(cand.key, dkeys, proposer), build)
+    return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
