@@ -175,6 +175,21 @@ def test_the_pipeline_makes_no_key() -> None:
     assert makers == ["harness/pipeline/context.py"], makers  # a localizer's file, for run.json
 
 
+def test_stage_functions_live_in_their_packages() -> None:
+    """A cache entry is built by its stage's function (``harness/<stage>/stage.py``, issue 51):
+    the pipeline hands each its sections of the config and builds none itself."""
+    builders = [
+        f"{f.relative_to(ROOT)}: {call}"
+        for f in sorted((PACKAGE / "pipeline").glob("*.py"))
+        if f.name != "context.py"  # the run, which the stage functions build their entries in
+        for call in ("p.unit(", "p.units(", "p.sharded(")
+        if call in f.read_text()
+    ]
+    assert builders == []
+    homes = {f.parent.name for f in PACKAGE.glob("*/stage.py")}
+    assert homes >= {"ingest", "pairs", "proposals", "descriptors", "retrieval", "fusion"}, homes
+
+
 def test_no_module_imports_a_private_name_of_another() -> None:
     private = [
         f"{f.relative_to(ROOT)}: from {n.module} import {a.name}"

@@ -183,9 +183,13 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
                 "from harness.errors import ConfigError\n",
                 "from harness.imagestore import read_image\n",
             ),
-            ("from harness.records import QUERY_KEY\n", "from harness.records import FRAME_KEY\n"),
+            ("from dataclasses import dataclass, field\n", "from functools import partial\n"),
             (
-                "from harness.runtime.cache import read_cached_parquet\n",
+                "from harness.proposals import keys as proposal_keys\n",
+                "from harness.records import FRAME_KEY\n",
+            ),
+            (
+                "from harness.retrieval.import_file import ImportSpec\n",
                 "from harness.runtime.cache import write_parquet\n",
             ),
         ],

@@ -10,9 +10,8 @@ import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
 import numpy as np
 import pandas as pd
@@ -20,23 +19,18 @@ import pandas as pd
 from harness.descriptors.stage import session_descriptors
 from harness.errors import ConfigError
 from harness.fusion.config import FusionConfig
-from harness.localizers import keys as localizer_keys
+from harness.localizers import stage as localizer_stage
 from harness.localizers.config import LocalizerConfig
 from harness.localizers.kinds import LOCALIZER_KINDS
-from harness.localizers.local import write_local_ranks
 from harness.pipeline.context import Context
 from harness.pipeline.rank_stages import imported_ranks, query_ranks
 from harness.pipeline.stages import descriptor_model, descriptor_projection, retrieval_pair_table
 from harness.proposals import keys as proposal_keys
-from harness.records import QUERY_KEY
-from harness.retrieval import keys as retrieval_keys
-from harness.retrieval.bovw import combine_word_shards, encode_words, train_vocabulary
+from harness.retrieval import stage as retrieval_stage
 from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
-from harness.retrieval.stage import concat_ranks
-from harness.runtime.cache import read_cached_parquet
 from harness.runtime.costs import localizer_costs
-from harness.runtime.stage import Build, Entry, RankTable, Table
+from harness.runtime.stage import RankTable, Table
 
 log = logging.getLogger(__name__)
 
@@ -86,45 +80,6 @@ def localizer_proposals(
     }
 
 
-def bovw_vocabulary(
-    p: Context, loc: LocalizerConfig, frames: Table, pairs: Table, props: dict[str, Table]
-) -> Entry:
-    """Reference-session subimages -> a bag-of-words vocabulary and its IDF (SPEC section 11)."""
-    bc = _options(loc, loc.bovw)
-    refs = sorted(set(pairs.df["r_session"]))
-    rows = pd.concat([props[s].df for s in refs], ignore_index=True)
-    build = partial(train_vocabulary, bc, frames.df, rows)
-    return p.unit("bovw_vocab", retrieval_keys.bovw_vocab(bc, [props[s].key for s in refs]), build)
-
-
-def bovw_words(
-    p: Context, loc: LocalizerConfig, frames: Table, props: dict[str, Table], vocab: Entry
-) -> tuple[dict[str, Entry], int]:
-    """Each session's word vectors (``words.npz`` + ``index.parquet``), in resumable shards.
-
-    Returns:
-        The entries, and how many subimages had no feature (no vector, counted).
-    """
-    bc = _options(loc, loc.bovw)
-
-    def shard(s: str, rows: pd.DataFrame, ut: list[int], label: str) -> tuple[Any, Build]:
-        fr = frames.df[frames.df["session"] == s]
-        mine = rows.reset_index(drop=True)
-        build = partial(encode_words, bc, vocab.path, fr, mine, f"{loc.name} {label}")
-        return retrieval_keys.bovw_shard(vocab.key, props[s].key, ut), build
-
-    def combine(s: str, parts: list[Entry]) -> tuple[Any, Build]:
-        build = partial(combine_word_shards, [e.path for e in parts])
-        return retrieval_keys.bovw_words(vocab.key, props[s].key, [e.key for e in parts]), build
-
-    out, done = p.sharded(("bovw_shards", "bovw_words"), props, bc.shard_frames, shard, combine)
-    nofeat = sum(
-        int(p.cache.manifest("bovw_shards", e.key)["info"].get("no_feature_subimages", 0))
-        for e in done
-    )
-    return out, nofeat
-
-
 #: A localizer kind's rank rows: (context, localizer, frames, pairs, its proposals, the
 #: ``[retrieval]`` whose ground-truth place it ranks against) -> ranks.
 KindRanks = Callable[
@@ -172,8 +127,9 @@ def bovw_kind_ranks(
     rc: RetrievalConfig,
 ) -> RankTable:
     """Kind ``bovw``: vocabulary, words, then the same ranking engine on the sparse vectors."""
-    vocab = bovw_vocabulary(p, loc, frames, pairs, mine)
-    words, nofeat = bovw_words(p, loc, frames, mine, vocab)
+    bc = _options(loc, loc.bovw)
+    vocab = retrieval_stage.bovw_vocabulary(p, bc, frames, pairs, mine)
+    words, nofeat = retrieval_stage.bovw_words(p, bc, loc.name, frames, mine, vocab)
     ranks = query_ranks(p, frames, pairs, words, rc, p.cfg.descriptor.device)
     ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
     return ranks
@@ -210,32 +166,7 @@ def local_kind_ranks(
     ``rc`` does not enter: the place is the paired frame itself.
     """
     del rc
-    lc = loc.options
-    qs = sorted(set(pairs.df["q_session"]))
-    props = pd.concat([mine[s].df for s in qs], ignore_index=True) if qs else pd.DataFrame()
-    pkeys = [mine[s].key for s in qs]
-    step = max(1, lc.frames_per_unit)
-    units: list[tuple[tuple[Any, ...], Build]] = []
-    for c0 in range(0, len(pairs.df), step):
-        chunk = pairs.df.iloc[c0 : c0 + step].reset_index(drop=True)
-        sel = props.merge(
-            chunk[QUERY_KEY].rename(
-                columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}
-            ),
-            on=["session", "camera", "utime"],
-        )
-        build = partial(write_local_ranks, lc, chunk, frames.df, sel)
-        units.append((localizer_keys.local_ranks(lc, pairs.key, pkeys, c0, len(chunk)), build))
-    parts, aligns = [], []
-    counts: dict[str, int] = {}
-    for entry in p.units("ranks", units):
-        parts.append(read_cached_parquet(entry.path / "ranks.parquet"))
-        aligns.append(read_cached_parquet(entry.path / "alignment.parquet"))
-        for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
-            counts[k] = counts.get(k, 0) + v
-    alignment = pd.concat(aligns, ignore_index=True) if aligns else pd.DataFrame()
-    key = localizer_keys.local_ranks_table([u[0] for u in units])
-    return RankTable(concat_ranks(parts), key, {"local": counts}, alignment)
+    return localizer_stage.local_ranks(p, loc.options, frames, pairs, mine)
 
 
 def localizer_ranks(

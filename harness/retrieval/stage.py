@@ -18,7 +18,8 @@ from harness.pairs import keys as pair_keys
 from harness.pairs.config import PairsConfig
 from harness.records import SUBIMAGE_KEY
 from harness.retrieval import keys as retrieval_keys
-from harness.retrieval.config import ImportConfig, RetrievalConfig
+from harness.retrieval.bovw import combine_word_shards, encode_words, train_vocabulary
+from harness.retrieval.config import BovwConfig, ImportConfig, RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.imported import unranked_images, write_imported_ranks
 from harness.retrieval.pairing import write_retrieval_pairs
@@ -176,3 +177,42 @@ def retrieval_pair_table(
     dkeys = {s: e.key for s, e in described.items()}
     entry = p.unit("pairs_retrieval", pair_keys.by_retrieval(cand.key, dkeys, proposer), build)
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
+
+
+def bovw_vocabulary(
+    p: Units, bc: BovwConfig, frames: Table, pairs: Table, props: dict[str, Table]
+) -> Entry:
+    """Reference-session subimages -> a bag-of-words vocabulary and its IDF (SPEC section 11)."""
+    refs = sorted(set(pairs.df["r_session"]))
+    rows = pd.concat([props[s].df for s in refs], ignore_index=True)
+    build = partial(train_vocabulary, bc, frames.df, rows)
+    return p.unit("bovw_vocab", retrieval_keys.bovw_vocab(bc, [props[s].key for s in refs]), build)
+
+
+def bovw_words(
+    p: Units, bc: BovwConfig, name: str, frames: Table, props: dict[str, Table], vocab: Entry
+) -> tuple[dict[str, Entry], int]:
+    """Each session's word vectors (``words.npz`` + ``index.parquet``), in resumable shards.
+
+    ``name``: the localizer's, in the progress labels.
+
+    Returns:
+        The entries, and how many subimages had no feature (no vector, counted).
+    """
+
+    def shard(s: str, rows: pd.DataFrame, ut: list[int], label: str) -> tuple[Any, Build]:
+        fr = frames.df[frames.df["session"] == s]
+        mine = rows.reset_index(drop=True)
+        build = partial(encode_words, bc, vocab.path, fr, mine, f"{name} {label}")
+        return retrieval_keys.bovw_shard(vocab.key, props[s].key, ut), build
+
+    def combine(s: str, parts: list[Entry]) -> tuple[Any, Build]:
+        build = partial(combine_word_shards, [e.path for e in parts])
+        return retrieval_keys.bovw_words(vocab.key, props[s].key, [e.key for e in parts]), build
+
+    out, done = p.sharded(("bovw_shards", "bovw_words"), props, bc.shard_frames, shard, combine)
+    nofeat = sum(
+        int(p.cache.manifest("bovw_shards", e.key)["info"].get("no_feature_subimages", 0))
+        for e in done
+    )
+    return out, nofeat

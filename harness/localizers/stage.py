@@ -1,0 +1,54 @@
+"""The ``local`` localizer's stage (SPEC 13.3): each subimage ranked inside its paired map frame.
+
+Its key is made in :mod:`harness.localizers.keys`; a unit is
+:func:`harness.localizers.local.write_local_ranks`.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any
+
+import pandas as pd
+
+from harness.localizers import keys as localizer_keys
+from harness.localizers.config import LocalConfig
+from harness.localizers.local import write_local_ranks
+from harness.records import QUERY_KEY
+from harness.retrieval.stage import concat_ranks
+from harness.runtime.cache import read_cached_parquet
+from harness.runtime.stage import Build, RankTable, Table, Units
+
+
+def local_ranks(
+    p: Units, lc: LocalConfig, frames: Table, pairs: Table, mine: dict[str, Table]
+) -> RankTable:
+    """Pairs + proposals -> each query subimage's rank inside its paired map frame.
+
+    Units of ``frames_per_unit`` pairs; each writes its rank rows and its pairs' alignments.
+    """
+    qs = sorted(set(pairs.df["q_session"]))
+    props = pd.concat([mine[s].df for s in qs], ignore_index=True) if qs else pd.DataFrame()
+    pkeys = [mine[s].key for s in qs]
+    step = max(1, lc.frames_per_unit)
+    units: list[tuple[tuple[Any, ...], Build]] = []
+    for c0 in range(0, len(pairs.df), step):
+        chunk = pairs.df.iloc[c0 : c0 + step].reset_index(drop=True)
+        sel = props.merge(
+            chunk[QUERY_KEY].rename(
+                columns={"q_session": "session", "q_camera": "camera", "q_utime": "utime"}
+            ),
+            on=["session", "camera", "utime"],
+        )
+        build = partial(write_local_ranks, lc, chunk, frames.df, sel)
+        units.append((localizer_keys.local_ranks(lc, pairs.key, pkeys, c0, len(chunk)), build))
+    parts, aligns = [], []
+    counts: dict[str, int] = {}
+    for entry in p.units("ranks", units):
+        parts.append(read_cached_parquet(entry.path / "ranks.parquet"))
+        aligns.append(read_cached_parquet(entry.path / "alignment.parquet"))
+        for k, v in p.cache.manifest("ranks", entry.key)["info"].items():
+            counts[k] = counts.get(k, 0) + v
+    alignment = pd.concat(aligns, ignore_index=True) if aligns else pd.DataFrame()
+    key = localizer_keys.local_ranks_table([u[0] for u in units])
+    return RankTable(concat_ranks(parts), key, {"local": counts}, alignment)
