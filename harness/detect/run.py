@@ -43,7 +43,7 @@ from harness.errors import ConfigError, HarnessError
 from harness.localizers.config import LocalizerConfig
 from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
 from harness.pairs import keys as pair_keys
-from harness.pairs.build import BY_RETRIEVAL
+from harness.pairs.table import BY_RETRIEVAL
 from harness.pipeline.across import across_localizers, localizer_fusion
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
 from harness.pipeline.localizer_stages import Measured, localizer_ranks

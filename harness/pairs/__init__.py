@@ -2,5 +2,5 @@
 
 :mod:`.config` holds ``[pairs]``; :mod:`.build` pairs by pose (the nearest viewpoint within the
 heading gate) and by name or order, and writes the pair table. Pairing by retrieval and by
-sequence ranks frames, so it lives with the retrieval engines (:mod:`harness.retrieval.pairing`).
+sequence ranks frames, so it lives with the retrieval engines (:mod:`harness.pairs.retrieval`).
 """

@@ -1,7 +1,9 @@
-"""The pairs stage (SPEC 4, 13.2): each query frame's map frame by pose or by name or order.
+"""The pairs stages (SPEC 4, 13.2): each query frame's map frame, by any pairing mode.
 
-Pairing by retrieval and by sequence ranks candidates (:func:`candidate_table`) with a
-localizer's descriptors: that stage is :func:`harness.retrieval.stage.retrieval_pair_table`.
+One module per mode: by pose (:mod:`.pose`), by name or order (:mod:`.declared`), by retrieval or
+sequence (:mod:`.retrieval`: candidates (:func:`candidate_table`) ranked with a localizer's
+descriptors, :func:`retrieval_pair_table`); the pair table's shape is :mod:`.table`, the keys
+:mod:`.keys`.
 """
 
 from __future__ import annotations
@@ -16,10 +18,13 @@ from harness.errors import ConfigError
 from harness.ingest.config import SessionConfig
 from harness.ingest.names import session_names
 from harness.pairs import keys as pair_keys
-from harness.pairs.build import DECLARED, candidate_pairs, write_pairs
 from harness.pairs.config import PairsConfig
-from harness.runtime.cache import read_cached_parquet
-from harness.runtime.stage import Table, Units
+from harness.pairs.declared import declared_pairs
+from harness.pairs.pose import build_pairs
+from harness.pairs.retrieval import candidate_pairs, write_retrieval_pairs
+from harness.pairs.table import DECLARED
+from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
+from harness.runtime.stage import Entry, Table, Units
 
 
 def query_pairs(
@@ -68,3 +73,59 @@ def candidate_table(pc: PairsConfig, seasons: dict[str, str], frames: Table, ann
     queries = ann.df if pc.queries == "annotated" else None
     cand = candidate_pairs(frames.df, seasons, queries)
     return Table(cand, pair_keys.candidates(pc, seasons, frames.key, ann.key))
+
+
+def write_pairs(
+    frames: pd.DataFrame,
+    cfg: PairsConfig,
+    seasons: dict[str, str],
+    queries: pd.DataFrame | None,
+    names: pd.DataFrame | None,
+    tmp: Path,
+) -> dict:
+    """Build the pairs into ``tmp/pairs.parquet`` and ``tmp/summary.json``.
+
+    By pose (:func:`build_pairs`), or by name or order (:func:`declared_pairs`, with the frames'
+    ``names``).
+
+    Returns:
+        The pairing summary (queries, pairs, drops by reason).
+    """
+    if cfg.by in DECLARED:
+        if names is None:
+            raise ValueError(f"[pairs] by = {cfg.by!r} needs the frames' file names")
+        pairs, summary = declared_pairs(frames, names, cfg.by, seasons, queries)
+    else:
+        pairs, summary = build_pairs(frames, cfg, seasons, queries)
+    write_parquet(tmp / "pairs.parquet", pairs)
+    write_json(tmp / "summary.json", summary)
+    return summary
+
+
+def retrieval_pair_table(
+    p: Units,
+    pc: PairsConfig,
+    memory_mb: float,
+    frames: Table,
+    cand: Table,
+    described: dict[str, Entry],
+    proposer: str,
+) -> Table:
+    """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2).
+
+    ``memory_mb``: ``[retrieval] memory_mb``; ``proposer``: the one whose descriptors rank.
+    """
+    paths = {s: e.path for s, e in described.items()}
+    build = partial(
+        write_retrieval_pairs,
+        cand.df,
+        paths,
+        frames.df,
+        proposer,
+        memory_mb,
+        pc.place_frames,
+        pc.sequence_frames if pc.by == "sequence" else 0,
+    )
+    dkeys = {s: e.key for s, e in described.items()}
+    entry = p.unit("pairs_retrieval", pair_keys.by_retrieval(cand.key, dkeys, proposer), build)
+    return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)

@@ -25,7 +25,9 @@ from harness.errors import ConfigError, HarnessError, RetrievalError
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.methods import ordered_methods, rules_where
 from harness.pairs import keys as pair_keys
-from harness.pairs.build import BY_RETRIEVAL, DECLARED, build_pairs
+from harness.pairs.agreement import pose_agreement
+from harness.pairs.pose import build_pairs
+from harness.pairs.table import BY_RETRIEVAL, DECLARED
 from harness.pipeline.across import across_localizers, common_images, localizer_fusion
 from harness.pipeline.context import Context
 from harness.pipeline.localizer_stages import (
@@ -50,7 +52,6 @@ from harness.pipeline.stages import (
 from harness.reports.blocks import Block
 from harness.reports.html.page import write_html_report
 from harness.retrieval.import_file import ImportSpec
-from harness.retrieval.pairing import pose_agreement
 from harness.runtime.cache import write_json
 from harness.runtime.executors import LocalExecutor
 from harness.runtime.outdirs import read_run_record

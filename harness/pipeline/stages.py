@@ -21,7 +21,6 @@ from harness.proposals import stage as proposal_stage
 from harness.reports.blocks import Block, Reports
 from harness.reports.write import write_reports
 from harness.retrieval import described_frames
-from harness.retrieval import stage as retrieval_stage
 from harness.runtime.progress import progress
 from harness.runtime.stage import Entry, RankTable, Table
 
@@ -65,9 +64,7 @@ def retrieval_pair_table(
 ) -> Table:
     """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2)."""
     mb = p.cfg.retrieval.memory_mb
-    return retrieval_stage.retrieval_pair_table(
-        p, p.cfg.pairs, mb, frames, cand, described, proposer
-    )
+    return pair_stage.retrieval_pair_table(p, p.cfg.pairs, mb, frames, cand, described, proposer)
 
 
 def session_proposals(

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from harness.pairs.build import yaw_diff_deg
+from harness.pairs.table import yaw_diff_deg
 
 
 def ground_truth_places(

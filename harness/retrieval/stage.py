@@ -1,4 +1,4 @@
-"""The ranking stages (SPEC 6, 12, 13.2): ranks by descriptors or from a file; pairs by retrieval.
+"""The ranking stages (SPEC 6, 12): ranks by descriptors or words, or from a user's file.
 
 Their keys are made in :mod:`harness.retrieval.keys`; a ranking unit is
 :func:`harness.retrieval.units.rank_reference`.
@@ -14,15 +14,12 @@ from typing import Any
 import pandas as pd
 
 from harness.errors import RetrievalError
-from harness.pairs import keys as pair_keys
-from harness.pairs.config import PairsConfig
 from harness.records import SUBIMAGE_KEY
 from harness.retrieval import keys as retrieval_keys
 from harness.retrieval.bovw import combine_word_shards, encode_words, train_vocabulary
 from harness.retrieval.config import BovwConfig, ImportConfig, RetrievalConfig
 from harness.retrieval.import_file import ImportSpec
 from harness.retrieval.imported import unranked_images, write_imported_ranks
-from harness.retrieval.pairing import write_retrieval_pairs
 from harness.retrieval.units import RankSettings, rank_reference
 from harness.runtime.cache import read_cached_parquet, write_parquet
 from harness.runtime.stage import Build, Entry, RankTable, Table, Units
@@ -148,35 +145,6 @@ def imported_ranks(
             "[import] allow_unranked_images = true to leave them out of every table (counted)"
         )
     return RankTable(df, entry.key, {"import": info})
-
-
-def retrieval_pair_table(
-    p: Units,
-    pc: PairsConfig,
-    memory_mb: float,
-    frames: Table,
-    cand: Table,
-    described: dict[str, Entry],
-    proposer: str,
-) -> Table:
-    """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2).
-
-    ``memory_mb``: ``[retrieval] memory_mb``; ``proposer``: the one whose descriptors rank.
-    """
-    paths = {s: e.path for s, e in described.items()}
-    build = partial(
-        write_retrieval_pairs,
-        cand.df,
-        paths,
-        frames.df,
-        proposer,
-        memory_mb,
-        pc.place_frames,
-        pc.sequence_frames if pc.by == "sequence" else 0,
-    )
-    dkeys = {s: e.key for s, e in described.items()}
-    entry = p.unit("pairs_retrieval", pair_keys.by_retrieval(cand.key, dkeys, proposer), build)
-    return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)
 
 
 def bovw_vocabulary(

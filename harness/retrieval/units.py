@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import scipy.sparse as sp
 
-from harness.pairs.build import thin_by_stride
+from harness.pairs.pose import thin_by_stride
 from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
 from harness.retrieval.config import RetrievalConfig

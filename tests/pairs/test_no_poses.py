@@ -79,7 +79,7 @@ def test_an_images_folder_is_a_session_in_name_order_with_no_pose(tmp_path: Path
 
 
 def test_the_best_frame_is_the_brute_force_one_in_any_chunking() -> None:
-    from harness.retrieval.pairing import best_frames
+    from harness.pairs.retrieval import best_frames
 
     rng = np.random.default_rng(1)
     db = rng.normal(size=(60, 8)).astype(np.float32)
@@ -103,7 +103,7 @@ def test_the_best_frame_is_the_brute_force_one_in_any_chunking() -> None:
 
 
 def test_a_pair_is_as_confident_as_its_best_match_beats_the_best_elsewhere() -> None:
-    from harness.retrieval.pairing import pair_confidence
+    from harness.pairs.retrieval import pair_confidence
 
     got = pair_confidence(np.array([1.0, 2.0, 0.0, 3.0]), np.array([4.0, 2.0, 5.0, np.inf]))
     assert got.tolist() == [0.75, 0.0, 1.0, 1.0]  # 1 - 1/4; a tie; exact; no rival at all
@@ -119,7 +119,7 @@ def _frames(session: str, utimes: list[int]) -> pd.DataFrame:
 def test_pairs_by_name_and_by_order_as_spec_13_2_declares_them() -> None:
     """Names pair by stem (``a/0007.png`` with ``0007.jpg``), whatever the order; order pairs
     the i-th frames; a query with no such map frame is counted, not paired."""
-    from harness.pairs.build import declared_pairs
+    from harness.pairs.declared import declared_pairs
 
     frames = pd.concat([_frames("map", [10, 20, 30]), _frames("new", [1, 2, 3, 4])])
     names = pd.DataFrame(
@@ -446,9 +446,11 @@ def test_each_pairing_mode_agrees_with_the_pose_pairs_as_the_readme_quotes(
     query of each other session (twelve pairs of traverses), the poses the truth. Each mode's
     share of pairs within 10 m of the pose pair, from the fixture run's own descriptors, is the
     README's; sequence beats retrieval (the default for folders that share no names)."""
-    from harness.pairs.build import build_pairs, candidate_pairs, declared_pairs
+    from harness.pairs.agreement import pose_agreement
     from harness.pairs.config import PairsConfig
-    from harness.retrieval.pairing import pose_agreement, retrieval_pairs
+    from harness.pairs.declared import declared_pairs
+    from harness.pairs.pose import build_pairs
+    from harness.pairs.retrieval import candidate_pairs, retrieval_pairs
 
     _, rec, out = local_run
     frames = pd.read_parquet(out / "cache" / "frames" / rec["keys"]["frames"] / "frames.parquet")

@@ -9,8 +9,9 @@ import pandas as pd
 
 from harness.ingest import ingest_session, load_frames
 from harness.ingest.config import IngestConfig, SessionConfig
-from harness.pairs.build import build_pairs, nearest_with_heading, thin_by_stride, yaw_diff_deg
 from harness.pairs.config import PairsConfig
+from harness.pairs.pose import build_pairs, nearest_with_heading, thin_by_stride
+from harness.pairs.table import yaw_diff_deg
 
 
 def _frames(rows: list[tuple]) -> pd.DataFrame:

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.pairs.build import thin_by_stride
+from harness.pairs.pose import thin_by_stride
 from harness.pipeline.chain import Pipeline, load_run
 from harness.retrieval import described_frames
 
