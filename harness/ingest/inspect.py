@@ -8,15 +8,13 @@ topic and the (small) transform messages.
 
 from __future__ import annotations
 
-import itertools
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from harness.errors import IngestError
-from harness.imagestore import header_size
-from harness.ingest.folders import FOLDER_FORMATS, INTEGER_UNITS
+from harness.ingest.folder_inspect import time_span
 from harness.ingest.images import compressed_size
 from harness.ingest.log_types import IMAGE_TYPES, READ_ERRORS, typestore_for, uri_safe_path
 from harness.ingest.logs import READERS, detect_format, list_topics
@@ -24,19 +22,6 @@ from harness.ingest.poses import POSE_TYPES, stamp_us
 from harness.ingest.tf import TfTree
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
-
-
-def _span(times: list[int]) -> dict[str, Any]:
-    if not times:
-        return {"first_s": None, "last_s": None, "span_s": 0.0, "rate_hz": 0.0}
-    t = np.asarray(times, np.int64)
-    span = float(t.max() - t.min()) / 1e9
-    return {
-        "first_s": float(t.min()) / 1e9,
-        "last_s": float(t.max()) / 1e9,
-        "span_s": round(span, 3),
-        "rate_hz": round((len(t) - 1) / span, 3) if span > 0 else 0.0,
-    }
 
 
 def inspect_log(path: Path) -> dict[str, Any]:
@@ -48,10 +33,8 @@ def inspect_log(path: Path) -> dict[str, Any]:
     path = Path(path)
     fmt = detect_format(path)
     inspect = READERS[fmt].inspect
-    if inspect is not None:  # a layout of its own (nclt)
+    if inspect is not None:  # a layout of its own (nclt, a folder): its record says
         return inspect(path)
-    if fmt in FOLDER_FORMATS:
-        return inspect_folder(path, fmt)
     from rosbags.highlevel import AnyReader
 
     with uri_safe_path(path) as readable:
@@ -100,10 +83,10 @@ def inspect_log(path: Path) -> dict[str, Any]:
     }
     for name, (typ, count) in sorted(topics.items()):
         out["topics"].append(
-            {"topic": name, "type": typ, "messages": count, **_span(times.get(name, []))}
+            {"topic": name, "type": typ, "messages": count, **time_span(times.get(name, []))}
         )
     for e in sorted(tree.edges.values(), key=lambda e: (e.parent, e.child)):
-        sp = _span(tf_counts.get(e.name, []))
+        sp = time_span(tf_counts.get(e.name, []))
         out["tf"].append(
             {
                 "parent": e.parent,
@@ -172,63 +155,3 @@ def _suggest(
                 f"frames: {', '.join(sorted(tree.frames()))}"
             )
     return "\n".join(lines)
-
-
-#: How :func:`harness.ingest.folders.stem_to_ns` reads an integer file name, by its factor to ns.
-_UNIT_WORDS = {1: "ns", 1_000: "us", 1_000_000: "ms", 1_000_000_000: "s"}
-
-
-def _name_pattern(stems: list[str]) -> str:
-    """How a folder's file names are read as times (SPEC 13.2's folders)."""
-    if not stems:
-        return "no images"
-    if all(s.isdigit() for s in stems):
-        units = {_UNIT_WORDS[next(f for lo, f in INTEGER_UNITS if int(s) >= lo)] for s in stems}
-        return "integers, times in " + " and ".join(sorted(units))
-    try:
-        [float(s) for s in stems]
-    except ValueError:
-        return "names (not times): frames one second apart in name order"
-    return "decimal numbers, times in seconds"
-
-
-def inspect_folder(path: Path, fmt: str) -> dict[str, Any]:
-    """Describe a folder session (images alone, or TUM, KITTI, EuRoC) as a dict.
-
-    The images' count, sizes (from their headers, never decoding pixels), how their names read
-    as times, whether those times increase in name order, the span and rate, the trajectory's
-    poses, and the config lines that would ingest it.
-
-    Raises:
-        IngestError: the folder's times or trajectory cannot be read (one line naming the file).
-    """
-    reader = FOLDER_FORMATS[fmt]
-    try:
-        frames = reader.images(path)
-        poses = reader.poses(path)
-    except ValueError as err:
-        raise IngestError(str(err)) from None
-    sizes: dict[str, int] = {}
-    for _, f in frames:
-        w, h = header_size(f, str(f))
-        sizes[f"{w}x{h}"] = sizes.get(f"{w}x{h}", 0) + 1
-    stems = [f.stem for _, f in frames]
-    times = [t for t, _ in frames]
-    info: dict[str, Any] = {
-        "path": str(path),
-        "format": fmt,
-        "images": len(frames),
-        "sizes": sizes,
-        "first": frames[0][1].name if frames else None,
-        "last": frames[-1][1].name if frames else None,
-        "names": _name_pattern(stems),
-        "times_file": (path / "times.txt").exists() if fmt == "images" else None,
-        "in_order": all(b > a for a, b in itertools.pairwise(times)),
-        "poses": len(poses),
-        **_span(times),
-    }
-    lines = ["[[sessions]]", f'name = "{path.name}"', 'season = ""', f'source = "{path}"']
-    if fmt == "images":
-        lines.append("# no trajectory: pair it with another folder by retrieval ([pairs] by)")
-    info["suggested_config"] = "\n".join(lines)
-    return info

@@ -8,10 +8,12 @@ mcap library's stream reader, so the messages before the damage can still be kep
 from __future__ import annotations
 
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from harness.errors import IngestError, TopicError
+from harness.ingest.folder_inspect import inspect_folder
 from harness.ingest.folders import FOLDER_FORMATS
 from harness.ingest.log_types import (
     IMAGE_TYPES,
@@ -209,7 +211,10 @@ def _register_builtins() -> None:
     for fmt in ("ros1", "ros2", "mcap"):
         READERS.add(fmt, LogFormat(fmt, RosbagsLog(fmt), True, order[fmt]))
     for name, folder in FOLDER_FORMATS.items():
-        READERS.add(name, LogFormat(name, FolderLog(folder), True, order.get(name, 0)))
+        look = partial(inspect_folder, fmt=name)
+        READERS.add(
+            name, LogFormat(name, FolderLog(folder), True, order.get(name, 0), inspect=look)
+        )
 
 
 _register_builtins()
