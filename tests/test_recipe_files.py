@@ -151,12 +151,13 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
                 '    _builtin("kth_rank", "k-th best rank", options=("options",), **_RANK),\n',
             )
         ],
-        "fusion/rules.py": [
-            ("", _example("kth_rank.py", "KthRank", "kth_rank")),
-            ("", '\n\nFUSION_OPTIONS.add("kth_rank", KthRank)\nrule("kth_rank")(kth_rank)\n'),
-            ("import dataclasses\n", "from dataclasses import dataclass\n"),
-            ("from harness.methods import FUSION_RULES,", " FUSION_OPTIONS,"),
-        ],
+        "fusion/rules/kth_rank.py": (
+            '"""The k-th best rank."""\n\nfrom dataclasses import dataclass\n\n'
+            "import numpy as np\n\nfrom harness.fusion.rules.base import rule\n"
+            "from harness.methods import FUSION_OPTIONS\n"
+            + _example("kth_rank.py", "KthRank", "kth_rank")
+            + '\n\nFUSION_OPTIONS.add("kth_rank", KthRank)\nrule("kth_rank")(kth_rank)\n'
+        ),
     },
     "proposer with an option": {
         "methods.py": [('    Proposer("segments"),\n', '    Proposer("centre"),\n')],

@@ -10,6 +10,7 @@ from typing import Any
 
 from harness.fusion.config import FusionConfig
 from harness.fusion.fuse import method_fingerprints as fusion_method_fingerprints
+from harness.methods import FUSION_RULES
 from harness.runtime.cache import Parts
 
 
@@ -19,9 +20,11 @@ def detect_chunk(
     """One chunk of ``harness detect``.
 
     Its ranks, ``[detect]`` (less the chunk size), the chunk's query frames from ``first``, and
-    the fusion rule (its source, ``rrf_c``, its options).
+    the fusion rule: its source, the ``[fusion]`` values its function takes as keywords (``rrf_c``;
+    the seed is ``[detect]``'s) and its own table.
     """
     options = fc.options_of(rule)
+    keywords = [o for o in FUSION_RULES[rule].options if o not in ("seed", "options")]
     return (
         "detect",
         ranks_key,
@@ -29,6 +32,6 @@ def detect_chunk(
         first,
         n,
         fusion_method_fingerprints((rule,)),
-        *((fc.rrf_c,) if rule == "rrf" else ()),
+        *(getattr(fc, o) for o in keywords),
         *((dataclasses.asdict(options),) if options is not None else ()),
     )

@@ -1,6 +1,6 @@
 """Fusion of ranks into likelihood of change (SPEC 5, 7 and 14).
 
-``rules`` holds one small function per rule of the catalogue, ``fuse`` the fused set, the
+``rules`` holds one module per rule of the catalogue, ``fuse`` the fused set, the
 samples stage's build and the LoC maps. A user's rule: :func:`register_method`.
 """
 
