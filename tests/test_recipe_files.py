@@ -169,30 +169,19 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
         ],
     },
     "localizer kind that caches": {
-        "localizers/kinds.py": [
-            ("from harness.methods import Registry\n", _example("colour.py", "Colour")),
-            (
-                '    LocalizerKind("local", LocalConfig, _local),\n',
-                '    LocalizerKind("colour", Colour),\n',
-            ),
-        ],
-        "pipeline/localizer_stages.py": [
-            ("", _example("colour.py", "describe", "colour_ranks")),
-            ("", '\n\nkind_ranks("colour")(colour_ranks)\n'),
-            ("import numpy as np\n", "import cv2\n"),
-            (
-                "from harness.errors import ConfigError\n",
-                "from harness.imagestore import read_image\n",
-            ),
-            ("from dataclasses import dataclass, field\n", "from functools import partial\n"),
-            (
-                "from harness.proposals import keys as proposal_keys\n",
-                "from harness.records import FRAME_KEY\n",
-            ),
-            (
-                "from harness.retrieval.import_file import ImportSpec\n",
-                "from harness.runtime.cache import write_parquet\n",
-            ),
+        "localizers/kinds/colour.py": (
+            '"""RGB histograms."""\n\nfrom dataclasses import dataclass\n'
+            "from functools import partial\n\nimport cv2\nimport numpy as np\n\n"
+            "from harness.imagestore import read_image\n"
+            "from harness.localizers.kinds.base import LocalizerKind\n"
+            "from harness.records import FRAME_KEY\n"
+            "from harness.runtime.cache import write_parquet\n"
+            + _example("colour.py", "Colour", "describe", "colour_ranks")
+            + '\n\nKIND = LocalizerKind("colour", Colour, ranks=colour_ranks)\n'
+        ),
+        "localizers/kinds/__init__.py": [
+            ("import bovw, descriptor, imported, local", ", colour"),
+            ("(descriptor, bovw, imported, local", ", colour"),
         ],
     },
     "log format": {
@@ -220,7 +209,6 @@ from harness.fusion.fuse import loc_from_cover
 from harness.fusion.config import FusionConfig
 from harness.ingest.logs import detect_format
 from harness.localizers.kinds import LOCALIZER_KINDS
-from harness.pipeline import localizer_stages  # attaches the built-in kinds' ranks
 from harness.proposals.config import ProposalsConfig
 from harness.methods import PROPOSERS
 from harness.proposals import proposers  # attaches the built-in proposers' functions

@@ -12,7 +12,6 @@ import numpy as np
 
 from harness.imagestore import read_image
 from harness.localizers.kinds import LocalizerKind, register_localizer_kind
-from harness.pipeline.rank_stages import query_ranks
 from harness.records import FRAME_KEY
 from harness.runtime.cache import write_parquet
 
@@ -44,7 +43,7 @@ def colour_ranks(p, loc, frames, pairs, props, rc):
         s: p.unit("colour", (bins, t.key), partial(describe, bins, t.df, frames.df))
         for s, t in props.items()
     }
-    return query_ranks(p, frames, pairs, described, rc)
+    return p.query_ranks(frames, pairs, described, rc)
 
 
 register_localizer_kind(LocalizerKind("colour", Colour, ranks=colour_ranks))

@@ -8,6 +8,7 @@ entries in; the outputs' records (``Entry``, ``Table``, ``RankTable``) are in
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import Iterator
@@ -18,13 +19,19 @@ from typing import Any
 import numpy as np
 
 from harness.config.schema import Config
+from harness.descriptors import stage as descriptor_stage
+from harness.descriptors.config import DescriptorConfig
 from harness.localizers.config import LocalizerConfig, LocalizerImportConfig
 from harness.localizers.kinds import LOCALIZER_KINDS
+from harness.retrieval import stage as retrieval_stage
+from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec, parse_import_arg
+from harness.retrieval.units import RankSettings
 from harness.runtime.cache import StageCache, content_sha
 from harness.runtime.executors import LocalExecutor
+from harness.runtime.hardware import rank_precision
 from harness.runtime.outdirs import claim_dir, run_lock
-from harness.runtime.stage import Build, CombineUnit, Entry, ShardUnit, Table
+from harness.runtime.stage import Build, CombineUnit, Entry, RankTable, ShardUnit, Table
 
 log = logging.getLogger(__name__)
 
@@ -164,11 +171,96 @@ class Context:
         out = {s: self.unit(stages[1], *combine(s, done[slice(*ab)])) for s, ab in spans.items()}
         return out, done
 
+    # ------------------------------------------ the stages a localizer kind calls, with the run's
+    # sections (:class:`harness.localizers.kinds.LocalizerRun`)
+
+    @property
+    def descriptor_device(self) -> str:
+        """The run's ``[descriptor] device``: where a kind without a descriptor of its own ranks."""
+        return self.cfg.descriptor.device
+
+    def descriptor_model(
+        self, dc: DescriptorConfig, frames: Table, props: dict[str, Table]
+    ) -> Entry:
+        """Proposals -> the trained model of ``dc``, on the run's training sessions' proposals."""
+        if self.train_sessions is not None:
+            props = {s: t for s, t in props.items() if s in self.train_sessions}
+        return descriptor_stage.descriptor_model(self, dc, frames, props)
+
+    def descriptor_projection(
+        self,
+        dc: DescriptorConfig,
+        frames: Table,
+        pairs: Table,
+        props: dict[str, Table],
+        model: Entry,
+    ) -> Entry | None:
+        """Model -> the compact-descriptor projection under ``[projection]`` (None when off)."""
+        pc = self.cfg.projection
+        return descriptor_stage.descriptor_projection(self, dc, pc, frames, pairs, props, model)
+
+    def query_ranks(
+        self,
+        frames: Table,
+        pairs: Table,
+        described: dict[str, Entry],
+        rc: RetrievalConfig,
+        device: str = "auto",
+        precision: str = "fp32",
+    ) -> RankTable:
+        """Pairs + descriptors -> the rank of each query subimage's true place (SPEC section 6).
+
+        ``rc``: the ``[retrieval]`` to rank under (the run's, or ``gt_radius_also``'s).
+        ``device``: the descriptor's (``[descriptor] device``); the exact engine runs on CUDA
+        where it allows and one is present. ``precision``: the descriptor's, for the exact
+        engine's candidate product (:func:`harness.runtime.hardware.rank_precision`). By
+        retrieval (SPEC 13.2) the place is ``[pairs] place_frames`` frames each side.
+        """
+        pc = self.cfg.pairs
+        how = RankSettings(
+            rc,
+            pc.max_yaw_diff_deg,
+            ranks_device(rc, device),
+            pc.place_frames if pc.by != "pose" else None,
+            rank_precision(precision) if rc.engine == "exact" else "fp32",
+        )
+        refs = [s.name for s in self.cfg.sessions]
+        return retrieval_stage.rank_queries(self, how, refs, frames, pairs, described)
+
+    def imported_ranks(
+        self,
+        frames: Table,
+        pairs: Table,
+        props: dict[str, Table],
+        spec: ImportSpec,
+        score_kind: str,
+        rc: RetrievalConfig,
+    ) -> RankTable:
+        """Ranks from a user's file, scored as ``score_kind``.
+
+        :func:`harness.retrieval.stage.imported_ranks` under the run's ``[import]`` and heading
+        limit.
+        """
+        imp = dataclasses.replace(self.cfg.import_, score_kind=score_kind)
+        yaw = self.cfg.pairs.max_yaw_diff_deg
+        return retrieval_stage.imported_ranks(self, rc, imp, yaw, frames, pairs, props, spec)
+
     def _count(self, stage: str, res: list[tuple[Path, bool]], t0: float) -> None:
         self.ran[stage] = self.ran.get(stage, 0) + sum(int(r) for _, r in res)
         self.used.setdefault(stage, set()).update(Path(p).name for p, _ in res)
         self.trail.extend((stage, Path(p)) for p, _ in res)
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def ranks_device(rc: RetrievalConfig, dev: str) -> str:
+    """The exact engine's device: CUDA when ``dev`` (the descriptor's) allows it and one exists."""
+    import torch
+
+    return (
+        "cuda"
+        if rc.engine == "exact" and dev in ("auto", "cuda") and torch.cuda.is_available()
+        else "cpu"
+    )
 
 
 def localizer_record(loc: LocalizerConfig, full: bool = True) -> dict[str, Any]:

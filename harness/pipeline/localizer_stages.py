@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 import pandas as pd
@@ -19,16 +17,12 @@ import pandas as pd
 from harness.descriptors.stage import session_descriptors
 from harness.errors import ConfigError
 from harness.fusion.config import FusionConfig
-from harness.localizers import stage as localizer_stage
 from harness.localizers.config import LocalizerConfig
-from harness.localizers.kinds import LOCALIZER_KINDS
+from harness.localizers.kinds import LOCALIZER_KINDS, options_of
 from harness.pipeline.context import Context
-from harness.pipeline.rank_stages import imported_ranks, query_ranks
-from harness.pipeline.stages import descriptor_model, descriptor_projection, retrieval_pair_table
+from harness.pipeline.stages import retrieval_pair_table
 from harness.proposals import keys as proposal_keys
-from harness.retrieval import stage as retrieval_stage
 from harness.retrieval.config import RetrievalConfig
-from harness.retrieval.import_file import ImportSpec
 from harness.runtime.costs import localizer_costs
 from harness.runtime.stage import RankTable, Table
 
@@ -51,20 +45,6 @@ class Measured:
     ranks_also: RankTable | None = None  # at [report] gt_radius_also (the localization table)
 
 
-T = TypeVar("T")
-
-
-def _options(loc: LocalizerConfig, value: T | None) -> T:
-    """A localizer's options of its kind (the config loader sets them for that kind).
-
-    Raises:
-        ConfigError: they are missing (a config built by hand without them).
-    """
-    if value is None:
-        raise ConfigError(f"localizer {loc.name!r} of kind {loc.kind!r}: its options are missing")
-    return value
-
-
 def localizer_proposals(
     p: Context, loc: LocalizerConfig, props: dict[str, Table]
 ) -> dict[str, Table]:
@@ -78,95 +58,6 @@ def localizer_proposals(
         )
         for s, t in props.items()
     }
-
-
-#: A localizer kind's rank rows: (context, localizer, frames, pairs, its proposals, the
-#: ``[retrieval]`` whose ground-truth place it ranks against) -> ranks.
-KindRanks = Callable[
-    [Context, LocalizerConfig, Table, Table, dict[str, Table], RetrievalConfig], RankTable
-]
-
-
-def kind_ranks(name: str) -> Callable[[KindRanks], KindRanks]:
-    """Attach the decorated function as the ranks of the built-in kind ``name``.
-
-    The kind's record (:data:`harness.localizers.kinds.LOCALIZER_KINDS`) holds its options.
-    """
-
-    def attach(fn: KindRanks) -> KindRanks:
-        LOCALIZER_KINDS[name] = dataclasses.replace(LOCALIZER_KINDS[name], ranks=fn)
-        return fn
-
-    return attach
-
-
-@kind_ranks("descriptor")
-def descriptor_kind_ranks(
-    p: Context,
-    loc: LocalizerConfig,
-    frames: Table,
-    pairs: Table,
-    mine: dict[str, Table],
-    rc: RetrievalConfig,
-) -> RankTable:
-    """Kind ``descriptor``: model, projection, descriptors, then the ranking engine."""
-    dc = _options(loc, loc.descriptor)
-    model = descriptor_model(p, dc, frames, mine)
-    projection = descriptor_projection(p, dc, frames, pairs, mine, model)
-    described = session_descriptors(p, dc, frames, mine, model, projection)
-    return query_ranks(p, frames, pairs, described, rc, dc.device, dc.precision)
-
-
-@kind_ranks("bovw")
-def bovw_kind_ranks(
-    p: Context,
-    loc: LocalizerConfig,
-    frames: Table,
-    pairs: Table,
-    mine: dict[str, Table],
-    rc: RetrievalConfig,
-) -> RankTable:
-    """Kind ``bovw``: vocabulary, words, then the same ranking engine on the sparse vectors."""
-    bc = _options(loc, loc.bovw)
-    vocab = retrieval_stage.bovw_vocabulary(p, bc, frames, pairs, mine)
-    words, nofeat = retrieval_stage.bovw_words(p, bc, loc.name, frames, mine, vocab)
-    ranks = query_ranks(p, frames, pairs, words, rc, p.cfg.descriptor.device)
-    ranks.counts["bovw"] = {"no_feature_subimages": nofeat}
-    return ranks
-
-
-@kind_ranks("import")
-def import_kind_ranks(
-    p: Context,
-    loc: LocalizerConfig,
-    frames: Table,
-    pairs: Table,
-    mine: dict[str, Table],
-    rc: RetrievalConfig,
-) -> RankTable:
-    """Kind ``import``: a user's ranked lists, checked and scored (SPEC 12)."""
-    im = _options(loc, loc.import_)
-    return imported_ranks(
-        p, frames, pairs, mine, ImportSpec(loc.name, Path(im.file)), im.score_kind, rc
-    )
-
-
-@kind_ranks("local")
-def local_kind_ranks(
-    p: Context,
-    loc: LocalizerConfig,
-    frames: Table,
-    pairs: Table,
-    mine: dict[str, Table],
-    rc: RetrievalConfig,
-) -> RankTable:
-    """Kind ``local``: each subimage ranked inside its paired map frame (SPEC 13.3).
-
-    Units of ``frames_per_unit`` pairs; each writes its rank rows and its pairs' alignments.
-    ``rc`` does not enter: the place is the paired frame itself.
-    """
-    del rc
-    return localizer_stage.local_ranks(p, loc.options, frames, pairs, mine)
 
 
 def localizer_ranks(
@@ -205,12 +96,12 @@ def retrieval_ranks(
             f"[pairs] by = 'retrieval' pairs frames with the run's descriptor; localizer "
             f"{loc.name} is of kind {loc.kind!r}"
         )
-    mine, dc = localizer_proposals(p, loc, props), _options(loc, loc.descriptor)
-    model = descriptor_model(p, dc, frames, mine)
-    projection = descriptor_projection(p, dc, frames, cand, mine, model)
+    mine, dc = localizer_proposals(p, loc, props), options_of(loc, loc.descriptor)
+    model = p.descriptor_model(dc, frames, mine)
+    projection = p.descriptor_projection(dc, frames, cand, mine, model)
     described = session_descriptors(p, dc, frames, mine, model, projection)
     pairs = retrieval_pair_table(p, frames, cand, described, loc.proposals[0])
-    return pairs, query_ranks(p, frames, pairs, described, p.cfg.retrieval, dc.device, dc.precision)
+    return pairs, p.query_ranks(frames, pairs, described, p.cfg.retrieval, dc.device, dc.precision)
 
 
 def ranks_at_radius(

@@ -10,8 +10,6 @@ from __future__ import annotations
 import time
 from functools import partial
 
-from harness.descriptors import stage as descriptor_stage
-from harness.descriptors.config import DescriptorConfig
 from harness.fusion import stage as fusion_stage
 from harness.fusion.config import FusionConfig
 from harness.ingest import stage as ingest_stage
@@ -82,29 +80,6 @@ def session_proposals(
     for name, fr in mine.items():
         p.not_described[name] = int((frames.df["session"] == name).sum()) - len(fr)
     return proposal_stage.session_proposals(p, p.cfg.proposals, list(mine), mine, ingested)
-
-
-def descriptor_model(
-    p: Context, dc: DescriptorConfig, frames: Table, props: dict[str, Table]
-) -> Entry:
-    """Proposals -> the trained model of ``dc``, on the run's training sessions' proposals."""
-    if p.train_sessions is not None:
-        props = {s: t for s, t in props.items() if s in p.train_sessions}
-    return descriptor_stage.descriptor_model(p, dc, frames, props)
-
-
-def descriptor_projection(
-    p: Context,
-    dc: DescriptorConfig,
-    frames: Table,
-    pairs: Table,
-    props: dict[str, Table],
-    model: Entry,
-) -> Entry | None:
-    """Model -> the compact-descriptor projection under ``[projection]`` (None when off)."""
-    return descriptor_stage.descriptor_projection(
-        p, dc, p.cfg.projection, frames, pairs, props, model
-    )
 
 
 def fused_samples(

@@ -1,0 +1,31 @@
+"""Localizer kinds (SPEC section 11): one ``[[localizers]]`` sub-table each, registered alike.
+
+:mod:`.base` holds the record (:class:`LocalizerKind`), the registry and the run a kind's ranks
+function is given; the built-in kinds are one module each, its record (``KIND``) and its ranks
+together, added here in the order the config's error messages list them. A user's kind is one
+:func:`register_localizer_kind` call.
+"""
+
+from __future__ import annotations
+
+from harness.localizers.kinds import bovw, descriptor, imported, local
+from harness.localizers.kinds.base import (
+    LOCALIZER_KINDS,
+    KindRanks,
+    LocalizerKind,
+    LocalizerRun,
+    options_of,
+    register_localizer_kind,
+)
+
+for _module in (descriptor, bovw, imported, local):
+    LOCALIZER_KINDS.add(_module.KIND.name, _module.KIND)
+
+__all__ = [
+    "LOCALIZER_KINDS",
+    "KindRanks",
+    "LocalizerKind",
+    "LocalizerRun",
+    "options_of",
+    "register_localizer_kind",
+]

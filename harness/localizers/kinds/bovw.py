@@ -1,0 +1,37 @@
+"""Kind ``bovw``: a bag of visual words (SPEC 11), ranked by the harness's engine on its vectors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from harness.localizers.config import LocalizerConfig
+from harness.localizers.kinds.base import LocalizerKind, LocalizerRun, options_of
+from harness.retrieval import stage as retrieval_stage
+from harness.retrieval.config import BovwConfig, RetrievalConfig, check_bovw
+from harness.runtime.stage import RankTable, Table
+
+
+def prepare(bw: BovwConfig, where: str, base: Path, root: Path) -> BovwConfig:
+    """The ``bovw`` table checked at load."""
+    check_bovw(bw, f"{where}.bovw")
+    return bw
+
+
+def ranks(
+    p: LocalizerRun,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    mine: dict[str, Table],
+    rc: RetrievalConfig,
+) -> RankTable:
+    """Vocabulary, words, then the same ranking engine on the sparse vectors."""
+    bc = options_of(loc, loc.bovw)
+    vocab = retrieval_stage.bovw_vocabulary(p, bc, frames, pairs, mine)
+    words, nofeat = retrieval_stage.bovw_words(p, bc, loc.name, frames, mine, vocab)
+    out = p.query_ranks(frames, pairs, words, rc, p.descriptor_device)
+    out.counts["bovw"] = {"no_feature_subimages": nofeat}
+    return out
+
+
+KIND = LocalizerKind("bovw", BovwConfig, prepare, ranks=ranks)

@@ -1,0 +1,52 @@
+"""Kind ``descriptor``: a learned or given descriptor, ranked by the harness's engine (SPEC 6, 11).
+
+Its options are ``[descriptor]``'s table; its ranks: the model, the projection, each session's
+descriptors, then the ranking engine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from harness.descriptors.config import DescriptorConfig
+from harness.descriptors.stage import session_descriptors
+from harness.inputs import resolve_config_path
+from harness.localizers.config import LocalizerConfig
+from harness.localizers.kinds.base import LocalizerKind, LocalizerRun, options_of
+from harness.retrieval.config import RetrievalConfig
+from harness.runtime.stage import RankTable, Table
+
+
+def prepare(de: DescriptorConfig, where: str, base: Path, root: Path) -> DescriptorConfig:
+    """A user's network path resolved against the config's folder."""
+    return (
+        dataclasses.replace(de, path=str(resolve_config_path(de.path, base, root)))
+        if de.path
+        else de
+    )
+
+
+def record(de: DescriptorConfig) -> dict[str, Any]:
+    """What ``run.json`` says of a descriptor localizer: the descriptor's name."""
+    return {"descriptor": de.name}
+
+
+def ranks(
+    p: LocalizerRun,
+    loc: LocalizerConfig,
+    frames: Table,
+    pairs: Table,
+    mine: dict[str, Table],
+    rc: RetrievalConfig,
+) -> RankTable:
+    """Model, projection, descriptors, then the ranking engine."""
+    dc = options_of(loc, loc.descriptor)
+    model = p.descriptor_model(dc, frames, mine)
+    projection = p.descriptor_projection(dc, frames, pairs, mine, model)
+    described = session_descriptors(p, dc, frames, mine, model, projection)
+    return p.query_ranks(frames, pairs, described, rc, dc.device, dc.precision)
+
+
+KIND = LocalizerKind("descriptor", DescriptorConfig, prepare, record, ranks)
