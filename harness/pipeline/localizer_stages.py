@@ -11,9 +11,6 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
-
 from harness.descriptors.stage import session_descriptors
 from harness.errors import ConfigError
 from harness.fusion.config import FusionConfig
@@ -131,9 +128,8 @@ def measured_costs(
 ) -> dict[str, float]:
     """Table L's cost cells of a localizer from the entries its stages used (``trail``).
 
-    A ``local`` localizer stores no descriptor: its map is the map frames' image files (their
-    mean size, from ``frames``), and it encodes and builds nothing; its rank time is the whole
-    of its work (alignment and matching).
+    Its kind's record may adjust them, given ``frames`` (``local``: its map is the map frames'
+    image files, and it encodes and builds nothing).
     """
     mine = localizer_proposals(p, loc, props)
     refs = sorted(set(pairs.df["r_session"]))
@@ -143,18 +139,7 @@ def measured_costs(
     costs = localizer_costs(
         trail, len(ranks.df), ref_sub, ref_frames, imported=loc.import_ is not None
     )
-    if loc.kind == "local" and frames is not None:  # no descriptor, no model, no encoding:
-        costs.update(descriptor_bytes=0.0, encode_ms=0.0, build_s=0.0)  # the map is its pixels
-        costs["map_kib_per_frame"] = map_image_kib(frames.df, pairs.df)
+    adjust = LOCALIZER_KINDS[loc.kind].costs
+    if adjust is not None and frames is not None:
+        adjust(costs, frames.df, pairs.df)
     return costs
-
-
-def map_image_kib(frames: pd.DataFrame, pairs: pd.DataFrame) -> float:
-    """The mean size (KiB) of the image files of the map frames ``pairs`` use."""
-    used = frames.merge(
-        pairs[["r_session", "r_camera", "r_utime"]].drop_duplicates(),
-        left_on=["session", "camera", "utime"],
-        right_on=["r_session", "r_camera", "r_utime"],
-    )
-    sizes = [Path(str(u).split("#rot=")[0]).stat().st_size for u in used["image"]]
-    return float(np.mean(sizes)) / 1024.0 if sizes else float("nan")

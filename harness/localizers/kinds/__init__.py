@@ -14,6 +14,7 @@ from harness.localizers.kinds.base import (
     KindRanks,
     LocalizerKind,
     LocalizerRun,
+    kind_summary,
     options_of,
     register_localizer_kind,
 )
@@ -26,6 +27,7 @@ __all__ = [
     "KindRanks",
     "LocalizerKind",
     "LocalizerRun",
+    "kind_summary",
     "options_of",
     "register_localizer_kind",
 ]

@@ -44,6 +44,12 @@ class LocalizerKind:
     #: (the run, localizer, frames, pairs, its proposals, ``[retrieval]``) -> its rank rows
     #: (:data:`KindRanks`).
     ranks: Callable[..., Any] | None = None
+    #: Adjusts Table L's cost cells of a localizer of this kind in place, given the frame table
+    #: and the pairs (what its map holds, what it encodes); None: as measured.
+    costs: Callable[[dict[str, float], Any, Any], None] | None = None
+    #: What the report page says of a localizer of this kind, from its ``run.json`` record and the
+    #: run's config (as a dict); None: its kind's name.
+    summary: Callable[[dict[str, Any], dict[str, Any]], str] | None = None
 
     def describe(self, options: Any) -> dict[str, Any]:
         """``run.json``'s fields for ``options`` of this kind."""
@@ -116,6 +122,18 @@ class LocalizerRun(Units, Protocol):
 KindRanks = Callable[
     [LocalizerRun, LocalizerConfig, Table, Table, dict[str, Table], RetrievalConfig], RankTable
 ]
+
+
+def kind_summary(record: dict[str, Any], cfg: dict[str, Any]) -> str:
+    """What the report page says of a localizer (its ``run.json`` record): its kind's words.
+
+    A kind this interpreter does not know (a plugin's, read back without it) is named.
+    """
+    kind = LOCALIZER_KINDS.get(str(record.get("kind")))
+    if kind is None or kind.summary is None:
+        return f"localizer kind {record.get('kind')}"
+    return kind.summary(record, cfg)
+
 
 T = TypeVar("T")
 

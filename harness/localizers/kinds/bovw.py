@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from harness.localizers.config import LocalizerConfig
 from harness.localizers.kinds.base import LocalizerKind, LocalizerRun, options_of
@@ -34,4 +35,10 @@ def ranks(
     return out
 
 
-KIND = LocalizerKind("bovw", BovwConfig, prepare, ranks=ranks)
+def summary(rec: dict[str, Any], cfg: dict[str, Any]) -> str:
+    """The page's words: its features and vocabulary size."""
+    bw = rec.get("bovw", {})
+    return f"bag of visual words ({bw.get('features')}, k = {bw.get('k')})"
+
+
+KIND = LocalizerKind("bovw", BovwConfig, prepare, ranks=ranks, summary=summary)

@@ -49,4 +49,11 @@ def ranks(
     return p.query_ranks(frames, pairs, described, rc, dc.device, dc.precision)
 
 
-KIND = LocalizerKind("descriptor", DescriptorConfig, prepare, record, ranks)
+def summary(rec: dict[str, Any], cfg: dict[str, Any]) -> str:
+    """The page's words: the descriptor (the run's ``[descriptor]`` where the record is short)."""
+    return "built-in descriptor " + str(
+        rec.get("descriptor") or cfg.get("descriptor", {}).get("name")
+    )
+
+
+KIND = LocalizerKind("descriptor", DescriptorConfig, prepare, record, ranks, summary=summary)

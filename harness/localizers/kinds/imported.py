@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 from harness.checks import check_value
 from harness.inputs import resolve_config_path
@@ -40,4 +41,12 @@ def ranks(
     return p.imported_ranks(frames, pairs, mine, spec, im.score_kind, rc)
 
 
-KIND = LocalizerKind("import", LocalizerImportConfig, prepare, ranks=ranks)
+def summary(rec: dict[str, Any], cfg: dict[str, Any]) -> str:
+    """The page's words: the file, its content's sha256 and how its scores read."""
+    return (
+        f"imported from {rec.get('file')} (sha256 {rec.get('sha256')}, scores as "
+        f"{rec.get('score_kind')})"
+    )
+
+
+KIND = LocalizerKind("import", LocalizerImportConfig, prepare, ranks=ranks, summary=summary)

@@ -6,6 +6,7 @@ from typing import Any
 
 import pandas as pd
 
+from harness.localizers.kinds import kind_summary
 from harness.methods import METHOD_LABELS
 from harness.reports.change import CHANGE_TABLES, change_table
 from harness.reports.html.cells import (
@@ -50,16 +51,7 @@ def run_facts(run: dict[str, Any], cfg: dict[str, Any]) -> tuple[str, str]:
     loc_name = ", ".join(str(x.get("name")) for x in locs)
     localizer_facts = "; ".join(
         f"{x.get('name')}: "
-        + (
-            f"imported from {x.get('file')} (sha256 {x.get('sha256')}, scores as "
-            f"{x.get('score_kind')})"
-            if x.get("kind") == "import"
-            else f"bag of visual words ({x.get('bovw', {}).get('features')}, k = "
-            f"{x.get('bovw', {}).get('k')})"
-            if x.get("kind") == "bovw"
-            else "built-in descriptor "
-            + str(x.get("descriptor") or cfg.get("descriptor", {}).get("name"))
-        )
+        + kind_summary(x, cfg)
         + (f", proposals {', '.join(x['proposals'])}" if x.get("proposals") else "")
         for x in locs
     )
