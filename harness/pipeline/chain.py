@@ -6,9 +6,10 @@ tables
 Each stage is a function of its package (``harness/<stage>/stage.py``) taking typed inputs (the
 run, its config sections and the outputs of the stages before it) to a typed output. It builds its
 cache key with its package's ``keys.py`` and hands a build function (a module-level function of
-the stage's module, bound with :func:`functools.partial`) to the cache: an entry ``<out>/cache/<stage>/<key>/``
-is built once, so a rerun with nothing changed does no work, an interrupted run resumes, and
-changing one option reruns only what depends on it. ``docs/architecture.md`` draws the chain.
+the stage's module, bound with :func:`functools.partial`) to the cache: an entry
+``<out>/cache/<stage>/<key>/`` is built once, so a rerun with nothing changed does no work, an
+interrupted run resumes, and changing one option reruns only what depends on it.
+``docs/architecture.md`` draws the chain.
 """
 
 from __future__ import annotations
