@@ -57,6 +57,7 @@ NOT_IN_STAGES = frozenset(
         "evaluate/aps.py",
         "evaluate/chance.py",
         "ingest/inspect.py",
+        "ingest/folder_inspect.py",
         "runtime/gc.py",
     }
 )

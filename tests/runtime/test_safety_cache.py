@@ -70,7 +70,7 @@ def test_stage_keys_change_with_the_code(tmp_path: Path, monkeypatch: pytest.Mon
     shutil.copytree(pkg, tmp_path / "harness", ignore=shutil.ignore_patterns("__pycache__"))
     before = cache.code_fingerprint(tmp_path / "harness")
     assert before == cache.CODE_FINGERPRINT  # the copy hashes like the installed package
-    fusion = tmp_path / "harness" / "fusion" / "rules.py"
+    fusion = tmp_path / "harness" / "fusion" / "rules" / "base.py"
     fusion.write_text(
         fusion.read_text().replace(
             "cover.sum(1) * (cover * inv[None, :]).sum(1)",
