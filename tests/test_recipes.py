@@ -165,7 +165,7 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
     loc = pd.read_csv(tmp_path / "localization.csv")
     assert "centre" in set(loc["proposal_method"]) and (tmp_path / "table1.csv").exists()
     # editing the function changes the proposals' key (its source is hashed into it)
-    before = proposals.method_fingerprints(["grid5", "centre"])
+    before = proposals.proposer_fingerprints(["grid5", "centre"])
     assert before.keys() == {"centre"}  # built-ins are covered by the package's own code key
 
     def centre_edited(rgb: np.ndarray, cfg: object) -> tuple[np.ndarray, np.ndarray]:
@@ -175,10 +175,10 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
 
     record = methods.PROPOSERS["centre"]
     methods.PROPOSERS["centre"] = dataclasses.replace(record, run=centre_edited)  # an edit
-    after = proposals.method_fingerprints(["grid5", "centre"])
+    after = proposals.proposer_fingerprints(["grid5", "centre"])
     assert after["centre"] != before["centre"]
     methods.PROPOSERS["centre"] = record  # (the registries fixture undoes it anyway)
-    assert proposals.method_fingerprints(["centre"]) == before  # the same source, the same key
+    assert proposals.proposer_fingerprints(["centre"]) == before  # the same source, the same key
 
 
 def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries) -> None:

@@ -9,7 +9,7 @@ import dataclasses
 from typing import Any
 
 from harness.fusion.config import FusionConfig
-from harness.fusion.fuse import method_fingerprints as fusion_method_fingerprints
+from harness.fusion.fuse import rule_fingerprints
 from harness.methods import FUSION_RULES
 from harness.runtime.cache import Parts
 
@@ -31,7 +31,7 @@ def detect_chunk(
         record | {"chunk_frames": None},
         first,
         n,
-        fusion_method_fingerprints((rule,)),
+        rule_fingerprints((rule,)),
         *(getattr(fc, o) for o in keywords),
         *((dataclasses.asdict(options),) if options is not None else ()),
     )

@@ -81,7 +81,7 @@ def register_method(
 known_methods = known_fusion_methods
 
 
-def method_fingerprints(methods: Iterable[str]) -> dict[str, str]:
+def rule_fingerprints(methods: Iterable[str]) -> dict[str, str]:
     """The source hash of each listed method registered from outside the package."""
     registry = {n: r.loc for n, r in FUSION_RULES.items() if r.loc is not None}
     return source_fingerprints(registry, methods)

@@ -9,7 +9,7 @@ import dataclasses
 
 from harness.evaluate.config import SplitsConfig
 from harness.fusion.config import FusionConfig
-from harness.fusion.fuse import method_fingerprints as fusion_method_fingerprints
+from harness.fusion.fuse import rule_fingerprints
 from harness.runtime.cache import Parts, without_empty
 
 
@@ -20,5 +20,5 @@ def samples(fc: FusionConfig, sp: SplitsConfig, ranks_key: str, ann_key: str) ->
         ann_key,
         without_empty(dataclasses.asdict(fc), "options"),
         dataclasses.asdict(sp),
-        fusion_method_fingerprints(fc.methods),
+        rule_fingerprints(fc.methods),
     )

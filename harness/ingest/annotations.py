@@ -67,7 +67,7 @@ def _utimes(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
     return out, bad
 
 
-def validate(
+def validate_annotations(
     df: pd.DataFrame,
     frames: pd.DataFrame | None,
     where: str,
@@ -200,7 +200,7 @@ def load_annotations(
         none = pd.DataFrame(columns=[*FRAME_KEY, "name"])
         df = frames_by_image(df, none if names is None else names, None, skip_sessions,
                              str(path), where)  # fmt: skip
-    return validate(df, frames, str(path), np.asarray(lines, np.int64))
+    return validate_annotations(df, frames, str(path), np.asarray(lines, np.int64))
 
 
 def change_boxes(ann: pd.DataFrame) -> dict[tuple[str, str, int], np.ndarray]:

@@ -21,7 +21,7 @@ from harness.ingest.annotations import (
     image_name,
     no_change_row,
     parse_image_name,
-    validate,
+    validate_annotations,
 )
 from harness.inputs import check_input, read_text
 from harness.records import FRAME_KEY, QUERY_KEY
@@ -144,7 +144,7 @@ def import_annotations(
     out = check_file_replaceable(Path(out), force)
     if fmt not in IMPORTERS:
         raise AnnotationError(f"unknown annotation format {fmt!r}; known: {sorted(IMPORTERS)}")
-    df = validate(IMPORTERS[fmt](Path(src)).reset_index(drop=True), frames, str(src))
+    df = validate_annotations(IMPORTERS[fmt](Path(src)).reset_index(drop=True), frames, str(src))
 
     with atomic_path(Path(out)) as tmp:
         df.to_csv(tmp, index=False, float_format="%.2f")

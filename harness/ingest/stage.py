@@ -17,8 +17,7 @@ import pandas as pd
 from harness.errors import AnnotationError
 from harness.imagestore import local_uri
 from harness.ingest import keys as ingest_keys
-from harness.ingest.annotations import COLUMNS, load_annotations
-from harness.ingest.annotations import validate as validate_annotations
+from harness.ingest.annotations import COLUMNS, load_annotations, validate_annotations
 from harness.ingest.config import IngestConfig, MasksConfig, SessionConfig
 from harness.ingest.masks import read_masks
 from harness.ingest.names import frames_by_image, session_names

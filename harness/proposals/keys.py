@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.proposals.config import ProposalsConfig
-from harness.proposals.proposers import method_fingerprints
+from harness.proposals.proposers import proposer_fingerprints
 from harness.runtime.cache import Parts, file_fingerprint, stable_hash, without_empty
 
 
@@ -31,7 +31,7 @@ def proposals(pc: ProposalsConfig, ingest_key: str, frames: list[tuple[str, int]
         stable_hash(frames),
         without_empty(dataclasses.asdict(pc), "options"),
         proposals_file(pc),
-        method_fingerprints(pc.methods),  # registered methods' own source
+        proposer_fingerprints(pc.methods),  # registered methods' own source
     )
 
 

@@ -64,7 +64,7 @@ ImageProposer = Callable[[np.ndarray, ProposalsConfig], tuple[np.ndarray, np.nda
 def register_method(name: str, proposer: ImageProposer, options: type | None = None) -> None:
     """Add a per-image proposal method, selected by ``name`` in ``[proposals] methods``.
 
-    Its source is part of the proposals' cache key (:func:`method_fingerprints`), so editing it
+    Its source is part of the proposals' cache key (:func:`proposer_fingerprints`), so editing it
     recomputes them. Each method gets its own rank engine (SPEC section 6). ``options``, a
     dataclass, is its ``[proposals.<name>]`` table (unknown keys and wrong types rejected at load,
     part of the proposals' key); the proposer reads it as ``cfg.options_of(name)``. Register
@@ -86,7 +86,7 @@ def register_method(name: str, proposer: ImageProposer, options: type | None = N
 known_methods = known_proposal_methods
 
 
-def method_fingerprints(methods: Sequence[str]) -> dict[str, str]:
+def proposer_fingerprints(methods: Sequence[str]) -> dict[str, str]:
     """The source hash of each listed method registered from outside the package."""
     functions = {n: r.run for n, r in PROPOSERS.items() if r.run is not None}
     return source_fingerprints(functions, methods)

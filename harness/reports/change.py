@@ -119,7 +119,7 @@ def column_label(c: Any) -> str:
     return f"{c:.2f}" if isinstance(c, float) else str(c)
 
 
-def cell(v: float, lo: float, hi: float, verdict: str = "", positive_images: float = 0) -> str:
+def ap_cell(v: float, lo: float, hi: float, verdict: str = "", positive_images: float = 0) -> str:
     """An AP cell as text: ``AP [interval] mark`` (the verdict's mark), ``NaN`` where undefined.
 
     A ``few`` verdict shows no mark but ``too few positives (n)`` (SPEC 9).
@@ -153,7 +153,7 @@ class ChangeRow:
     def cells(self) -> list[str]:
         """The row's AP cells as the markdown and the console show them."""
         return [
-            cell(*v)
+            ap_cell(*v)
             for v in zip(
                 self.ap, self.low, self.high, self.verdict, self.positive_images, strict=True
             )

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from harness.errors import AnnotationError
-from harness.ingest.annotations import COLUMNS, change_boxes, image_name, validate
+from harness.ingest.annotations import COLUMNS, change_boxes, image_name, validate_annotations
 from harness.ingest.label_formats import (
     export_for_labelling,
     import_annotations,
@@ -42,7 +42,7 @@ GOOD = [
 
 
 def test_valid_table_passes_and_groups_boxes() -> None:
-    df = validate(_ann(GOOD), FRAMES, "t.csv")
+    df = validate_annotations(_ann(GOOD), FRAMES, "t.csv")
     cb = change_boxes(df)
     assert cb[("A", "c", 1)].shape == (2, 4) and cb[("A", "c", 2)].shape == (0, 4)
 
@@ -65,7 +65,7 @@ def test_valid_table_passes_and_groups_boxes() -> None:
 )
 def test_bad_rows_are_named(row: tuple, message: str) -> None:
     with pytest.raises(AnnotationError, match=message):
-        validate(_ann([*GOOD, row]), FRAMES, "t.csv")
+        validate_annotations(_ann([*GOOD, row]), FRAMES, "t.csv")
 
 
 def test_coco_voc_cvat_import_to_the_same_table(tmp_path: Path) -> None:
@@ -87,7 +87,7 @@ def test_coco_voc_cvat_import_to_the_same_table(tmp_path: Path) -> None:
         f'xbr="20" ybr="30"/></image><image id="1" name="{n2}"/></annotations>'
     )
     tables = [
-        validate(f(p), FRAMES, str(p))
+        validate_annotations(f(p), FRAMES, str(p))
         for f, p in (
             (import_coco, tmp_path / "c.json"),
             (import_voc, voc),

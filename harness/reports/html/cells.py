@@ -52,7 +52,11 @@ VERDICTS = {
 }
 
 
-def verdict(ap: float, floor: float, word: str) -> tuple[str, str]:
+#: An AP cell's opening tag: its verdict and background (:func:`verdict_colour`).
+TD_VERDICT = '<td data-verdict="{}" style="background:{}">'
+
+
+def verdict_colour(ap: float, floor: float, word: str) -> tuple[str, str]:
     """(verdict, background) of one AP cell: the colour of SPEC 9's verdict ``word``.
 
     Green above chance, red below, grey when it cannot be told from chance; the shade grows with
@@ -125,7 +129,7 @@ def change_html(t: ChangeTable, who: str = "") -> str:
             sep = True
         cells = "".join(
             '<td data-verdict="{}" style="background:{}" title="{}">'.format(
-                *verdict(ap, floor, str(ver)), esc(VERDICTS.get(str(ver), ""))
+                *verdict_colour(ap, floor, str(ver)), esc(VERDICTS.get(str(ver), ""))
             )
             + f"{num(ap)}"
             + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
@@ -241,7 +245,7 @@ def heat_table(pairs: dict[str, float], floors: dict[str, float], anchor: str, w
         if key not in pairs:
             return '<td class="diag">no pair</td>'
         ap, fl = pairs[key], floors.get(key, NAN)
-        colour = verdict(ap, fl, "untested")[1]
+        colour = verdict_colour(ap, fl, "untested")[1]
         text = num(ap) if ap == ap else "NaN"
         return f'<td style="background:{colour}" title="floor {num(fl)}">{text}</td>'
 
@@ -266,7 +270,9 @@ def _l_cell(c: LCell) -> str:
     v, lo, hi = c.value, c.low, c.high
     if c.kind == "ap":
         return (
-            '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, c.floor, c.verdict))
+            '<td data-verdict="{}" style="background:{}">'.format(
+                *verdict_colour(v, c.floor, c.verdict)
+            )
             + num(v)
             + (f' <span class="ci">[{num(lo)}, {num(hi)}]</span>' if lo == lo else "")
             + (
@@ -373,7 +379,9 @@ def registered_table(spec: report_tables.TableSpec, frame: pd.DataFrame) -> str:
                 v, lo, hi, fl = (float(r[f]) for f in c.fields())
                 word = str(r.get(f"{c.key}_verdict", "untested"))
                 cells.append(
-                    '<td data-verdict="{}" style="background:{}">'.format(*verdict(v, fl, word))
+                    '<td data-verdict="{}" style="background:{}">'.format(
+                        *verdict_colour(v, fl, word)
+                    )
                     + text
                     + "</td>"
                 )

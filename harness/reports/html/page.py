@@ -96,7 +96,7 @@ window.addEventListener('load', function () {
 """
 
 
-def headline_split(out: Path, headline: float) -> Path | None:
+def headline_split_file(out: Path, headline: float) -> Path | None:
     """The split report at the headline RoC-max (else the largest one written)."""
     files = sorted((out / "splits").glob("roc_max_*.parquet"))
     want = out / "splits" / f"roc_max_{headline:.2f}.parquet"
@@ -262,7 +262,7 @@ def write_html_report(out: Path, gallery: int | None = None) -> Path:
     loc_name, fact_rows = run_facts(run, cfg)
     who = f" (localizer: {lead_name}; data: {Path(str(cfg['data_root'])).name})"
     headline = float(cfg["report"].get("headline_roc_max", 0.05))
-    split_file = headline_split(out, headline)
+    split_file = headline_split_file(out, headline)
     split_name = split_file.stem if split_file is not None else ""
     edges = [float(e) for e in cfg["splits"]["sob_strata"]]
     (out / "report").mkdir(exist_ok=True)
