@@ -57,7 +57,7 @@ class Registry(dict[str, T]):
 class FusionRule:
     """One fusion method of the catalogue: its name, label, what it needs and where it may run.
 
-    Built-in and registered methods are the same record (``fusion.register_method`` makes one);
+    Built-in and registered methods are the same record (``fusion.register_fusion_rule`` makes one);
     the function behind a ``cover`` rule is attached by the module that defines it
     (``harness.fusion.rules``), so this module still imports nothing of the harness.
     """
@@ -191,7 +191,7 @@ BOX_SCORES = ("max", "mean", "contrast")
 class Proposer:
     """One proposal method of the catalogue (SPEC section 5): what it reads, and its function.
 
-    Built-in and registered methods are the same record (``proposals.register_method`` makes one
+    Built-in and registered methods are the same record (``proposals.register_proposer`` makes one
     that reads the image); the functions behind the built-in ones are attached by
     :mod:`harness.proposals.proposers`, so this module still imports nothing of the harness.
     """
@@ -229,7 +229,7 @@ def proposer(name: str) -> Callable[[F], F]:
 
 #: The order of the kinds in ``known_proposal_methods`` (and in error messages).
 PROPOSER_READS = ("frame", "image", "batch", "table")
-#: Proposal methods by name: built-in, then registered ones (``proposals.register_method``).
+#: Proposal methods by name: built-in, then registered ones (``proposals.register_proposer``).
 PROPOSERS: Registry[Proposer] = Registry("proposal method")
 for _proposer in (
     Proposer("grid5", "frame"),

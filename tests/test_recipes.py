@@ -110,7 +110,7 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
         f = cfg.options_of("centre").frac  # type: ignore[attr-defined]
         return np.array([[w * (1 - f) / 2, h * (1 - f) / 2, w * (1 + f) / 2, h * (1 + f) / 2]]), [1]
 
-    proposals.register_method("centre", centre, options=CentreOptions)
+    proposals.register_proposer("centre", centre, options=CentreOptions)
     toml = 'methods = ["grid5", "centre"]\n\n[proposals.centre]\nfrac = 0.5\n'
     # --- end of the recipe (the rest checks it) ---
     p, _, _ = local_run
@@ -133,11 +133,11 @@ def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registri
     )
     validate(cfg, "recipe")  # the name is known to the config check
     with pytest.raises(ValueError, match="exists"):
-        proposals.register_method("edges", centre)
+        proposals.register_proposer("edges", centre)
     with pytest.raises(ValueError, match="exists"):  # [proposals]'s own keys are taken too
-        proposals.register_method("reduced_decode", centre)
+        proposals.register_proposer("reduced_decode", centre)
     with pytest.raises(ValueError, match="options must be a dataclass"):
-        proposals.register_method("half", centre, options=dict)
+        proposals.register_proposer("half", centre, options=dict)
     q, rec = _rerun(local_run, tmp_path, cfg)
     assert q.ran["proposals"] > 0 and q.ran.get("model", 0) > 0  # the training crops changed
     props = pd.concat(
@@ -191,7 +191,7 @@ def test_recipe_a_toy_fusion_method(local_run: tuple, tmp_path: Path, registries
         inv = L / (L + 1.0 - r * L)
         return np.where(cover, inv[None, :], 0.0).max(1)
 
-    fusion.register_method("best_rank", best_rank, "best single rank")
+    fusion.register_fusion_rule("best_rank", best_rank, "best single rank")
     p, _, out = local_run
     methods = ("rank_fusion", "score_max", "best_rank")
     cfg = dataclasses.replace(p.cfg, fusion=dataclasses.replace(p.cfg.fusion, methods=methods))
@@ -362,11 +362,11 @@ def test_a_registered_method_with_a_bad_output_is_an_error_naming_it(registries)
     from harness.proposals import proposers as proposals
     from harness.proposals.config import ProposalsConfig
 
-    proposals.register_method("bad", lambda rgb, cfg: (np.zeros((2, 3)), np.ones(2)))
+    proposals.register_proposer("bad", lambda rgb, cfg: (np.zeros((2, 3)), np.ones(2)))
     frame = pd.Series({"session": "s", "camera": "Cam5", "utime": 7})
     with pytest.raises(ConfigError, match=r"'bad' on frame s/Cam5/7: .*\(2, 3\)"):
         proposals._checked("bad", frame, *PROPOSERS["bad"].run(None, ProposalsConfig()))
-    fusion.register_method("flat", lambda cover, r, d, L: np.ones(1), "flat")
+    fusion.register_fusion_rule("flat", lambda cover, r, d, L: np.ones(1), "flat")
     cover = np.ones((3, 2), bool)
     with pytest.raises(ConfigError, match=r"'flat' returned LoC of shape \(1,\), expected \(3,\)"):
         fusion.loc_from_cover(cover, "flat", r=np.ones(2), d=np.ones(2), L=np.ones(2))

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.proposals import register_method
+from harness.proposals import register_proposer
 
 
 @dataclass(frozen=True)
@@ -25,4 +25,4 @@ def centre(rgb, cfg):
     return np.array([box]), np.ones(1)
 
 
-register_method("centre", centre, options=Centre)
+register_proposer("centre", centre, options=Centre)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.fusion import register_method
+from harness.fusion import register_fusion_rule
 
 
 @dataclass(frozen=True)
@@ -26,4 +26,4 @@ def kth_rank(cover, r, d, L, *, options):
     return -np.sort(-inv, axis=1)[:, k - 1]
 
 
-register_method("kth_rank", kth_rank, "k-th best rank", options=KthRank)
+register_fusion_rule("kth_rank", kth_rank, "k-th best rank", options=KthRank)

@@ -1,7 +1,7 @@
 """A user's extension files, the users' door (issue 51): Python files that register methods.
 
 A plugin is one ``.py`` file of the user's that calls the harness's register functions
-(``harness.fusion.register_method``, ``harness.proposals.register_method``,
+(``harness.fusion.register_fusion_rule``, ``harness.proposals.register_proposer``,
 ``harness.localizers.kinds.register_localizer_kind``, ``harness.ingest.logs.register_format``,
 ``harness.reports.tables.register_table``, or adds a descriptor class). The config lists them
 (``plugins = ["my_rule.py"]``, relative to the config file) or the command line does

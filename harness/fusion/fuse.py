@@ -33,7 +33,7 @@ IMAGE_BASELINES = rules_where(kind="image")
 CoverLoc = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
-def register_method(
+def register_fusion_rule(
     name: str,
     loc: CoverLoc,
     label: str,
@@ -274,3 +274,7 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
         v0, v1 = int(np.ceil(y1 - 0.5)), int(np.ceil(y2 - 0.5))
         out[max(v0, 0) : max(min(v1, height), 0), max(u0, 0) : max(min(u1, width), 0)] = loc[i]
     return out
+
+
+#: The name before issue 51 (one vocabulary: a fusion rule, a proposer), kept for plugins.
+register_method = register_fusion_rule

@@ -9,7 +9,7 @@ Methods (each one modality with its own retrieval engine):
 - ``yolo``: a YOLO-family detector exported to TorchScript, loaded from a local file
   (:mod:`harness.proposals.yolo`).
 - ``file``: boxes from a table the user provides (:mod:`harness.proposals.file`).
-- any per-image proposer a user adds with :func:`register_method`.
+- any per-image proposer a user adds with :func:`register_proposer`.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ PROPOSAL_COLUMNS = [
 ImageProposer = Callable[[np.ndarray, ProposalsConfig], tuple[np.ndarray, np.ndarray]]
 
 
-def register_method(name: str, proposer: ImageProposer, options: type | None = None) -> None:
+def register_proposer(name: str, proposer: ImageProposer, options: type | None = None) -> None:
     """Add a per-image proposal method, selected by ``name`` in ``[proposals] methods``.
 
     Its source is part of the proposals' cache key (:func:`proposer_fingerprints`), so editing it
@@ -275,3 +275,7 @@ def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: 
         )
     write_parquet(tmp / "proposals.parquet", df)
     return {"rows": len(df), "per_method": df.groupby("proposal_method").size().to_dict()}
+
+
+#: The name before issue 51 (one vocabulary: a fusion rule, a proposer), kept for plugins.
+register_method = register_proposer

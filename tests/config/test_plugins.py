@@ -17,7 +17,7 @@ from harness.config.load import load_config
 from harness.errors import ConfigError
 from harness.fusion import keys as fusion_keys
 from harness.fusion.config import FusionConfig
-from harness.fusion.fuse import loc_from_cover, register_method
+from harness.fusion.fuse import loc_from_cover, register_fusion_rule
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -44,7 +44,7 @@ RULE = """
 
     import numpy as np
 
-    from harness.fusion import register_method
+    from harness.fusion import register_fusion_rule
 
 
     @dataclass(frozen=True)
@@ -56,7 +56,7 @@ RULE = """
         return cover.sum(1) * options.by
 
 
-    register_method("scaled", scaled, "scaled cover count", options=Scale)
+    register_fusion_rule("scaled", scaled, "scaled cover count", options=Scale)
 """
 
 
@@ -109,9 +109,9 @@ def test_a_rule_named_like_a_fusion_key_or_with_bad_options_is_refused(clean) ->
         return np.ones(len(cover))
 
     with pytest.raises(ValueError, match="a key of \\[fusion\\] itself"):
-        register_method("rrf_c", flat, "x")
+        register_fusion_rule("rrf_c", flat, "x")
     with pytest.raises(ValueError, match="options must be a dataclass"):
-        register_method("flat", flat, "flat", options=dict)
+        register_fusion_rule("flat", flat, "flat", options=dict)
     assert "flat" not in methods.FUSION_RULES and FusionConfig().options_of("flat") is None
 
 
@@ -121,8 +121,8 @@ def test_a_rule_named_like_a_fusion_key_or_with_bad_options_is_refused(clean) ->
         ("raise RuntimeError('no licence file')\n", "RuntimeError: no licence file"),
         ("import not_a_module_anywhere\n", "ModuleNotFoundError"),
         (
-            "from harness.proposals import register_method\n"
-            "register_method('edges', lambda rgb, cfg: None)\n",
+            "from harness.proposals import register_proposer\n"
+            "register_proposer('edges', lambda rgb, cfg: None)\n",
             "ValueError",
         ),
     ],
@@ -155,3 +155,12 @@ def test_a_plugin_with_the_ray_executor_is_refused_before_any_work(
     assert main([*argv, "--out", str(out), "--executor", "ray"]) == 1
     err = capsys.readouterr().err
     assert "plugins run on the local executor only" in err and not out.exists()
+
+
+def test_register_method_is_the_old_name_of_both_register_functions() -> None:
+    """One vocabulary (issue 51): a fusion rule is registered with ``register_fusion_rule``, a
+    proposer with ``register_proposer``; ``register_method``, their name before, still works."""
+    from harness import fusion, proposals
+
+    assert fusion.register_method is fusion.register_fusion_rule
+    assert proposals.register_method is proposals.register_proposer

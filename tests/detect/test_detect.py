@@ -754,7 +754,7 @@ def test_a_registered_fusion_method_is_usable_by_detect(
     paper_detected: Path, local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """One catalogue for the paper's rules and a user's (issue 35): a method registered with
-    ``fusion.register_method`` is a ``--method`` of ``harness detect``; one registered with
+    ``fusion.register_fusion_rule`` is a ``--method`` of ``harness detect``; one registered with
     ``detect=False`` is refused in one ERROR line before any work."""
     from harness import methods
     from harness.fusion import fuse as fusion
@@ -764,8 +764,8 @@ def test_a_registered_fusion_method_is_usable_by_detect(
 
     saved = dict(methods.FUSION_RULES), dict(methods.METHOD_LABELS)
     try:
-        fusion.register_method("best_rank", best_rank, "best single rank")
-        fusion.register_method("no_detect", best_rank, "not for detect", detect=False)
+        fusion.register_fusion_rule("best_rank", best_rank, "best single rank")
+        fusion.register_fusion_rule("no_detect", best_rank, "not for detect", detect=False)
         a = paper_detected  # the paper's detector: the fused qBBs scored by the fusion rule
         out = tmp_path / "registered"
         shutil.copytree(a / "cache", out / "cache")  # the map, model and ranks are reused

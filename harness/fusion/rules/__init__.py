@@ -2,7 +2,7 @@
 
 Each module attaches its function to its record in the method catalogue
 (``harness.methods.FUSION_RULES``) with :func:`.base.rule`, the same record a user's
-``fusion.register_method`` makes, so reproduce, Table L and detect find the paper's rules and a
+``fusion.register_fusion_rule`` makes, so reproduce, Table L and detect find the paper's rules and a
 user's in one place. Importing the package imports every module in it: a new rule is its record
 and its module, nothing else.
 """
