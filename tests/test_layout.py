@@ -398,6 +398,36 @@ RENDER_IMPORTS = frozenset(
 )
 
 
+#: What ``reports/write.py`` asks of ``evaluate/``: each returns rows a report writes as they are.
+WRITE_ASKS = frozenset(
+    {
+        "sample_groups",
+        "leaderboard",
+        "localization_stats",
+        "pixel_image_rows",
+        "page_breakdowns",
+        "split_report",
+        "Split",
+        "paper_splits",
+        "confound_warnings",
+        "holm_columns",
+    }
+)
+
+
+def test_the_reports_writer_asks_evaluate_for_its_rows() -> None:
+    """``reports/write.py`` orders the evaluation (issue 51): one call of ``evaluate/`` per figure
+    it writes, the split reports' rows among them (``evaluate.split_reports``), and none of the
+    APs, labels or curves computed in it."""
+    asks = {
+        a.name
+        for node in _imports(PACKAGE / "reports" / "write.py")
+        if (node.module or "").startswith("harness.evaluate")
+        for a in node.names
+    }
+    assert asks == WRITE_ASKS, sorted(asks ^ WRITE_ASKS)
+
+
 def test_reports_render_what_evaluate_computed() -> None:
     computing = ("harness.evaluate", "harness.fusion")
     found = [

@@ -20,15 +20,13 @@ import pandas as pd
 
 from harness.config.schema import Config
 from harness.errors import ConfigError
-from harness.evaluate.aps import pooled_rows, sample_groups, stratified_labels, table_i_rows
-from harness.evaluate.breakdowns import pr_curves, season_pair_aps
+from harness.evaluate.aps import sample_groups
 from harness.evaluate.leaderboard import leaderboard
 from harness.evaluate.localization import localization_stats
 from harness.evaluate.pixel_aps import pixel_image_rows
+from harness.evaluate.split_reports import page_breakdowns, split_report
 from harness.evaluate.splits import Split, paper_splits
-from harness.evaluate.splits import label as split_label
 from harness.evaluate.verdicts import confound_warnings, holm_columns
-from harness.methods import FUSION_METHODS
 from harness.reports import tables as report_tables
 from harness.reports.blocks import Block, Reports
 from harness.reports.change import CHANGE_TABLES, change_table, pivot
@@ -149,9 +147,13 @@ def _write_splits(
     for sp in splits:
         reps = []
         for bi, b in enumerate(blocks):
-            rep = _split_block(cfg, b, allps[bi], sp, ids, summaries[bi], curves[bi], boots[bi])
+            rep, rows, cur = split_report(
+                cfg, b.name, b.samples, b.methods, allps[bi], sp, ids, boots[bi]
+            )
+            summaries[bi] += rows
+            curves[bi] += cur
             reps.append(rep)
-            page[bi].append(_page_breakdowns(cfg, b.methods, rep, sp.name))
+            page[bi].append(page_breakdowns(cfg, b.methods, rep, sp.name))
         write_parquet(
             files.put(files.out / "splits" / f"{sp.name}.parquet"),
             pd.concat(reps, ignore_index=True),
@@ -159,21 +161,6 @@ def _write_splits(
         del reps
     _write_breakdowns(files, blocks, page)
     return summaries, curves, boots
-
-
-def _page_breakdowns(
-    cfg: Config, methods: Sequence[str], rep: pd.DataFrame, split: str
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """One block's breakdowns at one split for the page: PR curves and AP per season pair.
-
-    Both under Table S's labels; the season pairs for Table I's six methods.
-    """
-    allg = rep[rep["proposal_method"] == "all"]
-    curves = pr_curves(allg, methods, "label_stratified", split)
-    six = [m for m in methods if m in FUSION_METHODS]
-    chance = (cfg.report.chance_draws, cfg.seed)
-    pairs = season_pair_aps(allg, six, split, cfg.splits.sob_strata, chance)
-    return (pd.concat(curves, ignore_index=True) if curves else pd.DataFrame()), pairs
 
 
 def _write_breakdowns(
@@ -349,38 +336,3 @@ def _write_plots(
         samples, frames, ann, files.out / "locmaps", cfg.report.locmap_examples
     ):
         files.put(png)
-
-
-def _split_block(
-    cfg: Config,
-    b: Block,
-    allp: pd.DataFrame,
-    sp: Split,
-    ids: dict[str, int],
-    summary: list[dict],
-    curves: list[pd.DataFrame],
-    boots: dict[tuple[str, str, str], np.ndarray],
-) -> pd.DataFrame:
-    """One block's split report (returned) and its summary rows and PR curves (appended)."""
-    samples, methods = b.samples, b.methods
-    lab = split_label(samples["RoC"].to_numpy(), samples["SoB"].to_numpy(), sp)
-    rep = samples.assign(
-        label=lab, label_stratified=stratified_labels(samples["RoC"].to_numpy(), sp)
-    )
-    rep.insert(0, "localizer", b.name)
-    summary += pooled_rows(cfg, allp, methods, sp, "I", ids, boots)
-    summary += pooled_rows(cfg, allp, methods, sp, "S", ids, boots)
-    for prop, g in samples.groupby("proposal_method", sort=True):
-        if prop != "all":
-            summary += table_i_rows(
-                g, sp, methods, "all", str(prop), cfg.report.chance_draws, cfg.seed,
-                cfg.report.min_positive_images,
-            )  # fmt: skip
-        else:
-            for pair, gp in g.groupby("season_pair", sort=True):
-                summary += table_i_rows(
-                    gp, sp, methods, str(pair), "all", cfg.report.chance_draws, cfg.seed,
-                    cfg.report.min_positive_images,
-                )  # fmt: skip
-    curves += pr_curves(rep[rep["proposal_method"] == "all"], methods, "label", sp.name)
-    return rep
