@@ -171,7 +171,7 @@ def _print_alarms(al: dict[str, Any]) -> None:
 def cmd_detect(args: argparse.Namespace) -> int:
     """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
     from harness.detect.run import run_detect
-    from harness.pipeline.chain import PAIRED_BY
+    from harness.pairs.modes import PAIRING_MODES
     from harness.runtime.executors import make_executor
 
     check_executor_flags(args)
@@ -202,7 +202,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     if rec.get("pairing"):
         by = rec["pairing"]["by"]
         print(
-            f"pairs by {by} (SPEC 13.2): each query frame's reference is {PAIRED_BY[by]}"
+            f"pairs by {by} (SPEC 13.2): each query frame's reference is {PAIRING_MODES[by].says}"
             + (
                 f"; {agree['agree']} of {agree['compared']} ({100 * agree['share']:.0f}%, 95% "
                 f"interval {100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%) "

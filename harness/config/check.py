@@ -17,6 +17,7 @@ from harness.fixture.config import check_fixture_section
 from harness.fusion.config import check_fusion
 from harness.ingest.config import check_ingest_section, check_masks
 from harness.pairs.config import check_pairs
+from harness.pairs.modes import kind_of
 from harness.proposals.config import check_proposals
 from harness.retrieval.config import check_import, check_retrieval
 
@@ -53,7 +54,7 @@ def _check_pairs_without_poses(cfg: Config, where: str) -> None:
     """Pairing other than by pose: no option that needs poses (a thinned database, a radius)."""
     c = check_value
     pa = cfg.pairs
-    if pa.by != "pose":
+    if kind_of(pa.by) != "pose":
         rc, rp = cfg.retrieval, cfg.report
         c(
             rc.db_stride_m == 0,

@@ -11,6 +11,7 @@ from harness.config.schema import Config
 from harness.errors import ConfigError
 from harness.ingest.config import SessionConfig
 from harness.inputs import IMAGE_SUFFIXES
+from harness.pairs.modes import kind_of
 
 #: The share of a query folder's images that must have a map image of the same name (stem) for
 #: two folders to be paired by name by default (SPEC 13.2).
@@ -69,7 +70,7 @@ def image_folders_config(
         for n, d in zip(names, dirs, strict=True)
     ]
     base = cfg or parse_config({"name": "image-folders", "sessions": sessions}, Path.cwd(), where)
-    by = base.pairs.by if base.pairs.by != "pose" else folder_pairing(dirs[0], dirs[1:])
+    by = base.pairs.by if kind_of(base.pairs.by) != "pose" else folder_pairing(dirs[0], dirs[1:])
     out = dataclasses.replace(
         base,
         sessions=tuple(SessionConfig(**s) for s in sessions),

@@ -43,7 +43,7 @@ from harness.errors import ConfigError, HarnessError
 from harness.localizers.config import LocalizerConfig
 from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
 from harness.pairs import keys as pair_keys
-from harness.pairs.table import BY_RETRIEVAL
+from harness.pairs.modes import kind_of
 from harness.pipeline.across import across_localizers, localizer_fusion
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
 from harness.pipeline.localizer_stages import Measured, localizer_ranks
@@ -109,7 +109,7 @@ def _measure(
     Pairs by pose, or by retrieval where the config says so (SPEC 13.2). ``local``: the local
     localizer that ranks every pair's subimages instead of the config's (SPEC 13.3).
     """
-    if p.cfg.pairs.by in BY_RETRIEVAL:  # sessions without poses (SPEC 13.2)
+    if kind_of(p.cfg.pairs.by) == "retrieval":  # sessions without poses (SPEC 13.2)
         ingested, frames, ann = until_annotations(p)
         pairs, m = pairs_by_retrieval(
             p, ingested, frames, ann, False, (map_session, tuple(query_sessions))

@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from harness.checks import check_value
+from harness.pairs.modes import PAIRING_MODES
 
 #: ``[pairs] by``: how a query frame finds its map frame (SPEC 4 and 13.2).
-PAIR_MODES = ("pose", "name", "order", "retrieval", "sequence")
 
 
 @dataclass(frozen=True)
@@ -60,11 +60,11 @@ def check_pairs(pa: PairsConfig, where: str) -> None:
         "'annotated' or 'all'",
     )
     c(
-        pa.by in PAIR_MODES,
+        pa.by in PAIRING_MODES,
         where,
         "[pairs] by",
         pa.by,
-        " or ".join(repr(m) for m in PAIR_MODES),
+        " or ".join(repr(m) for m in PAIRING_MODES),
     )
     c(pa.place_frames >= 0, where, "[pairs] place_frames", pa.place_frames, ">= 0 frames")
     c(pa.sequence_frames >= 1, where, "[pairs] sequence_frames", pa.sequence_frames, ">= 1")

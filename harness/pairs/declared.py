@@ -9,6 +9,8 @@ from pathlib import PurePosixPath
 import numpy as np
 import pandas as pd
 
+from harness.pairs.config import PairsConfig
+from harness.pairs.modes import PairingMode
 from harness.pairs.table import (
     PAIR_COLUMNS,
     pairing_summary,
@@ -98,3 +100,23 @@ def declared_pairs(
         "name" if by == "name" else "place in the order",
     )
     return pairs, summary
+
+
+def _build(
+    frames: pd.DataFrame,
+    pc: PairsConfig,
+    seasons: dict[str, str],
+    queries: pd.DataFrame | None,
+    names: pd.DataFrame | None,
+) -> tuple[pd.DataFrame, dict]:
+    """By name or order: :func:`declared_pairs` on the frames' file names."""
+    if names is None:
+        raise ValueError(f"[pairs] by = {pc.by!r} needs the frames' file names")
+    return declared_pairs(frames, names, pc.by, seasons, queries)
+
+
+#: This module's pairing modes (SPEC 13.2), the user's declaration through file names.
+MODES = (
+    PairingMode("name", "declared", "the map image of the same file name", _build),
+    PairingMode("order", "declared", "the map image at the same place in file-name order", _build),
+)

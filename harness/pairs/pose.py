@@ -14,6 +14,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from harness.pairs.config import PairsConfig
+from harness.pairs.modes import PairingMode
 from harness.pairs.table import (
     PAIR_COLUMNS,
     pairing_summary,
@@ -171,3 +172,19 @@ def build_pairs(
         sum(unmatched.values()),
     )
     return pairs[PAIR_COLUMNS], summary
+
+
+def _build(
+    frames: pd.DataFrame,
+    pc: PairsConfig,
+    seasons: dict[str, str],
+    queries: pd.DataFrame | None,
+    names: pd.DataFrame | None,
+) -> tuple[pd.DataFrame, dict]:
+    """By pose: :func:`build_pairs` (file names are not read)."""
+    del names
+    return build_pairs(frames, pc, seasons, queries)
+
+
+#: This module's pairing mode.
+MODES = (PairingMode("pose", "pose", build=_build),)

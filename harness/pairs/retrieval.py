@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from harness.errors import RetrievalError
+from harness.pairs.modes import PairingMode
 from harness.pairs.table import PAIR_COLUMNS, pose_columns, season_pairs
 from harness.records import FRAME_KEY, IMAGE_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
@@ -353,3 +354,15 @@ def candidate_pairs(
     cols = [*IMAGE_KEY, "season_pair"]
     cand = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=cols)
     return cand.sort_values([*QUERY_KEY, "r_session"]).reset_index(drop=True)[cols]
+
+
+#: This module's pairing modes (SPEC 13.2): the run's localizer chooses the map frame.
+MODES = (
+    PairingMode("retrieval", "retrieval", "the map frame this localizer retrieves best"),
+    PairingMode(
+        "sequence",
+        "retrieval",
+        "the map frame this localizer retrieves best over a run of consecutive frames",
+        sequence=True,
+    ),
+)

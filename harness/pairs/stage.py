@@ -19,10 +19,8 @@ from harness.ingest.config import SessionConfig
 from harness.ingest.names import session_names
 from harness.pairs import keys as pair_keys
 from harness.pairs.config import PairsConfig
-from harness.pairs.declared import declared_pairs
-from harness.pairs.pose import build_pairs
+from harness.pairs.modes import PAIRING_MODES, kind_of
 from harness.pairs.retrieval import candidate_pairs, write_retrieval_pairs
-from harness.pairs.table import DECLARED
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
 from harness.runtime.stage import Entry, Table, Units
 
@@ -55,7 +53,7 @@ def _write_pairs(
     The folder sessions' file names are read only where pairs need them (``[pairs] by =
     "name"`` or ``"order"``).
     """
-    names = session_names(sessions) if pc.by in DECLARED else None
+    names = session_names(sessions) if kind_of(pc.by) == "declared" else None
     if pc.by == "name" and names is not None and not len(names):
         raise ConfigError(
             "[pairs] by = 'name' pairs images by their file names, and no session is a folder "
@@ -85,18 +83,16 @@ def write_pairs(
 ) -> dict:
     """Build the pairs into ``tmp/pairs.parquet`` and ``tmp/summary.json``.
 
-    By pose (:func:`build_pairs`), or by name or order (:func:`declared_pairs`, with the frames'
-    ``names``).
+    By the build of the mode ``[pairs] by`` names: by pose (:func:`.pose.build_pairs`), or by
+    name or order (:func:`.declared.declared_pairs`, with the frames' ``names``).
 
     Returns:
         The pairing summary (queries, pairs, drops by reason).
     """
-    if cfg.by in DECLARED:
-        if names is None:
-            raise ValueError(f"[pairs] by = {cfg.by!r} needs the frames' file names")
-        pairs, summary = declared_pairs(frames, names, cfg.by, seasons, queries)
-    else:
-        pairs, summary = build_pairs(frames, cfg, seasons, queries)
+    build = PAIRING_MODES[cfg.by].build
+    if build is None:
+        raise ValueError(f"[pairs] by = {cfg.by!r}: its pairs need the localizer's descriptors")
+    pairs, summary = build(frames, cfg, seasons, queries, names)
     write_parquet(tmp / "pairs.parquet", pairs)
     write_json(tmp / "summary.json", summary)
     return summary
@@ -124,7 +120,7 @@ def retrieval_pair_table(
         proposer,
         memory_mb,
         pc.place_frames,
-        pc.sequence_frames if pc.by == "sequence" else 0,
+        pc.sequence_frames if PAIRING_MODES[pc.by].sequence else 0,
     )
     dkeys = {s: e.key for s, e in described.items()}
     entry = p.unit("pairs_retrieval", pair_keys.by_retrieval(cand.key, dkeys, proposer), build)

@@ -27,14 +27,6 @@ PAIR_COLUMNS = [
 ]
 
 
-#: The pairing modes of sessions without poses that the user declares (SPEC 13.2).
-DECLARED = ("name", "order")
-
-
-#: The pairing modes that pair with the run's localizer (SPEC 13.2).
-BY_RETRIEVAL = ("retrieval", "sequence")
-
-
 def season_pairs(q_sessions: Any, r_session: str, seasons: dict[str, str]) -> list[str]:
     """``season_pair`` of each query session against ``r_session``: ``"WI->SU"``."""
     return [f"{seasons.get(s, s)}->{seasons.get(r_session, r_session)}" for s in q_sessions]

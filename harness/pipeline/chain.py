@@ -27,8 +27,8 @@ from harness.localizers.config import ALL_LOCALIZERS
 from harness.methods import ordered_methods, rules_where
 from harness.pairs import keys as pair_keys
 from harness.pairs.agreement import pose_agreement
+from harness.pairs.modes import PAIRING_MODES, kind_of
 from harness.pairs.pose import build_pairs
-from harness.pairs.table import BY_RETRIEVAL, DECLARED
 from harness.pipeline.across import across_localizers, common_images, localizer_fusion
 from harness.pipeline.context import Context
 from harness.pipeline.localizer_stages import (
@@ -111,14 +111,14 @@ def until_pairs(p: Context) -> tuple[dict[str, Entry], Table, Table, Table]:
     Returns:
         (ingest entries, frames, annotations, pairs).
     """
-    if p.cfg.pairs.by in BY_RETRIEVAL:
+    if kind_of(p.cfg.pairs.by) == "retrieval":
         raise ConfigError(
             f"[pairs] by = {p.cfg.pairs.by!r}: the pairs come from the localizer's descriptors; "
             "harness rank, reproduce and detect make them (pairs and proposals alone cannot)"
         )
     ingested, frames, ann = until_annotations(p)
     pairs = query_pairs(p, frames, ann)
-    if p.cfg.pairs.by in DECLARED:
+    if kind_of(p.cfg.pairs.by) == "declared":
         p.pairing = {"by": p.cfg.pairs.by, "place_frames": p.cfg.pairs.place_frames}
         _pose_agreement(p, frames, ann, pairs)
     return ingested, frames, ann, pairs
@@ -181,25 +181,17 @@ def pairs_by_retrieval(
     return pairs, Measured(locs[0], ranks, fusion, notes, costs)
 
 
-#: How each pairing mode without poses chooses a query's map frame, for the notes (SPEC 13.2).
-PAIRED_BY = {
-    "retrieval": "the map frame this localizer retrieves best",
-    "sequence": "the map frame this localizer retrieves best over a run of consecutive frames",
-    "name": "the map image of the same file name",
-    "order": "the map image at the same place in file-name order",
-}
-
-
 def pairing_note(pairing: dict[str, Any]) -> str:
     """What pairs without poses mean for the tables, in words (SPEC 13.2)."""
     by = pairing["by"]
     note = (
-        f"Pairs by {by} (SPEC 13.2): each query frame's reference is {PAIRED_BY[by]}, and its "
-        f"place that frame and {pairing['place_frames']} neighbours each side"
+        f"Pairs by {by} (SPEC 13.2): each query frame's reference is "
+        f"{PAIRING_MODES[by].says}, and its place that frame and {pairing['place_frames']} "
+        "neighbours each side"
     )
     note += (
         ", so R@N measures the localizer against its own choice (optimistic)."
-        if by in BY_RETRIEVAL
+        if kind_of(by) == "retrieval"
         else "."
     )
     agree = pairing.get("agreement_with_pose_pairs")
@@ -224,7 +216,7 @@ def until_ranks(
     Returns:
         (ingest entries, frames, annotations, pairs, one :class:`Measured` per localizer).
     """
-    if p.cfg.pairs.by in BY_RETRIEVAL:
+    if kind_of(p.cfg.pairs.by) == "retrieval":
         ingested, frames, ann = until_annotations(p)
         pairs, m = pairs_by_retrieval(p, ingested, frames, ann, check)
         return ingested, frames, ann, pairs, [m]

@@ -23,6 +23,7 @@ from harness.descriptors import stage as descriptor_stage
 from harness.descriptors.config import DescriptorConfig
 from harness.localizers.config import LocalizerConfig, LocalizerImportConfig
 from harness.localizers.kinds import LOCALIZER_KINDS
+from harness.pairs.modes import kind_of
 from harness.retrieval import stage as retrieval_stage
 from harness.retrieval.config import RetrievalConfig
 from harness.retrieval.import_file import ImportSpec, parse_import_arg
@@ -221,7 +222,7 @@ class Context:
             rc,
             pc.max_yaw_diff_deg,
             ranks_device(rc, device),
-            pc.place_frames if pc.by != "pose" else None,
+            pc.place_frames if kind_of(pc.by) != "pose" else None,
             rank_precision(precision) if rc.engine == "exact" else "fp32",
         )
         refs = [s.name for s in self.cfg.sessions]
