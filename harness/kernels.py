@@ -45,7 +45,12 @@ AVX512_CAPS = {
     # numpy 2's dispatch groups, and numpy 1's names of the same (an unknown name is ignored)
     "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR AVX512F AVX512_SKX AVX512_CLX "
     "AVX512_CNL",
-    "OPENCV_CPU_DISABLE": "AVX512_SKX",
+    # OpenCV's own dispatch, by the names cv2.getCPUFeaturesLine() prints (hyphenated: the
+    # underscored AVX512_SKX of before was an unknown name, so that cap was never in force)
+    "OPENCV_CPU_DISABLE": "AVX512-SKX",
+    # Intel IPP inside OpenCV picks its kernels by the CPU on its own (k0, AVX-512, on an AVX-512
+    # EPYC); "avx2" gives it the l9 kernels an AVX2-only machine runs
+    "OPENCV_IPP": "avx2",
 }
 #: Libraries that read their caps when loaded: imported before :func:`pin`, they are not capped.
 EARLY = ("numpy", "torch", "cv2", "faiss", "scipy")

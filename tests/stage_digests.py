@@ -22,6 +22,7 @@ byte-identical (the determinism tests check that).
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import json
 import re
@@ -254,6 +255,142 @@ def skip_unless_recorded_model(out: Path, regression: bool = False) -> None:
         pytest.skip(why)
 
 
+#: A run's stages in the order the pipeline computes them: (the stage's name, the paths of the
+#: run directory that are its files, masked as :func:`digests` names them). A file no stage claims
+#: is a report ("tables and reports", last).
+STAGES = (
+    ("ingest", ("cache/ingest/",)),
+    ("frames", ("cache/frames/",)),
+    ("pairs", ("cache/pairs/", "cache/pairs_retrieval/")),
+    ("proposals", ("cache/proposals/",)),
+    ("descriptor model", ("cache/model/",)),
+    ("descriptors", ("cache/descriptor_shards/", "cache/descriptors/")),
+    ("projection", ("cache/projection/",)),
+    ("bovw features", ("bovw-features",)),
+    ("bovw vocabulary", ("cache/bovw_vocab/",)),
+    ("bovw words", ("cache/bovw_shards/", "cache/bovw_words/")),
+    ("ranks", ("cache/ranks/", "ranks.parquet", "ranks.parquet#")),
+    ("fused LoC", ("cache/samples/",)),
+)
+REPORTS = "tables and reports"
+
+
+def stage_of(name: str) -> str:
+    """The stage a file of :func:`digests` belongs to (``ranks.parquet#hsv``: hsv's ranks)."""
+    for stage, prefixes in STAGES:
+        if name.startswith(prefixes):
+            return f"ranks of {name.partition('#')[2]}" if "#" in name else stage
+    return REPORTS
+
+
+def stage_order(name: str) -> tuple[int, str]:
+    """Sort key: the pipeline's order of the stages, then the name."""
+    st = stage_of(name)
+    names = [s for s, _ in STAGES]
+    if st == REPORTS:
+        return len(names), name
+    return names.index("ranks" if st.startswith("ranks of") else st), name
+
+
+def cpu_record() -> dict[str, Any]:
+    """What this CPU is: its model, family and the flags that choose kernels."""
+    info = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    first = dict(
+        (k.strip(), v.strip()) for k, _, v in (x.partition(":") for x in info.splitlines()[:30])
+    )
+    flags = sorted(
+        f for f in first.get("flags", "").split() if f.startswith(("avx", "amx", "fma", "f16c"))
+    )
+    return {
+        "model": f"{first.get('model name', '?')} (family {first.get('cpu family', '?')}, "
+        f"model {first.get('model', '?')})",
+        "flags": flags,
+    }
+
+
+def first_stage_differing(
+    got: dict[str, list[str]], want: dict[str, list[str]], recorded_on: dict[str, Any] | None
+) -> str | None:
+    """None where every file has its recorded digests; else the message a run on another CPU
+    hands back: the first stage (pipeline order) whose files differ, those files, and the CPUs."""
+    bad = sorted((k for k in set(got) | set(want) if got.get(k) != want.get(k)), key=stage_order)
+    if not bad:
+        return None
+    stage = stage_of(bad[0])
+    files = [k for k in bad if stage_of(k) == stage]
+    later = sorted({stage_of(k) for k in bad} - {stage}, key=lambda s: bad.index(
+        next(k for k in bad if stage_of(k) == s)))  # fmt: skip
+    here, rec = cpu_record(), recorded_on or {}
+    return (
+        f"the first stage that differs from the record is {stage!r} ({len(files)} file(s): "
+        f"{', '.join(files[:4])}{' ...' if len(files) > 4 else ''}); later stages that differ: "
+        f"{', '.join(later) or 'none'}. This CPU: {here['model']}, {' '.join(here['flags'])}. "
+        f"Recorded on: {rec.get('model', '?')}, {' '.join(rec.get('flags', []))}. "
+        "docs/method.md, One answer on every CPU, lists what is measured to hold across CPUs."
+    )
+
+
+def localizer_digests(out: Path, data_root: Path | None, features: dict[str, str]) -> dict:
+    """A several-localizer run's digests, stage by stage: its cache, each localizer's ranks
+    (``ranks.parquet#<localizer>``), BoVW's features (``features``: name -> digest, computed by
+    the caller) and its tables (Table L without its measured costs and timings)."""
+    got = {k: v for k, v in digests(out, data_root).items()  # ranks: each localizer's, below
+           if (k.startswith("cache/") and not k.startswith("cache/ranks/"))
+           or k in LOCALIZER_TABLES}  # fmt: skip
+    for name, p in _names(out):  # the pose tables' floats at 10 digits (module docstring)
+        if any(fnmatch.fnmatch(name, t) for t in TOLERANT if t.startswith(PORTABLE)):
+            df = values_frame(p, data_root)
+            got[name] = sorted(
+                {*got.get(name, [])} - {digest(p, data_root)}
+                | {hashlib.sha256(df.to_csv(index=False, float_format="%.10g").encode())
+                   .hexdigest()[:16]}
+            )  # fmt: skip
+    ranks = pd.read_parquet(out / "ranks.parquet")
+    for name, rows in ranks.groupby("localizer", sort=True):
+        h = hashlib.sha256(rows.to_csv(index=False, float_format="%r").encode())
+        got[f"ranks.parquet#{name}"] = [h.hexdigest()[:16]]
+    table_l = pd.read_csv(out / "tableL.csv").drop(columns=list(TABLE_L_COSTS))
+    got["tableL.csv (without costs)"] = [
+        hashlib.sha256(table_l.to_csv(index=False).encode()).hexdigest()[:16]
+    ]
+    got.update({f"bovw-features/{k}": [v] for k, v in features.items()})
+    for k in [k for k in got if k.startswith("cache/model/") and not k.endswith(".pt")]:
+        del got[k]  # the loss curve's plot and record: the weights are what matter
+    return got
+
+
+def bovw_feature_digests(
+    out: Path, data_root: Path, features: str = "rootsift", rows: int = 240
+) -> dict[str, str]:
+    """The digest of BoVW's local features (the fixture's BoVW options) of the first ``rows``
+    proposals of every session of run ``out``: the stage before the vocabulary, which no cache
+    entry holds on its own."""
+    from harness.imagestore import local_uri
+    from harness.retrieval.bovw import iter_features
+    from harness.retrieval.config import BovwConfig
+
+    bc = BovwConfig(features=features, k=256, input_size=64, step=8, patch=16)
+    (frames_file,) = Path(out).glob("cache/frames/*/frames.parquet")
+    frames = pd.read_parquet(frames_file)
+    frames["image"] = [local_uri(u, Path(out), Path(data_root)) for u in frames["image"]]
+    res = {}
+    for f in sorted(Path(out).glob("cache/proposals/*/proposals.parquet")):
+        props = pd.read_parquet(f).head(rows)
+        h = hashlib.sha256()
+        feats: dict[int, np.ndarray] = {}
+        for idx, fs in iter_features(bc, props, frames, "bovw features"):
+            feats.update(zip(idx.tolist(), fs, strict=True))
+        for i in sorted(feats):
+            h.update(np.ascontiguousarray(feats[i]).tobytes())
+        res[f"{features} of {props['session'].iloc[0]}"] = h.hexdigest()[:16]
+    return res
+
+
+#: The several-localizer run's tables in its record; Table L's cost columns are measured times.
+LOCALIZER_TABLES = ("table1.csv", "tableS.csv", "tableP.csv", "localization.csv")
+TABLE_L_COSTS = ("descriptor_bytes", "map_kib_per_frame", "encode_ms", "rank_ms", "build_s")
+
+
 def cpu_capability() -> str:
     """torch's CPU kernel level on this machine (e.g. ``AVX512``, ``AVX2``)."""
     import torch
@@ -262,6 +399,17 @@ def cpu_capability() -> str:
 
 
 if __name__ == "__main__":
+    if "--localizers" in sys.argv:  # python -m tests.stage_digests --localizers RUN DATA_ROOT
+        i = sys.argv.index("--localizers")
+        got = localizer_digests(
+            Path(sys.argv[i + 1]),
+            Path(sys.argv[i + 2]),
+            bovw_feature_digests(Path(sys.argv[i + 1]), Path(sys.argv[i + 2])),
+        )
+        json.dump({"cpu": cpu_record(), "machine": _machine(), "files": got}, sys.stdout,
+                  indent=1, sort_keys=True)  # fmt: skip
+        print()
+        sys.exit(0)
     if "--values" in sys.argv:
         write_values(
             Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[sys.argv.index("--values") + 1])

@@ -424,6 +424,7 @@ def test_recipe_a_toy_report_table(
         (root / "datasets" / "fixture.toml")
         .read_text()
         .replace('annotations = "annotations', f'annotations = "{root}/annotations')
+        .replace('"datasets/models"', f'"{root}/datasets/models"')
         .replace("[report]\n", "[report]\nplots = false\n")
     )
     argv = ["reproduce", "--config", str(config), "--data-root", str(default_world), "--out"]

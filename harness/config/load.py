@@ -188,7 +188,10 @@ def _resolve_paths(kwargs: dict[str, Any], base: Path, root: Path) -> None:
     de = kwargs.get("descriptor")
     if de is not None and de.path:
         net = resolve_config_path(de.path, base, root)
-        kwargs["descriptor"] = dataclasses.replace(de, path=str(net))
+        kwargs["descriptor"] = de = dataclasses.replace(de, path=str(net))
+    if de is not None and de.trained_models:
+        kept = resolve_config_path(de.trained_models, base, root)
+        kwargs["descriptor"] = dataclasses.replace(de, trained_models=str(kept))
     mk = kwargs.get("masks")
     if mk is not None and mk.folder:
         kwargs["masks"] = dataclasses.replace(

@@ -53,6 +53,11 @@ class DescriptorConfig:
     # > 0 the loader's processes decode ahead instead). 0 by default: on CPU the encoder already
     # uses every core, and the thread measured no faster (bench case crops); 2 with a GPU encoder
     prefetch: int = 0
+    # a folder of models trained before, each under the digest of what trains it (options, crops,
+    # training code, torch, kernels): a run whose digest is there copies that model instead of
+    # training (harness.descriptors.store; "": always train). No key holds it: the model is the
+    # same either way
+    trained_models: str = ""
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ beyond ``[descriptor]``.
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from harness.descriptors import store
 from harness.descriptors.base import Descriptor, make_descriptor, normalize
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
 from harness.descriptors.crops import iter_crops
@@ -24,6 +26,8 @@ from harness.errors import HarnessError, RetrievalError
 from harness.records import FRAME_KEY
 from harness.runtime.cache import open_memmap_reserved, read_cached_parquet, write_parquet
 from harness.runtime.progress import progress, progress_bar
+
+log = logging.getLogger(__name__)
 
 #: torch's threads while a model trains. The weights' last bits depend on the thread count (on
 #: the fixture one thread trains 978b9a45b447dc88, two 978dd804b216655a: measured), so every
@@ -90,6 +94,15 @@ def train_model(
     ):
         data[idx] = crops
     data.flush()
+    parts = store.training_parts(dc, data, TRAIN_THREADS)
+    digest = store.training_digest(parts)
+    kept = store.load_kept(dc.trained_models, digest, tmp)
+    if kept is not None:  # this very training was done before: its model, not a new one
+        del data
+        (tmp / "train_crops.npy").unlink()
+        store.write_record(tmp, digest, parts, kept["info"])
+        log.info("model %s: kept in %s, not trained again", digest, dc.trained_models)
+        return {**kept["info"], "trained_models": digest}
     steps_per_epoch = int(np.ceil(n / dc.batch_size))
     total = (
         int(np.ceil(dc.train_samples / dc.batch_size))
@@ -102,6 +115,7 @@ def train_model(
     bar.close()
     del data
     (tmp / "train_crops.npy").unlink()
+    store.write_record(tmp, digest, parts, info)
     return info
 
 

@@ -50,6 +50,7 @@ class Tiny(torch.nn.Module):
 def descriptor_config(lines: str) -> str:
     """The fixture config with its ``[descriptor]`` table replaced by ``lines``."""
     text = FIXTURE_TOML.read_text().replace('"annotations/', f'"{ROOT}/annotations/')
+    text = text.replace('"datasets/models"', f'"{ROOT}/datasets/models"')
     head, rest = text.split("[descriptor]\n", 1)
     return head + "[descriptor]\n" + lines + "\n\n[" + rest.split("\n[", 1)[1]
 

@@ -66,7 +66,7 @@ def one_positive(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> 
     cfg = (ROOT / "datasets" / "fixture.toml").read_text()
     cfg = cfg.replace(
         'annotations = "annotations/fixture.csv"', f'annotations = "{base / "one.csv"}"'
-    )
+    ).replace('"datasets/models"', f'"{ROOT}/datasets/models"')
     (base / "one.toml").write_text(cfg)
     out = base / "out"
     seed_cache(run, out)  # the same frames, pairs, proposals, model and ranks

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -55,17 +56,24 @@ def test_caps_by_cpu_and_level() -> None:
 def test_a_fresh_process_is_pinned_before_numpy_and_torch_load() -> None:
     """``import harness`` first: torch runs AVX2 kernels and numpy's AVX-512 loops are off."""
     code = (
-        "import harness, numpy, torch, json\n"
-        "from numpy._core._multiarray_umath import __cpu_features__ as f\n"
+        "import harness, numpy, torch, cv2, json\n"
+        "from numpy._core._multiarray_umath import __cpu_features__ as f, __cpu_dispatch__ as d\n"
         "print(json.dumps({'torch': str(torch.backends.cpu.get_cpu_capability()),\n"
-        "  'avx512': bool(f.get('AVX512F') or f.get('X86_V4')),\n"
+        "  'numpy_dispatch': {t: bool(f.get(t)) for t in d},\n"
+        "  'opencv': cv2.getCPUFeaturesLine(), 'ipp': cv2.ipp.getIppVersion(),\n"
         "  'report': harness.kernels.report()}))"
     )
     got = json.loads(_python(code, _clean_env()))
     flags = kernels.cpu_flags()
     if {"avx2", "fma"} <= flags:
         assert got["torch"] == "AVX2", got
-        assert not got["avx512"], got
+        # numpy: __cpu_features__ reports the CPU (AVX512F stays True on an AVX-512 machine);
+        # what numpy runs is its dispatch targets, and none above AVX2 (X86_V3) may be on
+        wide = {t: on for t, on in got["numpy_dispatch"].items() if t not in ("X86_V2", "X86_V3")}
+        assert not any(wide.values()), got["numpy_dispatch"]
+        # OpenCV marks a disabled feature with '?'; an enabled AVX-512 one is '*AVX512-SKX'
+        assert not re.search(r"\*AVX512[-A-Z]*(?=\s|$)", got["opencv"]), got["opencv"]
+        assert "AVX-512" not in got["ipp"] and "(k0)" not in got["ipp"], got["ipp"]
         assert got["report"]["caps"] == kernels.caps(flags, "avx2")
     assert got["report"]["loaded_before_pin"] == []
 
@@ -137,6 +145,9 @@ def test_caps_typed_by_hand_give_the_tables_the_harness_pins_itself_to(
     # the fixture's config without figures and page (no cache key holds [report]; 8 s less)
     text = (ROOT / "datasets" / "fixture.toml").read_text()
     text = text.replace('"annotations/', f'"{ROOT}/annotations/')
+    # this run trains: no kept model to copy (the suite's run copies the kept one)
+    assert 'trained_models = "datasets/models"' in text
+    text = text.replace('trained_models = "datasets/models"', "")
     cfg = tmp_path / "fixture.toml"
     cfg.write_text(text.replace("[report]\n", "[report]\nplots = false\nhtml = false\n"))
     proc = subprocess.run(
@@ -149,6 +160,18 @@ def test_caps_typed_by_hand_give_the_tables_the_harness_pins_itself_to(
     assert rec["kernels"]["asked"] == "native" and rec["kernels"]["caps"] == {}
     model = [digest(m) for m in (out / "cache" / "model").rglob("autoencoder.pt")]
     assert model == [digest(m) for m in (run / "cache" / "model").rglob("autoencoder.pt")]
+    # it trained (no kept model was copied), from the inputs the kept model records, to the kept
+    # model's weights bit for bit: datasets/models holds what this code trains
+    (entry,) = (out / "cache" / "model").glob("*/training.json")
+    manifest = json.loads((entry.parent / "manifest.json").read_text())
+    assert "trained_models" not in manifest["info"] and manifest["info"]["steps"] > 0
+    record = json.loads(entry.read_text())
+    kept = ROOT / "datasets" / "models" / record["digest"]
+    assert kept.is_dir(), f"no kept model for what trained here: {record['parts']}"
+    assert json.loads((kept / "training.json").read_text())["parts"] == record["parts"]
+    assert digest(kept / "autoencoder.pt") == model[0]
+    (suite,) = (run / "cache" / "model").glob("*/manifest.json")  # the suite's copied it
+    assert json.loads(suite.read_text())["info"]["trained_models"] == record["digest"]
     for name in TABLES:
         assert (out / name).read_bytes() == (run / name).read_bytes(), name
     a = pd.read_parquet(out / "splits" / "summary.parquet")
@@ -156,13 +179,16 @@ def test_caps_typed_by_hand_give_the_tables_the_harness_pins_itself_to(
     pd.testing.assert_frame_equal(a, b)
 
 
-def test_the_pinned_kernels_train_the_recorded_model(local_run: tuple) -> None:
-    """On every CPU of the kind the suite's fixture run trains the model the regression and the
-    docs' figures were recorded with. Where this fails, the caps did not take on this CPU: every
-    recorded figure then skips, saying why, and this test says it plainly."""
+def test_the_kept_fixture_model_is_the_recorded_one(local_run: tuple) -> None:
+    """The suite's fixture run copies the kept model (``datasets/models``), which is the model the
+    regression and the docs' figures were recorded with; the test above trains it afresh under the
+    caps and checks it bit for bit against the kept one."""
     from ..stage_digests import DOCS_MODEL, MODEL, other_model
 
     _, _, out = local_run
     want = json.loads((ROOT / "tests" / "regression" / "stages.json").read_text())
     assert want["files"][MODEL] == [DOCS_MODEL["digest"]]  # one record for both
     assert other_model(out, regression=True) is None, other_model(out, regression=True)
+    (manifest,) = (out / "cache" / "model").glob("*/manifest.json")
+    kept = json.loads(manifest.read_text())["info"]["trained_models"]
+    assert digest(ROOT / "datasets" / "models" / kept / "autoencoder.pt") == DOCS_MODEL["digest"]

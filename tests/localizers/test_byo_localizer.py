@@ -163,6 +163,7 @@ def test_every_query_image_must_be_ranked_unless_allowed(
     assert f"{first.q_session}/{first.q_camera}/{first.q_utime} -> {first.r_session}" in err
     allow = tmp_path / "allow.toml"
     text = FIXTURE_TOML.read_text().replace('"annotations/', f'"{ROOT}/annotations/')
+    text = text.replace('"datasets/models"', f'"{ROOT}/datasets/models"')
     allow.write_text(text + "\n[import]\nallow_unranked_images = true\n")
     argv[argv.index("--config") + 1] = str(allow)
     assert main(argv) == 0
@@ -273,8 +274,10 @@ def test_lists_cut_before_their_place_make_bounds_said_in_a_warning_and_table_l(
     args = _seeded(local_run, out)
     # the README's several-localizers config, its autoencoder beside the cut lists (Table L)
     multi = (ROOT / "datasets" / "fixture-localizers.toml").read_text()
-    multi = multi[: multi.index('[[localizers]]\nname = "bovw')].replace(
-        '"annotations/', f'"{ROOT}/annotations/'
+    multi = (
+        multi[: multi.index('[[localizers]]\nname = "bovw')]
+        .replace('"annotations/', f'"{ROOT}/annotations/')
+        .replace('"datasets/models"', f'"{ROOT}/datasets/models"')
     )
     cfg, lists_file = tmp_path / "cut.toml", tmp_path / "cut.parquet"
     cfg.write_text(f'{multi}\n[[localizers]]\nname = "cut"\nimport = {{ file = "{lists_file}" }}\n')

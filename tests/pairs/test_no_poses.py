@@ -321,7 +321,9 @@ def test_pairs_by_name_of_sessions_without_file_names_is_one_error(
 
     cfg = (ROOT / "datasets" / "fixture.toml").read_text()
     cfg = cfg.replace('queries = "annotated"', 'queries = "annotated"\nby = "name"')
-    cfg = cfg.replace('"annotations/', f'"{ROOT}/annotations/')
+    cfg = cfg.replace('"annotations/', f'"{ROOT}/annotations/').replace(
+        '"datasets/models"', f'"{ROOT}/datasets/models"'
+    )
     (tmp_path / "c.toml").write_text(cfg)
     argv = ["pairs", "--config", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o"),
             "--data-root", str(default_world)]  # fmt: skip

@@ -20,12 +20,13 @@ from harness.runtime.stage import RankTable, Table
 
 
 def prepare(de: DescriptorConfig, where: str, base: Path, root: Path) -> DescriptorConfig:
-    """A user's network path resolved against the config's folder."""
-    return (
-        dataclasses.replace(de, path=str(resolve_config_path(de.path, base, root)))
-        if de.path
-        else de
-    )
+    """A user's network path and the trained models' folder resolved against the config's."""
+    if de.path:
+        de = dataclasses.replace(de, path=str(resolve_config_path(de.path, base, root)))
+    if de.trained_models:
+        kept = resolve_config_path(de.trained_models, base, root)
+        de = dataclasses.replace(de, trained_models=str(kept))
+    return de
 
 
 def record(de: DescriptorConfig) -> dict[str, Any]:
