@@ -68,6 +68,37 @@ def _orb(gray: np.ndarray) -> tuple:
     return np.array([k.pt + (k.size, k.angle) for k in kp], np.float64), desc
 
 
+def _keypoints(gray: np.ndarray) -> tuple:
+    """Keypoint localization's calls: SIFT and AKAZE keypoints, ratio-test matches, a MAGSAC
+    fundamental matrix; the aligned difference's erosion and dilation; Selective Search on one
+    thread (its ranking's generator seeded as the harness seeds it)."""
+    import ctypes
+
+    moved = np.roll(gray, (3, 5), axis=(0, 1))
+    sift = cv2.SIFT_create(nfeatures=1500)
+    kq, dq = sift.detectAndCompute(moved, None)
+    km, dm = sift.detectAndCompute(gray, None)
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(dq, dm, k=2)
+    good = [a for a, *b in knn if b and a.distance < 0.8 * b[0].distance]
+    p1 = np.array([kq[g.queryIdx].pt for g in good], np.float32)
+    p2 = np.array([km[g.trainIdx].pt for g in good], np.float32)
+    F, mask = cv2.findFundamentalMat(p1, p2, cv2.USAC_MAGSAC, 1.5, 0.999, 2000)
+    ak = cv2.AKAZE_create().detectAndCompute(gray, None)[1]
+    k = np.ones((7, 7), np.uint8)
+    f32 = gray.astype(np.float32)
+    env = cv2.erode(f32, k, borderType=cv2.BORDER_REPLICATE), cv2.dilate(f32, k)
+    ss = cv2.ximgproc.segmentation.createSelectiveSearchSegmentation()
+    small = cv2.resize(gray, (256, round(256 * gray.shape[0] / gray.shape[1])))
+    ss.setBaseImage(cv2.cvtColor(small, cv2.COLOR_GRAY2BGR))
+    ss.switchToSelectiveSearchFast()
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    ctypes.CDLL(None).srand(0)
+    rects = ss.process()
+    cv2.setNumThreads(threads)
+    return F, mask, ak, env, rects
+
+
 def _local(gray: np.ndarray) -> tuple:
     """The local localizer's calls (SPEC 13.3): ORB matches, a RANSAC homography, the warp, an
     ECC fit, the Sobel gradients, a pyramid level, template matching and its best score."""
@@ -242,6 +273,8 @@ def calls(rgb: np.ndarray, net: Path) -> dict[str, Callable[[], Any]]:
         "MSER_create().detectRegions": lambda: _mser(gray),
         "local: ORB + BFMatcher, findHomography, perspectiveTransform, warpPerspective, "
         "findTransformECC, pyrDown, matchTemplate, minMaxLoc": lambda: _local(gray),
+        "keypoints: SIFT + BFMatcher, findFundamentalMat (USAC_MAGSAC), AKAZE, erode/dilate, "
+        "ximgproc Selective Search": lambda: _keypoints(gray),
         "imencode/imdecode (JPEG q90, PNG, TIFF, IMREAD_REDUCED_COLOR_2/4/8)": lambda: _png_jpeg(
             bgr
         ),

@@ -40,7 +40,8 @@ def test_every_locked_package_is_hashed_and_torch_is_left_to_its_exact_wheel() -
     blocks = re.split(r"\n(?=[A-Za-z0-9])", text.split("\n", 2)[-1])
     assert all("--hash=sha256:" in b for b in blocks if "==" in b)
     assert "torch" not in locked and not any(n.startswith("nvidia-") for n in locked)
-    assert locked["opencv-python-headless"].startswith("4.")
+    assert locked["opencv-contrib-python-headless"].startswith("4.")
+    assert "opencv-python-headless" not in locked  # two packages of one cv2 overwrite each other
 
 
 def test_every_dependency_of_pyproject_is_in_the_lock() -> None:
