@@ -13,7 +13,7 @@ UV_VERSION := 0.13.8
 # where pip finds the CPU wheel of torch on this project's machines (make lock reads its metadata)
 TORCH_WHEELS ?= $(shell pip config get global.find-links 2>/dev/null)
 
-.PHONY: help setup test lint bench reproduce-table fixture clean lock
+.PHONY: help setup test lint bench real reproduce-table fixture clean lock
 
 help:  ## Show this help
 	@grep -E '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  %-18s %s\n", $$1, $$2}'
@@ -67,6 +67,11 @@ lint: $(STAMP)  ## ruff (rules, line length 100, formatting) and mypy (strict on
 
 bench: $(STAMP)  ## Run the benchmarks; results go to results/bench/
 	$(BIN)/python -m bench
+
+# The detector's candidates on real revisits (../shared/realdata/obchange-dev, read where it lies,
+# never copied into the repository): Table D's detector row and the candidates' recall of each.
+real: $(STAMP)  ## harness detect's default and alternatives on the real pairs in ../shared/realdata
+	$(BIN)/python -m bench.detect_choice --sets obchange-dev
 
 # With no arguments: the bundled fixture. DATA=/path/to/nclt uses datasets/nclt.toml with that root.
 reproduce-table: $(STAMP)  ## Run the whole pipeline and print Table I (CONFIG=..., DATA=..., OUT=...)

@@ -179,10 +179,10 @@ def add_rule(rule: FusionRule) -> None:
 #: ``harness detect``'s box generators (SPEC 13.1, ``[detect] boxes``), the default first.
 BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
 #: What ranks ``harness detect``'s subimages: the local localizer (SPEC 13.3) or the config's.
-DETECT_LOCALIZERS = ("local", "config")
+DETECT_LOCALIZERS = ("local", "keypoints", "config")
 #: What a candidate box's score is fused with (``[detect] box_prior``, SPEC 13.3): its area, or
 #: nothing (the score alone, as the paper's detector).
-BOX_PRIORS = ("area", "none")
+BOX_PRIORS = ("area", "difference", "none")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
 
@@ -236,6 +236,7 @@ for _proposer in (
     Proposer("edges", reducible=True),
     Proposer("mser", reducible=True),
     Proposer("segments"),
+    Proposer("selective"),
     Proposer(
         "yolo",
         "batch",

@@ -180,8 +180,8 @@ BUILTIN_EDITS: dict[str, dict[str, list[tuple[str, str]] | str]] = {
             + '\n\nKIND = LocalizerKind("colour", Colour, ranks=colour_ranks)\n'
         ),
         "localizers/kinds/__init__.py": [
-            ("import bovw, descriptor, imported, local", ", colour"),
-            ("(descriptor, bovw, imported, local", ", colour"),
+            ("import bovw, descriptor, imported, keypoints, local", ", colour"),
+            ("(descriptor, bovw, imported, local, keypoints", ", colour"),
         ],
     },
     "log format": {

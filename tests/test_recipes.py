@@ -266,7 +266,9 @@ def test_recipe_a_toy_localizer_kind(local_run: tuple, tmp_path: Path, registrie
     assert locs[0].kind == "colour" and locs[0].options == ColourOptions(4)
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['size'\]"):
         parse_localizers([{"name": "x", "colour": {"size": 2}}], cfg, tmp_path, cfg.data_root, "t")
-    with pytest.raises(ConfigError, match="one of descriptor, bovw, import, local or colour"):
+    with pytest.raises(
+        ConfigError, match="one of descriptor, bovw, import, local, keypoints or colour"
+    ):
         parse_localizers([{"name": "x"}], cfg, tmp_path, cfg.data_root, "t")
     with pytest.raises(ConfigError, match="taken"):
         register_localizer_kind(LocalizerKind("bovw", ColourOptions, ranks=colour_ranks))

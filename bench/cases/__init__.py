@@ -31,6 +31,15 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
         "local",
         ("harness/localizers/local.py", "harness/localizers/align.py", "harness/imagestore.py"),
     ),
+    "keypoints": (
+        "keypoints",
+        (
+            "harness/localizers/keypoints.py",
+            "harness/localizers/local.py",
+            "harness/detect/difference.py",
+            "harness/proposals/builtin.py",
+        ),
+    ),
     "fusion": (
         "fusion",
         (

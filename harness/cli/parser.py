@@ -215,9 +215,17 @@ def _add_detect(sub: Any) -> None:
     )
     p.add_argument(
         "--localizer",
-        choices=("local", "config"),
+        choices=("local", "keypoints", "config"),
         help="what ranks the subimages: local (each colour region ranked inside its paired map "
-        "frame, SPEC 13.3) or config (the config's localizers) (default: [detect] localizer)",
+        "frame, SPEC 13.3), keypoints (each region's share of keypoints that do not localize in "
+        "its paired map frame) or config (the config's localizers) (default: [detect] localizer)",
+    )
+    p.add_argument(
+        "--proposals",
+        metavar="METHOD",
+        help="the proposal method whose boxes the local or keypoints localizer ranks: segments "
+        "(the frame's colour regions) or selective (Selective Search) (default: [detect] "
+        "proposals)",
     )
     p.add_argument(
         "--box-prior",

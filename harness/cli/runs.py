@@ -79,6 +79,7 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
         "box_score": args.box_score,
         "localizer": getattr(args, "localizer", None),
         "box_prior": getattr(args, "box_prior", None),
+        "proposals": getattr(args, "proposals", None),
     }
     return dataclasses.replace(cfg.detect, **{k: v for k, v in typed.items() if v is not None})
 

@@ -48,7 +48,7 @@ def _pixels(m: np.ndarray, box: np.ndarray) -> tuple[int, int, int, int]:
     return v0, v1, u0, u1
 
 
-def _inside(m: np.ndarray, box: np.ndarray, how: str) -> float:
+def inside_score(m: np.ndarray, box: np.ndarray, how: str) -> float:
     """A box's score from the LoC map ``m`` (NaN: no mapped pixel centred in it).
 
     ``max`` or ``mean`` over the pixels centred in ``box``; ``contrast``: their mean less the mean
@@ -87,10 +87,10 @@ def candidate_boxes(
 
     ``fused``: the fused qBBs and their LoC. ``proposals`` and ``segments``: the boxes
     ``originals`` (the frame's original proposals, or its colour regions), duplicates merged, each
-    scored by the ``how`` (:func:`_inside`) of the pixel-wise LoC map. ``locmap``: the LoC map
+    scored by the ``how`` (:func:`inside_score`) of the pixel-wise LoC map. ``locmap``: the LoC map
     thresholded at ``lo + level * (hi - lo)`` of the frame's range, the bounding boxes of its
     8-connected regions (``cv2.connectedComponentsWithStats``), each scored by the ``how`` of the
-    LoC over the region's own pixels (``contrast``: over its box, as :func:`_inside`).
+    LoC over the region's own pixels (``contrast``: over its box, as :func:`inside_score`).
 
     Returns:
         (boxes (k, 4) in pixels, scores (k,), NaN where a box holds no mapped pixel).
@@ -102,7 +102,7 @@ def candidate_boxes(
     m = loc_map(fused, loc, width, height)
     if generator in ("proposals", "segments"):
         boxes = np.unique(np.asarray(originals, np.float64).reshape(-1, 4), axis=0)
-        return boxes, np.array([_inside(m, b, how) for b in boxes], np.float64)
+        return boxes, np.array([inside_score(m, b, how) for b in boxes], np.float64)
     if generator != "locmap":
         raise ConfigError(f"[detect] boxes = {generator!r}: one of {', '.join(BOX_GENERATORS)}")
     ok = np.isfinite(m)
@@ -118,10 +118,26 @@ def candidate_boxes(
         vals = m[labels == i]
         found.append((x, y, x + w, y + h))
         if how == "contrast":
-            scores.append(_inside(m, np.array(found[-1], np.float64), how))
+            scores.append(inside_score(m, np.array(found[-1], np.float64), how))
         else:
             scores.append(float(vals.max() if how == "max" else vals.mean()))
     return np.asarray(found, np.float64).reshape(-1, 4), np.asarray(scores, np.float64)
+
+
+def with_prior(score: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """Scores fused with a prior by the mean of their within-frame percentiles.
+
+    ``[detect] box_prior = "difference"``: the prior is the aligned difference's contrast. A box
+    without a finite score keeps none, a box without a finite prior value takes its lowest
+    percentile.
+    """
+    out = np.full(len(score), np.nan)
+    ok = np.isfinite(score)
+    n = int(ok.sum())
+    if n:
+        pr = np.where(np.isfinite(prior[ok]), prior[ok], -np.inf)
+        out[ok] = ((rankdata(score[ok]) - 0.5) / n + (rankdata(pr) - 0.5) / n) / 2
+    return out
 
 
 def with_area_prior(boxes: np.ndarray, score: np.ndarray) -> np.ndarray:

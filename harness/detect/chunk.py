@@ -9,12 +9,14 @@ import dataclasses
 import logging
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_prior
+from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_prior, with_prior
 from harness.detect.config import DetectConfig
+from harness.detect.difference import difference_contrast, difference_map
 from harness.fusion.config import FusionConfig
 from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image
@@ -60,12 +62,14 @@ def _frame_boxes_of(
     fk: tuple[str, str, int],
     opt: DetectConfig,
     seed: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    difference: Any = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
     """One frame's candidate boxes and scores by ``opt.boxes``, kept by NMS, and the random row.
 
     ``g``: the frame's fused qBBs, ``floc`` their LoC; ``orig``: its original proposals. Returns
-    candidates, their scores, the indices kept, the indices kept for random scores, those scores
-    and how many candidates were thinner than ``opt.min_box_side`` (dropped before all of it).
+    candidates, their scores, the indices kept, the indices kept for random scores, those scores,
+    how many candidates were thinner than ``opt.min_box_side`` (dropped before all of it) and each
+    candidate's aligned difference (``difference(boxes)``; NaN where none is given).
     """
     fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     if opt.boxes == "fused":
@@ -81,11 +85,14 @@ def _frame_boxes_of(
         rnd = np.random.default_rng(int(stable_hash(seed, fk, length=8), 16)).random(len(boxes))
     wide = np.minimum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) >= opt.min_box_side
     boxes, loc, rnd = boxes[wide], loc[wide], rnd[wide]
+    diff = difference(boxes) if difference is not None else np.full(len(boxes), np.nan)
     if opt.box_prior == "area":
         loc = with_area_prior(boxes, loc)
+    elif opt.box_prior == "difference":
+        loc = with_prior(loc, diff)
     keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
     rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
-    return boxes, loc, keep, rand, rnd, int((~wide).sum())
+    return boxes, loc, keep, rand, rnd, int((~wide).sum()), diff
 
 
 def _write_chunk(
@@ -100,7 +107,7 @@ def _write_chunk(
     cands = (
         pd.concat(cand_parts, ignore_index=True)
         if cand_parts
-        else pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "loc"])
+        else pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "loc", "difference"])
     )
     write_parquet(tmp / "candidates.parquet", cands)
     write_parquet(
@@ -147,6 +154,23 @@ def _frame_boxes(
     return out
 
 
+def _difference(images: pd.Series, fk: tuple[str, str, int], paired: dict) -> Any:
+    """``boxes -> their aligned-difference contrast`` for query frame ``fk`` and its map frame.
+
+    :mod:`harness.detect.difference`; the pair's difference map is computed once, on first use.
+    """
+    made: list[tuple[np.ndarray, float]] = []
+
+    def scores(boxes: np.ndarray) -> np.ndarray:
+        if not made:
+            made.append(
+                difference_map(read_image(images.loc[fk]), read_image(images.loc[paired[fk]]))
+            )
+        return difference_contrast(*made[0], boxes)
+
+    return scores
+
+
 def detect_chunk(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
@@ -178,12 +202,19 @@ def detect_chunk(
     col = f"loc_{opt.fusion}"
     size = frame_sizes(frames)
     orig = _frame_boxes(ranks, frames, opt, segments)
+    images = frames.set_index(FRAME_KEY)["image"]
+    paired = {  # each query frame's map frame
+        (str(k[0]), str(k[1]), int(k[2])): (str(r.r_session), str(r.r_camera), int(r.r_utime))
+        for k, r in ranks.groupby(QUERY_KEY, sort=False).first().iterrows()
+    }
     rows, frow, cand_parts, thin = [], [], [], 0
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
         floc = g[col].to_numpy(np.float64)
-        found = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt, fusion.seed)
-        boxes, loc, keep, rand, rnd, n_thin = found
+        found = _frame_boxes_of(
+            g, floc, orig[fk], size[fk], fk, opt, fusion.seed, _difference(images, fk, paired)
+        )
+        boxes, loc, keep, rand, rnd, n_thin, diff = found
         thin += n_thin
         for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
             for j, i in enumerate(idx):
@@ -196,6 +227,7 @@ def detect_chunk(
                     "q_utime": np.full(len(boxes), fk[2], np.int64),
                     **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
                     "loc": loc,
+                    "difference": diff,
                 }
             )
         )

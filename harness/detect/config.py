@@ -7,8 +7,21 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from harness.checks import check_value
-from harness.localizers.config import LocalConfig, LocalizerConfig, check_local
-from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, DETECT_LOCALIZERS, rules_where
+from harness.localizers.config import (
+    KeypointConfig,
+    LocalConfig,
+    LocalizerConfig,
+    check_keypoints,
+    check_local,
+)
+from harness.methods import (
+    BOX_GENERATORS,
+    BOX_PRIORS,
+    BOX_SCORES,
+    DETECT_LOCALIZERS,
+    known_proposal_methods,
+    rules_where,
+)
 
 #: The proposal method ``harness detect``'s local localizer ranks: the frame's colour regions,
 #: which meet most change objects (docs/method.md, *Detect*).
@@ -50,14 +63,22 @@ class DetectConfig:
     # the nominal false-alarm rate: boxes and frames whose calibrated score (exceedance) is at
     # most this are alarms (alarms.csv; harness detect --alarm overrides it)
     alarm: float = 0.01
-    # what ranks the subimages: "local" (each subimage of the frame's colour regions ranked inside
-    # its paired map frame, SPEC 13.3, with [detect.local]) or "config" (the config's localizers)
-    localizer: str = "local"
+    # what ranks the subimages: "keypoints" (each subimage's share of keypoints that do not
+    # localize in its paired map frame, with [detect.keypoints]: chosen by docs/method.md's rule,
+    # *Keypoint localization*), "local" (each subimage ranked inside its paired map frame by NCC,
+    # with [detect.local]) or "config" (the config's localizers: the paper's detector)
+    localizer: str = "keypoints"
     # a prior a box's score is fused with: "area" (the mean of the box's percentile among its
     # frame's candidates by score and by area, SPEC 13.3: docs/method.md measures it) or "none"
     box_prior: str = "area"
     # the local localizer's options (harness.localizers.local.LocalConfig)
     local: LocalConfig = field(default_factory=LocalConfig)
+    # the proposal method whose boxes the local or keypoints localizer ranks: "segments" (the
+    # frame's colour regions) or "selective" (Selective Search, [proposals.selective]), or any
+    # proposal method
+    proposals: str = LOCAL_PROPOSALS
+    # keypoint localization's options (localizer = "keypoints"; harness.localizers.keypoints)
+    keypoints: KeypointConfig = field(default_factory=KeypointConfig)
 
     def record(self, seed: int, segments: Any) -> dict[str, Any]:
         """What ``detect.json`` and the chunks' cache keys hold of a run's options.
@@ -71,18 +92,25 @@ class DetectConfig:
         out: dict[str, Any] = {k: mine[k] for k in ("fusion", "nms_iou", "max_boxes")}
         out |= {"chunk_frames": self.chunk_frames, "top": self.top, "seed": seed}
         out |= {k: mine[k] for k in ("boxes", "box_score", "locmap_level", "min_box_side")}
-        if self.boxes == "segments" or self.localizer == "local":
+        if self.boxes == "segments" or self.localizer in ("local", "keypoints"):
             out["segments"] = dataclasses.asdict(segments)
         out |= {"localizer": self.localizer, "box_prior": self.box_prior, "local": mine["local"]}
-        if self.localizer != "local":
+        if self.localizer == "keypoints":  # its options in place of the local localizer's
+            del out["local"]
+            out["keypoints"] = mine["keypoints"]
+        elif self.localizer != "local":
             del out["local"], out["localizer"]
+        if self.proposals != LOCAL_PROPOSALS:
+            out["proposals"] = self.proposals
         return out
 
     def local_localizer(self) -> LocalizerConfig | None:
-        """The local localizer ``localizer = "local"`` measures (None: the config's)."""
+        """What ``localizer = "local"`` or ``"keypoints"`` measures (None: the config's)."""
+        if self.localizer == "keypoints":
+            return LocalizerConfig("keypoints", "keypoints", (self.proposals,), self.keypoints)
         if self.localizer != "local":
             return None
-        return LocalizerConfig("local", "local", (LOCAL_PROPOSALS,), self.local)
+        return LocalizerConfig("local", "local", (self.proposals,), self.local)
 
 
 def check_detect(dt: DetectConfig, where: str) -> None:
@@ -117,6 +145,14 @@ def check_detect(dt: DetectConfig, where: str) -> None:
         " or ".join(DETECT_LOCALIZERS),
     )
     check_local(dt.local, f"{where} [detect.local]")
+    check_keypoints(dt.keypoints, f"{where} [detect.keypoints]")
+    c(
+        dt.proposals in known_proposal_methods(),
+        where,
+        "[detect] proposals",
+        dt.proposals,
+        ", ".join(known_proposal_methods()),
+    )
     c(
         dt.box_prior in BOX_PRIORS,
         where,

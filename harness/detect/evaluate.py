@@ -31,6 +31,7 @@ from harness.detect.ap import (
     match50,
     weighted_voc,
 )
+from harness.detect.difference import PIXEL_BASELINES, difference_dets
 from harness.detect.table import table_d_markdown
 from harness.evaluate import chance
 from harness.evaluate.metrics import interval, resample_counts
@@ -173,8 +174,8 @@ def table_d_chance(
         ev = chance.Evidence(positive_images, settings.needed)
         out[row]["positive_images"] = positive_images
         out[row]["verdict"] = chance.verdict(out[row]["ap50"], lo, hi, dl, dh, ev)
-    base = [b for b in NO_PIXEL if b in dets]
-    if "detector" in dets and base:  # SPEC 13.3: above only when clear of the best no-pixel row
+    base = [b for b in (*NO_PIXEL, *PIXEL_BASELINES) if b in dets]
+    if "detector" in dets and base:  # above only when clear of the best baseline row
         best = max(base, key=lambda b: (out[b]["ap50"], b))
         bl, bh = interval(boots["detector"] - boots[best], ci)
         out["detector"].update(
@@ -246,6 +247,7 @@ D_ROWS = {"detection": "detector", "random": "random scores, same boxes (one dra
 NO_PIXEL_ROWS = {
     "size_prior": "box area alone (no pixel)",
     "cover_count": "cover count alone (no pixel)",
+    "aligned_difference": "aligned difference (pixels, no localizer)",
 }
 
 
@@ -335,13 +337,17 @@ def score_detections(
     cand = {i: b for i, (b, _) in _by_image(cands, ids, on, "loc").items()}
     cand.update({i: np.zeros((0, 4)) for i in on - set(cand)})
     per_row = {kind: _by_image(dets[dets["kind"] == kind], ids, on, "score") for kind in D_ROWS}
-    nopix = _no_pixel_dets(cand, nms)
+    nopix = {**_no_pixel_dets(cand, nms)}
+    if "difference" in cands.columns:  # a run of an older version has none
+        nopix.update(difference_dets(_by_image(cands, ids, on, "difference"), nms))
     ch = table_d_chance(
         cand, gts, {"detector": per_row["detection"], "random": per_row["random"], **nopix},
         nms, settings,
     )  # fmt: skip
     rows = []
     for kind, label in {**D_ROWS, **NO_PIXEL_ROWS}.items():
+        if kind not in D_ROWS and kind not in nopix:
+            continue
         res = (
             _coco_results(dets[dets["kind"] == kind], ids, on)
             if kind in D_ROWS

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pandas as pd
@@ -37,3 +38,15 @@ class DetectRun:
     entries: list[Any]
     alarm: float = 0.01
     alignment: pd.DataFrame | None = None
+
+    @property
+    def folders(self) -> list[str]:
+        """The folders' names, the map's first, where every session is a folder of images.
+
+        ``--map-images``, ``--query-images``; else none.
+        """
+        by = {s.name: s for s in self.cfg.sessions}
+        names = [self.map_session, *self.queries]
+        if not all(n in by and by[n].format == "images" for n in names):
+            return []
+        return [Path(str(by[n].source)).name or str(by[n].source) for n in names]

@@ -23,6 +23,7 @@ from harness.detect.pixels import pixel_html
 from harness.detect.table import table_d_html
 from harness.errors import HarnessError
 from harness.imagestore import read_image
+from harness.pairs.modes import PAIRING_MODES
 from harness.records import FRAME_KEY
 from harness.reports.html import SCRIPT  # the page reports its own loaded images (browser test)
 from harness.runtime.cache import write_text
@@ -199,7 +200,8 @@ def _annotated_html(
     annotated = "".join(
         "<figure><img src='{1}' alt='{0}'><figcaption>{0}</figcaption></figure>".format(
             *(_e(x) for x in _query_thumb(
-                out, dets, truth, (str(r.session), str(r.camera), int(r.utime)), str(r.image)
+                out, dets, truth, (str(r.session), str(r.camera), int(r.utime)), str(r.image),
+                str(getattr(r, "name", "") or ""),
             ))
         )
         for r in shown
@@ -212,16 +214,22 @@ def _annotated_html(
     )
 
 
-def _trajectory_html(frames: pd.DataFrame) -> str:
+def _trajectory_html(frames: pd.DataFrame, by: str = "retrieval") -> str:
+    """Where the query frames are (poses), or, without poses, their scores in time order.
+
+    The words say how the frames were paired (``[pairs] by``).
+    """
     if has_poses(frames):
         return (
             '<h2 id="trajectory">Where</h2><img id="trajectory-map" src="trajectory.png" '
             'alt="query trajectory over the map, coloured by change score" style="max-width:760px">'
         )
+    mode = PAIRING_MODES.get(by)
+    says = mode.says if mode is not None and mode.says else f"its map frame by {by}"
     return (
-        '<h2 id="trajectory">When</h2><p class="note">The sessions have no poses '
-        "(SPEC 13.2): each query frame was paired with the map frame it retrieves best, and "
-        "the figure shows the change score along the query sequence.</p>"
+        '<h2 id="trajectory">When</h2><p class="note">The sessions have no poses: each query '
+        f"frame was paired with {_e(says)}, and the figure shows the change score along the "
+        "query sequence.</p>"
         '<img id="trajectory-map" src="trajectory.png" alt="change score of each query frame '
         'in time order" style="max-width:760px">'
     )
@@ -273,16 +281,20 @@ def write_detect_page(
         for i, r in enumerate(top.itertuples(), start=1)
     ]
     qs = sorted(set(fr["session"]))
+    what = f"{', '.join(qs)} against the map {map_session}"
+    folders = run.folders
+    if folders:  # sessions of image folders: name the folders, not the sessions map and query
+        what = f"{', '.join(folders[1:])} against the map {folders[0]}"
     page = (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
-        f"<title>dbl-harness detect: {_e(', '.join(qs))} against {_e(map_session)}</title>"
+        f"<title>dbl-harness detect: {_e(what)}</title>"
         f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
-        f"<h1>What changed: {_e(', '.join(qs))} against the map {_e(map_session)}</h1>"
+        f"<h1>What changed: {_e(what)}</h1>"
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
         "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "
         "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
         + alignment_html(run.alignment)
-        + _trajectory_html(frames)
+        + _trajectory_html(frames, run.cfg.pairs.by)
         + table_d_html(tables[0])
         + pixel_html(tables[1])
         + _annotated_html(out, fr, dets, truth)

@@ -35,11 +35,12 @@ from harness.config.plugins import plugin_record
 from harness.config.schema import Config
 from harness.detect import keys as detect_keys
 from harness.detect.chunk import detect_chunk
-from harness.detect.config import LOCAL_PROPOSALS, DetectConfig
+from harness.detect.config import DetectConfig
 from harness.detect.options import DetectRun
 from harness.detect.outputs import write_outputs
 from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
+from harness.ingest.names import session_names
 from harness.localizers.config import LocalizerConfig
 from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
 from harness.pairs import keys as pair_keys
@@ -48,7 +49,7 @@ from harness.pipeline.across import across_localizers, localizer_fusion
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
 from harness.pipeline.localizer_stages import Measured, localizer_ranks
 from harness.pipeline.stages import session_proposals
-from harness.records import QUERY_KEY
+from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import (
     read_cached_parquet,
     write_json,
@@ -135,8 +136,8 @@ def _detect_config(
     dcfg = dataclasses.replace(
         cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
     )
-    if opt.localizer == "local" and LOCAL_PROPOSALS not in cfg.proposals.methods:
-        methods = (*cfg.proposals.methods, LOCAL_PROPOSALS)
+    if opt.localizer in ("local", "keypoints") and opt.proposals not in cfg.proposals.methods:
+        methods = (*cfg.proposals.methods, opt.proposals)
         dcfg = dataclasses.replace(
             dcfg,
             proposals=dataclasses.replace(cfg.proposals, methods=methods),
@@ -185,6 +186,11 @@ def run_detect(
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
     opt = opt or cfg.detect
+    if cfg.pairs.by == "name" and opt.localizer == "local" and opt.local.identity_min_ncc > -1:
+        # pairs by name are the same view by declaration (co-registered tiles, a camera that
+        # re-shoots its views): one the chain cannot align falls back to identity, never lost;
+        # alignment.csv and detect.json's alignment count how many did
+        opt = dataclasses.replace(opt, local=dataclasses.replace(opt.local, identity_min_ncc=-1.0))
     alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
     dcfg = _detect_config(cfg, map_session, query_sessions, opt)
     t0 = time.perf_counter()
@@ -209,7 +215,7 @@ def run_detect(
         fr = pd.concat(
             [read_cached_parquet(e.path / "frames.parquet") for e in entries], ignore_index=True
         )
-        al, aligned = _alignment(p.out, measured)
+        al, aligned = _alignment(p.out, measured, frames.df, dcfg.sessions)
         run = DetectRun(
             p, dcfg, opt, map_session, query_sessions, names_l, frames.df, pairs.df, ann.df,
             entries, alarm, al,
@@ -240,7 +246,9 @@ def _thin_boxes(p: Any, entries: list[Any]) -> int:
     )
 
 
-def _alignment(out: Path, measured: list[Any]) -> tuple[pd.DataFrame | None, dict[str, Any]]:
+def _alignment(
+    out: Path, measured: list[Any], frames: pd.DataFrame | None = None, sessions: Any = ()
+) -> tuple[pd.DataFrame | None, dict[str, Any]]:
     """The local localizer's alignments and what ``detect.json`` says of them (SPEC 13.3).
 
     Returns the pairs' alignments (None without a local localizer) and the record's
@@ -253,9 +261,27 @@ def _alignment(out: Path, measured: list[Any]) -> tuple[pd.DataFrame | None, dic
         if old.is_file() and "alignment" in json.loads(old.read_text()):
             (out / "alignment.csv").unlink(missing_ok=True)
         return None, {}
+    if frames is not None and len(al):  # each pair's image files, by name, beside its keys
+        name = {  # a folder's frame by its file name (SPEC 13.2), a log's by its stored image
+            (str(r.session), str(r.camera), int(r.utime)): Path(str(r.image).split("#")[0]).name
+            for r in frames[[*FRAME_KEY, "image"]].itertuples(index=False)
+        }
+        folder_names = session_names(sessions) if sessions else None
+        if folder_names is not None and len(folder_names):
+            name.update({
+                (str(r.session), str(r.camera), int(r.utime)): str(r.name)
+                for r in folder_names.itertuples(index=False)
+            })  # fmt: skip
+        al = al.copy()
+        q_keys = al[["q_session", "q_camera", "q_utime"]].itertuples(index=False)
+        al.insert(3, "q_image", [name.get((str(a), str(b), int(c)), "") for a, b, c in q_keys])
+        al.insert(len(al.columns), "r_image", [
+            name.get((str(a), str(b), int(c)), "")
+            for a, b, c in al[["r_session", "r_camera", "r_utime"]].itertuples(index=False)
+        ])  # fmt: skip
     return al, {
         "alignment": _write_alignment(out, al),
-        "local_counts": measured[0].ranks.counts.get("local", {}),
+        "local_counts": next(iter(measured[0].ranks.counts.values()), {}),
     }
 
 

@@ -243,16 +243,22 @@ def _no_pixel_warnings(t: pd.DataFrame) -> list[str]:
     for r in t.iloc[2:].itertuples():
         gap = float(det["ap50_voc_all_point"]) - float(r.ap50_voc_all_point)
         if gap < 0.02:
+            how = (
+                "by the plain difference of the two images, without localizing anything, so the "
+                "localizer adds little that a difference image does not"
+                if str(r.row).startswith("aligned difference")
+                else "without reading a pixel (the confound Table I warns about), so the "
+                "detector's AP says little about what it sees"
+            )
             out.append(
                 f"WARNING: {r.row} reaches AP50 {r.ap50_voc_all_point:.3f}, "
                 + ("above" if gap < 0 else "within 0.02 of")
                 + f" the detector's {det['ap50_voc_all_point']:.3f}: these boxes can be ranked "
-                "this well without reading a pixel (the confound Table I warns about), so the "
-                "detector's AP says little about what it sees."
+                f"this well {how}."
             )
     if det["verdict"] == "baseline":
         out.append(
-            f"WARNING: the detector is above chance but not clear of the best no-pixel baseline "
+            f"WARNING: the detector is above chance but not clear of the best baseline row "
             f"({det['best_no_pixel']}; paired difference [{det['vs_no_pixel_ci_low']:+.3f}, "
             f"{det['vs_no_pixel_ci_high']:+.3f}]): no verdict above it (SPEC 13.3)."
         )

@@ -40,7 +40,7 @@ VERDICT_WORDS = {
     "untested": "no interval: not tested against chance",
     "undefined": "undefined (no positive)",
     "few": "too few positives",
-    "baseline": "above chance, not above a no-pixel baseline",
+    "baseline": "above chance, not above a baseline row",
 }
 #: One mark per verdict for narrow cells (markdown, console); LaTeX has its own. ``few`` has none:
 #: its cell says "too few positives (n)" in words (:func:`few_text`).

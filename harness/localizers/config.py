@@ -67,6 +67,69 @@ class LocalConfig:
     frames_per_unit: int = 64
 
 
+#: Keypoint localization's features and geometry (docs/method.md, *Keypoint localization*).
+KEYPOINT_FEATURES = ("sift", "orb", "akaze")
+GEOMETRIES = ("fundamental", "homography")
+
+
+@dataclass(frozen=True)
+class KeypointConfig:
+    """A ``keypoints`` localizer's options (:mod:`harness.localizers.keypoints`).
+
+    ``[[localizers]] keypoints = {...}`` or ``[detect.keypoints]``. Every size is a share of the
+    frame's diagonal, so one setting serves every frame size.
+    """
+
+    # the local features: "sift" (the measured default), "orb" or "akaze" (cheaper)
+    features: str = "sift"
+    max_keypoints: int = 1500
+    # Lowe's ratio test, both ways (query to map and map to query)
+    ratio: float = 0.8
+    # the pair's geometry a match must agree with: "fundamental" (parallax keeps it) or
+    # "homography" (a scene declared planar: aerial tiles, a wall)
+    geometry: str = "fundamental"
+    # MAGSAC's inlier threshold, a share of the frame's diagonal (at least half a pixel)
+    ransac_threshold: float = 0.004
+    # fewer ratio-test matches than this: no geometry is fitted and every match localizes
+    min_matches: int = 15
+    # the share map's Gaussian, sigma a share of the frame's diagonal ...
+    sigma: float = 0.03
+    # ... and its prior: this many localized keypoints' worth, so a bare box is no change
+    prior: float = 1.0
+    # also the map's keypoints that do not localize in the query frame (a removed object)
+    both_directions: bool = True
+    # frames are worked on with this longer side, at most (1/2, 1/4, 1/8 decodes of a JPEG)
+    work_side: int = 512
+    # query frames per cached unit (the unit a killed run resumes at); not in the key
+    frames_per_unit: int = 64
+    # the rank list's length: r = rank / L with rank = 1 + round(share * (L - 1))
+    levels: int = 1000
+
+
+def check_keypoints(kc: KeypointConfig, where: str) -> KeypointConfig:
+    """A ``keypoints`` table's values (one ``ERROR:`` line naming the key)."""
+    c = check_value
+    c(
+        kc.features in KEYPOINT_FEATURES,
+        where,
+        "features",
+        kc.features,
+        ", ".join(KEYPOINT_FEATURES),
+    )
+    c(kc.geometry in GEOMETRIES, where, "geometry", kc.geometry, " or ".join(GEOMETRIES))
+    c(kc.max_keypoints >= 8, where, "max_keypoints", kc.max_keypoints, ">= 8")
+    c(0 < kc.ratio <= 1, where, "ratio", kc.ratio, "(0, 1]")
+    c(0 < kc.ransac_threshold < 0.1, where, "ransac_threshold", kc.ransac_threshold,
+      "(0, 0.1): a share of the frame's diagonal")  # fmt: skip
+    c(kc.min_matches >= 8, where, "min_matches", kc.min_matches, ">= 8 (a fundamental matrix)")
+    c(0 < kc.sigma < 0.5, where, "sigma", kc.sigma, "(0, 0.5): a share of the frame's diagonal")
+    c(kc.prior > 0, where, "prior", kc.prior, "> 0 keypoints")
+    c(kc.work_side >= 64, where, "work_side", kc.work_side, ">= 64 pixels")
+    c(kc.frames_per_unit >= 1, where, "frames_per_unit", kc.frames_per_unit, ">= 1")
+    c(kc.levels >= 2, where, "levels", kc.levels, ">= 2")
+    return kc
+
+
 @dataclass(frozen=True)
 class LocalizerImportConfig:
     """A localizer's ``import`` table: ranked lists from a file (SPEC section 12)."""

@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -43,6 +45,8 @@ __all__ = [
     "box_rank",
     "pair_ranks",
     "read_gray",
+    "unit_ranks",
+    "work_image",
     "write_local_ranks",
 ]
 
@@ -104,7 +108,7 @@ def _box_rank(
     return fwd if fwd[0] / fwd[1] >= back[0] / back[1] else back
 
 
-def _work(uri: str, width: int, height: int, work_side: int) -> tuple[np.ndarray, float]:
+def work_image(uri: str, width: int, height: int, work_side: int) -> tuple[np.ndarray, float]:
     """A frame's gray work image and its scale (work pixels per frame pixel)."""
     reduce = 1
     while reduce < 8 and max(width, height) / (reduce * 2) >= work_side:
@@ -140,8 +144,8 @@ def pair_ranks(
 
     ``size``: the frames' (width, height); ``boxes``: (n, 4) in frame pixels.
     """
-    q, s = _work(q_uri, *size, lc.work_side)
-    m, _ = _work(m_uri, *size, lc.work_side)
+    q, s = work_image(q_uri, *size, lc.work_side)
+    m, _ = work_image(m_uri, *size, lc.work_side)
     if m.shape != q.shape:
         m = cv2.resize(m, (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
     al = align_pair(q, m, lc)
@@ -249,6 +253,35 @@ def write_local_ranks(
 
     ``pairs``: the unit's pairs; ``props``: the query sessions' proposals (every method).
     """
+
+    def one(q_img: str, m_img: str, wh: tuple[int, int], xy: np.ndarray) -> tuple[tuple, Any]:
+        al, got = pair_ranks(q_img, m_img, wh, xy, lc)
+        return (al.method, al.inliers, al.score), (got if al.H is not None else None)
+
+    return unit_ranks(
+        one, pairs, frames, props, tmp, LOCAL_COUNTS, "no_rank_box_too_small_or_outside"
+    )
+
+
+#: (query image, map image, (width, height), boxes) -> ((method, inliers, score), each box's
+#: (rank, L, 1 - d) or NaN, or None where the pair could not be aligned).
+PairRanks = Callable[[str, str, tuple[int, int], np.ndarray], tuple[tuple, Any]]
+
+
+def unit_ranks(
+    pair_fn: PairRanks,
+    pairs: pd.DataFrame,
+    frames: pd.DataFrame,
+    props: pd.DataFrame,
+    tmp: Path,
+    names: tuple[str, ...],
+    not_ranked: str,
+) -> dict[str, int]:
+    """A unit of a kind that ranks each query box inside its paired map frame.
+
+    ``local`` and ``keypoints``: its rank rows and each pair's alignment, the counters ``names``
+    counted (``pairs_<method>``, ``not_ranked`` for a box without a rank).
+    """
     pairs = pairs.reset_index(drop=True)
     times = np.union1d(pairs["q_utime"].to_numpy(np.int64), pairs["r_utime"].to_numpy(np.int64))
     mine = frames.loc[frames["utime"].isin(times), [*FRAME_KEY, "image", "width", "height"]]
@@ -260,31 +293,33 @@ def write_local_ranks(
     xy = props[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     none = np.zeros(0, np.int64)
 
-    def one(row: tuple) -> tuple[Alignment, np.ndarray, np.ndarray]:
+    def one(row: tuple) -> tuple[tuple, np.ndarray, Any]:
         qs, qc, qu, rs, rc, ru = row
         at = at_frame.get((qs, qc, int(qu)), none)
         q_img, w, h = files[(qs, qc, int(qu))]
-        al, got = pair_ranks(q_img, files[(rs, rc, int(ru))][0], (w, h), xy[at], lc)
-        return al, at, got
+        how, got = pair_fn(q_img, files[(rs, rc, int(ru))][0], (w, h), xy[at])
+        return how, at, got
 
     keys = pairs[["q_session", "q_camera", "q_utime", "r_session", "r_camera", "r_utime"]]
     workers = max(1, min(len(pairs), os.cpu_count() or 1))
     with ThreadPoolExecutor(workers) as pool:  # OpenCV releases the GIL: pairs run side by side
         done = list(pool.map(one, keys.itertuples(index=False, name=None)))
-    counts = dict.fromkeys(LOCAL_COUNTS, 0)
+    counts = dict.fromkeys(names, 0)
     aligns, which, ats, gots = [], [], [], []
-    for i, (row, (al, at, got)) in enumerate(zip(pairs.itertuples(index=False), done, strict=True)):
+    for i, (row, (how, at, got)) in enumerate(
+        zip(pairs.itertuples(index=False), done, strict=True)
+    ):
         counts["query_subimages"] += len(at)
-        counts[f"pairs_{al.method if al.H is not None else 'not_aligned'}"] += 1
+        counts[f"pairs_{how[0] if got is not None else 'not_aligned'}"] += 1
         aligns.append(
             (row.q_session, row.q_camera, int(row.q_utime), row.r_session, row.r_camera,
-             int(row.r_utime), al.method, al.inliers, al.score)
+             int(row.r_utime), *how)
         )  # fmt: skip
-        if al.H is None:
+        if got is None:
             counts["no_rank_pair_not_aligned"] += len(at)
             continue
         ok = np.isfinite(got[:, 0])
-        counts["no_rank_box_too_small_or_outside"] += int((~ok).sum())
+        counts[not_ranked] += int((~ok).sum())
         counts["ranked"] += int(ok.sum())
         which.append(np.full(int(ok.sum()), i, np.int64))
         ats.append(at[ok])
@@ -295,11 +330,5 @@ def write_local_ranks(
         else pd.DataFrame()
     )
     write_parquet(tmp / "ranks.parquet", df)
-    write_parquet(
-        tmp / "alignment.parquet",
-        pd.DataFrame(
-            aligns,
-            columns=ALIGNMENT_COLUMNS,
-        ),
-    )
+    write_parquet(tmp / "alignment.parquet", pd.DataFrame(aligns, columns=ALIGNMENT_COLUMNS))
     return counts

@@ -1,4 +1,6 @@
-"""The built-in proposers (SPEC 5): ``grid5`` and OpenCV's ``mser``, ``segments`` and ``edges``.
+"""The built-in proposers (SPEC 5): ``grid5`` and OpenCV's ``mser``, ``segments``, ``edges``...
+
+... and ``selective`` (Selective Search, from OpenCV's contrib modules).
 
 ``grid5`` gives the paper's five fixed boxes; the others need no weights. :func:`nms` is the
 non-maximum suppression every proposer uses.
@@ -6,11 +8,21 @@ non-maximum suppression every proposer uses.
 
 from __future__ import annotations
 
+import ctypes
+import functools
+import threading
+
 import cv2
 import numpy as np
 
 from harness.methods import proposer
-from harness.proposals.config import EdgesConfig, MserConfig, ProposalsConfig, SegmentsConfig
+from harness.proposals.config import (
+    EdgesConfig,
+    MserConfig,
+    ProposalsConfig,
+    SegmentsConfig,
+    SelectiveConfig,
+)
 
 
 @proposer("grid5")
@@ -174,3 +186,55 @@ def mser_proposer(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np
 def segments_proposer(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
     """``segments`` with ``[proposals.segments]``."""
     return segment_boxes(rgb, cfg.segments)
+
+
+_RAND_LOCK = threading.Lock()
+
+
+@functools.cache
+def _libc() -> ctypes.CDLL:
+    """The C library OpenCV's rand() comes from (this process's)."""
+    return ctypes.CDLL(None)
+
+
+def selective_boxes(rgb: np.ndarray, cfg: SelectiveConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Selective Search's boxes in full-image pixels, scored by their order; (k, 4), (k,).
+
+    OpenCV's ``ximgproc.segmentation.createSelectiveSearchSegmentation`` on a copy
+    ``work_width`` wide (one thread, the C library's generator seeded with ``seed``), then the
+    area limits, near-duplicates merged by NMS in Selective Search's order, the first
+    ``max_boxes`` kept.
+    """
+    h, w = rgb.shape[:2]
+    small, scale = _working_copy(rgb, cfg.work_width)
+    ss = cv2.ximgproc.segmentation.createSelectiveSearchSegmentation()
+    ss.setBaseImage(cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+    if cfg.mode == "quality":
+        ss.switchToSelectiveSearchQuality()
+    else:
+        ss.switchToSelectiveSearchFast()
+    # Selective Search ranks its regions with the C library's rand(): seeded before each frame
+    # (under a lock: that state is the process's), its boxes are the same on every run
+    with _RAND_LOCK:
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            _libc().srand(cfg.seed)
+            rects = np.asarray(ss.process(), np.float64).reshape(-1, 4)
+        finally:
+            cv2.setNumThreads(threads)
+    if not len(rects):
+        return np.zeros((0, 4)), np.zeros(0)
+    frac = rects[:, 2] * rects[:, 3] / float(small.shape[0] * small.shape[1])
+    rects = rects[(frac >= cfg.min_area_frac) & (frac <= cfg.max_area_frac)]
+    boxes = np.column_stack([rects[:, :2], rects[:, :2] + rects[:, 2:]]) / scale
+    boxes = np.clip(boxes, 0, [w, h, w, h])
+    order = 1.0 - np.arange(len(boxes)) / max(1, len(boxes))  # Selective Search's first: 1
+    keep = nms(boxes, order, cfg.nms_iou)[: cfg.max_boxes]
+    return boxes[keep], order[keep]
+
+
+@proposer("selective")
+def selective_proposer(rgb: np.ndarray, cfg: ProposalsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``selective`` with ``[proposals.selective]``."""
+    return selective_boxes(rgb, cfg.selective)

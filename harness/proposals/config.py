@@ -55,6 +55,27 @@ class SegmentsConfig:
 
 
 @dataclass(frozen=True)
+class SelectiveConfig:
+    """``[proposals.selective]``: Selective Search (OpenCV's ``ximgproc``; areas as fractions).
+
+    Uijlings et al.'s hierarchical grouping of a graph segmentation, on a copy ``work_width``
+    wide: ``mode`` "fast" (its colour spaces and strategies of the fast mode) or "quality"; the
+    first ``max_boxes`` of its boxes within the area limits, near-duplicates (IoU above
+    ``nms_iou``) merged. A box's score is its place in Selective Search's order (first: 1). That
+    order multiplies each region's level by a random number (the C library's ``rand()``, seeded
+    with ``seed`` before every frame, so the boxes are the same on every run).
+    """
+
+    mode: str = "fast"
+    max_boxes: int = 300
+    min_area_frac: float = 0.002
+    max_area_frac: float = 0.5
+    nms_iou: float = 0.9
+    work_width: int = 256
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class EdgesConfig:
     """``[proposals.edges]``: edge-contour proposals (areas as fractions of the image)."""
 
@@ -75,6 +96,7 @@ class ProposalsConfig:
     yolo: YoloConfig = field(default_factory=YoloConfig)
     mser: MserConfig = field(default_factory=MserConfig)
     segments: SegmentsConfig = field(default_factory=SegmentsConfig)
+    selective: SelectiveConfig = field(default_factory=SelectiveConfig)
     file: str | None = None
     # decode a JPEG at 1/2, 1/4 or 1/8 of its size where every listed OpenCV method's work_width
     # still fits (libjpeg's DCT scaling: less work than the full frame); false: the full frame
@@ -142,7 +164,14 @@ def check_proposals(pr: ProposalsConfig, where: str) -> None:
         list(seg.closings),
         "a non-empty list of kernel sizes >= 1",
     )
-    for sub_name in ("edges", "mser", "segments"):
+    c(
+        pr.selective.mode in ("fast", "quality"),
+        where,
+        "[proposals.selective] mode",
+        pr.selective.mode,
+        "fast or quality",
+    )
+    for sub_name in ("edges", "mser", "segments", "selective"):
         sub = getattr(pr, sub_name)
         c(sub.max_boxes >= 1, where, f"[proposals.{sub_name}] max_boxes", sub.max_boxes, ">= 1")
         c(0 < sub.nms_iou <= 1, where, f"[proposals.{sub_name}] nms_iou", sub.nms_iou, "(0, 1]")

@@ -55,7 +55,10 @@ def _config(tmp_path: Path, localizers: str) -> Path:
 @pytest.mark.parametrize(
     ("entry", "says"),
     [
-        ('[[localizers]]\nname = "a"\n', "exactly one of descriptor, bovw, import or local"),
+        (
+            '[[localizers]]\nname = "a"\n',
+            "exactly one of descriptor, bovw, import, local or keypoints",
+        ),
         (
             '[[localizers]]\nname = "a"\nbovw = {}\ndescriptor = { name = "hog" }\n',
             "exactly one of",

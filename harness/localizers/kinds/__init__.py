@@ -8,7 +8,7 @@ together, added here in the order the config's error messages list them. A user'
 
 from __future__ import annotations
 
-from harness.localizers.kinds import bovw, descriptor, imported, local
+from harness.localizers.kinds import bovw, descriptor, imported, keypoints, local
 from harness.localizers.kinds.base import (
     LOCALIZER_KINDS,
     KindRanks,
@@ -19,7 +19,7 @@ from harness.localizers.kinds.base import (
     register_localizer_kind,
 )
 
-for _module in (descriptor, bovw, imported, local):
+for _module in (descriptor, bovw, imported, local, keypoints):
     LOCALIZER_KINDS.add(_module.KIND.name, _module.KIND)
 
 __all__ = [

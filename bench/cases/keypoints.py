@@ -1,0 +1,128 @@
+"""Bench case ``keypoints``: keypoint localization (issue 63) per query frame, on 2 cores.
+
+Pairs of 640 x 480 JPEG frames (a textured scene, and the same scene moved a few pixels with
+objects pasted in), 80 boxes a frame (the order of ``segments``' colour regions), through
+:func:`harness.localizers.keypoints.write_keypoint_ranks` with the default options (decode, SIFT
+keypoints of both frames, ratio-test matches both ways, the MAGSAC fundamental matrix, the share
+map, the rank rows written), beside the aligned difference of the same pairs (Table D's row) and
+Selective Search on the query frame (the alternative proposer). Next to them, in the same run, the
+limits of the stage's kernels at the sizes it works on: decoding both frames, SIFT on both and
+their brute-force matching, split over the 2 threads the stage runs pairs on. The issue's lines:
+at most 100 ms a 640 x 480 pair, and at most 2x its kernels' limit. The NCLT frame size (1,232 x
+1,616, worked on at 512 px) is measured too.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from harness.detect.difference import difference_map
+from harness.localizers.config import KeypointConfig
+from harness.localizers.keypoints import detect, ratio_matches, work_gray, write_keypoint_ranks
+from harness.proposals.builtin import selective_boxes
+from harness.proposals.config import SelectiveConfig
+
+from .common import emit
+
+BOXES = 80
+
+
+def _frames(root: Path, n: int, w: int, h: int) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    rng = np.random.default_rng(0)
+    rows, pairs, props = [], [], []
+    for i in range(n):
+        m = np.full((h, w, 3), 110, np.uint8)
+        for _ in range(400):
+            c = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+            cv2.circle(
+                m,
+                c,
+                int(rng.integers(2, w // 40)),
+                tuple(int(v) for v in rng.integers(0, 256, 3)),
+                -1,
+            )
+        q = np.roll(m, (6, 9), axis=(0, 1)).copy()
+        for _ in range(3):
+            x, y = int(rng.integers(0, w - w // 5)), int(rng.integers(0, h - h // 5))
+            q[y : y + h // 6, x : x + w // 8] = rng.integers(0, 256, (h // 6, w // 8, 3))
+        for s, img in (("map", m), ("query", q)):
+            path = root / f"{s}{i}.jpg"
+            cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+            rows.append((s, "Cam5", i, str(path), w, h))
+        pairs.append(("query", "Cam5", i, "map", "Cam5", i, "SP-WI"))
+        for b in range(BOXES):
+            bw, bh = int(rng.integers(w // 20, w // 3)), int(rng.integers(h // 20, h // 3))
+            x, y = int(rng.integers(0, w - bw)), int(rng.integers(0, h - bh))
+            props.append(("query", "Cam5", i, "segments", b, x, y, x + bw, y + bh))
+    frames = pd.DataFrame(rows, columns=["session", "camera", "utime", "image", "width", "height"])
+    pair_df = pd.DataFrame(pairs, columns=["q_session", "q_camera", "q_utime", "r_session",
+                                           "r_camera", "r_utime", "season_pair"])  # fmt: skip
+    prop_df = pd.DataFrame(props, columns=["session", "camera", "utime", "proposal_method",
+                                           "box_id", "x1", "y1", "x2", "y2"])  # fmt: skip
+    return frames, pair_df, prop_df
+
+
+def _kernels(frames: pd.DataFrame, kc: KeypointConfig) -> float:
+    """ms a pair of the kernels alone: both frames decoded to their work size, SIFT on both, the
+    matching both ways; halved (the stage runs two pairs at once on 2 cores)."""
+    n = frames["utime"].nunique()
+    t0 = time.perf_counter()
+    for i in range(n):
+        f = frames[frames["utime"] == i]
+        grays = [work_gray(str(r.image), int(r.width), int(r.height), kc.work_side)[0]
+                 for r in f.itertuples()]  # fmt: skip
+        (_, a), (_, b) = (detect(g, kc) for g in grays)
+        ratio_matches(a, b, kc)
+        ratio_matches(b, a, kc)
+    return 1000 * (time.perf_counter() - t0) / n / 2
+
+
+def _one_size(n: int, w: int, h: int, label: str) -> None:
+    kc = KeypointConfig()
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d)
+        frames, pairs, props = _frames(root, n, w, h)
+        runs, limits, diffs, ss = [], [], [], []
+        for rep in range(3):
+            t0 = time.perf_counter()
+            counts = write_keypoint_ranks(kc, pairs, frames, props, root / f"out{rep}")
+            runs.append(1000 * (time.perf_counter() - t0) / n)
+            limits.append(_kernels(frames, kc))
+            imgs = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in frames["image"]]
+            t0 = time.perf_counter()
+            for i in range(0, len(imgs), 2):
+                difference_map(imgs[i + 1], imgs[i])
+            diffs.append(1000 * (time.perf_counter() - t0) / n)
+            t0 = time.perf_counter()
+            for i in range(1, len(imgs), 2):
+                selective_boxes(imgs[i], SelectiveConfig())
+            ss.append(1000 * (time.perf_counter() - t0) / n)
+    med, lim = float(np.median(runs)), float(np.median(limits))
+    emit(
+        f"keypoint localization per {label} pair [{n} pairs x {BOXES} boxes, 2 threads]",
+        runs,
+        "ms/pair",
+        kernel_limit_ms=round(lim, 2),
+        ratio_to_kernels=round(med / lim, 2),
+        aligned_difference_ms=round(float(np.median(diffs)), 2),
+        selective_search_ms=round(float(np.median(ss)), 2),
+        ranked=counts["ranked"],
+        notes=(
+            f"decode + SIFT both frames + ratio matches both ways + MAGSAC fundamental matrix + "
+            f"share map + rank rows {med:.1f} ms a pair = {med / lim:.2f}x its kernels' limit "
+            f"measured here ({lim:.1f} ms: decode, SIFT on both frames and the matching, split "
+            f"over 2 threads); the aligned difference {np.median(diffs):.1f} ms and Selective "
+            f"Search {np.median(ss):.1f} ms a frame on one thread"
+        ),
+    )
+
+
+def case_keypoints(quick: bool) -> None:
+    _one_size(6 if quick else 24, 640, 480, "640 x 480")
+    _one_size(4 if quick else 12, 1232, 1616, "NCLT-sized (1,232 x 1,616)")

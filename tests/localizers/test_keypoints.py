@@ -1,0 +1,208 @@
+"""Keypoint localization (issue 63), Selective Search proposals and the aligned difference.
+
+A synthetic pair whose truth is known: a textured scene seen twice with a shift and a small
+parallax, and a new textured object pasted into the second view only. The object's keypoints
+find no match in the map frame, the background's do; the object's box must score a higher share
+of keypoints that do not localize than every background box, the pair's geometry is a fitted
+fundamental matrix, and the aligned difference's contrast is highest on the object too.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness.detect.difference import difference_contrast, difference_map
+from harness.localizers.config import KeypointConfig, check_keypoints
+from harness.localizers.keypoints import localized, pair_shares, share_map
+from harness.proposals.builtin import selective_boxes
+from harness.proposals.config import SelectiveConfig
+
+cv2 = pytest.importorskip("cv2")
+
+W, H = 480, 360
+OBJECT = (300, 120, 380, 200)  # the new object's box in the query frame
+
+
+def _texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """Blobs, lines and noise: a scene with plenty of SIFT keypoints (uint8 gray)."""
+    img = np.full((h, w), 120, np.uint8)
+    for _ in range(260):
+        c = tuple(int(v) for v in rng.integers(0, [w, h]))
+        cv2.circle(img, c, int(rng.integers(3, 14)), int(rng.integers(0, 255)), -1)
+    for _ in range(60):
+        p, q = rng.integers(0, [w, h], 2), rng.integers(0, [w, h], 2)
+        cv2.line(img, tuple(map(int, p)), tuple(map(int, q)), int(rng.integers(0, 255)), 2)
+    return cv2.GaussianBlur(img, (3, 3), 0)
+
+
+def _pair() -> tuple[np.ndarray, np.ndarray]:
+    """(query, map) gray frames: the map's scene shifted by (7, 4) px, plus a new object."""
+    rng = np.random.default_rng(5)
+    scene = _texture(rng, H + 40, W + 40)
+    m = scene[20 : 20 + H, 20 : 20 + W].copy()
+    q = scene[24 : 24 + H, 27 : 27 + W].copy()
+    x1, y1, x2, y2 = OBJECT
+    q[y1:y2, x1:x2] = _texture(np.random.default_rng(99), y2 - y1, x2 - x1)
+    return q, m
+
+
+def _background_boxes() -> np.ndarray:
+    return np.array([[40, 40, 120, 120], [150, 220, 230, 300], [60, 230, 140, 310],
+                     [180, 40, 260, 120]], np.float64)  # fmt: skip
+
+
+def test_a_new_objects_keypoints_do_not_localize_and_the_backgrounds_do() -> None:
+    q, m = _pair()
+    kc = KeypointConfig()
+    xq, ok_q, _, _, geo = localized(q, m, kc)
+    assert geo.model == "fundamental" and geo.inliers >= 30 and geo.matches >= geo.inliers
+    x1, y1, x2, y2 = OBJECT
+    inside = (xq[:, 0] >= x1) & (xq[:, 0] < x2) & (xq[:, 1] >= y1) & (xq[:, 1] < y2)
+    assert inside.sum() >= 5
+    assert ok_q[inside].mean() < 0.2 < 0.7 < ok_q[~inside].mean()
+    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()])
+    share, _ = pair_shares(q, m, boxes, kc)
+    assert share[0] > 0.6 and (share[1:] < 0.35).all(), share
+    assert share[0] > share[1:].max() + 0.3
+
+
+def test_the_share_map_has_its_prior_and_sizes_are_shares_of_the_frame() -> None:
+    kc = KeypointConfig()
+    # one keypoint that does not localize: its peak is 1 / (1 + prior), never 1
+    smap = share_map((100, 100), np.array([[50.0, 50.0]]), np.array([True]), kc)
+    assert smap.max() == pytest.approx(1 / (1 + kc.prior), rel=0.02)
+    # no keypoint at all: no change anywhere
+    assert share_map((100, 100), np.zeros((0, 2)), np.zeros(0, bool), kc).max() == 0
+    # the same scene at twice the size: the same share at the same place
+    small = share_map(
+        (100, 120), np.array([[30.0, 40.0], [60.0, 40.0]]), np.array([True, False]), kc
+    )
+    big = share_map(
+        (200, 240), np.array([[60.0, 80.0], [120.0, 80.0]]), np.array([True, False]), kc
+    )
+    assert big[80, 60] == pytest.approx(small[40, 30], rel=0.05)
+
+
+def test_without_enough_matches_no_geometry_is_claimed() -> None:
+    rng = np.random.default_rng(1)
+    a, b = _texture(rng, 120, 160), _texture(np.random.default_rng(2), 120, 160)
+    *_, geo = localized(a, b, KeypointConfig(min_matches=500))
+    assert geo.model == "none" and geo.inliers == 0
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "words"),
+    [
+        ("features", "surf", "sift, orb, akaze"),
+        ("geometry", "affine", "fundamental or homography"),
+        ("sigma", 0.0, "(0, 0.5)"),
+        ("min_matches", 4, ">= 8"),
+    ],
+)
+def test_a_bad_keypoints_option_is_named(key: str, value: object, words: str) -> None:
+    import dataclasses
+
+    from harness.errors import ConfigError
+
+    want = rf"\[detect.keypoints\]: {key} = .* is out of range; allowed: {re.escape(words)}"
+    with pytest.raises(ConfigError, match=want):
+        check_keypoints(dataclasses.replace(KeypointConfig(), **{key: value}), "[detect.keypoints]")
+
+
+def test_selective_search_meets_the_new_object_within_its_limits() -> None:
+    q, _ = _pair()
+    rgb = cv2.cvtColor(q, cv2.COLOR_GRAY2RGB)
+    cfg = SelectiveConfig(max_boxes=300)
+    boxes, score = selective_boxes(rgb, cfg)
+    assert 0 < len(boxes) <= 300 and (np.diff(score) <= 0).all()  # Selective Search's order
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]) / (W * H)
+    assert (area >= cfg.min_area_frac * 0.9).all() and (area <= cfg.max_area_frac * 1.1).all()
+    again, _ = selective_boxes(rgb, cfg)
+    np.testing.assert_array_equal(boxes, again)  # one thread: the same boxes every time
+
+
+def test_the_aligned_difference_is_zero_on_a_shifted_copy_and_highest_on_the_new_object() -> None:
+    q, m = _pair()
+    qc, mc = cv2.cvtColor(q, cv2.COLOR_GRAY2RGB), cv2.cvtColor(m, cv2.COLOR_GRAY2RGB)
+    d, s = difference_map(qc, qc)
+    assert float(np.abs(d).max()) < 1e-3  # float gain and offset: a copy differs by ~1e-5
+    d, s = difference_map(qc, mc)  # a 7 px shift: within 3% of the diagonal
+    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()])
+    c = difference_contrast(d, s, boxes)
+    assert c[0] > c[1:].max(), c
+    # gain and offset are matched: a darker, lower-contrast map is no change
+    dim = np.clip(mc.astype(np.float32) * 0.6 + 20, 0, 255).astype(np.uint8)
+    d2, s2 = difference_map(qc, dim)
+    assert difference_contrast(d2, s2, boxes)[0] > 0
+    assert np.nanmax(difference_contrast(d2, s2, _background_boxes())) < c[0]
+
+
+# ---------------------------------------------------------------- as a localizer and a detector
+
+
+def test_keypoints_is_a_localizer_with_its_table_l_row(local_run: tuple, tmp_path: Path) -> None:
+    """``[[localizers]] keypoints = {}`` beside the autoencoder: its own Table L row, ranks with
+    ``r`` in (0, 1] and ``L`` = ``levels``, and its pairs' geometry counted."""
+    from harness.cli import main
+
+    from ..conftest import ROOT, seed_cache
+
+    p, _, run = local_run
+    text = (ROOT / "datasets" / "fixture.toml").read_text()
+    text = text.replace('"annotations/', f'"{ROOT}/annotations/')
+    text = text.replace('"datasets/models"', f'"{ROOT}/datasets/models"')
+    text = text.replace("[report]\n", "[report]\nplots = false\nhtml = false\n")
+    text += (
+        '\n[[localizers]]\nname = "autoencoder"\ndescriptor = { name = "autoencoder", '
+        'input_size = 64, input_norm = "per_crop", epochs = 6, batch_size = 32, '
+        'max_train_subimages = 3000, train_samples = 6000, trained_models = "'
+        f'{ROOT}/datasets/models" }}\n\n[[localizers]]\nname = "kp"\nkeypoints = {{}}\n'
+    )
+    cfg = tmp_path / "kp.toml"
+    cfg.write_text(text)
+    out = seed_cache(run, tmp_path / "out")
+    assert main(["reproduce", "--config", str(cfg), "--data-root", str(p.cfg.data_root),
+                 "--out", str(out)]) == 0  # fmt: skip
+    t = pd.read_csv(out / "tableL.csv")
+    assert t["localizer"].tolist() == ["autoencoder", "kp", "all localizers"]
+    ranks = pd.read_parquet(out / "ranks.parquet")
+    kp = ranks[ranks["localizer"] == "kp"]
+    assert len(kp) and (kp["L"] == 1000).all() and kp["r"].between(1e-3, 1).all()
+    assert (kp["place_size"] == 1).all()  # the place is the paired frame itself
+    rec = json.loads((out / "run.json").read_text())
+    assert "keypoint localization" in json.dumps(rec) or "keypoints" in json.dumps(rec)
+
+
+def test_detect_with_keypoints_writes_each_pairs_geometry_and_the_difference_row(
+    local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``harness detect --localizer keypoints`` as typed on the fixture: ``alignment.csv`` holds
+    each pair's model, inliers and image names; Table D carries the aligned-difference row, and
+    the detector's verdict is measured against it too."""
+    from harness.cli import main
+
+    from ..conftest import ROOT
+
+    p, _, _ = local_run
+    out = tmp_path / "d"
+    argv = ["detect", "--config", str(ROOT / "datasets" / "fixture.toml"), "--data-root",
+            str(p.cfg.data_root), "--map", "2012-01-22", "--query", "2012-03-31",
+            "--localizer", "keypoints", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    al = pd.read_csv(out / "alignment.csv")
+    assert set(al["align"]) <= {"fundamental", "none"} and (al["align"] == "fundamental").any()
+    assert {"q_image", "r_image", "inliers"} <= set(al.columns)
+    assert al["q_image"].str.endswith((".tiff", ".jpg", ".png")).all()
+    t = pd.read_csv(out / "tableD.csv")
+    assert "aligned difference (pixels, no localizer)" in set(t["row"])
+    det = t[t["row"] == "detector"].iloc[0]
+    assert det["best_no_pixel"] in ("size_prior", "cover_count", "aligned_difference")
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["options"]["localizer"] == "keypoints" and "keypoints" in rec["options"]
+    assert "aligned difference" in (out / "tableD.md").read_text()
