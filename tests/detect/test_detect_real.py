@@ -55,6 +55,11 @@ def test_the_default_detector_finds_real_changes_above_its_chance_band(
     m = re.search(r"`harness detect` with no flags on `obchange-dev`: AP50 (\d\.\d{3})", quoted)
     assert m is not None, "docs/method.md quotes the default's AP50 on obchange-dev"
     assert abs(det["ap50_voc_all_point"] - float(m.group(1))) <= 0.002, (det, m.group(1))
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert (
+        f"the same default reaches AP50 {det['ap50_voc_all_point']:.3f} against a chance band up "
+        f"to {det['chance_high']:.3f}"
+    ) in readme
     assert "Table D" in printed
 
 
