@@ -260,3 +260,17 @@ def product_note(lim: dict[str, float]) -> str:
     return f"{lim['product_gflops']:.0f} GFLOP/s " + (
         "(bf16, native)" if lim["native_bf16"] else "(fp32: this CPU has no native bf16)"
     )
+
+
+def pair_tables(rows: list[tuple], pairs: list[tuple], props: list[tuple]) -> tuple[Any, Any, Any]:
+    """The frame, pair and proposal tables of a generated set of pairs (the local and keypoints
+    cases): ``rows`` (session, camera, utime, image, width, height), ``pairs`` (query key, map key,
+    season pair), ``props`` (frame key, method, box id, x1, y1, x2, y2)."""
+    import pandas as pd
+
+    frames = pd.DataFrame(rows, columns=["session", "camera", "utime", "image", "width", "height"])
+    pair_df = pd.DataFrame(pairs, columns=["q_session", "q_camera", "q_utime", "r_session",
+                                           "r_camera", "r_utime", "season_pair"])  # fmt: skip
+    prop_df = pd.DataFrame(props, columns=["session", "camera", "utime", "proposal_method",
+                                           "box_id", "x1", "y1", "x2", "y2"])  # fmt: skip
+    return frames, pair_df, prop_df

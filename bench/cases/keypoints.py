@@ -28,7 +28,7 @@ from harness.localizers.keypoints import detect, ratio_matches, work_gray, write
 from harness.proposals.builtin import selective_boxes
 from harness.proposals.config import SelectiveConfig
 
-from .common import emit
+from .common import emit, pair_tables
 
 BOXES = 80
 
@@ -60,12 +60,7 @@ def _frames(root: Path, n: int, w: int, h: int) -> tuple[pd.DataFrame, pd.DataFr
             bw, bh = int(rng.integers(w // 20, w // 3)), int(rng.integers(h // 20, h // 3))
             x, y = int(rng.integers(0, w - bw)), int(rng.integers(0, h - bh))
             props.append(("query", "Cam5", i, "segments", b, x, y, x + bw, y + bh))
-    frames = pd.DataFrame(rows, columns=["session", "camera", "utime", "image", "width", "height"])
-    pair_df = pd.DataFrame(pairs, columns=["q_session", "q_camera", "q_utime", "r_session",
-                                           "r_camera", "r_utime", "season_pair"])  # fmt: skip
-    prop_df = pd.DataFrame(props, columns=["session", "camera", "utime", "proposal_method",
-                                           "box_id", "x1", "y1", "x2", "y2"])  # fmt: skip
-    return frames, pair_df, prop_df
+    return pair_tables(rows, pairs, props)
 
 
 def _kernels(frames: pd.DataFrame, kc: KeypointConfig) -> float:

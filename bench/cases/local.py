@@ -22,7 +22,7 @@ from harness.localizers.align import feature_image
 from harness.localizers.config import LocalConfig
 from harness.localizers.local import write_local_ranks
 
-from .common import emit
+from .common import emit, pair_tables
 
 PAPER_MS = 25.41
 W, H = 1232, 1616
@@ -48,12 +48,7 @@ def _frames(root: Path, n: int) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFram
             x, y = int(rng.integers(0, W - 400)), int(rng.integers(0, H - 400))
             bw, bh = int(rng.integers(40, 400)), int(rng.integers(40, 400))
             props.append(("query", "Cam5", i, "segments", b, x, y, x + bw, y + bh))
-    frames = pd.DataFrame(rows, columns=["session", "camera", "utime", "image", "width", "height"])
-    pair_df = pd.DataFrame(pairs, columns=["q_session", "q_camera", "q_utime", "r_session",
-                                           "r_camera", "r_utime", "season_pair"])  # fmt: skip
-    prop_df = pd.DataFrame(props, columns=["session", "camera", "utime", "proposal_method",
-                                           "box_id", "x1", "y1", "x2", "y2"])  # fmt: skip
-    return frames, pair_df, prop_df
+    return pair_tables(rows, pairs, props)
 
 
 def _kernels(frames: pd.DataFrame, props: pd.DataFrame, lc: LocalConfig) -> float:

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from harness.localizers.config import KeypointConfig
-from harness.localizers.local import unit_ranks, work_image
+from harness.localizers.local import pair_images, unit_ranks, work_image
 
 
 @dataclass(frozen=True)
@@ -189,10 +189,7 @@ def pair_keypoint_ranks(
 
     ``size``: the frames' (width, height); ``boxes``: (n, 4) in frame pixels.
     """
-    q, s = work_gray(q_uri, *size, kc.work_side)
-    m, _ = work_gray(m_uri, *size, kc.work_side)
-    if m.shape != q.shape:
-        m = cv2.resize(m, (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
+    q, m, s = pair_images(q_uri, m_uri, size, kc.work_side, work_gray)
     share, geo = pair_shares(q, m, np.asarray(boxes, np.float64).reshape(-1, 4) * s, kc)
     out = np.full((len(share), 3), np.nan)
     ok = np.isfinite(share)

@@ -43,6 +43,7 @@ from harness.runtime.cache import write_parquet
 
 __all__ = [
     "box_rank",
+    "pair_images",
     "pair_ranks",
     "read_gray",
     "unit_ranks",
@@ -137,6 +138,24 @@ def read_gray(uri: str, reduce: int) -> np.ndarray | None:
     return np.ascontiguousarray(cv2.rotate(gray, turn) if turn is not None else gray)
 
 
+def pair_images(
+    q_uri: str,
+    m_uri: str,
+    size: tuple[int, int],
+    side: int,
+    work: Callable[[str, int, int, int], tuple[np.ndarray, float]],
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """A pair's gray work images by ``work``, and the query's scale (work pixels a frame pixel).
+
+    The map's is resized to the query's where they differ; ``size``: the frames' (width, height).
+    """
+    q, s = work(q_uri, *size, side)
+    m, _ = work(m_uri, *size, side)
+    if m.shape != q.shape:
+        m = cv2.resize(m, (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
+    return q, m, s
+
+
 def pair_ranks(
     q_uri: str, m_uri: str, size: tuple[int, int], boxes: np.ndarray, lc: LocalConfig
 ) -> tuple[Alignment, np.ndarray]:
@@ -144,10 +163,7 @@ def pair_ranks(
 
     ``size``: the frames' (width, height); ``boxes``: (n, 4) in frame pixels.
     """
-    q, s = work_image(q_uri, *size, lc.work_side)
-    m, _ = work_image(m_uri, *size, lc.work_side)
-    if m.shape != q.shape:
-        m = cv2.resize(m, (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
+    q, m, s = pair_images(q_uri, m_uri, size, lc.work_side, work_image)
     al = align_pair(q, m, lc)
     out = np.full((len(boxes), 3), np.nan)
     if al.H is None:
