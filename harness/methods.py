@@ -233,6 +233,7 @@ PROPOSER_READS = ("frame", "image", "batch", "table")
 PROPOSERS: Registry[Proposer] = Registry("proposal method")
 for _proposer in (
     Proposer("grid5", "frame"),
+    Proposer("full", "frame"),
     Proposer("edges", reducible=True),
     Proposer("mser", reducible=True),
     Proposer("segments"),

@@ -8,6 +8,7 @@ from pathlib import Path
 from harness.config.check import validate
 from harness.config.load import parse_config
 from harness.config.schema import Config
+from harness.descriptors.config import DescriptorConfig
 from harness.errors import ConfigError
 from harness.ingest.config import SessionConfig
 from harness.inputs import IMAGE_SUFFIXES
@@ -38,6 +39,26 @@ def folder_pairing(map_dir: Path, query_dirs: list[Path]) -> str:
     return "name"
 
 
+#: The descriptor folders are paired with where no config names one: SeqSLAM's patch-normalised
+#: thumbnail of each grid5 box, which needs no training (docs/method.md, *Pairs without poses*:
+#: the largest worst share over the fixture's traverses and the real seasons of nordland-dev).
+PAIRING_DESCRIPTOR = DescriptorConfig(name="seqslam", input_size=64)
+PAIRING_PROPOSALS = ("grid5",)
+
+
+def training_free_pairing(cfg: Config) -> Config:
+    """``cfg`` pairing its frames with :data:`PAIRING_DESCRIPTOR` on the whole frame.
+
+    A run never trains a network only to pair its frames; a ``--config`` that names its own
+    ``[descriptor]`` (the autoencoder, say) is used as it is.
+    """
+    return dataclasses.replace(
+        cfg,
+        descriptor=PAIRING_DESCRIPTOR,
+        proposals=dataclasses.replace(cfg.proposals, methods=PAIRING_PROPOSALS),
+    )
+
+
 def image_folders_config(
     map_dir: Path, query_dirs: list[Path], cfg: Config | None = None
 ) -> tuple[Config, str, list[str]]:
@@ -46,7 +67,8 @@ def image_folders_config(
     The folders are sessions of images alone (format ``images``): the map is ``map``, the queries
     ``query``, ``query2``, ... Every query frame is paired as ``cfg``'s ``[pairs] by`` says, or,
     where it says ``pose`` (the default, and there are no poses), by name where the folders share
-    file names, else by sequence with the localizer (:func:`folder_pairing`). Every other
+    file names, else by sequence (:func:`folder_pairing`) with the training-free descriptor
+    :data:`PAIRING_DESCRIPTOR` where ``cfg`` is None, with ``cfg``'s localizer else. Every other
     setting is ``cfg``'s (a ``--config``), or the defaults; its sessions and fixture are not used,
     its annotations and masks are (rows naming their image, SPEC 13.2; rows of its own sessions
     are left out).
@@ -71,6 +93,8 @@ def image_folders_config(
     ]
     base = cfg or parse_config({"name": "image-folders", "sessions": sessions}, Path.cwd(), where)
     by = base.pairs.by if kind_of(base.pairs.by) != "pose" else folder_pairing(dirs[0], dirs[1:])
+    if cfg is None and kind_of(by) == "retrieval":
+        base = training_free_pairing(base)
     out = dataclasses.replace(
         base,
         sessions=tuple(SessionConfig(**s) for s in sessions),

@@ -139,10 +139,41 @@ class ThumbDescriptor(Descriptor):
         return np.asarray(out, np.float32).reshape(len(crops), -1)
 
 
+class SeqslamDescriptor(Descriptor):
+    """SeqSLAM's patch-normalised thumbnail: no training, made for pairing frames across seasons.
+
+    The grey crop shrunk to ``SIDE`` x ``SIDE`` pixels (area interpolation), each ``PATCH`` x
+    ``PATCH`` patch standardised to zero mean and unit deviation (local contrast normalisation,
+    as SeqSLAM, Milford and Wyeth 2012, prepares its images), flattened; the caller L2-normalises,
+    so the squared distance the engine ranks by is SeqSLAM's difference of normalised patches.
+    """
+
+    name = "seqslam"
+    #: The thumbnail's side and the patch a contrast is normalised over, pixels (SeqSLAM's
+    #: proportions: 8-pixel patches on a thumbnail a few patches a side).
+    SIDE, PATCH = 32, 8
+
+    def encode(self, crops: np.ndarray) -> np.ndarray:
+        """(N, S, S, 3) uint8 RGB crops -> (N, SIDE * SIDE) patch-normalised thumbnails."""
+        n, p = self.SIDE, self.PATCH
+        out = np.empty((len(crops), n * n), np.float32)
+        for i, c in enumerate(crops):
+            g = cv2.resize(
+                cv2.cvtColor(c, cv2.COLOR_RGB2GRAY), (n, n), interpolation=cv2.INTER_AREA
+            )
+            b = g.astype(np.float32).reshape(n // p, p, n // p, p).transpose(0, 2, 1, 3)
+            b = (b - b.mean(axis=(2, 3), keepdims=True)) / (
+                b.std(axis=(2, 3), keepdims=True) + 1e-6
+            )
+            out[i] = b.transpose(0, 2, 1, 3).reshape(-1)
+        return out
+
+
 #: Descriptors by ``[descriptor] name``; a user's is added with ``REGISTRY.add(name, cls)``.
 REGISTRY: Registry[type[Descriptor]] = Registry("descriptor")
 REGISTRY.add("hog", HogDescriptor)
 REGISTRY.add("thumb", ThumbDescriptor)
+REGISTRY.add("seqslam", SeqslamDescriptor)
 
 
 def make_descriptor(cfg: DescriptorConfig) -> Descriptor:

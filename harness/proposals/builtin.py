@@ -25,6 +25,12 @@ from harness.proposals.config import (
 )
 
 
+@proposer("full")
+def full_frame(width: float, height: float) -> np.ndarray:
+    """The whole frame as one box: what a place descriptor describes (pairing by sequence)."""
+    return np.array([[0.0, 0.0, float(width), float(height)]])
+
+
 @proposer("grid5")
 def grid5(width: float, height: float) -> np.ndarray:
     """The five fixed boxes of SPEC section 5 as a (5, 4) float array ``x1, y1, x2, y2``."""

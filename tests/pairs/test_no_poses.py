@@ -11,6 +11,7 @@ import contextlib
 import io
 import json
 import re
+import shutil
 from pathlib import Path
 
 import cv2
@@ -20,6 +21,7 @@ import pytest
 
 from harness.cli import main
 
+from ..conftest import ROOT
 from ..readme_text import README as README_PATH
 
 README = README_PATH.read_text()
@@ -580,3 +582,36 @@ def test_rows_that_name_their_image_find_their_frame_or_say_why_in_one_line() ->
             frames_by_image(bad, names, frames, {"map"}, "f.csv")
     with pytest.raises(AnnotationError, match="in several sessions"):
         frames_by_image(pd.DataFrame({"image": ["a.png"]}), names, frames, set(), "f.csv")
+
+
+NORDLAND = ROOT.parent / "shared" / "realdata" / "nordland-dev"
+
+
+@pytest.mark.skipif(
+    not (NORDLAND / "winter").is_dir(),
+    reason=f"no real seasons here: {NORDLAND} is absent (shared/realdata is read, never committed)",
+)
+def test_two_folders_of_real_seasons_pair_without_training(tmp_path: Path) -> None:
+    """Issue 64: a train ride filmed in summer and winter, in step (frame i is frame i), the winter
+    frames renamed so no name is shared. Paired by sequence with the training-free default
+    (SeqSLAM's patch-normalised thumbnails, no model trained): at least 75% of the winter frames
+    within 2 frames of their own summer frame, as docs/method.md quotes it."""
+    winter = tmp_path / "w"
+    winter.mkdir()
+    for i, f in enumerate(sorted((NORDLAND / "winter").iterdir())):
+        shutil.copy(f, winter / f"w{i:04d}.png")
+    out = tmp_path / "out"
+    argv = ["detect", "--map-images", str(NORDLAND / "summer"), "--query-images", str(winter),
+            "--out", str(out)]  # fmt: skip
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(argv) == 0
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["pairing"]["by"] == "sequence"
+    assert not list((out / "cache").rglob("autoencoder.pt"))  # nothing trained to pair
+    fr = pd.read_csv(out / "frames.csv")
+    q = fr["name"].str.slice(1, 5).astype(int)
+    m = (fr["r_name"].str.extract(r"images-(\d+)")[0].astype(int) - 3010) // 10
+    share = float(np.mean(np.abs(m - q) <= 2))
+    assert share >= 0.75, share
+    quoted = " ".join((ROOT / "docs" / "method.md").read_text().split())
+    assert f"{round(100 * share)}% of the 300 winter frames within 2 frames" in quoted
