@@ -14,6 +14,7 @@ inlier match, so that a removed object counts. Every size is a share of the fram
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -65,16 +66,45 @@ def ratio_matches(a: np.ndarray | None, b: np.ndarray | None, kc: KeypointConfig
     return np.array(out, np.int64).reshape(-1, 2)
 
 
+class MapFeatures:
+    """A unit's map frames' keypoints, detected once however many query frames pair with one.
+
+    Keyed by the map image and the work size; two threads asking for one frame at once may both
+    detect it (the same keypoints), never a wrong one. ``detected`` counts the detections.
+    """
+
+    def __init__(self, kc: KeypointConfig) -> None:
+        self.kc = kc
+        self.found: dict[tuple[str, tuple[int, ...]], tuple[np.ndarray, np.ndarray | None]] = {}
+        self.detected = 0
+        self._lock = threading.Lock()
+
+    def of(self, uri: str, m: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The keypoints of map image ``uri`` worked on as ``m``."""
+        key = (uri, m.shape)
+        with self._lock:
+            if key in self.found:
+                return self.found[key]
+        got = detect(m, self.kc)
+        with self._lock:
+            self.detected += 1
+            return self.found.setdefault(key, got)
+
+
 def localized(
-    q: np.ndarray, m: np.ndarray, kc: KeypointConfig
+    q: np.ndarray,
+    m: np.ndarray,
+    kc: KeypointConfig,
+    map_features: tuple[np.ndarray, np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, PairGeometry]:
     """Keypoints of two gray frames of one size and which of them localize in the other.
 
     Returns the query's (n, 2) positions and flags, the map's (k, 2) positions carried into the
     query frame (by their nearest inlier match's displacement) and flags, and the geometry.
+    ``map_features``: ``m``'s keypoints and descriptors where they were detected before.
     """
     xq, dq = detect(q, kc)
-    xm, dm = detect(m, kc)
+    xm, dm = map_features if map_features is not None else detect(m, kc)
     fwd, back = ratio_matches(dq, dm, kc), ratio_matches(dm, dq, kc)
     both = np.concatenate([fwd, back[:, ::-1]]) if len(back) else fwd
     both = np.unique(both, axis=0) if len(both) else both  # (query index, map index)
@@ -146,13 +176,17 @@ def box_shares(smap: np.ndarray, boxes: np.ndarray) -> np.ndarray:
 
 
 def pair_shares(
-    q: np.ndarray, m: np.ndarray, boxes: np.ndarray, kc: KeypointConfig
+    q: np.ndarray,
+    m: np.ndarray,
+    boxes: np.ndarray,
+    kc: KeypointConfig,
+    map_features: tuple[np.ndarray, np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray, PairGeometry]:
     """Each box's share of keypoints that do not localize (both directions), and the geometry.
 
     ``q``, ``m``: the pair's gray work images of one size; ``boxes``: (n, 4) in their pixels.
     """
-    xq, ok_q, xm, ok_m, geo = localized(q, m, kc)
+    xq, ok_q, xm, ok_m, geo = localized(q, m, kc, map_features)
     if kc.both_directions:
         pts, lost = np.concatenate([xq, xm]), np.concatenate([~ok_q, ~ok_m])
     else:
@@ -183,14 +217,21 @@ def work_gray(uri: str, width: int, height: int, side: int) -> tuple[np.ndarray,
 
 
 def pair_keypoint_ranks(
-    q_uri: str, m_uri: str, size: tuple[int, int], boxes: np.ndarray, kc: KeypointConfig
+    q_uri: str,
+    m_uri: str,
+    size: tuple[int, int],
+    boxes: np.ndarray,
+    kc: KeypointConfig,
+    maps: MapFeatures | None = None,
 ) -> tuple[PairGeometry, np.ndarray]:
     """One pair's geometry and each query box's (rank, L, 1 - share); NaN rows where none.
 
-    ``size``: the frames' (width, height); ``boxes``: (n, 4) in frame pixels.
+    ``size``: the frames' (width, height); ``boxes``: (n, 4) in frame pixels; ``maps``: the map
+    frames' keypoints already detected (a unit's).
     """
     q, m, s = pair_images(q_uri, m_uri, size, kc.work_side, work_gray)
-    share, geo = pair_shares(q, m, np.asarray(boxes, np.float64).reshape(-1, 4) * s, kc)
+    feats = maps.of(m_uri, m) if maps is not None else None
+    share, geo = pair_shares(q, m, np.asarray(boxes, np.float64).reshape(-1, 4) * s, kc, feats)
     out = np.full((len(share), 3), np.nan)
     ok = np.isfinite(share)
     rank = 1 + np.round(np.clip(share[ok], 0, 1) * (kc.levels - 1))
@@ -205,9 +246,10 @@ def write_keypoint_ranks(
 
     ``align`` the model, ``inliers``, ``align_score`` the inliers' share of the matches.
     """
+    maps = MapFeatures(kc)  # a map frame's keypoints once, however many queries pair with it
 
     def one(q_img: str, m_img: str, wh: tuple[int, int], xy: np.ndarray) -> tuple[tuple, Any]:
-        geo, got = pair_keypoint_ranks(q_img, m_img, wh, xy, kc)
+        geo, got = pair_keypoint_ranks(q_img, m_img, wh, xy, kc, maps)
         score = geo.inliers / geo.matches if geo.matches else 0.0
         return (geo.model, geo.inliers, score), got
 

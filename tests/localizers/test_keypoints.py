@@ -206,3 +206,27 @@ def test_detect_with_keypoints_writes_each_pairs_geometry_and_the_difference_row
     rec = json.loads((out / "detect.json").read_text())
     assert rec["options"]["localizer"] == "keypoints" and "keypoints" in rec["options"]
     assert "aligned difference" in (out / "tableD.md").read_text()
+
+
+def test_a_map_frames_keypoints_are_detected_once_for_every_query_that_pairs_with_it(
+    tmp_path: Path,
+) -> None:
+    """Three query frames paired with one map frame: the map's keypoints are detected once, and
+    each pair's shares are those of the pair computed alone."""
+    from harness.localizers.keypoints import MapFeatures, pair_keypoint_ranks
+
+    q, m = _pair()
+    paths = {}
+    for name, img in (("q0", q), ("q1", np.roll(q, 3, axis=1)), ("q2", np.roll(q, 5, axis=0)),
+                      ("m", m)):  # fmt: skip
+        paths[name] = str(tmp_path / f"{name}.png")
+        cv2.imwrite(paths[name], img)
+    kc = KeypointConfig()
+    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()])
+    maps = MapFeatures(kc)
+    for name in ("q0", "q1", "q2"):
+        geo, got = pair_keypoint_ranks(paths[name], paths["m"], (W, H), boxes, kc, maps)
+        alone = pair_keypoint_ranks(paths[name], paths["m"], (W, H), boxes, kc)
+        np.testing.assert_array_equal(got, alone[1])
+        assert geo == alone[0]
+    assert maps.detected == 1
