@@ -123,7 +123,8 @@ def markdown(rows: list[dict]) -> str:
     sets = sorted({r["set"] for r in rows}, key=["fixture", "obchange-dev", "world"].index)
     head = "| localizer | proposals | box prior | " + " | ".join(sets) + " | min margin |"
     lines = [head, "|---|---|---|" + "---:|" * (len(sets) + 1)]
-    for cand in CANDIDATES:
+    for cand in [c for c in CANDIDATES if any(
+            (r["localizer"], r["proposals"], r["box_prior"]) == c for r in rows)]:  # fmt: skip
         cells, margins = [], []
         for s in sets:
             r = next((x for x in rows if x["set"] == s and
@@ -145,7 +146,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sets", default="fixture,obchange-dev,world")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "detect_choice")
+    ap.add_argument(
+        "--candidates",
+        default="",
+        help="only these candidates, LOCALIZER/PROPOSALS/PRIOR separated by commas (default: all)",
+    )
     a = ap.parse_args(argv)
+    cands = CANDIDATES
+    if a.candidates:
+        cands = [tuple(c.split("/")) for c in a.candidates.split(",")]  # type: ignore[misc]
+        bad = [c for c in cands if c not in CANDIDATES]
+        if bad:
+            print(f"ERROR: --candidates {'/'.join(bad[0])}: not one of "
+                  f"{', '.join('/'.join(c) for c in CANDIDATES)}", file=sys.stderr)  # fmt: skip
+            return 1
     rows = []
     for s in a.sets.split(","):
         args = set_args(s)
@@ -153,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"skipped {s}: {REAL / s} is not here (real pairs are read from shared/, never "
                   "kept in the repository)")  # fmt: skip
             continue
-        for cand in CANDIDATES:
+        for cand in cands:
             rows.append(run_one(s, args, cand, a.out))
             print(json.dumps(rows[-1]), flush=True)
     a.out.mkdir(parents=True, exist_ok=True)

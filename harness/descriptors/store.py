@@ -116,8 +116,24 @@ def save(run: Path, folder: Path) -> list[str]:
     return written
 
 
-if __name__ == "__main__":  # python -m harness.descriptors.store save RUN_DIR FOLDER
-    if len(sys.argv) != 4 or sys.argv[1] != "save":
-        sys.exit("usage: python -m harness.descriptors.store save RUN_DIR FOLDER")
-    for d in save(Path(sys.argv[2]), Path(sys.argv[3])):
-        print(f"kept {d}")
+def main(argv: list[str]) -> int:
+    """``python -m harness.descriptors.store save RUN_DIR FOLDER``: one line a model kept."""
+    if len(argv) != 3 or argv[0] != "save":
+        print("ERROR: usage: python -m harness.descriptors.store save RUN_DIR FOLDER",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    run, folder = Path(argv[1]), Path(argv[2])
+    if not (run / "cache" / "model").is_dir():
+        print(f"ERROR: {run}: no cache/model here: not the output folder of a run that trained",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    records = sorted(run.glob(f"cache/model/*/{RECORD}"))
+    written = save(run, folder)
+    for d in written:
+        print(f"kept {d} in {folder}")
+    print(f"{len(written)} model(s) kept, {len(records) - len(written)} already there")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

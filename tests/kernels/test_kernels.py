@@ -192,3 +192,23 @@ def test_the_kept_fixture_model_is_the_recorded_one(local_run: tuple) -> None:
     (manifest,) = (out / "cache" / "model").glob("*/manifest.json")
     kept = json.loads(manifest.read_text())["info"]["trained_models"]
     assert digest(ROOT / "datasets" / "models" / kept / "autoencoder.pt") == DOCS_MODEL["digest"]
+
+
+def test_keeping_a_runs_trained_model_as_typed(local_run: tuple, tmp_path: Path) -> None:
+    """``python -m harness.descriptors.store save RUN_DIR FOLDER`` as docs/method.md types it:
+    the run's model is kept under its digest, a second call keeps nothing new, and a folder that
+    is no run is one ERROR line."""
+    _, _, run = local_run
+    cmd = [sys.executable, "-m", "harness.descriptors.store", "save", str(run), str(tmp_path / "k")]
+    first = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+    (rec,) = (run / "cache" / "model").glob("*/training.json")
+    digest_dir = tmp_path / "k" / json.loads(rec.read_text())["digest"]
+    assert f"kept {digest_dir.name}" in first and (digest_dir / "autoencoder.pt").is_file()
+    assert digest(digest_dir / "autoencoder.pt") == digest(rec.parent / "autoencoder.pt")
+    again = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+    assert "0 model(s) kept, 1 already there" in again
+    bad = subprocess.run([*cmd[:4], str(tmp_path), str(tmp_path / "k")], capture_output=True,
+                         text=True, check=False)  # fmt: skip
+    assert (
+        bad.returncode == 1 and bad.stderr.startswith("ERROR: ") and "no cache/model" in bad.stderr
+    )
