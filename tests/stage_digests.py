@@ -22,7 +22,6 @@ byte-identical (the determinism tests check that).
 
 from __future__ import annotations
 
-import fnmatch
 import hashlib
 import json
 import re
@@ -337,14 +336,13 @@ def localizer_digests(out: Path, data_root: Path | None, features: dict[str, str
     got = {k: v for k, v in digests(out, data_root).items()  # ranks: each localizer's, below
            if (k.startswith("cache/") and not k.startswith("cache/ranks/"))
            or k in LOCALIZER_TABLES}  # fmt: skip
+    pose = {t for t in TOLERANT if t.startswith(PORTABLE)}
+    rounded: dict[str, list[str]] = {}
     for name, p in _names(out):  # the pose tables' floats at 10 digits (module docstring)
-        if any(fnmatch.fnmatch(name, t) for t in TOLERANT if t.startswith(PORTABLE)):
-            df = values_frame(p, data_root)
-            got[name] = sorted(
-                {*got.get(name, [])} - {digest(p, data_root)}
-                | {hashlib.sha256(df.to_csv(index=False, float_format="%.10g").encode())
-                   .hexdigest()[:16]}
-            )  # fmt: skip
+        if name in pose:
+            csv = values_frame(p, data_root).to_csv(index=False, float_format="%.10g")
+            rounded.setdefault(name, []).append(hashlib.sha256(csv.encode()).hexdigest()[:16])
+    got.update({k: sorted(v) for k, v in rounded.items()})
     ranks = pd.read_parquet(out / "ranks.parquet")
     for name, rows in ranks.groupby("localizer", sort=True):
         h = hashlib.sha256(rows.to_csv(index=False, float_format="%r").encode())

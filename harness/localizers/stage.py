@@ -57,11 +57,10 @@ def paired_frame_ranks(
     ``write`` (options, pairs, frames, proposals, tmp) builds each; ``tag`` names the kind (its
     keys and counters).
     """
-    lc = opts
     qs = sorted(set(pairs.df["q_session"]))
     props = pd.concat([mine[s].df for s in qs], ignore_index=True) if qs else pd.DataFrame()
     pkeys = [mine[s].key for s in qs]
-    step = max(1, lc.frames_per_unit)
+    step = max(1, opts.frames_per_unit)
     units: list[tuple[tuple[Any, ...], Build]] = []
     for c0 in range(0, len(pairs.df), step):
         chunk = pairs.df.iloc[c0 : c0 + step].reset_index(drop=True)
@@ -71,8 +70,9 @@ def paired_frame_ranks(
             ),
             on=["session", "camera", "utime"],
         )
-        build = partial(write, lc, chunk, frames.df, sel)
-        units.append((localizer_keys.local_ranks(lc, pairs.key, pkeys, c0, len(chunk), tag), build))
+        build = partial(write, opts, chunk, frames.df, sel)
+        parts_key = localizer_keys.local_ranks(opts, pairs.key, pkeys, c0, len(chunk), tag)
+        units.append((parts_key, build))
     parts, aligns = [], []
     counts: dict[str, int] = {}
     for entry in p.units("ranks", units):
