@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import ROOT
+from ..conftest import ROOT
 
 REAL = ROOT.parent / "shared" / "realdata" / "obchange-dev"
 
