@@ -100,7 +100,7 @@ def _keypoints(gray: np.ndarray) -> tuple:
 
 
 def _local(gray: np.ndarray) -> tuple:
-    """The local localizer's calls (SPEC 13.3): ORB matches, a RANSAC homography, the warp, an
+    """The local localizer's calls (method §13.3): ORB matches, a RANSAC homography, the warp, an
     ECC fit, the Sobel gradients, a pyramid level, template matching and its best score."""
     h, w = gray.shape
     moved = np.roll(gray, (3, 5), axis=(0, 1))
@@ -253,6 +253,15 @@ def calls(rgb: np.ndarray, net: Path) -> dict[str, Callable[[], Any]]:
         "GaussianBlur": lambda: (
             cv2.GaussianBlur(rgb, (5, 5), 0),
             cv2.GaussianBlur(f32, (0, 0), 2.0),
+        ),
+        "getRotationMatrix2D, warpAffine (INTER_LINEAR, BORDER_REFLECT: the null's copies)": (
+            lambda: cv2.warpAffine(
+                rgb,
+                cv2.getRotationMatrix2D((w / 2.0, h / 2.0), 1.5, 0.98),
+                (w, h),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REFLECT,
+            )
         ),
         "Sobel(CV_32F)": lambda: (
             cv2.Sobel(f32, cv2.CV_32F, 1, 0, ksize=3),

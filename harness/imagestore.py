@@ -20,6 +20,8 @@ import numpy as np
 from PIL import Image
 
 from harness.errors import IngestError
+from harness.perturb import apply as apply_perturbation
+from harness.perturb import split_perturbed
 
 _ROT = {"cw": cv2.ROTATE_90_CLOCKWISE, "ccw": cv2.ROTATE_90_COUNTERCLOCKWISE, "180": cv2.ROTATE_180}
 
@@ -171,9 +173,15 @@ def read_image(uri: str, reduce: int = 1) -> np.ndarray:
     ``ceil(W / reduce)``: a JPEG decoded at that scale (less work than the full frame), any other
     file decoded whole and shrunk once with area interpolation.
 
+    A URI that ends in ``#perturb=...`` is a perturbed copy of the image before it
+    (:mod:`harness.perturb`), made as it is read.
+
     Raises:
         IngestError: The file is missing or cannot be decoded.
     """
+    base, perturbation = split_perturbed(uri)
+    if perturbation is not None:
+        return apply_perturbation(read_image(base, reduce), perturbation)
     path, rot = split_uri(uri)
     jpeg = reduce > 1 and path.lower().endswith((".jpg", ".jpeg"))
     img = cv2.imread(path, _REDUCED[reduce] if jpeg else cv2.IMREAD_UNCHANGED)

@@ -73,11 +73,11 @@ class FusionRule:
     needs_score: bool = False
     #: Needs the rank-list lengths ``L`` (``r' = (L + 1 - rank) / L``).
     needs_lengths: bool = False
-    #: Defined on the box list of all localizers together (SPEC 11).
+    #: Defined on the box list of all localizers together (method §11).
     across: bool = True
     #: ``harness detect`` may threshold its LoC into boxes.
     detect: bool = False
-    #: Reads no pixel: SPEC section 7's confound warning compares it with Table I's six.
+    #: Reads no pixel: method §7's confound warning compares it with Table I's six.
     baseline: bool = False
     #: The keyword options its function takes: ``seed`` (the image's seed), ``rrf_c``.
     options: tuple[str, ...] = ()
@@ -90,8 +90,8 @@ def _builtin(name: str, label: str, **kw: Any) -> FusionRule:
 
 
 _RANK = {"needs_lengths": True}
-#: Every fusion method, in table order: SPEC section 7's six (Table I's rows), the paper's two
-#: variants, the field's four rules (SPEC 14), the three baselines; then registered ones.
+#: Every fusion method, in table order: method §7's six (Table I's rows), the paper's two
+#: variants, the field's four rules (method §14), the three baselines; then registered ones.
 FUSION_RULES: Registry[FusionRule] = Registry("fusion method")
 for _rule in (
     _builtin("rank_fusion", "rank fusion", block="table", detect=True, **_RANK),
@@ -134,15 +134,15 @@ def rules_where(**flags: Any) -> tuple[str, ...]:
     )
 
 
-#: Table I's six rows, in SPEC section 7's order.
+#: Table I's six rows, in method §7's order.
 FUSION_METHODS = rules_where(block="table")
-#: The paper's two variants, the field's four rules and the three baselines (SPEC sections 7 and
+#: The paper's two variants, the field's four rules and the three baselines (method §7 and
 #: 14), the separate block of every table.
 EXTRA_METHODS = rules_where(block="extra")
-#: The field's standard rank-fusion rules (SPEC section 14): ranks alone, so every localizer
+#: The field's standard rank-fusion rules (method §14): ranks alone, so every localizer
 #: (imported lists without scores too) and every pair of localizers can have them.
 STANDARD_RULES = ("rrf", "combmnz", "borda", "isr")
-#: Baselines that read no pixel: SPEC section 7's confound warning compares them with the six.
+#: Baselines that read no pixel: method §7's confound warning compares them with the six.
 BASELINES = rules_where(baseline=True)
 ALL_METHODS = FUSION_METHODS + EXTRA_METHODS
 
@@ -176,20 +176,23 @@ def add_rule(rule: FusionRule) -> None:
     METHOD_LABELS[rule.name] = rule.label
 
 
-#: ``harness detect``'s box generators (SPEC 13.1, ``[detect] boxes``), the default first.
+#: ``harness detect``'s box generators (method §13.1, ``[detect] boxes``), the default first.
 BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
-#: What ranks ``harness detect``'s subimages: the local localizer (SPEC 13.3) or the config's.
+#: What ranks ``harness detect``'s subimages: the local localizer (method §13.3) or the config's.
 DETECT_LOCALIZERS = ("local", "keypoints", "config")
-#: What a candidate box's score is fused with (``[detect] box_prior``, SPEC 13.3): its area, or
+#: What a candidate box's score is fused with (``[detect] box_prior``, method §13.3): its area, or
 #: nothing (the score alone, as the paper's detector).
 BOX_PRIORS = ("area", "difference", "none")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
+#: ``[detect] calibration``: the no-change null (docs/method.md, *Calibrated alarms*) or the run's
+#: own scores (the share of the run's frames and candidate boxes that score as high).
+CALIBRATIONS = ("null", "within-run")
 
 
 @dataclass(frozen=True)
 class Proposer:
-    """One proposal method of the catalogue (SPEC section 5): what it reads, and its function.
+    """One proposal method of the catalogue (method §5): what it reads, and its function.
 
     Built-in and registered methods are the same record (``proposals.register_proposer`` makes one
     that reads the image); the functions behind the built-in ones are attached by
@@ -265,7 +268,7 @@ FUSION_OPTIONS: Registry[type] = Registry("options of fusion method")
 
 
 def known_fusion_methods() -> tuple[str, ...]:
-    """Every method ``[fusion] methods`` may list: SPEC section 7's, then registered ones."""
+    """Every method ``[fusion] methods`` may list: method §7's, then registered ones."""
     return tuple(FUSION_RULES)
 
 
@@ -277,7 +280,7 @@ def known_proposal_methods() -> tuple[str, ...]:
 def ordered_methods(methods: Iterable[str]) -> tuple[str, ...]:
     """The configured methods in table order.
 
-    SPEC section 7's (Table I's six, the variants, the baselines), then registered ones as
+    method §7's (Table I's six, the variants, the baselines), then registered ones as
     registered.
     """
     want = set(methods)

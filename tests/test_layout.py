@@ -109,7 +109,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "harness.inputs",
         "harness.checks",
     ),
-    ("harness.runtime", "harness.imagestore"),
+    ("harness.runtime", "harness.imagestore", "harness.perturb"),
     ("harness.ingest",),
     ("harness.fixture", "harness.pairs"),
     ("harness.proposals",),
@@ -257,6 +257,7 @@ PROJECT_TESTS = frozenset(
         "test_gpu",
         "test_safety_third_pass",
         "test_lock",
+        "test_doc_commands",
     }
 )
 

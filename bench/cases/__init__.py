@@ -40,6 +40,7 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
             "harness/proposals/builtin.py",
         ),
     ),
+    "folders": ("folders", ("harness",)),
     "fusion": (
         "fusion",
         (

@@ -8,7 +8,7 @@ from typing import Any
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
 from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
-from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES
+from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, CALIBRATIONS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -158,11 +158,11 @@ def _add_stage_commands(sub: Any) -> None:
 
 
 def _add_folders(p: Any) -> None:
-    """``harness detect``'s image folders and their annotations (SPEC 13.2)."""
+    """``harness detect``'s image folders and their annotations (method §13.2)."""
     p.add_argument(
         "--map-images",
         metavar="DIR",
-        help="a folder of map images, no poses needed (SPEC 13.2): the session 'map'",
+        help="a folder of map images, no poses needed (method §13.2): the session 'map'",
     )
     p.add_argument(
         "--query-images",
@@ -181,6 +181,24 @@ def _add_folders(p: Any) -> None:
         metavar="DIR",
         help="change masks as annotations (replaces [masks] folder): one 0/255 image per "
         "annotated image, named like it",
+    )
+
+
+def _add_alarms(p: argparse.ArgumentParser) -> None:
+    """``harness detect``'s alarms: the nominal rate and what the scores are calibrated against."""
+    p.add_argument(
+        "--alarm",
+        type=float,
+        metavar="RATE",
+        help="the nominal false-alarm rate: boxes and frames whose calibrated score is at most "
+        "it go to alarms.csv (default: [detect] alarm, 0.01)",
+    )
+    p.add_argument(
+        "--calibration",
+        choices=CALIBRATIONS,
+        help="what the calibrated scores are measured against: null (pairs of map frames that "
+        "hold no change by construction, [detect.null]) or within-run (the run's own frames "
+        "and boxes) (default: [detect] calibration, null)",
     )
 
 
@@ -205,19 +223,20 @@ def _add_detect(sub: Any) -> None:
         default=None,
         help="the fusion rule whose LoC finds the boxes (--method: its old name): rank_fusion, "
         "rank_fusion_le2, "
-        "rank_fusion_le3, one of the field's rules rrf, combmnz, borda, isr (SPEC 14), or a method "
+        "rank_fusion_le3, one of the field's rules rrf, combmnz, borda, isr (method §14), or a "
+        "method "
         "registered with detect=True",
     )
     p.add_argument(
         "--boxes",
-        help=f"the box generator (SPEC 13.1): {', '.join(BOX_GENERATORS)} "
+        help=f"the box generator (method §13.1): {', '.join(BOX_GENERATORS)} "
         "(default: [detect] boxes)",
     )
     p.add_argument(
         "--localizer",
         choices=("local", "keypoints", "config"),
         help="what ranks the subimages: local (each colour region ranked inside its paired map "
-        "frame, SPEC 13.3), keypoints (each region's share of keypoints that do not localize in "
+        "frame, method §13.3), keypoints (each region's share of keypoints that do not localize in "
         "its paired map frame) or config (the config's localizers) (default: [detect] localizer)",
     )
     p.add_argument(
@@ -231,20 +250,15 @@ def _add_detect(sub: Any) -> None:
         "--box-prior",
         choices=BOX_PRIORS,
         help="what a box's score is fused with: area (its percentile by area in its frame, "
-        "SPEC 13.3) or none (the score alone, the paper's detector) (default: [detect] box_prior)",
+        "method §13.3) or none (the score alone, the paper's detector) (default: [detect] "
+        "box_prior)",
     )
     p.add_argument(
         "--box-score",
         help=f"how a generator other than fused scores a box from the LoC map: "
         f"{', '.join(BOX_SCORES)} (default: [detect] box_score)",
     )
-    p.add_argument(
-        "--alarm",
-        type=float,
-        metavar="RATE",
-        help="the nominal false-alarm rate: boxes and frames whose calibrated score is at most "
-        "it go to alarms.csv (default: [detect] alarm, 0.01)",
-    )
+    _add_alarms(p)
     p.add_argument("--nms-iou", type=float, help="the boxes' NMS IoU ([detect] nms_iou: 0.5)")
     p.add_argument(
         "--max-boxes", type=int, help="change boxes per frame at most ([detect] max_boxes: 10)"

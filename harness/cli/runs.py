@@ -15,6 +15,7 @@ from harness.cli.common import (
     run_config,
 )
 from harness.cli.console import print_block, print_localization, print_table_l
+from harness.detect.calibrate import alarm_words
 from harness.errors import HarnessError
 
 
@@ -80,6 +81,7 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
         "localizer": getattr(args, "localizer", None),
         "box_prior": getattr(args, "box_prior", None),
         "proposals": getattr(args, "proposals", None),
+        "calibration": getattr(args, "calibration", None),
     }
     return dataclasses.replace(cfg.detect, **{k: v for k, v in typed.items() if v is not None})
 
@@ -124,10 +126,11 @@ def _annotated(cfg: Any, args: argparse.Namespace) -> Any:
     return cfg
 
 
-def _print_most_changed(out: Path, top: int) -> None:
+def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
     """The ``top`` most changed frames of a detect run, by file name where there are names.
 
-    Uncertain pairs are left out (SPEC 13.2).
+    Uncertain pairs are left out (method §13.2). ``null``: the scores are calibrated against the
+    no-change null (else within the run), which the words name.
     """
     from harness.detect.calibrate import in_words
 
@@ -141,7 +144,7 @@ def _print_most_changed(out: Path, top: int) -> None:
         "calibrated, top box):"
     )
     for r in fr.itertuples():
-        words = in_words(r.exceedance, "frames")
+        words = in_words(r.exceedance, "no-change null frames" if null else "frames of this run")
         label = r.name if named and r.name else f"{r.session} {r.camera} {r.utime}"
         print(
             f"  {label}: {r.score:.4g} ({words}), "
@@ -149,28 +152,16 @@ def _print_most_changed(out: Path, top: int) -> None:
         )
 
 
-def _print_alarms(al: dict[str, Any]) -> None:
-    """What the nominal false-alarm rate flags (SPEC 13.1), and where nothing is, in words."""
-    n = al.get("of_frames", 0)
-    print(
-        f"alarms at a nominal false-alarm rate of {al['rate']:g}: {al['frames']} of {n} frames "
-        f"and {al['boxes']} of {al.get('of_boxes', 0)} change boxes exceed it (alarms.csv)"
-    )
-    if not al["frames"]:
-        least = 2 / (n + 1) if n else 1.0  # the top frame is in its own null (SPEC 13.1)
-        print(
-            "no frame exceeds the alarm rate: no change detected in this run at that rate"
-            + (
-                f" (with {n} frames the least calibrated score is 2/{n + 1} = {least:.3g}, above "
-                f"{al['rate']:g}: pass --alarm {least:.2g} or more to flag any)"
-                if least > al["rate"]
-                else ""
-            )
-        )
+def _print_alarms(al: dict[str, Any], cal: dict[str, Any]) -> None:
+    """What the nominal false-alarm rate flags, against what null, and where nothing is, in words.
+
+    ``cal``: ``detect.json``'s ``calibration`` (docs/method.md, *Calibrated alarms*).
+    """
+    print(alarm_words(al, cal))
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
-    """``harness detect``: change boxes, scores and maps of new sessions (SPEC 13)."""
+    """``harness detect``: change boxes, scores and maps of new sessions (method §13)."""
     from harness.detect.run import run_detect
     from harness.pairs.modes import PAIRING_MODES
     from harness.runtime.executors import make_executor
@@ -197,13 +188,14 @@ def cmd_detect(args: argparse.Namespace) -> int:
         f"map {rec['map']}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
         f"ms per query frame ({rec['total_s']:.1f} s)"
     )
-    _print_most_changed(out, args.top)
-    _print_alarms(rec["alarm"])
+    _print_most_changed(out, args.top, rec.get("calibration", {}).get("method") == "null")
+    _print_alarms(rec["alarm"], rec.get("calibration", {}))
     agree = rec.get("pairing", {}).get("agreement_with_pose_pairs")
     if rec.get("pairing"):
         by = rec["pairing"]["by"]
         print(
-            f"pairs by {by} (SPEC 13.2): each query frame's reference is {PAIRING_MODES[by].says}"
+            f"pairs by {by} (method §13.2): each query frame's reference is "
+            f"{PAIRING_MODES[by].says}"
             + (
                 f"; {agree['agree']} of {agree['compared']} ({100 * agree['share']:.0f}%, 95% "
                 f"interval {100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%) "

@@ -112,7 +112,10 @@ def _build(cls: type[T], data: Any, where: str) -> T:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
-        sub = _NESTED.get((cls.__name__, name))
+        sub = NESTED_TABLES.get((cls.__name__, name))
+        hint = hints.get(name)
+        if sub is None and isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            sub = hint  # a nested table typed by its dataclass ([detect.keypoints], [detect.null])
         if sub is not None:
             kwargs[name] = _build(sub, value, f"{where}.{name}")
         else:
@@ -147,7 +150,7 @@ _OPTION_TABLES: dict[type, dict[str, type]] = {
 }
 
 
-_NESTED: dict[tuple[str, str], type] = {
+NESTED_TABLES: dict[tuple[str, str], type] = {
     ("ProposalsConfig", "yolo"): YoloConfig,
     ("ProposalsConfig", "mser"): MserConfig,
     ("ProposalsConfig", "edges"): EdgesConfig,
@@ -155,7 +158,7 @@ _NESTED: dict[tuple[str, str], type] = {
     ("DetectConfig", "local"): LocalConfig,
 }
 
-_SECTIONS: dict[str, type] = {
+SECTIONS: dict[str, type] = {
     "ingest": IngestConfig,
     "pairs": PairsConfig,
     "proposals": ProposalsConfig,
@@ -207,7 +210,7 @@ def parse_config(
     Relative paths resolve against ``base``.
     """
     top_keys = {"name", "data_root", "annotations", "sessions", "seed", "localizers", "plugins"}
-    top_keys |= set(_SECTIONS)
+    top_keys |= set(SECTIONS)
     unknown = sorted(set(doc) - top_keys)
     if unknown:
         raise ConfigError(f"{where}: unknown top-level key(s) {unknown}; known: {sorted(top_keys)}")
@@ -244,7 +247,7 @@ def parse_config(
     if "annotations" in doc:
         ann = resolve_config_path(str(doc["annotations"]), base, root)
     kwargs: dict[str, Any] = {}
-    for section, cls in _SECTIONS.items():
+    for section, cls in SECTIONS.items():
         if section in doc:
             kwargs[_FIELD.get(section, section)] = _build(
                 cls, doc[section], f"{where}: [{section}]"
@@ -283,7 +286,7 @@ def _kind_names() -> str:
 def parse_localizers(
     items: Any, cfg: Config, base: Path, root: Path, where: str
 ) -> tuple[LocalizerConfig, ...]:
-    """The ``[[localizers]]`` array (SPEC section 11), each entry checked.
+    """The ``[[localizers]]`` array (method §11), each entry checked.
 
     Raises:
         ConfigError: naming the entry and what is wrong.

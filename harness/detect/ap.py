@@ -1,4 +1,4 @@
-"""Table D's box AP (SPEC 13.1): pycocotools' evaluation beside the VOC all-point AP.
+"""Table D's box AP (method §13.1): pycocotools' evaluation beside the VOC all-point AP.
 
 Box IoU, matching at IoU 0.5, and the exact (Clopper-Pearson) interval of a rate.
 """

@@ -1,4 +1,4 @@
-"""``harness detect``'s candidate boxes (SPEC 13.1, 13.3): generators, NMS, area prior."""
+"""``harness detect``'s candidate boxes (method §13.1, 13.3): generators, NMS, area prior."""
 
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ def candidate_boxes(
     how: str = "max",
     level: float = 0.5,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's candidate change boxes and their scores under a box generator (SPEC 13.1).
+    """A frame's candidate change boxes and their scores under a box generator (method §13.1).
 
     ``fused``: the fused qBBs and their LoC. ``proposals`` and ``segments``: the boxes
     ``originals`` (the frame's original proposals, or its colour regions), duplicates merged, each
@@ -141,7 +141,7 @@ def with_prior(score: np.ndarray, prior: np.ndarray) -> np.ndarray:
 
 
 def with_area_prior(boxes: np.ndarray, score: np.ndarray) -> np.ndarray:
-    """Scores fused with box area (``[detect] box_prior = "area"``, SPEC 13.3).
+    """Scores fused with box area (``[detect] box_prior = "area"``, method §13.3).
 
     Each box's score becomes the mean of its percentile among the frame's scored boxes by
     ``score`` and by area (``(rank - 0.5) / n``, ties sharing their mean rank); a box without a

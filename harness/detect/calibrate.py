@@ -1,17 +1,21 @@
-"""Scores a robot can threshold (SPEC 13.1): each raw LoC as an exceedance against a null.
+"""Scores a robot can threshold: each raw LoC as an exceedance against a null.
 
-Raw LoC (``N * sum 1/r'``) has no unit. The calibrated score of a box is the share of the run's
-candidate boxes (every box the generator proposed on every query frame, changes being rare) that
-score at least as high; of a frame, the share of the run's frames whose change score is at least
-its own. Both are estimated without annotations, as ``(1 + #{null >= s}) / (1 + n)``, which never
-reaches 0 and is a valid (conservative) p-value under the null that the score is drawn like the
-others. Thresholding it at a rate ``a`` (``harness detect --alarm a``) flags about a share ``a``
-of unchanged content: the nominal false-alarm rate. Changed content in the null only makes the
-flagged share smaller, so the measured rate on frames annotated ``no-change`` (Table D) should be
-at most the nominal one.
+docs/method.md, *Calibrated alarms*. Raw LoC (``N * sum 1/r'``) has no unit. The calibrated
+score of a frame is the share of the null's frames that score at least as high; of a change box,
+the share of the null's change boxes. By default the null is made of pairs that hold no change
+by construction, scored by the same detector (:mod:`harness.detect.null`); within the run
+(``[detect] calibration = "within-run"``) it is the run's own frames and candidate boxes, which
+can never say that nothing changed. Both are estimated as ``(1 + #{null >= s}) / (1 + n)``,
+which never reaches 0 and is a valid (conservative) p-value where the score is drawn like the
+null's. Thresholding it at a rate ``a`` (``harness detect --alarm a``) flags about a share ``a``
+of unchanged content: the nominal false-alarm rate, measured on frames annotated ``no-change``
+in Table D.
 """
 
 from __future__ import annotations
+
+import math
+from typing import Any
 
 import numpy as np
 
@@ -40,3 +44,34 @@ def in_words(p: float, what: str) -> str:
         return f"{100 * p:.0f}% of {what} score this high"
     n = max(1, round(1.0 / p))
     return f"1 in {n:,} {what} scores this high"
+
+
+def alarm_words(al: dict[str, Any], cal: dict[str, Any]) -> str:
+    """The console's and the page's lines on the alarms.
+
+    ``al``: ``detect.json``'s ``alarm``; ``cal``: its ``calibration``.
+    """
+    n, rate = al.get("of_frames", 0), al["rate"]
+    if cal.get("method") == "null":
+        null_n = int(cal.get("frames_scored", cal.get("pairs", 0)))
+        against = f"null: {null_n} no-change pairs from the map, {cal.get('construction')}"
+        least = 1 / (null_n + 1)
+        small = (
+            f" (the null's {null_n} pairs flag nothing below 1/{null_n + 1} = {least:.3g}: set "
+            f"[detect.null] pairs to {math.ceil(1 / rate - 1)} or more, or pass --alarm "
+            f"{least:.2g})"
+        )
+    else:
+        against = "calibrated within the run: its own frames and candidate boxes"
+        least = 2 / (n + 1) if n else 1.0  # the top frame is in its own null
+        small = (
+            f" (with {n} frames the least calibrated score is 2/{n + 1} = {least:.3g}, above "
+            f"{rate:g}: pass --alarm {least:.2g} or more to flag any)"
+        )
+    lines = [
+        f"alarms: {al['frames']} of {n} frames and {al['boxes']} of {al.get('of_boxes', 0)} change "
+        f"boxes exceed the false-alarm rate {rate:g} ({against}; alarms.csv)"
+    ]
+    if not al["frames"]:
+        lines.append("no change detected at that rate" + (small if least > rate else ""))
+    return "\n".join(lines)

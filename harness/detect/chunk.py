@@ -74,7 +74,7 @@ def _frame_boxes_of(
     fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     if opt.boxes == "fused":
         boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
-    elif opt.boxes == "subimages":  # each ranked subimage scored by its own r (SPEC 13.3)
+    elif opt.boxes == "subimages":  # each ranked subimage scored by its own r (method §13.3)
         boxes, loc = orig[:, :4], orig[:, 4]
         rnd = np.random.default_rng(int(stable_hash(seed, fk, length=8), 16)).random(len(boxes))
     else:
@@ -178,8 +178,13 @@ def detect_chunk(
     fusion: FusionConfig,
     segments: SegmentsConfig,
     tmp: Path,
+    null: bool = False,
 ) -> dict[str, int]:
     """Fusion, change boxes and frame scores of one chunk of query frames into ``tmp``.
+
+    ``null``: the chunk is of the no-change null's pairs (:mod:`harness.detect.null`), whose
+    candidates feed no Table D: their aligned difference is computed only where the box prior
+    reads it.
 
     ``opt``: the run's ``[detect]`` (its rule among them); ``fusion``: the config's ``[fusion]``
     (the seed, the cap on fused boxes, RRF's constant, a registered rule's options);
@@ -211,9 +216,8 @@ def detect_chunk(
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
         floc = g[col].to_numpy(np.float64)
-        found = _frame_boxes_of(
-            g, floc, orig[fk], size[fk], fk, opt, fusion.seed, _difference(images, fk, paired)
-        )
+        diff = None if null and opt.box_prior != "difference" else _difference(images, fk, paired)
+        found = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt, fusion.seed, diff)
         boxes, loc, keep, rand, rnd, n_thin, diff = found
         thin += n_thin
         for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):

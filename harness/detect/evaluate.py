@@ -1,10 +1,10 @@
-"""Table D (SPEC 13): ``harness detect``'s change boxes scored on the annotated query frames.
+"""Table D (method §13): ``harness detect``'s change boxes scored on the annotated query frames.
 
 pycocotools' COCOeval does the matching (:mod:`harness.detect.ap`); COCO AP@[.5:.95] and AP@.5
 are its statistics, and the AP at IoU 0.5 with VOC all-point interpolation (the metric of "The
 Change You Want to See", WACV 2023) is integrated from its matches.
 
-SPEC 9 for Table D (:func:`table_d_chance`): the floor is the mean AP50 of ``[report]
+method §9 for Table D (:func:`table_d_chance`): the floor is the mean AP50 of ``[report]
 chance_draws`` draws of random scores on the same candidate boxes (the fused qBBs of every
 annotated frame) through the same NMS, the chance band the draws' 5th-95th percentiles; the ceiling
 the same candidates scored by their best IoU with an annotated change box, through the same NMS;
@@ -128,7 +128,7 @@ def table_d_chance(
     nms: Any,
     settings: chance.ChanceSettings,
 ) -> dict[str, dict[str, Any]]:
-    """SPEC 9 for Table D's AP50: floor, band, ceiling, recall, intervals and verdicts.
+    """Method §9 for Table D's AP50: floor, band, ceiling, recall, intervals and verdicts.
 
     Args:
         cands: the candidate boxes (x1 y1 x2 y2) of each annotated image id.
@@ -137,7 +137,7 @@ def table_d_chance(
         nms: ``nms(boxes, scores) -> kept indices`` (the detector's own NMS and cap).
         settings: the random score draws for the floor, the bootstrap resamples of annotated
             frames and their interval level, the seed of both, and the annotated frames holding
-            a change box before a row earns a verdict (SPEC 9, evidence before a verdict).
+            a change box before a row earns a verdict (method §9, evidence before a verdict).
 
     Returns:
         per row: ``ap50`` (this matcher's; equal to COCOeval's), ``ci_low``/``ci_high``,
@@ -185,7 +185,7 @@ def table_d_chance(
     return out
 
 
-#: Table D's baselines that read no pixel (SPEC 13.3): the candidates scored by their area, and
+#: Table D's baselines that read no pixel (method §13.3): the candidates scored by their area, and
 #: by how many of the frame's candidates overlap them.
 NO_PIXEL = ("size_prior", "cover_count")
 
@@ -243,7 +243,7 @@ def _by_image(
 
 #: Table D's rows: the detector and the random baseline (one draw of random scores, same NMS).
 D_ROWS = {"detection": "detector", "random": "random scores, same boxes (one draw)"}
-#: ... then the baselines that read no pixel (SPEC 13.3), on the same candidates, same NMS.
+#: ... then the baselines that read no pixel (method §13.3), on the same candidates, same NMS.
 NO_PIXEL_ROWS = {
     "size_prior": "box area alone (no pixel)",
     "cover_count": "cover count alone (no pixel)",
@@ -278,9 +278,10 @@ def _coco_results(
 def _alarm_columns(
     t: pd.DataFrame, fr: pd.DataFrame, ann: pd.DataFrame, alarm: float, ci: float
 ) -> None:
-    """SPEC 13.1: the false-alarm rate measured at the nominal rate ``alarm``, added to ``t``.
+    """Method §13.1: the false-alarm rate measured at the nominal rate ``alarm``, added to ``t``.
 
-    Measured on the frames annotated no-change, with its exact interval.
+    Measured on the frames annotated no-change, with its exact interval; and the share of the
+    frames annotated with a change that the same rate flags (the detection rate), likewise.
     """
     quiet = ann[ann["status"] == "no-change"][FRAME_KEY].drop_duplicates()
     if "exceedance" in fr.columns and len(quiet):
@@ -290,6 +291,14 @@ def _alarm_columns(
         k = int((q["exceedance"] <= alarm).sum())
         t["alarm_measured"] = k / len(q) if len(q) else np.nan
         t["alarm_ci_low"], t["alarm_ci_high"] = clopper_pearson(k, len(q), ci)
+    changed = ann[ann["status"] == "change"][FRAME_KEY].drop_duplicates()
+    if "exceedance" in fr.columns and len(changed):
+        c = fr.merge(changed, on=FRAME_KEY)
+        t["alarm_nominal"] = alarm
+        t["changed_frames"] = len(c)
+        k = int((c["exceedance"] <= alarm).sum())
+        t["alarm_detected"] = k / len(c) if len(c) else np.nan
+        t["detected_ci_low"], t["detected_ci_high"] = clopper_pearson(k, len(c), ci)
 
 
 @dataclass(frozen=True)
@@ -316,7 +325,7 @@ def score_detections(
     boxes: str = "fused",
     alarm: float = 0.01,
 ) -> pd.DataFrame | None:
-    """Table D: the detector's box APs on the annotated query frames, with SPEC 9's floor.
+    """Table D: the detector's box APs on the annotated query frames, with method §9's floor.
 
     ``boxes`` names the generator (a column of the table); ``alarm`` is the nominal false-alarm
     rate the alarm columns measure.

@@ -12,7 +12,7 @@ from harness.records import FRAME_KEY
 
 
 def has_poses(frames: pd.DataFrame) -> bool:
-    """Whether every frame has a position (not a session of images alone, SPEC 13.2)."""
+    """Whether every frame has a position (not a session of images alone, method §13.2)."""
     return bool(len(frames)) and bool(frames[["x", "y"]].notna().all(axis=None))
 
 
@@ -21,7 +21,7 @@ def trajectory_figure(
 ) -> Path:
     """The map session's path in grey, the query frames coloured by change score, top numbered.
 
-    Without poses (SPEC 13.2): the change score of each query frame in time order, top numbered.
+    Without poses (method §13.2): the change score of each query frame in time order, top numbered.
     """
     import matplotlib
 

@@ -17,13 +17,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DetectRun:
-    """One detect run as its outputs read it: its pipeline, options and inputs (SPEC 13).
+    """One detect run as its outputs read it: its pipeline, options and inputs (method §13).
 
     ``p`` is the run's :class:`~harness.pipeline.chain.Pipeline` (its ``out``, ``ran`` and
     ``timings``); ``cfg`` the detect config; ``localizers`` the names whose ranks it fused;
     ``frames``, ``pairs`` and ``ann`` the frame table, the query frames' pairs with the map and the
     annotations (empty without); ``entries`` the detect chunks' cache entries; ``alarm`` the
-    nominal false-alarm rate; ``alignment`` the local localizer's pairs (None without one).
+    nominal false-alarm rate; ``alignment`` the local localizer's pairs (None without one);
+    ``null`` the no-change null's scores (None: calibrated within the run).
     """
 
     p: Any
@@ -38,6 +39,9 @@ class DetectRun:
     entries: list[Any]
     alarm: float = 0.01
     alignment: pd.DataFrame | None = None
+    null: Any = (
+        None  # the no-change null's scores (harness.detect.null.NullScores; None: within-run)
+    )
 
     @property
     def folders(self) -> list[str]:

@@ -37,7 +37,7 @@ from harness.runtime.cache import (
 log = logging.getLogger(__name__)
 
 
-#: What a pair not made by pose adds to its query frame's row (SPEC 13.2).
+#: What a pair not made by pose adds to its query frame's row (method §13.2).
 PAIR_EXTRA = ("pair_confidence", "uncertain_pair")
 
 
@@ -56,7 +56,7 @@ def _frame_table(
 ) -> tuple[pd.DataFrame, dict[tuple[str, str, int], int]]:
     """The query frames with pose, image and map frame, numbered; ``images.json`` (COCO).
 
-    Frames read from folders keep their file names (SPEC 13.2): ``name`` (the query image's)
+    Frames read from folders keep their file names (method §13.2): ``name`` (the query image's)
     and ``r_name`` (its map image's) columns, and the COCO ``file_name`` (with ``path``, the
     file itself); a log's frame keeps the stored image as its ``file_name``. Pairs not made by
     pose carry their ``pair_confidence``, and ``uncertain_pair`` where it is below
@@ -107,23 +107,29 @@ def _frame_table(
 
 
 def _calibrated(
-    fr: pd.DataFrame, dets: pd.DataFrame, entries: list[Any]
+    fr: pd.DataFrame, dets: pd.DataFrame, entries: list[Any], null: Any
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Calibrated scores (SPEC 13.1), in ``exceedance`` columns.
+    """Calibrated scores (docs/method.md, *Calibrated alarms*), in ``exceedance`` columns.
 
-    Each box against every candidate box of the run, each frame against every frame, one chunk's
-    candidates at a time.
+    Against the no-change null (``null``, :class:`harness.detect.null.NullScores`): each frame
+    against the null frames, each change box against the null frames' change boxes. Within the
+    run (``null`` None): each box against every candidate box of the run, one chunk at a time,
+    each frame against every frame.
     """
-    null = np.concatenate(
-        [read_cached_parquet(e.path / "candidates.parquet")["loc"].to_numpy() for e in entries]
-        or [np.zeros(0)]
-    )
+    if null is not None:
+        box_null, frame_null = null.boxes, null.frames
+    else:
+        box_null = np.concatenate(
+            [read_cached_parquet(e.path / "candidates.parquet")["loc"].to_numpy() for e in entries]
+            or [np.zeros(0)]
+        )
+        frame_null = fr["score"].to_numpy()
     dets = dets.assign(
         exceedance=np.where(
-            dets["kind"] == "detection", exceedance(null, dets["score"].to_numpy()), np.nan
+            dets["kind"] == "detection", exceedance(box_null, dets["score"].to_numpy()), np.nan
         )
     )
-    fr = fr.assign(exceedance=exceedance(fr["score"].to_numpy(), fr["score"].to_numpy()))
+    fr = fr.assign(exceedance=exceedance(frame_null, fr["score"].to_numpy()))
     return fr, dets
 
 
@@ -187,7 +193,7 @@ ALARM_FIELDS = ("rate", "frames", "boxes", "of_frames", "of_boxes")
 def _frame_columns(fr: pd.DataFrame) -> list[str]:
     """The columns of ``frames.parquet`` / ``frames.csv``.
 
-    With file names and pair confidence where the frames have them (SPEC 13.2).
+    With file names and pair confidence where the frames have them (method §13.2).
     """
     named = [c for c in ("name", "r_name", *PAIR_EXTRA) if c in fr.columns]
     where = ["x", "y", "yaw", "r_session", "r_camera", "r_utime"]
@@ -198,7 +204,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
 
     ``dets`` and ``fr`` are the chunks' boxes and frame rows. Also the alarms at the nominal
-    false-alarm rate ``run.alarm`` (``alarms.csv``, SPEC 13.1).
+    false-alarm rate ``run.alarm`` (``alarms.csv``, method §13.1).
     """
     p, cfg, opt, map_session, queries = run.p, run.cfg, run.opt, run.map_session, run.queries
     frames, pairs, ann, entries, alarm = run.frames, run.pairs, run.ann, run.entries, run.alarm
@@ -206,7 +212,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     names = session_names(cfg.sessions)
     sources = {sc.name: sc.source for sc in cfg.sessions}
     fr, ids = _frame_table(out, fr, frames, pairs, names, sources, cfg.pairs.min_pair_confidence)
-    fr, dets = _calibrated(fr, dets, entries)
+    fr, dets = _calibrated(fr, dets, entries, run.null)
     det = dets[dets["kind"] == "detection"]
     results = _coco_results(det, ids)
     write_text(out / "detections.json", json.dumps(results))
@@ -214,7 +220,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
     flagged_f, flagged_b = _write_alarms(out, fr, det, alarm)
-    fr["alarmed"] = fr["exceedance"].to_numpy(np.float64) <= alarm  # the page's, SPEC 13.1
+    fr["alarmed"] = fr["exceedance"].to_numpy(np.float64) <= alarm  # the page's, method §13.1
     sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
     top = fr[sure].sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
     maps = locmaps(out, top, entries, dets)
@@ -232,14 +238,16 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
         "fused_across": ALL_LOCALIZERS if len(run.localizers) > 1 else None,
         "options": opt.record(cfg.fusion.seed, cfg.proposals.segments),
         "query_frames": len(fr),
-        # SPEC 13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
+        # method §13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
         "uncertain_pairs": int((~sure).sum()),
         "min_pair_confidence": cfg.pairs.min_pair_confidence,
         "detections": len(results),
-        # SPEC 13.1: what the nominal false-alarm rate flags (alarms.csv)
+        # method §13.1: what the nominal false-alarm rate flags (alarms.csv)
         "alarm": dict(
             zip(ALARM_FIELDS, (alarm, *map(len, (flagged_f, flagged_b, fr, det))), strict=True)
         ),
+        # what the calibrated scores are measured against: the no-change null or the run itself
+        "calibration": run.null.record if run.null is not None else {"method": "within-run"},
         "outputs": {
             "detections": str(out / "detections.json"),
             "images": str(out / "images.json"),
@@ -249,7 +257,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
             "locmaps": [str(m) for m in maps.values()],
         },
         "table_d": table_d.to_dict(orient="records") if table_d is not None else None,
-        # SPEC 13.2: the LoC maps' pixel AP against the masks (tableD_pixel.csv)
+        # method §13.2: the LoC maps' pixel AP against the masks (tableD_pixel.csv)
         "table_d_pixel": pixel.to_dict(orient="records") if pixel is not None else None,
         "stage_units_run": p.ran,
         "timings_s": {k: round(v, 3) for k, v in p.timings.items()},

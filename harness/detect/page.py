@@ -1,4 +1,4 @@
-"""``detect.html``: the change detector's page (SPEC 13), self-contained beside its images.
+"""``detect.html``: the change detector's page (method §13), self-contained beside its images.
 
 The query trajectory over the map (``trajectory.png``), Table D where frames are annotated, and the
 most changed places, each as query frame (change boxes in yellow) | the map frame it was paired
@@ -9,6 +9,7 @@ page fetches nothing from the network.
 from __future__ import annotations
 
 import html
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.detect.calibrate import in_words
+from harness.detect.calibrate import alarm_words, in_words
 from harness.detect.figures import has_poses
 from harness.detect.options import DetectRun
 from harness.detect.pixels import pixel_html
@@ -106,8 +107,8 @@ def _query_thumb(
 ) -> tuple[str, str]:
     """(caption, thumbnail) of a query frame: detections in yellow, annotated changes in red.
 
-    The caption names the frame by its file name where it has one (SPEC 13.2). A frame whose
-    calibrated score does not reach the alarm rate (``alarmed`` False, SPEC 13.1) shows no
+    The caption names the frame by its file name where it has one (method §13.2). A frame whose
+    calibrated score does not reach the alarm rate (``alarmed`` False, method §13.1) shows no
     change box: "no change detected".
     """
     q = read_image(image).copy()
@@ -129,17 +130,33 @@ def _figures(cells: list[tuple[str, str]]) -> str:
     )
 
 
-def _place_html(
-    out: Path,
-    i: int,
-    r: Any,
-    dets: pd.DataFrame,
-    truth: dict[tuple[str, str, int], list[tuple]],
-    fk: pd.DataFrame,
-    maps: dict[tuple[str, str, int], Path],
-    map_session: str,
-) -> str:
+@dataclass(frozen=True)
+class Places:
+    """What every most-changed place of the page reads: the run's boxes, annotations, frames.
+
+    ``dets``: the change boxes; ``truth``: the annotated boxes by frame; ``fk``: the frame table
+    by frame key; ``maps``: the LoC overlays; ``against``: what the frame's and its top box's
+    calibrated scores are shares of.
+    """
+
+    dets: pd.DataFrame
+    truth: dict[tuple[str, str, int], list[tuple]]
+    fk: pd.DataFrame
+    maps: dict[tuple[str, str, int], Path]
+    map_session: str
+    against: tuple[str, str] = ("frames of this run", "candidate boxes")
+
+
+def _place_html(out: Path, i: int, r: Any, c: Places) -> str:
     """One most-changed place: query frame | the map frame it was paired with | its LoC map."""
+    dets, truth, fk, maps, map_session, against = (
+        c.dets,
+        c.truth,
+        c.fk,
+        c.maps,
+        c.map_session,
+        c.against,
+    )
     k = (str(r.session), str(r.camera), int(r.utime))
     name = f"{k[0]}_{k[1]}_{k[2]}"
     q_name, m_name = str(getattr(r, "name", "") or ""), str(getattr(r, "r_name", "") or "")
@@ -174,8 +191,8 @@ def _place_html(
         f"{r.score:.3g}, {found}{where}{uncertain}</h3>"
         + (
             f'<p class="note" data-calibrated="{r.exceedance:.6g}">Calibrated: '
-            f"{_e(in_words(r.exceedance, 'frames of this run'))}; its top box: "
-            f"{_e(in_words(_top_box_exceedance(dets, k), 'candidate boxes'))}.</p>"
+            f"{_e(in_words(r.exceedance, against[0]))}; its top box: "
+            f"{_e(in_words(_top_box_exceedance(dets, k), against[1]))}.</p>"
             if hasattr(r, "exceedance")
             else ""
         )
@@ -241,7 +258,7 @@ def alignment_html(al: pd.DataFrame | None, shown: int = 10) -> str:
         return ""
     counts = al["align"].value_counts().sort_index()
     how = ", ".join(f"{k} {int(v)}" for k, v in counts.items() if k != "none")
-    html = f"<p class='note' data-align='all'>Pairs aligned (SPEC 13.3): {_e(how)}.</p>"
+    html = f"<p class='note' data-align='all'>Pairs aligned (method §13.3): {_e(how)}.</p>"
     bad = al[al["align"] == "none"]
     if len(bad):
         names = ", ".join(
@@ -267,7 +284,7 @@ def write_detect_page(
     ``results``: the frame rows, the most changed of them and the boxes; ``maps``: the LoC maps
     of those; ``tables``: Table D and its pixel AP against masks (either None where there is
     none). The run's ``alignment`` holds the local localizer's pairs and how each was aligned
-    (SPEC 13.3); the page says how many could not be aligned, and which.
+    (method §13.3); the page says how many could not be aligned, and which.
 
     Where a frame is annotated, its annotated change boxes are drawn in red beside the detections
     (yellow), and a section shows the annotated change frames (up to ``ANNOTATED_SHOWN``).
@@ -276,8 +293,13 @@ def write_detect_page(
     fr, top, dets = results
     fk = frames.set_index(FRAME_KEY)
     truth = _truth_boxes(run.ann)
+    against = (
+        ("no-change null frames", "no-change null boxes")
+        if run.null is not None
+        else ("frames of this run", "candidate boxes")
+    )
     places = [
-        _place_html(out, i, r, dets, truth, fk, maps, map_session)
+        _place_html(out, i, r, Places(dets, truth, fk, maps, map_session, against))
         for i, r in enumerate(top.itertuples(), start=1)
     ]
     qs = sorted(set(fr["session"]))
@@ -291,8 +313,9 @@ def write_detect_page(
         f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
         f"<h1>What changed: {_e(what)}</h1>"
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
-        "each frame's change score is the largest LoC of its fused qBBs (SPEC 13). Detections: "
+        "each frame's change score is the largest LoC of its fused qBBs (method §13). Detections: "
         "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
+        + _alarms_html(run, fr, dets)
         + alignment_html(run.alignment)
         + _trajectory_html(frames, run.cfg.pairs.by)
         + table_d_html(tables[0])
@@ -307,8 +330,45 @@ def write_detect_page(
     return out / "detect.html"
 
 
+def _alarms_html(run: DetectRun, fr: pd.DataFrame, dets: pd.DataFrame) -> str:
+    """The alarms at the nominal rate, and the null they are measured against, in words."""
+    det = dets[dets["kind"] == "detection"] if "kind" in dets.columns else dets
+    flagged = int((det["exceedance"] <= run.alarm).sum()) if "exceedance" in det.columns else 0
+    al = {
+        "rate": run.alarm,
+        "frames": int(fr["alarmed"].sum()) if "alarmed" in fr.columns else 0,
+        "of_frames": len(fr),
+        "boxes": flagged,
+        "of_boxes": len(det),
+    }
+    cal: dict[str, Any] = run.null.record if run.null is not None else {"method": "within-run"}
+    lines = alarm_words(al, cal).splitlines()
+    how = ""
+    if cal.get("construction") == "perturbed":
+        lim = cal["limits"]
+        how = (
+            f" The null: {cal['pairs']} pairs, each a map frame against a perturbed copy of "
+            f"itself ({cal['copies_per_map_frame']} copies of each at most; gain within ±"
+            f"{lim['gain']:g}, offset ±{lim['offset']:g} grey levels, shift ±"
+            f"{lim['shift']:g} of the frame, rotation ±{lim['rotation_deg']:g}°, scale ±"
+            f"{lim['scale']:g}, blur up to {lim['blur']:g} of the longer side, JPEG quality "
+            f"{lim['jpeg_quality']}-95)."
+        )
+    elif cal.get("construction") == "neighbours":
+        how = (
+            f" The null: {cal['pairs']} pairs, each a map frame against its neighbour in the "
+            "map's own sequence (a static scene seen twice a moment apart)."
+        )
+    return (
+        f"<p class='note' data-alarms='{al['frames']}' data-calibration='{_e(cal['method'])}'>"
+        + " ".join(_e(x) for x in lines)
+        + _e(how)
+        + " See docs/method.md, <i>Calibrated alarms</i>.</p>"
+    )
+
+
 def _uncertain_html(fr: pd.DataFrame) -> str:
-    """How many uncertain pairs the most-changed list leaves out, naming them (SPEC 13.2)."""
+    """How many uncertain pairs the most-changed list leaves out, naming them (method §13.2)."""
     if "uncertain_pair" not in fr.columns or not fr["uncertain_pair"].any():
         return ""
     bad = fr[fr["uncertain_pair"]]

@@ -1,4 +1,4 @@
-"""Pixel AP of ``harness detect``'s LoC maps against change masks (SPEC 9 and 13.2).
+"""Pixel AP of ``harness detect``'s LoC maps against change masks (method §9 and 13.2).
 
 Where annotations come as a mask folder, the masks themselves are the truth of a pixel AP: each
 pixel of a masked query image takes the LoC of the smallest sample box holding it (the LoC map
@@ -6,10 +6,10 @@ the page shows; a pixel no box covers takes the lowest LoC of the run), a pixel 
 its mask is non-zero, and the pixels of every masked image are pooled into one 101-point AP.
 
 Pixels of one image that share their owning box and their label form one region weighted by its
-pixel count, so every figure costs a sort of regions, not of pixels. SPEC 9's floor and chance
+pixel count, so every figure costs a sort of regions, not of pixels. method §9's floor and chance
 band: the same boxes scored at random through the same maps; its ceiling: every box scored by its
-change fraction under the mask (its RoC). The baselines that read no pixel (SPEC 13.3) score each
-box by its area and by its cover count through the same maps; the detector's verdict is SPEC 9's
+change fraction under the mask (its RoC). The baselines that read no pixel (method §13.3) score each
+box by its area and by its cover count through the same maps; the detector's verdict is method §9's
 rule, and ``above`` only when it is also clear of the best of them.
 """
 
@@ -164,7 +164,7 @@ def pixel_table(
     seed: int,
     needed: int = chance.MIN_POSITIVE_IMAGES,
 ) -> pd.DataFrame:
-    """The pixel AP rows (:data:`PIXEL_ROWS`) with SPEC 9's floor, band, ceiling and verdicts.
+    """The pixel AP rows (:data:`PIXEL_ROWS`) with method §9's floor, band, ceiling and verdicts.
 
     Args:
         frames: the masked query images.
@@ -172,7 +172,7 @@ def pixel_table(
         n_boot: bootstrap resamples of the masked images for the intervals.
         ci: interval level.
         seed: seeds the draws, the random row and the resamples.
-        needed: ``[report] min_positive_images`` (SPEC 9, evidence before a verdict).
+        needed: ``[report] min_positive_images`` (method §9, evidence before a verdict).
     """
     r = _Regions(frames)
     k = (r.n, len(frames))
@@ -237,7 +237,7 @@ def pixel_markdown(t: pd.DataFrame) -> str:
     lines = [
         "# Table D, pixels: the LoC maps against the change masks",
         "",
-        f"Pixel AP (SPEC 9: 101-point, the pixels of the {int(d['masked_frames'])} masked query "
+        f"Pixel AP (method §9: 101-point, the pixels of the {int(d['masked_frames'])} masked query "
         "images pooled; each pixel takes the LoC of the smallest box holding it, a pixel no box "
         "covers the lowest LoC; positive where its mask is non-zero) with its 95% bootstrap "
         "interval over masked images.",
@@ -255,7 +255,7 @@ def pixel_markdown(t: pd.DataFrame) -> str:
         f"| ceiling (boxes scored by their share of change pixels, same maps) | "
         f"{d['ceiling']:.3f} |",
         "",
-        f"Verdict (SPEC 9): {chance.MARK_LEGEND}",
+        f"Verdict (method §9): {chance.MARK_LEGEND}",
     ]
     if d["verdict"] == "few":
         few = int((t["verdict"] == "few").sum())
@@ -265,7 +265,7 @@ def pixel_markdown(t: pd.DataFrame) -> str:
             "",
             f"WARNING: the detector's pixel AP is above chance but not clear of the best no-pixel "
             f"baseline ({d['best_no_pixel']}; paired difference [{d['vs_no_pixel_ci_low']:+.3f}, "
-            f"{d['vs_no_pixel_ci_high']:+.3f}]): no verdict above it (SPEC 13.3).",
+            f"{d['vs_no_pixel_ci_high']:+.3f}]): no verdict above it (method §13.3).",
         ]
     return "\n".join(lines) + "\n"
 
@@ -288,7 +288,7 @@ def pixel_html(t: pd.DataFrame | None) -> str:
     )
     return (
         '<h2 id="tableDP">Table D, pixels: the LoC maps against the change masks</h2>'
-        f"<p class='note'>Pixel AP (SPEC 9) of the {int(d['masked_frames'])} masked query "
+        f"<p class='note'>Pixel AP (method §9) of the {int(d['masked_frames'])} masked query "
         "images' pixels pooled, each pixel the LoC of the smallest box holding it, positive where "
         "its mask is non-zero; 95% bootstrap interval over masked images.</p>"
         "<table data-table='DP'><tr><th></th><th>pixel AP</th><th>verdict</th></tr>"

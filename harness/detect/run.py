@@ -1,9 +1,9 @@
-"""``harness detect``: the maintenance-free change detector on a robot's new session (SPEC 13).
+"""``harness detect``: the maintenance-free change detector on a robot's new session (method §13).
 
 Given a map (reference) session and one or more new (query) sessions of a config, every query
-frame (thinned by ``[pairs] stride_m``) is paired with the map by pose (SPEC section 4), its
-subimages are ranked by the config's localizer(s) (SPEC sections 6 and 11), and the ranks are
-fused (SPEC section 7, ``--fusion``, default ``rank_fusion``; across localizers when there
+frame (thinned by ``[pairs] stride_m``) is paired with the map by pose (method §4), its
+subimages are ranked by the config's localizer(s) (method §6 and 11), and the ranks are
+fused (method §7, ``--fusion``, default ``rank_fusion``; across localizers when there
 are several) into:
 
 - change boxes: the fused qBBs in descending LoC after greedy non-maximum suppression at IoU
@@ -36,6 +36,7 @@ from harness.config.schema import Config
 from harness.detect import keys as detect_keys
 from harness.detect.chunk import detect_chunk
 from harness.detect.config import DetectConfig
+from harness.detect.null import null_scores
 from harness.detect.options import DetectRun
 from harness.detect.outputs import write_outputs
 from harness.detect.rerun import check_rerun_target, write_rerun
@@ -104,19 +105,19 @@ def check_detect_args(
 
 def _measure(
     p: Any, map_session: str, query_sessions: list[str], local: LocalizerConfig | None
-) -> tuple[Any, Any, Any, list]:
-    """Frames, annotations, pairs and each localizer's ranks and fusion.
+) -> tuple[Any, Any, Any, list, dict[str, Table] | None]:
+    """Frames, annotations, pairs, each localizer's ranks and fusion, and the proposals.
 
-    Pairs by pose, or by retrieval where the config says so (SPEC 13.2). ``local``: the local
-    localizer that ranks every pair's subimages instead of the config's (SPEC 13.3).
+    Pairs by pose, or by retrieval where the config says so (method §13.2). ``local``: the local
+    localizer that ranks every pair's subimages instead of the config's (method §13.3).
     """
-    if kind_of(p.cfg.pairs.by) == "retrieval":  # sessions without poses (SPEC 13.2)
+    if kind_of(p.cfg.pairs.by) == "retrieval":  # sessions without poses (method §13.2)
         ingested, frames, ann = until_annotations(p)
         pairs, m = pairs_by_retrieval(
             p, ingested, frames, ann, False, (map_session, tuple(query_sessions))
         )
         if local is None:
-            return frames, ann, pairs, [m]
+            return frames, ann, pairs, [m], None
     else:
         ingested, frames, ann, pairs = detect_pairs(p, map_session, query_sessions)
     props = session_proposals(p, frames, pairs, ingested)
@@ -125,7 +126,7 @@ def _measure(
         ranks = localizer_ranks(p, loc, frames, pairs, props)
         fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
         measured.append(Measured(loc, ranks, fusion, notes))
-    return frames, ann, pairs, measured
+    return frames, ann, pairs, measured, props
 
 
 def _detect_config(
@@ -148,11 +149,11 @@ def _detect_config(
 
 
 def _chunk_units(
-    ranks: Any, frames: pd.DataFrame, opt: DetectConfig, dcfg: Config
+    ranks: Any, frames: pd.DataFrame, opt: DetectConfig, dcfg: Config, null: bool = False
 ) -> list[tuple[tuple[Any, ...], Any]]:
     """(cache key, build) of each chunk of ``opt.chunk_frames`` query frames.
 
-    The build is :func:`detect_chunk` on the chunk's ranks.
+    The build is :func:`detect_chunk` on the chunk's ranks; ``null``: the no-change null's.
     """
     chunk_units: list[tuple[tuple[Any, ...], Any]] = []
     qframes = ranks.df[QUERY_KEY].drop_duplicates().sort_values(QUERY_KEY).reset_index(drop=True)
@@ -161,9 +162,10 @@ def _chunk_units(
         mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(pd.MultiIndex.from_frame(part))
         chunk = ranks.df[mask].reset_index(drop=True)
         segments = dcfg.proposals.segments
-        build = partial(detect_chunk, chunk, frames, opt, dcfg.fusion, segments)
+        build = partial(detect_chunk, chunk, frames, opt, dcfg.fusion, segments, null=null)
         record = opt.record(dcfg.fusion.seed, segments)
         key = detect_keys.detect_chunk(ranks.key, record, c0, len(part), dcfg.fusion, opt.fusion)
+        key = (*key, "null") if null else key
         chunk_units.append((key, build))
     return chunk_units
 
@@ -178,7 +180,7 @@ def run_detect(
     rerun: Path | None = None,
     alarm: float | None = None,
 ) -> dict[str, Any]:
-    """The detector on ``query_sessions`` against ``map_session`` into ``out`` (SPEC 13).
+    """The detector on ``query_sessions`` against ``map_session`` into ``out`` (method §13).
 
     With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.detect.rerun`).
 
@@ -202,7 +204,7 @@ def run_detect(
         train_sessions=(map_session,),  # the model sees the map alone, never the new session
     )
     with p.locked():
-        frames, ann, pairs, measured = _measure(
+        frames, ann, pairs, measured, props = _measure(
             p, map_session, query_sessions, opt.local_localizer()
         )
         ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
@@ -216,12 +218,16 @@ def run_detect(
             [read_cached_parquet(e.path / "frames.parquet") for e in entries], ignore_index=True
         )
         al, aligned = _alignment(p.out, measured, frames.df, dcfg.sessions)
+        chunks = partial(_chunk_units, opt=opt, dcfg=dcfg, null=True)
+        null = null_scores(p, opt, measured, frames, props, map_session, chunks)
         run = DetectRun(
             p, dcfg, opt, map_session, query_sessions, names_l, frames.df, pairs.df, ann.df,
-            entries, alarm, al,
+            entries, alarm, al, null,
         )  # fmt: skip
         record = write_outputs(run, dets, fr)
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
+        if null is not None:
+            record["cache_entries"]["detect-null"] = list(null.entries)
         record["thin_boxes_dropped"] = _thin_boxes(p, entries)
         record.update(aligned)
         record["kernels"] = kernels.report()
@@ -249,7 +255,7 @@ def _thin_boxes(p: Any, entries: list[Any]) -> int:
 def _alignment(
     out: Path, measured: list[Any], frames: pd.DataFrame | None = None, sessions: Any = ()
 ) -> tuple[pd.DataFrame | None, dict[str, Any]]:
-    """The local localizer's alignments and what ``detect.json`` says of them (SPEC 13.3).
+    """The local localizer's alignments and what ``detect.json`` says of them (method §13.3).
 
     Returns the pairs' alignments (None without a local localizer) and the record's
     ``alignment`` (pairs by method) and ``local_counts`` (subimages ranked and dropped, by
@@ -262,7 +268,7 @@ def _alignment(
             (out / "alignment.csv").unlink(missing_ok=True)
         return None, {}
     if frames is not None and len(al):  # each pair's image files, by name, beside its keys
-        name = {  # a folder's frame by its file name (SPEC 13.2), a log's by its stored image
+        name = {  # a folder's frame by its file name (method §13.2), a log's by its stored image
             (str(r.session), str(r.camera), int(r.utime)): Path(str(r.image).split("#")[0]).name
             for r in frames[[*FRAME_KEY, "image"]].itertuples(index=False)
         }
@@ -289,7 +295,7 @@ def _write_alignment(out: Path, al: pd.DataFrame) -> dict[str, int]:
     """``alignment.csv`` (each pair's method, inliers and score) and its counts by method.
 
     A pair no link of the chain accepts is ``none``: its query frame gets no rank, so no box and
-    no score (SPEC 13.3); a WARNING line counts them.
+    no score (method §13.3); a WARNING line counts them.
     """
     write_text(out / "alignment.csv", al.to_csv(index=False, float_format="%.6g"))
     counts = {str(k): int(v) for k, v in al["align"].value_counts().sort_index().items()}

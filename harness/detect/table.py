@@ -1,4 +1,4 @@
-"""Table D (SPEC 13.1, section 9 for its floor and ceiling), built once for every format.
+"""Table D (method §13.1, section 9 for its floor and ceiling), built once for every format.
 
 :func:`harness.detect.evaluate.score_detections` computes the table (``tableD.csv``, a row per
 detector and baseline with the candidates' floor, band, ceiling, recall and false-alarm rates);
@@ -10,6 +10,7 @@ figures, the false-alarm rates, the warnings) that the markdown file and the pag
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import pandas as pd
 
@@ -30,7 +31,7 @@ COLUMNS = (
 
 @dataclass(frozen=True)
 class DRow:
-    """One row of Table D: its name, SPEC 9's verdict and a text cell per :data:`COLUMNS`."""
+    """One row of Table D: its name, method §9's verdict and a text cell per :data:`COLUMNS`."""
 
     name: str
     verdict: str
@@ -46,11 +47,16 @@ class Alarm:
     low: float
     high: float
     frames: int
+    # the share of the frames annotated with a change that the same rate flags, its interval
+    detected: float = float("nan")
+    detected_low: float = float("nan")
+    detected_high: float = float("nan")
+    changed: int = 0
 
 
 @dataclass(frozen=True)
 class TableD:
-    """Table D ready for any format: rows, the candidates' SPEC 9 figures, alarms, warnings."""
+    """Table D ready for any format: rows, the candidates' method §9 figures, alarms, warnings."""
 
     generator: str
     rows: tuple[DRow, ...]
@@ -62,6 +68,30 @@ class TableD:
     gap_closed: float
     alarm: Alarm | None
     warnings: tuple[str, ...]
+
+
+def _count(c: Any, col: str) -> int:
+    """A count column of Table D's first row (0 where absent or NaN)."""
+    v = getattr(c, col, 0)
+    return int(v) if v == v else 0
+
+
+def _alarm(t: pd.DataFrame) -> Alarm | None:
+    """The alarm columns as an :class:`Alarm` (None where no frame is annotated either way)."""
+    c = t.iloc[0]
+    quiet, changed = _count(c, "no_change_frames"), _count(c, "changed_frames")
+    if not quiet and not changed:
+        return None
+    nan = float("nan")
+    return Alarm(
+        float(c.alarm_nominal),
+        *((float(c.alarm_measured), float(c.alarm_ci_low), float(c.alarm_ci_high)) if quiet
+          else (nan, nan, nan)),
+        quiet,
+        *((float(c.alarm_detected), float(c.detected_ci_low), float(c.detected_ci_high)) if changed
+          else (nan, nan, nan)),
+        changed,
+    )  # fmt: skip
 
 
 def table_d(t: pd.DataFrame) -> TableD:
@@ -85,17 +115,7 @@ def table_d(t: pd.DataFrame) -> TableD:
         for r in t.itertuples()
     )
     c = t.iloc[0]
-    alarm = (
-        Alarm(
-            float(c.alarm_nominal),
-            float(c.alarm_measured),
-            float(c.alarm_ci_low),
-            float(c.alarm_ci_high),
-            int(c.no_change_frames),
-        )
-        if "alarm_measured" in t.columns and int(c.no_change_frames)
-        else None
-    )
+    alarm = _alarm(t) if "alarm_nominal" in t.columns else None
     return TableD(
         str(c.boxes) if "boxes" in t.columns else "",
         rows,
@@ -111,13 +131,13 @@ def table_d(t: pd.DataFrame) -> TableD:
 
 
 def table_d_markdown(t: pd.DataFrame) -> str:
-    """Table D as markdown, with what each column measures and SPEC 9's floor, band, ceiling."""
+    """Table D as markdown, with what each column measures and method §9's floor, band, ceiling."""
     v = table_d(t)
     lines = [
         "# Table D: change boxes on the annotated query frames"
         + (f" (boxes: {v.generator})" if v.generator else ""),
         "",
-        "Box AP of the detector's change boxes (SPEC 13) against the annotated change boxes, by "
+        "Box AP of the detector's change boxes (method §13) against the annotated change boxes, by "
         "pycocotools' COCOeval: AP at IoU 0.5 with VOC all-point interpolation (the metric of "
         "'The Change You Want to See', WACV 2023) with its 95% bootstrap interval over annotated "
         "frames, COCO AP@[.5:.95] and COCO AP@.5 (101-point). Frames annotated no-change "
@@ -144,18 +164,27 @@ def table_d_markdown(t: pd.DataFrame) -> str:
         lines += [
             f"| nominal false-alarm rate (frames whose calibrated score is at most it) | "
             f"{a.nominal:g} |",
-            f"| false-alarm rate measured on the {a.frames} frames annotated "
-            f"no-change [95% exact interval] | {a.measured:.3f} [{a.low:.3f}, {a.high:.3f}] |",
         ]
-    lines += ["", f"Verdict (SPEC 9): {MARK_LEGEND} {NO_PIXEL_RULE}", "", *v.warnings]
+        if a.frames:
+            lines.append(
+                f"| false-alarm rate measured on the {a.frames} frames annotated no-change "
+                f"[95% exact interval] | {a.measured:.3f} [{a.low:.3f}, {a.high:.3f}] |"
+            )
+        if a.changed:
+            lines.append(
+                f"| changed frames flagged at that rate, of the {a.changed} annotated with a "
+                f"change [95% exact interval] | {a.detected:.3f} [{a.detected_low:.3f}, "
+                f"{a.detected_high:.3f}] |"
+            )
+    lines += ["", f"Verdict (method §9): {MARK_LEGEND} {NO_PIXEL_RULE}", "", *v.warnings]
     return "\n".join(lines) + "\n"
 
 
-#: SPEC 13.3's addition to the verdict legend of Table D.
+#: method §13.3's addition to the verdict legend of Table D.
 NO_PIXEL_RULE = (
     "The detector is above chance only when its paired bootstrap difference from the best "
     "no-pixel row (box area, cover count: the same candidates ranked without reading a pixel) "
-    "is also clear above 0; otherwise it says so (SPEC 13.3)."
+    "is also clear above 0; otherwise it says so (method §13.3)."
 )
 
 
@@ -180,9 +209,9 @@ def table_d_html(t: pd.DataFrame | None) -> str:
         f'<h2 id="tableD">Table D: change boxes on the annotated frames{gen}</h2>'
         "<p class='note'>pycocotools' COCOeval; AP50 with VOC all-point interpolation and "
         "its 95% bootstrap interval over annotated frames, COCO AP@[.5:.95]; frames annotated "
-        "no-change give false positives only. Verdict by SPEC 9: above chance only above the "
+        "no-change give false positives only. Verdict by method §9: above chance only above the "
         "chance band and clear of the random row (paired); the detector also clear of the best "
-        "no-pixel row (SPEC 13.3).</p>"
+        "no-pixel row (method §13.3).</p>"
         f'<table data-table="D"><tr><th></th>{head}</tr>{rows}</table>'
         f"<p class='note' data-chance='D'>AP50 of these candidate boxes: floor {v.floor:.3f} "
         f"(mean of random scores, same NMS), chance band {v.chance_low:.3f}-"
@@ -194,15 +223,29 @@ def table_d_html(t: pd.DataFrame | None) -> str:
         td += (
             f"<p class='note' data-alarm='{a.nominal:g}'>Calibrated scores: at a "
             f"nominal false-alarm rate of {a.nominal:g}, "
-            f"{a.measured:.3f} [{a.low:.3f}, {a.high:.3f}] (95% exact "
-            f"interval) of the {a.frames} frames annotated no-change are "
-            "flagged.</p>"
+            + " and ".join(
+                part
+                for part, here in (
+                    (
+                        f"{a.measured:.3f} [{a.low:.3f}, {a.high:.3f}] (95% exact interval) of "
+                        f"the {a.frames} frames annotated no-change",
+                        a.frames,
+                    ),
+                    (
+                        f"{a.detected:.3f} [{a.detected_low:.3f}, {a.detected_high:.3f}] of the "
+                        f"{a.changed} frames annotated with a change",
+                        a.changed,
+                    ),
+                )
+                if here
+            )
+            + " are flagged.</p>"
         )
     return td + "".join(f'<p class="warn">{esc(w)}</p>' for w in v.warnings)
 
 
 def table_d_warnings(t: pd.DataFrame) -> list[str]:
-    """What Table D must say in words, from SPEC 9's verdict and the candidates' ceiling."""
+    """What Table D must say in words, from method §9's verdict and the candidates' ceiling."""
     out = []
     det = t.iloc[0]
     if det["verdict"] == "few":
@@ -236,7 +279,7 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
 
 
 def _no_pixel_warnings(t: pd.DataFrame) -> list[str]:
-    """SPEC 13.3: a WARNING where a no-pixel baseline comes within 0.02 of the detector."""
+    """Method §13.3: a WARNING where a no-pixel baseline comes within 0.02 of the detector."""
     if "best_no_pixel" not in t.columns:
         return []
     det, out = t.iloc[0], []
@@ -260,6 +303,6 @@ def _no_pixel_warnings(t: pd.DataFrame) -> list[str]:
         out.append(
             f"WARNING: the detector is above chance but not clear of the best baseline row "
             f"({det['best_no_pixel']}; paired difference [{det['vs_no_pixel_ci_low']:+.3f}, "
-            f"{det['vs_no_pixel_ci_high']:+.3f}]): no verdict above it (SPEC 13.3)."
+            f"{det['vs_no_pixel_ci_high']:+.3f}]): no verdict above it (method §13.3)."
         )
     return out

@@ -115,11 +115,14 @@ def localized(
     if len(both) >= kc.min_matches:
         p1, p2 = xq[both[:, 0]].astype(np.float32), xm[both[:, 1]].astype(np.float32)
         thr = max(0.5, kc.ransac_threshold * diag)
-        if kc.geometry == "homography":
-            model, mask = cv2.findHomography(p2, p1, cv2.USAC_MAGSAC, thr, maxIters=2000,
-                                             confidence=0.999)  # fmt: skip
-        else:
-            model, mask = cv2.findFundamentalMat(p1, p2, cv2.USAC_MAGSAC, thr, 0.999, 2000)
+        try:
+            if kc.geometry == "homography":
+                model, mask = cv2.findHomography(p2, p1, cv2.USAC_MAGSAC, thr, maxIters=2000,
+                                                 confidence=0.999)  # fmt: skip
+            else:
+                model, mask = cv2.findFundamentalMat(p1, p2, cv2.USAC_MAGSAC, thr, 0.999, 2000)
+        except cv2.error:  # USAC asserts on some degenerate sets (all matches on one plane
+            model, mask = None, None  # under a pure shift): no geometry, as when none is found
         if model is not None and mask is not None and model.shape[:2] == (3, 3):
             inl = mask.ravel().astype(bool)
             geo = PairGeometry(kc.geometry, int(inl.sum()), len(both), len(xq), len(xm))

@@ -1,4 +1,4 @@
-"""The ``local`` localizer (SPEC 13.3): each subimage ranked inside its paired map frame.
+"""The ``local`` localizer (method §13.3): each subimage ranked inside its paired map frame.
 
 The robot knows where it is: the pair names the map frame a query frame should look like. What
 it asks here is whether each *part* of its view still localizes where it should, the fine stage
@@ -13,7 +13,7 @@ of a hierarchical localizer one level below the paper's retrieval:
    grown by ``grow`` of its size on each side, at least ``min_grow_px``); its ``rank`` is one plus
    the number of window positions that match better than the best position within the tolerance
    (``tolerance`` of the box's shorter side, at least ``min_tolerance_px``) of the expected one,
-   ``L`` the number of window positions, ``r = rank / L`` as every localizer's (SPEC 6).
+   ``L`` the number of window positions, ``r = rank / L`` as every localizer's (method §6).
 3. The same from map to query (a removed object exists only in the map frame); the subimage
    keeps the worse (larger) ``r``.
 
@@ -38,6 +38,7 @@ import pandas as pd
 from harness.imagestore import read_image, split_uri
 from harness.localizers.align import Alignment, align_pair, feature_image
 from harness.localizers.config import LocalConfig
+from harness.perturb import PERTURB
 from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.runtime.cache import write_parquet
 
@@ -126,8 +127,8 @@ def read_gray(uri: str, reduce: int) -> np.ndarray | None:
     None for any other file: the caller decodes it in colour.
     """
     path, rot = split_uri(uri)
-    if not path.lower().endswith((".jpg", ".jpeg")):
-        return None
+    if PERTURB in uri or not path.lower().endswith((".jpg", ".jpeg")):
+        return None  # a perturbed copy is made in colour, by read_image
     flag = {2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
             8: cv2.IMREAD_REDUCED_GRAYSCALE_8}[reduce]  # fmt: skip
     gray = cv2.imread(path, flag)
@@ -231,7 +232,7 @@ LOCAL_COUNTS = (
 def _rank_rows(
     pairs: pd.DataFrame, props: pd.DataFrame, which: np.ndarray, at: np.ndarray, g: np.ndarray
 ) -> pd.DataFrame:
-    """The rank rows (SPEC 6's columns) of a unit's ranked boxes, in one table.
+    """The rank rows (method §6's columns) of a unit's ranked boxes, in one table.
 
     Row ``i`` is ``props`` row ``at[i]``, ranked in the pair of ``pairs`` row ``which[i]``, with
     its (rank, L, best NCC) ``g[i]``.

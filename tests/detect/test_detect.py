@@ -1,4 +1,4 @@
-"""``harness detect`` (SPEC 13): the change detector on a new session, as a user runs it.
+"""``harness detect`` (method §13): the change detector on a new session, as a user runs it.
 
 The README's two commands run as typed (with ``--data-root`` pointing at the session's fixture):
 ``datasets/fixture-detect.toml`` (no annotation file) writes every output; ``datasets/fixture.toml``
@@ -26,6 +26,7 @@ from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
 
 from ..conftest import shared_stages
+from ..readme_text import manual_text
 
 ROOT = Path(__file__).resolve().parents[2]
 MAP, QUERY = "2012-01-22", "2012-03-31"
@@ -79,7 +80,7 @@ def test_detect_without_annotations_writes_every_output(detected: tuple) -> None
         x, y, w, h = d["bbox"]
         assert d["category_id"] == 1 and w > 0 and h > 0
         assert x >= 0 and y >= 0 and x + w <= size[d["image_id"]][0] + 1e-9
-    # the frame's score is its largest fused LoC (SPEC 13); its best detection is its best-scored
+    # the frame's score is its largest fused LoC (method §13); its best detection is its best-scored
     # candidate, every candidate at least [detect] min_box_side (2 px) a side
     best = pd.DataFrame(dets).groupby("image_id")["score"].max()
     f = fr.set_index("image_id").loc[best.index]
@@ -121,7 +122,7 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
     assert t["row"].tolist() == [
         "detector",
         "random scores, same boxes (one draw)",
-        "box area alone (no pixel)",  # SPEC 13.3: the baselines that read no pixel
+        "box area alone (no pixel)",  # method §13.3: the baselines that read no pixel
         "cover count alone (no pixel)",
         "aligned difference (pixels, no localizer)",  # and the one that reads no localizer
     ]
@@ -160,7 +161,7 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
     assert ev.stats[1] > 0  # some box matches: the comparison is not of two zeros
     # the fast matcher behind the floor's draws and the intervals gives COCOeval's AP50
     assert t["matcher_ap50"].to_numpy() == pytest.approx(t["ap50_voc_all_point"], abs=5e-5)
-    # SPEC 9: the floor and band of random scores on the same candidates, the ceiling of oracle
+    # method §9: the floor and band of random scores on the same candidates, the ceiling of oracle
     # scores, and the verdict by the one rule
     assert 0 < det["chance_low"] <= det["floor"] <= det["chance_high"] < det["ceiling"] <= 1
     # no order of these candidates recalls more change boxes than the candidates meet at all
@@ -284,7 +285,7 @@ def test_the_readme_quotes_table_d_as_the_command_prints_it(
     detected: tuple, local_run: tuple
 ) -> None:
     """The README's Table D rows and figures are this run's (issue 34 item 7)."""
-    from ..readme_text import README, table_rows_after
+    from ..readme_text import table_rows_after
     from ..stage_digests import skip_unless_recorded_model
 
     _, out, _ = detected
@@ -296,7 +297,7 @@ def test_the_readme_quotes_table_d_as_the_command_prints_it(
     t = pd.read_csv(out / "tableD.csv").set_index("row")
     det = t.loc["detector"]
     met = round(float(det["candidate_recall"]) * int(det["change_boxes"]))
-    text = README.read_text()
+    text = manual_text()
     flat = " ".join(text.split())
     assert f"meet {met} of the {int(det['change_boxes'])} change boxes at IoU 0.5" in flat
     assert f"could reach AP50 {float(det['ceiling']):.2f}" in flat
@@ -353,7 +354,7 @@ def test_rerun_recording_reads_back_with_the_sdk(
     shutil.copytree(a / "cache", out / "cache")
     shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
     rrd = tmp_path / "detect.rrd"
-    readme = (ROOT / "README.md").read_text()
+    readme = manual_text()
     typed = re.search(r"^harness detect .* --rerun \S+$", readme, re.M)
     assert typed is not None, "the README's --rerun command"
     argv = typed.group(0).split()[1:]
@@ -402,7 +403,7 @@ def test_rerun_recording_reads_back_with_the_sdk(
 
 
 def test_box_generators_on_a_loc_map_known_by_hand() -> None:
-    """SPEC 13.1's generators on a 20 x 10 frame whose left half has LoC 1 and right half 5."""
+    """method §13.1's generators on a 20 x 10 frame whose left half has LoC 1 and right half 5."""
     from harness.detect.boxes import candidate_boxes
 
     fused = np.array([[0, 0, 10, 10], [10, 0, 20, 10]], np.float64)
@@ -425,7 +426,7 @@ def test_box_generators_on_a_loc_map_known_by_hand() -> None:
     assert b.tolist() == [[0, 0, 4, 10], [16, 0, 20, 10]] and s.tolist() == [9.0, 7.0]
 
 
-#: The flags that run the paper's own detector (SPEC 13: each proposal ranked against the whole
+#: The flags that run the paper's own detector (method §13: each proposal ranked against the whole
 #: map by the config's localizer, the fused qBBs as boxes, their LoC alone), as the README types.
 PAPER = ("--localizer", "config", "--boxes", "fused", "--box-prior", "none")
 
@@ -459,13 +460,13 @@ def _scored_again(paper_detected: Path, local_run: tuple, out: Path, *flags: str
 def test_boxes_proposals_as_typed_scores_the_original_proposals(
     paper_detected: Path, local_run: tuple, tmp_path: Path
 ) -> None:
-    """``--boxes proposals`` (SPEC 13.1): every change box is an original proposal of its frame,
+    """``--boxes proposals`` (method §13.1): every change box is an original proposal of its frame,
     Table D names the generator and its candidates are those proposals."""
     opt = json.loads((paper_detected / "detect.json").read_text())["options"]  # PAPER passed on
     assert "localizer" not in opt and (opt["boxes"], opt["box_prior"]) == ("fused", "none")
     paper = pd.read_csv(paper_detected / "tableD.csv").iloc[0]  # the paper's detector, quoted
     assert paper.verdict == "chance"
-    readme_ = " ".join((ROOT / "README.md").read_text().split())
+    readme_ = " ".join(manual_text().split())
     assert (
         f"--box-prior none`) on the same frames: AP50 {paper.ap50_voc_all_point:.3f}, cannot be "
         "told from chance" in readme_
@@ -478,7 +479,7 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
     assert (pd.read_csv(out / "alarms.csv")["exceedance"] <= 0.2).all()
     t = pd.read_csv(out / "tableD.csv")
     assert (t["boxes"] == "proposals").all()
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join(manual_text().split())
     d = t.iloc[0]
     assert (
         f"`proposals` reaches AP50 {d.ap50_voc_all_point:.3f} against a floor of {d.floor:.3f} and "
@@ -504,14 +505,14 @@ def test_boxes_proposals_as_typed_scores_the_original_proposals(
 def test_boxes_segments_with_contrast_as_typed(
     paper_detected: Path, local_run: tuple, tmp_path: Path
 ) -> None:
-    """``--boxes segments --box-score contrast`` (SPEC 13.1): every change box is a colour region
+    """``--boxes segments --box-score contrast`` (method §13.1): every change box is a colour region
     of its frame, the candidates meet most change boxes, and the README quotes Table D as run."""
     from harness.imagestore import read_image
     from harness.proposals.builtin import segment_boxes
     from harness.proposals.config import SegmentsConfig
 
     # the README's command as typed (its --out here, the fixture's --data-root added)
-    lines = (ROOT / "README.md").read_text().splitlines()
+    lines = manual_text().splitlines()
     typed = next(x for x in lines if x.startswith("harness detect") and "detect-segments" in x)
     argv = typed.split()[1:]
     out = tmp_path / "segments"
@@ -532,7 +533,7 @@ def test_boxes_segments_with_contrast_as_typed(
     from ..stage_digests import skip_unless_recorded_model
 
     skip_unless_recorded_model(local_run[2])
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join(manual_text().split())
     assert (
         f"`segments` with `--box-score contrast` reaches AP50 {d.ap50_voc_all_point:.3f} against "
         f"a floor of {d.floor:.3f} and a chance band up to {d.chance_high:.3f} (ceiling "
@@ -608,23 +609,26 @@ def test_exceedance_and_its_words_by_hand() -> None:
 
 
 def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None:
-    """SPEC 13.1 on the README's second command: every frame's and box's exceedance recomputes
-    from the run's own frames and candidates, ``alarms.csv`` holds exactly what the default
-    nominal rate flags, Table D measures the rate on the no-change frames, and the README's and
-    the page's words are this run's."""
+    """The README's second command: every frame's and box's exceedance recomputes from the
+    no-change null's frames and boxes (the map's neighbours, docs/method.md, *Calibrated
+    alarms*), ``alarms.csv`` holds exactly what the default nominal rate flags, Table D measures
+    the rate on the no-change frames and the changed ones, and the README's and the page's words
+    are this run's."""
     from harness.detect.calibrate import in_words
 
     _, out, printed = detected
-    fr = pd.read_csv(out / "frames.csv")
-    s = fr["score"].to_numpy()
-    want = np.array([(1 + (s >= v).sum()) / (1 + len(s)) for v in s])
-    np.testing.assert_allclose(fr["exceedance"], want, rtol=1e-5)
     rec = json.loads((out / "detect.json").read_text())
-    cands = pd.concat(  # this run's chunks (the cache also holds the first command's)
-        pd.read_parquet(out / "cache" / "detect" / k / "candidates.parquet")
-        for k in rec["cache_entries"]["detect"]
-    )
-    null = cands["loc"].to_numpy()
+    assert rec["calibration"]["method"] == "null", rec["calibration"]
+    assert rec["calibration"]["construction"] == "neighbours"  # the map is a session: a sequence
+    chunks = [out / "cache" / "detect-null" / k for k in rec["cache_entries"]["detect-null"]]
+    s = pd.concat(pd.read_parquet(c / "frames.parquet") for c in chunks)["score"].to_numpy()
+    assert len(s) == rec["calibration"]["pairs"] == 100
+    fr = pd.read_csv(out / "frames.csv")
+    want = np.array([(1 + (s >= v).sum()) / (1 + len(s)) for v in fr["score"]])
+    np.testing.assert_allclose(fr["exceedance"], want, rtol=1e-5)
+    boxes = pd.concat(pd.read_parquet(c / "boxes.parquet") for c in chunks)
+    null = boxes.loc[boxes["kind"] == "detection", "score"].to_numpy()
+    assert len(null) == rec["calibration"]["boxes"]
     dets = json.loads((out / "detections.json").read_text())
     for d in dets[:50]:
         assert d["exceedance"] == pytest.approx((1 + (null >= d["score"]).sum()) / (1 + len(null)))
@@ -646,14 +650,11 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
             abs=5e-5,  # tableD.csv keeps four decimals
         )
     top = fr.sort_values("score", ascending=False).iloc[0]
-    words = in_words(float(top["exceedance"]), "frames")
+    words = in_words(float(top["exceedance"]), "no-change null frames")
     assert f"({words})" in printed
-    readme = " ".join((ROOT / "README.md").read_text().split())
-    assert f'("{in_words(float(top["exceedance"]), "frames of this run")}")' in readme
-    assert (
-        in_words(float(top["exceedance"]), "frames of this run")
-        in (out / "detect.html").read_text()
-    )
+    readme = " ".join(manual_text().split())
+    assert f'("{words}")' in readme
+    assert words in (out / "detect.html").read_text()
     assert (
         f"on the fixture, {int((quiet['exceedance'] <= rate).sum())} of {len(quiet)} at {rate:g}"
     ) in readme
@@ -794,7 +795,7 @@ def test_a_registered_fusion_method_is_usable_by_detect(
 def test_detect_by_retrieval_says_how_often_it_agrees_with_the_pose_pairs(
     detected: tuple, paper_detected: Path, local_run: tuple, tmp_path: Path
 ) -> None:
-    """``[pairs] by = "retrieval"`` where poses exist (SPEC 13.2): ``detect.json``'s agreement is
+    """``[pairs] by = "retrieval"`` where poses exist (method §13.2): ``detect.json``'s agreement is
     the share recomputed from its retrieval pairs and the pose pairs of the pose run."""
     a, _, _ = detected
     out = tmp_path / "retrieval"
@@ -828,7 +829,7 @@ def test_detect_by_retrieval_says_how_often_it_agrees_with_the_pose_pairs(
     from ..stage_digests import skip_unless_recorded_model
 
     skip_unless_recorded_model(local_run[2])
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join(manual_text().split())
     share = round(100 * agree["share"])
     ci = f"{100 * agree['share_ci_low']:.0f}-{100 * agree['share_ci_high']:.0f}%"
     assert (
@@ -845,7 +846,7 @@ def test_keypoint_localization_is_the_default(
     that do not localize in its paired map frame, each pair's geometry written, Table D with its
     baseline rows, as the README quotes it; ``--localizer keypoints --proposals segments --boxes
     subimages --box-prior area`` are its defaults (docs/method.md's rule chose them)."""
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join(manual_text().split())
     _, b, _ = detected
     rec = json.loads((b / "detect.json").read_text())
     opt = rec["options"]
@@ -869,13 +870,13 @@ def test_keypoint_localization_is_the_default(
     d = t.iloc[0]
     assert d.ap50_voc_all_point > d.chance_high  # above the chance band on the fixture ...
     assert d.best_no_pixel in ("size_prior", "cover_count", "aligned_difference")
-    # ... and the verdict says whether it clears the best no-pixel row too (SPEC 13.3)
+    # ... and the verdict says whether it clears the best no-pixel row too (method §13.3)
     assert d.verdict == ("above" if d.vs_no_pixel_ci_low > 0 else "baseline")
     md = (b / "tableD.md").read_text()
     assert "box area alone (no pixel)" in md and "(boxes: subimages)" in md
     page = (b / "detect.html").read_text()  # the command's last output, the page
     assert "boxes: subimages" in page and "cover count alone (no pixel)" in page
-    assert "data-align='all'" in page and "Pairs aligned (SPEC 13.3)" in page
+    assert "data-align='all'" in page and "Pairs aligned (method §13.3)" in page
     # the paper's detector into a copy of that directory: the local run's alignment.csv goes
     out = tmp_path / "local"
     shutil.copytree(b, out)

@@ -6,6 +6,9 @@ read the folder's README). Where the folder is absent the tests skip, saying so.
 
 from __future__ import annotations
 
+import contextlib
+import io
+import json
 import re
 from pathlib import Path
 
@@ -15,6 +18,7 @@ import pytest
 from harness.cli import main
 
 from ..conftest import ROOT
+from ..readme_text import manual_text
 
 REAL = ROOT.parent / "shared" / "realdata" / "obchange-dev"
 pytestmark = pytest.mark.skipif(
@@ -29,9 +33,6 @@ def real_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("obchange") / "run"
     argv = ["detect", "--map-images", str(REAL / "A"), "--query-images", str(REAL / "B"),
             "--annotations", str(REAL / "annotations.csv"), "--out", str(out)]  # fmt: skip
-    import contextlib
-    import io
-
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         assert main(argv) == 0
@@ -55,7 +56,7 @@ def test_the_default_detector_finds_real_changes_above_its_chance_band(
     m = re.search(r"`harness detect` with no flags on `obchange-dev`: AP50 (\d\.\d{3})", quoted)
     assert m is not None, "docs/method.md quotes the default's AP50 on obchange-dev"
     assert abs(det["ap50_voc_all_point"] - float(m.group(1))) <= 0.002, (det, m.group(1))
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join(manual_text().split())
     assert (
         f"the same default reaches AP50 {det['ap50_voc_all_point']:.3f} against a chance band up "
         f"to {det['chance_high']:.3f}"
@@ -75,3 +76,34 @@ def test_the_page_and_alignment_name_the_users_files(real_run: tuple[Path, str])
     al = pd.read_csv(out / "alignment.csv")
     assert set(al["q_image"]) == {p.name for p in (REAL / "B").iterdir()}
     assert (al["q_image"] == al["r_image"]).all()
+
+
+def test_the_null_flags_revisited_frames_and_the_map_against_itself_nothing(
+    real_run: tuple[Path, str],
+) -> None:
+    """The alarms against the no-change null (docs/method.md, *Calibrated alarms*) as the manual
+    quotes them: the robot's revisits (every frame has a change) flag half their frames; the map
+    folder against itself, into the same run directory, flags no frame and no box, and scores no
+    null pair again (the null is the map's alone)."""
+    out, _ = real_run
+    rec = json.loads((out / "detect.json").read_text())
+    t = pd.read_csv(out / "tableD.csv").iloc[0]
+    assert int(t["changed_frames"]) == 10 and "no_change_frames" not in t.index
+    quoted = " ".join(manual_text().split())
+    assert (
+        f"{rec['alarm']['frames']} of its 10 revisited frames ({t['alarm_detected']:.3f} "
+        f"[{t['detected_ci_low']:.3f}, {t['detected_ci_high']:.3f}])"
+    ) in quoted
+    argv = ["detect", "--map-images", str(REAL / "A"), "--query-images", str(REAL / "A"),
+            "--out", str(out)]  # fmt: skip
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(argv) == 0
+    again = json.loads((out / "detect.json").read_text())
+    said = [x for x in buf.getvalue().splitlines() if x.startswith("alarms: ")]
+    assert re.fullmatch(r"alarms: 0 of 10 frames and 0 of \d+ change boxes exceed the false-alarm "
+                        r"rate 0\.01 \(null: 100 no-change pairs from the map, perturbed; "
+                        r"alarms\.csv\)", said[0]), said  # fmt: skip
+    assert again["alarm"]["boxes"] == 0 and again["alarm"]["of_boxes"] > 0
+    assert again["cache_entries"]["detect-null"] == rec["cache_entries"]["detect-null"]
+    assert again["stage_units_run"].get("detect-null", 0) == 0, again["stage_units_run"]

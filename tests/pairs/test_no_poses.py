@@ -1,4 +1,4 @@
-"""Sessions without poses (SPEC 13.2): image folders, their pairs, masks and file names.
+"""Sessions without poses (method §13.2): image folders, their pairs, masks and file names.
 
 The README's two-folder command runs here as typed, on images the test writes; the pairing's
 kernel is checked against a brute-force computation, the place by order by hand, and the images
@@ -22,9 +22,9 @@ import pytest
 from harness.cli import main
 
 from ..conftest import ROOT
-from ..readme_text import README as README_PATH
+from ..readme_text import manual_text
 
-README = README_PATH.read_text()
+README = manual_text()  # the README and the manual's pages
 
 
 def _write_images(folder: Path, images: list[np.ndarray], names: list[str]) -> None:
@@ -198,7 +198,7 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     assert rec["map"] == "map" and rec["queries"] == ["query"] and rec["query_frames"] == 2
     # names the folders do not share: pairs by sequence, each with its confidence
     assert rec["pairing"] == {"by": "sequence", "place_frames": 2}  # no poses: nothing to compare
-    assert "pairs by sequence (SPEC 13.2)" in printed and "no poses to compare with" in printed
+    assert "pairs by sequence (method §13.2)" in printed and "no poses to compare with" in printed
     fr = pd.read_parquet(out / "frames.parquet")
     assert fr["x"].isna().all() and len(fr) == 2
     assert fr["pair_confidence"].between(0, 1).all() and fr["uncertain_pair"].dtype == bool
@@ -232,7 +232,7 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     out2 = tmp_path / "out2"
     rec2 = json.loads((out2 / "detect.json").read_text())
     assert rec2["pairing"]["by"] == "name" and rec2["query_frames"] == 6
-    assert "pairs by name (SPEC 13.2)" in printed
+    assert "pairs by name (method §13.2)" in printed
     fr2 = pd.read_csv(out2 / "frames.csv")
     assert (fr2["name"] == fr2["r_name"]).all() and sorted(fr2["name"]) == sorted(names)
     assert (fr2["pair_confidence"] == 1).all() and not fr2["uncertain_pair"].any()
@@ -254,14 +254,18 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     assert rec_l["pairing"]["by"] == "name" and rec_l["localizers"] == ["local"]
     assert not (tmp_path / "out-local" / "cache" / "model").exists()
     assert sum(rec_l["local_counts"].values()) > 0
-    # six frames: no calibrated score reaches the 1% alarm rate, and the run says so (SPEC 13.1)
-    # (its boxes are calibrated within the run: issue 64 replaces that with a no-change null)
-    said = [x for x in printed.splitlines() if "alarms at a nominal" in x]
-    assert re.search(r"alarms at a nominal false-alarm rate of 0\.01: 0 of 6 frames and \d+ of "
-                     r"\d+ change boxes", printed), said  # fmt: skip
-    assert "no change detected in this run at that rate (with 6 frames the least" in printed
-    assert 'data-alarmed="0"' in page and 'data-alarmed="1"' not in page
-    assert "no change detected at the alarm rate" in page
+    # folders paired by name are no sequence: the no-change null is perturbed copies of the six
+    # map frames, and the alarms say against what (docs/method.md, *Calibrated alarms*)
+    said = [x for x in printed.splitlines() if x.startswith("alarms: ")]
+    assert rec2["calibration"]["method"] == "null", rec2["calibration"]
+    assert rec2["calibration"]["construction"] == "perturbed"
+    assert rec2["calibration"]["pairs"] == 100 and rec2["calibration"]["copies_per_map_frame"] == 17
+    assert re.fullmatch(r"alarms: \d of 6 frames and \d+ of \d+ change boxes exceed the "
+                        r"false-alarm rate 0\.01 \(null: 100 no-change pairs from the map, "
+                        r"perturbed; alarms\.csv\)", said[0]), said  # fmt: skip
+    flagged = int(said[0].split()[1])
+    assert page.count('data-alarmed="1"') == min(flagged, 6)
+    assert f"data-alarms='{flagged}' data-calibration='null'" in page
     # the README's annotated forms, as typed, on the first run's folders and into its run
     # directory (its model and descriptors are reused): a mask with a change and an empty one,
     # then an annotation CSV by file name
@@ -286,7 +290,7 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
         d = pd.read_csv(out / "tableD.csv")
         assert (int(d["annotated_frames"].iloc[0]), int(d["change_boxes"].iloc[0])) == (2, 1)
         rec = json.loads((out / "detect.json").read_text())
-        if flag == "--masks":  # the masks are also the truth of a pixel AP (SPEC 13.2)
+        if flag == "--masks":  # the masks are also the truth of a pixel AP (method §13.2)
             px = pd.read_csv(out / "tableD_pixel.csv")
             assert list(px["masked_frames"].unique()) == [2] and len(rec["table_d_pixel"]) == 4
             # the change is a quarter by a quarter of q00: 1/16 of one image's pixels in two
@@ -432,7 +436,7 @@ def test_reproduce_by_retrieval_pairs_as_the_descriptors_say_and_agrees_as_the_r
     assert " ".join(quoted.split()) in flat
     assert f"R@1 then reads {all_r1(r1):.2f} against {all_r1(r1_pose):.2f} by pose" in flat
     assert f"(median {agree['median_m']:g} m" in flat
-    assert "Pairs by retrieval (SPEC 13.2)" in (tmp_path / "tableS.md").read_text()
+    assert "Pairs by retrieval (method §13.2)" in (tmp_path / "tableS.md").read_text()
     assert rec["reports"] is not None
 
 
@@ -449,7 +453,7 @@ def _descriptor_keys(out: Path) -> dict[str, str]:
 def test_each_pairing_mode_agrees_with_the_pose_pairs_as_the_readme_quotes(
     local_run: tuple,
 ) -> None:
-    """SPEC 13.2's modes on a set with known truth: the fixture's four traverses, every frame a
+    """method §13.2's modes on a set with known truth: the fixture's four traverses, every frame a
     query of each other session (twelve pairs of traverses), the poses the truth. Each mode's
     share of pairs within 10 m of the pose pair, from the fixture run's own descriptors, is the
     README's; sequence beats retrieval (the default for folders that share no names)."""
@@ -490,7 +494,7 @@ def test_each_pairing_mode_agrees_with_the_pose_pairs_as_the_readme_quotes(
 def test_a_mask_becomes_its_components_boxes_and_an_empty_one_a_no_change_row(
     tmp_path: Path,
 ) -> None:
-    """SPEC 13.2's masks by hand: two blobs and one speck under ``min_mask_area``."""
+    """method §13.2's masks by hand: two blobs and one speck under ``min_mask_area``."""
     from harness.ingest.masks import mask_boxes, read_masks
 
     m = np.zeros((40, 60), np.uint8)
@@ -513,7 +517,7 @@ def test_a_mask_becomes_its_components_boxes_and_an_empty_one_a_no_change_row(
 
 
 def test_pixel_ap_of_a_loc_map_against_a_mask_by_hand() -> None:
-    """SPEC 9's pixel AP on a 10 x 10 image whose 4 x 4 corner changed, two nested boxes.
+    """method §9's pixel AP on a 10 x 10 image whose 4 x 4 corner changed, two nested boxes.
 
     The small box [0, 0, 4, 4] owns the 16 change pixels, the large one [0, 0, 10, 10] the other
     84. Scored small over large, the change pixels come first: AP 1. Scored the other way round,
@@ -536,7 +540,7 @@ def test_pixel_ap_of_a_loc_map_against_a_mask_by_hand() -> None:
     assert t.loc["detector (LoC map)", "pixel_ap"] == pytest.approx(1.0)
     assert t["ceiling"].iloc[0] == pytest.approx(1.0)
     assert t["positive_rate"].iloc[0] == pytest.approx(0.16)
-    assert t.loc["detector (LoC map)", "verdict"] == "few"  # one image: no verdict (SPEC 9)
+    assert t.loc["detector (LoC map)", "verdict"] == "few"  # one image: no verdict (method §9)
     swapped = masked_frame(boxes, np.array([0.1, 0.9]), mask)
     t2 = pixel_table([swapped], draws=50, n_boot=20, ci=0.95, seed=0).set_index("row")
     assert t2.loc["detector (LoC map)", "pixel_ap"] == pytest.approx(0.16)

@@ -1,0 +1,235 @@
+"""The no-change null: pairs that hold no change by construction, scored by the same detector.
+
+docs/method.md, *Calibrated alarms*. A frame's calibrated score is the share of null frames that
+score at least as high (:func:`harness.detect.calibrate.exceedance`); a box's, the share of the
+null frames' change boxes. The null is drawn from the map alone, never from the new session:
+
+- ``neighbours``: each drawn map frame against the next frame of the map's own sequence (the
+  same camera, the next time), and that frame against it: a static scene seen twice a moment
+  apart;
+- ``perturbed``: each drawn map frame against a perturbed copy of itself (:mod:`harness.perturb`),
+  within ``[detect.null]``'s limits: where the map is no sequence (pairs by name or retrieval).
+
+Both are scored by the run's paired-frame localizer (``keypoints`` or ``local``) and the same
+chunks, fusion, prior and NMS as the query frames, cached like them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from harness.detect.config import DetectConfig, NullConfig
+from harness.pairs.modes import PAIRING_MODES, kind_of
+from harness.pairs.table import PAIR_COLUMNS
+from harness.perturb import PERTURB, Perturbation, fragment
+from harness.pipeline.localizer_stages import localizer_ranks
+from harness.records import FRAME_KEY
+from harness.runtime.cache import read_cached_parquet, stable_hash
+from harness.runtime.stage import Table
+
+log = logging.getLogger(__name__)
+
+#: The localizer kinds that rank inside a paired frame: the ones a null pair can be scored by.
+PAIRED_KINDS = ("keypoints", "local")
+
+#: The camera name of a perturbed copy, and of a null query: the original's, then this, then the
+#: null pair's number.
+COPY, QUERY = "~null", "~q"
+
+
+@dataclass(frozen=True)
+class NullPairs:
+    """The null's frames (the run's, with any perturbed copies), pairs and construction."""
+
+    frames: Table
+    pairs: Table
+    proposals: Table  # the null queries' proposals: their frames' own
+    construction: str
+    copies: int  # perturbed copies of each drawn map frame (0: neighbours)
+
+
+def construction_for(nc: NullConfig, by: str) -> str:
+    """``neighbours`` or ``perturbed``: ``auto`` by the pairing mode ``by`` (``[pairs] by``).
+
+    A map paired by pose, by order or by sequence is a sequence; by name or retrieval it is not.
+    """
+    if nc.construction != "auto":
+        return nc.construction
+    unordered = by == "name" or (kind_of(by) == "retrieval" and not PAIRING_MODES[by].sequence)
+    return "perturbed" if unordered else "neighbours"
+
+
+def draw(nc: NullConfig, i: int) -> Perturbation:
+    """The ``i``-th perturbed copy's values, uniform within the limits (``nc.seed``, ``i``)."""
+    rng = np.random.default_rng([nc.seed, i])
+    u = rng.uniform(-1.0, 1.0, 7)
+    q = int(rng.integers(nc.jpeg_quality, 96)) if nc.jpeg_quality else 0
+    return Perturbation(
+        gain=round(1.0 + nc.gain * u[0], 4),
+        offset=round(nc.offset * u[1], 3),
+        dx=round(nc.shift * u[2], 5),
+        dy=round(nc.shift * u[3], 5),
+        rotation_deg=round(nc.rotation_deg * u[4], 4),
+        scale=round(1.0 + nc.scale * u[5], 5),
+        blur=round(nc.blur * abs(u[6]), 6),
+        jpeg=q,
+    )
+
+
+def _evenly(n: int, k: int) -> np.ndarray:
+    """``min(n, k)`` indices of ``range(n)`` spread evenly, first and last kept."""
+    if n <= k:
+        return np.arange(n)
+    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
+
+
+def null_pairs(
+    frames: Table, proposed: Table, map_session: str, nc: NullConfig, by: str
+) -> NullPairs:
+    """The null pairs of ``map_session``'s frames that have proposals (``proposed``).
+
+    The query side of null pair ``j`` is a map frame under a name of its own (camera
+    ``<camera>~q<j>``: a frame may be the query of several null pairs) with the frame's image and
+    proposals; the reference, its neighbour in the map's order or a perturbed copy of it (camera
+    ``<camera>~null<j>``, its image URI naming the copy's drawn values).
+    """
+    how = construction_for(nc, by)
+    fr = frames.df
+    have = pd.MultiIndex.from_frame(proposed.df[FRAME_KEY].drop_duplicates())
+    mine = fr[(fr["session"] == map_session)].sort_values(["camera", "utime"], kind="stable")
+    mine = mine.reset_index(drop=True)
+    has = pd.MultiIndex.from_frame(mine[FRAME_KEY]).isin(have)
+    copies = 0
+    if how == "neighbours":
+        # each frame against the next and the next against it: (i, i + 1), (i + 1, i), ...
+        cam = mine["camera"].to_numpy()
+        i = np.flatnonzero(cam[:-1] == cam[1:])
+        both = np.stack([np.c_[i, i + 1], np.c_[i + 1, i]], axis=1).reshape(-1, 2)
+        both = both[has[both[:, 0]]]
+        both = both[_evenly(len(both), nc.pairs)]
+        q = mine.iloc[both[:, 0]].reset_index(drop=True)
+        r = mine.iloc[both[:, 1]].reset_index(drop=True)
+    else:
+        base = mine[has].reset_index(drop=True)
+        copies = max(1, math.ceil(nc.pairs / max(len(base), 1)))
+        order = np.arange(min(nc.pairs, len(base) * copies))
+        q = base.iloc[order % max(len(base), 1)].reset_index(drop=True)
+        r = q.copy()
+        r["camera"] = [f"{c}{COPY}{j}" for j, c in enumerate(q["camera"])]
+        r["image"] = [f"{img}{fragment(draw(nc, j))}" for j, img in enumerate(q["image"])]
+    own = q.copy()
+    own["camera"] = [f"{c}{QUERY}{j}" for j, c in enumerate(q["camera"])]
+    pairs = pd.DataFrame(
+        {
+            "q_session": own["session"].astype(str).to_numpy(),
+            "q_camera": own["camera"].astype(str).to_numpy(),
+            "q_utime": own["utime"].astype(np.int64).to_numpy(),
+            "r_session": r["session"].astype(str).to_numpy(),
+            "r_camera": r["camera"].astype(str).to_numpy(),
+            "r_utime": r["utime"].astype(np.int64).to_numpy(),
+            "distance_m": 0.0,
+            "yaw_diff_deg": 0.0,
+            "season_pair": "null",
+        },
+        columns=PAIR_COLUMNS,
+    )
+    named = pd.DataFrame({
+        "session": q["session"].to_numpy(), "camera": q["camera"].to_numpy(),
+        "utime": q["utime"].to_numpy(), "null_camera": own["camera"].to_numpy(),
+    })  # fmt: skip
+    props = proposed.df.merge(named, on=FRAME_KEY, sort=False)
+    props = props.assign(camera=props.pop("null_camera"))
+    rows = pairs[PAIR_COLUMNS[:6]].itertuples(index=False, name=None)
+    marks = [str(u).rpartition(PERTURB)[2] for u in r["image"]] if how == "perturbed" else []
+    # the map's alone (its proposals' key holds its ingest): another new session against the
+    # same map, in the same run directory, scores no null pair again
+    key = stable_hash("detect-null", proposed.key, how, dataclasses.asdict(nc), list(rows), marks)
+    extra = [own, r] if how == "perturbed" else [own]
+    return NullPairs(
+        Table(pd.concat([fr, *extra], ignore_index=True), stable_hash("null-frames", key)),
+        Table(pairs, key),
+        Table(props, stable_hash("null-proposals", key)),
+        how,
+        copies,
+    )
+
+
+@dataclass(frozen=True)
+class NullScores:
+    """The null's frame scores and change-box scores, and what ``detect.json`` says of it."""
+
+    frames: np.ndarray
+    boxes: np.ndarray
+    record: dict[str, Any]
+    entries: tuple[str, ...] = ()  # the null's detect chunks (cache/detect-null/<key>)
+
+
+def null_scores(
+    p: Any,
+    opt: DetectConfig,
+    measured: list[Any],
+    frames: Table,
+    props: dict[str, Table] | None,
+    map_session: str,
+    chunks: Callable[[Any, pd.DataFrame], list[tuple[tuple[Any, ...], Any]]],
+) -> NullScores | None:
+    """The null pairs scored by the run's detector (None: calibrated within the run).
+
+    ``chunks`` (ranks, frames) gives the detect chunks' units, as for the query frames. Where the
+    config asks for the null but the run's localizer cannot score a pair alone (the paper's
+    descriptor localizers rank among the whole map), a WARNING says so and the run is
+    calibrated within itself.
+    """
+    if opt.calibration != "null":
+        return None
+    kinds = [m.loc.kind for m in measured]
+    if len(measured) != 1 or kinds[0] not in PAIRED_KINDS or props is None:
+        log.warning(
+            "the no-change null needs one localizer that ranks inside a paired frame (%s); this "
+            "run's are %s: calibrated within the run instead ([detect] calibration)",
+            " or ".join(PAIRED_KINDS),
+            ", ".join(kinds),
+        )
+        return None
+    nc = opt.null
+    null = null_pairs(frames, props[map_session], map_session, nc, p.cfg.pairs.by)
+    if not len(null.pairs.df):
+        log.warning("the map %s has no frame to draw a null from: calibrated within the run",
+                    map_session)  # fmt: skip
+        return None
+    log.info("no-change null: %d %s pairs from the map %s", len(null.pairs.df), null.construction,
+             map_session)  # fmt: skip
+    mine = {**props, map_session: null.proposals}
+    ranks = localizer_ranks(p, measured[0].loc, null.frames, null.pairs, mine)
+    entries = p.units("detect-null", chunks(ranks, null.frames.df))
+    fr = pd.concat([read_cached_parquet(e.path / "frames.parquet") for e in entries])
+    bx = pd.concat([read_cached_parquet(e.path / "boxes.parquet") for e in entries])
+    boxes = bx.loc[bx["kind"] == "detection", "score"].to_numpy(np.float64)
+    scores = fr["score"].to_numpy(np.float64)
+    rec = null_record(nc, null, scores, len(boxes))
+    return NullScores(scores, boxes, rec, tuple(e.path.name for e in entries))
+
+
+def null_record(nc: NullConfig, null: NullPairs, scored: np.ndarray, boxes: int) -> dict:
+    """``detect.json``'s ``calibration``: the null's construction, size and limits."""
+    rec: dict[str, Any] = {
+        "method": "null",
+        "construction": null.construction,
+        "pairs": len(null.pairs.df),
+        "frames_scored": int(np.isfinite(scored).sum()),
+        "boxes": int(boxes),
+    }
+    if null.construction == "perturbed":
+        rec["copies_per_map_frame"] = null.copies
+        rec["limits"] = {
+            k: v for k, v in dataclasses.asdict(nc).items() if k not in ("construction", "pairs")
+        }
+    return rec
