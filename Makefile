@@ -13,7 +13,7 @@ UV_VERSION := 0.13.8
 # where pip finds the CPU wheel of torch on this project's machines (make lock reads its metadata)
 TORCH_WHEELS ?= $(shell pip config get global.find-links 2>/dev/null)
 
-.PHONY: help setup test lint bench real reproduce-table fixture clean lock
+.PHONY: help setup test lint docs bench real reproduce-table fixture clean lock
 
 help:  ## Show this help
 	@grep -E '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  %-18s %s\n", $$1, $$2}'
@@ -64,6 +64,13 @@ lint: $(STAMP)  ## ruff (rules, line length 100, formatting) and mypy (strict on
 	$(BIN)/ruff check harness tests bench examples
 	$(BIN)/ruff format --check harness tests bench examples
 	$(BIN)/mypy
+
+# The manual as a site (mkdocs.yml; the pages are docs/*.md), built with --strict: a broken link,
+# a missing page or a plugin API page that does not resolve fails. The configuration page must be
+# what the code says (python -m harness.config.reference --write regenerates it).
+docs: $(STAMP)  ## Build the documentation site into site/ (--strict), after checking docs/config.md
+	$(BIN)/python -m harness.config.reference --check
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
 bench: $(STAMP)  ## Run the benchmarks; results go to results/bench/
 	$(BIN)/python -m bench

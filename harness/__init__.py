@@ -1,7 +1,7 @@
 """dbl-harness: a batch benchmark of self-localization as change detection on NCLT logs.
 
-The pipeline's chain is :mod:`harness.pipeline.chain`; the method contract is SPEC.md (see
-``docs/method.md``) and the stage map ``docs/architecture.md``.
+The pipeline's chain is :mod:`harness.pipeline.chain`; what it computes is ``docs/method.md``
+(its sections are what ``method §n`` cites) and the stage map ``docs/architecture.md``.
 """
 
 from importlib.metadata import PackageNotFoundError

@@ -1,4 +1,4 @@
-"""Typed records and table schemas shared by all stages (SPEC section 2).
+"""Typed records and table schemas shared by all stages (method §2).
 
 Time is ``utime``: integer microseconds since the Unix epoch. Positions are metres in one map
 frame, angles radians. Images are handled upright.

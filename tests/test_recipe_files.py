@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from .readme_text import manual_text
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: The user's four files: each is all a user writes to add the method.
@@ -35,7 +37,7 @@ USER_FILES = ("kth_rank.py", "centre.py", "colour.py", "cdrl.py")
 
 def _readme_block(after: str, fence: str) -> str:
     """The first fenced block of language ``fence`` after the heading ``after`` in the README."""
-    text = (ROOT / "README.md").read_text()
+    text = manual_text()
     blocks = re.findall(r"^```(\w*)\n(.*?)^```", text[text.index(after) :], re.S | re.M)
     return next(body for lang, body in blocks if lang == fence)
 
@@ -81,7 +83,7 @@ def test_four_methods_through_the_users_door_one_file_each(
     shutil.copy(done / ".dbl-harness.json", out / ".dbl-harness.json")
     before = _package_state()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    for line in _readme_block(SECTION, "").strip().splitlines():
+    for line in _readme_block(SECTION, "sh").strip().splitlines():
         argv = line.split()
         exe = (
             [sys.executable, "-m", "harness.cli"]

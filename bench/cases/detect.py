@@ -1,4 +1,4 @@
-"""Bench case ``detect``: ``harness detect`` per query frame on the NCLT-sized workload (SPEC 13).
+"""Bench case ``detect``: ``harness detect`` per query frame on the NCLT-sized workload (§13).
 
 Frames of 1,232 x 1,616, grid5 proposals and the compact descriptor (``bench/nclt_detect.toml``).
 Run 1 builds the map (the 2012-01-22 session: proposals, the model trained on the map alone, its

@@ -9,7 +9,7 @@ from .common import ROOT, emit, timed
 
 def case_fusion(quick: bool) -> None:
     """Fusion, then labels + AP, then pixel + image AP, per query image (5 grid boxes + 12 random
-    boxes per image, every method of SPEC section 7), all measured in the same run."""
+    boxes per image, every method of method §7), all measured in the same run."""
     import dataclasses
 
     import pandas as pd

@@ -1,4 +1,4 @@
-"""Bench case ``local``: the local localizer (SPEC 13.3) per NCLT-sized query frame, on 2 cores.
+"""Bench case ``local``: the local localizer (method §13.3) per NCLT-sized query frame, on 2 cores.
 
 Pairs of 1,232 x 1,616 JPEG frames (a textured scene and the same scene moved a few pixels with
 objects pasted in), 60 boxes per frame (the order of ``segments``' colour regions), through

@@ -1,6 +1,6 @@
 """Bench case ``localizers``: the bag-of-visual-words engine next to the autoencoder, same run.
 
-NCLT-sized work (SPEC 11): subimages of 1,232 x 1,616 frames resized to the localizers' inputs
+NCLT-sized work (method §11): subimages of 1,232 x 1,616 frames resized to the localizers' inputs
 (BoVW 128 x 128 dense RootSIFT, the autoencoder 256 x 256), a vocabulary of k = 1,024 words from
 200,000 features, and ranking against databases of 10,000 and 100,000 reference subimages (an
 NCLT session of about 6,000 kept frames x 16 subimages is the latter's order). For each engine:

@@ -43,7 +43,7 @@ def _figures(out: Path, run: dict[str, Any]) -> dict[str, float]:
         "t1_rank_fusion_005": float(t1.loc["rank_fusion", "0.05"]),
         "t1_rank_no_fusion_005": float(t1.loc["rank_no_fusion", "0.05"]),
         "ts_rank_fusion_005": float(rf["ap"]),
-        # SPEC 9: every AP with its interval, its measured floor and chance band
+        # method §9: every AP with its interval, its measured floor and chance band
         "ts_rank_fusion_ci_low_005": float(rf["ci_low"]),
         "ts_rank_fusion_ci_high_005": float(rf["ci_high"]),
         "ts_floor_005": float(rf["floor"]),

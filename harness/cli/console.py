@@ -1,4 +1,4 @@
-"""The console view of a run's tables (the same pivots as the markdown, SPEC section 10)."""
+"""The console view of a run's tables (the same pivots as the markdown, method §10)."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def print_change_table(console, t, run: str) -> None:
 
 
 def print_table_l(console, t) -> None:
-    """Table L (SPEC section 11): a row per localizer and the fused row, then the floor.
+    """Table L (method §11): a row per localizer and the fused row, then the floor.
 
     Then its cost table; every undefined cell is ``-`` with its reason as a footnote.
     """

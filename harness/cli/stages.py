@@ -145,7 +145,7 @@ def cmd_rank(args: argparse.Namespace) -> int:
 
 
 def cmd_task(args: argparse.Namespace) -> int:
-    """``harness task export``: the localization task for a user's localizer (SPEC 12)."""
+    """``harness task export``: the localization task for a user's localizer (method §12)."""
     from harness.localizers.task_export import write_task
     from harness.pipeline.chain import check_inputs, until_pairs
     from harness.pipeline.stages import session_proposals

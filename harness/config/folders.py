@@ -1,4 +1,4 @@
-"""The config of ``harness detect`` on two folders of images (SPEC 13.2): no config file."""
+"""The config of ``harness detect`` on two folders of images (method §13.2): no config file."""
 
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ from harness.inputs import IMAGE_SUFFIXES
 from harness.pairs.modes import kind_of
 
 #: The share of a query folder's images that must have a map image of the same name (stem) for
-#: two folders to be paired by name by default (SPEC 13.2).
+#: two folders to be paired by name by default (method §13.2).
 SHARED_NAMES = 0.5
 
 
 def folder_pairing(map_dir: Path, query_dirs: list[Path]) -> str:
-    """``[pairs] by`` for folders without poses where the config does not say (SPEC 13.2).
+    """``[pairs] by`` for folders without poses where the config does not say (method §13.2).
 
     ``name`` where every query folder shares names with the map (:data:`SHARED_NAMES` of its
     images), else ``sequence``: on the fixture's twelve pairs of traverses, every frame a query,
@@ -62,7 +62,7 @@ def training_free_pairing(cfg: Config) -> Config:
 def image_folders_config(
     map_dir: Path, query_dirs: list[Path], cfg: Config | None = None
 ) -> tuple[Config, str, list[str]]:
-    """The config of ``harness detect --map-images DIR --query-images DIR`` (SPEC 13.2).
+    """The config of ``harness detect --map-images DIR --query-images DIR`` (method §13.2).
 
     The folders are sessions of images alone (format ``images``): the map is ``map``, the queries
     ``query``, ``query2``, ... Every query frame is paired as ``cfg``'s ``[pairs] by`` says, or,
@@ -70,7 +70,7 @@ def image_folders_config(
     file names, else by sequence (:func:`folder_pairing`) with the training-free descriptor
     :data:`PAIRING_DESCRIPTOR` where ``cfg`` is None, with ``cfg``'s localizer else. Every other
     setting is ``cfg``'s (a ``--config``), or the defaults; its sessions and fixture are not used,
-    its annotations and masks are (rows naming their image, SPEC 13.2; rows of its own sessions
+    its annotations and masks are (rows naming their image, method §13.2; rows of its own sessions
     are left out).
 
     Returns:

@@ -27,10 +27,16 @@ from harness.retrieval.config import ImportConfig, RetrievalConfig
 class Config:
     """A whole run's configuration, as loaded from TOML and checked (:func:`load_config`)."""
 
+    # the run's name: its tables' and page's title
     name: str
+    # where the sessions' sources are; {data_root} in a source is this (harness reproduce --data-
+    # root overrides it)
     data_root: Path
     annotations: Path | None  # None: no annotation file (harness detect only)
+    # [[sessions]]: the season logs, one table each (the first is the map where a command names
+    # none)
     sessions: tuple[SessionConfig, ...]
+    # the run's seed: the fixture, the training, the floors' random orders
     seed: int = 0
     ingest: IngestConfig = field(default_factory=IngestConfig)
     pairs: PairsConfig = field(default_factory=PairsConfig)

@@ -1,4 +1,4 @@
-"""The paper's convolutional autoencoder (SPEC section 6).
+"""The paper's convolutional autoencoder (method §6).
 
 Encoder: three blocks of conv 3x3 + batch-norm + ReLU + max-pool 2x2; a 256x256 RGB input gives a
 16 x 32 x 32 = 16,384-dim bottleneck, the descriptor. The decoder mirrors the encoder. Trained

@@ -13,17 +13,24 @@ PRECISIONS = ("auto", "fp32", "bf16")
 
 @dataclass(frozen=True)
 class DescriptorConfig:
-    """``[descriptor]``: the subimage descriptor, its training and encoding (SPEC section 6)."""
+    """``[descriptor]``: the subimage descriptor, its training and encoding (method §6)."""
 
+    # autoencoder (the paper's), hog, thumb, seqslam (no training), torchscript or onnx (a user's
+    # network from path)
     name: str = "autoencoder"
+    # the side, pixels, every subimage is resized to
     input_size: int = 256
+    # the autoencoder's channels, layer by layer
     channels: tuple[int, int, int] = (32, 32, 16)
     input_norm: str = "none"  # "none" (the paper) or "per_crop": standardise each crop's channels
+    # training epochs over the map's subimages (train_samples = 0)
     epochs: int = 4
     batch_size: int = 32  # training batch
     # subimages per encoder call; 0: 2 on CPU (keeps activations in cache), batch_size on GPU
     encode_batch: int = 0
+    # the optimiser's learning rate
     lr: float = 1e-3
+    # subimages of the map sessions the model is trained on, at most
     max_train_subimages: int = 4000
     # > 0: train on this many sample-steps (not epochs) with early stopping on held-out crops
     train_samples: int = 0
@@ -31,20 +38,26 @@ class DescriptorConfig:
     holdout: float = 0.1
     eval_every: int = 50  # steps between held-out evaluations
     patience: int = 4  # evaluations without improvement before training stops
+    # how descriptors are stored: float16 or float32
     dtype: str = "float16"
+    # auto (a CUDA GPU where there is one), cpu or cuda
     device: str = "auto"
     # the encoder's arithmetic, training and inference: "fp32", "bf16" (torch.autocast) or "auto"
     # (bf16 where the device multiplies bf16 natively: AVX512-BF16 or AMX, a CUDA GPU with bf16)
     precision: str = "auto"
+    # the training's and the crops' draws
     seed: int = 0
+    # data-loader processes that decode crops (0: in the main process)
     num_workers: int = 0
     # frames per cached descriptor shard (the unit an interrupted run resumes at)
     shard_frames: int = 256
     # name = "torchscript" or "onnx": a user's network from a local file (its content is keyed)
     path: str = ""
     mean: tuple[float, float, float] = (0.485, 0.456, 0.406)  # per RGB channel, values in [0, 1]
+    # per RGB channel, values in [0, 1]
     std: tuple[float, float, float] = (0.229, 0.224, 0.225)
     pooling: str = "avg"  # of a (N, C, H, W) output: "avg", "max" or "gem"
+    # gem pooling's exponent
     gem_p: float = 3.0
     # "reduced": decode each frame at 1/2, 1/4 or 1/8 where every box keeps input_size pixels
     # (JPEG: libjpeg's scaled decode); "full": always the whole frame
@@ -67,12 +80,13 @@ class ProjectionConfig:
     PCA or PCA-whitening to ``dim``, fitted on the reference sessions.
     """
 
-    # 0: off, rank with the full descriptor (SPEC 6); > 0: project to this many dimensions
+    # 0: off, rank with the full descriptor (method §6); > 0: project to this many dimensions
     dim: int = 0
     whiten: bool = False  # divide each component by its standard deviation before re-normalising
     # reference subimages (a seeded sample) encoded to fit the directions; memory fit_samples x D x
     # 4 bytes
     fit_samples: int = 8192
+    # the fit's draw of reference subimages
     seed: int = 0
 
 

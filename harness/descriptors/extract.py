@@ -1,4 +1,4 @@
-"""The descriptor stages' units (SPEC section 6).
+"""The descriptor stages' units (method §6).
 
 Training crops and the model, encoding shards, combining a session's shards. Each is a function of
 typed inputs to files in a temporary entry directory (the runner caches it); none reads the config

@@ -1,6 +1,6 @@
 """Compact descriptors: a PCA (or PCA-whitening) projection learned on the reference sessions.
 
-SPEC section 6 ranks with the full descriptor (16,384 dims for the paper's autoencoder); at the
+method §6 ranks with the full descriptor (16,384 dims for the paper's autoencoder); at the
 scale of the whole NCLT that is 52 GB of float16 descriptors and hours of ranking. With
 ``[projection] dim > 0`` (``docs/method.md``) the projection is fitted before any descriptor is
 stored, on a seeded sample of ``fit_samples`` reference-session subimages streamed through the
@@ -13,7 +13,7 @@ with LAPACK's ``syevr`` for the top ``dim`` only (deterministic; each direction'
 that its largest
 coordinate is positive). Applying it centres, rotates onto the top ``dim`` directions,
 optionally divides each by its standard deviation (whitening), and L2-normalises again, so
-descriptors stay unit vectors as SPEC section 6 asks.
+descriptors stay unit vectors as method §6 asks.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The descriptor stages (SPEC section 6): the model, the projection, each session's descriptors.
+"""The descriptor stages (method §6): the model, the projection, each session's descriptors.
 
 Their keys are made in :mod:`harness.descriptors.keys`; the builds are in
 :mod:`harness.descriptors.extract`.

@@ -1,1 +1,1 @@
-"""Evaluation: splits, metrics, pooled APs with intervals, SPEC 9's floor, chance and verdict."""
+"""Evaluation: splits, metrics, pooled APs with intervals, method §9's floor, chance and verdict."""

@@ -1,4 +1,4 @@
-"""Pooled APs with bootstrap intervals and paired differences (SPEC section 9).
+"""Pooled APs with bootstrap intervals and paired differences (method §9).
 
 Table I and S columns (:func:`pooled_rows`), the per-proposal and per-season-pair breakdowns
 (:func:`table_i_rows`); Table P's pixel and image APs are :mod:`harness.evaluate.pixel_aps`.
@@ -44,13 +44,13 @@ def query_frames(groups: np.ndarray) -> int:
     """The query frames among sample groups (``q_session|q_camera|q_utime|r_session``).
 
     One frame paired with three reference sessions is three bootstrap units but one piece of
-    evidence: SPEC 9's *evidence before a verdict* counts frames.
+    evidence: method §9's *evidence before a verdict* counts frames.
     """
     return len({str(g).rsplit("|", 1)[0] for g in np.unique(np.asarray(groups, dtype=object))})
 
 
 def stratified_labels(roc: np.ndarray, split: Split) -> np.ndarray:
-    """SPEC section 8's size-stratified labels.
+    """Method §8's size-stratified labels.
 
     By RoC only (+1 positive, 0 negative, -1 left out).
     """
@@ -88,7 +88,7 @@ class Pooled:
     def finish(self) -> list[dict]:
         """Each row's paired differences from ``rank_fusion`` and from ``random``, and its verdict.
 
-        Both differences use the same resamples; the verdict is SPEC 9's one rule
+        Both differences use the same resamples; the verdict is method §9's one rule
         (:func:`harness.evaluate.chance.verdict`).
         """
         for r in self.rows:
@@ -130,7 +130,7 @@ class Pooled:
 def chance_fields(
     floor: tuple[float, float, float], ap: float, ceiling: float = float("nan")
 ) -> dict[str, float]:
-    """A row's floor, chance band, ceiling and share of the reachable gap (SPEC 9)."""
+    """A row's floor, chance band, ceiling and share of the reachable gap (method §9)."""
     f, lo, hi = floor
     return {
         "floor": f,

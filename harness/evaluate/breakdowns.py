@@ -1,4 +1,4 @@
-"""The breakdowns the report page draws, computed when the reports are written (SPEC 8-9).
+"""The breakdowns the report page draws, computed when the reports are written (method §8-9).
 
 PR curves under Table I's labels and under Table S's, and Table S's AP per season pair with its
 floor: the page reads them from ``splits/`` and computes nothing (issue 51).

@@ -1,4 +1,4 @@
-"""Floor, chance band, ceiling and the one verdict rule (SPEC 9, *Floor, chance and ceiling*).
+"""Floor, chance band, ceiling and the one verdict rule (method §9, *Floor, chance and ceiling*).
 
 The **floor** of a figure is the mean of the same figure over seeded random orders of the same
 samples (uniform scores through the same strata, pixel maps or candidate boxes); the **chance
@@ -27,7 +27,7 @@ import numpy as np
 from harness.evaluate.config import EvalSettings
 from harness.evaluate.metrics import RECALL_GRID
 
-#: The fewest random orders a floor may rest on (SPEC 9).
+#: The fewest random orders a floor may rest on (method §9).
 MIN_DRAWS = 200
 #: The chance band: these percentiles of the random draws.
 BAND = (5.0, 95.0)
@@ -63,13 +63,13 @@ VERDICT_TEX = {
     "baseline": r"$^{\vartriangle}$",
 }
 #: ``[report] min_positive_images``'s default: the fewest query images holding a positive on
-#: which a figure earns a verdict (SPEC 9, *Evidence before a verdict*).
+#: which a figure earns a verdict (method §9, *Evidence before a verdict*).
 MIN_POSITIVE_IMAGES = 5
 #: The legend line under every table that shows the marks.
 MARK_LEGEND = (
     "▲ above chance: AP above the chance band (95th percentile of random orders of the same "
     "samples) and its paired bootstrap difference from random clear above 0; ▼ below chance "
-    "(symmetrically); ○ cannot be told from chance (SPEC 9)."
+    "(symmetrically); ○ cannot be told from chance (method §9)."
 )
 
 
@@ -79,7 +79,7 @@ def _finite(*v: float) -> bool:
 
 @dataclass(frozen=True)
 class ChanceSettings:
-    """How a table's SPEC 9 figures are measured (``[report]`` and the run's seed).
+    """How a table's method §9 figures are measured (``[report]`` and the run's seed).
 
     ``draws`` random orders for the floor, ``n_boot`` bootstrap resamples of query images for
     the intervals at level ``ci``, ``seed`` for both, and ``needed`` positive images before a
@@ -101,7 +101,7 @@ class ChanceSettings:
 
 @dataclass(frozen=True)
 class Evidence:
-    """What a figure rests on (SPEC 9, *Evidence before a verdict*).
+    """What a figure rests on (method §9, *Evidence before a verdict*).
 
     ``positive_images``: the query images holding a positive sample of the figure; ``needed``:
     ``[report] min_positive_images``. A bootstrap over query images can vary a figure only when
@@ -121,7 +121,7 @@ class Evidence:
 
 
 def versus_no_pixel(verdict_id: str, vs_low: float) -> str:
-    """SPEC 13.3 on top of :func:`verdict`: ``above`` only when also clear of the no-pixel rows.
+    """Method §13.3 on top of :func:`verdict`: ``above`` only when also clear of the no-pixel rows.
 
     A detector above chance stays ``above`` only when the low end of its paired bootstrap
     difference from the best no-pixel baseline is above 0; else ``baseline`` (above chance, not
@@ -138,7 +138,7 @@ def verdict(
     vs_hi: float,
     evidence: Evidence | None = None,
 ) -> str:
-    """SPEC 9's one rule: ``above``, ``below``, ``chance``, ``few``, ``untested``, ``undefined``.
+    """Method §9's one rule: ``above``, ``below``, ``chance``, ``few``, ``untested``, ``undefined``.
 
     Args:
         ap: the figure.
@@ -173,7 +173,7 @@ def few_warning(cells: int, needed: int) -> str:
     return (
         f"WARNING: {cells} cell{'s' if cells != 1 else ''} rest on fewer than {max(needed, 2)} "
         "query images holding a positive, too few for the bootstrap over query images to vary "
-        'them: each shows its AP with "too few positives (n)" and no verdict or colour (SPEC 9, '
+        'them: each shows its AP with "too few positives (n)" and no verdict or colour (method §9, '
         "evidence before a verdict; [report] min_positive_images)."
     )
 
@@ -189,7 +189,7 @@ def draw_seed(seed: int, *key: object) -> int:
 def aps_of_rows(
     labels: np.ndarray, scores: np.ndarray, weights: np.ndarray | None = None
 ) -> np.ndarray:
-    """101-point interpolated AP (SPEC 9) of every row of ``scores`` against the same labels.
+    """101-point interpolated AP (method §9) of every row of ``scores`` against the same labels.
 
     Equal to :func:`harness.evaluate.metrics.weighted_average_precision` of each row (tied scores
     enter together; ``weights`` default to 1). One stable sort per row.
@@ -296,7 +296,7 @@ def plain_chance(labels: np.ndarray, draws: int, seed: int) -> tuple[float, floa
 
 
 def stratum_index(sob: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Each sample's SoB stratum (SPEC 8: ``[lo, hi)``, the last one closed); -1 outside."""
+    """Each sample's SoB stratum (method §8: ``[lo, hi)``, the last one closed); -1 outside."""
     e = np.asarray(edges, np.float64)
     sb = np.asarray(sob, np.float64)
     k = np.clip(np.searchsorted(e, sb, side="right") - 1, 0, len(e) - 2)
@@ -306,7 +306,7 @@ def stratum_index(sob: np.ndarray, edges: np.ndarray) -> np.ndarray:
 def stratified_chance(
     labels: np.ndarray, sob: np.ndarray, edges: np.ndarray, draws: int, seed: int
 ) -> tuple[float, float, float]:
-    """Floor and band of the size-stratified AP (SPEC 8): random orders within the same strata.
+    """Floor and band of the size-stratified AP (method §8): random orders within the same strata.
 
     Each draw is the positives-weighted mean of the strata's random-order APs (strata with a
     positive and a negative take part), as :func:`harness.evaluate.metrics.stratified_ap` weighs

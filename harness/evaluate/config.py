@@ -1,4 +1,4 @@
-"""The evaluation's config: ``[splits]`` (SPEC 8) and ``[report]`` (SPEC 9), and their checks."""
+"""The evaluation's config: ``[splits]`` (method §8), ``[report]`` (§9) and their checks."""
 
 from __future__ import annotations
 
@@ -11,13 +11,19 @@ from harness.checks import check_range, check_value
 
 @dataclass(frozen=True)
 class SplitsConfig:
-    """``[splits]``: RoC/SoB ranges of the difficulty splits and Table S strata (SPEC 8)."""
+    """``[splits]``: RoC/SoB ranges of the difficulty splits and Table S strata (method §8)."""
 
+    # the RoC-max thresholds of Table I (the paper's 0.01-0.05)
     roc_max: tuple[float, ...] = (0.01, 0.02, 0.03, 0.04, 0.05)
+    # a positive's RoC range
     pos_roc: tuple[float, float] = (0.9, 1.0)
+    # a positive's SoB range
     pos_sob: tuple[float, float] = (0.0, 0.4)
+    # a negative's least RoC
     neg_roc_min: float = 0.0
+    # a negative's SoB range
     neg_sob: tuple[float, float] = (0.4, 1.0)
+    # Table S's SoB strata edges
     sob_strata: tuple[float, ...] = (
         0.0,
         0.02,
@@ -33,14 +39,18 @@ class SplitsConfig:
 class ReportConfig:
     """``[report]``: bootstrap, plots, ``report.html`` and its gallery."""
 
+    # bootstrap resamples behind every interval
     bootstrap: int = 1000
+    # the intervals' level (and Holm's family-wise error, 1 - ci)
     ci: float = 0.95
-    # SPEC 9: random orders of the same samples behind every floor and chance band (>= 200)
+    # method §9: random orders of the same samples behind every floor and chance band (>= 200)
     chance_draws: int = 200
-    # SPEC 9, evidence before a verdict: a figure whose positives sit in fewer query images than
+    # method §9, evidence before a verdict: a figure whose positives sit in fewer query images than
     # this (or whose bootstrap cannot vary it) prints "too few positives (n)" and no verdict
     min_positive_images: int = 5
+    # LoC map examples on the page
     locmap_examples: int = 4
+    # write the figures
     plots: bool = True
     html: bool = True  # write report.html (the one page to look at) after the tables
     gallery: int = 3  # report.html: worst false positives and missed changes shown per method
@@ -116,7 +126,7 @@ def check_report(rp: ReportConfig, where: str) -> None:
         where,
         "[report] chance_draws",
         rp.chance_draws,
-        ">= 200 random orders (SPEC 9: the floor is measured, not the positive rate)",
+        ">= 200 random orders (method §9: the floor is measured, not the positive rate)",
     )
     c(
         type(rp.min_positive_images) is int and rp.min_positive_images >= 1,

@@ -1,4 +1,4 @@
-"""Table L's figures (SPEC 11), computed from the blocks' summaries; the reports render them.
+"""Table L's figures (method §11), computed from the blocks' summaries; the reports render them.
 
 Each localizer's recall, its APs with intervals and floors, and its paired difference from the
 first localizer.

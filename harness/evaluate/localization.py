@@ -1,4 +1,4 @@
-"""The localization table's figures (SPEC section 6): Recall@N and median r.
+"""The localization table's figures (method §6): Recall@N and median r.
 
 Per proposal method and season pair, over every ranked subimage and over the clean ones, beside
 their chance levels.

@@ -1,4 +1,4 @@
-"""101-point interpolated average precision (SPEC section 9) and its relatives.
+"""101-point interpolated average precision (method §9) and its relatives.
 
 Its size-stratified form (section 8), weighted AP for pixel regions, PR curves, and bootstrap
 intervals with paired comparisons.
@@ -105,7 +105,7 @@ def stratified_ap(
     edges: np.ndarray | list[float],
     weights: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """Size-stratified AP (SPEC section 8): (AP, weighted positive rate).
+    """Size-stratified AP (method §8): (AP, weighted positive rate).
 
     Samples are binned by SoB into strata ``[edges[k], edges[k+1])`` (the last one closed). Within
     every stratum holding at least one positive and one negative the 101-point AP is computed;

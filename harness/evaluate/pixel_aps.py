@@ -1,4 +1,4 @@
-"""Table P's figures (SPEC 13.2): each query image's LoC map scored against its change masks.
+"""Table P's figures (method §13.2): each query image's LoC map scored against its change masks.
 
 Pooled over images with a bootstrap interval and the chance floor of a random map.
 """
@@ -27,7 +27,7 @@ from harness.records import frame_sizes
 def pixel_regions(
     boxes: np.ndarray, change: np.ndarray, width: float, height: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The image cut into rectangular regions by every box edge (exact areas, SPEC section 9).
+    """The image cut into rectangular regions by every box edge (exact areas, method §9).
 
     Returns:
         (area (c,), positive (c,) bool: inside the union of the change boxes, owner (c,) int: the
@@ -65,7 +65,7 @@ def pixel_image_rows(
     methods: tuple[str, ...],
     ids: dict[str, int],
 ) -> list[dict]:
-    """Table P (SPEC section 9).
+    """Table P (method §9).
 
     Pixel AP over exact regions and image AP, pooled, with intervals.
     """
@@ -247,7 +247,7 @@ def _p_ap(name: str, d: dict[str, list]) -> tuple[float, np.ndarray, dict, Any]:
 def _map_chance(
     cfg: EvalSettings, maps: dict[str, dict[str, list]], roc: np.ndarray
 ) -> dict[tuple[str, str], tuple[tuple[float, float, float], float]]:
-    """Table P's floor, chance band and ceiling per (pixel or image, box set), SPEC 9.
+    """Table P's floor, chance band and ceiling per (pixel or image, box set), method §9.
 
     Floor: every box of the set takes a uniform random score, pixels take the score of the box
     that owns them in the method's map (uncovered pixels the lowest score of the draw) and each

@@ -1,4 +1,4 @@
-"""One block's evaluation at one split (SPEC 8-10): split report, summary rows, breakdowns.
+"""One block's evaluation at one split (method §8-10): split report, summary rows, breakdowns.
 
 Its PR curves too, and the page's PR curves and AP per season pair under Table S's labels.
 

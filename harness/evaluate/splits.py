@@ -1,4 +1,4 @@
-"""RoC/SoB difficulty labels (SPEC section 8)."""
+"""RoC/SoB difficulty labels (method §8)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""What the change tables say of their figures (SPEC sections 7 and 9).
+"""What the change tables say of their figures (method §7 and 9).
 
 The confound warning where a baseline that reads no pixel nears the best method, and Holm's
 correction of the paired tests.
@@ -12,12 +12,12 @@ import pandas as pd
 from harness.evaluate.metrics import holm
 from harness.methods import BASELINES, FUSION_METHODS
 
-#: A baseline within this of the best of the six methods is reported under the table (SPEC 7).
+#: A baseline within this of the best of the six methods is reported under the table (method §7).
 WARN_MARGIN = 0.02
 
 
 def confound_warnings(main: pd.DataFrame, table: str) -> list[str]:
-    """SPEC section 7: warn where a baseline that reads no pixel nears the best method.
+    """Method §7: warn where a baseline that reads no pixel nears the best method.
 
     Where one comes within 0.02 of the best of the six methods, say so: one line per baseline,
     naming every split where it happens and both APs.

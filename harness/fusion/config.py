@@ -1,4 +1,4 @@
-"""The fusion stage's config: ``[fusion]`` (SPEC 7) and its checks."""
+"""The fusion stage's config: ``[fusion]`` (method §7) and its checks."""
 
 from __future__ import annotations
 
@@ -11,13 +11,15 @@ from harness.methods import ALL_METHODS, FUSION_OPTIONS, known_fusion_methods
 
 @dataclass(frozen=True)
 class FusionConfig:
-    """``[fusion]``: the methods of SPEC section 7 that are computed and reported."""
+    """``[fusion]``: the methods of method §7 that are computed and reported."""
 
-    # computed and reported; SPEC order is kept whatever the order here
+    # computed and reported; the method's order is kept whatever the order here
     methods: tuple[str, ...] = ALL_METHODS
+    # the random baseline's and the floors' draws
     seed: int = 0
+    # fused qBBs a frame at most
     max_fused_boxes: int = 4096
-    rrf_c: float = 60.0  # RRF's constant c (SPEC section 14; Cormack et al. 2009 use 60)
+    rrf_c: float = 60.0  # RRF's constant c (method §14; Cormack et al. 2009 use 60)
     # a registered rule's [fusion.<name>] table, built as its options dataclass
     options: dict[str, Any] = field(default_factory=dict)
 
@@ -34,7 +36,7 @@ class FusionConfig:
 def check_fusion(fu: FusionConfig, where: str) -> None:
     """``[fusion]``: known methods, each once, their options."""
     c = check_value
-    fusion_methods = known_fusion_methods  # SPEC section 7's and registered ones
+    fusion_methods = known_fusion_methods  # method §7's and registered ones
 
     bad = [m for m in fu.methods if m not in fusion_methods()]
     c(

@@ -1,4 +1,4 @@
-"""Fusion of subimage ranks into sample LoC values (SPEC section 7).
+"""Fusion of subimage ranks into sample LoC values (method §7).
 
 Also the per-image sample table and pixel-wise LoC maps.
 """
@@ -45,7 +45,7 @@ def register_fusion_rule(
 ) -> None:
     """Add a fused-set fusion method, computed and reported when ``[fusion] methods`` lists it.
 
-    It is reported after SPEC section 7's methods under ``label``; its source is part of the
+    It is reported after method §7's methods under ``label``; its source is part of the
     samples' cache key, so editing it recomputes them. The same catalogue record as the paper's
     rules (``harness.methods.FusionRule``): ``needs_score`` (it reads ``d``: a localizer without
     scores does not get it), ``across`` (it is defined on the box list of all localizers) and
@@ -160,7 +160,7 @@ def loc_from_cover(
         d: (n,) exact L2 distances of the originals to their ground-truth place.
         L: (n,) rank-list lengths; needed by every rank-fusion method except ``rank_fusion_asc``.
         seed: seeds the random cover subsets of ``rank_fusion_le2`` / ``le3``.
-        rrf_c: the constant of ``rrf`` (SPEC section 14).
+        rrf_c: the constant of ``rrf`` (method §14).
         options: a registered rule's options (its ``[fusion.<rule>]`` table; None: the
             defaults of the dataclass it registered).
 
@@ -227,13 +227,13 @@ def fuse(
     *,
     L: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Samples and their LoC for one query image (SPEC section 7).
+    """Samples and their LoC for one query image (method §7).
 
     Args:
         boxes: (n, 4) original boxes of all proposal methods.
         r: (n,) normalised ranks in (0, 1].
         d: (n,) L2 distances to the ground-truth place.
-        fusion_rule: any method id of SPEC section 7 except ``size_prior`` and ``random``
+        fusion_rule: any method id of method §7 except ``size_prior`` and ``random``
             (:func:`image_loc`).
         seed: seeds the random cover subsets of the ``le`` methods.
         max_boxes: cap on the intersection closure (:func:`intersection_closure`); None: none.

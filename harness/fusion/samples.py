@@ -1,4 +1,4 @@
-"""The samples stage (SPEC 7): every query image's fused boxes with their LoC, one table per run.
+"""The samples stage (method §7): every query image's fused boxes with their LoC, one table per run.
 
 Each image's proposals and ranks become fused sets (:func:`harness.fusion.fuse.fuse`), one row a
 box and method, written in query-frame chunks.
@@ -114,7 +114,7 @@ def fuse_samples(
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Samples of every annotated query image (one per pair) with the LoC of each method.
 
-    ``fusion`` gives the methods (any order: SPEC order is kept), the seed, the cap on fused boxes
+    ``fusion`` gives the methods (any order: the method's is kept), the seed, the cap on fused boxes
     per image, RRF's constant and a registered rule's options.
 
     Samples are built for all proposal methods together (``proposals = all``) and, where there

@@ -1,4 +1,4 @@
-"""The fusion stage (SPEC 7-8): ranks + annotations -> a sample per fused box, each rule's LoC.
+"""The fusion stage (method §7-8): ranks + annotations -> a sample per fused box, each rule's LoC.
 
 Its key is made in :mod:`harness.fusion.keys`; the build is
 :func:`harness.fusion.samples.write_samples`.
@@ -19,7 +19,7 @@ from harness.runtime.stage import RankTable, Table, Units
 def fused_samples(
     p: Units, fc: FusionConfig, sp: SplitsConfig, ranks: RankTable, frames: Table, ann: Table
 ) -> Table:
-    """Ranks + annotations -> a sample per fused box with each fusion rule's LoC (SPEC 7-8)."""
+    """Ranks + annotations -> a sample per fused box with each fusion rule's LoC (method §7-8)."""
     build = partial(write_samples, ranks.df, frames.df, ann.df, fc)
     entry = p.unit("samples", fusion_keys.samples(fc, sp, ranks.key, ann.key), build)
     return Table(read_cached_parquet(entry.path / "samples.parquet"), entry.key)

@@ -1,4 +1,4 @@
-"""Annotation tables (SPEC section 2): loading, validation, importers and a labelling exporter.
+"""Annotation tables (method §2): loading, validation, importers and a labelling exporter.
 
 The canonical table is a CSV with columns ``session, camera, utime, status, x1, y1, x2, y2, label``:
 one row per change box, and one row with empty box fields for a ``no-change`` frame.
@@ -154,7 +154,7 @@ def load_annotations(
     """Read and validate a canonical annotation CSV (UTF-8; errors name the file's own line).
 
     A CSV of a folder session may name each row's image (an ``image`` column, the path relative
-    to the folder, instead of ``session, camera, utime``; SPEC 13.2): ``names`` (the folder
+    to the folder, instead of ``session, camera, utime``; method §13.2): ``names`` (the folder
     sessions' file names) give the frame keys (:func:`harness.ingest.names.frames_by_image`,
     ``skip_sessions`` the map's).
     """

@@ -17,12 +17,19 @@ class SessionConfig:
     ``source`` is an NCLT root, a ``.bag``, a ROS2 bag directory or an ``.mcap``.
     """
 
+    # the session's name (letters, digits, - and _), as commands and tables name it
     name: str
+    # an NCLT root, a .bag, a ROS2 bag directory, an .mcap or a folder of images
     source: str
+    # WI, SP, SU or AU (empty: from the name's month, as NCLT names sessions)
     season: str = ""
+    # the log format: auto (by the source), nclt, ros1, ros2, mcap or images
     format: str = "auto"
+    # the camera the frames come from (NCLT: Cam0-Cam5; a log: the name its frames carry)
     camera: str = "Cam5"
+    # the image topic of a bag or MCAP (unset: the only one there is)
     image_topic: str | None = None
+    # the pose or odometry topic (unset: the only one there is, or /tf)
     pose_topic: str | None = None
     tf_child_frame: str | None = None  # older name of camera_frame: the frame whose pose /tf gives
     # /tf: the frame poses are expressed in (default: the tree's root)
@@ -52,14 +59,17 @@ class IngestConfig:
 
 @dataclass(frozen=True)
 class MasksConfig:
-    """``[masks]``: change masks as annotations (SPEC 13.2).
+    """``[masks]``: change masks as annotations (method §13.2).
 
     ``folder``: one 0/255 image per annotated image of a folder session, named like it; its
     8-connected components of at least ``min_mask_area`` pixels are change boxes, an all-zero
     mask a no-change image.
     """
 
+    # change masks as annotations: one 0/255 image per annotated image of a folder session, named
+    # like it (harness detect --masks overrides it)
     folder: str | None = None
+    # the smallest mask component, pixels, that becomes a change box
     min_mask_area: int = 16
 
 

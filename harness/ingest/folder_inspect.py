@@ -35,7 +35,7 @@ _UNIT_WORDS = {1: "ns", 1_000: "us", 1_000_000: "ms", 1_000_000_000: "s"}
 
 
 def _name_pattern(stems: list[str]) -> str:
-    """How a folder's file names are read as times (SPEC 13.2's folders)."""
+    """How a folder's file names are read as times (method §13.2's folders)."""
     if not stems:
         return "no images"
     if all(s.isdigit() for s in stems):

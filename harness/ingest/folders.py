@@ -332,7 +332,7 @@ class EurocFolder(_Folder):
 
 
 class ImagesFolder(_Folder):
-    """A folder of images and nothing else: no trajectory (SPEC 13.2, ``[pairs] by = "retrieval"``).
+    """A folder of images and nothing else: no trajectory (method §13.2, ``[pairs] by``).
 
     The images lie in the folder itself, in file-name order. Their times: ``times.txt`` (one time
     in seconds per image, in name order, as KITTI writes it) if present; else the file names where
@@ -381,7 +381,7 @@ FOLDER_FORMATS: dict[str, _Folder] = {
 def frame_names(path: Path, fmt: str) -> dict[int, str]:
     """Each image's name by its frame time (utime, µs): its path relative to the session folder.
 
-    The names SPEC 13.2 keeps through every output and pairs by (``[pairs] by = "name"``). The
+    The names method §13.2 keeps through every output and pairs by (``[pairs] by = "name"``). The
     times are the ones the ingester gives the frames (:meth:`_Folder.images`, in µs as the frame
     table counts them); an image whose µs repeats an earlier one's is the ingester's duplicate
     and keeps the first name.

@@ -24,7 +24,7 @@ def build_frame_table(
     pose_frame: str = "",
     pose_of: str = "",
 ) -> pd.DataFrame:
-    """One session's frame rows (SPEC's frame table) from image times, poses and image URIs."""
+    """One session's frame rows (method §2's frame table) from image times, poses and URIs."""
     df = pd.DataFrame(
         {
             "session": session,

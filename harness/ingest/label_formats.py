@@ -1,4 +1,4 @@
-"""Annotations to and from labelling tools (SPEC section 10).
+"""Annotations to and from labelling tools (method §10).
 
 COCO, Pascal VOC and CVAT boxes imported into the harness's CSV, and the query frames exported
 for labelling.

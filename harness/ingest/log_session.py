@@ -63,7 +63,7 @@ def _pose_mode(sc: SessionConfig, topics: dict[str, tuple[str, int]], where: str
     """How the frames get poses: ``tf``, ``topic`` or ``none``.
 
     ``tf``: composed through the tf tree; ``topic``: one pose topic, as it is; ``none``: a folder
-    of images alone (SPEC 13.2), whose frames carry no pose.
+    of images alone (method §13.2), whose frames carry no pose.
     """
     if fmt == "images":
         return "none"
@@ -335,7 +335,7 @@ def _finish_tf(
     report: dict,
     src: Path,
 ) -> pd.DataFrame:
-    """Camera poses composed through the tf tree at the image times (SPEC section 3).
+    """Camera poses composed through the tf tree at the image times (method §3).
 
     ``r``: what the pass over the log gathered (images, the tf tree, the images' frame ids).
     """

@@ -1,4 +1,4 @@
-"""Change masks as annotations (SPEC 13.2): one 0/255 image per annotated image, named like it.
+"""Change masks as annotations (method §13.2): one 0/255 image per annotated image, named like it.
 
 A mask folder holds, for each annotated image of a folder session, an image of the same name
 (stem; any image suffix) and the same size whose non-zero pixels are change. Its 8-connected

@@ -1,4 +1,4 @@
-"""The file names of folder sessions' frames (SPEC 13.2): kept through every output, paired by.
+"""The file names of folder sessions' frames (method §13.2): kept through every output, paired by.
 
 A frame read from a folder (images alone, or TUM, KITTI, EuRoC) is named by its image file's path
 relative to the session folder; a frame of a log (NCLT, ROS bags, MCAP) has no file name.
@@ -75,7 +75,7 @@ def frames_by_image(
     where: str,
     rows: list[str] | None = None,
 ) -> pd.DataFrame:
-    """Annotation rows that name their image (``image``) with their frame keys (SPEC 13.2).
+    """Annotation rows that name their image (``image``) with their frame keys (method §13.2).
 
     ``image`` is the image's path relative to its folder, or its name; it is matched by stem
     (a mask ``0007.png`` names the image ``0007.jpg``) among the folder sessions' frames, leaving

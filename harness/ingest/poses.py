@@ -1,4 +1,4 @@
-"""Pose extraction from messages and interpolation at image times (SPEC section 3)."""
+"""Pose extraction from messages and interpolation at image times (method §3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The ingest stages (SPEC section 3): each session's log, the run's frame table, the annotations.
+"""The ingest stages (method §3): each session's log, the run's frame table, the annotations.
 
 Each stage function takes the run (:class:`harness.runtime.stage.Units`), its config sections and
 the tables before it; its key is made in :mod:`harness.ingest.keys`.
@@ -66,7 +66,7 @@ def annotation_table(
 ) -> Table:
     """The annotations (file ``path``, mask folder ``[masks]`` or both), checked against the frames.
 
-    Rows that name their image (``image``: a folder session's file, SPEC 13.2) and masks
+    Rows that name their image (``image``: a folder session's file, method §13.2) and masks
     (``[masks] folder``) get their frame keys from the folder sessions' file names; a frame
     annotated in both is an error. The key is the contents' hash. ``skip``: sessions whose rows
     are not checked (a learned descriptor's training sessions); ``optional``: no annotations is

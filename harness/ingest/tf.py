@@ -1,4 +1,4 @@
-"""Camera poses from a ``/tf`` tree (SPEC section 3).
+"""Camera poses from a ``/tf`` tree (method §3).
 
 The pose of a target frame (the camera) in a fixed frame, composed through every transform on the
 path at each image time.

@@ -1,1 +1,1 @@
-"""SPEC 11's outside localizers: the task export (their stages: ``pipeline.localizer_stages``)."""
+"""Method §11's outside localizers: the task export (stages: ``pipeline.localizer_stages``)."""

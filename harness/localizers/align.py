@@ -1,4 +1,4 @@
-"""The local localizer's alignment of a pair (SPEC 13.3): the map frame warped onto the query's.
+"""The local localizer's alignment of a pair (method §13.3): the map frame warped onto the query's.
 
 :func:`align_pair` tries the chain of ``[detect.local] align`` in order: a homography from ORB
 (or SIFT) matches with RANSAC, accepted only with enough inliers and a plausible warp; an affine

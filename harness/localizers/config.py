@@ -9,7 +9,7 @@ from harness.checks import check_value
 from harness.descriptors.config import DescriptorConfig
 from harness.retrieval.config import BovwConfig
 
-#: The name of the cross-localizer block (SPEC section 11).
+#: The name of the cross-localizer block (method §11).
 ALL_LOCALIZERS = "all localizers"
 
 
@@ -25,7 +25,7 @@ KEYPOINTS = ("orb", "sift")
 
 @dataclass(frozen=True)
 class LocalConfig:
-    """A ``local`` localizer's options (SPEC 13.3, :mod:`harness.localizers.local`).
+    """A ``local`` localizer's options (method §13.3, :mod:`harness.localizers.local`).
 
     ``[[localizers]] local = {...}`` or ``[detect.local]``.
     """
@@ -34,6 +34,7 @@ class LocalConfig:
     align: tuple[str, ...] = ("homography", "identity")
     # the homography's local features: "orb" (measured as good as SIFT here, and cheaper) or "sift"
     keypoints: str = "orb"
+    # keypoints a frame at most for the alignment's feature matching
     max_keypoints: int = 800
     # a homography is accepted with at least this many RANSAC inliers ...
     min_inliers: int = 12
@@ -47,10 +48,12 @@ class LocalConfig:
     image: str = "gradient"
     # the search window: the box grown by this share of its width / height on each side ...
     grow: float = 0.25
+    # the least growth of a template, work pixels
     min_grow_px: int = 4
     # ... and the tolerance around the expected position: this share of the frame's diagonal
     # (what alignment leaves scales with the frame), at least min_tolerance_px ...
     tolerance: float = 0.015
+    # the least search tolerance, work pixels
     min_tolerance_px: int = 1
     # ... and the window grows at least this many tolerances on each side
     window_over_tolerance: int = 1
@@ -82,6 +85,7 @@ class KeypointConfig:
 
     # the local features: "sift" (the measured default), "orb" or "akaze" (cheaper)
     features: str = "sift"
+    # keypoints a frame at most (the strongest kept)
     max_keypoints: int = 1500
     # Lowe's ratio test, both ways (query to map and map to query)
     ratio: float = 0.8
@@ -132,24 +136,30 @@ def check_keypoints(kc: KeypointConfig, where: str) -> KeypointConfig:
 
 @dataclass(frozen=True)
 class LocalizerImportConfig:
-    """A localizer's ``import`` table: ranked lists from a file (SPEC section 12)."""
+    """A localizer's ``import`` table: ranked lists from a file (method §12)."""
 
+    # the ranked lists: a CSV or parquet file of query subimage, map frame, score
     file: str
+    # distance (smaller is more similar) or similarity (in [0, 1])
     score_kind: str = "distance"
 
 
 @dataclass(frozen=True)
 class LocalizerConfig:
-    """One ``[[localizers]]`` entry (SPEC section 11): a name, proposals and one way to rank.
+    """One ``[[localizers]]`` entry (method §11): a name, proposals and one way to rank.
 
     ``kind`` names a :data:`harness.localizers.kinds.LOCALIZER_KINDS` record and ``options`` is its
     sub-table (a ``DescriptorConfig``, ``BovwConfig``, ``LocalizerImportConfig`` or a registered
     kind's dataclass); ``proposals`` are the ``[proposals] methods`` it uses (all by default).
     """
 
+    # the localizer's name in Table L and the page
     name: str
+    # descriptor, bovw, import, local or keypoints: the sub-table that holds its options
     kind: str
+    # the proposal methods whose subimages it ranks
     proposals: tuple[str, ...]
+    # the kind's own table (descriptor = {...}, bovw = {...}, ...), below
     options: Any = None
 
     @property

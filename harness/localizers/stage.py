@@ -1,4 +1,4 @@
-"""The ``local`` localizer's stage (SPEC 13.3): each subimage ranked inside its paired map frame.
+"""The ``local`` localizer's stage (method §13.3): each subimage ranked inside its paired map frame.
 
 Its key is made in :mod:`harness.localizers.keys`; a unit is
 :func:`harness.localizers.local.write_local_ranks`.

@@ -1,4 +1,4 @@
-"""``harness task export``: the localization task a user's own localizer must solve (SPEC 12).
+"""``harness task export``: the localization task a user's own localizer must solve (method §12).
 
 Written into ``OUT/task/`` of a run directory, from the same cache entries (pairs, proposals)
 that a later ``harness reproduce --out OUT --import NAME=FILE`` reads, so the rows a user writes

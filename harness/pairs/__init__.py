@@ -1,4 +1,4 @@
-"""The pairs stage (SPEC sections 4 and 13.2): each query frame's map frame.
+"""The pairs stage (method §4 and 13.2): each query frame's map frame.
 
 :mod:`.config` holds ``[pairs]``; one module per pairing mode: :mod:`.pose` (the nearest viewpoint
 within the heading gate), :mod:`.declared` (by name or order) and :mod:`.retrieval` (by retrieval

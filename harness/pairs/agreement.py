@@ -1,4 +1,4 @@
-"""How often pairs by retrieval agree with the pairs by pose, where poses exist (SPEC 13.2)."""
+"""How often pairs by retrieval agree with the pairs by pose, where poses exist (method §13.2)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from harness.records import FRAME_KEY, QUERY_KEY
 def pose_agreement(
     by_retrieval: pd.DataFrame, by_pose: pd.DataFrame, frames: pd.DataFrame, within_m: float
 ) -> dict[str, Any]:
-    """How often the retrieval pair is where the pose pair is (SPEC 13.2), where poses exist.
+    """How often the retrieval pair is where the pose pair is (method §13.2), where poses exist.
 
     A retrieval pair agrees when its reference frame lies within ``within_m`` metres of the pose
     pair's reference frame (same query frame, same reference session).

@@ -1,4 +1,4 @@
-"""The pairs stage's config: ``[pairs]`` (SPEC 4 and 13.2) and its checks."""
+"""The pairs stage's config: ``[pairs]`` (method §4 and 13.2) and its checks."""
 
 from __future__ import annotations
 
@@ -7,28 +7,31 @@ from dataclasses import dataclass
 from harness.checks import check_value
 from harness.pairs.modes import PAIRING_MODES
 
-#: ``[pairs] by``: how a query frame finds its map frame (SPEC 4 and 13.2).
+#: ``[pairs] by``: how a query frame finds its map frame (method §4 and 13.2).
 
 
 @dataclass(frozen=True)
 class PairsConfig:
-    """``[pairs]``: cross-season pairing (SPEC section 4; degrees, metres)."""
+    """``[pairs]``: cross-season pairing (method §4; degrees, metres)."""
 
+    # a pair's largest heading difference, degrees (the paper's 45)
     max_yaw_diff_deg: float = 45.0
+    # a pair's largest distance between the two frames, metres
     max_distance_m: float | None = 10.0
+    # query frames at least this far apart, metres (0: every frame)
     stride_m: float = 0.0
     queries: str = "annotated"  # "annotated": only annotated query frames; "all": every frame
-    # "pose": the nearest viewpoint by pose (SPEC 4); sessions without poses (SPEC 13.2):
+    # "pose": the nearest viewpoint by pose (method §4); sessions without poses (method §13.2):
     # "name": the map image of the same file name (stem); "order": the i-th image of each session
     # in file-name order; "retrieval": the map frame the query's subimages retrieve best with the
     # run's localizer; "sequence": the same retrieval scored over runs of consecutive frames
     # (SeqSLAM), for two traverses of one route
     by: str = "pose"
     # by other than "pose": the ground-truth place is the paired frame and this many neighbours
-    # on each side in the map's order (SPEC 13.2)
+    # on each side in the map's order (method §13.2)
     place_frames: int = 2
     # a pair whose pair_confidence is below this is an "uncertain pair": flagged in frames.csv,
-    # left out of detect's most-changed list and marked on the page (SPEC 13.2)
+    # left out of detect's most-changed list and marked on the page (method §13.2)
     min_pair_confidence: float = 0.05
     # by = "sequence": the query frames of one sequence window (centred on the frame)
     sequence_frames: int = 11

@@ -1,4 +1,4 @@
-"""Pairs the user declares (SPEC 13.2): by file name or by order, for sessions without poses."""
+"""Pairs the user declares (method §13.2): by file name or by order, for sessions without poses."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def declared_pairs(
     seasons: dict[str, str],
     queries: pd.DataFrame | None = None,
 ) -> tuple[pd.DataFrame, dict]:
-    """Pairs by file name or by order (SPEC 13.2), of every query frame with each other session.
+    """Pairs by file name or by order (method §13.2), of every query frame with each other session.
 
     ``by = "name"``: the reference frame whose file has the query's file name without its folder
     and suffix (``a/0001.png`` pairs with ``b/0001.jpg``); ``by = "order"``: the i-th frame of
@@ -115,7 +115,7 @@ def _build(
     return declared_pairs(frames, names, pc.by, seasons, queries)
 
 
-#: This module's pairing modes (SPEC 13.2), the user's declaration through file names.
+#: This module's pairing modes (method §13.2), the user's declaration through file names.
 MODES = (
     PairingMode("name", "declared", "the map image of the same file name", _build),
     PairingMode("order", "declared", "the map image at the same place in file-name order", _build),

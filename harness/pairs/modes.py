@@ -1,4 +1,4 @@
-"""The pairing modes' records (SPEC 4, 13.2): ``[pairs] by`` names one, registered by its module.
+"""The pairing modes' records (method §4, 13.2): ``[pairs] by`` names one, registered by its module.
 
 A mode is its kind, its words and, where the pairs come from the frames alone, its build:
 ``pose`` (:mod:`.pose`), ``name`` and ``order`` (:mod:`.declared`), ``retrieval`` and
@@ -14,8 +14,8 @@ from typing import Any
 
 from harness.methods import Registry
 
-#: The kinds of mode: by the frames' poses (SPEC 4), declared by the user through the frames'
-#: file names, or chosen by the run's localizer's descriptors (SPEC 13.2).
+#: The kinds of mode: by the frames' poses (method §4), declared by the user through the frames'
+#: file names, or chosen by the run's localizer's descriptors (method §13.2).
 KINDS = ("pose", "declared", "retrieval")
 
 

@@ -1,4 +1,4 @@
-"""Cross-season pairs (SPEC section 4).
+"""Cross-season pairs (method §4).
 
 Each query frame's nearest-position reference in every other session among frames whose heading
 differs by less than ``max_yaw_diff_deg``.

@@ -1,4 +1,4 @@
-"""Pairs without poses (SPEC 13.2): each query frame's map frame by image-level retrieval.
+"""Pairs without poses (method §13.2): each query frame's map frame by image-level retrieval.
 
 A query frame is paired, in each other session, with the frame its subimages retrieve best with
 the run's localizer: the frame distance is the mean, over the query's subimages of one proposal
@@ -129,7 +129,7 @@ SEQUENCE_SPEEDS = (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)
 
 
 def sequence_scores(mean: np.ndarray, window: int) -> np.ndarray:
-    """SeqSLAM's sequence score of every (query frame, map frame) pair (SPEC 13.2).
+    """SeqSLAM's sequence score of every (query frame, map frame) pair (method §13.2).
 
     ``mean`` is the (n_q, n_db) frame distance matrix, both sessions in time order. The score of
     (i, j) is the least, over the speeds :data:`SEQUENCE_SPEEDS`, of the mean distance along the
@@ -189,7 +189,7 @@ def sequence_frames(
 
 
 def pair_confidence(best: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """``1 - best / runner-up`` of squared distances, in [0, 1] (SPEC 13.2).
+    """``1 - best / runner-up`` of squared distances, in [0, 1] (method §13.2).
 
     0 where another place matches as well as the chosen one, 1 where the best match is exact;
     1 without a rival.
@@ -323,7 +323,7 @@ def write_retrieval_pairs(
 def candidate_pairs(
     frames: pd.DataFrame, seasons: dict[str, str], queries: pd.DataFrame | None = None
 ) -> pd.DataFrame:
-    """Every query frame with every other session, before retrieval chooses the frame (SPEC 13.2).
+    """Every query frame with every other session, before retrieval chooses (method §13.2).
 
     Args:
         frames: the frame table (all sessions; poses not needed).
@@ -356,7 +356,7 @@ def candidate_pairs(
     return cand.sort_values([*QUERY_KEY, "r_session"]).reset_index(drop=True)[cols]
 
 
-#: This module's pairing modes (SPEC 13.2): the run's localizer chooses the map frame.
+#: This module's pairing modes (method §13.2): the run's localizer chooses the map frame.
 MODES = (
     PairingMode("retrieval", "retrieval", "the map frame this localizer retrieves best"),
     PairingMode(

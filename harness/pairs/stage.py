@@ -1,4 +1,4 @@
-"""The pairs stages (SPEC 4, 13.2): each query frame's map frame, by any pairing mode.
+"""The pairs stages (method §4, 13.2): each query frame's map frame, by any pairing mode.
 
 One module per mode: by pose (:mod:`.pose`), by name or order (:mod:`.declared`), by retrieval or
 sequence (:mod:`.retrieval`: candidates (:func:`candidate_table`) ranked with a localizer's
@@ -33,7 +33,7 @@ def query_pairs(
     frames: Table,
     ann: Table,
 ) -> Table:
-    """Frames (+ annotations) -> a reference viewpoint per query frame and season (SPEC 4)."""
+    """Frames (+ annotations) -> a reference viewpoint per query frame and season (method §4)."""
     queries = ann.df if pc.queries == "annotated" else None
     build = partial(_write_pairs, frames.df, pc, sessions, seasons, queries)
     entry = p.unit("pairs", pair_keys.pairs(pc, seasons, frames.key, ann.key), build)
@@ -63,7 +63,7 @@ def _write_pairs(
 
 
 def candidate_table(pc: PairsConfig, seasons: dict[str, str], frames: Table, ann: Table) -> Table:
-    """Frames (+ annotations) -> query frames and the sessions to pair them with (SPEC 13.2).
+    """Frames (+ annotations) -> query frames and the sessions to pair them with (method §13.2).
 
     ``[pairs] by = "retrieval"``: the frame each is paired with comes later, from the
     localizer's descriptors (:func:`harness.retrieval.stage.retrieval_pair_table`).
@@ -107,7 +107,7 @@ def retrieval_pair_table(
     described: dict[str, Entry],
     proposer: str,
 ) -> Table:
-    """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2).
+    """Candidates + descriptors -> each query frame's map frame by retrieval (method §13.2).
 
     ``memory_mb``: ``[retrieval] memory_mb``; ``proposer``: the one whose descriptors rank.
     """

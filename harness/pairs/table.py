@@ -1,4 +1,4 @@
-"""The pair table's shape, shared by every pairing mode (SPEC 4, 13.2).
+"""The pair table's shape, shared by every pairing mode (method §4, 13.2).
 
 Its columns, the season pairs, heading differences, the summary, and the pose columns of pairs
 made without poses.

@@ -1,4 +1,4 @@
-"""SPEC 11's cross-localizer block: the localizers compared on the query images all of them rank.
+"""Method §11's cross-localizer block: the localizers compared on the query images all of them rank.
 
 Each localizer's fused LoC on those images, and the fusion across localizers.
 """
@@ -46,7 +46,7 @@ def localizer_fusion(
         if dropped:
             notes.append(
                 f"NOTE: {', '.join(dropped)} not computed: localizer {loc.name} gives ranked "
-                "lists without scores, so it has no relevance score d (SPEC sections 11-12)."
+                "lists without scores, so it has no relevance score d (method §11-12)."
             )
     lost = int(info.get("unranked_query_images", 0))
     if lost:
@@ -74,13 +74,13 @@ def localizer_fusion(
     if nofeat:
         notes.append(
             f"NOTE: {nofeat} subimages had no local feature under localizer {loc.name}: they "
-            "are neither queries nor database rows of its engine (SPEC section 11)."
+            "are neither queries nor database rows of its engine (method §11)."
         )
     return fc, notes
 
 
 def common_images(p: Context, measured: list[Measured], pairs: Table) -> str | None:
-    """Score every localizer on the same query images (SPEC section 11).
+    """Score every localizer on the same query images (method §11).
 
     A query image of the pairs that some localizer did not rank is an error naming the
     localizer and the image, unless ``[import] allow_unranked_images``: then it is left out of
@@ -127,7 +127,7 @@ def common_images(p: Context, measured: list[Measured], pairs: Table) -> str | N
 
 
 def across_localizers(measured: list[Measured]) -> RankTable:
-    """Every localizer's rank rows as one list of original boxes (SPEC section 11).
+    """Every localizer's rank rows as one list of original boxes (method §11).
 
     An original box is the pair (localizer, box): its method becomes ``localizer:method``, and
     ``d`` is dropped (scores of different localizers are not comparable).

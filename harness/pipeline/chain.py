@@ -1,4 +1,4 @@
-"""The pipeline (SPEC sections 3-10) as a chain of stage calls.
+"""The pipeline (method §3-10) as a chain of stage calls.
 
 logs -> frames -> pairs -> proposals -> model [-> projection] -> descriptors -> ranks -> samples ->
 tables
@@ -125,7 +125,7 @@ def until_pairs(p: Context) -> tuple[dict[str, Entry], Table, Table, Table]:
 
 
 def _pose_agreement(p: Context, frames: Table, ann: Table, pairs: Table) -> None:
-    """How often pairs not made by pose agree with the pose pairs (SPEC 13.2), into ``p.pairing``.
+    """How often pairs not made by pose agree with pose pairs (method §13.2): ``p.pairing``.
 
     Only where every frame has a pose.
     """
@@ -147,7 +147,7 @@ def pairs_by_retrieval(
     check: bool = True,
     detect: tuple[str, tuple[str, ...]] | None = None,
 ) -> tuple[Table, Measured]:
-    """Pairs by retrieval with the run's one descriptor localizer, and its ranks (SPEC 13.2).
+    """Pairs by retrieval with the run's one descriptor localizer, and its ranks (method §13.2).
 
     Where the paired frames have poses, ``p.pairing`` records how often the retrieval pair lies
     within ``[pairs] max_distance_m`` (10 m when unset) of the pose pair. ``detect``: (the map,
@@ -182,10 +182,10 @@ def pairs_by_retrieval(
 
 
 def pairing_note(pairing: dict[str, Any]) -> str:
-    """What pairs without poses mean for the tables, in words (SPEC 13.2)."""
+    """What pairs without poses mean for the tables, in words (method §13.2)."""
     by = pairing["by"]
     note = (
-        f"Pairs by {by} (SPEC 13.2): each query frame's reference is "
+        f"Pairs by {by} (method §13.2): each query frame's reference is "
         f"{PAIRING_MODES[by].says}, and its place that frame and {pairing['place_frames']} "
         "neighbours each side"
     )

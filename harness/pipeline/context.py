@@ -1,4 +1,4 @@
-"""The run context every stage takes (:class:`Context`) and the run's localizers (SPEC section 11).
+"""The run context every stage takes (:class:`Context`) and the run's localizers (method §11).
 
 A :class:`Context` is the :class:`harness.runtime.stage.Units` a stage function builds its
 entries in; the outputs' records (``Entry``, ``Table``, ``RankTable``) are in
@@ -47,7 +47,7 @@ class Context:
         cfg: The validated config.
         out: The run directory (claimed: new, empty or an earlier run of the harness).
         rank_import: A localizer's rank file to import instead of computing ranks
-            (``--import NAME=FILE``, SPEC section 12).
+            (``--import NAME=FILE``, method §12).
         force: Replace the tables of a run directory that measured another localizer set.
         annotations_optional: A config without ``annotations`` is fine (``harness detect``).
         train_sessions: The sessions a learned descriptor trains on (None: every session's
@@ -58,7 +58,7 @@ class Context:
         used: Entries read or written per stage (what ``harness gc`` keeps).
         not_described: Frames per session that no ranking reads (not proposed or encoded).
         pairing: How the pairs were made (``[pairs] by``) and, by retrieval where poses exist,
-            how often they agree with the pose pairs (SPEC 13.2).
+            how often they agree with the pose pairs (method §13.2).
     """
 
     cfg: Config
@@ -78,7 +78,7 @@ class Context:
 
     @property
     def localizer_list(self) -> tuple[LocalizerConfig, ...]:
-        """The localizers this run measures (SPEC section 11).
+        """The localizers this run measures (method §11).
 
         ``--import NAME=FILE`` measures that file alone; otherwise ``[[localizers]]``, or the one
         localizer ``[descriptor]`` defines.
@@ -209,13 +209,13 @@ class Context:
         device: str = "auto",
         precision: str = "fp32",
     ) -> RankTable:
-        """Pairs + descriptors -> the rank of each query subimage's true place (SPEC section 6).
+        """Pairs + descriptors -> the rank of each query subimage's true place (method §6).
 
         ``rc``: the ``[retrieval]`` to rank under (the run's, or ``gt_radius_also``'s).
         ``device``: the descriptor's (``[descriptor] device``); the exact engine runs on CUDA
         where it allows and one is present. ``precision``: the descriptor's, for the exact
         engine's candidate product (:func:`harness.runtime.hardware.rank_precision`). By
-        retrieval (SPEC 13.2) the place is ``[pairs] place_frames`` frames each side.
+        retrieval (method §13.2) the place is ``[pairs] place_frames`` frames each side.
         """
         pc = self.cfg.pairs
         how = RankSettings(

@@ -1,4 +1,4 @@
-"""The stages of a run's localizers (SPEC section 11).
+"""The stages of a run's localizers (method §11).
 
 Each localizer's ranks, the fusion methods it can have, the same query images for all, and the
 ``all localizers`` box list.
@@ -26,7 +26,7 @@ from harness.runtime.stage import RankTable, Table
 log = logging.getLogger(__name__)
 
 
-# ---------------------------------------------------------------- localizers (SPEC section 11)
+# ---------------------------------------------------------------- localizers (method §11)
 
 
 @dataclass
@@ -65,7 +65,7 @@ def localizer_ranks(
     props: dict[str, Table],
     rc: RetrievalConfig | None = None,
 ) -> RankTable:
-    """One localizer's rank rows: its kind's stages over its proposals (SPEC sections 6, 11, 12).
+    """One localizer's rank rows: its kind's stages over its proposals (method §6, 11, 12).
 
     ``rc``: the ``[retrieval]`` to rank under (None: the run's).
     """
@@ -79,7 +79,7 @@ def localizer_ranks(
 def retrieval_ranks(
     p: Context, loc: LocalizerConfig, frames: Table, cand: Table, props: dict[str, Table]
 ) -> tuple[Table, RankTable]:
-    """Pairs by retrieval, then ranks, with one descriptor localizer (SPEC 13.2).
+    """Pairs by retrieval, then ranks, with one descriptor localizer (method §13.2).
 
     The localizer's descriptors of every candidate frame pair each query frame with its map
     frame (its first proposal method's subimages); the ranks are then computed as by pose, the

@@ -2,7 +2,7 @@
 
 A stage function lives in its package (``harness/<stage>/stage.py``) and takes the run, its own
 config sections and the tables before it; here each is handed what the root config and the run
-say (SPEC sections 3-10), and what a run records of it (frames not described, timings).
+say (method §3-10), and what a run records of it (frames not described, timings).
 """
 
 from __future__ import annotations
@@ -53,14 +53,14 @@ def query_pairs(p: Context, frames: Table, ann: Table) -> Table:
 
 
 def candidate_table(p: Context, frames: Table, ann: Table) -> Table:
-    """Frames (+ annotations) -> pairing by retrieval's candidates (SPEC 13.2)."""
+    """Frames (+ annotations) -> pairing by retrieval's candidates (method §13.2)."""
     return pair_stage.candidate_table(p.cfg.pairs, p.cfg.seasons(), frames, ann)
 
 
 def retrieval_pair_table(
     p: Context, frames: Table, cand: Table, described: dict[str, Entry], proposer: str
 ) -> Table:
-    """Candidates + descriptors -> each query frame's map frame by retrieval (SPEC 13.2)."""
+    """Candidates + descriptors -> each query frame's map frame by retrieval (method §13.2)."""
     mb = p.cfg.retrieval.memory_mb
     return pair_stage.retrieval_pair_table(p, p.cfg.pairs, mb, frames, cand, described, proposer)
 
@@ -68,7 +68,7 @@ def retrieval_pair_table(
 def session_proposals(
     p: Context, frames: Table, pairs: Table, ingested: dict[str, Entry]
 ) -> dict[str, Table]:
-    """Frames + pairs -> each session's proposal boxes (SPEC section 5).
+    """Frames + pairs -> each session's proposal boxes (method §5).
 
     Only on the frames ranking reads: a session's query frames and, for a reference session, the
     frames its database keeps (every frame unless ``[retrieval] db_stride_m``); the others are
@@ -94,7 +94,7 @@ def fused_samples(
 
 
 def change_tables(p: Context, blocks: list[Block], frames: Table, ann: Table) -> Reports:
-    """Samples -> Tables I, S, P (and L), localization quality, splits and figures (SPEC 8-11).
+    """Samples -> Tables I, S, P (and L), localization quality, splits and figures (method §8-11).
 
     One block per localizer (and ``all localizers`` where there are several); a block's notes
     are printed under its change tables (what the localizer lacks or lost).

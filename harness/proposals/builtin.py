@@ -1,4 +1,4 @@
-"""The built-in proposers (SPEC 5): ``grid5`` and OpenCV's ``mser``, ``segments``, ``edges``...
+"""The built-in proposers (method §5): ``grid5`` and OpenCV's ``mser``, ``segments``, ``edges``...
 
 ... and ``selective`` (Selective Search, from OpenCV's contrib modules).
 
@@ -33,7 +33,7 @@ def full_frame(width: float, height: float) -> np.ndarray:
 
 @proposer("grid5")
 def grid5(width: float, height: float) -> np.ndarray:
-    """The five fixed boxes of SPEC section 5 as a (5, 4) float array ``x1, y1, x2, y2``."""
+    """The five fixed boxes of method §5 as a (5, 4) float array ``x1, y1, x2, y2``."""
     w, h = float(width), float(height)
     return np.array(
         [

@@ -1,4 +1,4 @@
-"""The proposals stage's config: ``[proposals]``, its per-method tables (SPEC 5), their checks."""
+"""The proposals stage's config: ``[proposals]``, its methods' tables (method §5), checks."""
 
 from __future__ import annotations
 
@@ -14,12 +14,19 @@ from harness.methods import PROPOSER_OPTIONS, PROPOSERS, known_proposal_methods
 class YoloConfig:
     """``[proposals.yolo]``: the supervised proposer (a local TorchScript weights file)."""
 
+    # an exported model: .onnx (OpenCV's dnn) or .torchscript (torch); never downloaded
     weights: str | None = None
+    # the least confidence of a kept box
     conf: float = 0.05
+    # the NMS IoU
     iou: float = 0.7
+    # the model's input side, pixels
     imgsz: int = 640
+    # frames a call
     batch: int = 8
+    # auto, cpu or cuda
     device: str = "auto"
+    # boxes a frame at most
     max_det: int = 100
 
 
@@ -27,10 +34,15 @@ class YoloConfig:
 class MserConfig:
     """``[proposals.mser]``: MSER region proposals (areas as fractions of the image)."""
 
+    # boxes a frame at most
     max_boxes: int = 12
+    # the smallest box, a share of the frame's area
     min_area_frac: float = 0.01
+    # the largest box, a share of the frame's area
     max_area_frac: float = 0.4
+    # the NMS IoU among the boxes
     nms_iou: float = 0.5
+    # the working copy's width, pixels
     work_width: int = 320
 
 
@@ -44,13 +56,21 @@ class SegmentsConfig:
     gives its bounding box.
     """
 
+    # colour clusters (k-means)
     k: int = 8
+    # morphological closings, pixels, each a set of regions
     closings: tuple[int, ...] = (1, 3, 5)
+    # the smallest box, a share of the frame's area
     min_area_frac: float = 0.002
+    # the largest box, a share of the frame's area
     max_area_frac: float = 0.5
+    # boxes a frame at most
     max_boxes: int = 200
+    # the NMS IoU among the boxes
     nms_iou: float = 0.9
+    # the working copy's width, pixels
     work_width: int = 320
+    # the clustering's (or ranking's) draws
     seed: int = 0
 
 
@@ -66,12 +86,19 @@ class SelectiveConfig:
     with ``seed`` before every frame, so the boxes are the same on every run).
     """
 
+    # fast or quality (OpenCV's Selective Search modes)
     mode: str = "fast"
+    # boxes a frame at most
     max_boxes: int = 300
+    # the smallest box, a share of the frame's area
     min_area_frac: float = 0.002
+    # the largest box, a share of the frame's area
     max_area_frac: float = 0.5
+    # the NMS IoU among the boxes
     nms_iou: float = 0.9
+    # the working copy's width, pixels
     work_width: int = 256
+    # the clustering's (or ranking's) draws
     seed: int = 0
 
 
@@ -79,24 +106,38 @@ class SelectiveConfig:
 class EdgesConfig:
     """``[proposals.edges]``: edge-contour proposals (areas as fractions of the image)."""
 
+    # boxes a frame at most
     max_boxes: int = 12
+    # the smallest box, a share of the frame's area
     min_area_frac: float = 0.005
+    # the largest box, a share of the frame's area
     max_area_frac: float = 0.4
+    # the NMS IoU among the boxes
     nms_iou: float = 0.5
+    # the working copy's width, pixels
     work_width: int = 480
+    # the edge map's dilations, pixels
     dilations: tuple[int, ...] = (3, 5, 9)
 
 
 @dataclass(frozen=True)
 class ProposalsConfig:
-    """``[proposals]``: the proposal methods (SPEC section 5) and their sections."""
+    """``[proposals]``: the proposal methods (method §5) and their sections."""
 
+    # the proposal methods: grid5, edges, full, mser, segments, selective, yolo, file (a plugin's
+    # too)
     methods: tuple[str, ...] = ("grid5", "edges")
+    # [proposals.edges]
     edges: EdgesConfig = field(default_factory=EdgesConfig)
+    # [proposals.yolo]
     yolo: YoloConfig = field(default_factory=YoloConfig)
+    # [proposals.mser]
     mser: MserConfig = field(default_factory=MserConfig)
+    # [proposals.segments]
     segments: SegmentsConfig = field(default_factory=SegmentsConfig)
+    # [proposals.selective]
     selective: SelectiveConfig = field(default_factory=SelectiveConfig)
+    # method file: a CSV of boxes per frame (session, camera, utime, x1, y1, x2, y2)
     file: str | None = None
     # decode a JPEG at 1/2, 1/4 or 1/8 of its size where every listed OpenCV method's work_width
     # still fits (libjpeg's DCT scaling: less work than the full frame); false: the full frame

@@ -36,5 +36,5 @@ def proposals(pc: ProposalsConfig, ingest_key: str, frames: list[tuple[str, int]
 
 
 def subset(table_key: str, methods: tuple[str, ...]) -> str:
-    """The key of a proposal table cut to a localizer's ``methods`` (SPEC section 11)."""
+    """The key of a proposal table cut to a localizer's ``methods`` (method §11)."""
     return stable_hash("proposal-subset", table_key, sorted(methods))

@@ -1,4 +1,4 @@
-"""Object proposals (qBBs), SPEC section 5: the registry of proposers and the stage's driver.
+"""Object proposals (qBBs), method §5: the registry of proposers and the stage's driver.
 
 Methods (each one modality with its own retrieval engine):
 
@@ -65,7 +65,7 @@ def register_proposer(name: str, proposer: ImageProposer, options: type | None =
     """Add a per-image proposal method, selected by ``name`` in ``[proposals] methods``.
 
     Its source is part of the proposals' cache key (:func:`proposer_fingerprints`), so editing it
-    recomputes them. Each method gets its own rank engine (SPEC section 6). ``options``, a
+    recomputes them. Each method gets its own rank engine (method §6). ``options``, a
     dataclass, is its ``[proposals.<name>]`` table (unknown keys and wrong types rejected at load,
     part of the proposals' key); the proposer reads it as ``cfg.options_of(name)``. Register
     before the config loads.

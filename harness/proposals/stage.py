@@ -1,4 +1,4 @@
-"""The proposals stage (SPEC section 5): each session's boxes, on the frames ranking reads.
+"""The proposals stage (method §5): each session's boxes, on the frames ranking reads.
 
 Its key is made in :mod:`harness.proposals.keys`; the methods are in :mod:`.builtin`, :mod:`.yolo`
 and :mod:`.file`, run by :func:`harness.proposals.proposers.write_proposals`.
@@ -25,7 +25,7 @@ def session_proposals(
     described: dict[str, pd.DataFrame],
     ingested: dict[str, Entry],
 ) -> dict[str, Table]:
-    """The frames each session's ranking reads -> the session's proposal boxes (SPEC section 5).
+    """The frames each session's ranking reads -> the session's proposal boxes (method §5).
 
     ``described``: each session's frames (rows of the frame table); one entry per session.
     """

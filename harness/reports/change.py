@@ -1,9 +1,9 @@
-"""Tables I, S and P as specs (SPEC sections 8-10): each built once from a run's summary.
+"""Tables I, S and P as specs (method §8-10): each built once from a run's summary.
 
 A change table is a :class:`ChangeSpec` (what it is: title, intro, which summary column gives its
 columns, what its floor is measured within, whether it has a ceiling) and, for one run, a
 :class:`ChangeTable` (:func:`change_table`: its columns, a :class:`ChangeRow` per method with AP,
-interval, floor and verdict per column, the chance rows of SPEC 9, the counts, its notes and
+interval, floor and verdict per column, the chance rows of method §9, the counts, its notes and
 warnings). Every format renders the ``ChangeTable``: the markdown, CSV and LaTeX
 (:mod:`harness.reports.render`), the console (:mod:`harness.cli.console`) and the page
 (:mod:`harness.reports.html.cells`); a row, a column, a chance row or a note of these tables is
@@ -49,13 +49,13 @@ class ChangeSpec:
     collapsed: bool = False
 
 
-#: SPEC's change tables, in the order they are written and shown.
+#: The method's change tables, in the order they are written and shown.
 CHANGE_TABLES: dict[str, ChangeSpec] = {
     "I": ChangeSpec(
         "I",
         "table1",
         "Table I",
-        "AP by RoC-max of the negative range, the paper's protocol (SPEC section 8): "
+        "AP by RoC-max of the negative range, the paper's protocol (method §8): "
         "positives are small boxes (SoB <= 0.4), negatives large ones (SoB >= 0.4).",
         "Table I: AP by RoC-max, the paper's protocol",
         collapsed=True,
@@ -64,9 +64,9 @@ CHANGE_TABLES: dict[str, ChangeSpec] = {
         "S",
         "tableS",
         "Table S",
-        "Size-stratified AP (SPEC section 8): labels by RoC only, AP within SoB strata of "
+        "Size-stratified AP (method §8): labels by RoC only, AP within SoB strata of "
         "boxes of the same size, weighted by the strata's positives. The floor is the mean of "
-        "the same figure over random orders within the same strata (SPEC 9).",
+        "the same figure over random orders within the same strata (method §9).",
         "Table S: size-stratified AP by RoC-max",
         floor_within=" within the same strata",
     ),
@@ -76,7 +76,7 @@ CHANGE_TABLES: dict[str, ChangeSpec] = {
         "Table P",
         "Pixel AP (each pixel takes the LoC of the smallest sample box holding it; exact "
         "region areas) and image AP (each query image scores the largest LoC of its samples), "
-        "SPEC section 9.",
+        "method §9.",
         "Table P: pixel AP and image AP",
         column="split",
         order=("pixel", "image"),
@@ -91,7 +91,7 @@ CHANGE_TABLES: dict[str, ChangeSpec] = {
 def pivot(
     summ: pd.DataFrame, table: str, methods: tuple[str, ...], value: str = "ap"
 ) -> pd.DataFrame:
-    """One table's ``value`` (AP by default), method x column, in SPEC order."""
+    """One table's ``value`` (AP by default), method x column, in the method's order."""
     spec = CHANGE_TABLES[table]
     main = _pooled(summ, table)
     if value not in main.columns:  # a summary written before the column existed
@@ -122,7 +122,7 @@ def column_label(c: Any) -> str:
 def ap_cell(v: float, lo: float, hi: float, verdict: str = "", positive_images: float = 0) -> str:
     """An AP cell as text: ``AP [interval] mark`` (the verdict's mark), ``NaN`` where undefined.
 
-    A ``few`` verdict shows no mark but ``too few positives (n)`` (SPEC 9).
+    A ``few`` verdict shows no mark but ``too few positives (n)`` (method §9).
     """
     if v != v:
         return "NaN"
@@ -147,7 +147,7 @@ class ChangeRow:
     high: tuple[float, ...]
     floor: tuple[float, ...]
     verdict: tuple[str, ...]
-    #: Per column, the query images holding a positive (SPEC 9's evidence before a verdict).
+    #: Per column, the query images holding a positive (method §9's evidence before a verdict).
     positive_images: tuple[float, ...]
 
     def cells(self) -> list[str]:
@@ -167,7 +167,7 @@ class ChangeTable:
     spec: ChangeSpec
     columns: tuple[Any, ...]
     rows: tuple[ChangeRow, ...]
-    #: SPEC 9's rows under the table, each (label, a cell per column).
+    #: method §9's rows under the table, each (label, a cell per column).
     chance: tuple[tuple[str, list[str]], ...]
     #: The method whose sample counts the footer gives, and those counts in words.
     ref: str
@@ -252,7 +252,7 @@ def box_sets(methods: tuple[str, ...] | list[str]) -> list[tuple[str, str]]:
 def chance_rows(
     summ: pd.DataFrame, table: str, methods: tuple[str, ...]
 ) -> list[tuple[str, list[str]]]:
-    """The rows under a change table (SPEC 9), each as (label, cells).
+    """The rows under a change table (method §9), each as (label, cells).
 
     Per sample set its floor, chance band and (Table P) ceiling, then the positive rate.
     """

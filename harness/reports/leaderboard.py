@@ -1,4 +1,4 @@
-"""Table L, the leaderboard of localizers (SPEC section 11).
+"""Table L, the leaderboard of localizers (method §11).
 
 One row per localizer and one for ``all localizers`` (their boxes fused by rank): recall@N for
 each N of ``[report] recall_at`` (undefined for the fused row), Table S ``rank_fusion`` and
@@ -87,7 +87,7 @@ class LCell:
     holm: bool = False
     digits: int = 2
     why: str = ""
-    #: An AP's query images holding a positive (said in a ``few`` cell, SPEC 9).
+    #: An AP's query images holding a positive (said in a ``few`` cell, method §9).
     positive_images: int = 0
 
     def text(self) -> str:
@@ -137,7 +137,7 @@ class LeaderTable:
             return ""
         return (
             "[bounds: n%]: " + "; ".join(self.bounds) + ". An imported list truncated before "
-            "the true place gives only a bound on its rank (SPEC section 12): that row's recall "
+            "the true place gives only a bound on its rank (method §12): that row's recall "
             "and APs are computed on bounds, not ranks, and are not comparable with the others."
         )
 
@@ -308,7 +308,7 @@ def leaderboard_md(t: pd.DataFrame, cfg: Config, comparisons: bool = False) -> s
     lines = [
         "# Table L: localizers",
         "",
-        "One row per localizer and one for all localizers fused by rank (SPEC section 11). "
+        "One row per localizer and one for all localizers fused by rank (method §11). "
         f"Recall@N ({', '.join(v.recall_heads)}) of the ground-truth place over every ranked "
         f"query subimage; AP [95% interval] of Table S at RoC-max {v.roc_max:.2f} and of Table "
         f"P; the last column is each row's Table S rank-fusion AP minus {v.first}'s, paired over "

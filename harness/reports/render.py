@@ -1,4 +1,4 @@
-"""How the tables read (SPEC section 10): markdown, CSV and LaTeX renderers of one table spec.
+"""How the tables read (method §10): markdown, CSV and LaTeX renderers of one table spec.
 
 The localization table, Tables I, S and P (their pivots and cells from
 :mod:`harness.reports.change`), the paired comparisons; the console (:mod:`harness.cli`) and the
@@ -39,7 +39,7 @@ def loc_columns(loc: pd.DataFrame) -> list[tuple[str, str, int]]:
 
 
 def heading_suffix(localizer: str) -> str:
-    """What every table heading adds: the localizer it measured (SPEC section 11)."""
+    """What every table heading adds: the localizer it measured (method §11)."""
     return f" (localizer: {localizer})" if localizer else ""
 
 
@@ -65,7 +65,7 @@ def localization_markdown(loc: pd.DataFrame, gt_radius_m: float, localizer: str 
     foot = (
         "\nLocalization quality of the engines whose ranks every change figure rests on. "
         "Ground truth: the place of "
-        f"the reference frame (frames within {gt_radius_m:g} m, SPEC section 6). R@k: share "
+        f"the reference frame (frames within {gt_radius_m:g} m, method §6). R@k: share "
         "of query subimages whose "
         "place ranks within the first k; median r: median normalised rank (0.5 = chance); "
         "clean: subimages of "
@@ -99,7 +99,7 @@ def table_csv(table: pd.DataFrame, localizer: str | None = None, header: bool = 
 def table_markdown(t: ChangeTable) -> str:
     """A change table as markdown: the six methods, then the variants and baselines.
 
-    Cells AP [95% interval] and the verdict's mark; then SPEC 9's chance rows, the legend, the
+    Cells AP [95% interval] and the verdict's mark; then method §9's chance rows, the legend, the
     counts, the notes and the warnings.
     """
     spec, cols = t.spec, t.columns
@@ -154,7 +154,7 @@ def table_latex(
     """A booktabs ``tabular`` of one table.
 
     Two decimals; the variants and baselines come after a rule. The localizer is named in a
-    comment line above it. ``verdicts`` (the same shape) add SPEC 9's marks, and a ``few`` cell
+    comment line above it. ``verdicts`` (the same shape) add method §9's marks, and a ``few`` cell
     says "too few positives (n)" with ``positive_images``' n; ``extra`` rows (floor, chance band,
     ceiling) come after a last rule.
     """

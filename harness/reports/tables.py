@@ -1,8 +1,8 @@
-"""Report tables beyond SPEC's own: one spec, rendered to CSV, markdown, LaTeX, console and page.
+"""Report tables beyond the method's: one spec, rendered to CSV, markdown, LaTeX, console, page.
 
 A table is a :class:`TableSpec`: an id (its files are ``table<id>.csv|md|tex``), a title, an
 intro, its columns and a ``compute`` function of the run's config and report blocks (one
-:class:`~harness.reports.blocks.Reports` per localizer, SPEC section 11) returning one row per line
+:class:`~harness.reports.blocks.Reports` per localizer, method §11) returning one row per line
 of the table, or None where the run has nothing for it. :func:`register_table` adds it;
 ``write_reports`` then writes its three files, ``harness reproduce`` prints it after the other
 tables and the report page shows it (its AP cells coloured against their floors like every other
@@ -30,7 +30,7 @@ from harness.methods import Registry
 from harness.reports.texfmt import tex_escape
 
 KINDS = ("text", "int", "num", "ap", "diff")
-#: Ids of SPEC's own tables (and ``detect``'s Table D): a registered table takes another.
+#: Ids of the method's own tables (and ``detect``'s Table D): a registered table takes another.
 RESERVED_IDS = frozenset({"1", "I", "S", "P", "L", "D"})
 SUFFIXES = {
     "ap": ("ap", "ci_low", "ci_high", "floor"),
@@ -90,7 +90,7 @@ def register_table(spec: TableSpec) -> None:
     """Add ``spec`` to the reports of every later run in this process.
 
     Raises:
-        ValueError: the id is SPEC's, taken, or not letters and digits; a column's kind is unknown.
+        ValueError: the id is the method's, taken, or not alphanumeric; a column's kind unknown.
     """
     if not re.fullmatch(r"[A-Za-z0-9]+", spec.id) or spec.id in RESERVED_IDS:
         raise ValueError(f"table id {spec.id!r}: letters and digits, not one of {RESERVED_IDS}")

@@ -1,4 +1,4 @@
-"""Reports of a run (SPEC sections 6, 9 and 10).
+"""Reports of a run (method §6, 9 and 10).
 
 Localization quality, Table I, the per-split reports and their summary, PR curves and LoC-map
 figures.
@@ -65,7 +65,7 @@ def write_reports(
 ) -> Reports:
     """Write every report of a run into ``out``.
 
-    ``blocks`` are the run's :class:`Block` (SPEC section 11: one per localizer, then ``all
+    ``blocks`` are the run's :class:`Block` (method §11: one per localizer, then ``all
     localizers`` where there are several). A localizer is named in every heading and in a
     ``localizer`` column of the split reports and the summary; a block's ``notes`` are printed
     under its change tables. With one block the files are those of a one-localizer run; with

@@ -1,4 +1,4 @@
-"""Retrieval (SPEC section 6): the rank engines and the ranking unit that feeds them.
+"""Retrieval (method §6): the rank engines and the ranking unit that feeds them.
 
 :mod:`.engines` ranks by exact per-frame minima (its kernels in :mod:`.distances`, its exact
 re-measurement in :mod:`.exact`, the layout it reads in :mod:`.layout`), :mod:`.faiss_search`

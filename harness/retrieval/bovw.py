@@ -1,4 +1,4 @@
-"""The bag-of-visual-words localizer (SPEC section 11): the paper's own scene model.
+"""The bag-of-visual-words localizer (method §11): the paper's own scene model.
 
 The scheme of DBoW2 and ORB-SLAM's loop closure, built from libraries: local features from
 OpenCV (SIFT, RootSIFT or ORB; at a dense grid of keypoints or the detector's own), a vocabulary
@@ -7,7 +7,7 @@ TF-IDF weighted, L1-normalised word histogram (a row of a ``scipy.sparse`` matri
 L1 score ``s(v, w) = 1 - 0.5 |v - w|_1``, which for L1-normalised non-negative vectors equals
 ``sum_i min(v_i, w_i)`` over the words both hold. Scoring goes through an inverted index (the
 database matrix in CSC form: one posting list per word), so no dense subimage x subimage matrix
-is ever built; ``dist(q, F) = 1 - max`` over F's subimages of ``s``, and the ranks follow SPEC
+is ever built; ``dist(q, F) = 1 - max`` over F's subimages of ``s``, and the ranks follow method
 section 6 exactly as the descriptor engines' do.
 
 A subimage with no feature gets no vector: it is neither a database row nor a query, and it is
@@ -282,9 +282,9 @@ def bovw_ranks(
     place: Sequence[np.ndarray] | None = None,
     query_batch: int = 256,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Image-level ranks of the ground-truth places under the L1 score (SPEC sections 6 and 11).
+    """Image-level ranks of the ground-truth places under the L1 score (method §6 and 11).
 
-    ``dist(q, F) = 1 - max_{j in F} s(q, j)``; ``d``, ``rank`` and ``L`` as SPEC section 6 (ties
+    ``dist(q, F) = 1 - max_{j in F} s(q, j)``; ``d``, ``rank`` and ``L`` as method §6 (ties
     in q's favour). Memory: the inverted index plus a (query_batch x frames) block.
 
     Returns:

@@ -12,16 +12,19 @@ class RetrievalConfig:
     """``[retrieval]``: the rank engine, the ground-truth place and the database (metres)."""
 
     engine: str = "exact"  # exact or faiss
-    # ground-truth place: reference frames within this radius of G (SPEC 6); 0: G alone
+    # ground-truth place: reference frames within this radius of G (method §6); 0: G alone
     gt_radius_m: float = 2.0
     # reference database by place: one frame per this many metres of trajectory; 0: every frame
     db_stride_m: float = 0.0
+    # database rows the exact engine scores at a time
     chunk_rows: int = 8192
+    # query subimages the exact engine ranks at a time
     query_batch: int = 1024
     # exact engine: budget (MiB) of the (queries x frames) matrices per database pass; bounds memory
     # whatever the data size
     memory_mb: float = 1024.0
     faiss_nlist: int = 0  # 0: flat index; >0: IVF with that many lists
+    # inverted lists faiss searches (faiss_nlist > 0)
     faiss_nprobe: int = 8
     query_frames_per_shard: int = 512  # pairs per ranking unit (the unit mapped over executors)
     faiss_check: int = 256  # queries per engine also ranked exactly, to report faiss's recall
@@ -29,7 +32,7 @@ class RetrievalConfig:
 
 @dataclass(frozen=True)
 class BovwConfig:
-    """A bag-of-visual-words localizer (SPEC section 11): local features, words, TF-IDF, L1.
+    """A bag-of-visual-words localizer (method §11): local features, words, TF-IDF, L1.
 
     Each subimage is resized to ``input_size`` x ``input_size`` (as the autoencoder's input);
     features are ``sift``, ``rootsift`` or ``orb`` at a dense grid of keypoints (``dense``: every
@@ -38,16 +41,27 @@ class BovwConfig:
     subimages; IDF from the same subimages.
     """
 
+    # rootsift, sift or orb
     features: str = "rootsift"
+    # visual words: the vocabulary's k-means clusters (faiss)
     k: int = 1024
+    # features on a dense grid (else at detected keypoints)
     dense: bool = True
+    # the dense grid's step, pixels
     step: int = 8
+    # the dense features' patch side, pixels
     patch: int = 16
+    # the side, pixels, every subimage is resized to
     input_size: int = 128
+    # map subimages whose features train the vocabulary, at most
     max_train_subimages: int = 4000
+    # features the k-means sees, at most
     max_train_features: int = 200_000
+    # k-means iterations
     kmeans_iter: int = 20
+    # the vocabulary's draws
     seed: int = 0
+    # processes that extract features (0: in the main process)
     num_workers: int = 0
     # frames per cached encoding shard (the unit an interrupted run resumes at)
     shard_frames: int = 256
@@ -58,7 +72,7 @@ class BovwConfig:
 
 @dataclass(frozen=True)
 class ImportConfig:
-    """``[import]``: how an imported localizer's rank file is read (SPEC section 12)."""
+    """``[import]``: how an imported localizer's rank file is read (method §12)."""
 
     # what a row's ``scores`` are: "distance" (smaller = more similar) or "similarity" in [0, 1]
     score_kind: str = "distance"

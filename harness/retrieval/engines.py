@@ -1,4 +1,4 @@
-"""Image-level rank engines (SPEC section 6).
+"""Image-level rank engines (method §6).
 
 For a query subimage q whose ground-truth reference frame is G, with the ground-truth *place*
 P(G) (the reference frames near G; P(G) = {G} when no place is given):

@@ -1,4 +1,4 @@
-"""The rank engine's exact re-measurement (SPEC section 6), by differences, never the expansion.
+"""The rank engine's exact re-measurement (method §6), by differences, never the expansion.
 
 A query's distance to its place, and to the frames the product put too close to call.
 """

@@ -1,4 +1,4 @@
-"""The optional faiss engine (SPEC section 6): the same ranks from a top-k search.
+"""The optional faiss engine (method §6): the same ranks from a top-k search.
 
 Exact for every query whose ground-truth frame is among the top k; otherwise a lower bound,
 flagged.

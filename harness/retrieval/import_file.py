@@ -1,4 +1,4 @@
-"""An imported ranked-list file (SPEC section 12): its schema, ``--import NAME=FILE``, reading.
+"""An imported ranked-list file (method §12): its schema, ``--import NAME=FILE``, reading.
 
 The scoring of its rows against a run is :mod:`harness.retrieval.imported`.
 """
@@ -212,7 +212,7 @@ def read_import(path: Path) -> tuple[pd.DataFrame, Rows]:
         raise RetrievalError(
             f"{path}: column 'distance' is not read (a distance to what?): give 'scores', "
             "parallel to 'ranked', one score per listed frame, and set [import] score_kind "
-            "(SPEC section 12)"
+            "(method §12)"
         )
     for old, new in RENAMED.items():
         if old in df.columns and new in df.columns:

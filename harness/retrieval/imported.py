@@ -1,4 +1,4 @@
-"""Bring your own localizer: external ranked lists checked and scored as SPEC section 12 says.
+"""Bring your own localizer: external ranked lists checked and scored as method §12 says.
 
 Input (parquet or CSV), one row per query subimage:
 
@@ -19,7 +19,7 @@ score of each listed frame, parallel to ``ranked``; ``[import] score_kind`` says
 ``harness task export`` writes the task these rows answer (the query subimages with the pair's
 reference session, the reference frames with their boxes) and this schema beside it.
 
-Scoring (the built-in engine's rules, SPEC section 6). The ground-truth reference G of a query
+Scoring (the built-in engine's rules, method §6). The ground-truth reference G of a query
 frame comes from the pair table and its *place* P(G) from the reference frames' poses. With
 ``scores``, each listed frame F has ``dist(F)`` (the score, or ``1 - s`` for a similarity), ``d`` is
 the best ``dist`` over the listed frames of P(G), and ``rank = 1 +`` the number of listed frames
@@ -187,7 +187,7 @@ def _check_scores(m: pd.DataFrame, rows: Rows, score_kind: str) -> None:
     """Scores in [0, 1] for similarities, and in the order of ``ranked``."""
     if score_kind == "similarity":
         out_of = [i for i, s in enumerate(m["scores"]) if any(x < 0 or x > 1 for x in s)]
-        rows.fail(out_of, "have similarities outside [0, 1] (SPEC 11: d = 1 - s)")
+        rows.fail(out_of, "have similarities outside [0, 1] (method §11: d = 1 - s)")
     wrong = [i for i, s in enumerate(m["scores"]) if np.any(np.diff(_distances(s, score_kind)) < 0)]
     other = "similarity" if score_kind == "distance" else "distance"
     rows.fail(
@@ -243,7 +243,7 @@ def ranks_from_import(
     max_yaw_deg: float = 45.0,
     score_kind: str = "distance",
 ) -> tuple[pd.DataFrame, dict[str, int]]:
-    """Validate imported lists against the run; compute ``rank, L, r, r', d`` (SPEC 6 and 12).
+    """Validate imported lists against the run; compute ``rank, L, r, r', d`` (method §6 and 12).
 
     Args:
         df: The table :func:`read_import` returned.
@@ -260,7 +260,7 @@ def ranks_from_import(
         The rank rows (the built-in engine's columns) and counters.
 
     Raises:
-        RetrievalError: Any of SPEC 12's errors, naming the file, the count and an example.
+        RetrievalError: Any of method §12's errors, naming the file, the count and an example.
     """
     if score_kind not in SCORE_KINDS:
         raise RetrievalError(f"[import] score_kind = {score_kind!r}; allowed: {SCORE_KINDS}")

@@ -1,4 +1,4 @@
-"""The layout every rank engine reads (SPEC section 6), and :class:`Ranks`, what each returns.
+"""The layout every rank engine reads (method §6), and :class:`Ranks`, what each returns.
 
 Each database row's frame, the frames' rows, and each query's place columns.
 """

@@ -1,4 +1,4 @@
-"""The ground-truth place P(G) of a reference frame (SPEC section 6): near frames facing its way."""
+"""The ground-truth place P(G) of a reference frame (method §6): near frames facing its way."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from harness.pairs.table import yaw_diff_deg
 def ground_truth_places(
     ref_frames: pd.DataFrame, gt_utime: np.ndarray, radius_m: float, max_yaw_deg: float
 ) -> dict[int, np.ndarray]:
-    """The ground-truth place P(G) of each reference frame G (SPEC section 6).
+    """The ground-truth place P(G) of each reference frame G (method §6).
 
     P(G) = the frames of the reference session within ``radius_m`` metres of G's position whose
     heading differs from G's by less than ``max_yaw_deg`` degrees; G itself always belongs to it.
@@ -50,7 +50,7 @@ def ground_truth_places(
 def places_by_order(
     ref_frames: pd.DataFrame, gt_utime: np.ndarray, place_frames: int
 ) -> dict[int, np.ndarray]:
-    """The ground-truth place without poses (SPEC 13.2): G and ``place_frames`` frames each side.
+    """The ground-truth place without poses (method §13.2): G and ``place_frames`` frames each side.
 
     The neighbours are taken in the reference session's time order (one camera), so the place is
     the stretch of the map around the frame a query was paired with by retrieval.

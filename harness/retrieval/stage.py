@@ -1,4 +1,4 @@
-"""The ranking stages (SPEC 6, 12): ranks by descriptors or words, or from a user's file.
+"""The ranking stages (method §6, 12): ranks by descriptors or words, or from a user's file.
 
 Their keys are made in :mod:`harness.retrieval.keys`; a ranking unit is
 :func:`harness.retrieval.units.rank_reference`.
@@ -33,7 +33,7 @@ def rank_queries(
     pairs: Table,
     described: dict[str, Entry],
 ) -> RankTable:
-    """Pairs + descriptors -> the rank of each query subimage's ground-truth place (SPEC section 6).
+    """Pairs + descriptors -> the rank of each query subimage's ground-truth place (method §6).
 
     Units: (reference session of ``refs``, chunk of ``query_frames_per_shard`` pairs); one engine
     per proposer inside each. ``how``: the ``[retrieval]`` to rank under, the heading limit, and
@@ -103,7 +103,7 @@ def imported_ranks(
 ) -> RankTable:
     """Ranks from a user's localizer (``--import NAME=FILE`` or an ``import`` localizer).
 
-    Checked against the run (SPEC 12): every row must be a proposal of the run and match a pair;
+    Checked against the run (method §12): every row must be a proposal of the run and match a pair;
     a query image of the pairs without any row is an error unless ``[import]
     allow_unranked_images`` (then it is counted). ``imp``: ``[import]`` with the localizer's
     ``score_kind``.
@@ -150,7 +150,7 @@ def imported_ranks(
 def bovw_vocabulary(
     p: Units, bc: BovwConfig, frames: Table, pairs: Table, props: dict[str, Table]
 ) -> Entry:
-    """Reference-session subimages -> a bag-of-words vocabulary and its IDF (SPEC section 11)."""
+    """Reference-session subimages -> a bag-of-words vocabulary and its IDF (method §11)."""
     refs = sorted(set(pairs.df["r_session"]))
     rows = pd.concat([props[s].df for s in refs], ignore_index=True)
     build = partial(train_vocabulary, bc, frames.df, rows)

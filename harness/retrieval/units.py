@@ -1,8 +1,8 @@
-"""The ranking unit (SPEC section 6): one reference session against a chunk of its pairs.
+"""The ranking unit (method §6): one reference session against a chunk of its pairs.
 
 For every proposal method a database of the reference session's subimages is ranked against
 the query subimages of the chunk's pairs; the ground-truth place of each pair (frames within
-``gt_radius_m`` and ``max_yaw_diff_deg`` of G, SPEC section 6) comes from the reference frames.
+``gt_radius_m`` and ``max_yaw_diff_deg`` of G, method §6) comes from the reference frames.
 With ``db_stride_m`` the database keeps one frame per stride of trajectory (the place's kept
 frames then stand in for G). Every query subimage that gets no rank is counted by reason.
 """
@@ -91,8 +91,8 @@ class RankSettings:
 
     ``rc`` is ``[retrieval]``; ``max_yaw_deg`` the pairing heading limit (degrees), also the
     place's; ``device`` ``"cpu"`` or ``"cuda"`` for the exact engine; ``place_frames``, with pairs
-    by retrieval (SPEC 13.2), makes the place G and this many frames each side in the map's order
-    (:func:`places_by_order`), None by pose (SPEC 6); ``precision`` is the exact engine's
+    by retrieval (method §13.2), makes the place G and this many frames each side in the map's order
+    (:func:`places_by_order`), None by pose (method §6); ``precision`` is the exact engine's
     candidate product (``fp32`` or ``bf16``; ``bf16`` adds the counters ``compared`` and
     ``measured_exactly``, :func:`image_ranks`).
     """
@@ -188,8 +188,8 @@ def _places(
 ) -> dict[Any, dict[int, np.ndarray]]:
     """Per reference camera, each paired reference frame's ground-truth place.
 
-    By pose (``radius_m``, ``max_yaw_deg``: SPEC 6) or, with ``place_frames``, by the map's
-    order (pairs by retrieval, SPEC 13.2).
+    By pose (``radius_m``, ``max_yaw_deg``: method §6) or, with ``place_frames``, by the map's
+    order (pairs by retrieval, method §13.2).
     """
     out = {}
     for cam, g in pairs.groupby("r_camera", sort=True):

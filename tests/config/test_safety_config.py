@@ -35,7 +35,7 @@ def test_fusion_methods_are_honoured(local_run: tuple, tmp_path: Path) -> None:
         "rank_fusion",
         "score_max",
         "random",
-    ]  # SPEC order, whatever the config's order
+    ]  # the method's order, whatever the config's order
     assert pd.read_csv(tmp_path / "o" / "table1.csv")["fusion"].tolist() == [
         "rank_fusion",
         "score_max",

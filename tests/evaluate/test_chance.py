@@ -1,4 +1,4 @@
-"""SPEC 9's floor, chance band, ceiling and verdict (:mod:`harness.evaluate.chance`)."""
+"""method §9's floor, chance band, ceiling and verdict (:mod:`harness.evaluate.chance`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""SPEC 9, *evidence before a verdict* (issue 50): one positive earns no ▲, in any renderer.
+"""method §9, *evidence before a verdict* (issue 50): one positive earns no ▲, in any renderer.
 
 The issue's run: real frames with one annotated change box printed Table I ``1.00 [1.00, 1.00] ▲``
 for rank fusion, ``size_prior`` and ``cover_count``, Table S and P ``0.00 ▲``: green cells from

@@ -1,4 +1,4 @@
-"""Fusion (SPEC section 7) and the 101-point AP (section 9): hand-computed cases and properties."""
+"""Fusion (method §7) and the 101-point AP (section 9): hand-computed cases and properties."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ INV_RD = {"A": 1.0, "B": 10 / 6, "C": 10.0}  # 1 / r'
 
 
 def test_rank_fusion_by_hand() -> None:
-    """SPEC 7: LoC = N * sum 1/r' (the paper's descending order), written out per fused box."""
+    """method §7: LoC = N * sum 1/r' (the paper's descending order), written out per fused box."""
     got = _by_cover(*fuse(BOXES, R, D, "rank_fusion", L=L10))
     want = {
         "A": 1.0,

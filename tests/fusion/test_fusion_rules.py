@@ -1,4 +1,4 @@
-"""SPEC section 14: the field's rank-fusion rules against ranx's own fusion of the same lists.
+"""method §14: the field's rank-fusion rules against ranx's own fusion of the same lists.
 
 Each original box is one ranked list of places; a fused box fuses the lists of the originals that
 cover it. In ranx's terms a fused box is a query, each covering original a run, and the true place
@@ -71,7 +71,7 @@ def test_rules_equal_ranx_fuse(rule, method, params):
 
 def test_borda_is_ranx_bordafuse_normalised():
     """ranx's BordaFuse gives the place ``L + 1 - rank'_k = rank_k`` points in each list (all
-    lists over the same L places) and sums them; SPEC 14 takes their mean of ``(rank - 1) / L``,
+    lists over the same L places) and sums them; method §14 takes their mean of ``(rank - 1) / L``,
     so ``ranx = N * (L * borda + 1)`` exactly."""
     rng = np.random.default_rng(7)
     for _ in range(20):

@@ -1,4 +1,4 @@
-"""Any robot's data: folders of images with TUM, KITTI or EuRoC trajectories (SPEC 13's input).
+"""Any robot's data: folders of images with TUM, KITTI or EuRoC trajectories (method §13's input).
 
 The fixture's ROS2 bag is written out as a folder of its own image files with its own poses in
 each trajectory format, following evo's documented conventions (TUM: seconds and x y z qx qy qz

@@ -1,4 +1,4 @@
-"""Robot logs as robots record them (SPEC section 3): camera poses composed through /tf and
+"""Robot logs as robots record them (method §3): camera poses composed through /tf and
 /tf_static, per-transform gap rules, clear errors where the path breaks, real-world message quirks,
 and ``harness inspect``. Every log here is written by rosbags or the mcap library."""
 

@@ -1,4 +1,4 @@
-"""Bring your own localizer, end to end, as a user types it (issue 22, SPEC 12).
+"""Bring your own localizer, end to end, as a user types it (issue 22, method §12).
 
 ``harness task export`` -> the user's code (the README's worked example, ``examples/``) ->
 ``harness reproduce --import NAME=FILE`` -> tables and ``report.html`` naming the localizer. An
@@ -23,6 +23,7 @@ import pytest
 from harness.cli import main
 
 from ..conftest import ROOT, one_error
+from ..readme_text import manual_text
 
 FIXTURE_TOML = ROOT / "datasets" / "fixture.toml"
 EXAMPLE = ROOT / "examples" / "hsv_localizer.py"
@@ -79,7 +80,7 @@ def test_task_export_lists_exactly_the_subimages_ranking_scores(
 
 
 def test_the_readme_example_is_the_example_file() -> None:
-    readme = (ROOT / "README.md").read_text()
+    readme = manual_text()
     block = re.search(r"```python\n(\"\"\"A localizer of your own.*?)```", readme, re.S)
     assert block, "the README's worked example is missing"
     assert block.group(1) == EXAMPLE.read_text()

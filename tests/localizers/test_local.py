@@ -1,4 +1,4 @@
-"""The ``local`` localizer (SPEC 13.3): a rank computed by hand; the pasted box ranks worst."""
+"""The ``local`` localizer (method §13.3): a rank computed by hand; the pasted box ranks worst."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> float:
 def _rank_by_hand(
     src: np.ndarray, dst: np.ndarray, box: tuple[int, int, int, int], g: int, t: int
 ) -> tuple[int, int]:
-    """SPEC 13.3 step 2 with numpy alone: every window position's NCC, the best within t."""
+    """method §13.3 step 2 with numpy alone: every window position's NCC, the best within t."""
     x1, y1, x2, y2 = box
     tpl = src[y1:y2, x1:x2].astype(np.float64)
     th, tw = tpl.shape
@@ -145,7 +145,7 @@ def test_the_config_reads_detect_local_and_a_local_localizer(tmp_path) -> None:
 
 
 def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
-    """Table D's rows that read no pixel (SPEC 13.3): a box's area, and how many of the frame's
+    """Table D's rows that read no pixel (method §13.3): a box's area, and how many of the frame's
     candidates overlap it (itself included); the detector is above only when clear of the best."""
     from harness.detect.boxes import change_boxes_nms
     from harness.detect.evaluate import no_pixel_scores, table_d_chance
@@ -203,7 +203,7 @@ def test_large_frames_align_on_a_pyramid_level_and_decode_gray(tmp_path) -> None
 
 
 def test_the_page_says_which_pairs_could_not_be_aligned() -> None:
-    """SPEC 13.3: a pair no link of the chain accepts is named on the page, never scored."""
+    """method §13.3: a pair no link of the chain accepts is named on the page, never scored."""
     import pandas as pd
 
     from harness.detect.page import alignment_html

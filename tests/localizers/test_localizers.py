@@ -1,9 +1,9 @@
-"""Several localizers in one run (SPEC section 11): config, the BoVW engine, Table L, the page.
+"""Several localizers in one run (method §11): config, the BoVW engine, Table L, the page.
 
 The end-to-end run is ``datasets/fixture-localizers.toml`` (the autoencoder, BoVW-RootSIFT and an
 HSV thumbnail) plus an imported list written by ``examples/hsv_localizer.py``, run as a user types
 it on a copy of the fixture run's cache (the autoencoder's entries are reused, not recomputed).
-Every number of Table L is then recomputed from the run's ``ranks.parquet`` with SPEC sections 7
+Every number of Table L is then recomputed from the run's ``ranks.parquet`` with method §7
 and 11 (the fusion written out again here, box by box) and the annotations.
 """
 
@@ -31,6 +31,8 @@ from harness.ingest.annotations import change_boxes, load_annotations
 from harness.retrieval.bovw import bovw_ranks, bow_vectors, features, frame_similarity
 from harness.retrieval.config import BovwConfig
 from harness.retrieval.import_file import parse_import_arg
+
+from ..readme_text import manual_text
 
 ROOT = Path(__file__).resolve().parents[2]
 MULTI_TOML = ROOT / "datasets" / "fixture-localizers.toml"
@@ -110,7 +112,7 @@ def test_without_localizers_a_config_measures_its_descriptor(tmp_path: Path) -> 
 
 
 def _l1_score(v: np.ndarray, w: np.ndarray) -> float:
-    """DBoW2's L1 score, written as SPEC section 11 gives it."""
+    """DBoW2's L1 score, written as method §11 gives it."""
     return float(1.0 - 0.5 * np.abs(v - w).sum())
 
 
@@ -186,7 +188,7 @@ def multi_run(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tup
     hsv = base / "hsv.csv"
     example = str(ROOT / "examples" / "hsv_localizer.py")
     subprocess.run([sys.executable, example, str(out / "task"), str(hsv)], check=True)
-    readme = (ROOT / "README.md").read_text()
+    readme = manual_text()
     section = readme[readme.index("## Several localizers in one run") :]
     block = re.search(r"```toml\n(.*?)```", section, re.S)
     assert block is not None and 'name = "hsv"' in block.group(1)
@@ -239,7 +241,7 @@ def test_reproduce_prints_table_l_with_a_row_per_localizer_and_the_fused_row(
 
 
 def _closure(boxes: list[tuple[float, ...]]) -> set[tuple[float, ...]]:
-    """The closure under pairwise intersection, by brute force (SPEC section 7)."""
+    """The closure under pairwise intersection, by brute force (method §7)."""
     orig = {b for b in boxes if b[2] > b[0] and b[3] > b[1]}
     out, frontier = set(orig), set(orig)
     while frontier:
@@ -316,7 +318,7 @@ def test_every_number_of_table_l_recomputes_from_ranks_parquet(
         )
         aps[name] = ap_s
         assert t.loc[name, "S_rank_fusion_ap"] == pytest.approx(ap_s, abs=5e-5), name
-        # SPEC 9: the floor is random orders within the same strata (the draws are seeded by the
+        # method §9: the floor is random orders within the same strata (the draws are seeded by the
         # strata's counts, so samples rebuilt here from the ranks give the same draws)
         y_cat, sob_cat = np.concatenate(y_all), np.concatenate(sob_all)
         want_floor = stratified_chance(y_cat, sob_cat, edges, cfg.report.chance_draws, cfg.seed)
@@ -367,7 +369,7 @@ def test_the_page_leads_with_table_l_and_shows_every_localizer(multi_run: tuple[
 
 
 def test_positive_control_the_fixture_localizer_is_above_chance(local_run: tuple) -> None:
-    """On the fixture, the autoencoder's Table S rank fusion is above chance by SPEC 9's rule at
+    """On the fixture, the autoencoder's Table S rank fusion is above chance by method §9's rule at
     every RoC-max 0.01 to 0.05: above the chance band of random orders and clear of the random
     baseline (its paired bootstrap difference), so is score max at 0.05, and random is not.
 
@@ -439,7 +441,7 @@ def test_the_readme_command_runs_as_typed_with_its_four_localizers(
     out = tmp_path / "fixture-localizers"
     shutil.copytree(run / "cache", out / "cache")
     shutil.copy(run / ".dbl-harness.json", out / ".dbl-harness.json")
-    readme = (ROOT / "README.md").read_text()
+    readme = manual_text()
     typed = re.search(
         r"harness reproduce --config datasets/fixture-localizers.toml --out \S+", readme
     )
@@ -662,7 +664,7 @@ def test_comparisons_between_localizers_say_which_survive_holm(
     for r in t.iloc[1:].itertuples():
         line = next(x for x in cmp.splitlines() if x.startswith(f"- {r.localizer} - "))
         assert line.endswith("[Holm]") == bool(r.S_rank_fusion_holm_survives), line
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join(manual_text().split())
     assert sentence.replace("Table L: ", "") in readme
 
 

@@ -18,6 +18,7 @@ import pytest
 from harness.pipeline.chain import Pipeline
 
 from ..conftest import ROOT, no_figures
+from ..readme_text import manual_text
 
 #: Largest allowed absolute difference from the committed two-decimal tables. Same machine, same
 #: bytes (tested below); between machines BLAS and CPU differences move the trained autoencoder's
@@ -170,7 +171,7 @@ def test_the_papers_orderings_show_on_the_fixture(run: tuple) -> None:
 
 def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> None:
     """Every cell of Table I from OUT/ranks.parquet and the annotations, with an independent
-    implementation of SPEC sections 7-9 (brute-force closure, the LoC formulas, labels, AP)."""
+    implementation of method §7-9 (brute-force closure, the LoC formulas, labels, AP)."""
     import itertools
 
     from harness.ingest.annotations import load_annotations
@@ -267,7 +268,7 @@ def test_table1_recomputed_from_ranks_with_spec_formulas_alone(run: tuple) -> No
             samples["score_sum"].append((rc, sb, sum(d for *_, d in cov)))
             samples["size_prior"].append((rc, sb, 1 - sb))
             samples["cover_count"].append((rc, sb, float(n)))
-            # SPEC 14, with rank' = L + 1 - rank
+            # method §14, with rank' = L + 1 - rank
             samples["rrf"].append((rc, sb, sum(1 / (60 + L + 1 - rank) for _, rank, L, _ in cov)))
             samples["combmnz"].append((rc, sb, n * sum(rank / L for _, rank, L, _ in cov)))
             samples["borda"].append((rc, sb, sum((rank - 1) / L for _, rank, L, _ in cov) / n))
@@ -536,7 +537,7 @@ def test_the_readme_quotes_the_holm_counts_as_comparisons_md_prints_them(run: tu
         t = summ[(summ["table"] == table) & (summ["holm_tested"] > 0)]
         assert f"Table {table}: {int(t['holm_survives'].sum())} of the {len(t)} " in cmp
     skip_unless_recorded_model(out)
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join(manual_text().split())
     example = re.search(r"`(rank w/o fusion - rank fusion = [^`]+)`", readme)
     assert example is not None
     line = next(x for x in cmp.splitlines() if example.group(1) in x)

@@ -148,7 +148,7 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
 ) -> None:
     """A hand-made run directory like a real corridor's: Table I at 1.00 everywhere, Table S modest
     (0.26 against a floor of 0.12 and a band to 0.15, clear of random), one method that cannot be
-    told from chance, one below it; every verdict written by SPEC 9's rule, as the harness does."""
+    told from chance, one below it; every verdict written by §9's rule, as the harness does."""
     import pandas as pd
 
     from harness.evaluate.chance import verdict
@@ -194,7 +194,7 @@ def test_a_corridor_run_shows_table_s_green_and_table_i_last(
 def test_every_colour_of_the_fixture_page_is_the_rule_recomputed_from_the_summary(
     local_run: tuple,
 ) -> None:
-    """SPEC 9: each AP cell's verdict on the page (Tables I, S and P) is
+    """method §9: each AP cell's verdict on the page (Tables I, S and P) is
     :func:`harness.evaluate.chance.verdict` of its row in ``splits/summary.parquet``; the random
     baseline is never above chance, and no baseline is above chance in Tables S and P."""
     import html

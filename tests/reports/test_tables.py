@@ -1,4 +1,4 @@
-"""Tables a reviewer can trust (SPEC sections 7-10): stratified AP, pixel and image AP, paired
+"""Tables a reviewer can trust (method §7-10): stratified AP, pixel and image AP, paired
 comparisons, confound warnings and LaTeX, by hand and on the fixture run."""
 
 from __future__ import annotations
@@ -193,7 +193,7 @@ def test_fixture_writes_tables_s_and_p_with_intervals_and_comparisons(local_run:
     md = (out / "tableS.md").read_text()
     assert "floor, fused set (mean AP of random orders)" in md and "[" in md
     assert "chance band, fused set" in md and "positive rate (not the floor)" in md
-    # every row's floor lies in its own chance band, and above the positive rate (SPEC 9)
+    # every row's floor lies in its own chance band, and above the positive rate (method §9)
     assert (sp["chance_low"] <= sp["floor"]).all() and (sp["floor"] <= sp["chance_high"]).all()
     st = pooled[pooled["table"] == "S"]
     assert (st["floor"] > st["positive_rate"]).all()

@@ -1,4 +1,4 @@
-"""``harness.retrieval.imported``: a user's ranked lists, scored and checked as SPEC 12 says.
+"""``harness.retrieval.imported``: a user's ranked lists, scored and checked as method §12 says.
 
 Unit cases on a hand-made session B (frames 10..50 on a line) where every rank, ``L`` and ``d``
 was worked out by hand; the CLI cases (a whole run, the report page) are in

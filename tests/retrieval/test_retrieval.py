@@ -16,7 +16,7 @@ from harness.retrieval import image_ranks, image_ranks_faiss
 def brute(
     q: np.ndarray, db: np.ndarray, frame: np.ndarray, gt: np.ndarray, place: list | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """SPEC section 6 as a loop.
+    """method §6 as a loop.
 
     d = min over the place, rank = 1 + frames outside it strictly closer, L = 1 + frames outside.
     """
@@ -211,7 +211,7 @@ def test_the_per_frame_minimum_equals_a_loop_over_frames(lengths: list[int]) -> 
 
 
 def _exact_d(q: np.ndarray, db: np.ndarray, frame: np.ndarray, members: list) -> np.ndarray:
-    """SPEC 6's d: float64 differences, numpy's sum of each row, the least over the place."""
+    """method §6's d: float64 differences, numpy's sum of each row, the least over the place."""
     return np.array(
         [
             np.sqrt(((db[np.isin(frame, m)].astype(np.float64) - qi) ** 2).sum(1).min())

@@ -1,4 +1,4 @@
-"""The fusion rules of the fused set, one module each (SPEC sections 7 and 14), the ranx way.
+"""The fusion rules of the fused set, one module each (method §7 and 14), the ranx way.
 
 Each module attaches its function to its record in the method catalogue
 (``harness.methods.FUSION_RULES``) with :func:`.base.rule`, the same record a user's

@@ -16,7 +16,7 @@ from harness.methods import FUSION_RULES, STANDARD_RULES, Registry
 
 Loc = Callable[..., np.ndarray]
 #: A rank-fusion rule's formula: (cover as floats, covering count N, rank, rank' = L + 1 - rank,
-#: L, RRF's c) -> LoC (SPEC section 14).
+#: L, RRF's c) -> LoC (method §14).
 Formula = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float], np.ndarray]
 #: The field's rank-fusion rules' formulas by name (``rrf``, ``combmnz``, ``borda``, ``isr``).
 FORMULAS: Registry[Formula] = Registry("rank-fusion formula")
@@ -33,20 +33,20 @@ def rule(name: str) -> Callable[[Loc], Loc]:
 
 
 def r_desc_of(r: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """``r' = (L + 1 - rank) / L`` from ``r = rank / L`` (SPEC section 6)."""
+    """``r' = (L + 1 - rank) / L`` from ``r = rank / L`` (method §6)."""
     r, L = np.asarray(r, np.float64), np.asarray(L, np.float64)
     return np.asarray((L + 1.0) / L - r, np.float64)
 
 
 def paper_sum(cover: np.ndarray, inv: np.ndarray) -> np.ndarray:
-    """SPEC section 7's fusion: ``N * sum(1 / r')`` over the covering originals."""
+    """Method §7's fusion: ``N * sum(1 / r')`` over the covering originals."""
     return np.asarray(cover.sum(1) * (cover * inv[None, :]).sum(1), np.float64)
 
 
 def standard_rule(
     cover: np.ndarray, name: str, rank: np.ndarray, L: np.ndarray, c: float = 60.0
 ) -> np.ndarray:
-    """LoC of the fused boxes by one of the field's rank-fusion rules (SPEC section 14).
+    """LoC of the fused boxes by one of the field's rank-fusion rules (method §14).
 
     Each original box k is one ranked list of ``L_k`` places; ``rank_k`` is its true place's
     position sorted most similar first, so ``rank'_k = L_k + 1 - rank_k`` is its position sorted
@@ -77,5 +77,5 @@ def standard(name: str) -> Loc:
     ) -> np.ndarray:
         return standard_rule(cover, name, np.rint(r * L), L, rrf_c)
 
-    fn.__doc__ = f"SPEC 14's {name} over the covering originals' lists (:func:`standard_rule`)."
+    fn.__doc__ = f"method §14's {name} over the covering originals' lists (:func:`standard_rule`)."
     return fn

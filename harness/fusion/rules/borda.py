@@ -1,4 +1,4 @@
-"""Borda count: the mean of ``(rank - 1) / L`` over the covering lists (SPEC 14)."""
+"""Borda count: the mean of ``(rank - 1) / L`` over the covering lists (method §14)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""CombMNZ over rank-normalised scores: ``N * sum(rank / L)`` (SPEC 14)."""
+"""CombMNZ over rank-normalised scores: ``N * sum(rank / L)`` (method §14)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Cover count: how many originals cover the box, a baseline that reads no pixel (SPEC 7)."""
+"""Cover count: how many originals cover the box, a baseline that reads no pixel (method §7)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""ISR, inverse square rank: ``N * sum(1 / rank'^2)`` (SPEC 14)."""
+"""ISR, inverse square rank: ``N * sum(1 / rank'^2)`` (method §14)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The paper's rank fusion (SPEC section 7): ``N * sum(1 / r')`` over the covering originals."""
+"""The paper's rank fusion (method §7): ``N * sum(1 / r')`` over the covering originals."""
 
 from __future__ import annotations
 

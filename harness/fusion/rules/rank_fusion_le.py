@@ -1,6 +1,6 @@
 """Rank fusion over at most 2 or 3 covering originals (``rank_fusion_le2``, ``rank_fusion_le3``).
 
-SPEC section 7: where more cover the box, a random k of them, per image seed.
+method §7: where more cover the box, a random k of them, per image seed.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""RRF, reciprocal rank fusion: ``sum 1 / (c + rank')`` over the covering lists (SPEC 14)."""
+"""RRF, reciprocal rank fusion: ``sum 1 / (c + rank')`` over the covering lists (method §14)."""
 
 from __future__ import annotations
 

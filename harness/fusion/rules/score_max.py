@@ -1,4 +1,4 @@
-"""Score max (SPEC section 7): the largest relevance score ``d`` of the covering originals."""
+"""Score max (method §7): the largest relevance score ``d`` of the covering originals."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Score sum (SPEC section 7): the sum of the covering originals' relevance scores ``d``."""
+"""Score sum (method §7): the sum of the covering originals' relevance scores ``d``."""
 
 from __future__ import annotations
 

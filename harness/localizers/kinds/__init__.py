@@ -1,4 +1,4 @@
-"""Localizer kinds (SPEC section 11): one ``[[localizers]]`` sub-table each, registered alike.
+"""Localizer kinds (method §11): one ``[[localizers]]`` sub-table each, registered alike.
 
 :mod:`.base` holds the record (:class:`LocalizerKind`), the registry and the run a kind's ranks
 function is given; the built-in kinds are one module each, its record (``KIND``) and its ranks

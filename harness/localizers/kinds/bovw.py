@@ -1,4 +1,4 @@
-"""Kind ``bovw``: a bag of visual words (SPEC 11), ranked by the harness's engine on its vectors."""
+"""Kind ``bovw``: a bag of visual words (method §11), ranked by the harness's engine."""
 
 from __future__ import annotations
 

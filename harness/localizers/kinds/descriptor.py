@@ -1,4 +1,4 @@
-"""Kind ``descriptor``: a learned or given descriptor, ranked by the harness's engine (SPEC 6, 11).
+"""Kind ``descriptor``: a learned or given descriptor, ranked by the engine (method §6, 11).
 
 Its options are ``[descriptor]``'s table; its ranks: the model, the projection, each session's
 descriptors, then the ranking engine.

@@ -1,4 +1,4 @@
-"""Kind ``import``: a user's ranked lists, checked against the run and scored (SPEC 12)."""
+"""Kind ``import``: a user's ranked lists, checked against the run and scored (method §12)."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def ranks(
     mine: dict[str, Table],
     rc: RetrievalConfig,
 ) -> RankTable:
-    """The user's ranked lists, checked and scored (SPEC 12)."""
+    """The user's ranked lists, checked and scored (method §12)."""
     im = options_of(loc, loc.import_)
     spec = ImportSpec(loc.name, Path(im.file))
     return p.imported_ranks(frames, pairs, mine, spec, im.score_kind, rc)

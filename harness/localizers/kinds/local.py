@@ -1,4 +1,4 @@
-"""Kind ``local``: each subimage ranked inside its paired map frame (SPEC 13.3)."""
+"""Kind ``local``: each subimage ranked inside its paired map frame (method §13.3)."""
 
 from __future__ import annotations
 

@@ -40,7 +40,7 @@ def diff_colour(lo: float, hi: float) -> str:
     return "#e3f4e1" if lo > 0 else "#fbe3e1" if hi < 0 else "#fff"
 
 
-#: What a change-table cell says about its AP: SPEC 9's verdict
+#: What a change-table cell says about its AP: method §9's verdict
 # (:func:`harness.evaluate.chance.verdict`).
 VERDICTS = {
     "above": "above chance: above the chance band and clear of the random baseline (paired)",
@@ -48,7 +48,7 @@ VERDICTS = {
     "below": "below chance: under the chance band and clear below the random baseline (paired)",
     "untested": "no interval: not tested against chance; the shade shows the distance only",
     "undefined": "undefined (no positive)",
-    "few": "too few query images hold a positive for a verdict (SPEC 9): no colour",
+    "few": "too few query images hold a positive for a verdict (method §9): no colour",
 }
 
 
@@ -57,7 +57,7 @@ TD_VERDICT = '<td data-verdict="{}" style="background:{}">'
 
 
 def verdict_colour(ap: float, floor: float, word: str) -> tuple[str, str]:
-    """(verdict, background) of one AP cell: the colour of SPEC 9's verdict ``word``.
+    """(verdict, background) of one AP cell: the colour of method §9's verdict ``word``.
 
     Green above chance, red below, grey when it cannot be told from chance; the shade grows with
     the distance of the AP from the floor, as a share of the room there is (1 - floor above it,
@@ -66,7 +66,7 @@ def verdict_colour(ap: float, floor: float, word: str) -> tuple[str, str]:
     """
     if ap != ap or floor != floor or word == "undefined":
         return "undefined", "#f0f0f0"
-    if word == "few":  # evidence before a verdict (SPEC 9): no colour at all
+    if word == "few":  # evidence before a verdict (method §9): no colour at all
         return "few", "#ffffff"
     up = ap >= floor
     room = (1.0 - floor) if up else floor
@@ -85,7 +85,7 @@ def verdict_colour(ap: float, floor: float, word: str) -> tuple[str, str]:
 
 
 LEGEND = (
-    '<div class="legend" data-legend="floor"><b>How to read the colours</b> (SPEC 9, one rule '
+    '<div class="legend" data-legend="floor"><b>How to read the colours</b> (method §9, one rule '
     "for every colour). "
     '<span class="sw" style="background:rgb(182,226,178)"></span> green: above chance, the AP '
     "exceeds the chance band (the 95th percentile of random orders of the same samples) and its "
@@ -116,7 +116,7 @@ def heat_style(v: float, floor: float = 0.0) -> str:
 
 
 def change_html(t: ChangeTable, who: str = "") -> str:
-    """One change table (I, S or P), its cells coloured by SPEC 9's verdict against the floor."""
+    """One change table (I, S or P), its cells coloured by method §9's verdict against the floor."""
     spec, cols = t.spec, t.columns
     head = "".join(f"<th>{esc(column_label(c))}</th>" for c in cols)
     rows, sep = [], False
@@ -151,7 +151,7 @@ def change_html(t: ChangeTable, who: str = "") -> str:
     return (
         f'<{heading} id="table{spec.id}">{esc(spec.title + who)}</{heading}><p class="note">'
         f"{esc(spec.intro)} "
-        "Cells: AP [95% bootstrap interval over query images]; colour: SPEC 9's verdict "
+        "Cells: AP [95% bootstrap interval over query images]; colour: method §9's verdict "
         "against chance (see the legend)."
         f'</p><table data-table="{spec.id}"><tr><th>AP</th>{head}</tr>{"".join(rows)}</table>'
         f"{warn}"
@@ -161,7 +161,7 @@ def change_html(t: ChangeTable, who: str = "") -> str:
 def localization_table(
     loc: pd.DataFrame, radius: float, who: str = "", anchor: str = "localization"
 ) -> str:
-    """The localization-quality table (SPEC section 10) of ``who`` (``anchor``: its id)."""
+    """The localization-quality table (method §10) of ``who`` (``anchor``: its id)."""
     cols = loc_columns(loc)
     head = "".join(f"<th>{esc(lab)}</th>" for _, lab, _ in cols)
 
@@ -296,7 +296,7 @@ def _l_cell(c: LCell) -> str:
 
 
 def table_l(out: Path, machine: str = "") -> str:
-    """Table L (SPEC section 11) from ``tableL.csv``: every AP coloured against its floor.
+    """Table L (method §11) from ``tableL.csv``: every AP coloured against its floor.
 
     Then what each localizer costs; an undefined cell is ``-`` with its reason in a footnote.
     """
@@ -323,9 +323,9 @@ def table_l(out: Path, machine: str = "") -> str:
     )
     return (
         '<h2 id="tableL">Table L: localizers</h2><p class="note">One row per localizer and '
-        "one for all localizers fused by rank (SPEC section 11), every one scored on the same "
+        "one for all localizers fused by rank (method §11), every one scored on the same "
         f"query images. Table S at RoC-max {v.roc_max:.2f}; each AP with its "
-        "95% interval, coloured by SPEC 9's verdict against chance (random orders of the same "
+        "95% interval, coloured by method §9's verdict against chance (random orders of the same "
         "samples, and the paired difference from the random baseline); "
         f"the last column is the paired difference from {esc(v.first)} in Table S rank fusion over "
         "the same bootstrap resamples ([Holm]: it survives Holm's correction over the "
