@@ -227,7 +227,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
 
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
     table_d = _table_d(run, fr, dets, ids) if len(ann) else None
-    pixel = write_pixel_table(out, cfg, names, map_session, entries, fr)
+    pixel = write_pixel_table(out, cfg, names, map_session, entries, fr, frames)
 
     page = write_detect_page(run, (fr, top, dets), maps, (table_d, pixel))
     return {

@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
+from harness.detect.difference import PIXEL_BASELINES, difference_contrast, difference_map
 from harness.detect.evaluate import NO_PIXEL, no_pixel_scores
 from harness.errors import AnnotationError
 from harness.evaluate import chance
@@ -35,6 +36,7 @@ from harness.evaluate.metrics import (
     weighted_average_precision,
 )
 from harness.fusion.fuse import loc_map
+from harness.imagestore import read_image
 from harness.ingest.names import frames_by_image
 from harness.inputs import IMAGE_SUFFIXES
 from harness.records import FRAME_KEY, QUERY_KEY
@@ -50,6 +52,7 @@ PIXEL_ROWS = {
     "random": "random (random box scores)",
     "size_prior": "size_prior (box area, no pixel read)",
     "cover_count": "cover_count (boxes overlapping it, no pixel read)",
+    "aligned_difference": "aligned difference (box contrast, pixels, no localizer)",
 }
 
 
@@ -67,6 +70,8 @@ class MaskedFrame:
     boxes: np.ndarray
     loc: np.ndarray
     roc: np.ndarray
+    # each box's aligned-difference contrast (harness.detect.difference; None: no pair image)
+    difference: np.ndarray | None = None
 
 
 def box_change_fraction(boxes: np.ndarray, positive: np.ndarray) -> np.ndarray:
@@ -83,8 +88,14 @@ def box_change_fraction(boxes: np.ndarray, positive: np.ndarray) -> np.ndarray:
     return np.divide(inside, n, out=np.zeros(len(b)), where=n > 0)
 
 
-def masked_frame(boxes: np.ndarray, loc: np.ndarray, mask: np.ndarray) -> MaskedFrame:
-    """The regions of one image: its sample boxes and their LoC against its mask."""
+def masked_frame(
+    boxes: np.ndarray, loc: np.ndarray, mask: np.ndarray, difference: np.ndarray | None = None
+) -> MaskedFrame:
+    """The regions of one image: its sample boxes and their LoC against its mask.
+
+    ``difference``: each box's aligned-difference contrast, the baseline row that reads the
+    pair's pixels and no localizer.
+    """
     positive = (mask.max(axis=2) if mask.ndim == 3 else mask) > 0
     h, w = positive.shape
     b = np.asarray(boxes, np.float64).reshape(-1, 4)
@@ -98,6 +109,7 @@ def masked_frame(boxes: np.ndarray, loc: np.ndarray, mask: np.ndarray) -> Masked
         b,
         np.asarray(loc, np.float64),
         box_change_fraction(b, positive),
+        None if difference is None else np.asarray(difference, np.float64),
     )
 
 
@@ -140,6 +152,8 @@ class _Regions:
             self.scores[name] = np.concatenate(
                 [no_pixel_scores(f.boxes)[name] for f in frames] or [np.zeros(0)]
             )
+        if frames and all(f.difference is not None for f in frames):
+            self.scores[PIXEL_BASELINES[0]] = np.concatenate([f.difference for f in frames])
         self.positive_images = len({int(g) for g in self.g[self.y & (self.w > 0)]})
 
     def region_scores(self, s: np.ndarray) -> np.ndarray:
@@ -183,14 +197,16 @@ def pixel_table(
     r.scores["random"] = np.random.default_rng(chance.draw_seed(seed, "DP-random", *k)).random(r.n)
     counts = resample_counts(len(frames), n_boot, chance.draw_seed(seed, "DP-boot", len(frames)))
     ap, boot = {}, {}
-    for row in PIXEL_ROWS:
+    here = {k: v for k, v in PIXEL_ROWS.items() if k in r.scores}
+    for row in here:
         s = r.region_scores(r.scores[row])[0]
         ap[row] = weighted_average_precision(r.y, s, r.w)
         boot[row] = bootstrap_aps(r.y, s, r.g, counts, weights=r.w)
-    best = max(NO_PIXEL, key=lambda b: (ap[b], b))
+    # the detector must clear the best row that reads no pixel, or reads pixels but no localizer
+    best = max((b for b in (*NO_PIXEL, *PIXEL_BASELINES) if b in here), key=lambda b: (ap[b], b))
     total = float(r.w.sum())
     rows = []
-    for row, label in PIXEL_ROWS.items():
+    for row, label in here.items():
         bl, bh = interval(boot[row], ci)
         dl, dh = interval(boot[row] - boot["random"], ci)
         v = chance.verdict(ap[row], lo, hi, dl, dh, chance.Evidence(r.positive_images, needed))
@@ -299,6 +315,24 @@ def pixel_html(t: pd.DataFrame | None) -> str:
     )
 
 
+def _pair_difference(
+    run_frames: pd.DataFrame, images: pd.Series, k: tuple[str, str, int], boxes: np.ndarray
+) -> np.ndarray | None:
+    """Each box's aligned-difference contrast in query frame ``k`` against its map frame.
+
+    None where the frame has no map frame (its row has no ``r_utime``).
+    """
+    fk = run_frames.set_index(FRAME_KEY)
+    if k not in fk.index or fk.loc[k, "r_utime"] != fk.loc[k, "r_utime"]:
+        return None
+    r = fk.loc[k]
+    m = (str(r["r_session"]), str(r["r_camera"]), int(r["r_utime"]))
+    if m not in images.index:
+        return None
+    dmap, scale = difference_map(read_image(str(images.loc[k])), read_image(str(images.loc[m])))
+    return difference_contrast(dmap, scale, boxes)
+
+
 def write_pixel_table(
     out: Path,
     cfg: Config,
@@ -306,8 +340,12 @@ def write_pixel_table(
     map_session: str,
     entries: list[Any],
     run_frames: pd.DataFrame,
+    frames_table: pd.DataFrame,
 ) -> pd.DataFrame | None:
     """``tableD_pixel.csv`` / ``.md`` from ``[masks] folder``'s masks of this run's query frames.
+
+    ``run_frames``: the run's frame rows (each query frame's map frame, ``r_*``);
+    ``frames_table``: every frame's image, for the aligned-difference row.
 
     ``entries`` are the detect chunks (their ``samples.parquet``: boxes and ``loc``), read one at
     a time for the masked frames only; a masked frame without a sample box counts all its pixels
@@ -330,6 +368,7 @@ def write_pixel_table(
             (out / stale).unlink(missing_ok=True)
         return None
     boxes: dict[tuple[str, str, int], tuple[np.ndarray, np.ndarray]] = {}
+    images = frames_table.set_index(FRAME_KEY)["image"]
     want = pd.MultiIndex.from_tuples(sorted(files))
     for e in entries:
         s = read_cached_parquet(e.path / "samples.parquet")
@@ -346,7 +385,7 @@ def write_pixel_table(
         mask = cv2.imread(str(files[k]), cv2.IMREAD_UNCHANGED)
         if mask is None:  # read as annotations a moment ago: changed on disk since
             raise AnnotationError(f"{files[k]}: not a readable mask image")
-        frames.append(masked_frame(b, loc, mask))
+        frames.append(masked_frame(b, loc, mask, _pair_difference(run_frames, images, k, b)))
     r = cfg.report
     t = pixel_table(frames, r.chance_draws, r.bootstrap, r.ci, cfg.seed, r.min_positive_images)
     write_text(out / "tableD_pixel.csv", t.to_csv(index=False, float_format="%.4f"))

@@ -292,7 +292,10 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
         rec = json.loads((out / "detect.json").read_text())
         if flag == "--masks":  # the masks are also the truth of a pixel AP (method §13.2)
             px = pd.read_csv(out / "tableD_pixel.csv")
-            assert list(px["masked_frames"].unique()) == [2] and len(rec["table_d_pixel"]) == 4
+            assert list(px["masked_frames"].unique()) == [2] and len(rec["table_d_pixel"]) == 5
+            # the rows: the LoC map, random, the two no-pixel rows, and the aligned difference
+            # (each box's difference contrast against its map frame: pixels, no localizer)
+            assert px["row"].str.startswith("aligned difference").sum() == 1
             # the change is a quarter by a quarter of q00: 1/16 of one image's pixels in two
             assert px["positive_rate"].iloc[0] == pytest.approx(1 / 32, abs=1e-4)
             assert set(px["verdict"]) == {"few"}  # one positive image earns no verdict
@@ -553,6 +556,17 @@ def test_pixel_ap_of_a_loc_map_against_a_mask_by_hand() -> None:
     assert t3["positive_rate"].iloc[0] == pytest.approx(16 / 200)
     # the empty image's 100 pixels tie with the large box's at the lowest LoC
     assert t3.loc["detector (LoC map)", "pixel_ap"] == pytest.approx(1.0)
+    # the aligned-difference row scores the boxes by their difference contrast through the same
+    # maps: the large box's higher contrast puts the 84 unchanged pixels first, AP 0.16; it is a
+    # row only where every masked image has its pair's difference
+    assert "aligned difference (box contrast, pixels, no localizer)" not in t.index
+    d = masked_frame(boxes, np.array([0.9, 0.1]), mask, np.array([0.2, 0.7]))
+    t4 = pixel_table([d], draws=50, n_boot=20, ci=0.95, seed=0).set_index("row")
+    assert t4.loc["aligned difference (box contrast, pixels, no localizer)", "pixel_ap"] == (
+        pytest.approx(0.16)
+    )
+    assert t4.loc["detector (LoC map)", "best_no_pixel"] in ("size_prior", "cover_count",
+                                                             "aligned_difference")  # fmt: skip
 
 
 def test_rows_that_name_their_image_find_their_frame_or_say_why_in_one_line() -> None:
