@@ -1,7 +1,8 @@
 """A localizer of your own, end to end: HSV colour histograms ranked by Hellinger distance.
 
 Run after ``harness task export`` (task directory, output CSV), then
-``harness reproduce ... --import hsv=<output CSV>``: see the README, *Bring your own localizer*.
+``harness reproduce ... --import hsv=<output CSV>``: see docs/localizers.md, *Bring your own
+localizer*.
 """
 
 import sys
