@@ -59,9 +59,17 @@ def field_comments(cls: type) -> dict[str, str]:
     return out
 
 
+_ROLE = re.compile(r":(?:mod|func|class|meth|data|attr):`~?([^`]+)`")
+
+
+def _markdown(text: str) -> str:
+    """Docstring text as Markdown: Sphinx roles as code spans."""
+    return _ROLE.sub(r"`\1`", text)
+
+
 def _summary(cls: type) -> str:
     doc = inspect.getdoc(cls) or ""
-    return " ".join(doc.split("\n\n")[0].split())
+    return _markdown(" ".join(doc.split("\n\n")[0].split()))
 
 
 def _default(f: dataclasses.Field) -> str:
@@ -98,7 +106,7 @@ def table(title: str, cls: type, skip: tuple[str, ...] = ()) -> list[str]:
     for f in dataclasses.fields(cls):
         if f.name in skip:
             continue
-        note = notes.get(f.name, "").replace("|", "\\|")
+        note = _markdown(notes.get(f.name, "")).replace("|", "\\|")
         rows.append(f"| `{f.name}` | {_type(hints[f.name])} | {_default(f)} | {note} |")
     return [*rows, ""]
 
