@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.detect_choice import REAL, ROOT, set_args
+from bench.detect_choice import ROOT, sets_here, write_table
 
 CALIBRATIONS = ("null", "within-run")
 
@@ -85,20 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "alarms")
     a = ap.parse_args(argv)
     rows = []
-    for s in a.sets.split(","):
-        args = set_args(s)
-        if args is None:
-            print(f"skipped {s}: {REAL / s} is not here (real pairs are read from shared/, never "
-                  "kept in the repository)")  # fmt: skip
-            continue
+    for s, args in sets_here(a.sets):
         for c in CALIBRATIONS:
             rows.append(run_one(s, args, c, a.out))
             print(json.dumps(rows[-1]), flush=True)
-    a.out.mkdir(parents=True, exist_ok=True)
-    md = markdown(rows)
-    (a.out / "alarms.md").write_text(md)
-    (a.out / "alarms.json").write_text(json.dumps(rows, indent=1))
-    print(md)
+    write_table(a.out, "alarms", rows, markdown(rows))
     return 0
 
 

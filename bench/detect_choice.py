@@ -163,23 +163,36 @@ def main(argv: list[str] | None = None) -> int:
                   f"{', '.join('/'.join(c) for c in CANDIDATES)}", file=sys.stderr)  # fmt: skip
             return 1
     rows = []
-    for s in a.sets.split(","):
+    for s, args in sets_here(a.sets):
+        for cand in cands:
+            rows.append(run_one(s, args, cand, a.out))
+            print(json.dumps(rows[-1]), flush=True)
+    md = markdown(rows)
+    pick = choose(rows)
+    md += f"\nChosen by the rule: {' / '.join(pick) if pick else 'none'}\n"
+    write_table(a.out, "detect_choice", rows, md)
+    return 0
+
+
+def sets_here(names: str) -> list[tuple[str, list[str]]]:
+    """The sets of ``names`` (comma-separated) with their arguments; each one absent said so."""
+    here = []
+    for s in names.split(","):
         args = set_args(s)
         if args is None:
             print(f"skipped {s}: {REAL / s} is not here (real pairs are read from shared/, never "
                   "kept in the repository)")  # fmt: skip
             continue
-        for cand in cands:
-            rows.append(run_one(s, args, cand, a.out))
-            print(json.dumps(rows[-1]), flush=True)
-    a.out.mkdir(parents=True, exist_ok=True)
-    md = markdown(rows)
-    pick = choose(rows)
-    md += f"\nChosen by the rule: {' / '.join(pick) if pick else 'none'}\n"
-    (a.out / "detect_choice.md").write_text(md)
-    (a.out / "detect_choice.json").write_text(json.dumps(rows, indent=1))
+        here.append((s, args))
+    return here
+
+
+def write_table(out: Path, stem: str, rows: list[dict], md: str) -> None:
+    """``OUT/STEM.md`` (the table) and ``OUT/STEM.json`` (every row), and the table printed."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.md").write_text(md)
+    (out / f"{stem}.json").write_text(json.dumps(rows, indent=1))
     print(md)
-    return 0
 
 
 if __name__ == "__main__":

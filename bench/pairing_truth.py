@@ -18,8 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "bench" / ".data"
+from bench.detect_choice import DATA, ROOT, write_table
 
 #: (name, fixture seed, frames a session).
 WORLDS = (("fixture (seed 0)", 0, 64), ("another world (seed 7)", 7, 128))
@@ -105,11 +104,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 rows.append(run_one(w, d, m, a.out))
                 print(json.dumps(rows[-1]), flush=True)
-    a.out.mkdir(parents=True, exist_ok=True)
-    md = markdown(rows)
-    (a.out / "pairing_truth.md").write_text(md)
-    (a.out / "pairing_truth.json").write_text(json.dumps(rows, indent=1))
-    print(md)
+    write_table(a.out, "pairing_truth", rows, markdown(rows))
     return 0
 
 

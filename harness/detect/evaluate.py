@@ -283,22 +283,24 @@ def _alarm_columns(
     Measured on the frames annotated no-change, with its exact interval; and the share of the
     frames annotated with a change that the same rate flags (the detection rate), likewise.
     """
-    quiet = ann[ann["status"] == "no-change"][FRAME_KEY].drop_duplicates()
-    if "exceedance" in fr.columns and len(quiet):
-        q = fr.merge(quiet, on=FRAME_KEY)
-        t["alarm_nominal"] = alarm
-        t["no_change_frames"] = len(q)
-        k = int((q["exceedance"] <= alarm).sum())
-        t["alarm_measured"] = k / len(q) if len(q) else np.nan
-        t["alarm_ci_low"], t["alarm_ci_high"] = clopper_pearson(k, len(q), ci)
-    changed = ann[ann["status"] == "change"][FRAME_KEY].drop_duplicates()
-    if "exceedance" in fr.columns and len(changed):
-        c = fr.merge(changed, on=FRAME_KEY)
-        t["alarm_nominal"] = alarm
-        t["changed_frames"] = len(c)
-        k = int((c["exceedance"] <= alarm).sum())
-        t["alarm_detected"] = k / len(c) if len(c) else np.nan
-        t["detected_ci_low"], t["detected_ci_high"] = clopper_pearson(k, len(c), ci)
+    if "exceedance" not in fr.columns:
+        return
+    for status, (n, rate, low, high) in ALARM_COLUMNS.items():
+        keys = ann[ann["status"] == status][FRAME_KEY].drop_duplicates()
+        if not len(keys):
+            continue
+        f = fr.merge(keys, on=FRAME_KEY)
+        k = int((f["exceedance"] <= alarm).sum())
+        t["alarm_nominal"], t[n] = alarm, len(f)
+        t[rate] = k / len(f) if len(f) else np.nan
+        t[low], t[high] = clopper_pearson(k, len(f), ci)
+
+
+#: Table D's alarm columns by status: frames, the share flagged, its exact interval.
+ALARM_COLUMNS = {
+    "no-change": ("no_change_frames", "alarm_measured", "alarm_ci_low", "alarm_ci_high"),
+    "change": ("changed_frames", "alarm_detected", "detected_ci_low", "detected_ci_high"),
+}
 
 
 @dataclass(frozen=True)
