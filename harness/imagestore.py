@@ -179,7 +179,10 @@ def read_image(uri: str, reduce: int = 1) -> np.ndarray:
     Raises:
         IngestError: The file is missing or cannot be decoded.
     """
-    base, perturbation = split_perturbed(uri)
+    try:
+        base, perturbation = split_perturbed(uri)
+    except ValueError as err:  # a path whose name holds "#perturb=" and no drawn values
+        raise IngestError(f"{uri}: {err}") from None
     if perturbation is not None:
         return apply_perturbation(read_image(base, reduce), perturbation)
     path, rot = split_uri(uri)

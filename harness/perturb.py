@@ -58,7 +58,10 @@ def parse(spec: str) -> Perturbation:
         if not part or part[0] not in _TAGS:
             raise ValueError(f"perturbation {spec!r}: unknown part {part!r}")
         name = names[_TAGS.index(part[0])]
-        values[name] = int(float(part[1:])) if name == "jpeg" else float(part[1:])
+        try:
+            values[name] = int(float(part[1:])) if name == "jpeg" else float(part[1:])
+        except ValueError:
+            raise ValueError(f"perturbation {spec!r}: {part!r} is not a number") from None
     return Perturbation(**values)
 
 

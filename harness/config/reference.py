@@ -28,6 +28,9 @@ from harness.methods import FUSION_OPTIONS, PROPOSER_OPTIONS
 #: Where ``--write`` puts the page, relative to the project.
 PAGE = Path("docs") / "config.md"
 
+#: The page's first line: ``--write`` replaces only a page that starts with it.
+HEAD = "# Configuration reference"
+
 _FIELD = re.compile(r"^(\s+)(\w+)\s*:\s*[^=#]+?(?:\s*=\s*(.+?))?\s*(?:#\s*(.*))?$")
 
 
@@ -114,7 +117,7 @@ def table(title: str, cls: type, skip: tuple[str, ...] = ()) -> list[str]:
 def reference() -> str:
     """The whole page: the top-level keys, then every table and sub-table, in the load order."""
     out = [
-        "# Configuration reference",
+        HEAD,
         "",
         "Generated from the config dataclasses by `python -m harness.config.reference --write`;",
         "a test fails when this page differs from the code. Every key is optional unless its",
@@ -154,6 +157,11 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     page, text = a.root / PAGE, reference()
     if a.write:
+        if page.is_file() and not page.read_text().startswith(HEAD):
+            print(f"ERROR: {page} is not a page this command wrote; left as it is",
+                  file=sys.stderr)  # fmt: skip
+            return 1
+        page.parent.mkdir(parents=True, exist_ok=True)
         page.write_text(text)
         print(f"wrote {page}")
     elif a.check:

@@ -173,7 +173,8 @@ def table_d_markdown(t: pd.DataFrame) -> str:
         if a.changed:
             lines.append(
                 f"| changed frames flagged at that rate, of the {a.changed} annotated with a "
-                f"change [95% exact interval] | {a.detected:.3f} [{a.detected_low:.3f}, "
+                f"change [95% exact interval] (chance: a score drawn like the null's is flagged at "
+                f"the nominal rate) | {a.detected:.3f} [{a.detected_low:.3f}, "
                 f"{a.detected_high:.3f}] |"
             )
     lines += ["", f"Verdict (method §9): {MARK_LEGEND} {NO_PIXEL_RULE}", "", *v.warnings]
@@ -233,7 +234,7 @@ def table_d_html(t: pd.DataFrame | None) -> str:
                     ),
                     (
                         f"{a.detected:.3f} [{a.detected_low:.3f}, {a.detected_high:.3f}] of the "
-                        f"{a.changed} frames annotated with a change",
+                        f"{a.changed} frames annotated with a change (chance: the nominal rate)",
                         a.changed,
                     ),
                 )

@@ -59,10 +59,15 @@ def test_a_comment_above_or_beside_a_field_is_its_meaning() -> None:
 
 def test_check_is_one_error_line_where_the_page_is_stale(tmp_path, capsys) -> None:
     (tmp_path / "docs").mkdir()
-    (tmp_path / PAGE).write_text("# an old page\n")
+    (tmp_path / PAGE).write_text("# Configuration reference\n\nan older page\n")
     assert main(["--check", "--root", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert err.startswith("ERROR: ") and len(err.strip().splitlines()) == 1, err
     assert main(["--check", "--root", str(ROOT)]) == 0
     assert main(["--write", "--root", str(tmp_path)]) == 0
     assert (tmp_path / PAGE).read_text() == reference()
+    # a page it did not write is left as it is
+    (tmp_path / PAGE).write_text("my own notes\n")
+    assert main(["--write", "--root", str(tmp_path)]) == 1
+    assert capsys.readouterr().err.startswith("ERROR: ")
+    assert (tmp_path / PAGE).read_text() == "my own notes\n"

@@ -151,6 +151,13 @@ def test_an_unreachable_ray_address_is_one_error_line_in_seconds(
         (None, "\n[detect]\nlocmap_level = 1.0\n", r"\[detect\] locmap_level = 1.0 is out"),
         (None, "\n[detect]\nalarm = 0\n", r"\[detect\] alarm = 0.0 is out of range"),
         (None, "\n[detect]\ncolour = 1\n", r"unknown key"),
+        (None, '\n[detect]\ncalibration = "run"\n', r"\[detect\] calibration = 'run' is out"),
+        (None, "\n[detect.null]\npairs = 0\n", r"\[detect.null\]: pairs = 0 is out of range"),
+        (None, "\n[detect.null]\nshift = 0.5\n", r"\[detect.null\]: shift = 0.5 is out of"),
+        (None, '\n[detect.null]\nconstruction = "x"\n', r"construction = 'x' is out of range"),
+        (None, "\n[detect.null]\njpeg_quality = 5\n", r"jpeg_quality = 5 is out of range"),
+        (None, "\n[detect.null]\ncopies = 3\n", r"\[detect\].null: unknown key"),
+        (None, "\n[detect.keypoints]\nratio = 2.0\n", r"ratio = 2.0 is out of range"),
         (None, "\n[proposals.segments]\nk = 1\n", r"\[proposals.segments\] k = 1 is out of range"),
         (
             None,
@@ -192,6 +199,11 @@ def test_the_new_keys_load_as_typed(tmp_path: Path) -> None:
     assert cfg.report.recall_at == (1, 3) and cfg.report.gt_radius_also == 5.0
     d = cfg.detect
     assert (d.boxes, d.box_score, d.locmap_level, d.alarm) == ("proposals", "mean", 0.4, 0.05)
+    # the nested tables are their options, not plain tables
+    cfg = load_config(_config(tmp_path, None, '\n[detect.null]\npairs = 200\nconstruction = '
+                              '"perturbed"\n\n[detect.keypoints]\nratio = 0.7\n'))  # fmt: skip
+    assert (cfg.detect.null.pairs, cfg.detect.null.construction) == (200, "perturbed")
+    assert cfg.detect.keypoints.ratio == 0.7 and cfg.detect.calibration == "null"
 
 
 def test_bad_config_is_one_error_line_before_any_work(

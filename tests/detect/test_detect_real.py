@@ -16,6 +16,7 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
+from harness.detect.ap import clopper_pearson
 
 from ..conftest import ROOT
 from ..readme_text import manual_text
@@ -90,10 +91,16 @@ def test_the_null_flags_revisited_frames_and_the_map_against_itself_nothing(
     t = pd.read_csv(out / "tableD.csv").iloc[0]
     assert int(t["changed_frames"]) == 10 and "no_change_frames" not in t.index
     quoted = " ".join(manual_text().split())
-    assert (
-        f"{rec['alarm']['frames']} of its 10 revisited frames ({t['alarm_detected']:.3f} "
-        f"[{t['detected_ci_low']:.3f}, {t['detected_ci_high']:.3f}])"
-    ) in quoted
+    m = re.search(r"(\d+) of its 10 revisited frames \((\d\.\d{3}) \[(\d\.\d{3}), (\d\.\d{3})\]\)",
+                  quoted)  # fmt: skip
+    assert m is not None, "the manual quotes the null's flags on obchange-dev"
+    k = int(m.group(1))
+    lo, hi = clopper_pearson(k, 10)
+    assert (m.group(2), m.group(3), m.group(4)) == (f"{k / 10:.3f}", f"{lo:.3f}", f"{hi:.3f}")
+    # SIFT's last bits differ across CPUs of this kind (docs/method.md, *One answer on every
+    # CPU*): a frame on the alarm's edge may go either way there, never more
+    assert abs(rec["alarm"]["frames"] - k) <= 1, (rec["alarm"]["frames"], k)
+    assert t["alarm_detected"] == pytest.approx(rec["alarm"]["frames"] / 10)
     argv = ["detect", "--map-images", str(REAL / "A"), "--query-images", str(REAL / "A"),
             "--out", str(out)]  # fmt: skip
     buf = io.StringIO()

@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pandas as pd
+import pytest
 
 from harness.cli import main
 from harness.detect.config import NullConfig
@@ -58,6 +59,15 @@ def test_a_copy_is_named_by_its_drawn_values_and_made_as_it_is_read(tmp_path: Pa
     np.testing.assert_array_equal(got, cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
     assert np.array_equal(apply(img, Perturbation()), img)  # the identity draw changes nothing
     assert not np.array_equal(got, img)
+
+
+def test_a_uri_that_names_no_copy_is_one_error_naming_it(tmp_path: Path) -> None:
+    from harness.errors import IngestError
+
+    cv2.imwrite(str(tmp_path / "a.png"), _wall(1)[0])
+    for bad in ("#perturb=z1", "#perturb=gx", "#perturb="):
+        with pytest.raises(IngestError, match=re.escape(str(tmp_path / "a.png") + bad)):
+            read_image(str(tmp_path / "a.png") + bad)
 
 
 def test_every_draw_is_within_the_stated_limits_and_the_same_each_time() -> None:
