@@ -1,4 +1,5 @@
-"""``python -m bench.detect_choice`` as docs/method.md types it (issue 63), on the real pairs.
+"""``python -m bench.detect_choice`` and ``python -m bench.alarms`` as docs/method.md types
+them, on the real pairs.
 
 The whole choice runs every candidate on three sets (about 25 minutes); here one candidate, not
 the default (``tests/detect/test_detect_real.py`` holds the default's row on the same pairs to
@@ -51,3 +52,25 @@ def test_the_choice_runs_as_typed_on_the_real_pairs(tmp_path: Path) -> None:
     )
     rows = json.loads((tmp_path / "detect_choice.json").read_text())
     assert all(0 <= r["chance_high"] < 1 and r["recall"] > 0 for r in rows)
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason=f"no real pairs here: {REAL} is absent")
+def test_the_alarms_measurement_runs_as_typed_on_the_real_pairs(tmp_path: Path) -> None:
+    """``python -m bench.alarms --sets obchange-dev`` as docs/method.md types it (*Calibrated
+    alarms*): both calibrations, the null's flags of the revisited frames with their exact
+    interval, the old calibration's beside them."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench.alarms", "--sets", "obchange-dev", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    md = (tmp_path / "alarms.md").read_text()
+    assert md in proc.stdout
+    rows = {r["calibration"]: r for r in json.loads((tmp_path / "alarms.json").read_text())}
+    assert set(rows) == {"null", "within-run"}
+    null = rows["null"]["null"]
+    assert (null["construction"], null["pairs"]) == ("perturbed", 100)
+    assert rows["within-run"]["null"] == {"method": "within-run"}
+    for r in rows.values():
+        assert r["changed_frames"] == 10 and "alarm_measured" not in r  # none annotated no-change
+        k = round(r["alarm_detected"] * 10)
+        assert f"| {k} of 10: {r['alarm_detected']:.3f} [" in md
