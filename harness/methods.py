@@ -182,7 +182,7 @@ BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
 DETECT_LOCALIZERS = ("local", "keypoints", "config")
 #: What a candidate box's score is fused with (``[detect] box_prior``, method §13.3): its area, or
 #: nothing (the score alone, as the paper's detector).
-BOX_PRIORS = ("area", "difference", "none")
+BOX_PRIORS = ("area", "difference", "difference_product", "none")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
 #: ``[detect] calibration``: the no-change null (docs/method.md, *Calibrated alarms*) or the run's

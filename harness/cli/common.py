@@ -9,11 +9,14 @@ from pathlib import Path
 from harness.errors import HarnessError
 
 
-def run_config(args: argparse.Namespace):
-    """The validated config of ``--config`` (with ``--data-root`` and ``--seed`` applied)."""
+def run_config(args: argparse.Namespace, settings_only: bool = False):
+    """The validated config of ``--config`` (with ``--data-root`` and ``--seed`` applied).
+
+    ``settings_only``: the sessions come from elsewhere (image folders), so the file may name none.
+    """
     from harness.config.load import load_config
 
-    cfg = load_config(Path(args.config), getattr(args, "data_root", None))
+    cfg = load_config(Path(args.config), getattr(args, "data_root", None), settings_only)
     if getattr(args, "seed", None) is not None:
         cfg = dataclasses.replace(cfg, seed=args.seed)
     return cfg

@@ -242,16 +242,17 @@ def _add_detect(sub: Any) -> None:
     p.add_argument(
         "--proposals",
         metavar="METHOD",
-        help="the proposal method whose boxes the local or keypoints localizer ranks: segments "
-        "(the frame's colour regions) or selective (Selective Search) (default: [detect] "
-        "proposals)",
+        help="the proposal method whose boxes the local or keypoints localizer ranks: selective "
+        "(Selective Search) or segments (the frame's colour regions) (default: [detect] "
+        "proposals, selective)",
     )
     p.add_argument(
         "--box-prior",
         choices=BOX_PRIORS,
-        help="what a box's score is fused with: area (its percentile by area in its frame, "
-        "method §13.3) or none (the score alone, the paper's detector) (default: [detect] "
-        "box_prior)",
+        help="what a box's score is fused with: difference_product (the registered pair's plain "
+        "difference times the score), difference (their within-frame percentiles), area (its "
+        "percentile by area in its frame, method §13.3) or none (the score alone, the paper's "
+        "detector) (default: [detect] box_prior, difference_product)",
     )
     p.add_argument(
         "--box-score",

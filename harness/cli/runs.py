@@ -100,7 +100,7 @@ def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
             raise HarnessError("--map-images DIR and --query-images DIR go together")
         if args.map is not None or args.query:
             raise HarnessError("--map/--query name config sessions; with image folders, omit them")
-        base = run_config(args) if args.config else None
+        base = run_config(args, settings_only=True) if args.config else None
         cfg, m, q = image_folders_config(Path(args.map_images), list(args.query_images), base)
         return _annotated(cfg, args), m, q
     if args.config is None or args.map is None or not args.query:
@@ -129,14 +129,17 @@ def _annotated(cfg: Any, args: argparse.Namespace) -> Any:
 def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
     """The ``top`` most changed frames of a detect run, by file name where there are names.
 
-    Uncertain pairs are left out (method §13.2). ``null``: the scores are calibrated against the
-    no-change null (else within the run), which the words name.
+    Uncertain pairs and pairs that are not comparable are left out (method §13.2, 13.5).
+    ``null``: the scores are calibrated against the no-change null (else within the run), which
+    the words name.
     """
     from harness.detect.calibrate import in_words
 
     fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False)
     if "uncertain_pair" in fr.columns:
         fr = fr[~fr["uncertain_pair"]]
+    if "comparable" in fr.columns:  # a pair that could not be registered is never listed
+        fr = fr[fr["comparable"].astype(bool)]
     fr = fr.head(top)
     named = "name" in fr.columns
     print(

@@ -203,12 +203,19 @@ def _resolve_paths(kwargs: dict[str, Any], base: Path, root: Path) -> None:
 
 
 def parse_config(
-    doc: dict[str, Any], base: Path, where: str, data_root: str | None = None
+    doc: dict[str, Any],
+    base: Path,
+    where: str,
+    data_root: str | None = None,
+    settings_only: bool = False,
 ) -> Config:
     """Build a :class:`Config` from a parsed TOML document.
 
-    Relative paths resolve against ``base``.
+    Relative paths resolve against ``base``. ``settings_only``: the document gives settings for
+    sessions named elsewhere (two image folders): ``name`` and ``sessions`` may be left out.
     """
+    if settings_only:  # sessions named elsewhere: a name and a session stand in for them
+        doc = {"name": "settings", "sessions": [{"name": "folder", "source": "."}], **doc}
     top_keys = {"name", "data_root", "annotations", "sessions", "seed", "localizers", "plugins"}
     top_keys |= set(SECTIONS)
     unknown = sorted(set(doc) - top_keys)
@@ -333,8 +340,8 @@ def parse_localizers(
     return tuple(out)
 
 
-def load_config(path: Path, data_root: str | None = None) -> Config:
-    """Read and validate a TOML config file.
+def load_config(path: Path, data_root: str | None = None, settings_only: bool = False) -> Config:
+    """Read and validate a TOML config file (``settings_only``: see :func:`parse_config`).
 
     Raises:
         ConfigError: The file is missing, is not TOML, or has unknown or invalid keys.
@@ -347,4 +354,4 @@ def load_config(path: Path, data_root: str | None = None) -> Config:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
-    return parse_config(doc, project_root(path.parent), str(path), data_root)
+    return parse_config(doc, project_root(path.parent), str(path), data_root, settings_only)

@@ -31,9 +31,7 @@ def change_boxes_nms(
     xywh, sc, ok = xywh[order], loc[ok][order], ok[order]
     # scores are shifted to [0, 1] order-preservingly: NMSBoxes' threshold is on raw scores
     rank_score = (np.arange(len(sc), 0, -1) / len(sc)).astype(np.float32)
-    keep = cv2.dnn.NMSBoxes(
-        [tuple(map(float, r)) for r in xywh], rank_score.tolist(), 0.0, nms_iou, top_k=max_boxes
-    )
+    keep = cv2.dnn.NMSBoxes([tuple(map(float, r)) for r in xywh], rank_score.tolist(), 0.0, nms_iou)
     idx = np.asarray(keep, np.int64).reshape(-1)
     idx = idx[np.argsort(-rank_score[idx], kind="stable")][:max_boxes]
     return ok[idx].astype(np.int64)

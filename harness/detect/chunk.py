@@ -16,12 +16,17 @@ import pandas as pd
 
 from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_prior, with_prior
 from harness.detect.config import DetectConfig
-from harness.detect.difference import difference_contrast, difference_map
+from harness.detect.difference import (
+    Registration,
+    difference_contrast,
+    difference_map,
+    register,
+)
 from harness.fusion.config import FusionConfig
 from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image
-from harness.proposals.builtin import segment_boxes
-from harness.proposals.config import SegmentsConfig
+from harness.proposals.builtin import segment_boxes, selective_boxes
+from harness.proposals.config import ProposalsConfig, SegmentsConfig, SelectiveConfig
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
 from harness.runtime.cache import (
     stable_hash,
@@ -33,8 +38,16 @@ log = logging.getLogger(__name__)
 
 
 #: A frame's result after its frame key and map session: its score (the largest LoC), the kept
-#: boxes and fused samples, and the best box.
-FRAME_RESULT = ["score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_y2"]
+#: boxes and fused samples, the best box, and the pair's registration (docs/method.md, *The plain
+#: difference*): whether it is comparable, its homography's inliers, why not where it is not, and
+#: what its difference was read through (homography; a fallback's ecc or identity; none), and the
+#: registration as a similarity (the centre's shift as shares of the frame, rotation, scale): what
+#: the no-change null's copies are drawn from (docs/method.md, *Calibrated alarms*).
+FRAME_RESULT = [
+    "score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_y2",
+    "comparable", "inliers", "not_comparable_why", "compared_by",
+    "reg_dx", "reg_dy", "reg_rotation_deg", "reg_scale",
+]  # fmt: skip
 
 
 def _all_no_change(qk: pd.DataFrame) -> pd.DataFrame:
@@ -90,6 +103,8 @@ def _frame_boxes_of(
         loc = with_area_prior(boxes, loc)
     elif opt.box_prior == "difference":
         loc = with_prior(loc, diff)
+    elif opt.box_prior == "difference_product":
+        loc = np.maximum(diff, 0.0) * loc
     keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
     rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
     return boxes, loc, keep, rand, rnd, int((~wide).sum()), diff
@@ -154,21 +169,79 @@ def _frame_boxes(
     return out
 
 
-def _difference(images: pd.Series, fk: tuple[str, str, int], paired: dict) -> Any:
-    """``boxes -> their aligned-difference contrast`` for query frame ``fk`` and its map frame.
+class _PairDifference:
+    """Query frame ``fk`` and its map frame: their registration and plain difference, made once.
 
-    :mod:`harness.detect.difference`; the pair's difference map is computed once, on first use.
+    :mod:`harness.detect.difference`; ``contrast(boxes)`` scores boxes of the query frame (NaN
+    where the pair is not comparable).
     """
-    made: list[tuple[np.ndarray, float]] = []
 
-    def scores(boxes: np.ndarray) -> np.ndarray:
-        if not made:
-            made.append(
-                difference_map(read_image(images.loc[fk]), read_image(images.loc[paired[fk]]))
-            )
-        return difference_contrast(*made[0], boxes)
+    def __init__(self, images: pd.Series, fk: tuple, mk: tuple, opt: DetectConfig) -> None:
+        self.q = read_image(images.loc[fk])
+        m = read_image(images.loc[mk])
+        self.dc = opt.difference
+        self.reg: Registration = register(self.q, m, opt.keypoints, opt.difference)
+        # compared by: the registration, or the pair as it stands (not_comparable = "fallback")
+        self.used = self.reg
+        if not self.reg.comparable and opt.not_comparable == "fallback":
+            self.used = self.reg.fallback(self.q, m, opt.difference)
+        self.made = difference_map(self.q, m, self.used, opt.difference)
 
-    return scores
+    def contrast(self, boxes: np.ndarray) -> np.ndarray:
+        if self.made is None:
+            return np.full(len(boxes), np.nan)
+        return difference_contrast(*self.made, boxes, self.dc)
+
+
+def _plain_difference(
+    pair: _PairDifference,
+    fk: tuple,
+    opt: DetectConfig,
+    selective: SelectiveConfig,
+    known: np.ndarray | None = None,
+) -> pd.DataFrame:
+    """The plain difference's own candidates of one query frame.
+
+    Selective Search's boxes of the query image scored by the difference (none where the pair was
+    compared by nothing); ``known``: those boxes where the detector ranked them already.
+    """
+    if pair.made is None:
+        boxes = np.zeros((0, 4))
+    elif known is not None:
+        boxes = np.unique(np.asarray(known, np.float64).reshape(-1, 4), axis=0)
+    else:
+        boxes = selective_boxes(pair.q, selective)[0]
+    sc = pair.contrast(boxes)
+    return pd.DataFrame(
+        {
+            "q_session": fk[0],
+            "q_camera": fk[1],
+            "q_utime": np.full(len(boxes), fk[2], np.int64),
+            **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
+            "difference": sc,
+        }
+    )
+
+
+def _candidates(fk: tuple, boxes: np.ndarray, loc: np.ndarray, diff: np.ndarray) -> pd.DataFrame:
+    """One frame's candidate boxes with their scores and plain difference."""
+    return pd.DataFrame(
+        {
+            "q_session": fk[0],
+            "q_camera": fk[1],
+            "q_utime": np.full(len(boxes), fk[2], np.int64),
+            **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
+            "loc": loc,
+            "difference": diff,
+        }
+    )
+
+
+def _registration_row(pair: _PairDifference) -> tuple:
+    """A frame row's registration columns (:data:`FRAME_RESULT`'s last eight)."""
+    r = pair.reg
+    used = pair.used.method if pair.made is not None else "none"
+    return (r.comparable, r.inliers, r.why, used, *r.similarity(pair.q.shape[1], pair.q.shape[0]))
 
 
 def detect_chunk(
@@ -176,23 +249,27 @@ def detect_chunk(
     frames: pd.DataFrame,
     opt: DetectConfig,
     fusion: FusionConfig,
-    segments: SegmentsConfig,
+    proposals: ProposalsConfig,
     tmp: Path,
     null: bool = False,
 ) -> dict[str, int]:
     """Fusion, change boxes and frame scores of one chunk of query frames into ``tmp``.
 
     ``null``: the chunk is of the no-change null's pairs (:mod:`harness.detect.null`), whose
-    candidates feed no Table D: their aligned difference is computed only where the box prior
-    reads it.
+    candidates feed no Table D (no plain-difference row is drawn for them).
 
     ``opt``: the run's ``[detect]`` (its rule among them); ``fusion``: the config's ``[fusion]``
     (the seed, the cap on fused boxes, RRF's constant, a registered rule's options);
-    ``segments``: ``[proposals.segments]``, the colour regions of the ``segments`` generator.
+    ``proposals``: ``[proposals]``, whose ``segments`` are the colour regions of the ``segments``
+    generator and whose ``selective`` boxes are the plain difference's own.
+
+    Every pair is registered first (:mod:`harness.detect.difference`); a pair that is not
+    comparable keeps no change box and no score where ``[detect] not_comparable = "drop"``.
 
     ``boxes.parquet``: every change box (frame key, rank within the frame, box, LoC);
-    ``frames.parquet``: one row per frame (key, map frame, score, boxes, samples); and, for the
-    LoC maps drawn later, ``samples.parquet`` (every fused qBB with its LoC).
+    ``frames.parquet``: one row per frame (key, map frame, score, boxes, samples, registration);
+    ``plain_difference.parquet``: the plain difference's candidates and their contrast; and, for
+    the LoC maps drawn later, ``samples.parquet`` (every fused qBB with its LoC).
     """
     qk = ranks[QUERY_KEY].drop_duplicates()
     ann = _all_no_change(qk)
@@ -206,46 +283,41 @@ def detect_chunk(
     samples = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.fusion}"
     size = frame_sizes(frames)
-    orig = _frame_boxes(ranks, frames, opt, segments)
+    orig = _frame_boxes(ranks, frames, opt, proposals.segments)
     images = frames.set_index(FRAME_KEY)["image"]
     paired = {  # each query frame's map frame
         (str(k[0]), str(k[1]), int(k[2])): (str(r.r_session), str(r.r_camera), int(r.r_utime))
         for k, r in ranks.groupby(QUERY_KEY, sort=False).first().iterrows()
     }
-    rows, frow, cand_parts, thin = [], [], [], 0
+    rows, frow, cand_parts, plain_parts, thin = [], [], [], [], 0
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
         floc = g[col].to_numpy(np.float64)
-        diff = None if null and opt.box_prior != "difference" else _difference(images, fk, paired)
-        found = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt, fusion.seed, diff)
+        pair = _PairDifference(images, fk, paired[fk], opt)
+        found = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt, fusion.seed, pair.contrast)
         boxes, loc, keep, rand, rnd, n_thin, diff = found
         thin += n_thin
+        dropped = not pair.reg.comparable and opt.not_comparable == "drop"
+        if dropped:  # nothing to compare: no box, no score, no candidate (docs/method.md)
+            boxes, loc, diff = boxes[:0], loc[:0], diff[:0]
+            keep, rand = keep[:0], rand[:0]
+            floc = floc[:0]
+        if not null:
+            # the detector's own proposals where they are Selective Search's (one search a frame)
+            known = orig[fk][:, :4] if opt.proposals == "selective" and opt.boxes in (
+                "subimages", "proposals") else None  # fmt: skip
+            plain_parts.append(_plain_difference(pair, fk, opt, proposals.selective, known))
         for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
             for j, i in enumerate(idx):
                 rows.append((*key[:3], kind, j, *boxes[i], float(sc[i])))
-        cand_parts.append(
-            pd.DataFrame(
-                {
-                    "q_session": fk[0],
-                    "q_camera": fk[1],
-                    "q_utime": np.full(len(boxes), fk[2], np.int64),
-                    **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
-                    "loc": loc,
-                    "difference": diff,
-                }
-            )
-        )
+        cand_parts.append(_candidates(fk, boxes, loc, diff))
         top = boxes[keep[0]] if len(keep) else np.full(4, np.nan)
-        frow.append(
-            (
-                *key,
-                float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan,
-                len(keep),
-                len(g),
-                *top,
-            )
-        )
+        score = float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan
+        frow.append((*key, score, len(keep), len(g), *top, *_registration_row(pair)))
     _write_chunk(tmp, cand_parts, rows, frow, samples, col)
+    empty = pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "difference"])
+    plain = pd.concat(plain_parts, ignore_index=True) if plain_parts else empty
+    write_parquet(tmp / "plain_difference.parquet", plain)
     return {
         "frames": len(frow),
         "capped_closures": int(counts.get("capped_closures", 0)),

@@ -35,6 +35,62 @@ NULL_CONSTRUCTIONS = ("auto", "neighbours", "perturbed")
 
 
 @dataclass(frozen=True)
+class DifferenceConfig:
+    """``[detect.difference]``: registration and the plain difference (docs/method.md).
+
+    Every length is a share of the frame's diagonal.
+    """
+
+    # a pair is comparable with at least this many homography inliers ...
+    min_inliers: int = 15
+    # ... a warped map that covers at least this share of the query frame ...
+    min_footprint: float = 0.5
+    # ... and a warp whose local scale stays within [1 / max_scale, max_scale]
+    max_scale: float = 3.0
+    # the registration's frames: longer side at most this (pixels)
+    register_side: int = 640
+    # a fallback's affine fit of the intensities (not_comparable = "fallback"): its frames'
+    # longer side (pixels)
+    fallback_side: int = 160
+    # the difference's frames: longer side at most this (pixels)
+    side: int = 640
+    # each query pixel's smallest colour distance over shifts up to this (2 px at 640 x 480)
+    shift: float = 0.0025
+    # the difference map's Gaussian blur, sigma (4 px at 640 x 480)
+    blur: float = 0.005
+    # a box's score: "contrast" (its mean difference less its ring's) or "ratio" (its mean
+    # difference over its ring's, plus one colour unit): a change differs more than its surroundings
+    box_score: str = "ratio"
+    # the ring around a box: the box grown by this share of its width and height on each side
+    ring: float = 0.25
+
+
+def check_difference(dc: DifferenceConfig, where: str) -> None:
+    """``[detect.difference]``'s values (one ``ERROR:`` line naming the key)."""
+    c = check_value
+    c(dc.min_inliers >= 4, where, "min_inliers", dc.min_inliers, ">= 4 (a homography's four)")
+    c(0 <= dc.min_footprint <= 1, where, "min_footprint", dc.min_footprint, "[0, 1]")
+    c(dc.max_scale > 1, where, "max_scale", dc.max_scale, "> 1")
+    c(dc.register_side >= 64, where, "register_side", dc.register_side, ">= 64 pixels")
+    c(dc.fallback_side >= 32, where, "fallback_side", dc.fallback_side, ">= 32 pixels")
+    c(dc.side >= 32, where, "side", dc.side, ">= 32 pixels")
+    c(0 <= dc.shift <= 0.05, where, "shift", dc.shift, "[0, 0.05] of the diagonal")
+    c(0 <= dc.blur <= 0.05, where, "blur", dc.blur, "[0, 0.05] of the diagonal")
+    c(dc.box_score in DIFFERENCE_SCORES, where, "box_score", dc.box_score,
+      " or ".join(DIFFERENCE_SCORES))  # fmt: skip
+    c(0 < dc.ring <= 2, where, "ring", dc.ring, "(0, 2]: a share of the box each side")
+
+
+#: ``[detect.difference] box_score``'s values.
+DIFFERENCE_SCORES = ("contrast", "ratio")
+
+
+#: ``[detect] not_comparable`` and ``[detect] bootstrap_group``'s values.
+NOT_COMPARABLE = ("drop", "fallback", "keep")
+BOOTSTRAP_GROUPS = ("map_image", "frame")
+
+
+@dataclass(frozen=True)
 class NullConfig:
     """``[detect.null]``: the pairs that hold no change by construction, scored by the detector.
 
@@ -64,6 +120,10 @@ class NullConfig:
     blur: float = 0.002
     # re-encoded as JPEG at a quality drawn in [jpeg_quality, 95] (0: never re-encoded)
     jpeg_quality: int = 70
+    # perturbed copies' shift, rotation and scale: "run" (each drawn from the registrations of the
+    # run's own pairs, so the null moves as they do; the limits above where none registered) or
+    # "limits" (uniform within the limits above)
+    moves: str = "run"
 
 
 def check_null(nc: NullConfig, where: str) -> None:
@@ -80,6 +140,7 @@ def check_null(nc: NullConfig, where: str) -> None:
     c(0 <= nc.blur <= 0.05, where, "blur", nc.blur, "[0, 0.05] of the longer side")
     c(nc.jpeg_quality == 0 or 10 <= nc.jpeg_quality <= 95, where, "jpeg_quality",
       nc.jpeg_quality, "0 (none) or 10-95")  # fmt: skip
+    c(nc.moves in ("run", "limits"), where, "moves", nc.moves, "run or limits")
 
 
 @dataclass(frozen=True)
@@ -126,22 +187,37 @@ class DetectConfig:
     null: NullConfig = field(default_factory=NullConfig)
     # what ranks the subimages: "keypoints" (each subimage's share of keypoints that do not
     # localize in its paired map frame, with [detect.keypoints]: chosen by docs/method.md's rule,
-    # *Keypoint localization*), "local" (each subimage ranked inside its paired map frame by NCC,
+    # *Choosing the default*), "local" (each subimage ranked inside its paired map frame by NCC,
     # with [detect.local]) or "config" (the config's localizers: the paper's detector)
     localizer: str = "keypoints"
-    # a prior a box's score is fused with: "area" (the mean of the box's percentile among its
-    # frame's candidates by score and by area, method §13.3: docs/method.md measures it) or "none"
-    box_prior: str = "area"
+    # what a box's score is fused with: "difference_product" (the plain difference of the
+    # registered pair, [detect.difference], floored at 0, times the score: the default, chosen by
+    # docs/method.md's rule), "difference" (the mean of the two within-frame percentiles), "area"
+    # (the mean of the box's percentiles by score and by area, method §13.3) or "none"
+    box_prior: str = "difference_product"
     # the local localizer's options (harness.localizers.local.LocalConfig)
     local: LocalConfig = field(default_factory=LocalConfig)
-    # the proposal method whose boxes the local or keypoints localizer ranks: "segments" (the
-    # frame's colour regions) or "selective" (Selective Search, [proposals.selective]), or any
-    # proposal method
-    proposals: str = LOCAL_PROPOSALS
-    # keypoint localization's options (localizer = "keypoints"; harness.localizers.keypoints)
+    # the proposal method whose boxes the local or keypoints localizer ranks: "selective"
+    # (Selective Search, [proposals.selective]: the plain difference's own boxes too), "segments"
+    # (the frame's colour regions) or any proposal method
+    proposals: str = "selective"
+    # keypoint localization's options (localizer = "keypoints"; harness.localizers.keypoints);
+    # its features and ratio test also register each pair for the plain difference
     keypoints: KeypointConfig = field(default_factory=KeypointConfig)
+    # each pair's registration and plain difference (harness.detect.difference)
+    difference: DifferenceConfig = field(default_factory=DifferenceConfig)
+    # a pair that cannot be registered is not comparable (no alarm, never among the most
+    # changed): "drop" (no box and no score; its annotated changes stay in Table D as misses),
+    # "fallback" (compared as it stands, without a warp: its boxes are kept, marked in
+    # frames.csv's comparable column and measured apart in Table D) or "keep" (the detector's
+    # boxes stay, marked likewise, with no difference read)
+    not_comparable: str = "fallback"
+    # Table D's intervals resample groups of annotated frames: "map_image" (frames whose map
+    # images hold the same bytes, or the same map frame, are one group: pairs that share a view
+    # are not independent) or "frame" (each annotated frame alone)
+    bootstrap_group: str = "map_image"
 
-    def record(self, seed: int, segments: Any) -> dict[str, Any]:
+    def record(self, seed: int, segments: Any, selective: Any = None) -> dict[str, Any]:
         """What ``detect.json`` and the chunks' cache keys hold of a run's options.
 
         ``seed`` (``[fusion] seed``) draws the random baseline; ``segments``
@@ -163,6 +239,11 @@ class DetectConfig:
             del out["local"], out["localizer"]
         if self.proposals != LOCAL_PROPOSALS:
             out["proposals"] = self.proposals
+        out["difference"] = mine["difference"]
+        out["keypoints"] = mine["keypoints"]  # they register every pair
+        out["not_comparable"] = self.not_comparable
+        if selective is not None:  # the plain difference's own boxes
+            out["selective"] = dataclasses.asdict(selective)
         return out
 
     def local_localizer(self) -> LocalizerConfig | None:
@@ -210,6 +291,11 @@ def check_detect(dt: DetectConfig, where: str) -> None:
     check_null(dt.null, f"{where} [detect.null]")
     check_local(dt.local, f"{where} [detect.local]")
     check_keypoints(dt.keypoints, f"{where} [detect.keypoints]")
+    check_difference(dt.difference, f"{where} [detect.difference]")
+    c(dt.not_comparable in NOT_COMPARABLE, where, "[detect] not_comparable", dt.not_comparable,
+      " or ".join(NOT_COMPARABLE))  # fmt: skip
+    c(dt.bootstrap_group in BOOTSTRAP_GROUPS, where, "[detect] bootstrap_group",
+      dt.bootstrap_group, " or ".join(BOOTSTRAP_GROUPS))  # fmt: skip
     c(
         dt.proposals in known_proposal_methods(),
         where,

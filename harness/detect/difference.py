@@ -1,94 +1,318 @@
-"""The aligned difference: the first thing a change-detection user tries (Table D's row).
+"""The plain difference of a registered pair: Table D's strongest row that localizes nothing.
 
-A shift-tolerant colour difference of the pair: both frames on a copy whose longer side is
-``DIFFERENCE_SIDE`` pixels, in CIELAB, lightly blurred; the map frame's channels matched to the
-query's in gain and offset (mean and standard deviation); then, per channel, the distance of each
-query pixel to the range the map frame takes within ``shift`` of the frame's diagonal around it
-(the minimum over shifts of ``|q(x) - m(x + s)|``, one channel at a time: a grey-scale erosion and
-dilation give the range), and the same from the map to the query (a removed object); a pixel's
-difference is the larger of the two directions' Euclidean norms over the channels. A box scores
-its mean difference less the mean of its ring (:func:`harness.detect.boxes.inside_score`'s
-``contrast``): a change differs more than its surroundings.
+docs/method.md, *The plain difference*. Two steps, each a share of the frame so that one setting
+serves every frame size:
+
+1. **Register** (:func:`register`): SIFT (``[detect.keypoints]``' features and ratio test, both
+   ways) and a homography by MAGSAC carry the map frame onto the query frame. A pair is
+   *comparable* only with at least ``min_inliers`` inliers, a warp that keeps the frame's
+   orientation and scale within ``max_scale`` and a warped map that covers at least
+   ``min_footprint`` of the query frame; otherwise it says why (:attr:`Registration.why`) and
+   carries no change score.
+2. **Compare** (:func:`difference_map`): both frames in CIELAB on a copy whose longer side is at
+   most ``side`` pixels, the map's gain and offset matched to the query's over the pixels both
+   see; each query pixel's smallest colour distance to the warped map within ``shift`` of the
+   frame's diagonal; a Gaussian blur of sigma ``blur`` of the diagonal, normalised by the
+   footprint so that pixels the map does not see (NaN) take part in nothing.
+
+A box scores its mean difference less the mean of its ring (:func:`harness.detect.boxes.
+inside_score`'s ``contrast``): a change differs more than its surroundings.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
+import pandas as pd
 
 from harness.detect.boxes import inside_score
+from harness.detect.config import DifferenceConfig
+from harness.imagestore import read_image
+from harness.localizers.align import align_ecc
+from harness.localizers.config import KeypointConfig, LocalConfig
+from harness.localizers.keypoints import detect, ratio_matches
+from harness.records import FRAME_KEY
 
-#: The longer side of the copies the difference is computed on (pixels), and the largest shift
-#: tolerated (a share of the frame's diagonal).
-DIFFERENCE_SIDE = 256
-DIFFERENCE_SHIFT = 0.03
+
+@dataclass(frozen=True)
+class Registration:
+    """A pair's registration: ``H`` maps map-frame pixels to query-frame pixels (full size)."""
+
+    H: np.ndarray | None
+    inliers: int
+    matches: int
+    footprint: float  # the share of the query frame the warped map covers
+    why: str  # "" where comparable, else why not
+    # "homography"; a fallback's "ecc" (an affine fit of the intensities) or "identity"; "none"
+    method: str = "homography"
+
+    @property
+    def comparable(self) -> bool:
+        """Whether the pair was registered (nothing to say why not)."""
+        return not self.why
+
+    def similarity(self, w: int, h: int) -> tuple[float, float, float, float]:
+        """The warp as a perturbed copy of the map frame would draw it.
+
+        The centre's shift (shares of ``w``, ``h``), rotation (degrees) and scale of the
+        similarity nearest to the homography at the centre (:class:`harness.perturb.
+        Perturbation`'s ``dx``, ``dy``, ``rotation_deg``, ``scale``); NaN where there is none.
+        """
+        if self.H is None or not self.comparable:
+            return (float("nan"),) * 4
+        H, (x, y) = self.H, (w / 2.0, h / 2.0)
+        den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+        u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den
+        v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
+        j = np.array([[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]],
+                      [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]) / den  # fmt: skip
+        a, b = (j[0, 0] + j[1, 1]) / 2.0, (j[0, 1] - j[1, 0]) / 2.0
+        return (
+            float((u - x) / w),
+            float((v - y) / h),
+            float(np.degrees(np.arctan2(b, a))),
+            float(np.hypot(a, b)),
+        )
+
+    def fallback(self, q_rgb: np.ndarray, m_rgb: np.ndarray, dc: DifferenceConfig) -> Registration:
+        """The pair compared without keypoints: an affine fit of its intensities, or as it stands.
+
+        The fit: OpenCV's ``findTransformECC`` on copies ``fallback_side`` pixels on the longer
+        side, accepted with a correlation of at least 0.6 and a plausible warp.
+
+        ``[detect] not_comparable = "fallback"``: its boxes are marked and measured apart.
+        """
+        q, fq = _scaled(_gray(q_rgb), dc.fallback_side)
+        m = cv2.resize(_gray(m_rgb), (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
+        to_small = np.diag([q.shape[1] / m_rgb.shape[1], q.shape[0] / m_rgb.shape[0], 1.0])
+        al = align_ecc(q, m, LocalConfig())
+        method, Hs = "identity", np.eye(3)
+        if al is not None and al.H is not None:
+            method, Hs = "ecc", np.linalg.inv(al.H)
+        full = np.diag([1 / fq, 1 / fq, 1.0]) @ Hs @ to_small
+        return Registration(full, 0, self.matches, 1.0, "", method)
 
 
-def _lab(rgb: np.ndarray, side: int) -> np.ndarray:
+def _scaled(rgb: np.ndarray, side: int) -> tuple[np.ndarray, float]:
     h, w = rgb.shape[:2]
     f = min(1.0, side / float(max(h, w)))
-    small = (
-        rgb
-        if f >= 1
-        else cv2.resize(
-            rgb, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA
+    if f >= 1:
+        return rgb, 1.0
+    size = (max(1, round(w * f)), max(1, round(h * f)))
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), f
+
+
+def _gray(rgb: np.ndarray) -> np.ndarray:
+    return rgb if rgb.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+
+
+def _footprint(H: np.ndarray, m_shape: tuple[int, int], q_shape: tuple[int, int]) -> np.ndarray:
+    """Which query pixels the warped map frame covers (bool, the query's shape)."""
+    ones = np.full(m_shape, 255, np.uint8)
+    got = cv2.warpPerspective(ones, H, (q_shape[1], q_shape[0]), flags=cv2.INTER_NEAREST)
+    return got > 0
+
+
+def _scale_ok(H: np.ndarray, w: int, h: int, max_scale: float) -> bool:
+    """Whether ``H`` keeps orientation and its local scale within the limit over the frame."""
+    if not np.all(np.isfinite(H)):
+        return False
+    pts = np.array([[x, y] for x in (0, w / 2, w) for y in (0, h / 2, h)], np.float64)
+    for x, y in pts:
+        den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+        if abs(den) < 1e-9:
+            return False
+        # the Jacobian of the projective map at (x, y)
+        u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den
+        v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
+        jac = np.array(
+            [[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]],
+             [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]
+        ) / den  # fmt: skip
+        det = float(np.linalg.det(jac))
+        if det <= 0 or not 1 / max_scale**2 <= det <= max_scale**2:
+            return False
+    return True
+
+
+def register(
+    q_rgb: np.ndarray, m_rgb: np.ndarray, kc: KeypointConfig, dc: DifferenceConfig
+) -> Registration:
+    """The map frame registered onto the query frame by a homography (docs/method.md)."""
+    q, fq = _scaled(_gray(q_rgb), dc.register_side)
+    m, fm = _scaled(_gray(m_rgb), dc.register_side)
+    xq, dq = detect(q, kc)
+    xm, dm = detect(m, kc)
+    fwd, back = ratio_matches(dq, dm, kc), ratio_matches(dm, dq, kc)
+    both = np.concatenate([fwd, back[:, ::-1]]) if len(back) else fwd
+    both = np.unique(both, axis=0) if len(both) else both
+    if len(both) < max(4, dc.min_inliers):
+        return Registration(None, 0, len(both), 0.0, f"too few matches ({len(both)})", "none")
+    src = xm[both[:, 1]].astype(np.float32)
+    dst = xq[both[:, 0]].astype(np.float32)
+    thr = max(0.5, kc.ransac_threshold * float(np.hypot(*q.shape[:2])))
+    try:
+        H, mask = cv2.findHomography(
+            src, dst, cv2.USAC_MAGSAC, thr, maxIters=2000, confidence=0.999
         )
-    )
-    lab = cv2.cvtColor(np.ascontiguousarray(small, np.uint8), cv2.COLOR_RGB2Lab)
-    return cv2.GaussianBlur(lab.astype(np.float32), (0, 0), 1.0)
+    except cv2.error:
+        H, mask = None, None
+    if H is None or mask is None:
+        return Registration(None, 0, len(both), 0.0, "no homography found", "none")
+    n = int(mask.sum())
+    # back to full-size pixels: map pixels -> work map -> work query -> query pixels
+    full = np.diag([1 / fq, 1 / fq, 1.0]) @ H @ np.diag([fm, fm, 1.0])
+    hq, wq = q_rgb.shape[:2]
+    foot = float(_footprint(full, m_rgb.shape[:2], (hq, wq)).mean())
+    if n < dc.min_inliers:
+        why = f"too few inliers ({n} < {dc.min_inliers})"
+    elif not _scale_ok(full, wq, hq, dc.max_scale):
+        why = "a degenerate warp (flipped, or scaled beyond max_scale)"
+    elif foot < dc.min_footprint:
+        why = f"the warped map covers {foot:.0%} of the frame (< {dc.min_footprint:.0%})"
+    else:
+        why = ""
+    return Registration(full, n, len(both), foot, why)
 
 
-def _one_way(a: np.ndarray, b: np.ndarray, r: int) -> np.ndarray:
-    """Per pixel of ``a``: the norm over channels of its distance to ``b``'s range within ``r``."""
-    k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-    lo = cv2.erode(b, k, borderType=cv2.BORDER_REPLICATE)
-    hi = cv2.dilate(b, k, borderType=cv2.BORDER_REPLICATE)
-    d = np.maximum(np.maximum(lo - a, a - hi), 0.0)
-    return np.sqrt((d * d).sum(axis=2))
+def _lab(rgb: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(rgb, np.uint8), cv2.COLOR_RGB2Lab).astype(np.float32)
 
 
 def difference_map(
-    q_rgb: np.ndarray, m_rgb: np.ndarray, side: int = DIFFERENCE_SIDE,
-    shift: float = DIFFERENCE_SHIFT,
-) -> tuple[np.ndarray, float]:  # fmt: skip
-    """The pair's shift-tolerant difference on the query's copy, and that copy's scale."""
-    q = _lab(q_rgb, side)
-    m = _lab(m_rgb, side)
-    if m.shape != q.shape:
-        m = cv2.resize(m, (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
-    qm, qs = q.reshape(-1, 3).mean(0), q.reshape(-1, 3).std(0) + 1e-6
-    mm, ms = m.reshape(-1, 3).mean(0), m.reshape(-1, 3).std(0) + 1e-6
-    m = ((m - mm) / ms * qs + qm).astype(np.float32)
-    r = max(1, round(shift * float(np.hypot(*q.shape[:2]))))
-    d = np.maximum(_one_way(q, m, r), _one_way(m, q, r))
-    return d.astype(np.float32), q.shape[1] / float(q_rgb.shape[1])
+    q_rgb: np.ndarray, m_rgb: np.ndarray, reg: Registration, dc: DifferenceConfig
+) -> tuple[np.ndarray, float] | None:
+    """The registered pair's difference on the query's working copy, and that copy's scale.
+
+    NaN where the warped map does not reach; None where the pair is not comparable.
+    """
+    if not reg.comparable or reg.H is None:
+        return None
+    q, f = _scaled(q_rgb, dc.side)
+    h, w = q.shape[:2]
+    H = np.diag([f, f, 1.0]) @ reg.H  # map pixels -> the query's working copy
+    mw = cv2.warpPerspective(
+        np.ascontiguousarray(m_rgb, np.uint8), H, (w, h), flags=cv2.INTER_AREA
+        if f < 1 else cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
+    )  # fmt: skip
+    foot = _footprint(H, m_rgb.shape[:2], (h, w))
+    ql, ml = _lab(q), _lab(mw)
+    sel = foot if foot.any() else np.ones_like(foot)
+    qm, qs = ql[sel].mean(0), ql[sel].std(0) + 1e-6
+    mm, ms = ml[sel].mean(0), ml[sel].std(0) + 1e-6
+    ml = ((ml - mm) * (qs / ms) + qm).astype(np.float32)
+    diag = float(np.hypot(h, w))
+    r = max(0, round(dc.shift * diag))
+    pad = np.pad(ml, ((r, r), (r, r), (0, 0)), mode="edge")
+    best = np.full((h, w), np.inf, np.float32)
+    for dy in range(-r, r + 1):  # the least squared distance; its root once (the same values)
+        for dx in range(-r, r + 1):
+            d = ql - pad[r + dy : r + dy + h, r + dx : r + dx + w]
+            np.minimum(best, np.einsum("ijk,ijk->ij", d, d), out=best)
+    np.sqrt(best, out=best)
+    best[~foot] = 0.0
+    sigma = dc.blur * diag
+    if sigma > 0:
+        wts = cv2.GaussianBlur(foot.astype(np.float32), (0, 0), sigma)
+        best = (cv2.GaussianBlur(best, (0, 0), sigma) / np.maximum(wts, 1e-6)).astype(np.float32)
+    best[~foot] = np.nan
+    return best.astype(np.float32), f
 
 
-def difference_contrast(dmap: np.ndarray, scale: float, boxes: np.ndarray) -> np.ndarray:
-    """Each box's (frame pixels) mean difference less its ring's, on ``dmap`` (its ``scale``)."""
+def difference_contrast(
+    dmap: np.ndarray, scale: float, boxes: np.ndarray, dc: DifferenceConfig | None = None
+) -> np.ndarray:
+    """Each box's (frame pixels) score on ``dmap`` (its ``scale``) by ``dc``'s box score.
+
+    ``contrast``: the mean difference inside less the mean of its ring (the box grown by
+    ``dc.ring`` of its size on each side, clipped to the frame; pixels the map does not reach
+    left out); ``ratio``: the mean inside over one plus the ring's. NaN where the box holds no
+    compared pixel.
+    """
+    dc = dc or DifferenceConfig()
     b = np.asarray(boxes, np.float64).reshape(-1, 4) * scale
-    return np.array([inside_score(dmap, x, "contrast") for x in b], np.float64)
+    if dc.box_score == "contrast" and dc.ring == 0.5:
+        return np.array([inside_score(dmap, x, "contrast") for x in b], np.float64)
+    ok = np.isfinite(dmap)
+    val = cv2.integral(np.where(ok, dmap, 0).astype(np.float64))
+    cnt = cv2.integral(ok.astype(np.uint8)).astype(np.float64)
+    h, w = dmap.shape
+
+    def sums(x1: float, y1: float, x2: float, y2: float) -> tuple[float, float]:
+        # the pixels whose centres lie in the box, as inside_score reads them
+        u0, u1 = max(int(np.ceil(x1 - 0.5)), 0), min(int(np.ceil(x2 - 0.5)), w)
+        v0, v1 = max(int(np.ceil(y1 - 0.5)), 0), min(int(np.ceil(y2 - 0.5)), h)
+        if u1 <= u0 or v1 <= v0:
+            return 0.0, 0.0
+        return (
+            val[v1, u1] - val[v0, u1] - val[v1, u0] + val[v0, u0],
+            cnt[v1, u1] - cnt[v0, u1] - cnt[v1, u0] + cnt[v0, u0],
+        )
+
+    out = np.full(len(b), np.nan)
+    for i, (x1, y1, x2, y2) in enumerate(b):
+        si, ni = sums(x1, y1, x2, y2)
+        if ni <= 0:
+            continue
+        gw, gh = (x2 - x1) * dc.ring, (y2 - y1) * dc.ring
+        so, no = sums(x1 - gw, y1 - gh, x2 + gw, y2 + gh)
+        inner = si / ni
+        ring = (so - si) / (no - ni) if no > ni else 0.0
+        out[i] = inner - ring if dc.box_score == "contrast" else inner / (1.0 + ring)
+    return out
 
 
-#: Table D's baseline that reads the pair's pixels but no localizer: the candidates scored by the
-#: aligned difference's contrast. The detector is above only when it clears this row too.
-PIXEL_BASELINES = ("aligned_difference",)
+#: Table D's rows that read the pair's pixels but no localizer: the plain difference with its own
+#: boxes (Selective Search), and the detector's candidates scored by the same difference. The
+#: detector is above only when it clears these rows too.
+PIXEL_BASELINES = ("plain_difference", "difference_same_boxes")
 
 
 def difference_dets(
-    by_image: dict[int, tuple[np.ndarray, np.ndarray]], nms: Any
+    by_image: dict[int, tuple[np.ndarray, np.ndarray]], nms: Any, row: str
 ) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
-    """The aligned-difference row: per image id, the (boxes, scores) the detector's NMS keeps.
+    """A difference row: per image id, the (boxes, scores) the detector's NMS keeps.
 
-    The candidates scored by their difference; none where no candidate carries one.
+    Boxes without a difference (a pair that is not comparable) never enter; none where no box
+    carries one.
     """
     if not any(np.isfinite(sc).any() for _, sc in by_image.values()):
         return {}
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for i, (boxes, sc) in by_image.items():
-        sc = np.where(np.isfinite(sc), sc, -np.inf)
         keep = np.asarray(nms(boxes, sc), np.int64)
         out[i] = (boxes[keep], sc[keep])
-    return {"aligned_difference": out}
+    return {row: out}
+
+
+def pair_difference(
+    run_frames: pd.DataFrame,
+    images: pd.Series,
+    k: tuple[str, str, int],
+    boxes: np.ndarray,
+    opt: Any,
+) -> np.ndarray | None:
+    """Each box's plain-difference contrast in query frame ``k`` against its map frame.
+
+    The pair registered as :mod:`harness.detect.difference` does, with ``opt`` (the run's
+    ``[detect]``); NaN where it is not comparable. None where the frame has no map frame (its
+    row has no ``r_utime``).
+    """
+    fk = run_frames.set_index(FRAME_KEY)
+    if k not in fk.index or fk.loc[k, "r_utime"] != fk.loc[k, "r_utime"]:
+        return None
+    r = fk.loc[k]
+    m = (str(r["r_session"]), str(r["r_camera"]), int(r["r_utime"]))
+    if m not in images.index:
+        return None
+    q, mm = read_image(str(images.loc[k])), read_image(str(images.loc[m]))
+    reg = register(q, mm, opt.keypoints, opt.difference)
+    if not reg.comparable and opt.not_comparable == "fallback":
+        reg = reg.fallback(q, mm, opt.difference)
+    made = difference_map(q, mm, reg, opt.difference)
+    if made is None:
+        return np.full(len(boxes), np.nan)
+    return difference_contrast(*made, boxes, opt.difference)

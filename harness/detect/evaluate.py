@@ -28,166 +28,13 @@ from harness.detect.ap import (
     coco_eval,
     coco_ground_truth,
     iou_matrix,
-    match50,
-    weighted_voc,
 )
-from harness.detect.difference import PIXEL_BASELINES, difference_dets
+from harness.detect.difference import difference_dets
 from harness.detect.table import table_d_markdown
+from harness.detect.tabled_chance import NO_PIXEL, table_d_chance
 from harness.evaluate import chance
-from harness.evaluate.metrics import interval, resample_counts
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import write_json, write_text
-
-
-def _frame_dets(
-    boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, nms: Any
-) -> tuple[np.ndarray, np.ndarray]:
-    """(scores, true-positive flags) of one frame's detections: ``nms`` keeps, COCO matches."""
-    keep = np.asarray(nms(boxes, scores), np.int64)
-    if not len(keep):
-        return np.zeros(0), np.zeros(0, bool)
-    sc = scores[keep]
-    order = np.argsort(-sc, kind="stable")
-    tp = np.zeros(len(keep), bool)
-    tp[order] = match50(iou_matrix(boxes[keep], gt), order)
-    return sc, tp
-
-
-def _random_score_aps(
-    cands: dict[int, np.ndarray],
-    gts: dict[int, np.ndarray],
-    nms: Any,
-    ids: list[int],
-    n_gt: int,
-    draws: int,
-    rng: np.random.Generator,
-) -> np.ndarray:
-    """AP50 of ``draws`` random scorings of the candidates, through the detector's NMS."""
-    aps = np.empty(draws)
-    for b in range(draws):
-        sc, tp = [], []
-        for i in ids:
-            s_, t_ = _frame_dets(cands[i], rng.random(len(cands[i])), gts[i], nms)
-            sc.append(s_)
-            tp.append(t_)
-        s_all, t_all = np.concatenate(sc), np.concatenate(tp)
-        aps[b] = weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
-    return aps
-
-
-def _ceiling(
-    cands: dict[int, np.ndarray], gts: dict[int, np.ndarray], nms: Any, ids: list[int], n_gt: int
-) -> tuple[float, int]:
-    """The ceiling and the candidates' matches.
-
-    The ceiling: AP50 of the candidates scored by their best IoU with an annotated box. The
-    matches: how many annotated boxes some candidate meets at IoU 0.5.
-    """
-    sc, tp = [], []
-    matched = 0
-    for i in ids:
-        iou = iou_matrix(cands[i], gts[i])
-        best = iou.max(axis=1) if iou.shape[1] else np.zeros(len(cands[i]))
-        matched += int((iou.max(axis=0) >= 0.5).sum()) if len(cands[i]) else 0
-        s_, t_ = _frame_dets(cands[i], best, gts[i], nms)
-        sc.append(s_)
-        tp.append(t_)
-    ceiling = weighted_voc(np.concatenate(sc), np.concatenate(tp), np.ones(sum(map(len, sc))), n_gt)
-    return ceiling, matched
-
-
-def _row_ap(
-    per: dict[int, tuple[np.ndarray, np.ndarray]],
-    gts: dict[int, np.ndarray],
-    ids: list[int],
-    n_gt: int,
-    counts: np.ndarray,
-    gt_n: np.ndarray,
-) -> tuple[float, np.ndarray]:
-    """A row's AP50 and its AP50 in each bootstrap resample (``counts``) of annotated frames."""
-    sc, tp, img = [], [], []
-    for k, i in enumerate(ids):
-        boxes, scores = per.get(i, (np.zeros((0, 4)), np.zeros(0)))
-        order = np.argsort(-scores, kind="stable")
-        t_ = np.zeros(len(scores), bool)
-        t_[order] = match50(iou_matrix(boxes, gts[i]), order)
-        sc.append(scores)
-        tp.append(t_)
-        img.append(np.full(len(scores), k))
-    s_all, t_all, g_all = np.concatenate(sc), np.concatenate(tp), np.concatenate(img)
-    ap = weighted_voc(s_all, t_all, np.ones(len(s_all)), n_gt)
-    return ap, np.array(
-        [weighted_voc(s_all, t_all, c[g_all].astype(np.float64), float(c @ gt_n)) for c in counts]
-    )
-
-
-def table_d_chance(
-    cands: dict[int, np.ndarray],
-    gts: dict[int, np.ndarray],
-    dets: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
-    nms: Any,
-    settings: chance.ChanceSettings,
-) -> dict[str, dict[str, Any]]:
-    """Method §9 for Table D's AP50: floor, band, ceiling, recall, intervals and verdicts.
-
-    Args:
-        cands: the candidate boxes (x1 y1 x2 y2) of each annotated image id.
-        gts: the annotated change boxes of each annotated image id (empty: no-change).
-        dets: per row (``detector``, ``random``) and image id, the (boxes, scores) it kept.
-        nms: ``nms(boxes, scores) -> kept indices`` (the detector's own NMS and cap).
-        settings: the random score draws for the floor, the bootstrap resamples of annotated
-            frames and their interval level, the seed of both, and the annotated frames holding
-            a change box before a row earns a verdict (method §9, evidence before a verdict).
-
-    Returns:
-        per row: ``ap50`` (this matcher's; equal to COCOeval's), ``ci_low``/``ci_high``,
-        ``vs_random_ci_low``/``_high``, ``verdict``; under ``"chance"``: ``floor``, ``chance_low``,
-        ``chance_high``, ``ceiling``, ``candidate_recall``.
-    """
-    draws, n_boot, ci, seed = settings.draws, settings.n_boot, settings.ci, settings.seed
-    ids = sorted(gts)
-    n_gt = sum(len(gts[i]) for i in ids)
-    rng = np.random.default_rng(chance.draw_seed(seed, "D", n_gt, len(ids)))
-    floor, lo, hi = chance.summarise(_random_score_aps(cands, gts, nms, ids, n_gt, draws, rng))
-    ceiling, matched = _ceiling(cands, gts, nms, ids, n_gt)
-    out: dict[str, dict[str, Any]] = {
-        "chance": {
-            "floor": floor,
-            "chance_low": lo,
-            "chance_high": hi,
-            "ceiling": ceiling,
-            "candidate_recall": matched / n_gt if n_gt else float("nan"),
-        }
-    }
-    counts = resample_counts(len(ids), n_boot, chance.draw_seed(seed, "D-boot", len(ids)))
-    gt_n = np.array([len(gts[i]) for i in ids], np.float64)
-    boots = {}
-    for row, per in dets.items():
-        ap, boots[row] = _row_ap(per, gts, ids, n_gt, counts, gt_n)
-        bl, bh = interval(boots[row], ci)
-        out[row] = {"ap50": ap, "ci_low": bl, "ci_high": bh}
-    positive_images = sum(len(gts[i]) > 0 for i in ids)
-    for row in dets:
-        d = boots[row] - boots.get("random", np.full(len(counts), np.nan))
-        dl, dh = interval(d, ci)
-        out[row].update({"vs_random_ci_low": dl, "vs_random_ci_high": dh})
-        ev = chance.Evidence(positive_images, settings.needed)
-        out[row]["positive_images"] = positive_images
-        out[row]["verdict"] = chance.verdict(out[row]["ap50"], lo, hi, dl, dh, ev)
-    base = [b for b in (*NO_PIXEL, *PIXEL_BASELINES) if b in dets]
-    if "detector" in dets and base:  # above only when clear of the best baseline row
-        best = max(base, key=lambda b: (out[b]["ap50"], b))
-        bl, bh = interval(boots["detector"] - boots[best], ci)
-        out["detector"].update(
-            {"best_no_pixel": best, "vs_no_pixel_ci_low": bl, "vs_no_pixel_ci_high": bh}
-        )
-        out["detector"]["verdict"] = chance.versus_no_pixel(out["detector"]["verdict"], bl)
-    return out
-
-
-#: Table D's baselines that read no pixel (method §13.3): the candidates scored by their area, and
-#: by how many of the frame's candidates overlap them.
-NO_PIXEL = ("size_prior", "cover_count")
 
 
 def no_pixel_scores(boxes: np.ndarray) -> dict[str, np.ndarray]:
@@ -241,13 +88,99 @@ def _by_image(
     return out
 
 
+#: The detector measured apart on the frames whose pairs were registered and on those that were
+#: not (compared as they stand, ``[detect] not_comparable = "fallback"``, or kept).
+APART_ROWS = {
+    True: "detector, registered frames only",
+    False: "detector, frames that could not be registered (fallback boxes) only",
+}
+
+
+def _apart(
+    inputs: TableDInputs,
+    cand: dict[int, np.ndarray],
+    gts: dict[int, np.ndarray],
+    per_row: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
+    nms: Any,
+    settings: chance.ChanceSettings,
+    groups: list[str] | None,
+    template: dict[str, Any],
+) -> list[dict[str, Any]]:
+    """The detector's AP on registered and on unregistered frames apart, each with its chance.
+
+    Only where some annotated frame could not be registered and still has boxes (a fallback):
+    boxes drawn on a pair that could not be registered are measured apart (docs/method.md).
+    """
+    fr, ids = inputs.fr, inputs.ids
+    if "comparable" not in fr.columns:
+        return []
+    ok = {ids[(str(a), str(b), int(c))]: bool(v) for a, b, c, v in
+          fr[[*FRAME_KEY, "comparable"]].to_numpy() if (str(a), str(b), int(c)) in ids}  # fmt: skip
+    ann_ids = sorted(gts)
+    bad = [i for i in ann_ids if not ok.get(i, True)]
+    if not bad or not any(len(per_row["detection"].get(i, ((), ()))[1]) for i in bad):
+        return []
+    out = []
+    for flag, label in APART_ROWS.items():
+        sub = [i for i in ann_ids if ok.get(i, True) == flag]
+        if not sub or not sum(len(gts[i]) for i in sub):
+            continue
+        g = {i: gts[i] for i in sub}
+        gr = None if groups is None else [groups[ann_ids.index(i)] for i in sub]
+        rows_ = {
+            k: {i: v for i, v in per_row[k].items() if i in g} for k in ("detection", "random")
+        }
+        ch = table_d_chance(
+            {i: cand[i] for i in sub}, g,
+            {"detector": rows_["detection"], "random": rows_["random"]}, nms, settings, gr,
+        )  # fmt: skip
+        c = ch["detector"]
+        out.append(
+            {
+                **{k: np.nan for k in template},
+                "row": label,
+                "ap50_voc_all_point": c["ap50"],
+                "matcher_ap50": c["ap50"],
+                "ci_low": c["ci_low"],
+                "ci_high": c["ci_high"],
+                **{k: v for k, v in ch["chance"].items() if k != "groups"},
+                "gap_closed": chance.gap_closed(
+                    c["ap50"], ch["chance"]["floor"], ch["chance"]["ceiling"]
+                ),
+                "vs_random_ci_low": c["vs_random_ci_low"],
+                "vs_random_ci_high": c["vs_random_ci_high"],
+                "verdict": c["verdict"],
+                "annotated_frames": len(sub),
+                "positive_images": c["positive_images"],
+                "positive_images_needed": settings.needed,
+                "change_boxes": sum(len(gts[i]) for i in sub),
+                "detections": sum(len(rows_["detection"].get(i, ((), ()))[1]) for i in sub),
+                "best_no_pixel": "",
+                "bootstrap_group": inputs.grouping,
+                "groups": ch["chance"]["groups"],
+                "not_comparable_frames": 0 if flag else len(sub),
+            }
+        )
+    return out
+
+
+def _not_comparable(fr: pd.DataFrame, on: set[int], ids: dict) -> int:
+    """How many annotated frames' pairs could not be registered (their changes count as misses)."""
+    if "comparable" not in fr.columns:
+        return 0
+    keys = {k for k, i in ids.items() if i in on}
+    f = fr[[(str(a), str(b), int(c)) in keys for a, b, c in fr[FRAME_KEY].to_numpy()]]
+    return int((~f["comparable"].astype(bool)).sum())
+
+
 #: Table D's rows: the detector and the random baseline (one draw of random scores, same NMS).
 D_ROWS = {"detection": "detector", "random": "random scores, same boxes (one draw)"}
 #: ... then the baselines that read no pixel (method §13.3), on the same candidates, same NMS.
 NO_PIXEL_ROWS = {
     "size_prior": "box area alone (no pixel)",
     "cover_count": "cover count alone (no pixel)",
-    "aligned_difference": "aligned difference (pixels, no localizer)",
+    "plain_difference": "plain difference, registered, its own boxes (pixels, no localizer)",
+    "difference_same_boxes": "plain difference on the detector's boxes (pixels, no localizer)",
 }
 
 
@@ -290,7 +223,10 @@ def _alarm_columns(
         if not len(keys):
             continue
         f = fr.merge(keys, on=FRAME_KEY)
-        k = int((f["exceedance"] <= alarm).sum())
+        flagged = f["exceedance"] <= alarm
+        if "comparable" in f.columns:  # a pair that could not be registered raises no alarm
+            flagged &= f["comparable"].astype(bool)
+        k = int(flagged.sum())
         t["alarm_nominal"], t[n] = alarm, len(f)
         t[rate] = k / len(f) if len(f) else np.nan
         t[low], t[high] = clopper_pearson(k, len(f), ci)
@@ -309,7 +245,9 @@ class TableDInputs:
 
     ``ids`` maps a frame key to its COCO image id; ``cands`` are the candidate boxes (every
     candidate of the annotated frames, keyed by ``q_session, q_camera, q_utime``); ``nms`` the
-    detector's NMS (see :func:`table_d_chance`).
+    detector's NMS (see :func:`table_d_chance`); ``plain`` the plain difference's own candidates
+    and their contrast (same keys); ``groups`` each frame key's bootstrap group and
+    ``grouping`` its name (``[detect] bootstrap_group``; None: each frame alone).
     """
 
     fr: pd.DataFrame
@@ -318,6 +256,76 @@ class TableDInputs:
     ids: dict[tuple[str, str, int], int]
     cands: pd.DataFrame
     nms: Any
+    plain: pd.DataFrame | None = None
+    groups: dict[tuple[str, str, int], str] | None = None
+    grouping: str = "frame"
+
+
+def _difference_rows(
+    inputs: TableDInputs, on: set[int]
+) -> tuple[dict[str, dict[int, tuple[np.ndarray, np.ndarray]]], dict[str, dict[int, np.ndarray]]]:
+    """The rows that read pixels but no localizer, and the candidates of those with their own.
+
+    The plain difference on its own boxes (``inputs.plain``) and on the detector's candidates
+    (their ``difference`` column), each through the detector's NMS.
+    """
+    rows: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+    own: dict[str, dict[int, np.ndarray]] = {}
+    if inputs.plain is not None:
+        plain = _by_image(inputs.plain, inputs.ids, on, "difference")
+        plain.update({i: (np.zeros((0, 4)), np.zeros(0)) for i in on - set(plain)})
+        got = difference_dets(plain, inputs.nms, "plain_difference")
+        if got:
+            rows.update(got)
+            own["plain_difference"] = {i: b for i, (b, _) in plain.items()}
+    if "difference" in inputs.cands.columns:
+        same = _by_image(inputs.cands, inputs.ids, on, "difference")
+        rows.update(difference_dets(same, inputs.nms, "difference_same_boxes"))
+    return rows, own
+
+
+def _table_row(
+    label: str,
+    aps: tuple[float, float, float],
+    c: dict[str, Any],
+    ch: dict[str, Any],
+    gt: dict[str, Any],
+    detections: int,
+    inputs: TableDInputs,
+    needed: int,
+) -> dict[str, Any]:
+    """One row of Table D: COCOeval's APs (VOC AP50, AP@[.5:.95], AP@.5) and method §9's."""
+    voc, coco, coco50 = aps
+    own = c.get("chance", ch["chance"])  # a row on candidates of its own has its own chance
+    on = {i["id"] for i in gt["images"]}
+    return {
+        "row": label,
+        "ap50_voc_all_point": voc,
+        "ci_low": c["ci_low"],
+        "ci_high": c["ci_high"],
+        **{k: v for k, v in own.items() if k != "groups"},
+        "gap_closed": chance.gap_closed(voc, own["floor"], own["ceiling"]),
+        "vs_random_ci_low": c["vs_random_ci_low"],
+        "vs_random_ci_high": c["vs_random_ci_high"],
+        "verdict": c["verdict"],
+        "coco_ap_50_95": coco,
+        "coco_ap_50": coco50,
+        "annotated_frames": len(gt["images"]),
+        "positive_images": c["positive_images"],
+        "positive_images_needed": needed,
+        "change_boxes": len(gt["annotations"]),
+        "detections": detections,
+        "matcher_ap50": c["ap50"],
+        "best_no_pixel": c.get("best_no_pixel", ""),
+        "vs_no_pixel_ci_low": c.get("vs_no_pixel_ci_low", np.nan),
+        "vs_no_pixel_ci_high": c.get("vs_no_pixel_ci_high", np.nan),
+        "vs_plain": c.get("vs_plain", np.nan),
+        "vs_plain_ci_low": c.get("vs_plain_ci_low", np.nan),
+        "vs_plain_ci_high": c.get("vs_plain_ci_high", np.nan),
+        "bootstrap_group": inputs.grouping,
+        "groups": ch["chance"]["groups"],
+        "not_comparable_frames": _not_comparable(inputs.fr, on, inputs.ids),
+    }
 
 
 def score_detections(
@@ -348,12 +356,17 @@ def score_detections(
     cand = {i: b for i, (b, _) in _by_image(cands, ids, on, "loc").items()}
     cand.update({i: np.zeros((0, 4)) for i in on - set(cand)})
     per_row = {kind: _by_image(dets[dets["kind"] == kind], ids, on, "score") for kind in D_ROWS}
-    nopix = {**_no_pixel_dets(cand, nms)}
-    if "difference" in cands.columns:  # a run of an older version has none
-        nopix.update(difference_dets(_by_image(cands, ids, on, "difference"), nms))
+    nopix, own = _difference_rows(inputs, on)
+    nopix = {**_no_pixel_dets(cand, nms), **nopix}
+    key_of = {v: k for k, v in ids.items()}
+    groups = (
+        None
+        if inputs.groups is None
+        else [inputs.groups.get(key_of[i], str(i)) for i in sorted(gts)]
+    )
     ch = table_d_chance(
         cand, gts, {"detector": per_row["detection"], "random": per_row["random"], **nopix},
-        nms, settings,
+        nms, settings, groups, own,
     )  # fmt: skip
     rows = []
     for kind, label in {**D_ROWS, **NO_PIXEL_ROWS}.items():
@@ -366,32 +379,8 @@ def score_detections(
         )
         voc, coco, coco50 = coco_eval(gt, res)
         c = ch[{"detection": "detector"}.get(kind, kind)]
-        rows.append(
-            {
-                "row": label,
-                "ap50_voc_all_point": voc,
-                "ci_low": c["ci_low"],
-                "ci_high": c["ci_high"],
-                **ch["chance"],
-                "gap_closed": chance.gap_closed(
-                    voc, ch["chance"]["floor"], ch["chance"]["ceiling"]
-                ),
-                "vs_random_ci_low": c["vs_random_ci_low"],
-                "vs_random_ci_high": c["vs_random_ci_high"],
-                "verdict": c["verdict"],
-                "coco_ap_50_95": coco,
-                "coco_ap_50": coco50,
-                "annotated_frames": len(gt["images"]),
-                "positive_images": c["positive_images"],
-                "positive_images_needed": needed,
-                "change_boxes": len(gt["annotations"]),
-                "detections": len(res),
-                "matcher_ap50": c["ap50"],
-                "best_no_pixel": c.get("best_no_pixel", ""),
-                "vs_no_pixel_ci_low": c.get("vs_no_pixel_ci_low", np.nan),
-                "vs_no_pixel_ci_high": c.get("vs_no_pixel_ci_high", np.nan),
-            }
-        )
+        rows.append(_table_row(label, (voc, coco, coco50), c, ch, gt, len(res), inputs, needed))
+    rows += _apart(inputs, cand, gts, per_row, nms, settings, groups, rows[0])
     t = pd.DataFrame(rows)
     t.insert(1, "boxes", boxes)
     _alarm_columns(t, fr, ann, alarm, ci)

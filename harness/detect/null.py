@@ -67,18 +67,31 @@ def construction_for(nc: NullConfig, by: str) -> str:
     return "perturbed" if unordered else "neighbours"
 
 
-def draw(nc: NullConfig, i: int) -> Perturbation:
-    """The ``i``-th perturbed copy's values, uniform within the limits (``nc.seed``, ``i``)."""
+def draw(nc: NullConfig, i: int, moves: np.ndarray | None = None) -> Perturbation:
+    """The ``i``-th perturbed copy's values (``nc.seed``, ``i``).
+
+    Gain, offset, blur and JPEG quality uniform within the limits; the shift, rotation and scale
+    likewise, or, given ``moves`` ((n, 4): the run's registrations as shift x, shift y, rotation,
+    scale), one of them drawn uniformly: the null moves as the run's pairs do.
+    """
     rng = np.random.default_rng([nc.seed, i])
     u = rng.uniform(-1.0, 1.0, 7)
     q = int(rng.integers(nc.jpeg_quality, 96)) if nc.jpeg_quality else 0
+    dx, dy, rot, sc = (
+        nc.shift * u[2],
+        nc.shift * u[3],
+        nc.rotation_deg * u[4],
+        1.0 + nc.scale * u[5],
+    )
+    if moves is not None and len(moves):
+        dx, dy, rot, sc = moves[int(rng.integers(len(moves)))]
     return Perturbation(
         gain=round(1.0 + nc.gain * u[0], 4),
         offset=round(nc.offset * u[1], 3),
-        dx=round(nc.shift * u[2], 5),
-        dy=round(nc.shift * u[3], 5),
-        rotation_deg=round(nc.rotation_deg * u[4], 4),
-        scale=round(1.0 + nc.scale * u[5], 5),
+        dx=round(float(dx), 5),
+        dy=round(float(dy), 5),
+        rotation_deg=round(float(rot), 4),
+        scale=round(float(sc), 5),
         blur=round(nc.blur * abs(u[6]), 6),
         jpeg=q,
     )
@@ -92,7 +105,12 @@ def _evenly(n: int, k: int) -> np.ndarray:
 
 
 def null_pairs(
-    frames: Table, proposed: Table, map_session: str, nc: NullConfig, by: str
+    frames: Table,
+    proposed: Table,
+    map_session: str,
+    nc: NullConfig,
+    by: str,
+    moves: np.ndarray | None = None,
 ) -> NullPairs:
     """The null pairs of ``map_session``'s frames that have proposals (``proposed``).
 
@@ -124,7 +142,7 @@ def null_pairs(
         q = base.iloc[order % max(len(base), 1)].reset_index(drop=True)
         r = q.copy()
         r["camera"] = [f"{c}{COPY}{j}" for j, c in enumerate(q["camera"])]
-        r["image"] = [f"{img}{fragment(draw(nc, j))}" for j, img in enumerate(q["image"])]
+        r["image"] = [f"{img}{fragment(draw(nc, j, moves))}" for j, img in enumerate(q["image"])]
     own = q.copy()
     own["camera"] = [f"{c}{QUERY}{j}" for j, c in enumerate(q["camera"])]
     pairs = pd.DataFrame(
@@ -149,8 +167,8 @@ def null_pairs(
     props = props.assign(camera=props.pop("null_camera"))
     rows = pairs[PAIR_COLUMNS[:6]].itertuples(index=False, name=None)
     marks = [str(u).rpartition(PERTURB)[2] for u in r["image"]] if how == "perturbed" else []
-    # the map's alone (its proposals' key holds its ingest): another new session against the
-    # same map, in the same run directory, scores no null pair again
+    # the map's (its proposals' key holds its ingest) and the drawn copies' values: a run whose
+    # copies move as another's did scores no null pair again
     key = stable_hash("detect-null", proposed.key, how, dataclasses.asdict(nc), list(rows), marks)
     extra = [own, r] if how == "perturbed" else [own]
     return NullPairs(
@@ -180,8 +198,12 @@ def null_scores(
     props: dict[str, Table] | None,
     map_session: str,
     chunks: Callable[[Any, pd.DataFrame], list[tuple[tuple[Any, ...], Any]]],
+    run_entries: list[Any] | None = None,
 ) -> NullScores | None:
     """The null pairs scored by the run's detector (None: calibrated within the run).
+
+    ``run_entries``: the run's own detect chunks, whose registrations the perturbed copies'
+    moves are drawn from (``[detect.null] moves = "run"``).
 
     ``chunks`` (ranks, frames) gives the detect chunks' units, as for the query frames. Where the
     config asks for the null but the run's localizer cannot score a pair alone (the paper's
@@ -200,7 +222,8 @@ def null_scores(
         )
         return None
     nc = opt.null
-    null = null_pairs(frames, props[map_session], map_session, nc, p.cfg.pairs.by)
+    moves = run_moves(run_entries or []) if nc.moves == "run" else None
+    null = null_pairs(frames, props[map_session], map_session, nc, p.cfg.pairs.by, moves)
     if not len(null.pairs.df):
         log.warning("the map %s has no frame to draw a null from: calibrated within the run",
                     map_session)  # fmt: skip
@@ -214,12 +237,33 @@ def null_scores(
     bx = pd.concat([read_cached_parquet(e.path / "boxes.parquet") for e in entries])
     boxes = bx.loc[bx["kind"] == "detection", "score"].to_numpy(np.float64)
     scores = fr["score"].to_numpy(np.float64)
-    rec = null_record(nc, null, scores, len(boxes))
+    rec = null_record(nc, null, scores, len(boxes), moves)
     return NullScores(scores, boxes, rec, tuple(e.path.name for e in entries))
 
 
-def null_record(nc: NullConfig, null: NullPairs, scored: np.ndarray, boxes: int) -> dict:
-    """``detect.json``'s ``calibration``: the null's construction, size and limits."""
+def run_moves(entries: list[Any]) -> np.ndarray | None:
+    """The run's registrations as (shift x, shift y, rotation, scale) rows.
+
+    From its chunks' frame rows; None where none registered.
+    """
+    cols = ["reg_dx", "reg_dy", "reg_rotation_deg", "reg_scale"]
+    parts = [read_cached_parquet(e.path / "frames.parquet") for e in entries]
+    fr = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+    if not set(cols) <= set(fr.columns):
+        return None
+    m = fr[cols].to_numpy(np.float64)
+    m = m[np.isfinite(m).all(axis=1)]
+    return m if len(m) else None
+
+
+def null_record(
+    nc: NullConfig,
+    null: NullPairs,
+    scored: np.ndarray,
+    boxes: int,
+    moves: np.ndarray | None = None,
+) -> dict:
+    """``detect.json``'s ``calibration``: the null's construction, size, limits and moves."""
     rec: dict[str, Any] = {
         "method": "null",
         "construction": null.construction,
@@ -232,4 +276,15 @@ def null_record(nc: NullConfig, null: NullPairs, scored: np.ndarray, boxes: int)
         rec["limits"] = {
             k: v for k, v in dataclasses.asdict(nc).items() if k not in ("construction", "pairs")
         }
+        if moves is not None and len(moves):
+            rec["moves"] = {
+                "drawn_from": f"the {len(moves)} registered pairs of this run",
+                "largest_shift": round(float(np.abs(moves[:, :2]).max()), 4),
+                "largest_rotation_deg": round(float(np.abs(moves[:, 2]).max()), 3),
+                "scale_range": [round(float(moves[:, 3].min()), 4),
+                                round(float(moves[:, 3].max()), 4)],
+            }  # fmt: skip
+        else:
+            rec["moves"] = {"drawn_from": "the limits (no pair of this run was registered)"
+                            if nc.moves == "run" else "the limits"}  # fmt: skip
     return rec

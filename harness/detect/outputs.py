@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from functools import partial
@@ -142,6 +143,7 @@ def _coco_results(det: pd.DataFrame, ids: dict[tuple[str, str, int], int]) -> li
             "bbox": [float(r.x1), float(r.y1), float(r.x2 - r.x1), float(r.y2 - r.y1)],
             "score": float(r.score),
             "exceedance": float(r.exceedance),
+            "comparable": bool(r.comparable),
         }
         for r in det.itertuples()
     ]
@@ -150,9 +152,17 @@ def _coco_results(det: pd.DataFrame, ids: dict[tuple[str, str, int], int]) -> li
 def _write_alarms(
     out: Path, fr: pd.DataFrame, det: pd.DataFrame, alarm: float
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """``alarms.csv``: the frames and boxes flagged at the nominal false-alarm rate ``alarm``."""
-    flagged_f = fr[fr["exceedance"] <= alarm]
-    flagged_b = det[det["exceedance"] <= alarm]
+    """``alarms.csv``: the frames and boxes flagged at the nominal false-alarm rate ``alarm``.
+
+    A frame whose pair is not comparable (and its boxes) raises no alarm; a box raises one only
+    where its frame does (the frame is tested first, then its boxes: the boxes of a frame whose
+    score the no-change null reaches are not flagged, as the page shows none).
+    """
+    flagged_f = fr[(fr["exceedance"] <= alarm) & fr["comparable"].astype(bool)]
+    in_flagged = pd.MultiIndex.from_frame(det[FRAME_KEY]).isin(
+        pd.MultiIndex.from_frame(flagged_f[FRAME_KEY])
+    )
+    flagged_b = det[(det["exceedance"] <= alarm) & det["comparable"].astype(bool) & in_flagged]
     alarms = pd.concat(
         [
             flagged_f.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
@@ -177,13 +187,42 @@ def _table_d(
     """Table D on the annotated frames, from the candidates of those frames only."""
     out, cfg, ann, entries, opt = run.p.out, run.cfg, run.ann, run.entries, run.opt
     annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
-    cands = []
+    cands, plain = [], []
     for e in entries:  # candidates of the annotated frames only, one chunk at a time
         sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
         cands.append(sm[pd.MultiIndex.from_frame(sm[QUERY_KEY]).isin(annotated)])
+        if (e.path / "plain_difference.parquet").is_file():
+            pd_ = read_cached_parquet(e.path / "plain_difference.parquet")
+            plain.append(pd_[pd.MultiIndex.from_frame(pd_[QUERY_KEY]).isin(annotated)])
     nms = partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes)
-    inputs = TableDInputs(fr, ann, dets, ids, pd.concat(cands, ignore_index=True), nms)
+    groups = _groups(fr, run.frames) if opt.bootstrap_group == "map_image" else None
+    inputs = TableDInputs(
+        fr, ann, dets, ids, pd.concat(cands, ignore_index=True), nms,
+        pd.concat(plain, ignore_index=True) if plain else None, groups, opt.bootstrap_group,
+    )  # fmt: skip
     return score_detections(out, inputs, ChanceSettings.of(cfg), opt.boxes, run.alarm)
+
+
+def _groups(fr: pd.DataFrame, frames: pd.DataFrame) -> dict[tuple[str, str, int], str]:
+    """Each query frame's bootstrap group: its map image (``[detect] bootstrap_group``).
+
+    Map frames whose image files hold the same bytes are one group (a folder may hold one view
+    under several names), so are query frames paired with one map frame.
+    """
+    image = frames.set_index(FRAME_KEY)["image"]
+    digest: dict[str, str] = {}
+    out = {}
+    for r in fr[[*FRAME_KEY, "r_session", "r_camera", "r_utime"]].itertuples(index=False):
+        mk = (str(r.r_session), str(r.r_camera), int(r.r_utime))
+        uri = str(image.get(mk, "")) if mk in image.index else ""
+        if uri not in digest:
+            path, _, frag = uri.partition("#")
+            try:
+                digest[uri] = hashlib.sha1(Path(path).read_bytes()).hexdigest() + frag
+            except OSError:  # no file (a log's stored frame): the map frame itself
+                digest[uri] = "|".join(map(str, mk))
+        out[(str(r.session), str(r.camera), int(r.utime))] = digest[uri] if uri else str(mk)
+    return out
 
 
 #: ``detect.json``'s ``alarm``: the nominal rate, the frames and boxes it flags, of how many.
@@ -213,6 +252,8 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     sources = {sc.name: sc.source for sc in cfg.sessions}
     fr, ids = _frame_table(out, fr, frames, pairs, names, sources, cfg.pairs.min_pair_confidence)
     fr, dets = _calibrated(fr, dets, entries, run.null)
+    comparable = pd.MultiIndex.from_frame(fr.loc[fr["comparable"].astype(bool), FRAME_KEY])
+    dets = dets.assign(comparable=pd.MultiIndex.from_frame(dets[FRAME_KEY]).isin(comparable))
     det = dets[dets["kind"] == "detection"]
     results = _coco_results(det, ids)
     write_text(out / "detections.json", json.dumps(results))
@@ -220,14 +261,19 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
     flagged_f, flagged_b = _write_alarms(out, fr, det, alarm)
-    fr["alarmed"] = fr["exceedance"].to_numpy(np.float64) <= alarm  # the page's, method §13.1
+    fr["alarmed"] = (fr["exceedance"].to_numpy(np.float64) <= alarm) & fr["comparable"].astype(
+        bool
+    )  # the page's, method §13.1
     sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
-    top = fr[sure].sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
+    comparable = fr["comparable"].astype(bool).to_numpy()
+    not_comparable = _not_comparable(fr, opt.not_comparable)
+    top = fr[sure & comparable & np.isfinite(fr["score"].to_numpy(np.float64))]
+    top = top.sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
     maps = locmaps(out, top, entries, dets)
 
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
     table_d = _table_d(run, fr, dets, ids) if len(ann) else None
-    pixel = write_pixel_table(out, cfg, names, map_session, entries, fr, frames)
+    pixel = write_pixel_table(out, cfg, names, map_session, entries, fr, frames, opt)
 
     page = write_detect_page(run, (fr, top, dets), maps, (table_d, pixel))
     return {
@@ -241,6 +287,8 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
         # method §13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
         "uncertain_pairs": int((~sure).sum()),
         "min_pair_confidence": cfg.pairs.min_pair_confidence,
+        # docs/method.md, *The plain difference*: pairs that could not be registered
+        "not_comparable": not_comparable,
         "detections": len(results),
         # method §13.1: what the nominal false-alarm rate flags (alarms.csv)
         "alarm": dict(
@@ -262,6 +310,42 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
         "stage_units_run": p.ran,
         "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
     }
+
+
+def _not_comparable(fr: pd.DataFrame, policy: str) -> dict[str, Any]:
+    """``detect.json``'s ``not_comparable``, and a WARNING line naming the frames.
+
+    A pair that cannot be registered is not comparable: with ``[detect] not_comparable = "drop"``
+    its query frame has no change box, no score and no alarm, and is never among the most changed.
+    """
+    bad = fr[~fr["comparable"].astype(bool)]
+    label = (
+        bad["name"] if "name" in bad.columns else bad["session"] + "/" + bad["utime"].astype(str)
+    )
+    names = [str(x) for x in label]
+    reasons = {str(k): int(v) for k, v in bad["not_comparable_why"].str.replace(
+        r" \(.*", "", regex=True).value_counts().sort_index().items()}  # fmt: skip
+    if len(bad) and len(bad) == len(fr):
+        log.warning(
+            "no pair of this run could be registered (%s): %s; no frame raises an alarm and none "
+            "is listed as most changed",
+            "; ".join(f"{k}: {v}" for k, v in reasons.items()),
+            "every change box rests on a comparison without keypoints (an affine fit of the "
+            "intensities, or the frames as they stand) and is marked comparable = false"
+            if policy == "fallback"
+            else "no change box is drawn" if policy == "drop"
+            else "every change box is the localizer's alone, marked comparable = false",
+        )  # fmt: skip
+    elif len(bad):
+        shown = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+        log.warning(
+            "%d of %d pairs are not comparable (could not be registered: %s): %s; %s",
+            len(bad), len(fr), "; ".join(f"{k}: {v}" for k, v in reasons.items()), shown,
+            "no change box, score or alarm there" if policy == "drop"
+            else "their boxes are kept, marked comparable = false in frames.csv",
+        )  # fmt: skip
+    return {"frames": len(bad), "of_frames": len(fr), "policy": policy, "reasons": reasons,
+            "names": names}  # fmt: skip
 
 
 def locmaps(

@@ -20,6 +20,7 @@ import pandas as pd
 from harness.detect.calibrate import alarm_words, in_words
 from harness.detect.figures import has_poses
 from harness.detect.options import DetectRun
+from harness.detect.page_notes import not_comparable_html, uncertain_html
 from harness.detect.pixels import pixel_html
 from harness.detect.table import table_d_html
 from harness.errors import HarnessError
@@ -322,7 +323,8 @@ def write_detect_page(
         + pixel_html(tables[1])
         + _annotated_html(out, fr, dets, truth)
         + f'<h2 id="places">The {len(top)} most changed places</h2>'
-        + _uncertain_html(fr)
+        + uncertain_html(fr)
+        + not_comparable_html(fr)
         + "".join(places)
         + "</body></html>\n"
     )
@@ -364,28 +366,4 @@ def _alarms_html(run: DetectRun, fr: pd.DataFrame, dets: pd.DataFrame) -> str:
         + " ".join(_e(x) for x in lines)
         + _e(how)
         + " See docs/method.md, <i>Calibrated alarms</i>.</p>"
-    )
-
-
-def _uncertain_html(fr: pd.DataFrame) -> str:
-    """How many uncertain pairs the most-changed list leaves out, naming them (method §13.2)."""
-    if "uncertain_pair" not in fr.columns or not fr["uncertain_pair"].any():
-        return ""
-    bad = fr[fr["uncertain_pair"]]
-    label = [
-        str(n) if n else f"{s} {c} {u}"
-        for s, c, u, n in zip(
-            bad["session"],
-            bad["camera"],
-            bad["utime"],
-            bad.get("name", [""] * len(bad)),
-            strict=True,
-        )
-    ]
-    shown = ", ".join(label[:20]) + (f" and {len(label) - 20} more" if len(label) > 20 else "")
-    return (
-        f'<p class="note uncertain" data-uncertain="{len(bad)}">Uncertain pairs: {len(bad)} of '
-        f"{len(fr)} query frames were paired with a map frame that another place matches almost "
-        "as well (pair_confidence under [pairs] min_pair_confidence), so their change scores may "
-        f"compare different places; they are left out of this list: {_e(shown)}.</p>"
     )

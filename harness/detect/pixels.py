@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.detect.difference import PIXEL_BASELINES, difference_contrast, difference_map
+from harness.detect.difference import PIXEL_BASELINES, pair_difference
 from harness.detect.evaluate import NO_PIXEL, no_pixel_scores
 from harness.errors import AnnotationError
 from harness.evaluate import chance
@@ -36,7 +36,6 @@ from harness.evaluate.metrics import (
     weighted_average_precision,
 )
 from harness.fusion.fuse import loc_map
-from harness.imagestore import read_image
 from harness.ingest.names import frames_by_image
 from harness.inputs import IMAGE_SUFFIXES
 from harness.records import FRAME_KEY, QUERY_KEY
@@ -52,7 +51,7 @@ PIXEL_ROWS = {
     "random": "random (random box scores)",
     "size_prior": "size_prior (box area, no pixel read)",
     "cover_count": "cover_count (boxes overlapping it, no pixel read)",
-    "aligned_difference": "aligned difference (box contrast, pixels, no localizer)",
+    "difference_same_boxes": "plain difference, registered (box contrast, pixels, no localizer)",
 }
 
 
@@ -153,7 +152,7 @@ class _Regions:
                 [no_pixel_scores(f.boxes)[name] for f in frames] or [np.zeros(0)]
             )
         if frames and all(f.difference is not None for f in frames):
-            self.scores[PIXEL_BASELINES[0]] = np.concatenate([f.difference for f in frames])
+            self.scores[PIXEL_BASELINES[1]] = np.concatenate([f.difference for f in frames])
         self.positive_images = len({int(g) for g in self.g[self.y & (self.w > 0)]})
 
     def region_scores(self, s: np.ndarray) -> np.ndarray:
@@ -315,24 +314,6 @@ def pixel_html(t: pd.DataFrame | None) -> str:
     )
 
 
-def _pair_difference(
-    run_frames: pd.DataFrame, images: pd.Series, k: tuple[str, str, int], boxes: np.ndarray
-) -> np.ndarray | None:
-    """Each box's aligned-difference contrast in query frame ``k`` against its map frame.
-
-    None where the frame has no map frame (its row has no ``r_utime``).
-    """
-    fk = run_frames.set_index(FRAME_KEY)
-    if k not in fk.index or fk.loc[k, "r_utime"] != fk.loc[k, "r_utime"]:
-        return None
-    r = fk.loc[k]
-    m = (str(r["r_session"]), str(r["r_camera"]), int(r["r_utime"]))
-    if m not in images.index:
-        return None
-    dmap, scale = difference_map(read_image(str(images.loc[k])), read_image(str(images.loc[m])))
-    return difference_contrast(dmap, scale, boxes)
-
-
 def write_pixel_table(
     out: Path,
     cfg: Config,
@@ -341,11 +322,13 @@ def write_pixel_table(
     entries: list[Any],
     run_frames: pd.DataFrame,
     frames_table: pd.DataFrame,
+    opt: Any = None,
 ) -> pd.DataFrame | None:
     """``tableD_pixel.csv`` / ``.md`` from ``[masks] folder``'s masks of this run's query frames.
 
     ``run_frames``: the run's frame rows (each query frame's map frame, ``r_*``);
-    ``frames_table``: every frame's image, for the aligned-difference row.
+    ``frames_table``: every frame's image, for the plain-difference row; ``opt``: the run's
+    ``[detect]`` (the config's where None), whose registration that row uses.
 
     ``entries`` are the detect chunks (their ``samples.parquet``: boxes and ``loc``), read one at
     a time for the masked frames only; a masked frame without a sample box counts all its pixels
@@ -385,7 +368,8 @@ def write_pixel_table(
         mask = cv2.imread(str(files[k]), cv2.IMREAD_UNCHANGED)
         if mask is None:  # read as annotations a moment ago: changed on disk since
             raise AnnotationError(f"{files[k]}: not a readable mask image")
-        frames.append(masked_frame(b, loc, mask, _pair_difference(run_frames, images, k, b)))
+        diff = pair_difference(run_frames, images, k, b, opt or cfg.detect)
+        frames.append(masked_frame(b, loc, mask, diff))
     r = cfg.report
     t = pixel_table(frames, r.chance_draws, r.bootstrap, r.ci, cfg.seed, r.min_positive_images)
     write_text(out / "tableD_pixel.csv", t.to_csv(index=False, float_format="%.4f"))

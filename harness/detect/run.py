@@ -162,8 +162,8 @@ def _chunk_units(
         mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(pd.MultiIndex.from_frame(part))
         chunk = ranks.df[mask].reset_index(drop=True)
         segments = dcfg.proposals.segments
-        build = partial(detect_chunk, chunk, frames, opt, dcfg.fusion, segments, null=null)
-        record = opt.record(dcfg.fusion.seed, segments)
+        build = partial(detect_chunk, chunk, frames, opt, dcfg.fusion, dcfg.proposals, null=null)
+        record = opt.record(dcfg.fusion.seed, segments, dcfg.proposals.selective)
         key = detect_keys.detect_chunk(ranks.key, record, c0, len(part), dcfg.fusion, opt.fusion)
         key = (*key, "null") if null else key
         chunk_units.append((key, build))
@@ -219,7 +219,7 @@ def run_detect(
         )
         al, aligned = _alignment(p.out, measured, frames.df, dcfg.sessions)
         chunks = partial(_chunk_units, opt=opt, dcfg=dcfg, null=True)
-        null = null_scores(p, opt, measured, frames, props, map_session, chunks)
+        null = null_scores(p, opt, measured, frames, props, map_session, chunks, entries)
         run = DetectRun(
             p, dcfg, opt, map_session, query_sessions, names_l, frames.df, pairs.df, ann.df,
             entries, alarm, al, null,
@@ -285,27 +285,30 @@ def _alignment(
             name.get((str(a), str(b), int(c)), "")
             for a, b, c in al[["r_session", "r_camera", "r_utime"]].itertuples(index=False)
         ])  # fmt: skip
+    kind = str(getattr(measured[0].loc, "kind", ""))
     return al, {
-        "alignment": _write_alignment(out, al),
+        "alignment": _write_alignment(out, al, kind),
         "local_counts": next(iter(measured[0].ranks.counts.values()), {}),
     }
 
 
-def _write_alignment(out: Path, al: pd.DataFrame) -> dict[str, int]:
+def _write_alignment(out: Path, al: pd.DataFrame, kind: str = "local") -> dict[str, int]:
     """``alignment.csv`` (each pair's method, inliers and score) and its counts by method.
 
-    A pair no link of the chain accepts is ``none``: its query frame gets no rank, so no box and
-    no score (method §13.3); a WARNING line counts them.
+    A pair no link of the local chain accepts is ``none``: its query frame gets no rank, so no box
+    and no score (method §13.3); a keypoint pair with too few matches for a geometry is ``none``
+    too, and every ratio-test match of it counts as localized. A WARNING line counts them.
     """
     write_text(out / "alignment.csv", al.to_csv(index=False, float_format="%.6g"))
     counts = {str(k): int(v) for k, v in al["align"].value_counts().sort_index().items()}
     if counts.get("none"):
-        log.warning(
-            "%d of %d pairs could not be aligned: their query frames carry no change score and "
-            "no box (alignment.csv lists them)",
-            counts["none"],
-            len(al),
+        what = (
+            "no epipolar geometry could be fitted (too few matches): every match they have "
+            "counts as localized"
+            if kind == "keypoints"
+            else "could not be aligned: their query frames carry no change score and no box"
         )
+        log.warning("%d of %d pairs: %s (alignment.csv lists them)", counts["none"], len(al), what)
     return counts
 
 

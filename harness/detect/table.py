@@ -264,6 +264,7 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
             "maps may still rank changed frames and regions first."
         )
     out += _no_pixel_warnings(t)
+    out += table_d_findings(t)
     if det["candidate_recall"] == det["candidate_recall"] and det["candidate_recall"] < 0.5:
         out.append(
             f"NOTE: only {det['candidate_recall']:.0%} of the annotated change boxes are met at "
@@ -279,18 +280,77 @@ def table_d_warnings(t: pd.DataFrame) -> list[str]:
     return out
 
 
+def table_d_findings(t: pd.DataFrame) -> list[str]:
+    """What Table D rests on and what localization adds, in words (docs/method.md).
+
+    The bootstrap's groups, the annotated frames whose pairs could not be registered, the plain
+    difference row's own chance band, and the detector against the plain difference by the
+    paired test: better, worse, or not told apart.
+    """
+    det, out = t.iloc[0], []
+    if "groups" in t.columns:
+        how = {"map_image": "the map image they were compared with", "frame": "frame"}
+        out.append(
+            f"NOTE: intervals and paired tests resample {int(det['groups'])} groups of the "
+            f"{int(det['annotated_frames'])} annotated frames (grouped by "
+            f"{how.get(str(det['bootstrap_group']), str(det['bootstrap_group']))}): pairs that "
+            "share a view are not independent samples."
+        )
+    if "not_comparable_frames" in t.columns and int(det["not_comparable_frames"]):
+        apart = t["row"].str.startswith("detector, frames that could not")
+        what = (
+            "the boxes drawn there compare the pair without keypoints (an affine fit of its "
+            "intensities, or as it stands) and are measured apart in the rows below the baselines"
+            if apart.any()
+            else "no change box is drawn there, and their annotated changes count as misses in "
+            "every row"
+        )
+        out.append(
+            f"NOTE: {int(det['not_comparable_frames'])} of {int(det['annotated_frames'])} "
+            f"annotated frames could not be registered with their map frame (not comparable): "
+            f"{what}."
+        )
+    plain = t[t["row"].str.startswith("plain difference, registered")]
+    if len(plain):
+        p = plain.iloc[0]
+        out.append(
+            f"NOTE: the plain difference ranks boxes of its own (Selective Search on the query "
+            f"frame): floor {p['floor']:.3f}, chance band {p['chance_low']:.3f}-"
+            f"{p['chance_high']:.3f}, ceiling {p['ceiling']:.3f}, recall at IoU 0.5 "
+            f"{p['candidate_recall']:.3f}."
+        )
+    if "vs_plain" in t.columns and det["vs_plain"] == det["vs_plain"]:
+        lo, hi = float(det["vs_plain_ci_low"]), float(det["vs_plain_ci_high"])
+        if lo > 0:
+            word = "better than the plain difference alone: localization adds to it here"
+        elif hi < 0:
+            word = "worse than the plain difference alone: localization costs here"
+        else:
+            word = (
+                "not told apart from the plain difference alone: localization adds nothing "
+                "measurable here"
+            )
+        out.append(
+            f"WHAT LOCALIZATION ADDS: the detector's AP50 is {word} (paired difference "
+            f"{float(det['vs_plain']):+.3f} [{lo:+.3f}, {hi:+.3f}])."
+        )
+    return out
+
+
 def _no_pixel_warnings(t: pd.DataFrame) -> list[str]:
     """Method §13.3: a WARNING where a no-pixel baseline comes within 0.02 of the detector."""
     if "best_no_pixel" not in t.columns:
         return []
     det, out = t.iloc[0], []
     for r in t.iloc[2:].itertuples():
+        if str(r.row).startswith("detector"):  # the detector itself, on a part of the frames
+            continue
         gap = float(det["ap50_voc_all_point"]) - float(r.ap50_voc_all_point)
         if gap < 0.02:
             how = (
                 "by the plain difference of the two images, without localizing anything, so the "
                 "localizer adds little that a difference image does not"
-                if str(r.row).startswith("aligned difference")
+                if str(r.row).startswith("plain difference")
                 else "without reading a pixel (the confound Table I warns about), so the "
                 "detector's AP says little about what it sees"
             )

@@ -95,6 +95,8 @@ def _identity(q: np.ndarray, m: np.ndarray, lc: LocalConfig) -> Alignment | None
 
 
 _ALIGN = {"homography": _homography, "ecc": _ecc, "identity": _identity}
+#: An affine ECC fit of two gray frames of one size (``H`` maps query pixels to map pixels).
+align_ecc = _ecc
 
 
 def _fit(fq: np.ndarray, fm: np.ndarray, H: np.ndarray | None) -> float:

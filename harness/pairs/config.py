@@ -35,6 +35,10 @@ class PairsConfig:
     min_pair_confidence: float = 0.05
     # by = "sequence": the query frames of one sequence window (centred on the frame)
     sequence_frames: int = 11
+    # by = "sequence" or "retrieval": a frame whose grey levels' standard deviation (0-255) is
+    # below this carries no place (dark, blank, a lens cap, a tunnel): never a map frame's
+    # candidate, and a query frame with none gets no pair (docs/method.md; 0: every frame)
+    min_place_contrast: float = 10.0
 
 
 def check_pairs(pa: PairsConfig, where: str) -> None:
@@ -71,6 +75,8 @@ def check_pairs(pa: PairsConfig, where: str) -> None:
     )
     c(pa.place_frames >= 0, where, "[pairs] place_frames", pa.place_frames, ">= 0 frames")
     c(pa.sequence_frames >= 1, where, "[pairs] sequence_frames", pa.sequence_frames, ">= 1")
+    c(0 <= pa.min_place_contrast < 128, where, "[pairs] min_place_contrast",
+      pa.min_place_contrast, "[0, 128) grey levels (0: every frame carries a place)")  # fmt: skip
     c(
         0 <= pa.min_pair_confidence <= 1,
         where,

@@ -21,6 +21,7 @@ import pandas as pd
 
 from harness.errors import RetrievalError
 from harness.pairs.modes import PairingMode
+from harness.pairs.place import no_place_summary, without_no_place
 from harness.pairs.table import PAIR_COLUMNS, pose_columns, season_pairs
 from harness.records import FRAME_KEY, IMAGE_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
@@ -208,11 +209,14 @@ def retrieval_pairs(
     memory_mb: float = 256.0,
     place_frames: int = 2,
     window: int = 0,
+    min_place_contrast: float = 0.0,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Pair each candidate query frame with its best frame of each reference session.
 
     Each pair's ``pair_confidence`` (:func:`pair_confidence`) compares its distance with the
-    best frame's outside the pair's place (``place_frames`` each side).
+    best frame's outside the pair's place (``place_frames`` each side). Frames whose contrast is
+    under ``min_place_contrast`` carry no place (:mod:`harness.pairs.place`): no map frame of
+    theirs is a candidate, no query frame of theirs gets a pair; the summary names them.
 
     Args:
         candidates: query frames and the reference sessions to pair them with (``q_session``,
@@ -224,12 +228,14 @@ def retrieval_pairs(
         place_frames: the pair's place, frames each side (no rival for the confidence).
         window: 0: each query frame alone (``by = "retrieval"``); else the query frames of a
             sequence window (``by = "sequence"``, :func:`sequence_frames`).
+        min_place_contrast: frames of lower contrast carry no place (0: every frame does).
 
     Returns:
         (pairs with ``PAIR_COLUMNS`` plus ``retrieval_d2``, a summary of counts).
     """
     out = []
     no_subimage = 0
+    candidates, blank, keys = without_no_place(candidates, frames, min_place_contrast)
     for (qs, rs), cand in candidates.groupby(["q_session", "r_session"], sort=True):
         qi = read_cached_parquet(descriptors[qs] / "index.parquet")
         ri = read_cached_parquet(descriptors[rs] / "index.parquet")
@@ -237,6 +243,8 @@ def retrieval_pairs(
         want = pd.MultiIndex.from_frame(cand[QUERY_KEY].set_axis(FRAME_KEY, axis=1))
         qsel = qsel[pd.MultiIndex.from_frame(qsel[FRAME_KEY]).isin(want)]
         rsel = ri[ri["proposal_method"] == proposer].reset_index()
+        if blank:  # a map frame that carries no place is nobody's pair
+            rsel = rsel[~pd.MultiIndex.from_frame(rsel[FRAME_KEY]).isin(keys)]
         if not len(qsel) or not len(rsel):
             no_subimage += len(cand)
             continue
@@ -264,14 +272,28 @@ def retrieval_pairs(
     pairs = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=PAIR_COLUMNS)
     pairs = pose_columns(pairs, frames).sort_values([*QUERY_KEY, "r_session"])
     pairs = pairs.reset_index(drop=True)
-    summary = {
+    summary = _summary(window, proposer, candidates, pairs, no_subimage, blank, min_place_contrast)
+    return pairs[[*PAIR_COLUMNS, "retrieval_d2", "pair_confidence"]], summary
+
+
+def _summary(
+    window: int,
+    proposer: str,
+    candidates: pd.DataFrame,
+    pairs: pd.DataFrame,
+    no_subimage: int,
+    blank: dict,
+    min_place_contrast: float,
+) -> dict[str, Any]:
+    """The pairs' ``summary.json``: the mode, the counts and the frames that carry no place."""
+    return {
         "by": "sequence" if window else "retrieval",
         "proposal_method": proposer,
         "queries": int(candidates[QUERY_KEY].drop_duplicates().shape[0]),
         "pairs": len(pairs),
         "no_subimage": int(no_subimage),
+        "no_place": no_place_summary(blank, min_place_contrast),
     }
-    return pairs[[*PAIR_COLUMNS, "retrieval_d2", "pair_confidence"]], summary
 
 
 def _pair_rows(
@@ -306,15 +328,15 @@ def write_retrieval_pairs(
     descriptors: dict[str, Path],
     frames: pd.DataFrame,
     proposer: str,
-    memory_mb: float,
-    place_frames: int,
-    window: int,
+    options: dict[str, Any],
     tmp: Path,
 ) -> dict[str, Any]:
-    """:func:`retrieval_pairs` into ``tmp/pairs.parquet`` and ``tmp/summary.json``."""
-    pairs, summary = retrieval_pairs(
-        candidates, descriptors, frames, proposer, memory_mb, place_frames, window
-    )
+    """:func:`retrieval_pairs` into ``tmp/pairs.parquet`` and ``tmp/summary.json``.
+
+    ``options``: its keyword options (``memory_mb``, ``place_frames``, ``window``,
+    ``min_place_contrast``).
+    """
+    pairs, summary = retrieval_pairs(candidates, descriptors, frames, proposer, **options)
     write_parquet(tmp / "pairs.parquet", pairs)
     write_json(tmp / "summary.json", summary)
     return summary

@@ -112,16 +112,14 @@ def retrieval_pair_table(
     ``memory_mb``: ``[retrieval] memory_mb``; ``proposer``: the one whose descriptors rank.
     """
     paths = {s: e.path for s, e in described.items()}
-    build = partial(
-        write_retrieval_pairs,
-        cand.df,
-        paths,
-        frames.df,
-        proposer,
-        memory_mb,
-        pc.place_frames,
-        pc.sequence_frames if PAIRING_MODES[pc.by].sequence else 0,
-    )
+    options = {
+        "memory_mb": memory_mb,
+        "place_frames": pc.place_frames,
+        "window": pc.sequence_frames if PAIRING_MODES[pc.by].sequence else 0,
+        "min_place_contrast": pc.min_place_contrast,
+    }
+    build = partial(write_retrieval_pairs, cand.df, paths, frames.df, proposer, options)
     dkeys = {s: e.key for s, e in described.items()}
-    entry = p.unit("pairs_retrieval", pair_keys.by_retrieval(cand.key, dkeys, proposer), build)
+    key = (*pair_keys.by_retrieval(cand.key, dkeys, proposer), pc.min_place_contrast)
+    entry = p.unit("pairs_retrieval", key, build)
     return Table(read_cached_parquet(entry.path / "pairs.parquet"), entry.key)

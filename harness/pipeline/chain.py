@@ -23,11 +23,13 @@ from typing import Any
 
 from harness.config.schema import Config
 from harness.errors import ConfigError, HarnessError, RetrievalError
+from harness.ingest.names import session_names
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.methods import ordered_methods, rules_where
 from harness.pairs import keys as pair_keys
 from harness.pairs.agreement import pose_agreement
 from harness.pairs.modes import PAIRING_MODES, kind_of
+from harness.pairs.place import hub_report, no_place_report
 from harness.pairs.pose import build_pairs
 from harness.pipeline.across import across_localizers, common_images, localizer_fusion
 from harness.pipeline.context import Context
@@ -174,6 +176,11 @@ def pairs_by_retrieval(
     if not len(ranks.df):
         raise RetrievalError(f"localizer {locs[0].name}: no query subimage got a rank")
     p.pairing = {"by": p.cfg.pairs.by, "place_frames": p.cfg.pairs.place_frames}
+    names = session_names(p.cfg.sessions)
+    summary = p.cache.path("pairs_retrieval", pairs.key) / "summary.json"
+    if (blank := no_place_report(summary, names)) is not None:
+        p.pairing["no_place"] = blank
+    p.pairing["hubs"] = hub_report(pairs.df, frames.df, names)
     _pose_agreement(p, frames, ann, pairs)
     fusion, notes = localizer_fusion(p, locs[0], ranks, len(pairs.df))
     notes.append(pairing_note(p.pairing))

@@ -33,23 +33,23 @@ def test_a_bad_candidate_is_one_error_line(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not REAL.is_dir(), reason=f"no real pairs here: {REAL} is absent")
 def test_the_choice_runs_as_typed_on_the_real_pairs(tmp_path: Path) -> None:
-    cands = "keypoints/selective/difference"
+    cands = "keypoints/selective/difference_product/ratio-fallback"
     proc = subprocess.run(
         [sys.executable, "-m", "bench.detect_choice", "--sets", "obchange-dev", "--candidates",
          cands, "--out", str(tmp_path)],
         cwd=ROOT, capture_output=True, text=True, check=True,
     )  # fmt: skip
     md = (tmp_path / "detect_choice.md").read_text()
-    assert "| keypoints | selective | difference | " in md
-    assert "Chosen by the rule: keypoints / selective / difference" in md and md in proc.stdout
-    rec = json.loads((tmp_path / "obchange-dev" / "keypoints-selective-difference" /
-                      "detect.json").read_text())  # fmt: skip
-    opt = rec["options"]  # --localizer, --proposals and --box-prior reached the run
-    assert (opt["localizer"], opt["proposals"], opt["box_prior"]) == (
-        "keypoints",
-        "selective",
-        "difference",
-    )
+    assert "| keypoints | selective | difference_product | ratio-fallback | " in md
+    assert "| none | selective | plain difference | ratio-fallback | " in md  # Table D's own row
+    # the development rooms decide (docs/method.md, *Choosing the default*): not run here
+    assert "Chosen by the rule: none (obchange-rooms was not run)" in md and md in proc.stdout
+    rec = json.loads((tmp_path / "obchange-dev" / "keypoints-selective-difference_product-"
+                      "ratio-fallback" / "detect.json").read_text())  # fmt: skip
+    opt = rec["options"]  # --localizer, --proposals, --box-prior and the settings reached the run
+    assert (opt["localizer"], opt["proposals"], opt["box_prior"], opt["not_comparable"]) == (
+        "keypoints", "selective", "difference_product", "fallback")  # fmt: skip
+    assert (opt["difference"]["box_score"], opt["difference"]["ring"]) == ("ratio", 0.25)
     rows = json.loads((tmp_path / "detect_choice.json").read_text())
     assert all(0 <= r["chance_high"] < 1 and r["recall"] > 0 for r in rows)
 

@@ -43,20 +43,26 @@ def real_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
 def test_the_default_detector_finds_real_changes_above_its_chance_band(
     real_run: tuple[Path, str],
 ) -> None:
-    """Table D's detector row against its chance band and the baselines, as docs/method.md quotes
-    it (*Keypoint localization*): above the band's top and above the aligned difference, box area
-    and cover count; its verdict is the rule's (10 frames: a wide interval)."""
+    """Table D's detector row against its chance band and the baselines, as the manual quotes
+    it on these ten pairs (the rule's figures are the 51 pairs' of obchange-rooms, measured by
+    ``python -m bench.detect_choice``): above the band's top and above box area and cover count;
+    the pairs that could not be registered named and measured apart; what localization adds
+    said in words (10 frames: wide intervals)."""
     out, printed = real_run
     t = pd.read_csv(out / "tableD.csv").set_index("row")
     det = t.loc["detector"]
     assert det["ap50_voc_all_point"] > det["chance_high"], det
-    for row in ("aligned difference (pixels, no localizer)", "box area alone (no pixel)",
-                "cover count alone (no pixel)"):  # fmt: skip
+    for row in ("box area alone (no pixel)", "cover count alone (no pixel)"):
         assert det["ap50_voc_all_point"] > t.loc[row, "ap50_voc_all_point"], row
-    quoted = (ROOT / "docs" / "method.md").read_text()
-    m = re.search(r"`harness detect` with no flags on `obchange-dev`: AP50 (\d\.\d{3})", quoted)
-    assert m is not None, "docs/method.md quotes the default's AP50 on obchange-dev"
-    assert abs(det["ap50_voc_all_point"] - float(m.group(1))) <= 0.002, (det, m.group(1))
+    assert det["bootstrap_group"] == "map_image" and 1 < det["groups"] < 10  # shared views
+    rec = json.loads((out / "detect.json").read_text())
+    assert rec["not_comparable"]["frames"] == int(det["not_comparable_frames"]) > 0
+    fr = pd.read_csv(out / "frames.csv")
+    bad = fr[~fr["comparable"]]
+    assert sorted(bad["name"]) == sorted(rec["not_comparable"]["names"])
+    assert "detector, frames that could not be registered (fallback boxes) only" in t.index
+    md = (out / "tableD.md").read_text()
+    assert "WHAT LOCALIZATION ADDS: the detector's AP50 is" in md
     readme = " ".join(manual_text().split())
     assert (
         f"the same default reaches AP50 {det['ap50_voc_all_point']:.3f} against a chance band up "
@@ -84,8 +90,8 @@ def test_the_null_flags_revisited_frames_and_the_map_against_itself_nothing(
 ) -> None:
     """The alarms against the no-change null (docs/method.md, *Calibrated alarms*) as the manual
     quotes them: the robot's revisits (every frame has a change) flag half their frames; the map
-    folder against itself, into the same run directory, flags no frame and no box, and scores no
-    null pair again (the null is the map's alone)."""
+    folder against itself, into the same run directory, flags no frame and no box (its null is
+    its own: the copies move as that run's pairs do)."""
     out, _ = real_run
     rec = json.loads((out / "detect.json").read_text())
     t = pd.read_csv(out / "tableD.csv").iloc[0]
@@ -112,5 +118,9 @@ def test_the_null_flags_revisited_frames_and_the_map_against_itself_nothing(
                         r"rate 0\.01 \(null: 100 no-change pairs from the map, perturbed; "
                         r"alarms\.csv\)", said[0]), said  # fmt: skip
     assert again["alarm"]["boxes"] == 0 and again["alarm"]["of_boxes"] > 0
-    assert again["cache_entries"]["detect-null"] == rec["cache_entries"]["detect-null"]
-    assert again["stage_units_run"].get("detect-null", 0) == 0, again["stage_units_run"]
+    # the null's copies moved as each run's registered pairs did (docs/method.md)
+    assert rec["calibration"]["moves"]["drawn_from"] == (
+        f"the {10 - rec['not_comparable']['frames']} registered pairs of this run"
+    )
+    assert again["calibration"]["moves"]["largest_shift"] < rec["calibration"]["moves"][
+        "largest_shift"]  # fmt: skip

@@ -1,10 +1,10 @@
-"""Keypoint localization (issue 63), Selective Search proposals and the aligned difference.
+"""Keypoint localization, Selective Search proposals and the detector's Table D rows.
 
 A synthetic pair whose truth is known: a textured scene seen twice with a shift and a small
 parallax, and a new textured object pasted into the second view only. The object's keypoints
 find no match in the map frame, the background's do; the object's box must score a higher share
 of keypoints that do not localize than every background box, the pair's geometry is a fitted
-fundamental matrix, and the aligned difference's contrast is highest on the object too.
+fundamental matrix. (The plain difference of the same pair: tests/detect/test_difference.py.)
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.detect.difference import difference_contrast, difference_map
 from harness.localizers.config import KeypointConfig, check_keypoints
 from harness.localizers.keypoints import localized, pair_shares, share_map
 from harness.proposals.builtin import selective_boxes
@@ -127,22 +126,6 @@ def test_selective_search_meets_the_new_object_within_its_limits() -> None:
     np.testing.assert_array_equal(boxes, again)  # one thread: the same boxes every time
 
 
-def test_the_aligned_difference_is_zero_on_a_shifted_copy_and_highest_on_the_new_object() -> None:
-    q, m = _pair()
-    qc, mc = cv2.cvtColor(q, cv2.COLOR_GRAY2RGB), cv2.cvtColor(m, cv2.COLOR_GRAY2RGB)
-    d, s = difference_map(qc, qc)
-    assert float(np.abs(d).max()) < 1e-3  # float gain and offset: a copy differs by ~1e-5
-    d, s = difference_map(qc, mc)  # a 7 px shift: within 3% of the diagonal
-    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()])
-    c = difference_contrast(d, s, boxes)
-    assert c[0] > c[1:].max(), c
-    # gain and offset are matched: a darker, lower-contrast map is no change
-    dim = np.clip(mc.astype(np.float32) * 0.6 + 20, 0, 255).astype(np.uint8)
-    d2, s2 = difference_map(qc, dim)
-    assert difference_contrast(d2, s2, boxes)[0] > 0
-    assert np.nanmax(difference_contrast(d2, s2, _background_boxes())) < c[0]
-
-
 # ---------------------------------------------------------------- as a localizer and a detector
 
 
@@ -200,12 +183,17 @@ def test_detect_with_keypoints_writes_each_pairs_geometry_and_the_difference_row
     assert {"q_image", "r_image", "inliers"} <= set(al.columns)
     assert al["q_image"].str.endswith((".tiff", ".jpg", ".png")).all()
     t = pd.read_csv(out / "tableD.csv")
-    assert "aligned difference (pixels, no localizer)" in set(t["row"])
+    assert "plain difference on the detector's boxes (pixels, no localizer)" in set(t["row"])
     det = t[t["row"] == "detector"].iloc[0]
-    assert det["best_no_pixel"] in ("size_prior", "cover_count", "aligned_difference")
+    assert det["best_no_pixel"] in (
+        "size_prior",
+        "cover_count",
+        "plain_difference",
+        "difference_same_boxes",
+    )
     rec = json.loads((out / "detect.json").read_text())
     assert rec["options"]["localizer"] == "keypoints" and "keypoints" in rec["options"]
-    assert "aligned difference" in (out / "tableD.md").read_text()
+    assert "plain difference, registered" in (out / "tableD.md").read_text()
 
 
 def test_a_map_frames_keypoints_are_detected_once_for_every_query_that_pairs_with_it(

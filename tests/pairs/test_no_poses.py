@@ -193,11 +193,17 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     for f in ("detections.json", "images.json", "frames.parquet", "frames.csv", "alarms.csv",
               "trajectory.png", "detect.html", "detect.json"):  # fmt: skip
         assert (out / f).stat().st_size > 0, f
-    assert list((out / "locmaps").glob("*.npy"))
     rec = json.loads((out / "detect.json").read_text())
+    # the most changed places (their LoC maps) are the frames whose pairs were registered
+    ok = rec["not_comparable"]["of_frames"] - rec["not_comparable"]["frames"]
+    assert len(list((out / "locmaps").glob("*.npy"))) == min(ok, 10)
     assert rec["map"] == "map" and rec["queries"] == ["query"] and rec["query_frames"] == 2
-    # names the folders do not share: pairs by sequence, each with its confidence
-    assert rec["pairing"] == {"by": "sequence", "place_frames": 2}  # no poses: nothing to compare
+    # names the folders do not share: pairs by sequence, each with its confidence; no frame here
+    # is too dark to carry a place, no map frame is a hub, and there are no poses to compare with
+    pairing = rec["pairing"]
+    assert {k: pairing[k] for k in ("by", "place_frames")} == {"by": "sequence", "place_frames": 2}
+    assert pairing["no_place"]["frames"] == [] and pairing["hubs"] == []
+    assert "agreement_with_pose_pairs" not in pairing
     assert "pairs by sequence (method §13.2)" in printed and "no poses to compare with" in printed
     fr = pd.read_parquet(out / "frames.parquet")
     assert fr["x"].isna().all() and len(fr) == 2
@@ -236,14 +242,20 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     fr2 = pd.read_csv(out2 / "frames.csv")
     assert (fr2["name"] == fr2["r_name"]).all() and sorted(fr2["name"]) == sorted(names)
     assert (fr2["pair_confidence"] == 1).all() and not fr2["uncertain_pair"].any()
-    top = fr2.sort_values("score", ascending=False)["name"].iloc[0]
-    assert f"  {top}: " in printed  # the console names frames by their files
     images = json.loads((out2 / "images.json").read_text())["images"]
     assert sorted(i["file_name"] for i in images) == sorted(names)
     assert all(Path(i["path"]).parent == tmp_path / "same-new" for i in images)
     page = (out2 / "detect.html").read_text()
-    assert f"<figcaption>query {top} (" in page and f"<figcaption>map {top}<" in page
-    assert f">1. {top}: change score" in page
+    # the console and the page name frames by their files: the most changed of the pairs that
+    # registered, and every pair that did not (these small frames hold few keypoints)
+    ok = fr2[fr2["comparable"].astype(bool)]
+    for name in fr2.loc[~fr2["comparable"].astype(bool), "name"]:
+        assert name in page.split('data-not-comparable="')[1].split("</p>")[0], name
+    if len(ok):
+        top = ok.sort_values("score", ascending=False)["name"].iloc[0]
+        assert f"  {top}: " in printed
+        assert f"<figcaption>query {top} (" in page and f"<figcaption>map {top}<" in page
+        assert f">1. {top}: change score" in page
     # the local localizer on folders paired by name: no model, every subimage ranked in its pair
     argv_local = ["detect", "--map-images", str(tmp_path / "same-map"), "--query-images",
                   str(tmp_path / "same-new"), "--localizer", "local", "--boxes", "subimages",
@@ -293,9 +305,9 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
         if flag == "--masks":  # the masks are also the truth of a pixel AP (method §13.2)
             px = pd.read_csv(out / "tableD_pixel.csv")
             assert list(px["masked_frames"].unique()) == [2] and len(rec["table_d_pixel"]) == 5
-            # the rows: the LoC map, random, the two no-pixel rows, and the aligned difference
-            # (each box's difference contrast against its map frame: pixels, no localizer)
-            assert px["row"].str.startswith("aligned difference").sum() == 1
+            # the rows: the LoC map, random, the two no-pixel rows, and the plain difference
+            # (each box's score in the registered pair's difference: pixels, no localizer)
+            assert px["row"].str.startswith("plain difference").sum() == 1
             # the change is a quarter by a quarter of q00: 1/16 of one image's pixels in two
             assert px["positive_rate"].iloc[0] == pytest.approx(1 / 32, abs=1e-4)
             assert set(px["verdict"]) == {"few"}  # one positive image earns no verdict
@@ -556,17 +568,16 @@ def test_pixel_ap_of_a_loc_map_against_a_mask_by_hand() -> None:
     assert t3["positive_rate"].iloc[0] == pytest.approx(16 / 200)
     # the empty image's 100 pixels tie with the large box's at the lowest LoC
     assert t3.loc["detector (LoC map)", "pixel_ap"] == pytest.approx(1.0)
-    # the aligned-difference row scores the boxes by their difference contrast through the same
+    # the plain-difference row scores the boxes by their difference through the same
     # maps: the large box's higher contrast puts the 84 unchanged pixels first, AP 0.16; it is a
     # row only where every masked image has its pair's difference
-    assert "aligned difference (box contrast, pixels, no localizer)" not in t.index
+    row = "plain difference, registered (box contrast, pixels, no localizer)"
+    assert row not in t.index
     d = masked_frame(boxes, np.array([0.9, 0.1]), mask, np.array([0.2, 0.7]))
     t4 = pixel_table([d], draws=50, n_boot=20, ci=0.95, seed=0).set_index("row")
-    assert t4.loc["aligned difference (box contrast, pixels, no localizer)", "pixel_ap"] == (
-        pytest.approx(0.16)
-    )
+    assert t4.loc[row, "pixel_ap"] == pytest.approx(0.16)
     assert t4.loc["detector (LoC map)", "best_no_pixel"] in ("size_prior", "cover_count",
-                                                             "aligned_difference")  # fmt: skip
+                                                             "difference_same_boxes")  # fmt: skip
 
 
 def test_rows_that_name_their_image_find_their_frame_or_say_why_in_one_line() -> None:

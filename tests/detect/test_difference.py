@@ -1,0 +1,129 @@
+"""The plain difference of a registered pair (docs/method.md, *The plain difference*).
+
+The synthetic pair of tests/localizers/test_keypoints.py, whose truth is known: a textured scene
+seen twice with a shift of (7, 4) px and a new object pasted into the second view. Registration
+finds that shift and calls the pair comparable; the difference is near zero on the background,
+highest on the object, blind to the map's gain and offset, and NaN where the map does not reach.
+Frames of two unrelated scenes are not comparable, and say why; the fallback compares them
+without keypoints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from harness.detect.config import DifferenceConfig, check_difference
+from harness.detect.difference import (
+    difference_contrast,
+    difference_map,
+    register,
+)
+from harness.errors import ConfigError
+from harness.localizers.config import KeypointConfig
+
+from ..localizers.test_keypoints import OBJECT, _background_boxes, _pair, _texture
+
+cv2 = pytest.importorskip("cv2")
+
+
+def _rgb(g: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(g, cv2.COLOR_GRAY2RGB)
+
+
+def test_a_shifted_pair_registers_by_its_shift_and_its_difference_is_the_new_object() -> None:
+    q, m = (_rgb(x) for x in _pair())
+    dc = DifferenceConfig()
+    reg = register(q, m, KeypointConfig(), dc)
+    assert reg.comparable and reg.why == "" and reg.method == "homography"
+    assert reg.inliers >= 30 and reg.footprint > 0.95
+    # a map pixel (x, y) is the query's (x - 7, y - 4)
+    moved = cv2.perspectiveTransform(np.array([[[100.0, 100.0]]]), reg.H).ravel()
+    np.testing.assert_allclose(moved, [93.0, 96.0], atol=0.5)
+    made = difference_map(q, m, reg, dc)
+    assert made is not None
+    d, scale = made
+    assert scale == 1.0 and d.shape == q.shape[:2]
+    # the map does not reach the query's last 7 columns and 4 rows: left out, never a change
+    assert np.isnan(d[:, -3:]).all() and np.isnan(d[-2:, :]).all()
+    assert np.isfinite(d[:-8, :-8]).all()
+    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()])
+    for score in ("contrast", "ratio"):
+        c = difference_contrast(d, scale, boxes, dataclasses.replace(dc, box_score=score))
+        assert c[0] > 3 * max(c[1:].max(), 1.0 if score == "ratio" else 0.5), (score, c)
+    # the background of a registered pair differs by a few colour units, the object by tens
+    x1, y1, x2, y2 = OBJECT
+    assert np.nanmedian(d[y1:y2, x1:x2]) > 4 * np.nanmedian(d[:200, :200])
+
+
+def test_gain_and_offset_are_no_change() -> None:
+    q, m = (_rgb(x) for x in _pair())
+    dc = DifferenceConfig()
+    dim = np.clip(m.astype(np.float32) * 0.6 + 20, 0, 255).astype(np.uint8)
+    reg = register(q, dim, KeypointConfig(), dc)
+    made = difference_map(q, dim, reg, dc)
+    assert reg.comparable and made is not None
+    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()])
+    c = difference_contrast(*made, boxes)
+    assert c[0] > 3 * max(c[1:].max(), 0.5), c
+
+
+def test_sizes_are_shares_of_the_frame() -> None:
+    """The same pair at twice the size: the same registration, the same ranking of the boxes."""
+    q, m = (_rgb(x) for x in _pair())
+    q2, m2 = (cv2.resize(x, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for x in (q, m))
+    dc = dataclasses.replace(DifferenceConfig(), side=2000, register_side=2000)
+    reg = register(q2, m2, KeypointConfig(), dc)
+    moved = cv2.perspectiveTransform(np.array([[[200.0, 200.0]]]), reg.H).ravel()
+    np.testing.assert_allclose(moved, [186.0, 192.0], atol=1.0)
+    made = difference_map(q2, m2, reg, dc)
+    assert made is not None
+    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()]) * 2
+    c = difference_contrast(*made, boxes)
+    assert c[0] > 3 * max(c[1:].max(), 0.5), c
+
+
+def test_two_unrelated_scenes_are_not_comparable_and_say_why() -> None:
+    q = _rgb(_texture(np.random.default_rng(1), 360, 480))
+    m = _rgb(_texture(np.random.default_rng(2), 360, 480))
+    dc = DifferenceConfig()
+    reg = register(q, m, KeypointConfig(), dc)
+    assert not reg.comparable
+    assert reg.why.startswith(("too few matches", "too few inliers", "a degenerate warp"))
+    assert difference_map(q, m, reg, dc) is None  # nothing compared, nothing scored
+    fb = reg.fallback(q, m, dc)
+    assert fb.comparable and fb.method in ("ecc", "identity")
+    made = difference_map(q, m, fb, dc)
+    assert made is not None and np.isfinite(made[0]).mean() > 0.5
+    # a blank map frame: no keypoint at all
+    blank = np.full_like(m, 128)
+    reg = register(q, blank, KeypointConfig(), dc)
+    assert not reg.comparable and reg.why.startswith("too few matches")
+
+
+def test_bad_difference_settings_are_one_error_naming_the_key() -> None:
+    for key, bad in (("min_inliers", 3), ("shift", 0.5), ("box_score", "max"), ("ring", 0)):
+        with pytest.raises(ConfigError, match=key):
+            check_difference(dataclasses.replace(DifferenceConfig(), **{key: bad}), "[x]")
+
+
+def test_a_registration_as_the_null_draws_its_moves() -> None:
+    """The shifted pair's registration as a perturbed copy's shift, rotation and scale; a copy
+    drawn from it moves the map frame as the pair moved (docs/method.md, *Calibrated alarms*)."""
+    from harness.detect.config import NullConfig
+    from harness.detect.null import draw
+    from harness.perturb import apply
+
+    q, m = (_rgb(x) for x in _pair())
+    reg = register(q, m, KeypointConfig(), DifferenceConfig())
+    dx, dy, rot, sc = reg.similarity(q.shape[1], q.shape[0])
+    np.testing.assert_allclose([dx * 480, dy * 360, rot, sc], [-7, -4, 0, 1], atol=0.3)
+    p = draw(NullConfig(gain=0, offset=0, blur=0, jpeg_quality=0), 0, np.array([[dx, dy, rot, sc]]))
+    assert (p.dx, p.dy, p.rotation_deg, p.scale) == pytest.approx((dx, dy, rot, sc), abs=1e-4)
+    copy = apply(m, p)  # the map frame moved as the query frame is: the same background
+    diff = np.abs(copy.astype(int) - q.astype(int)).max(axis=2)
+    x1, y1, x2, y2 = OBJECT
+    diff[y1:y2, x1:x2] = 0  # the pasted object is the change
+    assert np.median(diff[20:-20, 20:-20]) <= 2 and np.mean(diff[20:-20, 20:-20] > 30) < 0.02
