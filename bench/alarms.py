@@ -26,8 +26,13 @@ CALIBRATIONS = ("null", "within-run")
 
 
 def run_one(set_name: str, args: list[str], calibration: str, out: Path) -> dict:
-    """One set under one calibration: Table D's alarm columns and the run's alarm counts."""
-    dst = out / set_name / calibration
+    """One set under one calibration: Table D's alarm columns and the run's alarm counts.
+
+    Both calibrations of a set run into one directory, one after the other: the second reuses
+    the first's stages (ingest, proposals, ranks, the detect chunks), only its calibration and
+    what follows from it are new, and each run's files are read before the next one writes.
+    """
+    dst = out / set_name
     cmd = [sys.executable, "-m", "harness.cli", "detect", *args, "--calibration", calibration,
            "--out", str(dst)]  # fmt: skip
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=False)
