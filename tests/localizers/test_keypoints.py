@@ -166,7 +166,7 @@ def test_detect_with_keypoints_writes_each_pairs_geometry_and_the_difference_row
     local_run: tuple, tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
     """``harness detect --localizer keypoints`` as typed on the fixture: ``alignment.csv`` holds
-    each pair's model, inliers and image names; Table D carries the aligned-difference row, and
+    each pair's model, inliers and image names; Table D carries the plain-difference rows, and
     the detector's verdict is measured against it too."""
     from harness.cli import main
 
