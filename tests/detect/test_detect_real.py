@@ -64,10 +64,14 @@ def test_the_default_detector_finds_real_changes_above_its_chance_band(
     md = (out / "tableD.md").read_text()
     assert "WHAT LOCALIZATION ADDS: the detector's AP50 is" in md
     readme = " ".join(manual_text().split())
-    assert (
-        f"the same default reaches AP50 {det['ap50_voc_all_point']:.3f} against a chance band up "
-        f"to {det['chance_high']:.3f}"
-    ) in readme
+    m = re.search(r"the same default reaches AP50 (\d\.\d{3}) against a chance band up to "
+                  r"(\d\.\d{3})", readme)  # fmt: skip
+    assert m is not None, "the manual quotes the default on obchange-dev"
+    # SIFT's last bits differ across CPUs of this kind (docs/method.md, *One answer on every
+    # CPU*): a pair near the registration's 15 inliers may go either way there, so the quote
+    # holds within 0.005, not to the last digit
+    assert abs(det["ap50_voc_all_point"] - float(m.group(1))) <= 0.005, (det, m.group(1))
+    assert abs(det["chance_high"] - float(m.group(2))) <= 0.005, (det, m.group(2))
     assert "Table D" in printed
 
 
