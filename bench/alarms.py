@@ -1,6 +1,10 @@
-"""``python -m bench.alarms [--sets fixture,world,obchange-dev] [--out DIR]``: what the alarms
+"""``python -m bench.alarms [--sets fixture,world,obchange-dev,...] [--out DIR]``: what the alarms
 of ``harness detect`` flag where the truth is known, for the no-change null and the old
 calibration within the run (docs/method.md, *Calibrated alarms*).
+
+Besides the sets of ``python -m bench.detect_choice``, two no-change revisits made from
+consecutive frames (``bench.no_change``: ``world-consecutive``, ``nordland-consecutive``): the
+camera moved, nothing changed, so every flag is a false alarm.
 
 Each set runs ``harness detect`` as a user types it (the sets of ``python -m bench.detect_choice``,
 its default detector), once with ``--calibration null`` and once with ``--calibration within-run``;
@@ -20,6 +24,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench import no_change
 from bench.detect_choice import ROOT, sets_here, write_table
 
 CALIBRATIONS = ("null", "within-run")
@@ -84,13 +89,28 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _sets(names: str) -> list[tuple[str, list[str]]]:
+    """The sets of ``names`` in order, the no-change ones built from consecutive frames."""
+    out = []
+    for s in names.split(","):
+        if s not in no_change.SETS:
+            out += sets_here(s)
+        elif (args := no_change.set_args(s)) is not None:
+            out.append((s, args))
+        else:
+            print(f"skipped {s}: its frames are not here (real frames are read from shared/)")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sets", default="fixture,world,obchange-dev")
+    ap.add_argument(
+        "--sets", default="fixture,world,obchange-dev,world-consecutive,nordland-consecutive"
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "alarms")
     a = ap.parse_args(argv)
     rows = []
-    for s, args in sets_here(a.sets):
+    for s, args in _sets(a.sets):
         for c in CALIBRATIONS:
             rows.append(run_one(s, args, c, a.out))
             print(json.dumps(rows[-1]), flush=True)

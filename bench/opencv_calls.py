@@ -3,7 +3,7 @@
 Each call runs on fixed inputs (a rendered fixture-like frame at 240 x 320 and an NCLT-sized
 1,232 x 1,616 one), and its output is digested. Run it under two OpenCV releases and compare the
 two JSON files with ``--compare A B``: which calls give other bytes, and the median time of each
-(issue 50: the choice between OpenCV 4 and 5 is made on this, not on what pip happens to pick).
+(the choice between OpenCV 4 and 5 is made on this, not on what pip happens to pick).
 The list of calls is checked against the harness's source by ``tests/test_lock.py``.
 """
 

@@ -30,7 +30,7 @@ def _git(*args: str) -> str | None:
 
 
 #: The CPU flags a figure depends on: the SIMD width, fused multiply-add, and the bf16 / int8
-#: matrix instructions the encoder and ranking products could use (issue 37).
+#: matrix instructions the encoder and ranking products could use.
 RELEVANT_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_tile")
 
 

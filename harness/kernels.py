@@ -1,4 +1,4 @@
-"""One answer on every CPU of the kind: the numeric libraries' kernels pinned to AVX2 (issue 50).
+"""One answer on every CPU of the kind: the numeric libraries' kernels pinned to AVX2.
 
 torch (ATen's vectorised ops, oneDNN's convolutions), MKL, OpenBLAS, numpy's SIMD loops, OpenCV
 and faiss each pick their kernels by the CPU they find. On an AVX-512 machine they take other

@@ -18,7 +18,7 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 class Registry(dict[str, T]):
-    """One extension point's entries by name, the harness's own and a user's alike (issue 51).
+    """One extension point's entries by name, the harness's own and a user's alike.
 
     Every registry of the harness is one: fusion rules, proposers and their options, localizer
     kinds, log formats, report tables, descriptors. It is a dict, so every reader reads it as
@@ -178,8 +178,6 @@ def add_rule(rule: FusionRule) -> None:
 
 #: ``harness detect``'s box generators (method §13.1, ``[detect] boxes``), the default first.
 BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
-#: What ranks ``harness detect``'s subimages: the local localizer (method §13.3) or the config's.
-DETECT_LOCALIZERS = ("local", "keypoints", "config")
 #: What a candidate box's score is fused with (``[detect] box_prior``, method §13.3): its area, or
 #: nothing (the score alone, as the paper's detector).
 BOX_PRIORS = ("area", "difference", "difference_product", "none")

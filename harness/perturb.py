@@ -14,6 +14,7 @@ it wherever the frame is read and no file is written.
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import astuple, dataclass, fields
 from typing import Any
 
@@ -36,14 +37,18 @@ class Perturbation:
     scale: float = 1.0  # about the centre
     blur: float = 0.0  # Gaussian sigma, a share of the longer side (0: none)
     jpeg: int = 0  # re-encoded at this JPEG quality (0: not re-encoded)
+    # a smooth displacement of this RMS, a share of the diagonal (0: none): the parallax a
+    # homography leaves, as a real revisit shows it (its field drawn from the other values)
+    wobble: float = 0.0
 
 
-_TAGS = ("g", "o", "x", "y", "r", "s", "b", "q")
+_TAGS = ("g", "o", "x", "y", "r", "s", "b", "q", "w")
 
 
 def fragment(p: Perturbation) -> str:
     """The URI fragment naming ``p``: ``#perturb=g1.05,o-3,...`` (values at 6 digits)."""
-    return PERTURB + ",".join(f"{t}{v:.6g}" for t, v in zip(_TAGS, astuple(p), strict=True))
+    parts = [f"{t}{v:.6g}" for t, v in zip(_TAGS, astuple(p), strict=True)]
+    return PERTURB + ",".join(parts if p.wobble else parts[:-1])  # no wobble: named as before
 
 
 def parse(spec: str) -> Perturbation:
@@ -71,6 +76,23 @@ def split_perturbed(uri: str) -> tuple[str, Perturbation | None]:
     return (base, parse(spec)) if sep else (uri, None)
 
 
+def _wobbled(img: np.ndarray, p: Perturbation) -> np.ndarray:
+    """``img`` displaced by a smooth random field of RMS ``p.wobble`` x the diagonal.
+
+    The field: normal draws on a 5 x 7 grid (seeded by the copy's own fragment, so a copy is the
+    same wherever it is read), cubic-upsampled to the frame; borders reflected.
+    """
+    h, w = img.shape[:2]
+    rng = np.random.default_rng(zlib.crc32(fragment(p).encode()))
+    grid = rng.standard_normal((2, 5, 7)).astype(np.float32)
+    fx, fy = (cv2.resize(g, (w, h), interpolation=cv2.INTER_CUBIC) for g in grid)
+    rms = float(np.sqrt((fx * fx + fy * fy).mean())) + 1e-9
+    k = p.wobble * float(np.hypot(h, w)) / rms
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    return cv2.remap(img, xs + k * fx, ys + k * fy, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REFLECT)  # fmt: skip
+
+
 def apply(img: np.ndarray, p: Perturbation) -> np.ndarray:
     """``img`` (RGB uint8) perturbed by ``p``: photometric, then the warp, the blur, the JPEG."""
     h, w = img.shape[:2]
@@ -80,6 +102,8 @@ def apply(img: np.ndarray, p: Perturbation) -> np.ndarray:
         m[0, 2] += p.dx * w
         m[1, 2] += p.dy * h
         out = cv2.warpAffine(out, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    if p.wobble > 0:
+        out = _wobbled(out, p)
     if p.blur > 0:
         out = cv2.GaussianBlur(out, (0, 0), max(p.blur * max(h, w), 1e-3))
     if p.jpeg > 0:

@@ -98,7 +98,7 @@ def test_no_import_circle_among_harness_modules() -> None:
     assert cycles(graph) == []
 
 
-#: The layers, lowest first (issue 35). A module may import its own layer and the layers below,
+#: The layers, lowest first . A module may import its own layer and the layers below,
 #: never one above: data flows up this list, and evaluation never imports presentation.
 LAYERS: tuple[tuple[str, ...], ...] = (
     (
@@ -165,7 +165,7 @@ def _imports(f: Path) -> list[ast.ImportFrom]:
 
 
 def test_the_pipeline_makes_no_key() -> None:
-    """Each stage's cache key is made in its package (``harness/<stage>/keys.py``, issue 51): the
+    """Each stage's cache key is made in its package (``harness/<stage>/keys.py``): the
     modules that compose the stages hash nothing of their own."""
     makers = [
         str(f.relative_to(ROOT))
@@ -176,7 +176,7 @@ def test_the_pipeline_makes_no_key() -> None:
 
 
 def test_stage_functions_live_in_their_packages() -> None:
-    """A cache entry is built by its stage's function (``harness/<stage>/stage.py``, issue 51):
+    """A cache entry is built by its stage's function (``harness/<stage>/stage.py``):
     the pipeline hands each its sections of the config and builds none itself."""
     builders = [
         f"{f.relative_to(ROOT)}: {call}"
@@ -231,7 +231,7 @@ def test_no_module_re_exports_beyond_its_package() -> None:
     assert bad == []
 
 
-#: The longest a function of the package may be (issue 35): a longer one is cut into named steps.
+#: The longest a function of the package may be : a longer one is cut into named steps.
 MAX_FUNCTION_LINES = 80
 
 
@@ -258,12 +258,13 @@ PROJECT_TESTS = frozenset(
         "test_safety_third_pass",
         "test_lock",
         "test_doc_commands",
+        "test_user_text",
     }
 )
 
 
 def test_tests_mirror_the_packages() -> None:
-    """A package's tests live in ``tests/<package>/`` (issue 35), so the tree of the tests is the
+    """A package's tests live in ``tests/<package>/`` , so the tree of the tests is the
     tree of the code; only the project-wide ones sit at the top."""
     tests = ROOT / "tests"
     packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
@@ -281,7 +282,7 @@ def test_tests_mirror_the_packages() -> None:
 
 
 def test_no_assert_checks_a_value_in_the_package() -> None:
-    """Checks are errors that say what is wrong (issue 51): ``python -O`` drops an ``assert``, and
+    """Checks are errors that say what is wrong : ``python -O`` drops an ``assert``, and
     an ``AssertionError`` names no file, row or option."""
     found = [
         f"{path.relative_to(ROOT)}:{node.lineno}"
@@ -293,7 +294,7 @@ def test_no_assert_checks_a_value_in_the_package() -> None:
 
 
 def test_no_parameter_is_named_method() -> None:
-    """One vocabulary (issue 51): a proposal method is a ``proposer``, a fusion method a
+    """One vocabulary : a proposal method is a ``proposer``, a fusion method a
     ``fusion_rule``; a parameter named ``method`` said one in some functions and the other in
     the rest."""
     found = [
@@ -307,7 +308,7 @@ def test_no_parameter_is_named_method() -> None:
     assert found == []
 
 
-#: The libraries a function may import where it needs them (issue 51), each for a reason: heavy to
+#: The libraries a function may import where it needs them , each for a reason: heavy to
 #: import where most commands never use them (torch, faiss, scipy's submodules, matplotlib,
 #: pycocotools), optional extras (ray, rerun) or the readers of one log format (mcap, lz4,
 #: rosbags), and rich for one console table. Every other import, the package's own above all,
@@ -337,7 +338,7 @@ def test_function_level_imports_are_the_justified_ones() -> None:
     assert found == []
 
 
-#: The longest a module may be (issue 51): a longer one is a grab-bag to cut by job.
+#: The longest a module may be : a longer one is a grab-bag to cut by job.
 MAX_MODULE_LINES = 400
 
 
@@ -417,7 +418,7 @@ WRITE_ASKS = frozenset(
 
 
 def test_the_reports_writer_asks_evaluate_for_its_rows() -> None:
-    """``reports/write.py`` orders the evaluation (issue 51): one call of ``evaluate/`` per figure
+    """``reports/write.py`` orders the evaluation : one call of ``evaluate/`` per figure
     it writes, the split reports' rows among them (``evaluate.split_reports``), and none of the
     APs, labels or curves computed in it."""
     asks = {

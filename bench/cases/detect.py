@@ -81,7 +81,7 @@ def case_detect(quick: bool) -> None:
                     f"stages of run 2 s: "
                     + ", ".join(f"{k} {float(v):.1f}" for k, v in t.items())
                     + "; 2 CPU cores, grid5, autoencoder 256x256 projected to 128-D; GPU: "
-                    "not measured, no GPU was lent to this task"
+                    "not measured, no GPU on the measuring machine"
                 ),
             }
         ),

@@ -8,7 +8,7 @@ cache (so only what the setting changes runs again):
   budget of 6,000 sample-steps),
 - ``[projection] dim`` = 256, 128, 64, 32 and 64 with whitening,
 - ``[retrieval] db_stride_m = 9`` with ``gt_radius_m = 5``,
-- ``[descriptor] precision = "bf16"`` (issue 37: what bf16 costs in R@1 and AP).
+- ``[descriptor] precision = "bf16"`` (what bf16 costs in R@1 and AP).
 
 One row per variant: ``median`` is its R@1, ``figures`` every figure the text quotes (R@1 over all
 and clean subimages, median r, Table I at RoC-max 0.03 and 0.05, Table S at 0.05, query
@@ -38,7 +38,7 @@ VARIANTS: dict[str, dict[str, dict[str, Any]]] = {
     "dim=32": {"projection": {"dim": 32}},
     "dim=64 whiten": {"projection": {"dim": 64, "whiten": True}},
     "db_stride_m=9": {"retrieval": {"db_stride_m": 9.0, "gt_radius_m": 5.0}},
-    # issue 37: the encoder trained and run in bf16 (emulated where the CPU has no bf16 product)
+    # the encoder trained and run in bf16 (emulated where the CPU has no bf16 product)
     "precision=bf16": {"descriptor": {"precision": "bf16"}},
 }
 #: The figures each variant's row compares with the default run's (``vs_default``).

@@ -1,9 +1,9 @@
-"""Bench case ``folders``: two folders of images, no shared names, no annotations (issue 64).
+"""Bench case ``folders``: two folders of images, no shared names, no annotations.
 
 The whole command as a user types it, ``harness detect --map-images MAP --query-images QUERY
 --out OUT``, in a fresh process and a fresh output folder: ingest, pairing by sequence with the
 training-free descriptor, proposals, keypoint localization, the no-change null, the boxes, the
-page. Two sizes, the issue's lines beside them: 200 + 200 frames of 320 x 240 within 60 s, and
+page. Two sizes, the targets beside them: 200 + 200 frames of 320 x 240 within 60 s, and
 600 + 600 frames of 480 x 360 within 180 s, on this machine's cores. Where the time goes is the
 run's own ``timings_s`` (``detect.json``), printed with each row.
 
@@ -30,7 +30,7 @@ from .common import emit
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "bench" / ".data"
 
-#: (frames a folder, width, height, the issue's limit in seconds).
+#: (frames a folder, width, height, the target in seconds).
 SIZES = ((200, 320, 240, 60.0), (600, 480, 360, 180.0))
 
 
@@ -98,7 +98,7 @@ def case_folders(quick: bool) -> None:
             "s",
             limit=limit,
             within=max(runs) <= limit,
-            notes=f"the whole command in a fresh process; the issue's line {limit:.0f} s; stages "
+            notes=f"the whole command in a fresh process; target {limit:.0f} s; stages "
             f"s: {where}; null {rec['calibration'].get('pairs')} "
             f"{rec['calibration'].get('construction')} pairs; alarms "
             f"{rec['alarm']['frames']} of {rec['alarm']['of_frames']} frames",

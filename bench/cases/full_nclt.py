@@ -23,7 +23,7 @@ from .common import (
     size_of,
 )
 
-#: The whole NCLT as the paper uses it (issue 15): four sessions of about 25,000 Ladybug frames,
+#: The whole NCLT as the paper uses it: four sessions of about 25,000 Ladybug frames,
 #: 16 subimages per frame, 5,242 query images.
 NCLT_FRAMES = 100_000
 
@@ -114,7 +114,7 @@ def _rank_subprocess(m: int, nq: int, dim: int, sessions: int, memory_mb: float)
 
 
 def case_full_nclt(quick: bool) -> None:
-    """The whole NCLT on this machine (issue 15): ranking measured at full size, the other stages'
+    """The whole NCLT on this machine: ranking measured at full size, the other stages'
     rates measured on the NCLT-scale workload with the full-NCLT settings
     (``bench/nclt_full.toml``),
     all in this run, then projected to 100,000 frames, 1.6 M subimages and 5,242 query images.
@@ -322,7 +322,7 @@ def case_full_nclt(quick: bool) -> None:
                     "frames, every frame counted (NCLT's own "
                     "images are read in place; a ROS2 bag's are stored: "
                     f"{images_bytes / frames * NCLT_FRAMES / 1e9:.1f} GB more); "
-                    "GPU: not measured, no GPU was lent to this task"
+                    "GPU: not measured, no GPU on the measuring machine"
                 ),
             }
         ),

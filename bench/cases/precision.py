@@ -1,4 +1,4 @@
-"""Bench case ``precision``: what bf16 costs in R@1 on the NCLT-scale workload (issue 37).
+"""Bench case ``precision``: what bf16 costs in R@1 on the NCLT-scale workload.
 
 ``harness reproduce`` of ``bench/nclt_scale.toml`` (125 frames per session, 1,232 x 1,616 JPEG
 frames, the paper's 256 x 256 autoencoder) twice, each in its own process and directory with

@@ -149,7 +149,7 @@ def case_ranking(quick: bool) -> None:
     )
 
 
-#: The bf16 : fp32 product rate ratio issue 37 measured on a CPU with AVX512-BF16 (2,048 square,
+#: The bf16 : fp32 product rate ratio measured on a CPU with AVX512-BF16 (2,048 square,
 #: 2 threads: 773-781 vs 186-190 GFLOP/s); used only where this CPU has no native bf16 product.
 ISSUE_BF16_RATIO = 4.0
 
@@ -182,7 +182,7 @@ def bf16_candidate_costs(rng: np.random.Generator) -> None:
     else:
         ratio_r = ISSUE_BF16_RATIO
         r_note = (
-            f"this CPU has no native bf16 product: r = {ratio_r:.0f}, issue 37's measured ratio "
+            f"this CPU has no native bf16 product: r = {ratio_r:.0f}, the measured ratio "
             "on an AVX512-BF16 machine, not this run's"
         )
     for dim, m in ((128, 16_000), (16384, 4_000)):

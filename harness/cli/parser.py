@@ -8,6 +8,7 @@ from typing import Any
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
 from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
+from harness.detect.presets import PRESETS, preset_help
 from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, CALIBRATIONS
 
 
@@ -218,7 +219,7 @@ def _add_detect(sub: Any) -> None:
     p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
     p.add_argument(
         "--fusion",
-        "--method",  # its name before issue 35's one vocabulary
+        "--method",  # its name before the one vocabulary
         dest="fusion",
         default=None,
         help="the fusion rule whose LoC finds the boxes (--method: its old name): rank_fusion, "
@@ -233,11 +234,17 @@ def _add_detect(sub: Any) -> None:
         "(default: [detect] boxes)",
     )
     p.add_argument(
+        "--preset",
+        choices=tuple(PRESETS),
+        help="a whole detector by name (its flags below win over it): " + preset_help(),
+    )
+    p.add_argument(
         "--localizer",
-        choices=("local", "keypoints", "config"),
-        help="what ranks the subimages: local (each colour region ranked inside its paired map "
-        "frame, method §13.3), keypoints (each region's share of keypoints that do not localize in "
-        "its paired map frame) or config (the config's localizers) (default: [detect] localizer)",
+        metavar="KIND",
+        help="what ranks the subimages: keypoints (each box's share of keypoints that do not "
+        "localize in its paired map frame), local (each box ranked inside its paired map frame by "
+        "NCC, method §13.3), another localizer kind that ranks inside the paired frame (a "
+        "plugin's), or config (the config's localizers) (default: [detect] localizer, keypoints)",
     )
     p.add_argument(
         "--proposals",

@@ -16,6 +16,7 @@ from harness.cli.common import (
 )
 from harness.cli.console import print_block, print_localization, print_table_l
 from harness.detect.calibrate import alarm_words
+from harness.detect.presets import PRESETS
 from harness.errors import HarnessError
 
 
@@ -70,7 +71,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
-    """``harness detect``'s options: ``[detect]``, with each flag as typed in place of its key."""
+    """``harness detect``'s options: ``[detect]``, ``--preset``'s values, each flag as typed."""
+    preset = getattr(args, "preset", None)
+    base = dataclasses.replace(cfg.detect, **PRESETS[preset][1]) if preset else cfg.detect
     typed = {
         "fusion": args.fusion,
         "nms_iou": args.nms_iou,
@@ -83,7 +86,7 @@ def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
         "proposals": getattr(args, "proposals", None),
         "calibration": getattr(args, "calibration", None),
     }
-    return dataclasses.replace(cfg.detect, **{k: v for k, v in typed.items() if v is not None})
+    return dataclasses.replace(base, **{k: v for k, v in typed.items() if v is not None})
 
 
 def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:

@@ -1,4 +1,4 @@
-"""A user's extension files, the users' door (issue 51): Python files that register methods.
+"""A user's extension files, the users' door: Python files that register methods.
 
 A plugin is one ``.py`` file of the user's that calls the harness's register functions
 (``harness.fusion.register_fusion_rule``, ``harness.proposals.register_proposer``,

@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 #: torch's threads while a model trains. The weights' last bits depend on the thread count (on
 #: the fixture one thread trains 978b9a45b447dc88, two 978dd804b216655a: measured), so every
 #: machine trains with the two that every machine of this project's kind has, whatever its cores
-#: or OMP_NUM_THREADS (issue 50: the same tables everywhere).
+#: or OMP_NUM_THREADS (the same tables everywhere).
 TRAIN_THREADS = 2
 
 

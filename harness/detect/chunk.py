@@ -42,29 +42,13 @@ log = logging.getLogger(__name__)
 #: difference*): whether it is comparable, its homography's inliers, why not where it is not, and
 #: what its difference was read through (homography; a fallback's ecc or identity; none), and the
 #: registration as a similarity (the centre's shift as shares of the frame, rotation, scale): what
-#: the no-change null's copies are drawn from (docs/method.md, *Calibrated alarms*).
+#: the no-change null's copies are drawn from (docs/method.md, *Calibrated alarms*), with what the
+#: homography leaves (the matches' median residual, a share of the diagonal: parallax).
 FRAME_RESULT = [
     "score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_y2",
     "comparable", "inliers", "not_comparable_why", "compared_by",
-    "reg_dx", "reg_dy", "reg_rotation_deg", "reg_scale",
+    "reg_dx", "reg_dy", "reg_rotation_deg", "reg_scale", "reg_residual",
 ]  # fmt: skip
-
-
-def _all_no_change(qk: pd.DataFrame) -> pd.DataFrame:
-    """Every query frame of a chunk as annotated "no-change": fusion then covers them all."""
-    return pd.DataFrame(
-        {
-            "session": qk["q_session"].to_numpy(),
-            "camera": qk["q_camera"].to_numpy(),
-            "utime": qk["q_utime"].to_numpy(),
-            "status": "no-change",
-            "x1": np.nan,
-            "y1": np.nan,
-            "x2": np.nan,
-            "y2": np.nan,
-            "label": "",
-        }
-    )
 
 
 def _frame_boxes_of(
@@ -87,13 +71,13 @@ def _frame_boxes_of(
     fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     if opt.boxes == "fused":
         boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
-    elif opt.boxes == "subimages":  # each ranked subimage scored by its own r (method §13.3)
-        boxes, loc = orig[:, :4], orig[:, 4]
-        rnd = np.random.default_rng(int(stable_hash(seed, fk, length=8), 16)).random(len(boxes))
     else:
-        boxes, loc = candidate_boxes(
-            opt.boxes, fused, floc, orig, *size, opt.box_score, opt.locmap_level
-        )
+        if opt.boxes == "subimages":  # each ranked subimage scored by its own r (method §13.3)
+            boxes, loc = orig[:, :4], orig[:, 4]
+        else:
+            boxes, loc = candidate_boxes(
+                opt.boxes, fused, floc, orig, *size, opt.box_score, opt.locmap_level
+            )
         # the random row: uniform scores on the same candidates, seeded by the frame
         rnd = np.random.default_rng(int(stable_hash(seed, fk, length=8), 16)).random(len(boxes))
     wide = np.minimum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) >= opt.min_box_side
@@ -238,10 +222,12 @@ def _candidates(fk: tuple, boxes: np.ndarray, loc: np.ndarray, diff: np.ndarray)
 
 
 def _registration_row(pair: _PairDifference) -> tuple:
-    """A frame row's registration columns (:data:`FRAME_RESULT`'s last eight)."""
+    """A frame row's registration columns (:data:`FRAME_RESULT`'s last nine)."""
     r = pair.reg
     used = pair.used.method if pair.made is not None else "none"
-    return (r.comparable, r.inliers, r.why, used, *r.similarity(pair.q.shape[1], pair.q.shape[0]))
+    res = r.residual if r.comparable else float("nan")
+    return (r.comparable, r.inliers, r.why, used, *r.similarity(pair.q.shape[1], pair.q.shape[0]),
+            res)  # fmt: skip
 
 
 def detect_chunk(
@@ -271,12 +257,10 @@ def detect_chunk(
     ``plain_difference.parquet``: the plain difference's candidates and their contrast; and, for
     the LoC maps drawn later, ``samples.parquet`` (every fused qBB with its LoC).
     """
-    qk = ranks[QUERY_KEY].drop_duplicates()
-    ann = _all_no_change(qk)
-    samples, counts = fuse_samples(
+    samples, counts = fuse_samples(  # every frame, unlabelled: detect reads no annotation
         ranks,
         frames,
-        ann,
+        None,
         dataclasses.replace(fusion, methods=(opt.fusion, "random")),
         progress=partial(progress, desc="detect", unit="frame"),
     )

@@ -14,15 +14,25 @@ from harness.localizers.config import (
     check_keypoints,
     check_local,
 )
+from harness.localizers.kinds import LOCALIZER_KINDS, paired_kinds
 from harness.methods import (
     BOX_GENERATORS,
     BOX_PRIORS,
     BOX_SCORES,
     CALIBRATIONS,
-    DETECT_LOCALIZERS,
     known_proposal_methods,
     rules_where,
 )
+
+#: ``[detect] localizer``'s value for the config's own localizers (the paper's detector); every
+#: other value is a localizer kind that ranks inside the paired map frame.
+CONFIG_LOCALIZERS = "config"
+
+
+def detect_localizers() -> tuple[str, ...]:
+    """What ``[detect] localizer`` may name: each paired-frame kind, then ``config``."""
+    return (*paired_kinds(), CONFIG_LOCALIZERS)
+
 
 #: The proposal method ``harness detect``'s local localizer ranks: the frame's colour regions,
 #: which meet most change objects (docs/method.md, *Detect*).
@@ -229,14 +239,14 @@ class DetectConfig:
         out: dict[str, Any] = {k: mine[k] for k in ("fusion", "nms_iou", "max_boxes")}
         out |= {"chunk_frames": self.chunk_frames, "top": self.top, "seed": seed}
         out |= {k: mine[k] for k in ("boxes", "box_score", "locmap_level", "min_box_side")}
-        if self.boxes == "segments" or self.localizer in ("local", "keypoints"):
+        if self.boxes == "segments" or self.localizer != CONFIG_LOCALIZERS:
             out["segments"] = dataclasses.asdict(segments)
         out |= {"localizer": self.localizer, "box_prior": self.box_prior, "local": mine["local"]}
-        if self.localizer == "keypoints":  # its options in place of the local localizer's
-            del out["local"]
-            out["keypoints"] = mine["keypoints"]
-        elif self.localizer != "local":
+        if self.localizer == CONFIG_LOCALIZERS:
             del out["local"], out["localizer"]
+        elif self.localizer != "local":  # its options in place of the local localizer's
+            del out["local"]
+            out[self.localizer] = dataclasses.asdict(self.paired_options())
         if self.proposals != LOCAL_PROPOSALS:
             out["proposals"] = self.proposals
         out["difference"] = mine["difference"]
@@ -246,13 +256,17 @@ class DetectConfig:
             out["selective"] = dataclasses.asdict(selective)
         return out
 
+    def paired_options(self) -> Any:
+        """The paired localizer's options: ``[detect.local]``, ``[detect.keypoints]``, defaults."""
+        own = {"local": self.local, "keypoints": self.keypoints}
+        return own.get(self.localizer) or LOCALIZER_KINDS[self.localizer].options()
+
     def local_localizer(self) -> LocalizerConfig | None:
-        """What ``localizer = "local"`` or ``"keypoints"`` measures (None: the config's)."""
-        if self.localizer == "keypoints":
-            return LocalizerConfig("keypoints", "keypoints", (self.proposals,), self.keypoints)
-        if self.localizer != "local":
+        """The paired-frame localizer this run measures (None: the config's, ``"config"``)."""
+        if self.localizer == CONFIG_LOCALIZERS:
             return None
-        return LocalizerConfig("local", "local", (self.proposals,), self.local)
+        name = self.localizer
+        return LocalizerConfig(name, name, (self.proposals,), self.paired_options())
 
 
 def check_detect(dt: DetectConfig, where: str) -> None:
@@ -280,11 +294,11 @@ def check_detect(dt: DetectConfig, where: str) -> None:
     )
     c(0 < dt.alarm < 1, where, "[detect] alarm", dt.alarm, "(0, 1): a false-alarm rate")
     c(
-        dt.localizer in DETECT_LOCALIZERS,
+        dt.localizer in detect_localizers(),
         where,
         "[detect] localizer",
         dt.localizer,
-        " or ".join(DETECT_LOCALIZERS),
+        " or ".join(detect_localizers()),
     )
     c(dt.calibration in CALIBRATIONS, where, "[detect] calibration", dt.calibration,
       " or ".join(CALIBRATIONS))  # fmt: skip

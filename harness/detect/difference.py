@@ -48,6 +48,9 @@ class Registration:
     why: str  # "" where comparable, else why not
     # "homography"; a fallback's "ecc" (an affine fit of the intensities) or "identity"; "none"
     method: str = "homography"
+    # what the homography cannot express (parallax): the median distance of the pair's matched
+    # keypoints from where it puts them, a share of the query frame's diagonal
+    residual: float = float("nan")
 
     @property
     def comparable(self) -> bool:
@@ -138,6 +141,27 @@ def _scale_ok(H: np.ndarray, w: int, h: int, max_scale: float) -> bool:
     return True
 
 
+def _parallax(
+    src: np.ndarray, dst: np.ndarray, H: np.ndarray, mask: np.ndarray, thr: float
+) -> float:
+    """What the homography ``H`` leaves of the pair's motion (parallax), in working pixels.
+
+    The median distance of the matches that agree with the pair's epipolar geometry (a fundamental
+    matrix by MAGSAC, so a wrong match does not count) from where ``H`` puts them; over the
+    homography's own inliers where no fundamental matrix is found.
+    """
+    keep = mask.ravel().astype(bool)
+    if len(src) >= 8:
+        try:
+            F, fmask = cv2.findFundamentalMat(src, dst, cv2.USAC_MAGSAC, thr, 0.999, 2000)
+        except cv2.error:
+            F, fmask = None, None
+        if F is not None and fmask is not None and F.shape == (3, 3) and fmask.sum() >= 8:
+            keep = fmask.ravel().astype(bool)
+    moved = cv2.perspectiveTransform(src[keep].reshape(-1, 1, 2).astype(np.float64), H)
+    return float(np.median(np.hypot(*(moved.reshape(-1, 2) - dst[keep]).T)))
+
+
 def register(
     q_rgb: np.ndarray, m_rgb: np.ndarray, kc: KeypointConfig, dc: DifferenceConfig
 ) -> Registration:
@@ -163,6 +187,7 @@ def register(
     if H is None or mask is None:
         return Registration(None, 0, len(both), 0.0, "no homography found", "none")
     n = int(mask.sum())
+    residual = _parallax(src, dst, H, mask, thr) / float(np.hypot(*q.shape[:2]))
     # back to full-size pixels: map pixels -> work map -> work query -> query pixels
     full = np.diag([1 / fq, 1 / fq, 1.0]) @ H @ np.diag([fm, fm, 1.0])
     hq, wq = q_rgb.shape[:2]
@@ -175,7 +200,7 @@ def register(
         why = f"the warped map covers {foot:.0%} of the frame (< {dc.min_footprint:.0%})"
     else:
         why = ""
-    return Registration(full, n, len(both), foot, why)
+    return Registration(full, n, len(both), foot, why, residual=round(residual, 6))
 
 
 def _lab(rgb: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 
 from harness.detect.config import DetectConfig, NullConfig
+from harness.localizers.kinds import paired_kinds
 from harness.pairs.modes import PAIRING_MODES, kind_of
 from harness.pairs.table import PAIR_COLUMNS
 from harness.perturb import PERTURB, Perturbation, fragment
@@ -36,9 +37,6 @@ from harness.runtime.cache import read_cached_parquet, stable_hash
 from harness.runtime.stage import Table
 
 log = logging.getLogger(__name__)
-
-#: The localizer kinds that rank inside a paired frame: the ones a null pair can be scored by.
-PAIRED_KINDS = ("keypoints", "local")
 
 #: The camera name of a perturbed copy, and of a null query: the original's, then this, then the
 #: null pair's number.
@@ -71,8 +69,10 @@ def draw(nc: NullConfig, i: int, moves: np.ndarray | None = None) -> Perturbatio
     """The ``i``-th perturbed copy's values (``nc.seed``, ``i``).
 
     Gain, offset, blur and JPEG quality uniform within the limits; the shift, rotation and scale
-    likewise, or, given ``moves`` ((n, 4): the run's registrations as shift x, shift y, rotation,
-    scale), one of them drawn uniformly: the null moves as the run's pairs do.
+    likewise, or, given ``moves`` ((n, 5): the run's registrations as shift x, shift y, rotation,
+    scale and the residual the homography leaves), one of them drawn uniformly, its residual as
+    the copy's smooth displacement (``wobble``): the null moves as the run's pairs do, parallax
+    included.
     """
     rng = np.random.default_rng([nc.seed, i])
     u = rng.uniform(-1.0, 1.0, 7)
@@ -83,8 +83,9 @@ def draw(nc: NullConfig, i: int, moves: np.ndarray | None = None) -> Perturbatio
         nc.rotation_deg * u[4],
         1.0 + nc.scale * u[5],
     )
+    wobble = 0.0
     if moves is not None and len(moves):
-        dx, dy, rot, sc = moves[int(rng.integers(len(moves)))]
+        dx, dy, rot, sc, wobble = moves[int(rng.integers(len(moves)))]
     return Perturbation(
         gain=round(1.0 + nc.gain * u[0], 4),
         offset=round(nc.offset * u[1], 3),
@@ -94,6 +95,7 @@ def draw(nc: NullConfig, i: int, moves: np.ndarray | None = None) -> Perturbatio
         scale=round(float(sc), 5),
         blur=round(nc.blur * abs(u[6]), 6),
         jpeg=q,
+        wobble=round(float(wobble), 6) if np.isfinite(wobble) else 0.0,
     )
 
 
@@ -213,11 +215,11 @@ def null_scores(
     if opt.calibration != "null":
         return None
     kinds = [m.loc.kind for m in measured]
-    if len(measured) != 1 or kinds[0] not in PAIRED_KINDS or props is None:
+    if len(measured) != 1 or kinds[0] not in paired_kinds() or props is None:
         log.warning(
             "the no-change null needs one localizer that ranks inside a paired frame (%s); this "
             "run's are %s: calibrated within the run instead ([detect] calibration)",
-            " or ".join(PAIRED_KINDS),
+            " or ".join(paired_kinds()),
             ", ".join(kinds),
         )
         return None
@@ -242,11 +244,11 @@ def null_scores(
 
 
 def run_moves(entries: list[Any]) -> np.ndarray | None:
-    """The run's registrations as (shift x, shift y, rotation, scale) rows.
+    """The run's registrations as (shift x, shift y, rotation, scale, residual) rows.
 
     From its chunks' frame rows; None where none registered.
     """
-    cols = ["reg_dx", "reg_dy", "reg_rotation_deg", "reg_scale"]
+    cols = ["reg_dx", "reg_dy", "reg_rotation_deg", "reg_scale", "reg_residual"]
     parts = [read_cached_parquet(e.path / "frames.parquet") for e in entries]
     fr = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     if not set(cols) <= set(fr.columns):
@@ -283,6 +285,7 @@ def null_record(
                 "largest_rotation_deg": round(float(np.abs(moves[:, 2]).max()), 3),
                 "scale_range": [round(float(moves[:, 3].min()), 4),
                                 round(float(moves[:, 3].max()), 4)],
+                "median_residual": round(float(np.median(moves[:, 4])), 5),
             }  # fmt: skip
         else:
             rec["moves"] = {"drawn_from": "the limits (no pair of this run was registered)"

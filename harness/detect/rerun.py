@@ -1,4 +1,4 @@
-"""``harness detect --rerun OUT.rrd``: the run as a recording the Rerun viewer scrubs (issue 38).
+"""``harness detect --rerun OUT.rrd``: the run as a recording the Rerun viewer scrubs.
 
 Optional extra ``dbl-harness[rerun]`` (``rerun-sdk``, MIT OR Apache-2.0). What is logged:
 

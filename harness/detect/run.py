@@ -35,7 +35,7 @@ from harness.config.plugins import plugin_record
 from harness.config.schema import Config
 from harness.detect import keys as detect_keys
 from harness.detect.chunk import detect_chunk
-from harness.detect.config import DetectConfig
+from harness.detect.config import CONFIG_LOCALIZERS, DetectConfig, detect_localizers
 from harness.detect.null import null_scores
 from harness.detect.options import DetectRun
 from harness.detect.outputs import write_outputs
@@ -92,6 +92,11 @@ def check_detect_args(
     alarm = opt.alarm if alarm is None else alarm
     if not 0 < alarm < 1:
         raise ConfigError(f"detect: --alarm {alarm}: a false-alarm rate in (0, 1), e.g. 0.01")
+    if opt.localizer not in detect_localizers():
+        raise ConfigError(
+            f"detect: --localizer {opt.localizer!r}: one of {' or '.join(detect_localizers())} "
+            "(a plugin registers more: harness --plugin FILE.py detect ...)"
+        )
     if opt.boxes not in BOX_GENERATORS:
         raise ConfigError(f"detect: --boxes {opt.boxes!r}: one of {', '.join(BOX_GENERATORS)}")
     if opt.box_score not in BOX_SCORES:
@@ -137,7 +142,7 @@ def _detect_config(
     dcfg = dataclasses.replace(
         cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
     )
-    if opt.localizer in ("local", "keypoints") and opt.proposals not in cfg.proposals.methods:
+    if opt.localizer != CONFIG_LOCALIZERS and opt.proposals not in cfg.proposals.methods:
         methods = (*cfg.proposals.methods, opt.proposals)
         dcfg = dataclasses.replace(
             dcfg,

@@ -1,7 +1,7 @@
 """The breakdowns the report page draws, computed when the reports are written (method §8-9).
 
 PR curves under Table I's labels and under Table S's, and Table S's AP per season pair with its
-floor: the page reads them from ``splits/`` and computes nothing (issue 51).
+floor: the page reads them from ``splits/`` and computes nothing.
 """
 
 from __future__ import annotations

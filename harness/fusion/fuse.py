@@ -276,5 +276,5 @@ def loc_map(sample_boxes: np.ndarray, loc: np.ndarray, width: int, height: int) 
     return out
 
 
-#: The name before issue 51 (one vocabulary: a fusion rule, a proposer), kept for plugins.
+#: The earlier name (one vocabulary: a fusion rule, a proposer), kept for plugins.
 register_method = register_fusion_rule

@@ -54,7 +54,7 @@ def _runs(kcols: list[np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
 def _fuse_image(
     boxes: np.ndarray,
     rdl: tuple[np.ndarray, np.ndarray, np.ndarray],
-    image: tuple[tuple[Any, Any], np.ndarray, int],
+    image: tuple[tuple[Any, Any], np.ndarray | None, int],
     rules: tuple[tuple[str, ...], int, float, dict[str, Any]],
     counts: dict[str, Any],
 ) -> dict[str, np.ndarray]:
@@ -90,7 +90,11 @@ def _fuse_image(
         else:
             extra.append((bx, r[k]))
     all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
-    roc, sob = roc_sob(all_boxes, change, w, h)
+    if change is None:  # unlabelled: no RoC; SoB is the box's share of the frame
+        area = (all_boxes[:, 2] - all_boxes[:, 0]) * (all_boxes[:, 3] - all_boxes[:, 1])
+        roc, sob = np.full(len(all_boxes), np.nan), area / float(w * h)
+    else:
+        roc, sob = roc_sob(all_boxes, change, w, h)
     n_x = len(extra)
     part = {c: all_boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))}
     part["original"] = np.concatenate([~np.isnan(nof), np.ones(n_x, bool)])
@@ -108,11 +112,14 @@ def _fuse_image(
 def fuse_samples(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
-    ann: pd.DataFrame,
+    ann: pd.DataFrame | None,
     fusion: FusionConfig,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Samples of every annotated query image (one per pair) with the LoC of each method.
+
+    ``ann`` None: every query image of ``ranks``, unlabelled (``RoC`` NaN): what ``harness
+    detect`` fuses, which reads no annotation before its outputs are written.
 
     ``fusion`` gives the methods (any order: the method's is kept), the seed, the cap on fused boxes
     per image, RRF's constant and a registered rule's options.
@@ -127,7 +134,7 @@ def fuse_samples(
     Works on numpy columns of ``ranks`` sorted once by query image (stable, so each image's rows
     keep their order) and builds one table at the end: no per-image pandas objects.
     """
-    cb = change_boxes(ann)
+    cb = change_boxes(ann) if ann is not None else None
     size = dict(
         zip(
             frames[FRAME_KEY].itertuples(index=False, name=None),
@@ -155,7 +162,7 @@ def fuse_samples(
     for a, b in progress(list(zip(starts, ends, strict=True))):
         key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
         qkey = key[:3]
-        if qkey not in cb:
+        if cb is not None and qkey not in cb:
             continue
         counts["query_images"] += 1
         w, h = size[qkey]
@@ -166,7 +173,11 @@ def fuse_samples(
             part = _fuse_image(
                 box_all[a:b][sel],
                 (r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]),
-                ((w, h), cb[qkey], int(stable_hash(seed, key, name, length=8), 16)),
+                (
+                    (w, h),
+                    cb[qkey] if cb is not None else None,
+                    int(stable_hash(seed, key, name, length=8), 16),
+                ),
                 rules_of,
                 counts,
             )

@@ -327,7 +327,8 @@ def unit_ranks(
         zip(pairs.itertuples(index=False), done, strict=True)
     ):
         counts["query_subimages"] += len(at)
-        counts[f"pairs_{how[0] if got is not None else 'not_aligned'}"] += 1
+        said = f"pairs_{how[0] if got is not None else 'not_aligned'}"
+        counts[said] = counts.get(said, 0) + 1
         aligns.append(
             (row.q_session, row.q_camera, int(row.q_utime), row.r_session, row.r_camera,
              int(row.r_utime), *how)

@@ -277,5 +277,5 @@ def write_proposals(frames: pd.DataFrame, cfg: ProposalsConfig, name: str, tmp: 
     return {"rows": len(df), "per_method": df.groupby("proposal_method").size().to_dict()}
 
 
-#: The name before issue 51 (one vocabulary: a fusion rule, a proposer), kept for plugins.
+#: The earlier name (one vocabulary: a fusion rule, a proposer), kept for plugins.
 register_method = register_proposer

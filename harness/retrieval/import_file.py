@@ -33,7 +33,7 @@ REQUIRED = [*KEY[:3], "proposal_method", "box_id", *BOX, "r_session", "ranked", 
 OPTIONAL = ["scores"]
 
 
-#: Columns read under their older names (issue 35's one vocabulary), each with a warning.
+#: Columns read under their older names (before the one vocabulary), each with a warning.
 RENAMED = {"method": "proposal_method"}
 
 

@@ -20,9 +20,9 @@ def has_bf16(device: str) -> bool:
 def resolve_precision(precision: str, device: str) -> str:
     """``fp32`` or ``bf16``, what ``precision`` means (``device`` is kept for the callers).
 
-    ``auto`` is fp32 on every device (issue 50): a table must not depend on whether the machine
-    multiplies bf16 natively, so bf16 is used only where asked for by name (``python -m bench
-    --only precision`` measures what it costs and gains).
+    ``auto`` is fp32 on every device (docs/method.md, *One answer on every CPU*): a table must not
+    depend on whether the machine multiplies bf16 natively, so bf16 is used only where asked for
+    by name (``python -m bench --only precision`` measures what it costs and gains).
     """
     del device
     return "fp32" if precision == "auto" else precision

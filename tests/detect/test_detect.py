@@ -14,6 +14,7 @@ import json
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,12 +22,16 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
+from harness.cli.parser import build_parser
+from harness.cli.runs import detect_options
+from harness.config.load import load_config
 from harness.detect.ap import _voc_all_point
 from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
 
 from ..conftest import shared_stages
 from ..readme_text import manual_text
+from .stage_record import RECORD, first_stage_outside
 
 ROOT = Path(__file__).resolve().parents[2]
 MAP, QUERY = "2012-01-22", "2012-03-31"
@@ -59,6 +64,29 @@ def detected(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tupl
          "--out", str(b), *world]
     )  # fmt: skip
     return a, b, printed
+
+
+def test_the_detect_stages_are_the_recorded_ones(detected: tuple) -> None:
+    """The README's second command's keypoint stages (registration, keypoint localization, the
+    plain difference, the change boxes, Table D) against ``tests/regression/detect_stages.json``:
+    byte for byte on the recording CPU, within docs/method.md's rule on another; where one is
+    not, the failure names the first stage that is not and both CPUs (tests/detect/stage_record)."""
+    _, b, _ = detected
+    rec = json.loads(RECORD.read_text())
+    msg = first_stage_outside(b, rec)
+    assert msg is None, msg
+    other = {**rec, "cpu": {"model": "another CPU", "flags": []}}  # the rule, as elsewhere
+    assert first_stage_outside(b, other) is None
+    stages = other["stages"]
+    values = stages["plain difference"]["values"]
+    moved = {**values, "data": [[*r[:-1], r[-1] * 1.5 + 0.1] if i == 3 else r
+                                for i, r in enumerate(values["data"])]}  # fmt: skip
+    msg = first_stage_outside(b, {**other, "stages": {**stages, "plain difference": {
+        **stages["plain difference"], "values": moved}}})  # fmt: skip
+    assert msg is not None and msg.startswith(
+        "the first detect stage that differs from the record is 'plain difference' (mean "
+    ), msg
+    assert "This CPU: " in msg and "Recorded on: another CPU" in msg
 
 
 def test_detect_without_annotations_writes_every_output(detected: tuple) -> None:
@@ -451,9 +479,29 @@ def test_box_generators_on_a_loc_map_known_by_hand() -> None:
     assert b.tolist() == [[0, 0, 4, 10], [16, 0, 20, 10]] and s.tolist() == [9.0, 7.0]
 
 
-#: The flags that run the paper's own detector (method §13: each proposal ranked against the whole
-#: map by the config's localizer, the fused qBBs as boxes, their LoC alone), as the README types.
-PAPER = ("--localizer", "config", "--boxes", "fused", "--box-prior", "none")
+#: The preset that runs the paper's own detector (method §13: each proposal ranked against the
+#: whole map by the config's localizer, the fused qBBs as boxes, their LoC alone), as docs/detect.md
+#: types it: ``--preset paper``, the flags ``--localizer config --boxes fused --box-prior none``.
+PAPER = ("--preset", "paper")
+
+
+def test_a_preset_is_its_flags_and_a_typed_flag_wins() -> None:
+    """``--preset paper`` sets the paper's three values; a flag typed beside it wins; every preset
+    is listed by ``harness detect --help`` with what it is."""
+    cfg = load_config(Path("datasets/fixture.toml"))
+    parse = build_parser().parse_args
+    base = ["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
+            "--out", "x"]  # fmt: skip
+    flags = parse([*base, "--localizer", "config", "--boxes", "fused", "--box-prior", "none"])
+    assert detect_options(parse([*base, *PAPER]), cfg) == detect_options(flags, cfg)
+    typed = detect_options(parse([*base, *PAPER, "--box-prior", "area"]), cfg)
+    assert (typed.localizer, typed.boxes, typed.box_prior) == ("config", "fused", "area")
+    assert detect_options(parse([*base, "--preset", "default"]), cfg) == cfg.detect
+    helped = subprocess.run([sys.executable, "-m", "harness.cli", "detect", "--help"],
+                            capture_output=True, text=True, check=True).stdout  # fmt: skip
+    words = " ".join(helped.split())
+    for name in ("default", "paper", "local"):
+        assert f"{name}: " in words, name
 
 
 @pytest.fixture(scope="module")

@@ -120,10 +120,34 @@ def test_a_registration_as_the_null_draws_its_moves() -> None:
     reg = register(q, m, KeypointConfig(), DifferenceConfig())
     dx, dy, rot, sc = reg.similarity(q.shape[1], q.shape[0])
     np.testing.assert_allclose([dx * 480, dy * 360, rot, sc], [-7, -4, 0, 1], atol=0.3)
-    p = draw(NullConfig(gain=0, offset=0, blur=0, jpeg_quality=0), 0, np.array([[dx, dy, rot, sc]]))
+    assert 0 <= reg.residual < 0.002  # a pure shift: the homography leaves nothing (no parallax)
+    moves = np.array([[dx, dy, rot, sc, reg.residual]])
+    p = draw(NullConfig(gain=0, offset=0, blur=0, jpeg_quality=0), 0, moves)
     assert (p.dx, p.dy, p.rotation_deg, p.scale) == pytest.approx((dx, dy, rot, sc), abs=1e-4)
+    assert p.wobble == pytest.approx(reg.residual, abs=1e-6)
     copy = apply(m, p)  # the map frame moved as the query frame is: the same background
     diff = np.abs(copy.astype(int) - q.astype(int)).max(axis=2)
     x1, y1, x2, y2 = OBJECT
     diff[y1:y2, x1:x2] = 0  # the pasted object is the change
     assert np.median(diff[20:-20, 20:-20]) <= 2 and np.mean(diff[20:-20, 20:-20] > 30) < 0.02
+
+
+def test_a_wobbled_copy_moves_by_its_rms_and_is_named_by_its_values() -> None:
+    """A copy's ``wobble`` (the parallax a homography leaves, docs/method.md, *Calibrated alarms*):
+    a smooth displacement of that RMS share of the diagonal, the same bytes wherever the same
+    fragment is read; a copy without one is named as before (no ``w`` part)."""
+    from harness.perturb import Perturbation, apply, fragment, parse
+
+    _, m = (_rgb(x) for x in _pair())
+    still = Perturbation(dx=0.01)
+    assert ",w" not in fragment(still) and parse(fragment(still).split("=", 1)[1]) == still
+    p = Perturbation(wobble=0.005)
+    assert fragment(p).endswith(",w0.005") and parse(fragment(p).split("=", 1)[1]) == p
+    a, b = apply(m, p), apply(m, p)
+    assert np.array_equal(a, b) and not np.array_equal(a, m)
+    # the displacement's size: dense optical flow from the original to the copy, inside borders
+    g0, g1 = (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) for x in (m, a))
+    flow = cv2.calcOpticalFlowFarneback(g0, g1, None, 0.5, 3, 21, 3, 5, 1.1, 0)
+    rms = float(np.sqrt((flow[30:-30, 30:-30] ** 2).sum(axis=2).mean()))
+    diag = float(np.hypot(*m.shape[:2]))
+    assert 0.5 * 0.005 * diag < rms < 1.5 * 0.005 * diag, (rms, 0.005 * diag)

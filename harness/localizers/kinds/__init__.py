@@ -16,8 +16,10 @@ from harness.localizers.kinds.base import (
     LocalizerRun,
     kind_summary,
     options_of,
+    paired_kinds,
     register_localizer_kind,
 )
+from harness.localizers.kinds.paired import paired_frame_kind
 
 for _module in (descriptor, bovw, imported, local, keypoints):
     LOCALIZER_KINDS.add(_module.KIND.name, _module.KIND)
@@ -29,5 +31,7 @@ __all__ = [
     "LocalizerRun",
     "kind_summary",
     "options_of",
+    "paired_frame_kind",
+    "paired_kinds",
     "register_localizer_kind",
 ]

@@ -50,6 +50,9 @@ class LocalizerKind:
     #: What the report page says of a localizer of this kind, from its ``run.json`` record and the
     #: run's config (as a dict); None: its kind's name.
     summary: Callable[[dict[str, Any], dict[str, Any]], str] | None = None
+    #: Whether it ranks each query box inside its paired map frame alone (needing no map beyond
+    #: that frame): ``harness detect`` can then rank with it, and its no-change null score pairs.
+    paired_frame: bool = False
 
     def describe(self, options: Any) -> dict[str, Any]:
         """``run.json``'s fields for ``options`` of this kind."""
@@ -60,6 +63,11 @@ class LocalizerKind:
 
 #: Kind name -> its record, in the order the config's error messages list them.
 LOCALIZER_KINDS: Registry[LocalizerKind] = Registry("localizer kind", ("name", "proposals"))
+
+
+def paired_kinds() -> tuple[str, ...]:
+    """The kinds that rank a box inside its paired map frame, in registration order."""
+    return tuple(k for k, v in LOCALIZER_KINDS.items() if v.paired_frame)
 
 
 class LocalizerRun(Units, Protocol):

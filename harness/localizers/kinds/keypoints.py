@@ -46,5 +46,11 @@ def summary(rec: dict[str, Any], cfg: dict[str, Any]) -> str:
 
 #: Table L's costs as ``local``'s: no descriptor, no model, its map the map frames' pixels.
 KIND = LocalizerKind(
-    "keypoints", KeypointConfig, prepare, ranks=ranks, costs=costs, summary=summary
+    "keypoints",
+    KeypointConfig,
+    prepare,
+    ranks=ranks,
+    costs=costs,
+    summary=summary,
+    paired_frame=True,
 )

@@ -64,4 +64,6 @@ def summary(rec: dict[str, Any], cfg: dict[str, Any]) -> str:
     return f"local detection-by-localization, each subimage ranked in its paired map frame{how}"
 
 
-KIND = LocalizerKind("local", LocalConfig, prepare, ranks=ranks, costs=costs, summary=summary)
+KIND = LocalizerKind(
+    "local", LocalConfig, prepare, ranks=ranks, costs=costs, summary=summary, paired_frame=True
+)
