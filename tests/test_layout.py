@@ -109,7 +109,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "harness.inputs",
         "harness.checks",
     ),
-    ("harness.runtime", "harness.imagestore", "harness.perturb"),
+    ("harness.runtime", "harness.imagestore", "harness.perturb", "harness.features"),
     ("harness.ingest",),
     ("harness.fixture", "harness.pairs"),
     ("harness.proposals",),

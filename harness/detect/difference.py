@@ -33,7 +33,7 @@ from harness.detect.config import DifferenceConfig
 from harness.imagestore import read_image
 from harness.localizers.align import align_ecc
 from harness.localizers.config import KeypointConfig, LocalConfig
-from harness.localizers.keypoints import detect, ratio_matches
+from harness.localizers.keypoints import detect, union_matches
 from harness.records import FRAME_KEY
 
 
@@ -170,9 +170,7 @@ def register(
     m, fm = _scaled(_gray(m_rgb), dc.register_side)
     xq, dq = detect(q, kc)
     xm, dm = detect(m, kc)
-    fwd, back = ratio_matches(dq, dm, kc), ratio_matches(dm, dq, kc)
-    both = np.concatenate([fwd, back[:, ::-1]]) if len(back) else fwd
-    both = np.unique(both, axis=0) if len(both) else both
+    both = union_matches(dq, dm, kc)
     if len(both) < max(4, dc.min_inliers):
         return Registration(None, 0, len(both), 0.0, f"too few matches ({len(both)})", "none")
     src = xm[both[:, 1]].astype(np.float32)

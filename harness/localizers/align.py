@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 
+from harness.features import extractor, norm_of, ratio_matches
 from harness.localizers.config import LocalConfig
 
 __all__ = ["Alignment", "align_pair", "feature_image"]
@@ -40,23 +40,22 @@ def _plausible(H: np.ndarray, w: int, h: int, max_shift: float) -> bool:
     return bool(shift.max() <= max_shift * math.hypot(w, h))
 
 
+#: The homography's ratio test (one way): stricter than keypoint localization's 0.8, since a
+#: wrong match here misplaces every box of the pair.
+ALIGN_RATIO = 0.75
+
+
 def _homography(q: np.ndarray, m: np.ndarray, lc: LocalConfig) -> Alignment | None:
-    det: Any = (
-        cv2.SIFT_create(nfeatures=lc.max_keypoints)  # type: ignore[attr-defined]
-        if lc.keypoints == "sift"
-        else cv2.ORB_create(nfeatures=lc.max_keypoints)  # type: ignore[attr-defined]
-    )
+    det = extractor(lc.keypoints, lc.max_keypoints)
     kq, dq = det.detectAndCompute(q, None)
     km, dm = det.detectAndCompute(m, None)
     if dq is None or dm is None or len(kq) < lc.min_inliers or len(km) < lc.min_inliers:
         return None
-    norm = cv2.NORM_L2 if lc.keypoints == "sift" else cv2.NORM_HAMMING
-    knn = cv2.BFMatcher(norm).knnMatch(dq, dm, k=2)
-    good = [a for a, *b in knn if b and a.distance < 0.75 * b[0].distance]
+    good = ratio_matches(dq, dm, ALIGN_RATIO, norm_of(lc.keypoints))  # one way
     if len(good) < lc.min_inliers:
         return None
-    src = np.array([kq[g.queryIdx].pt for g in good], np.float32).reshape(-1, 1, 2)
-    dst = np.array([km[g.trainIdx].pt for g in good], np.float32).reshape(-1, 1, 2)
+    src = np.array([kq[i].pt for i in good[:, 0]], np.float32).reshape(-1, 1, 2)
+    dst = np.array([km[j].pt for j in good[:, 1]], np.float32).reshape(-1, 1, 2)
     H, mask = cv2.findHomography(src, dst, cv2.RANSAC, 3.0, maxIters=2000, confidence=0.995)
     if H is None or mask is None:
         return None

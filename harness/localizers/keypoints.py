@@ -22,6 +22,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from harness import features
+from harness.features import extractor, norm_of
 from harness.localizers.config import KeypointConfig
 from harness.localizers.local import pair_images, unit_ranks, work_image
 
@@ -37,17 +39,9 @@ class PairGeometry:
     map_keypoints: int
 
 
-def _extractor(kc: KeypointConfig) -> cv2.Feature2D:
-    if kc.features == "orb":
-        return cv2.ORB_create(nfeatures=kc.max_keypoints)  # type: ignore[attr-defined]
-    if kc.features == "akaze":
-        return cv2.AKAZE_create()  # type: ignore[attr-defined]
-    return cv2.SIFT_create(nfeatures=kc.max_keypoints)  # type: ignore[attr-defined]
-
-
 def detect(gray: np.ndarray, kc: KeypointConfig) -> tuple[np.ndarray, np.ndarray | None]:
     """(n, 2) keypoint positions and their descriptors (None where there are none)."""
-    kps, desc = _extractor(kc).detectAndCompute(gray, None)
+    kps, desc = extractor(kc.features, kc.max_keypoints).detectAndCompute(gray, None)
     if kc.features == "akaze" and len(kps) > kc.max_keypoints:  # strongest first, as the others
         order = np.argsort([-k.response for k in kps], kind="stable")[: kc.max_keypoints]
         kps, desc = [kps[i] for i in order], desc[order]
@@ -56,14 +50,13 @@ def detect(gray: np.ndarray, kc: KeypointConfig) -> tuple[np.ndarray, np.ndarray
 
 
 def ratio_matches(a: np.ndarray | None, b: np.ndarray | None, kc: KeypointConfig) -> np.ndarray:
-    """(m, 2) index pairs (i in a, j in b) passing the ratio test (brute force, k = 2)."""
-    if a is None or b is None or len(a) < 1 or len(b) < 2:
-        return np.zeros((0, 2), np.int64)
-    norm = cv2.NORM_L2 if kc.features == "sift" else cv2.NORM_HAMMING
-    knn = cv2.BFMatcher(norm).knnMatch(a, b, k=2)
-    out = [(m.queryIdx, m.trainIdx) for m, n in (p for p in knn if len(p) == 2)
-           if m.distance < kc.ratio * n.distance]  # fmt: skip
-    return np.array(out, np.int64).reshape(-1, 2)
+    """(m, 2) index pairs (i in a, j in b) passing ``kc``'s ratio test (:mod:`harness.features`)."""
+    return features.ratio_matches(a, b, kc.ratio, norm_of(kc.features))
+
+
+def union_matches(a: np.ndarray | None, b: np.ndarray | None, kc: KeypointConfig) -> np.ndarray:
+    """The matches of both directions together (``union``, :mod:`harness.features`)."""
+    return features.match(a, b, kc.ratio, norm_of(kc.features), "union")
 
 
 class MapFeatures:
@@ -105,9 +98,7 @@ def localized(
     """
     xq, dq = detect(q, kc)
     xm, dm = map_features if map_features is not None else detect(m, kc)
-    fwd, back = ratio_matches(dq, dm, kc), ratio_matches(dm, dq, kc)
-    both = np.concatenate([fwd, back[:, ::-1]]) if len(back) else fwd
-    both = np.unique(both, axis=0) if len(both) else both  # (query index, map index)
+    both = union_matches(dq, dm, kc)  # (query index, map index)
     ok_q, ok_m = np.zeros(len(xq), bool), np.zeros(len(xm), bool)
     geo = PairGeometry("none", 0, len(both), len(xq), len(xm))
     inl = np.zeros(len(both), bool)

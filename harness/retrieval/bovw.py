@@ -28,6 +28,7 @@ import scipy.sparse as sp
 
 from harness.descriptors.crops import iter_crops
 from harness.errors import RetrievalError
+from harness.features import extractor
 from harness.records import FRAME_KEY
 from harness.retrieval.config import BovwConfig
 from harness.retrieval.layout import frame_layout, place_columns
@@ -40,10 +41,8 @@ log = logging.getLogger(__name__)
 def _extractor(bc: BovwConfig) -> Any:
     if bc.features == "orb":
         # edgeThreshold/patchSize small enough that a dense grid keeps keypoints near the border
-        return cv2.ORB_create(  # type: ignore[attr-defined]
-            nfeatures=5000, edgeThreshold=bc.patch, patchSize=bc.patch
-        )
-    return cv2.SIFT_create()  # type: ignore[attr-defined]
+        return extractor("orb", 5000, edgeThreshold=bc.patch, patchSize=bc.patch)
+    return extractor("sift")
 
 
 def grid_keypoints(bc: BovwConfig) -> list[Any]:
