@@ -102,5 +102,11 @@ def image_folders_config(
         fixture=dataclasses.replace(base.fixture, generate=False),
         pairs=dataclasses.replace(base.pairs, by=by, queries="all"),
     )
+    if by == "name" and out.detect.local.identity_min_ncc > -1:
+        # pairs by name are the same view by declaration (co-registered tiles, a camera that
+        # re-shoots its views): one the local localizer cannot align falls back to identity,
+        # never lost; alignment.csv and detect.json's alignment count how many did
+        local = dataclasses.replace(out.detect.local, identity_min_ncc=-1.0)
+        out = dataclasses.replace(out, detect=dataclasses.replace(out.detect, local=local))
     validate(out, where)
     return out, names[0], names[1:]

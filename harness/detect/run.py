@@ -193,11 +193,6 @@ def run_detect(
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
     opt = opt or cfg.detect
-    if cfg.pairs.by == "name" and opt.localizer == "local" and opt.local.identity_min_ncc > -1:
-        # pairs by name are the same view by declaration (co-registered tiles, a camera that
-        # re-shoots its views): one the chain cannot align falls back to identity, never lost;
-        # alignment.csv and detect.json's alignment count how many did
-        opt = dataclasses.replace(opt, local=dataclasses.replace(opt.local, identity_min_ncc=-1.0))
     alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
     dcfg = _detect_config(cfg, map_session, query_sessions, opt)
     t0 = time.perf_counter()
