@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from ..conftest import ROOT
+from ..conftest import ROOT, shared_stages
+from .test_detect_real import OBCHANGE_DEFAULT
 
 REAL = ROOT.parent / "shared" / "realdata" / "obchange-dev"
 
@@ -32,13 +33,17 @@ def test_a_bad_candidate_is_one_error_line(tmp_path: Path) -> None:
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason=f"no real pairs here: {REAL} is absent")
-def test_the_choice_runs_as_typed_on_the_real_pairs(tmp_path: Path) -> None:
-    cands = "keypoints/selective/difference_product/ratio-fallback"
-    proc = subprocess.run(
-        [sys.executable, "-m", "bench.detect_choice", "--sets", "obchange-dev", "--candidates",
-         cands, "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, check=True,
-    )  # fmt: skip
+def test_the_choice_runs_as_typed_on_the_real_pairs(
+    tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    cands = "keypoints/selective/difference_product/ratio-fallback"  # the default's settings
+    run = tmp_path / "obchange-dev" / cands.replace("/", "-")
+    with shared_stages(tmp_path_factory, OBCHANGE_DEFAULT, run):  # its stages, computed once
+        proc = subprocess.run(
+            [sys.executable, "-m", "bench.detect_choice", "--sets", "obchange-dev",
+             "--candidates", cands, "--out", str(tmp_path)],
+            cwd=ROOT, capture_output=True, text=True, check=True,
+        )  # fmt: skip
     md = (tmp_path / "detect_choice.md").read_text()
     assert "| keypoints | selective | difference_product | ratio-fallback | " in md
     assert "| none | selective | plain difference | ratio-fallback | " in md  # Table D's own row
@@ -55,14 +60,18 @@ def test_the_choice_runs_as_typed_on_the_real_pairs(tmp_path: Path) -> None:
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason=f"no real pairs here: {REAL} is absent")
-def test_the_alarms_measurement_runs_as_typed_on_the_real_pairs(tmp_path: Path) -> None:
+def test_the_alarms_measurement_runs_as_typed_on_the_real_pairs(
+    tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
     """``python -m bench.alarms --sets obchange-dev`` as docs/method.md types it (*Calibrated
     alarms*): both calibrations, the null's flags of the revisited frames with their exact
-    interval, the old calibration's beside them."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "bench.alarms", "--sets", "obchange-dev", "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, check=True,
-    )  # fmt: skip
+    interval, the old calibration's beside them. The default detector's stages on these pairs
+    are computed once a test session (the set's run directory seeded with them)."""
+    with shared_stages(tmp_path_factory, OBCHANGE_DEFAULT, tmp_path / "obchange-dev"):
+        proc = subprocess.run(
+            [sys.executable, "-m", "bench.alarms", "--sets", "obchange-dev", "--out",
+             str(tmp_path)], cwd=ROOT, capture_output=True, text=True, check=True,
+        )  # fmt: skip
     md = (tmp_path / "alarms.md").read_text()
     assert md in proc.stdout
     rows = {r["calibration"]: r for r in json.loads((tmp_path / "alarms.json").read_text())}

@@ -18,10 +18,12 @@ import pytest
 from harness.cli import main
 from harness.detect.ap import clopper_pearson
 
-from ..conftest import ROOT
+from ..conftest import ROOT, shared_stages
 from ..readme_text import manual_text
 
 REAL = ROOT.parent / "shared" / "realdata" / "obchange-dev"
+#: The shared stages of the default detector on ``obchange-dev`` (tests/conftest.shared_stages).
+OBCHANGE_DEFAULT = "obchange-dev-default"
 pytestmark = pytest.mark.skipif(
     not (REAL / "annotations.csv").is_file(),
     reason=f"no real pairs here: {REAL} is absent (shared/realdata is read, never committed)",
@@ -30,12 +32,13 @@ pytestmark = pytest.mark.skipif(
 
 @pytest.fixture(scope="module")
 def real_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
-    """The default command on the ten real revisits, as a user types it."""
+    """The default command on the ten real revisits, as a user types it (its stages computed once
+    a test session: ``bench.alarms``'s and ``bench.detect_choice``'s tests run the same)."""
     out = tmp_path_factory.mktemp("obchange") / "run"
     argv = ["detect", "--map-images", str(REAL / "A"), "--query-images", str(REAL / "B"),
             "--annotations", str(REAL / "annotations.csv"), "--out", str(out)]  # fmt: skip
     buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
+    with shared_stages(tmp_path_factory, OBCHANGE_DEFAULT, out), contextlib.redirect_stdout(buf):
         assert main(argv) == 0
     return out, buf.getvalue()
 
