@@ -263,6 +263,16 @@ def calls(rgb: np.ndarray, net: Path) -> dict[str, Callable[[], Any]]:
                 borderMode=cv2.BORDER_REFLECT,
             )
         ),
+        "remap (INTER_LINEAR, BORDER_REFLECT: the null copies' smooth displacement)": (
+            lambda: cv2.remap(
+                rgb,
+                *np.meshgrid(
+                    np.arange(w, dtype=np.float32) + 0.37, np.arange(h, dtype=np.float32) - 0.21
+                ),
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REFLECT,
+            )
+        ),
         "Sobel(CV_32F)": lambda: (
             cv2.Sobel(f32, cv2.CV_32F, 1, 0, ksize=3),
             cv2.Sobel(f32, cv2.CV_32F, 0, 1, ksize=3),

@@ -102,6 +102,7 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
                 selective_boxes(imgs[i], SelectiveConfig())
             ss.append(1000 * (time.perf_counter() - t0) / n)
     med, lim = float(np.median(runs)), float(np.median(limits))
+    _default_row(label, n, runs, limits, diffs, ss)
     emit(
         f"keypoint localization per {label} pair [{n} pairs x {BOXES} boxes, 2 threads]",
         runs,
@@ -118,6 +119,28 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
             f"over 2 threads); the plain difference (registration, map) "
             f"{np.median(diffs):.1f} ms and Selective Search {np.median(ss):.1f} ms a frame on "
             "one thread"
+        ),
+    )
+
+
+def _default_row(label: str, n: int, runs: list, limits: list, diffs: list, ss: list) -> None:
+    """``harness detect``'s default per pair: the three stages above together, beside their
+    kernels (the keypoint stage's, and Selective Search, itself one OpenCV call)."""
+    total = [a + b + c for a, b, c in zip(runs, diffs, ss, strict=True)]
+    lim = [a + c for a, c in zip(limits, ss, strict=True)]
+    med, lm = float(np.median(total)), float(np.median(lim))
+    emit(
+        f"harness detect's default per {label} pair [{n} pairs]",
+        total,
+        "ms/pair",
+        kernel_limit_ms=round(lm, 2),
+        ratio_to_kernels=round(med / lm, 2),
+        line_ms=200,
+        notes=(
+            f"keypoint localization + registration and plain difference + Selective Search "
+            f"{med:.1f} ms a pair against the line of 200 ms, {med / lm:.2f}x its kernels "
+            f"({lm:.1f} ms: the keypoint stage's decode, SIFT and matching over 2 threads, and "
+            "Selective Search); registration runs SIFT on both frames again"
         ),
     )
 

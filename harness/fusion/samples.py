@@ -118,9 +118,7 @@ def fuse_samples(
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Samples of every annotated query image (one per pair) with the LoC of each method.
 
-    ``ann`` None: every query image of ``ranks``, unlabelled (``RoC`` NaN): what ``harness
-    detect`` fuses, which reads no annotation before its outputs are written.
-
+    ``ann`` None: every query image of ``ranks``, unlabelled (``RoC`` NaN; ``harness detect``).
     ``fusion`` gives the methods (any order: the method's is kept), the seed, the cap on fused boxes
     per image, RRF's constant and a registered rule's options.
 
@@ -131,8 +129,7 @@ def fuse_samples(
     original boxes only (an original box that is also another's fused box shares its row; a
     duplicate original gets a row of its own), the fused-set methods on fused boxes only.
 
-    Works on numpy columns of ``ranks`` sorted once by query image (stable, so each image's rows
-    keep their order) and builds one table at the end: no per-image pandas objects.
+    Numpy columns of ``ranks`` sorted once (stable) by query image; one table built at the end.
     """
     cb = change_boxes(ann) if ann is not None else None
     size = dict(
