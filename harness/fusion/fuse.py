@@ -102,8 +102,7 @@ def intersection_closure(
     """
     orig = np.unique(np.asarray(boxes, np.float64).reshape(-1, 4), axis=0)
     orig = orig[(orig[:, 2] > orig[:, 0]) & (orig[:, 3] > orig[:, 1])]
-    seen = {tuple(b) for b in orig}
-    frontier = orig
+    seen, frontier = orig, orig
     capped = False
     while len(frontier):
         x1 = np.maximum(frontier[:, None, 0], orig[None, :, 0])
@@ -112,17 +111,24 @@ def intersection_closure(
         y2 = np.minimum(frontier[:, None, 3], orig[None, :, 3])
         cand = np.stack([x1, y1, x2, y2], -1).reshape(-1, 4)
         cand = cand[(cand[:, 2] > cand[:, 0]) & (cand[:, 3] > cand[:, 1])]
-        cand = np.unique(cand, axis=0)
-        new = [b for b in map(tuple, cand) if b not in seen]
+        _, first = np.unique(_rows(cand), return_index=True)  # each box once (by its bytes)
+        new = cand[np.sort(first)]
+        new = new[~np.isin(_rows(new), _rows(seen))]
+        new = new[np.lexsort(new.T[::-1])]  # in the order the boxes' coordinates sort
         if max_boxes is not None and len(seen) + len(new) > max_boxes:
             new = new[: max(0, max_boxes - len(seen))]
             capped = True
-        seen.update(new)
-        frontier = np.array(new, np.float64).reshape(-1, 4)
+        seen = np.concatenate([seen, new])
+        frontier = new
         if capped:
             break
-    out = np.array(sorted(seen), np.float64).reshape(-1, 4)
-    return out, capped
+    return np.unique(seen, axis=0).reshape(-1, 4), capped
+
+
+def _rows(a: np.ndarray) -> np.ndarray:
+    """Each row of the (n, 4) float64 ``a`` as one opaque value (equal rows, equal values)."""
+    a = np.ascontiguousarray(a, np.float64)
+    return a.view(np.dtype((np.void, 8 * a.shape[1]))).ravel()
 
 
 def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
