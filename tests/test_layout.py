@@ -389,6 +389,7 @@ RENDER_IMPORTS = frozenset(
     {
         "MARK_LEGEND",
         "VERDICT_MARKS",
+        "VERDICT_WORDS",
         "VERDICT_TEX",
         "MIN_POSITIVE_IMAGES",
         "few_text",

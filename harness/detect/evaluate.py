@@ -1,6 +1,6 @@
 """Table D (method §13): ``harness detect``'s change boxes scored on the annotated query frames.
 
-pycocotools' COCOeval does the matching (:mod:`harness.detect.ap`); COCO AP@[.5:.95] and AP@.5
+pycocotools' COCOeval does the matching (:mod:`harness.evaluate.box_ap`); COCO AP@[.5:.95] and AP@.5
 are its statistics, and the AP at IoU 0.5 with VOC all-point interpolation (the metric of "The
 Change You Want to See", WACV 2023) is integrated from its matches.
 
@@ -9,9 +9,9 @@ chance_draws`` draws of random scores on the same candidate boxes (the fused qBB
 annotated frame) through the same NMS, the chance band the draws' 5th-95th percentiles; the ceiling
 the same candidates scored by their best IoU with an annotated change box, through the same NMS;
 the candidates' recall is the share of annotated change boxes that some candidate meets at IoU 0.5.
-The draws are matched by :func:`harness.detect.ap.match50`, COCOeval's greedy matching at IoU 0.5
-(tested equal to pycocotools on the run's own detections), so that 200 draws cost seconds, not 200
-COCOevals.
+The draws are matched by :func:`harness.evaluate.box_ap.match50`, COCOeval's greedy matching at
+IoU 0.5 (tested equal to pycocotools on the run's own detections), so that 200 draws cost
+seconds, not 200 COCOevals.
 """
 
 from __future__ import annotations
@@ -23,17 +23,17 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.detect.ap import (
+from harness.detect.difference import difference_dets
+from harness.detect.tabled_chance import NO_PIXEL, table_d_chance
+from harness.evaluate import chance
+from harness.evaluate.box_ap import (
     clopper_pearson,
     coco_eval,
     coco_ground_truth,
     iou_matrix,
 )
-from harness.detect.difference import difference_dets
-from harness.detect.table import table_d_markdown
-from harness.detect.tabled_chance import NO_PIXEL, table_d_chance
-from harness.evaluate import chance
 from harness.records import FRAME_KEY, QUERY_KEY
+from harness.reports.table_d import table_d_markdown
 from harness.runtime.cache import write_json, write_text
 
 

@@ -5,8 +5,8 @@ candidate boxes through the same NMS, the chance band the draws' 5th-95th percen
 the same candidates scored by their best IoU with an annotated change box; the candidates' recall
 the share of annotated change boxes some candidate meets at IoU 0.5. Intervals and paired
 differences resample annotated frames, or whole groups of them (``[detect] bootstrap_group``).
-The draws are matched by :func:`harness.detect.ap.match50`, COCOeval's greedy matching at IoU 0.5
-(tested equal to pycocotools on the run's own detections), so that 200 draws cost seconds.
+The draws are matched by :func:`harness.evaluate.box_ap.match50`, COCOeval's greedy matching at
+IoU 0.5 (tested equal to pycocotools on the run's own detections), so that 200 draws cost seconds.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from harness.detect.ap import iou_matrix, match50, weighted_voc
 from harness.detect.difference import PIXEL_BASELINES
 from harness.evaluate import chance
+from harness.evaluate.box_ap import iou_matrix, match50, weighted_voc
 from harness.evaluate.metrics import interval, resample_counts
 
 #: Table D's baselines that read no pixel (method §13.3): the candidates scored by their area, and

@@ -25,9 +25,9 @@ from harness.cli import main
 from harness.cli.parser import build_parser
 from harness.cli.runs import detect_options
 from harness.config.load import load_config
-from harness.detect.ap import _voc_all_point
 from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
+from harness.evaluate.box_ap import _voc_all_point
 
 from ..conftest import shared_stages
 from ..readme_text import manual_text
@@ -259,7 +259,7 @@ def test_nms_keeps_the_highest_loc_and_drops_its_overlaps() -> None:
 
 
 def test_table_d_evaluator_on_boxes_whose_ap_is_known_by_hand() -> None:
-    from harness.detect.ap import coco_eval
+    from harness.evaluate.box_ap import coco_eval
 
     gt = {
         "images": [{"id": 1, "width": 100, "height": 100}, {"id": 2, "width": 100, "height": 100},
@@ -628,7 +628,7 @@ def test_boxes_segments_with_contrast_as_typed(
 def test_segment_boxes_frame_coloured_objects_on_a_textured_scene() -> None:
     """A flat object and a checkered one on a noisy two-tone scene: each gets a box that fits it,
     the checkered one whole (its cells merged by the closings); the same image, the same boxes."""
-    from harness.detect.ap import iou_matrix
+    from harness.evaluate.box_ap import iou_matrix
     from harness.proposals.builtin import segment_boxes
     from harness.proposals.config import SegmentsConfig
 
@@ -674,7 +674,7 @@ def test_exceedance_and_its_words_by_hand() -> None:
     assert in_words(0.001, "candidate boxes") == "1 in 1,000 candidate boxes scores this high"
     assert in_words(0.2, "frames") == "1 in 5 frames scores this high"
     assert in_words(1.0, "frames") == "100% of frames score this high"  # not "1 in 1 frames"
-    from harness.detect.ap import clopper_pearson
+    from harness.evaluate.box_ap import clopper_pearson
 
     lo, hi = clopper_pearson(3, 10)  # the textbook interval of 3 in 10
     assert (round(lo, 4), round(hi, 4)) == (0.0667, 0.6525)

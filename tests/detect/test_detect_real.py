@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
-from harness.detect.ap import clopper_pearson
+from harness.evaluate.box_ap import clopper_pearson
 
 from ..conftest import ROOT, shared_stages
 from ..readme_text import manual_text

@@ -169,7 +169,7 @@ def test_edges_on_a_reduced_decode_find_the_boxes_of_the_full_frame(tmp_path: Pa
     frame's own pixels): at least 90% of them within IoU 0.9 of one, the same count within 10%."""
     import cv2
 
-    from harness.detect.ap import iou_matrix
+    from harness.evaluate.box_ap import iou_matrix
     from harness.proposals.proposers import _image_proposals
 
     rng = np.random.default_rng(0)
