@@ -25,6 +25,7 @@ from harness.detect.difference import (
 from harness.fusion.config import FusionConfig
 from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image
+from harness.localizers.keypoints import MapFeatures
 from harness.proposals.builtin import segment_boxes, selective_boxes
 from harness.proposals.config import ProposalsConfig, SegmentsConfig, SelectiveConfig
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
@@ -160,11 +161,14 @@ class _PairDifference:
     where the pair is not comparable).
     """
 
-    def __init__(self, images: pd.Series, fk: tuple, mk: tuple, opt: DetectConfig) -> None:
+    def __init__(
+        self, images: pd.Series, fk: tuple, mk: tuple, opt: DetectConfig, feats: MapFeatures
+    ) -> None:
         self.q = read_image(images.loc[fk])
         m = read_image(images.loc[mk])
         self.dc = opt.difference
-        self.reg: Registration = register(self.q, m, opt.keypoints, opt.difference)
+        uris = (feats, str(images.loc[fk]), str(images.loc[mk]))
+        self.reg: Registration = register(self.q, m, opt.keypoints, opt.difference, uris)
         # compared by: the registration, or the pair as it stands (not_comparable = "fallback")
         self.used = self.reg
         if not self.reg.comparable and opt.not_comparable == "fallback":
@@ -274,10 +278,11 @@ def detect_chunk(
         for k, r in ranks.groupby(QUERY_KEY, sort=False).first().iterrows()
     }
     rows, frow, cand_parts, plain_parts, thin = [], [], [], [], 0
+    feats = MapFeatures(opt.keypoints)  # a frame in several pairs (the null's): detected once
     for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
         fk = (str(key[0]), str(key[1]), int(key[2]))
         floc = g[col].to_numpy(np.float64)
-        pair = _PairDifference(images, fk, paired[fk], opt)
+        pair = _PairDifference(images, fk, paired[fk], opt, feats)
         found = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt, fusion.seed, pair.contrast)
         boxes, loc, keep, rand, rnd, n_thin, diff = found
         thin += n_thin

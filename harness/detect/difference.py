@@ -33,7 +33,7 @@ from harness.detect.config import DifferenceConfig
 from harness.imagestore import read_image
 from harness.localizers.align import align_ecc
 from harness.localizers.config import KeypointConfig, LocalConfig
-from harness.localizers.keypoints import detect, union_matches
+from harness.localizers.keypoints import MapFeatures, detect, union_matches
 from harness.records import FRAME_KEY
 
 
@@ -163,13 +163,24 @@ def _parallax(
 
 
 def register(
-    q_rgb: np.ndarray, m_rgb: np.ndarray, kc: KeypointConfig, dc: DifferenceConfig
+    q_rgb: np.ndarray,
+    m_rgb: np.ndarray,
+    kc: KeypointConfig,
+    dc: DifferenceConfig,
+    features: tuple[MapFeatures, str, str] | None = None,
 ) -> Registration:
-    """The map frame registered onto the query frame by a homography (docs/method.md)."""
+    """The map frame registered onto the query frame by a homography (docs/method.md).
+
+    ``features``: a cache of keypoints and the two images' URIs (a frame in several pairs, as a
+    shared map frame or the null's query, is detected once).
+    """
     q, fq = _scaled(_gray(q_rgb), dc.register_side)
     m, fm = _scaled(_gray(m_rgb), dc.register_side)
-    xq, dq = detect(q, kc)
-    xm, dm = detect(m, kc)
+    if features is not None:
+        cache, q_uri, m_uri = features
+        (xq, dq), (xm, dm) = cache.of(q_uri, q), cache.of(m_uri, m)
+    else:
+        (xq, dq), (xm, dm) = detect(q, kc), detect(m, kc)
     both = union_matches(dq, dm, kc)
     if len(both) < max(4, dc.min_inliers):
         return Registration(None, 0, len(both), 0.0, f"too few matches ({len(both)})", "none")

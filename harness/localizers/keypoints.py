@@ -60,7 +60,10 @@ def union_matches(a: np.ndarray | None, b: np.ndarray | None, kc: KeypointConfig
 
 
 class MapFeatures:
-    """A unit's map frames' keypoints, detected once however many query frames pair with one.
+    """A unit's frames' keypoints, detected once however many pairs hold one.
+
+    Map frames shared by several query frames, and the no-change null's query frames (a map frame
+    against several perturbed copies of itself) are detected once: the same keypoints, once.
 
     Keyed by the map image and the work size; two threads asking for one frame at once may both
     detect it (the same keypoints), never a wrong one. ``detected`` counts the detections.
@@ -89,14 +92,16 @@ def localized(
     m: np.ndarray,
     kc: KeypointConfig,
     map_features: tuple[np.ndarray, np.ndarray | None] | None = None,
+    query_features: tuple[np.ndarray, np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, PairGeometry]:
     """Keypoints of two gray frames of one size and which of them localize in the other.
 
     Returns the query's (n, 2) positions and flags, the map's (k, 2) positions carried into the
     query frame (by their nearest inlier match's displacement) and flags, and the geometry.
-    ``map_features``: ``m``'s keypoints and descriptors where they were detected before.
+    ``map_features``, ``query_features``: ``m``'s and ``q``'s keypoints and descriptors where they
+    were detected before.
     """
-    xq, dq = detect(q, kc)
+    xq, dq = query_features if query_features is not None else detect(q, kc)
     xm, dm = map_features if map_features is not None else detect(m, kc)
     both = union_matches(dq, dm, kc)  # (query index, map index)
     ok_q, ok_m = np.zeros(len(xq), bool), np.zeros(len(xm), bool)
@@ -175,12 +180,13 @@ def pair_shares(
     boxes: np.ndarray,
     kc: KeypointConfig,
     map_features: tuple[np.ndarray, np.ndarray | None] | None = None,
+    query_features: tuple[np.ndarray, np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray, PairGeometry]:
     """Each box's share of keypoints that do not localize (both directions), and the geometry.
 
     ``q``, ``m``: the pair's gray work images of one size; ``boxes``: (n, 4) in their pixels.
     """
-    xq, ok_q, xm, ok_m, geo = localized(q, m, kc, map_features)
+    xq, ok_q, xm, ok_m, geo = localized(q, m, kc, map_features, query_features)
     if kc.both_directions:
         pts, lost = np.concatenate([xq, xm]), np.concatenate([~ok_q, ~ok_m])
     else:
@@ -225,7 +231,10 @@ def pair_keypoint_ranks(
     """
     q, m, s = pair_images(q_uri, m_uri, size, kc.work_side, work_gray)
     feats = maps.of(m_uri, m) if maps is not None else None
-    share, geo = pair_shares(q, m, np.asarray(boxes, np.float64).reshape(-1, 4) * s, kc, feats)
+    qfeats = maps.of(q_uri, q) if maps is not None else None
+    share, geo = pair_shares(
+        q, m, np.asarray(boxes, np.float64).reshape(-1, 4) * s, kc, feats, qfeats
+    )
     out = np.full((len(share), 3), np.nan)
     ok = np.isfinite(share)
     rank = 1 + np.round(np.clip(share[ok], 0, 1) * (kc.levels - 1))
