@@ -199,8 +199,9 @@ def test_detect_with_keypoints_writes_each_pairs_geometry_and_the_difference_row
 def test_a_map_frames_keypoints_are_detected_once_for_every_query_that_pairs_with_it(
     tmp_path: Path,
 ) -> None:
-    """Three query frames paired with one map frame: the map's keypoints are detected once, and
-    each pair's shares are those of the pair computed alone."""
+    """Three query frames paired with one map frame: every frame's keypoints are detected once
+    (the map's for all three pairs), and each pair's shares are those of the pair computed alone;
+    a frame in a further pair (the null's query against another copy) is not detected again."""
     from harness.localizers.keypoints import MapFeatures, pair_keypoint_ranks
 
     q, m = _pair()
@@ -217,4 +218,8 @@ def test_a_map_frames_keypoints_are_detected_once_for_every_query_that_pairs_wit
         alone = pair_keypoint_ranks(paths[name], paths["m"], (W, H), boxes, kc)
         np.testing.assert_array_equal(got, alone[1])
         assert geo == alone[0]
-    assert maps.detected == 1
+    assert maps.detected == 4  # three query frames and the map frame, once each
+    geo, got = pair_keypoint_ranks(paths["q0"], paths["q1"], (W, H), boxes, kc, maps)
+    np.testing.assert_array_equal(got, pair_keypoint_ranks(paths["q0"], paths["q1"], (W, H),
+                                                           boxes, kc)[1])  # fmt: skip
+    assert maps.detected == 4  # q0 and q1 were detected before
