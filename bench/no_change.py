@@ -72,7 +72,9 @@ def build(name: str) -> Path | None:
     n = min(PAIRS[name], len(frames) - 1)
     if (dst / "annotations.csv").is_file():
         return dst
-    tmp = dst.with_name(dst.name + ".part")
+    if dst.exists():  # never replaces a folder it did not finish writing itself
+        raise SystemExit(f"ERROR: {dst} exists without its annotations.csv: remove it to rebuild")
+    tmp = dst.with_name(dst.name + ".part")  # this module's own unfinished copy
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "A").mkdir(parents=True)
     (tmp / "B").mkdir()
@@ -83,7 +85,6 @@ def build(name: str) -> Path | None:
         _copy(frames[i + 1], tmp / "B" / file)
         rows.append(f"{file},no-change,,,,,")
     (tmp / "annotations.csv").write_text("\n".join(rows) + "\n")
-    shutil.rmtree(dst, ignore_errors=True)
     tmp.rename(dst)
     return dst
 
