@@ -67,6 +67,8 @@ def parse(spec: str) -> Perturbation:
             values[name] = int(float(part[1:])) if name == "jpeg" else float(part[1:])
         except ValueError:
             raise ValueError(f"perturbation {spec!r}: {part!r} is not a number") from None
+    if values.get("wobble", 0.0) < 0:
+        raise ValueError(f"perturbation {spec!r}: wobble {values['wobble']} must be >= 0")
     return Perturbation(**values)
 
 

@@ -141,6 +141,8 @@ def test_a_wobbled_copy_moves_by_its_rms_and_is_named_by_its_values() -> None:
     _, m = (_rgb(x) for x in _pair())
     still = Perturbation(dx=0.01)
     assert ",w" not in fragment(still) and parse(fragment(still).split("=", 1)[1]) == still
+    with pytest.raises(ValueError, match=r"wobble -0\.1 must be >= 0"):
+        parse("g1,w-0.1")
     p = Perturbation(wobble=0.005)
     assert fragment(p).endswith(",w0.005") and parse(fragment(p).split("=", 1)[1]) == p
     a, b = apply(m, p), apply(m, p)
