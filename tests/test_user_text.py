@@ -22,7 +22,8 @@ BANNED = [
     (re.compile(r"\bthe issue\b|\bissue's\b", re.I), "the issue a change came from"),
     (re.compile(r"\b(previous|earlier) session\b|\bsession's (machine|measurement)", re.I),
      "the work session that measured it"),
-    (re.compile(r"\b(was|were) lent\b|\blent to\b|device machine", re.I), "how a machine was come by"),
+    (re.compile(r"\b(was|were) lent\b|\blent to\b|device machine", re.I),
+     "how a machine was come by"),
     (re.compile(r"\bturned out\b|\bwas replaced\b", re.I), "narrated history"),
 ]  # fmt: skip
 

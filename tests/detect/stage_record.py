@@ -9,10 +9,11 @@ test. So the record holds each stage's values, frame by frame, and the rule of d
 - **registration**: the same frames comparable (a frame whose inlier count lies within 3 of
   ``min_inliers`` on either side may flip), inliers within 3 or 10%, shifts within 0.5 px,
   rotation within 0.1 degree, scale within 0.5%;
-- **keypoint localization**: the same boxes a frame, each frame's mean LoC within 0.02;
+- **keypoint localization**: the same boxes a frame, each frame's mean LoC within 0.02 or 3%;
 - **plain difference**: each frame's mean box difference within 2% (or 0.01);
-- **change boxes**: the same count a frame, each frame's top score within 0.02 (or 2%);
-- **Table D**: each row's AP50 within 0.01.
+- **change boxes**: the same count a frame, each frame's top score within 0.02 (or 3%);
+- **Table D**: each row's AP50 within 0.01 (0.05 where a registration flipped; a flipped
+  frame's later rows are not compared: another method compared it).
 
 On the CPU that recorded it (same model and flags) every stage must match byte for byte (its
 digest); elsewhere, within the rule. A failure names the first stage, in pipeline order, that
@@ -98,8 +99,15 @@ def _close(a: pd.Series, b: pd.Series, abs_tol: float, rel: float) -> np.ndarray
     return both_nan | (np.abs(x - y) <= np.maximum(abs_tol, rel * np.abs(y)))
 
 
-def outside(stage: str, got: pd.DataFrame, want: pd.DataFrame) -> list[str]:
-    """What of ``got`` leaves the stage's tolerance around ``want`` (empty: within it)."""
+def outside(
+    stage: str, got: pd.DataFrame, want: pd.DataFrame, flipped: frozenset = frozenset()
+) -> list[str]:
+    """What of ``got`` leaves the stage's tolerance around ``want`` (empty: within it).
+
+    ``flipped``: the frames whose registration went the other way near its threshold (allowed):
+    what follows from it there is another comparison, so their later rows are not compared, and
+    Table D may move by 0.05 then.
+    """
     if len(got) != len(want) or list(got.columns) != list(want.columns):
         return [f"{len(got)} rows {list(got.columns)} against {len(want)} {list(want.columns)}"]
     id_cols = KEY if stage != "Table D" else ["row"]
@@ -108,18 +116,23 @@ def outside(stage: str, got: pd.DataFrame, want: pd.DataFrame) -> list[str]:
     checks: dict[str, list[tuple[str, float, float]]] = {
         "registration": [("inliers", 3, 0.10), ("reg_dx", 0.5, 0), ("reg_dy", 0.5, 0),
                          ("reg_rotation_deg", 0.1, 0), ("reg_scale", 0, 0.005)],
-        "keypoint localization": [("n", 0, 0), ("mean", 0.02, 0)],
+        "keypoint localization": [("n", 0, 0), ("mean", 0.02, 0.03)],
         "plain difference": [("n", 0, 0), ("mean", 0.01, 0.02)],
-        "change boxes": [("n", 0, 0), ("top", 0.02, 0.02)],
-        "Table D": [("ap50", 0.01, 0)],
+        "change boxes": [("n", 0, 0), ("top", 0.02, 0.03)],
+        "Table D": [("ap50", 0.05 if flipped else 0.01, 0)],
     }  # fmt: skip
     bad = []
+    skip = (
+        np.array([tuple(k) in flipped for k in want[KEY].to_numpy().tolist()], bool)
+        if stage not in ("registration", "Table D")
+        else np.zeros(len(want), bool)
+    )
     near = (np.abs(want["inliers"] - MIN_INLIERS) <= 3) if stage == "registration" else None
     if near is not None:
         flips = (got["comparable"].astype(bool) != want["comparable"].astype(bool)) & ~near
         bad += [f"comparable at {tuple(r)}" for r in want.loc[flips, KEY].to_numpy().tolist()]
     for col, a, r in checks[stage]:
-        ok = _close(got[col], want[col], a, r)
+        ok = _close(got[col], want[col], a, r) | skip
         if near is not None:
             ok |= near.to_numpy()
         bad += [f"{col} {g!r} against {w!r} at row {i}" for i, (g, w) in
@@ -131,12 +144,17 @@ def first_stage_outside(out: Path, rec: dict[str, Any]) -> str | None:
     """None where every stage holds (byte for byte on the recording CPU, else within the rule);
     else a message naming the first stage that does not, what moved, and both CPUs."""
     here, same_cpu = cpu_record(), cpu_record() == rec["cpu"]
+    flipped: frozenset = frozenset()
     for stage, v in stage_values(out).items():
         r = rec["stages"][stage]
         want = pd.DataFrame(r["values"]["data"], columns=r["values"]["columns"])
         if same_cpu and _digest(v) == r["digest"]:
             continue
-        bad = outside(stage, v.reset_index(drop=True), want) if not same_cpu else ["its digest"]
+        v = v.reset_index(drop=True)
+        if stage == "registration":
+            moved = v["comparable"].astype(bool) != want["comparable"].astype(bool)
+            flipped = frozenset(tuple(k) for k in want.loc[moved, KEY].to_numpy().tolist())
+        bad = outside(stage, v, want, flipped) if not same_cpu else ["its digest"]
         if bad:
             return (
                 f"the first detect stage that differs from the record is {stage!r} ("
