@@ -119,8 +119,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("harness.fusion",),
     ("harness.localizers",),
     # the root config assembles every stage's section (``harness/<stage>/config.py``); detect's
-    # section is a leaf module, so it sits here, below the detector it configures
-    ("harness.config", "harness.detect.config"),
+    # section and its presets are leaf modules, so they sit here, below the detector they configure
+    ("harness.config", "harness.detect.config", "harness.detect.presets"),
     ("harness.reports",),
     ("harness.pipeline",),
     ("harness.detect",),

@@ -3,23 +3,24 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
+from typing import Any
 
 from harness.errors import HarnessError
 
 
-def run_config(args: argparse.Namespace, settings_only: bool = False):
-    """The validated config of ``--config`` (with ``--data-root`` and ``--seed`` applied).
+def overrides_of(args: argparse.Namespace) -> Any:
+    """What every command's line sets over its config: ``--data-root`` and ``--seed``."""
+    from harness.config.assemble import Overrides
 
-    ``settings_only``: the sessions come from elsewhere (image folders), so the file may name none.
-    """
-    from harness.config.load import load_config
+    return Overrides(data_root=getattr(args, "data_root", None), seed=getattr(args, "seed", None))
 
-    cfg = load_config(Path(args.config), getattr(args, "data_root", None), settings_only)
-    if getattr(args, "seed", None) is not None:
-        cfg = dataclasses.replace(cfg, seed=args.seed)
-    return cfg
+
+def run_config(args: argparse.Namespace) -> Any:
+    """The assembled config of ``--config`` (``harness.config.assemble``)."""
+    from harness.config.assemble import run_config as config_with
+
+    return config_with(Path(args.config), overrides_of(args))
 
 
 def check_executor_flags(args: argparse.Namespace) -> None:

@@ -10,13 +10,14 @@ from typing import Any
 from harness.cli.common import (
     check_executor_flags,
     check_plugins_local,
+    overrides_of,
     pd_read,
     pipeline_of,
-    run_config,
 )
 from harness.cli.console import print_block, print_localization, print_table_l
+from harness.config.assemble import Overrides, folders_config
+from harness.config.assemble import run_config as config_with
 from harness.detect.calibrate import alarm_words
-from harness.detect.presets import PRESETS
 from harness.errors import HarnessError
 
 
@@ -70,63 +71,47 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def detect_options(args: argparse.Namespace, cfg: Any) -> Any:
-    """``harness detect``'s options: ``[detect]``, ``--preset``'s values, each flag as typed."""
-    preset = getattr(args, "preset", None)
-    base = dataclasses.replace(cfg.detect, **PRESETS[preset][1]) if preset else cfg.detect
-    typed = {
-        "fusion": args.fusion,
-        "nms_iou": args.nms_iou,
-        "max_boxes": args.max_boxes,
-        "top": args.top,
-        "boxes": args.boxes,
-        "box_score": args.box_score,
-        "localizer": getattr(args, "localizer", None),
-        "box_prior": getattr(args, "box_prior", None),
-        "proposals": getattr(args, "proposals", None),
-        "calibration": getattr(args, "calibration", None),
-    }
-    return dataclasses.replace(base, **{k: v for k, v in typed.items() if v is not None})
+#: ``harness detect``'s flags that set a ``[detect]`` value, as the parser names them
+DETECT_FLAGS = ("fusion", "nms_iou", "max_boxes", "top", "boxes", "box_score", "localizer",
+                "box_prior", "proposals", "calibration", "alarm")  # fmt: skip
+
+
+def detect_overrides(args: argparse.Namespace) -> Overrides:
+    """What ``harness detect``'s command line sets over its config.
+
+    ``--preset``, each ``[detect]`` flag as typed, ``--annotations``, ``--masks``,
+    ``--data-root``, ``--seed``.
+    """
+    typed = {k: getattr(args, k, None) for k in DETECT_FLAGS}
+    return dataclasses.replace(
+        overrides_of(args),
+        annotations=Path(args.annotations) if args.annotations else None,
+        masks=Path(args.masks) if args.masks else None,
+        preset=getattr(args, "preset", None),
+        detect={k: v for k, v in typed.items() if v is not None},
+    )
 
 
 def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
-    """The config, map and query sessions of ``harness detect``.
+    """The assembled config, map and query sessions of ``harness detect``.
 
     Named in ``--config``, or two (or more) folders of images (``--map-images``,
     ``--query-images``; ``--config`` then gives the settings alone).
     """
-    from harness.config.folders import image_folders_config
-
-    folders = args.map_images is not None or args.query_images
-    if folders:
+    ov = detect_overrides(args)
+    if args.map_images is not None or args.query_images:
         if args.map_images is None or not args.query_images:
             raise HarnessError("--map-images DIR and --query-images DIR go together")
         if args.map is not None or args.query:
             raise HarnessError("--map/--query name config sessions; with image folders, omit them")
-        base = run_config(args, settings_only=True) if args.config else None
-        cfg, m, q = image_folders_config(Path(args.map_images), list(args.query_images), base)
-        return _annotated(cfg, args), m, q
+        settings = Path(args.config) if args.config else None
+        return folders_config(Path(args.map_images), list(args.query_images), settings, ov)
     if args.config is None or args.map is None or not args.query:
         raise HarnessError(
             "detect needs --config with --map and --query, or --map-images DIR and "
             "--query-images DIR"
         )
-    return _annotated(run_config(args), args), args.map, list(args.query)
-
-
-def _annotated(cfg: Any, args: argparse.Namespace) -> Any:
-    """``cfg`` with ``--annotations`` and ``--masks`` in place of its own (checked here)."""
-    from harness.errors import AnnotationError
-    from harness.inputs import check_input
-
-    if args.annotations:
-        path = check_input(Path(args.annotations), "annotation file", AnnotationError)
-        cfg = dataclasses.replace(cfg, annotations=Path(path).resolve())
-    if args.masks:
-        d = check_input(Path(args.masks), "mask folder", AnnotationError, directory=True)
-        masks = dataclasses.replace(cfg.masks, folder=str(Path(d).resolve()))
-        cfg = dataclasses.replace(cfg, masks=masks)
-    return cfg
+    return config_with(Path(args.config), ov), args.map, list(args.query)
 
 
 def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
@@ -173,20 +158,15 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from harness.runtime.executors import make_executor
 
     check_executor_flags(args)
-    if args.top is not None and args.top < 0:
-        raise HarnessError(f"--top {args.top}: must be >= 0 places")
     cfg, map_session, queries = detect_sessions(args)
     check_plugins_local(args)
-    opt = detect_options(args, cfg)
     rec = run_detect(
         cfg,
         map_session,
         queries,
         Path(args.out),
-        opt,
-        make_executor(args.executor, args.address, args.ray_cpus),
+        executor=make_executor(args.executor, args.address, args.ray_cpus),
         rerun=Path(args.rerun) if args.rerun else None,
-        alarm=cfg.detect.alarm if args.alarm is None else args.alarm,
     )
     out = Path(args.out)
     print(
@@ -194,7 +174,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         f"map {rec['map']}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
         f"ms per query frame ({rec['total_s']:.1f} s)"
     )
-    _print_most_changed(out, args.top, rec.get("calibration", {}).get("method") == "null")
+    _print_most_changed(out, cfg.detect.top, rec.get("calibration", {}).get("method") == "null")
     _print_alarms(rec["alarm"], rec.get("calibration", {}))
     agree = rec.get("pairing", {}).get("agreement_with_pose_pairs")
     if rec.get("pairing"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -158,7 +159,7 @@ class DetectConfig:
     """``[detect]``: how ``harness detect`` turns LoC into change boxes (method §13.1).
 
     The one options record of ``harness detect``: its flags, as typed, replace these fields for a
-    run (``harness.cli.runs.detect_options``), and the run reads nothing else.
+    run (``harness.config.assemble.with_overrides``), and the run reads nothing else.
     """
 
     # the fusion rule whose LoC scores the boxes (one with detect = true; --fusion)
@@ -269,72 +270,80 @@ class DetectConfig:
         return LocalizerConfig(name, name, (self.proposals,), self.paired_options())
 
 
-def check_detect(dt: DetectConfig, where: str) -> None:
-    """``[detect]`` (method §13.1)."""
+def check_detect(dt: DetectConfig, where: str, typed: Mapping[str, str] | None = None) -> None:
+    """``[detect]`` (method §13.1).
+
+    ``typed``: field -> the flag its value came from, named in the error instead of the key.
+    """
     c = check_value
+    flags = typed or {}
+
+    def k(name: str) -> str:
+        return flags.get(name, f"[detect] {name}")
+
     detect_rules = rules_where(detect=True)
-    c(dt.fusion in detect_rules, where, "[detect] fusion", dt.fusion, ", ".join(detect_rules))
-    c(0 < dt.nms_iou <= 1, where, "[detect] nms_iou", dt.nms_iou, "(0, 1]")
-    c(dt.max_boxes >= 1, where, "[detect] max_boxes", dt.max_boxes, ">= 1 per frame")
-    c(dt.chunk_frames >= 1, where, "[detect] chunk_frames", dt.chunk_frames, ">= 1")
-    c(dt.top >= 0, where, "[detect] top", dt.top, ">= 0 places")
+    c(dt.fusion in detect_rules, where, k("fusion"), dt.fusion, ", ".join(detect_rules))
+    c(0 < dt.nms_iou <= 1, where, k("nms_iou"), dt.nms_iou, "(0, 1]")
+    c(dt.max_boxes >= 1, where, k("max_boxes"), dt.max_boxes, ">= 1 per frame")
+    c(dt.chunk_frames >= 1, where, k("chunk_frames"), dt.chunk_frames, ">= 1")
+    c(dt.top >= 0, where, k("top"), dt.top, ">= 0 places")
     c(
         dt.boxes in BOX_GENERATORS,
         where,
-        "[detect] boxes",
+        k("boxes"),
         dt.boxes,
         f"one of {', '.join(BOX_GENERATORS)} (method §13.1)",
     )
     c(
         dt.box_score in BOX_SCORES,
         where,
-        "[detect] box_score",
+        k("box_score"),
         dt.box_score,
         f"one of {', '.join(BOX_SCORES)}",
     )
-    c(0 < dt.alarm < 1, where, "[detect] alarm", dt.alarm, "(0, 1): a false-alarm rate")
+    c(0 < dt.alarm < 1, where, k("alarm"), dt.alarm, "(0, 1): a false-alarm rate")
     c(
         dt.localizer in detect_localizers(),
         where,
-        "[detect] localizer",
+        k("localizer"),
         dt.localizer,
         " or ".join(detect_localizers()),
     )
-    c(dt.calibration in CALIBRATIONS, where, "[detect] calibration", dt.calibration,
+    c(dt.calibration in CALIBRATIONS, where, k("calibration"), dt.calibration,
       " or ".join(CALIBRATIONS))  # fmt: skip
     check_null(dt.null, f"{where} [detect.null]")
     check_local(dt.local, f"{where} [detect.local]")
     check_keypoints(dt.keypoints, f"{where} [detect.keypoints]")
     check_difference(dt.difference, f"{where} [detect.difference]")
-    c(dt.not_comparable in NOT_COMPARABLE, where, "[detect] not_comparable", dt.not_comparable,
+    c(dt.not_comparable in NOT_COMPARABLE, where, k("not_comparable"), dt.not_comparable,
       " or ".join(NOT_COMPARABLE))  # fmt: skip
-    c(dt.bootstrap_group in BOOTSTRAP_GROUPS, where, "[detect] bootstrap_group",
+    c(dt.bootstrap_group in BOOTSTRAP_GROUPS, where, k("bootstrap_group"),
       dt.bootstrap_group, " or ".join(BOOTSTRAP_GROUPS))  # fmt: skip
     c(
         dt.proposals in known_proposal_methods(),
         where,
-        "[detect] proposals",
+        k("proposals"),
         dt.proposals,
         ", ".join(known_proposal_methods()),
     )
     c(
         dt.box_prior in BOX_PRIORS,
         where,
-        "[detect] box_prior",
+        k("box_prior"),
         dt.box_prior,
         " or ".join(BOX_PRIORS),
     )
     c(
         0 < dt.locmap_level < 1,
         where,
-        "[detect] locmap_level",
+        k("locmap_level"),
         dt.locmap_level,
         "(0, 1): a share of each frame's LoC range",
     )
     c(
         0 <= dt.min_box_side < 1e4,
         where,
-        "[detect] min_box_side",
+        k("min_box_side"),
         dt.min_box_side,
         "pixels a side, >= 0 (0: keep every box)",
     )

@@ -31,11 +31,12 @@ from typing import Any
 import pandas as pd
 
 from harness import kernels
+from harness.config.assemble import detect_run_config
 from harness.config.plugins import plugin_record
 from harness.config.schema import Config
 from harness.detect import keys as detect_keys
 from harness.detect.chunk import detect_chunk
-from harness.detect.config import CONFIG_LOCALIZERS, DetectConfig, detect_localizers
+from harness.detect.config import DetectConfig, check_detect
 from harness.detect.null import null_scores
 from harness.detect.options import DetectRun
 from harness.detect.outputs import write_outputs
@@ -43,7 +44,6 @@ from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
 from harness.ingest.names import session_names
 from harness.localizers.config import LocalizerConfig
-from harness.methods import BOX_GENERATORS, BOX_SCORES, detect_methods
 from harness.pairs import keys as pair_keys
 from harness.pairs.modes import kind_of
 from harness.pipeline.across import across_localizers, localizer_fusion
@@ -72,9 +72,12 @@ def check_detect_args(
 ) -> float:
     """The nominal false-alarm rate, after checking every argument of :func:`run_detect`.
 
+    The sessions, the recording's path, and ``opt`` (with ``alarm`` where given) as ``[detect]``
+    is checked at load.
+
     Raises:
-        ConfigError: an unknown or repeated session, the map among the queries, an unknown
-            method or box generator, a rate or NMS option out of range.
+        ConfigError: an unknown or repeated session, the map among the queries, an option out of
+            range.
     """
     names = [s.name for s in cfg.sessions]
     for s in [map_session, *query_sessions]:
@@ -85,26 +88,10 @@ def check_detect_args(
             f"detect: --map {map_session} and --query {query_sessions}: each session once, the "
             "map not among the queries"
         )
-    if opt.fusion not in detect_methods():
-        raise ConfigError(f"detect: method {opt.fusion!r}: one of {', '.join(detect_methods())}")
     if rerun is not None:
         check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
     alarm = opt.alarm if alarm is None else alarm
-    if not 0 < alarm < 1:
-        raise ConfigError(f"detect: --alarm {alarm}: a false-alarm rate in (0, 1), e.g. 0.01")
-    if opt.localizer not in detect_localizers():
-        raise ConfigError(
-            f"detect: --localizer {opt.localizer!r}: one of {' or '.join(detect_localizers())} "
-            "(a plugin registers more: harness --plugin FILE.py detect ...)"
-        )
-    if opt.boxes not in BOX_GENERATORS:
-        raise ConfigError(f"detect: --boxes {opt.boxes!r}: one of {', '.join(BOX_GENERATORS)}")
-    if opt.box_score not in BOX_SCORES:
-        raise ConfigError(f"detect: box_score {opt.box_score!r}: one of {', '.join(BOX_SCORES)}")
-    if not 0 < opt.nms_iou <= 1 or opt.max_boxes < 1:
-        raise ConfigError(
-            f"detect: nms_iou {opt.nms_iou} must be in (0, 1] and max_boxes {opt.max_boxes} >= 1"
-        )
+    check_detect(dataclasses.replace(opt, alarm=alarm), "detect")
     return alarm
 
 
@@ -132,25 +119,6 @@ def _measure(
         fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
         measured.append(Measured(loc, ranks, fusion, notes))
     return frames, ann, pairs, measured, props
-
-
-def _detect_config(
-    cfg: Config, map_session: str, query_sessions: list[str], opt: DetectConfig
-) -> Config:
-    """The config ``detect`` runs: its sessions, every query frame, and the local proposals."""
-    keep = [s for s in cfg.sessions if s.name in (map_session, *query_sessions)]
-    dcfg = dataclasses.replace(
-        cfg, sessions=tuple(keep), pairs=dataclasses.replace(cfg.pairs, queries="all")
-    )
-    if opt.localizer != CONFIG_LOCALIZERS and opt.proposals not in cfg.proposals.methods:
-        methods = (*cfg.proposals.methods, opt.proposals)
-        dcfg = dataclasses.replace(
-            dcfg,
-            proposals=dataclasses.replace(cfg.proposals, methods=methods),
-            # the config's localizers (pairs by retrieval or sequence) keep their own proposals
-            localizers=cfg.localizer_set(),
-        )
-    return dcfg
 
 
 def _chunk_units(
@@ -194,7 +162,7 @@ def run_detect(
     """
     opt = opt or cfg.detect
     alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
-    dcfg = _detect_config(cfg, map_session, query_sessions, opt)
+    dcfg = detect_run_config(cfg, map_session, query_sessions, opt)
     t0 = time.perf_counter()
     p = Pipeline(
         dcfg,

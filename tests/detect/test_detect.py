@@ -16,6 +16,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -23,7 +24,8 @@ import pytest
 
 from harness.cli import main
 from harness.cli.parser import build_parser
-from harness.cli.runs import detect_options
+from harness.cli.runs import detect_overrides
+from harness.config.assemble import with_overrides
 from harness.config.load import load_config
 from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
@@ -485,6 +487,11 @@ def test_box_generators_on_a_loc_map_known_by_hand() -> None:
 PAPER = ("--preset", "paper")
 
 
+def _options(args: Any, cfg: Any) -> Any:
+    """The ``[detect]`` a command line assembles over ``cfg``."""
+    return with_overrides(cfg, detect_overrides(args)).detect
+
+
 def test_a_preset_is_its_flags_and_a_typed_flag_wins() -> None:
     """``--preset paper`` sets the paper's three values; a flag typed beside it wins; every preset
     is listed by ``harness detect --help`` with what it is."""
@@ -493,10 +500,10 @@ def test_a_preset_is_its_flags_and_a_typed_flag_wins() -> None:
     base = ["detect", "--config", "datasets/fixture.toml", "--map", MAP, "--query", QUERY,
             "--out", "x"]  # fmt: skip
     flags = parse([*base, "--localizer", "config", "--boxes", "fused", "--box-prior", "none"])
-    assert detect_options(parse([*base, *PAPER]), cfg) == detect_options(flags, cfg)
-    typed = detect_options(parse([*base, *PAPER, "--box-prior", "area"]), cfg)
+    assert _options(parse([*base, *PAPER]), cfg) == _options(flags, cfg)
+    typed = _options(parse([*base, *PAPER, "--box-prior", "area"]), cfg)
     assert (typed.localizer, typed.boxes, typed.box_prior) == ("config", "fused", "area")
-    assert detect_options(parse([*base, "--preset", "default"]), cfg) == cfg.detect
+    assert _options(parse([*base, "--preset", "default"]), cfg) == cfg.detect
     helped = subprocess.run([sys.executable, "-m", "harness.cli", "detect", "--help"],
                             capture_output=True, text=True, check=True).stdout  # fmt: skip
     words = " ".join(helped.split())
@@ -760,14 +767,16 @@ def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected:
 @pytest.mark.parametrize(
     ("flags", "says"),
     [
-        (["--alarm", "0"], "--alarm 0.0: a false-alarm rate in (0, 1)"),
-        (["--alarm", "1.5"], "--alarm 1.5"),
+        (["--alarm", "0"], "--alarm = 0.0 is out of range; allowed: (0, 1): a false-alarm rate"),
+        (["--alarm", "1.5"], "--alarm = 1.5"),
         (
             ["--boxes", "pixels"],
-            "--boxes 'pixels': one of fused, locmap, proposals, segments, subimages",
+            "--boxes = 'pixels' is out of range; allowed: one of fused, locmap, proposals, "
+            "segments, subimages",
         ),
-        (["--box-score", "median"], "box_score 'median': one of max, mean, contrast"),
-        (["--fusion", "score_max"], "method 'score_max': one of rank_fusion"),
+        (["--box-score", "median"], "--box-score = 'median' is out of range; allowed: one of max"),
+        (["--fusion", "score_max"], "--fusion = 'score_max' is out of range; allowed: rank_fusion"),
+        (["--top", "-1"], "--top = -1 is out of range; allowed: >= 0 places"),
         (["--rerun", "/nonexistent-folder/x.rrd"], "does not exist"),
     ],
 )
@@ -787,7 +796,6 @@ def test_bad_detect_flags_are_one_error_line_before_any_work(
 def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) -> None:
     """``[detect]`` is passed through: a flag as typed wins, the table fills what is not typed."""
     from harness.cli.parser import build_parser
-    from harness.cli.runs import detect_options
     from harness.config.load import load_config
 
     text = (ROOT / "datasets" / "fixture.toml").read_text()
@@ -796,19 +804,19 @@ def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) ->
     )
     cfg = load_config(tmp_path / "c.toml")
     base = ["detect", "--config", "c.toml", "--map", MAP, "--query", QUERY, "--out", "o"]
-    opt = detect_options(build_parser().parse_args(base), cfg)
+    opt = _options(build_parser().parse_args(base), cfg)
     assert (opt.boxes, opt.box_score, opt.locmap_level) == ("locmap", "mean", 0.3)
-    opt = detect_options(build_parser().parse_args([*base, "--boxes", "proposals"]), cfg)
+    opt = _options(build_parser().parse_args([*base, "--boxes", "proposals"]), cfg)
     assert opt.boxes == "proposals"
     # the flags' keys too (issue 51: one options record): the table's value, or the flag typed
     (tmp_path / "c.toml").write_text(
         text + '\n[detect]\nfusion = "rrf"\nnms_iou = 0.3\nmax_boxes = 4\ntop = 2\n'
     )
     cfg = load_config(tmp_path / "c.toml")
-    opt = detect_options(build_parser().parse_args(base), cfg)
+    opt = _options(build_parser().parse_args(base), cfg)
     assert (opt.fusion, opt.nms_iou, opt.max_boxes, opt.top) == ("rrf", 0.3, 4, 2)
     typed = [*base, "--fusion", "borda", "--nms-iou", "0.6", "--max-boxes", "7", "--top", "0"]
-    opt = detect_options(build_parser().parse_args(typed), cfg)
+    opt = _options(build_parser().parse_args(typed), cfg)
     assert (opt.fusion, opt.nms_iou, opt.max_boxes, opt.top) == ("borda", 0.6, 7, 0)
 
 
