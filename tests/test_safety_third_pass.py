@@ -87,7 +87,7 @@ def test_fixture_flags_go_through_the_config_checks_and_name_the_flag(
 
 
 @pytest.mark.parametrize(("flags", "needle"), [
-    (["--top", "-1"], "--top -1: must be >= 0"),
+    (["--top", "-1"], "--top = -1 is out of range; allowed: >= 0 places"),
     (["--executor", "ray", "--ray-cpus", "0"], "--ray-cpus 0: must be >= 1"),
 ])  # fmt: skip
 def test_detect_flags_are_checked(
