@@ -40,6 +40,7 @@ def case_executor(quick: bool) -> None:
         for _ in range(1 if quick else 3):
             tmp = Path(tempfile.mkdtemp(dir=DATA))
             shutil.copytree(base / "cache", tmp / "cache")
+            shutil.copy(base / ".dbl-harness.json", tmp / ".dbl-harness.json")  # the run's own
             for stage in ("descriptor_shards", "descriptors", "ranks", "samples"):
                 shutil.rmtree(tmp / "cache" / stage, ignore_errors=True)
             t0 = time.perf_counter()
