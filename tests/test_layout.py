@@ -443,3 +443,18 @@ def test_reports_render_what_evaluate_computed() -> None:
         if a.name not in RENDER_IMPORTS
     ]
     assert found == []
+
+
+def test_the_detect_chunk_reaches_no_labelling() -> None:
+    """``harness detect``'s chunk fuses ranks unlabelled: nothing it imports, however indirectly,
+    is the evaluation's labelling (RoC/SoB, splits) or the annotation reader the benchmark's
+    samples are labelled from."""
+    graph = import_graph()
+    seen, todo = set(), ["harness.detect.chunk"]
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo.extend(graph.get(m, ()))
+    assert "harness.fusion.samples" in seen  # the fusion itself is shared
+    assert not seen & {"harness.evaluate.splits", "harness.ingest.annotations"}, sorted(seen)

@@ -22,6 +22,7 @@ def case_fusion(quick: bool) -> None:
     from harness.evaluate.splits import label, paper_splits
     from harness.fusion.config import FusionConfig
     from harness.fusion.samples import fuse_samples
+    from harness.fusion.stage import labels_of
     from harness.proposals.builtin import grid5
 
     rng = np.random.default_rng(0)
@@ -88,7 +89,7 @@ def case_fusion(quick: bool) -> None:
         ann, columns=["session", "camera", "utime", "status", "x1", "y1", "x2", "y2", "label"]
     )
     fc = FusionConfig(seed=0, max_fused_boxes=4096)
-    samples, _ = fuse_samples(ranks, frames, annotations, fc)
+    samples, _ = fuse_samples(ranks, frames, labels_of(annotations), fc)
     allp = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     methods = tuple(c[4:] for c in samples.columns if c.startswith("loc_"))
     cfg = load_config(ROOT / "datasets" / "fixture.toml")
@@ -96,7 +97,7 @@ def case_fusion(quick: bool) -> None:
     ids = {g: i for i, g in enumerate(sorted(set(sample_groups(allp))))}
 
     def fusion() -> None:
-        fuse_samples(ranks, frames, annotations, fc)
+        fuse_samples(ranks, frames, labels_of(annotations), fc)
 
     def labels_ap() -> None:
         for sp in paper_splits(SplitsConfig()):

@@ -1,20 +1,20 @@
-"""The samples stage (method §7): every query image's fused boxes with their LoC, one table per run.
+"""Fused samples (method §7): every query image's fused boxes with their LoC.
 
 Each image's proposals and ranks become fused sets (:func:`harness.fusion.fuse.fuse`), one row a
-box and method, written in query-frame chunks.
+box and method. Labels are the caller's (:class:`Labels`; the benchmark's samples stage builds them
+from the annotations in :mod:`harness.fusion.stage`): ``harness detect`` fuses unlabelled and so
+never imports the evaluation's labelling.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
-from functools import partial
-from pathlib import Path
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from harness.evaluate.splits import roc_sob
 from harness.fusion.config import FusionConfig
 from harness.fusion.fuse import (
     IMAGE_BASELINES,
@@ -23,15 +23,13 @@ from harness.fusion.fuse import (
     intersection_closure,
     loc_from_cover,
 )
-from harness.ingest.annotations import change_boxes
 from harness.methods import (
     is_unfused,
     ordered_methods,
     unfused,
 )
 from harness.records import FRAME_KEY, IMAGE_KEY
-from harness.runtime.cache import stable_hash, write_parquet
-from harness.runtime.progress import progress
+from harness.runtime.cache import stable_hash
 
 #: The columns of a sample table before the LoC of each method (``loc_<method>``).
 SAMPLE_COLUMNS = (
@@ -40,6 +38,18 @@ SAMPLE_COLUMNS = (
     "proposal_method",
     *("x1", "y1", "x2", "y2", "original", "N", "RoC", "SoB"),
 )
+
+
+@dataclass(frozen=True)
+class Labels:
+    """What labels the samples: the annotated frames' change boxes and the RoC/SoB rule.
+
+    ``changes``: frame key -> (c, 4) change boxes (c = 0 for a no-change frame); ``roc_sob``:
+    ``(boxes, change_boxes, width, height) -> (roc, sob)`` (method §8).
+    """
+
+    changes: Mapping[tuple[str, str, int], np.ndarray]
+    roc_sob: Callable[[np.ndarray, np.ndarray, float, float], tuple[np.ndarray, np.ndarray]]
 
 
 def _runs(kcols: list[np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -57,6 +67,7 @@ def _fuse_image(
     image: tuple[tuple[Any, Any], np.ndarray | None, int],
     rules: tuple[tuple[str, ...], int, float, dict[str, Any]],
     counts: dict[str, Any],
+    labels: Labels | None = None,
 ) -> dict[str, np.ndarray]:
     """The sample columns of one query image and proposal set, from its boxes' ``r, d, L``.
 
@@ -90,11 +101,11 @@ def _fuse_image(
         else:
             extra.append((bx, r[k]))
     all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
-    if change is None:  # unlabelled: no RoC; SoB is the box's share of the frame
+    if change is None or labels is None:  # unlabelled: no RoC; SoB is the box's share of the frame
         area = (all_boxes[:, 2] - all_boxes[:, 0]) * (all_boxes[:, 3] - all_boxes[:, 1])
         roc, sob = np.full(len(all_boxes), np.nan), area / float(w * h)
     else:
-        roc, sob = roc_sob(all_boxes, change, w, h)
+        roc, sob = labels.roc_sob(all_boxes, change, w, h)
     n_x = len(extra)
     part = {c: all_boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))}
     part["original"] = np.concatenate([~np.isnan(nof), np.ones(n_x, bool)])
@@ -112,13 +123,13 @@ def _fuse_image(
 def fuse_samples(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
-    ann: pd.DataFrame | None,
+    labels: Labels | None,
     fusion: FusionConfig,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """Samples of every annotated query image (one per pair) with the LoC of each method.
+    """Samples of every labelled query image (one per pair) with the LoC of each method.
 
-    ``ann`` None: every query image of ``ranks``, unlabelled (``RoC`` NaN; ``harness detect``).
+    ``labels`` None: every query image of ``ranks``, unlabelled (``RoC`` NaN; ``harness detect``).
     ``fusion`` gives the methods (any order: the method's is kept), the seed, the cap on fused boxes
     per image, RRF's constant and a registered rule's options.
 
@@ -131,7 +142,7 @@ def fuse_samples(
 
     Numpy columns of ``ranks`` sorted once (stable) by query image; one table built at the end.
     """
-    cb = change_boxes(ann) if ann is not None else None
+    cb = labels.changes if labels is not None else None
     size = dict(
         zip(
             frames[FRAME_KEY].itertuples(index=False, name=None),
@@ -146,9 +157,8 @@ def fuse_samples(
     rules_of = (methods, max_boxes, fusion.rrf_c, options)
     props = sorted(ranks["proposal_method"].unique())
     subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
-    keys = IMAGE_KEY
-    srt = ranks.sort_values(keys, kind="stable")
-    kcols = [srt[k].to_numpy() for k in keys]
+    srt = ranks.sort_values(list(IMAGE_KEY), kind="stable")
+    kcols = [srt[k].to_numpy() for k in IMAGE_KEY]
     method = srt["proposal_method"].to_numpy()
     season_pair = srt["season_pair"].to_numpy()
     box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
@@ -177,6 +187,7 @@ def fuse_samples(
                 ),
                 rules_of,
                 counts,
+                labels,
             )
             n_rows = len(part["x1"])
             for c, v in zip(IMAGE_KEY, key, strict=True):
@@ -189,18 +200,3 @@ def fuse_samples(
         return pd.DataFrame(), counts
     df = pd.DataFrame({c: np.concatenate(v) for c, v in cols.items()})
     return df, counts
-
-
-def write_samples(
-    ranks: pd.DataFrame, frames: pd.DataFrame, ann: pd.DataFrame, fc: FusionConfig, tmp: Path
-) -> dict[str, int]:
-    """Build the samples (:func:`fuse_samples` with ``[fusion]``) into ``tmp/samples.parquet``.
-
-    Returns:
-        The fusion counters (query images, capped closures).
-    """
-    df, counts = fuse_samples(
-        ranks, frames, ann, fc, progress=partial(progress, desc="fusion", unit="image")
-    )
-    write_parquet(tmp / "samples.parquet", df)
-    return counts
