@@ -24,6 +24,7 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
         ),
     ),
     "descriptor": ("descriptor", ("harness/descriptors",)),
+    "training": ("training", ("harness/descriptors/autoencoder.py",)),
     "ranking": ("ranking", ("harness/retrieval",)),
     "localizers": ("localizers", ("harness", "bench/nclt_localizers.toml")),
     "detect": ("detect", ("harness", "bench/nclt_detect.toml")),
