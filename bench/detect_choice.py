@@ -37,12 +37,17 @@ DATA = ROOT / "bench" / ".data"
 
 #: The difference's settings a candidate runs with (``[detect]`` and ``[detect.difference]``):
 #: the recipe (contrast with a ring half the box wide; a pair that cannot be registered dropped),
-#: and the ratio to a ring a quarter wide, a pair that cannot be registered compared as it stands.
+#: the ratio to a ring a quarter wide, a pair that cannot be registered compared as it stands;
+#: each with the difference alone or times the colours' novelty.
 SETTINGS = {
     "contrast-drop": {"not_comparable": "drop", "box_score": "contrast", "ring": 0.5},
     "contrast-fallback": {"not_comparable": "fallback", "box_score": "contrast", "ring": 0.5},
     "ratio-drop": {"not_comparable": "drop", "box_score": "ratio", "ring": 0.25},
     "ratio-fallback": {"not_comparable": "fallback", "box_score": "ratio", "ring": 0.25},
+}
+SETTINGS = {
+    **{k: {**v, "colour": "none"} for k, v in SETTINGS.items()},
+    **{f"{k}-novelty": {**v, "colour": "novelty"} for k, v in SETTINGS.items() if "ratio" in k},
 }
 #: The candidates: (--localizer, --proposals, --box-prior, settings); each run also gives the
 #: plain difference alone under its settings, its Table D row.
@@ -50,6 +55,7 @@ CANDIDATES = [
     *(("keypoints", "selective", "difference_product", s) for s in SETTINGS),
     ("keypoints", "selective", "difference", "ratio-fallback"),
     ("local", "selective", "difference_product", "ratio-fallback"),
+    ("local", "selective", "difference_product", "ratio-fallback-novelty"),
     ("keypoints", "segments", "area", "contrast-drop"),
 ]
 PLAIN = ("none", "selective", "plain difference")
@@ -108,7 +114,7 @@ def settings_toml(name: str) -> str:
     st = SETTINGS[name]
     return (
         f'\n[detect]\nnot_comparable = "{st["not_comparable"]}"\n\n[detect.difference]\n'
-        f'box_score = "{st["box_score"]}"\nring = {st["ring"]}\n'
+        f'box_score = "{st["box_score"]}"\nring = {st["ring"]}\ncolour = "{st["colour"]}"\n'
     )
 
 

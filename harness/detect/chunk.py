@@ -18,8 +18,9 @@ from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_pr
 from harness.detect.config import DetectConfig
 from harness.detect.difference import (
     Registration,
-    difference_contrast,
+    box_differences,
     difference_map,
+    novelty_of,
     register,
 )
 from harness.fusion.config import FusionConfig
@@ -174,11 +175,10 @@ class _PairDifference:
         if not self.reg.comparable and opt.not_comparable == "fallback":
             self.used = self.reg.fallback(self.q, m, opt.difference)
         self.made = difference_map(self.q, m, self.used, opt.difference)
+        self.novelty = novelty_of(self.q, m, opt.difference) if self.made is not None else None
 
     def contrast(self, boxes: np.ndarray) -> np.ndarray:
-        if self.made is None:
-            return np.full(len(boxes), np.nan)
-        return difference_contrast(*self.made, boxes, self.dc)
+        return box_differences(self.made, self.novelty, boxes, self.dc)
 
 
 def _plain_difference(

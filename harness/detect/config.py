@@ -74,6 +74,14 @@ class DifferenceConfig:
     box_score: str = "ratio"
     # the ring around a box: the box grown by this share of its width and height on each side
     ring: float = 0.25
+    # the difference times the colours' novelty: "novelty" (how much likelier each new pixel's
+    # colour is in the new frame than anywhere in its map frame, scored like the difference; no
+    # registration needed) or "none" (the difference alone)
+    colour: str = "novelty"
+    # the novelty's colour histogram: bins of CIELAB's L, a and b
+    colour_bins: tuple[int, int, int] = (8, 16, 16)
+    # the novelty's frames: longer side at most this (pixels)
+    colour_side: int = 320
 
 
 def check_difference(dc: DifferenceConfig, where: str) -> None:
@@ -90,10 +98,16 @@ def check_difference(dc: DifferenceConfig, where: str) -> None:
     c(dc.box_score in DIFFERENCE_SCORES, where, "box_score", dc.box_score,
       " or ".join(DIFFERENCE_SCORES))  # fmt: skip
     c(0 < dc.ring <= 2, where, "ring", dc.ring, "(0, 2]: a share of the box each side")
+    c(dc.colour in COLOUR_SCORES, where, "colour", dc.colour, " or ".join(COLOUR_SCORES))
+    c(len(dc.colour_bins) == 3 and all(2 <= b <= 64 for b in dc.colour_bins), where,
+      "colour_bins", dc.colour_bins, "three bin counts (L, a, b), each in [2, 64]")  # fmt: skip
+    c(dc.colour_side >= 16, where, "colour_side", dc.colour_side, ">= 16 pixels")
 
 
 #: ``[detect.difference] box_score``'s values.
 DIFFERENCE_SCORES = ("contrast", "ratio")
+#: ``[detect.difference] colour``'s values.
+COLOUR_SCORES = ("novelty", "none")
 
 
 #: ``[detect] not_comparable`` and ``[detect] bootstrap_group``'s values.

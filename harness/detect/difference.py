@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from harness.detect.boxes import inside_score
+from harness.detect.colour import colour_novelty
 from harness.detect.config import DifferenceConfig
 from harness.imagestore import read_image
 from harness.localizers.align import align_ecc
@@ -318,6 +319,30 @@ def difference_contrast(
     return out
 
 
+def box_differences(
+    made: tuple[np.ndarray, float] | None,
+    novelty: tuple[np.ndarray, float] | None,
+    boxes: np.ndarray,
+    dc: DifferenceConfig,
+) -> np.ndarray:
+    """Each box's plain-difference score: its difference (``made``), times its colours' novelty.
+
+    Where ``dc.colour`` is "novelty" (``novelty`` given) both are floored at 0 and multiplied; NaN
+    where the pair was compared by nothing.
+    """
+    if made is None:
+        return np.full(len(boxes), np.nan)
+    d = difference_contrast(*made, boxes, dc)
+    if novelty is None:
+        return d
+    return np.maximum(d, 0.0) * np.maximum(difference_contrast(*novelty, boxes, dc), 0.0)
+
+
+def novelty_of(q_rgb: np.ndarray, m_rgb: np.ndarray, dc: DifferenceConfig) -> Any:
+    """The pair's colour novelty where ``dc.colour`` asks for it, else None."""
+    return colour_novelty(q_rgb, m_rgb, dc) if dc.colour == "novelty" else None
+
+
 #: Table D's rows that read the pair's pixels but no localizer: the plain difference with its own
 #: boxes (Selective Search), and the detector's candidates scored by the same difference. The
 #: detector is above only when it clears these rows too.
@@ -366,6 +391,4 @@ def pair_difference(
     if not reg.comparable and opt.not_comparable == "fallback":
         reg = reg.fallback(q, mm, opt.difference)
     made = difference_map(q, mm, reg, opt.difference)
-    if made is None:
-        return np.full(len(boxes), np.nan)
-    return difference_contrast(*made, boxes, opt.difference)
+    return box_differences(made, novelty_of(q, mm, opt.difference), boxes, opt.difference)

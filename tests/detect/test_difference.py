@@ -15,8 +15,10 @@ import dataclasses
 import numpy as np
 import pytest
 
+from harness.detect.colour import colour_novelty
 from harness.detect.config import DifferenceConfig, check_difference
 from harness.detect.difference import (
+    box_differences,
     difference_contrast,
     difference_map,
     register,
@@ -104,7 +106,10 @@ def test_two_unrelated_scenes_are_not_comparable_and_say_why() -> None:
 
 
 def test_bad_difference_settings_are_one_error_naming_the_key() -> None:
-    for key, bad in (("min_inliers", 3), ("shift", 0.5), ("box_score", "max"), ("ring", 0)):
+    bads = (("min_inliers", 3), ("shift", 0.5), ("box_score", "max"), ("ring", 0),
+            ("colour", "hue"), ("colour_bins", (8, 16)), ("colour_bins", (1, 16, 16)),
+            ("colour_side", 8))  # fmt: skip
+    for key, bad in bads:
         with pytest.raises(ConfigError, match=key):
             check_difference(dataclasses.replace(DifferenceConfig(), **{key: bad}), "[x]")
 
@@ -153,3 +158,35 @@ def test_a_wobbled_copy_moves_by_its_rms_and_is_named_by_its_values() -> None:
     rms = float(np.sqrt((flow[30:-30, 30:-30] ** 2).sum(axis=2).mean()))
     diag = float(np.hypot(*m.shape[:2]))
     assert 0.5 * 0.005 * diag < rms < 1.5 * 0.005 * diag, (rms, 0.005 * diag)
+
+
+def test_a_new_colour_is_novel_from_any_view_and_a_frame_against_itself_is_not() -> None:
+    """The colours' novelty (docs/method.md, *The colours' novelty*) needs no registration: a red
+    square put into a grey textured scene is the novel place of the new frame, even against a
+    map frame that shows the scene from elsewhere (flipped, so no warp could carry it), and a
+    frame against itself holds no novel colour at all."""
+    q, m = (_rgb(x) for x in _pair())
+    x1, y1, x2, y2 = OBJECT
+    q = q.copy()
+    q[y1:y2, x1:x2] = (200, 30, 30)
+    dc = DifferenceConfig()
+    elsewhere = np.ascontiguousarray(m[::-1, ::-1])
+    nov, f = colour_novelty(q, elsewhere, dc)
+    assert nov.shape == (round(q.shape[0] * f), round(q.shape[1] * f))
+    boxes = np.vstack([np.array(OBJECT, np.float64), _background_boxes()])
+    sc = difference_contrast(nov, f, boxes, dc)
+    assert sc[0] > 3 * max(sc[1:].max(), 1e-3), sc
+    same, _ = colour_novelty(q, q, dc)
+    assert float(same.max()) < 1e-6
+    # a box's plain-difference score: its difference times its novelty, both floored at 0;
+    # without novelty, the difference alone; compared by nothing, none
+    made = difference_map(q, m, register(q, m, KeypointConfig(), dc), dc)
+    assert made is not None
+    both = box_differences(made, (nov, f), boxes, dc)
+    np.testing.assert_allclose(
+        both, np.maximum(difference_contrast(*made, boxes, dc), 0) * np.maximum(sc, 0)
+    )
+    np.testing.assert_array_equal(
+        box_differences(made, None, boxes, dc), difference_contrast(*made, boxes, dc)
+    )
+    assert np.isnan(box_differences(None, (nov, f), boxes, dc)).all()
