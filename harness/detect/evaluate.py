@@ -33,7 +33,6 @@ from harness.evaluate.box_ap import (
     iou_matrix,
 )
 from harness.records import FRAME_KEY, QUERY_KEY
-from harness.reports.table_d import table_d_markdown
 from harness.runtime.cache import write_json, write_text
 
 
@@ -337,6 +336,9 @@ def score_detections(
 ) -> pd.DataFrame | None:
     """Table D: the detector's box APs on the annotated query frames, with method §9's floor.
 
+    Writes ``ground_truth.json`` and ``tableD.csv``; the caller renders the table
+    (:func:`harness.reports.table_d.table_d_markdown`).
+
     ``boxes`` names the generator (a column of the table); ``alarm`` is the nominal false-alarm
     rate the alarm columns measure.
     """
@@ -385,5 +387,4 @@ def score_detections(
     t.insert(1, "boxes", boxes)
     _alarm_columns(t, fr, ann, alarm, ci)
     write_text(out / "tableD.csv", t.to_csv(index=False, float_format="%.4f"))
-    write_text(out / "tableD.md", table_d_markdown(t))
     return t

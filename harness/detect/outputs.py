@@ -28,6 +28,7 @@ from harness.ingest.names import session_names, with_names
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.reports.overlay import colour_bar
+from harness.reports.table_d import table_d_markdown
 from harness.runtime.cache import (
     read_cached_parquet,
     write_json,
@@ -200,7 +201,10 @@ def _table_d(
         fr, ann, dets, ids, pd.concat(cands, ignore_index=True), nms,
         pd.concat(plain, ignore_index=True) if plain else None, groups, opt.bootstrap_group,
     )  # fmt: skip
-    return score_detections(out, inputs, ChanceSettings.of(cfg), opt.boxes, run.alarm)
+    t = score_detections(out, inputs, ChanceSettings.of(cfg), opt.boxes, run.alarm)
+    if t is not None:
+        write_text(out / "tableD.md", table_d_markdown(t))
+    return t
 
 
 def _groups(fr: pd.DataFrame, frames: pd.DataFrame) -> dict[tuple[str, str, int], str]:
