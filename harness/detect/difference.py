@@ -343,29 +343,6 @@ def novelty_of(q_rgb: np.ndarray, m_rgb: np.ndarray, dc: DifferenceConfig) -> An
     return colour_novelty(q_rgb, m_rgb, dc) if dc.colour == "novelty" else None
 
 
-#: Table D's rows that read the pair's pixels but no localizer: the plain difference with its own
-#: boxes (Selective Search), and the detector's candidates scored by the same difference. The
-#: detector is above only when it clears these rows too.
-PIXEL_BASELINES = ("plain_difference", "difference_same_boxes")
-
-
-def difference_dets(
-    by_image: dict[int, tuple[np.ndarray, np.ndarray]], nms: Any, row: str
-) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
-    """A difference row: per image id, the (boxes, scores) the detector's NMS keeps.
-
-    Boxes without a difference (a pair that is not comparable) never enter; none where no box
-    carries one.
-    """
-    if not any(np.isfinite(sc).any() for _, sc in by_image.values()):
-        return {}
-    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    for i, (boxes, sc) in by_image.items():
-        keep = np.asarray(nms(boxes, sc), np.int64)
-        out[i] = (boxes[keep], sc[keep])
-    return {row: out}
-
-
 def pair_difference(
     run_frames: pd.DataFrame,
     images: pd.Series,

@@ -16,12 +16,12 @@ import pandas as pd
 from harness.detect.boxes import change_boxes_nms
 from harness.detect.calibrate import exceedance
 from harness.detect.chunk import FRAME_RESULT
-from harness.detect.evaluate import TableDInputs, score_detections
 from harness.detect.figures import trajectory_figure
 from harness.detect.options import DetectRun
 from harness.detect.page import write_detect_page
 from harness.detect.pixels import write_pixel_table
 from harness.evaluate.chance import ChanceSettings
+from harness.evaluate.table_d import TableDInputs, score_detections
 from harness.fusion.fuse import loc_map
 from harness.imagestore import read_image
 from harness.ingest.names import session_names, with_names

@@ -25,8 +25,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.detect.difference import PIXEL_BASELINES, pair_difference
-from harness.detect.evaluate import NO_PIXEL, no_pixel_scores
+from harness.detect.difference import pair_difference
 from harness.errors import AnnotationError
 from harness.evaluate import chance
 from harness.evaluate.metrics import (
@@ -35,6 +34,8 @@ from harness.evaluate.metrics import (
     resample_counts,
     weighted_average_precision,
 )
+from harness.evaluate.table_d import no_pixel_scores
+from harness.evaluate.table_d_chance import NO_PIXEL, PIXEL_BASELINES
 from harness.fusion.fuse import loc_map
 from harness.ingest.names import frames_by_image
 from harness.inputs import IMAGE_SUFFIXES

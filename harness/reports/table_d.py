@@ -1,6 +1,6 @@
 """Table D (method §13.1, section 9 for its floor and ceiling), built once for every format.
 
-:func:`harness.detect.evaluate.score_detections` computes the table (``tableD.csv``, a row per
+:func:`harness.evaluate.table_d.score_detections` computes the table (``tableD.csv``, a row per
 detector and baseline with the candidates' floor, band, ceiling, recall and false-alarm rates);
 :func:`table_d` turns it into a :class:`TableD` (each row's cells as text, the candidates'
 figures, the false-alarm rates, the warnings) that the markdown file and the page

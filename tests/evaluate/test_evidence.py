@@ -138,7 +138,7 @@ def test_the_fixture_keeps_its_verdicts(local_run: tuple) -> None:
 
 def test_table_d_uses_the_same_rule(tmp_path: Path) -> None:
     """Table D's rows get ``few`` with one annotated change frame, whatever their AP."""
-    from harness.detect.evaluate import table_d_chance
+    from harness.evaluate.table_d_chance import table_d_chance
 
     box = np.array([[10.0, 10.0, 30.0, 30.0]])
     gts = {0: box, 1: np.zeros((0, 4)), 2: np.zeros((0, 4))}

@@ -148,8 +148,9 @@ def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
     """Table D's rows that read no pixel (method §13.3): a box's area, and how many of the frame's
     candidates overlap it (itself included); the detector is above only when clear of the best."""
     from harness.detect.boxes import change_boxes_nms
-    from harness.detect.evaluate import no_pixel_scores, table_d_chance
     from harness.evaluate.chance import ChanceSettings
+    from harness.evaluate.table_d import no_pixel_scores
+    from harness.evaluate.table_d_chance import table_d_chance
 
     boxes = np.array([[0, 0, 10, 10], [5, 5, 25, 15], [40, 40, 44, 60]], np.float64)
     s = no_pixel_scores(boxes)

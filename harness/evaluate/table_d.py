@@ -23,8 +23,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.detect.difference import difference_dets
-from harness.detect.tabled_chance import NO_PIXEL, table_d_chance
 from harness.evaluate import chance
 from harness.evaluate.box_ap import (
     clopper_pearson,
@@ -32,6 +30,7 @@ from harness.evaluate.box_ap import (
     coco_ground_truth,
     iou_matrix,
 )
+from harness.evaluate.table_d_chance import NO_PIXEL, difference_dets, table_d_chance
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import write_json, write_text
 

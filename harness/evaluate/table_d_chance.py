@@ -15,10 +15,32 @@ from typing import Any
 
 import numpy as np
 
-from harness.detect.difference import PIXEL_BASELINES
 from harness.evaluate import chance
 from harness.evaluate.box_ap import iou_matrix, match50, weighted_voc
 from harness.evaluate.metrics import interval, resample_counts
+
+#: Table D's rows that read the pair's pixels but no localizer: the plain difference with its own
+#: boxes (Selective Search), and the detector's candidates scored by the same difference. The
+#: detector is above only when it clears these rows too.
+PIXEL_BASELINES = ("plain_difference", "difference_same_boxes")
+
+
+def difference_dets(
+    by_image: dict[int, tuple[np.ndarray, np.ndarray]], nms: Any, row: str
+) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
+    """A difference row: per image id, the (boxes, scores) the detector's NMS keeps.
+
+    Boxes without a difference (a pair that is not comparable) never enter; none where no box
+    carries one.
+    """
+    if not any(np.isfinite(sc).any() for _, sc in by_image.values()):
+        return {}
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for i, (boxes, sc) in by_image.items():
+        keep = np.asarray(nms(boxes, sc), np.int64)
+        out[i] = (boxes[keep], sc[keep])
+    return {row: out}
+
 
 #: Table D's baselines that read no pixel (method §13.3): the candidates scored by their area, and
 #: by how many of the frame's candidates overlap them.
