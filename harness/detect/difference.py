@@ -15,8 +15,10 @@ serves every frame size:
    frame's diagonal; a Gaussian blur of sigma ``blur`` of the diagonal, normalised by the
    footprint so that pixels the map does not see (NaN) take part in nothing.
 
-A box scores its mean difference less the mean of its ring (:func:`harness.detect.boxes.
-inside_score`'s ``contrast``): a change differs more than its surroundings.
+A box scores its mean difference over one plus its ring's (``box_score = "ratio"``) or less it
+(``"contrast"``): a change differs more than its surroundings. Where ``colour`` is "novelty" the
+box's score is that times the same score of the colours' novelty (:mod:`harness.detect.colour`),
+each floored at 0 (:func:`box_differences`).
 """
 
 from __future__ import annotations
