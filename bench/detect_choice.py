@@ -49,6 +49,15 @@ SETTINGS = {
     **{k: {**v, "colour": "none"} for k, v in SETTINGS.items()},
     **{f"{k}-novelty": {**v, "colour": "novelty"} for k, v in SETTINGS.items() if "ratio" in k},
 }
+#: The last with NMS's overlap below the evaluation's IoU of 0.5, or the localizer's score
+#: squared or to the fourth power in the product (``[detect] localization_weight``; 1 above).
+SETTINGS |= {
+    "ratio-fallback-novelty-nms0.3": {**SETTINGS["ratio-fallback-novelty"], "nms_iou": 0.3},
+    **{
+        f"ratio-fallback-novelty-w{w}": {**SETTINGS["ratio-fallback-novelty"], "weight": w}
+        for w in (2, 4)
+    },
+}
 #: The candidates: (--localizer, --proposals, --box-prior, settings); each run also gives the
 #: plain difference alone under its settings, its Table D row.
 CANDIDATES = [
@@ -113,7 +122,9 @@ def settings_toml(name: str) -> str:
     """The ``[detect]`` and ``[detect.difference]`` tables of a candidate's settings."""
     st = SETTINGS[name]
     return (
-        f'\n[detect]\nnot_comparable = "{st["not_comparable"]}"\n\n[detect.difference]\n'
+        f'\n[detect]\nnot_comparable = "{st["not_comparable"]}"\n'
+        f"nms_iou = {st.get('nms_iou', 0.5)}\nlocalization_weight = {st.get('weight', 1)}\n"
+        f"\n[detect.difference]\n"
         f'box_score = "{st["box_score"]}"\nring = {st["ring"]}\ncolour = "{st["colour"]}"\n'
     )
 

@@ -257,9 +257,10 @@ def _add_detect(sub: Any) -> None:
         "--box-prior",
         choices=BOX_PRIORS,
         help="what a box's score is fused with: difference_product (the registered pair's plain "
-        "difference times the score), difference (their within-frame percentiles), area (its "
-        "percentile by area in its frame, method §13.3) or none (the score alone, the paper's "
-        "detector) (default: [detect] box_prior, difference_product)",
+        "difference times the score to the power [detect] localization_weight), difference "
+        "(their within-frame percentiles), area (its percentile by area in its frame, method "
+        "§13.3) or none (the score alone, the paper's detector) (default: [detect] box_prior, "
+        "difference_product)",
     )
     p.add_argument(
         "--box-score",

@@ -90,7 +90,7 @@ def _frame_boxes_of(
     elif opt.box_prior == "difference":
         loc = with_prior(loc, diff)
     elif opt.box_prior == "difference_product":
-        loc = np.maximum(diff, 0.0) * loc
+        loc = np.maximum(diff, 0.0) * loc**opt.localization_weight
     keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
     rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
     return boxes, loc, keep, rand, rnd, int((~wide).sum()), diff
@@ -241,12 +241,13 @@ def detect_chunk(
     fusion: FusionConfig,
     proposals: ProposalsConfig,
     tmp: Path,
-    null: bool = False,
+    plain_for: frozenset[tuple[str, str, int]] = frozenset(),
 ) -> dict[str, int]:
     """Fusion, change boxes and frame scores of one chunk of query frames into ``tmp``.
 
-    ``null``: the chunk is of the no-change null's pairs (:mod:`harness.detect.null`), whose
-    candidates feed no Table D (no plain-difference row is drawn for them).
+    ``plain_for``: the query frames whose plain difference's own candidates Table D reads (the
+    annotated ones; none for the no-change null's pairs, :mod:`harness.detect.null`): only
+    those frames pay for its Selective Search.
 
     ``opt``: the run's ``[detect]`` (its rule among them); ``fusion``: the config's ``[fusion]``
     (the seed, the cap on fused boxes, RRF's constant, a registered rule's options);
@@ -291,7 +292,7 @@ def detect_chunk(
             boxes, loc, diff = boxes[:0], loc[:0], diff[:0]
             keep, rand = keep[:0], rand[:0]
             floc = floc[:0]
-        if not null:
+        if fk in plain_for:
             # the detector's own proposals where they are Selective Search's (one search a frame)
             known = orig[fk][:, :4] if opt.proposals == "selective" and opt.boxes in (
                 "subimages", "proposals") else None  # fmt: skip

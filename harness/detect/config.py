@@ -220,6 +220,10 @@ class DetectConfig:
     # docs/method.md's rule), "difference" (the mean of the two within-frame percentiles), "area"
     # (the mean of the box's percentiles by score and by area, method §13.3) or "none"
     box_prior: str = "difference_product"
+    # difference_product: the power of the localizer's score in the product (difference x
+    # score ^ weight): 1 weighs the two alike in log terms; 4, the default (chosen by
+    # docs/method.md's rule), lets localization reorder the boxes the difference scores alike
+    localization_weight: float = 4.0
     # the local localizer's options (harness.localizers.local.LocalConfig)
     local: LocalConfig = field(default_factory=LocalConfig)
     # the proposal method whose boxes the local or keypoints localizer ranks: "selective"
@@ -257,6 +261,8 @@ class DetectConfig:
         if self.boxes == "segments" or self.localizer != CONFIG_LOCALIZERS:
             out["segments"] = dataclasses.asdict(segments)
         out |= {"localizer": self.localizer, "box_prior": self.box_prior, "local": mine["local"]}
+        if self.box_prior == "difference_product":
+            out["localization_weight"] = self.localization_weight
         if self.localizer == CONFIG_LOCALIZERS:
             del out["local"], out["localizer"]
         elif self.localizer != "local":  # its options in place of the local localizer's
@@ -296,68 +302,30 @@ def check_detect(dt: DetectConfig, where: str, typed: Mapping[str, str] | None =
         return flags.get(name, f"[detect] {name}")
 
     detect_rules = rules_where(detect=True)
-    c(dt.fusion in detect_rules, where, k("fusion"), dt.fusion, ", ".join(detect_rules))
-    c(0 < dt.nms_iou <= 1, where, k("nms_iou"), dt.nms_iou, "(0, 1]")
-    c(dt.max_boxes >= 1, where, k("max_boxes"), dt.max_boxes, ">= 1 per frame")
-    c(dt.chunk_frames >= 1, where, k("chunk_frames"), dt.chunk_frames, ">= 1")
-    c(dt.top >= 0, where, k("top"), dt.top, ">= 0 places")
-    c(
-        dt.boxes in BOX_GENERATORS,
-        where,
-        k("boxes"),
-        dt.boxes,
-        f"one of {', '.join(BOX_GENERATORS)} (method §13.1)",
-    )
-    c(
-        dt.box_score in BOX_SCORES,
-        where,
-        k("box_score"),
-        dt.box_score,
-        f"one of {', '.join(BOX_SCORES)}",
-    )
-    c(0 < dt.alarm < 1, where, k("alarm"), dt.alarm, "(0, 1): a false-alarm rate")
-    c(
-        dt.localizer in detect_localizers(),
-        where,
-        k("localizer"),
-        dt.localizer,
-        " or ".join(detect_localizers()),
-    )
-    c(dt.calibration in CALIBRATIONS, where, k("calibration"), dt.calibration,
-      " or ".join(CALIBRATIONS))  # fmt: skip
+    proposals = known_proposal_methods()
+    # (holds, the field, what is allowed), checked in this order; the sections after them
+    rules = [
+        (dt.fusion in detect_rules, "fusion", ", ".join(detect_rules)),
+        (0 < dt.nms_iou <= 1, "nms_iou", "(0, 1]"),
+        (dt.max_boxes >= 1, "max_boxes", ">= 1 per frame"),
+        (dt.chunk_frames >= 1, "chunk_frames", ">= 1"),
+        (dt.top >= 0, "top", ">= 0 places"),
+        (dt.boxes in BOX_GENERATORS, "boxes", f"one of {', '.join(BOX_GENERATORS)} (method §13.1)"),
+        (dt.box_score in BOX_SCORES, "box_score", f"one of {', '.join(BOX_SCORES)}"),
+        (0 < dt.alarm < 1, "alarm", "(0, 1): a false-alarm rate"),
+        (dt.localizer in detect_localizers(), "localizer", " or ".join(detect_localizers())),
+        (dt.calibration in CALIBRATIONS, "calibration", " or ".join(CALIBRATIONS)),
+        (dt.not_comparable in NOT_COMPARABLE, "not_comparable", " or ".join(NOT_COMPARABLE)),
+        (dt.bootstrap_group in BOOTSTRAP_GROUPS, "bootstrap_group", " or ".join(BOOTSTRAP_GROUPS)),
+        (dt.proposals in proposals, "proposals", ", ".join(proposals)),
+        (dt.box_prior in BOX_PRIORS, "box_prior", " or ".join(BOX_PRIORS)),
+        (0 < dt.localization_weight <= 16, "localization_weight", "(0, 16]: a power of the score"),
+        (0 < dt.locmap_level < 1, "locmap_level", "(0, 1): a share of each frame's LoC range"),
+        (0 <= dt.min_box_side < 1e4, "min_box_side", "pixels a side, >= 0 (0: keep every box)"),
+    ]
+    for holds, name, allowed in rules:
+        c(holds, where, k(name), getattr(dt, name), allowed)
     check_null(dt.null, f"{where} [detect.null]")
     check_local(dt.local, f"{where} [detect.local]")
     check_keypoints(dt.keypoints, f"{where} [detect.keypoints]")
     check_difference(dt.difference, f"{where} [detect.difference]")
-    c(dt.not_comparable in NOT_COMPARABLE, where, k("not_comparable"), dt.not_comparable,
-      " or ".join(NOT_COMPARABLE))  # fmt: skip
-    c(dt.bootstrap_group in BOOTSTRAP_GROUPS, where, k("bootstrap_group"),
-      dt.bootstrap_group, " or ".join(BOOTSTRAP_GROUPS))  # fmt: skip
-    c(
-        dt.proposals in known_proposal_methods(),
-        where,
-        k("proposals"),
-        dt.proposals,
-        ", ".join(known_proposal_methods()),
-    )
-    c(
-        dt.box_prior in BOX_PRIORS,
-        where,
-        k("box_prior"),
-        dt.box_prior,
-        " or ".join(BOX_PRIORS),
-    )
-    c(
-        0 < dt.locmap_level < 1,
-        where,
-        k("locmap_level"),
-        dt.locmap_level,
-        "(0, 1): a share of each frame's LoC range",
-    )
-    c(
-        0 <= dt.min_box_side < 1e4,
-        where,
-        k("min_box_side"),
-        dt.min_box_side,
-        "pixels a side, >= 0 (0: keep every box)",
-    )

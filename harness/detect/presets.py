@@ -18,6 +18,7 @@ PRESETS: dict[str, tuple[str, dict[str, Any]]] = {
             "proposals": "selective",
             "boxes": "subimages",
             "box_prior": "difference_product",
+            "localization_weight": 4.0,
         },
     ),
     "paper": (

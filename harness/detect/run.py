@@ -121,12 +121,23 @@ def _measure(
     return frames, ann, pairs, measured, props
 
 
+def _keys_of(keys: pd.DataFrame) -> frozenset[tuple[str, str, int]]:
+    """The frame keys (session, camera, utime) of the rows of ``keys``."""
+    return frozenset((str(a), str(b), int(c)) for a, b, c in keys.itertuples(index=False))
+
+
 def _chunk_units(
-    ranks: Any, frames: pd.DataFrame, opt: DetectConfig, dcfg: Config, null: bool = False
+    ranks: Any,
+    frames: pd.DataFrame,
+    opt: DetectConfig,
+    dcfg: Config,
+    null: bool = False,
+    annotated: frozenset[tuple[str, str, int]] = frozenset(),
 ) -> list[tuple[tuple[Any, ...], Any]]:
     """(cache key, build) of each chunk of ``opt.chunk_frames`` query frames.
 
-    The build is :func:`detect_chunk` on the chunk's ranks; ``null``: the no-change null's.
+    The build is :func:`detect_chunk` on the chunk's ranks; ``null``: the no-change null's;
+    ``annotated``: the annotated query frames, the only ones whose plain difference Table D reads.
     """
     chunk_units: list[tuple[tuple[Any, ...], Any]] = []
     qframes = ranks.df[QUERY_KEY].drop_duplicates().sort_values(QUERY_KEY).reset_index(drop=True)
@@ -135,10 +146,13 @@ def _chunk_units(
         mask = pd.MultiIndex.from_frame(ranks.df[QUERY_KEY]).isin(pd.MultiIndex.from_frame(part))
         chunk = ranks.df[mask].reset_index(drop=True)
         segments = dcfg.proposals.segments
-        build = partial(detect_chunk, chunk, frames, opt, dcfg.fusion, dcfg.proposals, null=null)
+        plain = frozenset() if null else _keys_of(part) & annotated
+        build = partial(
+            detect_chunk, chunk, frames, opt, dcfg.fusion, dcfg.proposals, plain_for=plain
+        )
         record = opt.record(dcfg.fusion.seed, segments, dcfg.proposals.selective)
         key = detect_keys.detect_chunk(ranks.key, record, c0, len(part), dcfg.fusion, opt.fusion)
-        key = (*key, "null") if null else key
+        key = (*key, "null") if null else (*key, "plain", sorted(plain))
         chunk_units.append((key, build))
     return chunk_units
 
@@ -177,7 +191,8 @@ def run_detect(
         )
         ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
         names_l = [m.loc.name for m in measured]
-        chunk_units = _chunk_units(ranks, frames.df, opt, dcfg)
+        annotated = _keys_of(ann.df[FRAME_KEY])
+        chunk_units = _chunk_units(ranks, frames.df, opt, dcfg, annotated=annotated)
         entries = p.units("detect", chunk_units)
         dets = pd.concat(
             [read_cached_parquet(e.path / "boxes.parquet") for e in entries], ignore_index=True

@@ -150,6 +150,7 @@ def test_an_unreachable_ray_address_is_one_error_line_in_seconds(
         (None, '\n[detect]\nbox_score = "median"\n', r"\[detect\] box_score = 'median'"),
         (None, "\n[detect]\nlocmap_level = 1.0\n", r"\[detect\] locmap_level = 1.0 is out"),
         (None, "\n[detect]\nalarm = 0\n", r"\[detect\] alarm = 0.0 is out of range"),
+        (None, "\n[detect]\nlocalization_weight = 0\n", r"\[detect\] localization_weight = 0"),
         (None, "\n[detect]\ncolour = 1\n", r"unknown key"),
         (None, '\n[detect]\ncalibration = "run"\n', r"\[detect\] calibration = 'run' is out"),
         (None, "\n[detect.null]\npairs = 0\n", r"\[detect.null\]: pairs = 0 is out of range"),

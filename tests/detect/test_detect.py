@@ -314,7 +314,8 @@ def test_the_detect_flags_are_honoured_as_typed(
         "fusion": "rank_fusion_le2", "nms_iou": 0.2, "max_boxes": 3, "top": 4,
         "chunk_frames": 64, "seed": 0, "boxes": "subimages", "box_score": "max",
         "locmap_level": 0.5, "min_box_side": 2.0, "localizer": "keypoints",
-        "box_prior": "difference_product", "proposals": "selective", "not_comparable": "fallback",
+        "box_prior": "difference_product", "localization_weight": 4.0, "proposals": "selective",
+        "not_comparable": "fallback",
     }  # fmt: skip
     assert rec["options"]["difference"]["box_score"] == "ratio"
     dets = pd.DataFrame(json.loads((out / "detections.json").read_text()))

@@ -36,7 +36,7 @@ def test_a_bad_candidate_is_one_error_line(tmp_path: Path) -> None:
 def test_the_choice_runs_as_typed_on_the_real_pairs(
     tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
-    cands = "keypoints/selective/difference_product/ratio-fallback-novelty"  # the default's
+    cands = "keypoints/selective/difference_product/ratio-fallback-novelty-w4"  # the default's
     run = tmp_path / "obchange-dev" / cands.replace("/", "-")
     with shared_stages(tmp_path_factory, OBCHANGE_DEFAULT, run):  # its stages, computed once
         proc = subprocess.run(
@@ -45,17 +45,17 @@ def test_the_choice_runs_as_typed_on_the_real_pairs(
             cwd=ROOT, capture_output=True, text=True, check=True,
         )  # fmt: skip
     md = (tmp_path / "detect_choice.md").read_text()
-    assert "| keypoints | selective | difference_product | ratio-fallback-novelty | " in md
-    assert "| none | selective | plain difference | ratio-fallback-novelty | " in md  # Table D's
+    assert "| keypoints | selective | difference_product | ratio-fallback-novelty-w4 | " in md
+    assert "| none | selective | plain difference | ratio-fallback-novelty-w4 | " in md  # Table D's
     # the development rooms decide (docs/method.md, *Choosing the default*): not run here
     assert "Chosen by the rule: none (obchange-rooms was not run)" in md and md in proc.stdout
     rec = json.loads((tmp_path / "obchange-dev" / "keypoints-selective-difference_product-"
-                      "ratio-fallback-novelty" / "detect.json").read_text())  # fmt: skip
+                      "ratio-fallback-novelty-w4" / "detect.json").read_text())  # fmt: skip
     opt = rec["options"]  # --localizer, --proposals, --box-prior and the settings reached the run
     assert (opt["localizer"], opt["proposals"], opt["box_prior"], opt["not_comparable"]) == (
         "keypoints", "selective", "difference_product", "fallback")  # fmt: skip
     assert (opt["difference"]["box_score"], opt["difference"]["ring"]) == ("ratio", 0.25)
-    assert opt["difference"]["colour"] == "novelty"
+    assert opt["difference"]["colour"] == "novelty" and opt["localization_weight"] == 4
     rows = json.loads((tmp_path / "detect_choice.json").read_text())
     assert all(0 <= r["chance_high"] < 1 and r["recall"] > 0 for r in rows)
 
