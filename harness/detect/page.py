@@ -21,13 +21,13 @@ from harness.detect.calibrate import alarm_words, in_words
 from harness.detect.figures import has_poses
 from harness.detect.options import DetectRun
 from harness.detect.page_notes import not_comparable_html, uncertain_html
-from harness.detect.pixels import pixel_html
 from harness.errors import HarnessError
 from harness.imagestore import read_image
 from harness.pairs.modes import PAIRING_MODES
 from harness.records import FRAME_KEY
 from harness.reports.html import SCRIPT  # the page reports its own loaded images (browser test)
 from harness.reports.table_d import table_d_html
+from harness.reports.table_dp import pixel_html
 from harness.runtime.cache import write_text
 
 CSS = (
