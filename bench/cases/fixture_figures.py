@@ -2,8 +2,8 @@
 
 The fixture run of ``datasets/fixture.toml`` (what ``make reproduce-table`` prints; its autoencoder
 trained afresh, not copied from the kept ``datasets/models``, so that its training time is the
-budget's), then the same run with one setting changed, each in a directory of its own that starts from the default run's
-cache (so only what the setting changes runs again):
+budget's), then the same run with one setting changed, each in a directory of its own that starts
+from the default run's cache (so only what the setting changes runs again):
 
 - ``[descriptor] train_samples = 0`` (6 epochs over the training crops instead of the fixture's
   budget of 6,000 sample-steps),
