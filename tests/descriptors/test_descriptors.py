@@ -12,8 +12,11 @@ import torch
 from harness.descriptors import AutoencoderDescriptor, HogDescriptor, ThumbDescriptor, normalize
 from harness.descriptors.autoencoder import (
     ConvAutoencoder,
+    MaxPool2x2,
+    held_out_loss,
     inference_encoder,
     load_checkpoint,
+    reconstruct,
     to_tensor,
 )
 from harness.descriptors.config import DescriptorConfig
@@ -91,6 +94,37 @@ def test_inference_encoder_equals_the_trained_encoder() -> None:
         )
         d.model = model
         assert np.allclose(d.encode(_crops(6, 64)), ref.numpy(), atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "shape", [(2, 32, 256, 256), (3, 16, 64, 64), (2, 8, 7, 9), (1, 1, 8, 8), (4, 3, 6, 10)]
+)
+def test_the_2x2_pool_is_max_pool_bit_for_bit(shape: tuple[int, int, int, int]) -> None:
+    """Channels-last, plain and odd-sized inputs, NaN included: the values of ``max_pool2d``."""
+    y = torch.randn(shape, generator=torch.Generator().manual_seed(1))
+    y.view(-1)[::97] = float("nan")
+    for x in (y.contiguous(memory_format=torch.channels_last), y.contiguous()):
+        got, ref = MaxPool2x2()(x), torch.nn.functional.max_pool2d(x, 2)
+        assert got.shape == ref.shape
+        assert torch.equal(got.isnan(), ref.isnan())
+        assert torch.equal(got.nan_to_num(), ref.nan_to_num())
+
+
+def test_held_out_reconstruction_one_at_a_time_is_the_batch_bit_for_bit() -> None:
+    """At 256 x 256 the held-out loss goes one subimage at a time: the same bits as the batch."""
+    torch.manual_seed(5)
+    model = ConvAutoencoder().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    data = _crops(12, 256)
+    model.train()
+    model(to_tensor(data[:8], torch.device("cpu"), True))  # batch-norm statistics to use
+    model.eval()
+    x = to_tensor(data[:5], torch.device("cpu"), True)
+    with torch.no_grad():
+        assert torch.equal(reconstruct(model, x), model(x))
+        batched = float(torch.nn.functional.mse_loss(model(x), x))
+    hold = np.arange(5)
+    assert held_out_loss(model, data, hold, 8, torch.device("cpu"), True) == batched
+    assert model.training  # handed back in training mode, as the training loop expects
 
 
 def test_bf16_trains_and_encodes_in_bfloat16_close_to_fp32(tmp_path: Path) -> None:
