@@ -4,13 +4,15 @@ Every row ``python -m bench`` records carries ``commit`` (the checkout's HEAD), 
 the files the case measures had uncommitted changes), ``date`` (UTC, ISO 8601) and ``cpu`` (the
 model name and the widest SIMD the CPU has: figures of one machine kind differ between AVX-512 and
 AVX2-only instances) with ``cpu_flags`` (the flags a figure depends on, bf16 included).
-``bench.md`` marks a row *stale* when a commit after the row's own touched the code its case
-measures (:func:`bench.cases.measures`), and says so where a row records no commit at all (rows
-from before this record).
+``bench.md`` marks a row *stale* when a commit after the row's own changed the code its case
+measures (:func:`bench.cases.measures`): a file's syntax tree without docstrings, so a change to
+comments or docstrings alone does not make a row stale (:func:`code_changed`). It says so where a
+row records no commit at all (rows from before this record).
 """
 
 from __future__ import annotations
 
+import ast
 import datetime as dt
 import subprocess
 from pathlib import Path
@@ -79,6 +81,50 @@ def staleness(row: dict, measures: tuple[str, ...]) -> str:
     if last is None:
         return "not checked: no git history here"
     if last and _git("merge-base", "--is-ancestor", last, commit) is None:
-        when = _git("log", "-1", "--format=%cs", last) or "?"
-        return f"stale: {', '.join(measures)} changed in {last[:8]} ({when}) after this row"
+        changed = code_changed(commit, measures)
+        if changed:
+            when = _git("log", "-1", "--format=%cs", last) or "?"
+            return (
+                f"stale: {', '.join(measures)} changed in {last[:8]} ({when}) after this row "
+                f"({', '.join(changed[:3])}{' ...' if len(changed) > 3 else ''})"
+            )
     return "dirty: measured with uncommitted changes" if row.get("dirty") else ""
+
+
+def code_of(path: str, text: str | None) -> str | None:
+    """What runs of a file: a Python file's syntax tree without docstrings (comments are not in
+    it), any other file's text; None for a missing file or Python that does not parse."""
+    if text is None or not path.endswith(".py"):
+        return text
+    try:
+        tree = ast.parse(text)
+    except SyntaxError:
+        return None
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (
+            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+            and isinstance(body[0].value.value, str)
+        ):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
+
+
+def code_changed(commit: str, measures: tuple[str, ...]) -> list[str]:
+    """The files under ``measures`` whose code differs between ``commit`` and HEAD.
+
+    A change to docstrings or comments alone leaves a file's code as it was: a row measured
+    before it still measures the code that runs now.
+    """
+    names = _git("diff", "--name-only", commit, "HEAD", "--", *measures)
+    if names is None:
+        return list(measures)
+    out = []
+    for n in names.splitlines():
+        now = code_of(n, _git("show", f"HEAD:{n}"))
+        if now is None or now != code_of(n, _git("show", f"{commit}:{n}")):
+            out.append(n)
+    return out

@@ -22,6 +22,7 @@ from .common import (
     reproduce_subprocess,
     size_of,
 )
+from .kernel_levels import native_projection
 
 #: The whole NCLT as the paper uses it: four sessions of about 25,000 Ladybug frames,
 #: 16 subimages per frame, 5,242 query images.
@@ -280,6 +281,11 @@ def case_full_nclt(quick: bool) -> None:
             flush=True,
         )
     rated_rows = [(r[3], lt) for r, (lt, _) in zip(rows, limits, strict=True) if lt]
+    native_projection(
+        {k: rows[i][3] for k, i in (("proposals", 1), ("training", 2), ("descriptors", 4))}
+        | {"ranking": rows[5][3]},
+        d_full * sub_per_frame,
+    )
     emit(
         "full-nclt projection: the rated stages vs their kernels' limits",
         [sum(p for p, _ in rated_rows) / 60],
