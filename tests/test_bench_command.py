@@ -84,3 +84,34 @@ def test_a_bench_row_is_stale_once_the_code_it_measures_changes_after_its_commit
     old = staleness({"commit": first[0]}, measures)
     assert old.startswith("stale: harness/evaluate/metrics.py changed in " + last[:8]), old
     assert staleness({}, measures).startswith("stale? no commit recorded")
+
+
+def test_a_change_to_docstrings_or_comments_alone_leaves_a_row_current() -> None:
+    """A file's code is its syntax tree without docstrings: a re-wrapped docstring or a new
+    comment is the same code, a changed statement is not; a file that is not Python is its text.
+    From the history: a commit that only re-wrapped a bench case's docstring leaves the rows
+    measured before it current."""
+    from bench.provenance import _git, code_changed, code_of
+
+    before = 'def f(x):\n    """Old words."""\n    return x + 1\n'
+    assert code_of("a.py", before) == code_of("a.py", "def f(x):  # a comment\n    return x + 1\n")
+    assert code_of("a.py", before) == code_of(
+        "a.py", 'def f(x):\n    """New\n    words."""\n    return x + 1\n'
+    )
+    assert code_of("a.py", before) != code_of(
+        "a.py", 'def f(x):\n    """Old words."""\n    return x + 2\n'
+    )
+    assert code_of("a.py", "def (") is None and code_of("a.toml", "k = 1") == "k = 1"
+    rewrap = "c21a788"  # bench/cases/fixture_figures.py: its docstring wrapped at 100 columns
+    parent = _git("rev-parse", f"{rewrap}^")
+    if parent is None or _git("rev-parse", "--is-shallow-repository") == "true":
+        pytest.skip("needs the repository's git history (a full clone)")
+    changed = _git("diff", "--name-only", parent, rewrap) or ""
+    assert changed.splitlines() == ["bench/cases/fixture_figures.py"]
+    assert code_changed(parent, ("bench/cases/fixture_figures.py",), head=rewrap) == []
+    first = (_git("rev-list", "--max-parents=0", "HEAD") or "").splitlines()
+    assert "harness/evaluate/metrics.py" in code_changed(first[0], ("harness/evaluate",))
+    assert _git("diff", "--quiet", parent, rewrap, "--", "bench/cases/fixture_figures.py") is None
+    assert code_of("x.py", _git("show", f"{parent}:bench/cases/fixture_figures.py")) == code_of(
+        "x.py", _git("show", f"{rewrap}:bench/cases/fixture_figures.py")
+    )

@@ -66,6 +66,10 @@ class DescriptorConfig:
     # > 0 the loader's processes decode ahead instead). 0 by default: on CPU the encoder already
     # uses every core, and the thread measured no faster (bench case crops); 2 with a GPU encoder
     prefetch: int = 0
+    # threads that decode and crop the frames of a batch side by side, while the encoder waits
+    # (OpenCV and libjpeg release the GIL); 0: as many as torch's intra-op threads, 1: none.
+    # The crops are the same bytes whatever the number; ignored with num_workers > 0
+    crop_threads: int = 0
     # a folder of models trained before, each under the digest of what trains it (options, crops,
     # training code, torch, kernels): a run whose digest is there copies that model instead of
     # training (harness.descriptors.store; "": always train). No key holds it: the model is the
@@ -135,6 +139,7 @@ def check_descriptor(de: DescriptorConfig, where: str) -> None:
         c(getattr(de, key) >= 1, where, f"[descriptor] {key}", getattr(de, key), ">= 1")
     c(de.num_workers >= 0, where, "[descriptor] num_workers", de.num_workers, ">= 0")
     c(de.prefetch >= 0, where, "[descriptor] prefetch", de.prefetch, ">= 0")
+    c(de.crop_threads >= 0, where, "[descriptor] crop_threads", de.crop_threads, ">= 0")
     c(
         de.input_size >= 8 and de.input_size % 8 == 0,
         where,

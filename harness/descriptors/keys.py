@@ -14,7 +14,13 @@ from harness.runtime.cache import Parts, content_sha
 from harness.runtime.hardware import resolve_precision
 
 #: Descriptor options that change neither the trained model nor the descriptors' values.
-DESCRIPTOR_EXECUTION = ("num_workers", "shard_frames", "prefetch", "trained_models")
+DESCRIPTOR_EXECUTION = (
+    "num_workers",
+    "shard_frames",
+    "prefetch",
+    "crop_threads",
+    "trained_models",
+)
 
 
 #: ... and the ones that change the descriptors but not the model (the stored dtype, the batch).

@@ -142,6 +142,10 @@ class ProposalsConfig:
     # decode a JPEG at 1/2, 1/4 or 1/8 of its size where every listed OpenCV method's work_width
     # still fits (libjpeg's DCT scaling: less work than the full frame); false: the full frame
     reduced_decode: bool = True
+    # threads that read frames and run edges and mser on them side by side (OpenCV releases the
+    # GIL; both are functions of the image alone); 0: one per core this process may use, 1: one
+    # frame at a time. The same boxes whatever the number; other methods run one frame at a time
+    threads: int = 0
     # a registered method's [proposals.<name>] table, built as its options dataclass
     options: dict[str, Any] = field(default_factory=dict)
 
@@ -171,6 +175,7 @@ def check_proposals(pr: ProposalsConfig, where: str) -> None:
         for key, attr, allowed in PROPOSERS[proposer].requires:
             value = functools.reduce(getattr, attr.split("."), pr)
             c(bool(value), where, key, value, allowed)
+    c(pr.threads >= 0, where, "[proposals] threads", pr.threads, ">= 0 (0: automatic)")
     c(0 <= pr.yolo.conf <= 1, where, "[proposals.yolo] conf", pr.yolo.conf, "[0, 1]")
     c(0 < pr.yolo.iou <= 1, where, "[proposals.yolo] iou", pr.yolo.iou, "(0, 1]")
     for key in ("imgsz", "batch", "max_det"):

@@ -13,6 +13,9 @@ from harness.proposals.config import ProposalsConfig
 from harness.proposals.proposers import proposer_fingerprints
 from harness.runtime.cache import Parts, file_fingerprint, stable_hash, without_empty
 
+#: ``[proposals]`` options that change how the boxes are computed, not the boxes: in no key.
+EXECUTION = ("threads",)
+
 
 def proposals_file(pc: ProposalsConfig) -> Any:
     """The proposal file's fingerprint (its path alone when it does not exist)."""
@@ -29,7 +32,9 @@ def proposals(pc: ProposalsConfig, ingest_key: str, frames: list[tuple[str, int]
     return (
         ingest_key,
         stable_hash(frames),
-        without_empty(dataclasses.asdict(pc), "options"),
+        without_empty(
+            {k: v for k, v in dataclasses.asdict(pc).items() if k not in EXECUTION}, "options"
+        ),
         proposals_file(pc),
         proposer_fingerprints(pc.methods),  # registered methods' own source
     )

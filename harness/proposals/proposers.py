@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -176,6 +178,9 @@ def _image_proposals(
         return out
     batch = max(1, cfg.yolo.batch)
     items = list(frames.itertuples(index=False))
+    threads = cfg.threads if cfg.threads > 0 else len(os.sched_getaffinity(0))
+    if not batched and threads > 1 and set(per_image) <= THREADED:
+        return _threaded_proposals(items, cfg, per_image, threads, progress)
     for i in progress(range(0, len(items), batch)):
         chunk = items[i : i + batch]
         imgs = [
@@ -188,6 +193,42 @@ def _image_proposals(
         for m, net in batched:
             for f, (b, s, c) in zip(chunk, net(imgs), strict=True):
                 out.append(_rows(f, m, b, s, [str(int(k)) for k in c]))
+    return out
+
+
+#: Built-in methods that are functions of the image alone (no process-wide state such as the C
+#: library's generator Selective Search draws from), so frames can run side by side in threads.
+THREADED = frozenset({"edges", "mser"})
+
+
+def _threaded_proposals(
+    items: list[Any],
+    cfg: ProposalsConfig,
+    methods: list[str],
+    threads: int,
+    progress: Callable[[Iterable], Iterable],
+) -> list[pd.DataFrame]:
+    """:func:`_image_proposals` of methods in :data:`THREADED`, ``threads`` frames at a time.
+
+    Each frame is read and proposed by one thread (OpenCV and libjpeg release the GIL); the rows
+    come back in the frames' order, so they are the one-thread rows.
+    """
+    scale = [decode_scale(f.width, cfg, methods, False) for f in items]
+
+    def one(i: int) -> list[pd.DataFrame]:
+        f, im = items[i], read_image(items[i].image, scale[i])
+        rows = []
+        for m in methods:
+            b, s = _one_image(m, f, im, cfg)
+            rows.append(_rows(f, m, _full_size(b, f, im), s, [""] * len(b)))
+        return rows
+
+    out: list[pd.DataFrame] = []
+    step = 8 * threads
+    with ThreadPoolExecutor(threads, thread_name_prefix="proposals") as pool:
+        for i in progress(range(0, len(items), step)):
+            for rows in pool.map(one, range(i, min(i + step, len(items)))):
+                out += rows
     return out
 
 

@@ -178,6 +178,16 @@ def test_an_unreachable_ray_address_is_one_error_line_in_seconds(
             "",
             r"reduced_decode",
         ),
+        (
+            ('methods = ["grid5", "edges"]', 'methods = ["grid5", "edges"]\nthreads = -1'),
+            "",
+            r"\[proposals\] threads = -1 is out of range",
+        ),
+        (
+            ('name = "autoencoder"', 'name = "autoencoder"\ncrop_threads = -2'),
+            "",
+            r"\[descriptor\] crop_threads = -2 is out of range",
+        ),
     ],
 )
 def test_bad_config_values_fail_at_load(

@@ -129,7 +129,8 @@ def test_prefetched_keeps_the_order_raises_where_the_producer_failed_and_stops_w
 def test_descriptors_are_the_same_bytes_with_and_without_the_reader_thread(
     tmp_path: Path,
 ) -> None:
-    """``[descriptor] prefetch`` changes when frames are decoded, never what is encoded."""
+    """``[descriptor] prefetch`` and ``crop_threads`` change when and where frames are decoded,
+    never what is encoded (12 frames in 8-frame batches: a full batch and a short one)."""
     from harness.descriptors.config import DescriptorConfig
     from harness.descriptors.extract import encode_shard
 
@@ -149,11 +150,14 @@ def test_descriptors_are_the_same_bytes_with_and_without_the_reader_thread(
         columns=["session", "camera", "utime", "proposal_method", "box_id", "x1", "y1", "x2", "y2"],
     )
     out = {}
-    for depth in (0, 2):
-        dc = DescriptorConfig(name="thumb", input_size=32, prefetch=depth, shard_frames=4)
-        d = tmp_path / f"p{depth}"
+    for depth, threads in ((0, 1), (2, 1), (0, 3), (2, 0)):
+        dc = DescriptorConfig(
+            name="thumb", input_size=32, prefetch=depth, shard_frames=4, crop_threads=threads
+        )
+        d = tmp_path / f"p{depth}t{threads}"
         d.mkdir()
         encode_shard(dc, d, None, fr, df, f"prefetch {depth}", d)
-        out[depth] = np.load(d / "desc.npy")
-    assert out[0].shape == (36, out[0].shape[1]) and out[0].shape[1] > 0
-    assert out[0].tobytes() == out[2].tobytes()
+        out[depth, threads] = np.load(d / "desc.npy")
+    one = out[0, 1]
+    assert one.shape == (36, one.shape[1]) and one.shape[1] > 0
+    assert all(v.tobytes() == one.tobytes() for v in out.values())

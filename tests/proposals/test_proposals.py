@@ -206,3 +206,38 @@ def test_edges_on_a_reduced_decode_find_the_boxes_of_the_full_frame(tmp_path: Pa
     )
     assert (best >= 0.9).mean() >= 0.9, np.sort(best)
     assert (reduced[["x2", "y2"]].to_numpy() <= [1232, 1616]).all()
+
+
+def test_proposals_are_the_same_rows_and_key_with_threads(tmp_path: Path) -> None:
+    """``[proposals] threads`` runs edges and mser on several frames at once (19 frames: more than
+    one round of the pool, and a short one): the same rows as one frame at a time, in the same
+    cache entry; with selective listed, the frames go one at a time whatever the setting."""
+    import dataclasses
+
+    import cv2
+
+    from harness.proposals import keys
+    from harness.proposals.proposers import compute_proposals
+
+    rng = np.random.default_rng(4)
+    rows = []
+    for n in range(19):
+        img = cv2.GaussianBlur(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), (0, 0), 3)
+        for _ in range(4):
+            x, y = rng.integers(0, 250), rng.integers(0, 180)
+            img[y : y + 50, x : x + 60] = rng.integers(0, 255, 3)
+        cv2.imwrite(str(tmp_path / f"{n}.jpg"), img)
+        rows.append(("s", "c", n, str(tmp_path / f"{n}.jpg"), 320, 240))
+    frames = pd.DataFrame(rows, columns=["session", "camera", "utime", "image", "width", "height"])
+    base = ProposalsConfig(methods=("grid5", "edges", "mser"))
+    one = compute_proposals(frames, dataclasses.replace(base, threads=1))
+    assert set(one["proposal_method"]) == {"grid5", "edges", "mser"} and len(one) > 19 * 5
+    for threads in (3, 0):
+        many = dataclasses.replace(base, threads=threads)
+        pd.testing.assert_frame_equal(compute_proposals(frames, many), one)
+        assert keys.proposals(many, "k", []) == keys.proposals(base, "k", [])
+    ss = ProposalsConfig(methods=("edges", "selective"), threads=3)
+    pd.testing.assert_frame_equal(
+        compute_proposals(frames.iloc[:3], ss),
+        compute_proposals(frames.iloc[:3], dataclasses.replace(ss, threads=1)),
+    )
