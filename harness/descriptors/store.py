@@ -13,7 +13,6 @@ other runs (the fixture's are in ``datasets/models/``).
 
 from __future__ import annotations
 
-import ast
 import hashlib
 import json
 import logging
@@ -28,7 +27,7 @@ import torch
 from harness.descriptors.autoencoder_descriptor import pick_device
 from harness.descriptors.config import DescriptorConfig
 from harness.descriptors.keys import model_options
-from harness.runtime.cache import write_json
+from harness.runtime.cache import code_text, write_json
 
 log = logging.getLogger(__name__)
 
@@ -50,24 +49,13 @@ def crops_digest(crops: np.ndarray, chunk: int = 256) -> str:
 def code_digest(paths: list[Path]) -> str:
     """SHA-256 of the modules' code without their docstrings and comments.
 
-    Each module is parsed and written back by :func:`ast.unparse` with every docstring left out, so
+    Each module is written back without its docstrings (:func:`harness.runtime.cache.code_text`), so
     a change of words (a docstring, a comment, the layout) keeps the kept models; a change of code
     files them under another digest.
     """
     h = hashlib.sha256()
     for path in paths:
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            body = getattr(node, "body", None)
-            if (
-                isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
-                and body
-                and isinstance(body[0], ast.Expr)
-                and isinstance(body[0].value, ast.Constant)
-                and isinstance(body[0].value.value, str)
-            ):
-                node.body = body[1:] or [ast.Pass()]
-        h.update(ast.unparse(tree).encode())
+        h.update(code_text(path.read_text()).encode())
     return h.hexdigest()
 
 
