@@ -137,9 +137,9 @@ def write_json(rows: list[dict]) -> None:
 def write_md(rows: list[dict]) -> None:
     lines = [
         "Each row says where it was measured (commit, date, CPU) and whether the code its case",
-        "measures (`CASES` in `bench/cases/__init__.py`) changed after that commit: a **stale**",
-        "row is a figure of older code, kept until its case runs again (`python -m bench --only",
-        "CASE`).",
+        "measures (`CASES` in `bench/cases/__init__.py`) changed after that commit, beyond its",
+        "docstrings and comments: a **stale** row is a figure of older code, kept until its case",
+        "runs again (`python -m bench --only CASE`).",
         "",
         "| case | median | unit | peak RSS MiB | measured at | stale | notes |",
         "|---|---|---|---|---|---|---|",

@@ -12,7 +12,6 @@ row records no commit at all (rows from before this record).
 
 from __future__ import annotations
 
-import ast
 import datetime as dt
 import subprocess
 from pathlib import Path
@@ -92,39 +91,33 @@ def staleness(row: dict, measures: tuple[str, ...]) -> str:
 
 
 def code_of(path: str, text: str | None) -> str | None:
-    """What runs of a file: a Python file's syntax tree without docstrings (comments are not in
-    it), any other file's text; None for a missing file or Python that does not parse."""
+    """What runs of a file: a Python file's code, any other file's text.
+
+    The code has no docstrings or comments (:func:`harness.runtime.cache.code_text`); None for a
+    missing file or Python that does not parse.
+    """
+    from harness.runtime.cache import code_text
+
     if text is None or not path.endswith(".py"):
         return text
     try:
-        tree = ast.parse(text)
+        return code_text(text)
     except SyntaxError:
         return None
-    for node in ast.walk(tree):
-        body = getattr(node, "body", None)
-        if (
-            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
-            and body
-            and isinstance(body[0], ast.Expr)
-            and isinstance(body[0].value, ast.Constant)
-            and isinstance(body[0].value.value, str)
-        ):
-            node.body = body[1:] or [ast.Pass()]
-    return ast.dump(tree)
 
 
-def code_changed(commit: str, measures: tuple[str, ...]) -> list[str]:
-    """The files under ``measures`` whose code differs between ``commit`` and HEAD.
+def code_changed(commit: str, measures: tuple[str, ...], head: str = "HEAD") -> list[str]:
+    """The files under ``measures`` whose code differs between ``commit`` and ``head``.
 
     A change to docstrings or comments alone leaves a file's code as it was: a row measured
     before it still measures the code that runs now.
     """
-    names = _git("diff", "--name-only", commit, "HEAD", "--", *measures)
+    names = _git("diff", "--name-only", commit, head, "--", *measures)
     if names is None:
         return list(measures)
     out = []
     for n in names.splitlines():
-        now = code_of(n, _git("show", f"HEAD:{n}"))
+        now = code_of(n, _git("show", f"{head}:{n}"))
         if now is None or now != code_of(n, _git("show", f"{commit}:{n}")):
             out.append(n)
     return out

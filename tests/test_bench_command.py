@@ -115,3 +115,26 @@ def test_a_change_to_docstrings_or_comments_alone_leaves_a_row_current() -> None
     assert code_of("x.py", _git("show", f"{parent}:bench/cases/fixture_figures.py")) == code_of(
         "x.py", _git("show", f"{rewrap}:bench/cases/fixture_figures.py")
     )
+
+
+def test_the_full_nclt_workload_reads_each_sessions_length_from_the_ground_truth(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With NCLT's ground truth at ``$BENCH_NCLT_ROOT`` the projection's trajectories are measured
+    (the x-y path: 3-4-5 steps, z and the angles ignored); without it, or with a session missing,
+    there is nothing to measure and the case says it assumed them."""
+    from bench.cases.nclt_sessions import ENV, session_lengths, session_names
+
+    names = session_names()
+    assert names == ["2012-01-22", "2012-03-31", "2012-08-04", "2012-11-17"]
+    gt = tmp_path / "ground_truth"
+    gt.mkdir()
+    for i, name in enumerate(names):
+        rows = [f"{1000 * k},{3.0 * k},{4.0 * k},{0.1 * k},0,0,{0.01 * k}" for k in range(i + 2)]
+        (gt / f"groundtruth_{name}.csv").write_text("\n".join(rows) + "\n")
+    monkeypatch.setenv(ENV, str(tmp_path))
+    assert session_lengths() == {name: 5.0 * (i + 1) for i, name in enumerate(names)}
+    (gt / f"groundtruth_{names[-1]}.csv").unlink()
+    assert session_lengths() is None
+    monkeypatch.delenv(ENV)
+    assert session_lengths() is None
