@@ -93,10 +93,10 @@ def staleness(row: dict, measures: tuple[str, ...]) -> str:
 def code_of(path: str, text: str | None) -> str | None:
     """What runs of a file: a Python file's code, any other file's text.
 
-    The code has no docstrings or comments (:func:`harness.runtime.cache.code_text`); None for a
+    The code has no docstrings or comments (:func:`harness.runtime.code.code_text`); None for a
     missing file or Python that does not parse.
     """
-    from harness.runtime.cache import code_text
+    from harness.runtime.code import code_text
 
     if text is None or not path.endswith(".py"):
         return text

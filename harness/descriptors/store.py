@@ -27,7 +27,8 @@ import torch
 from harness.descriptors.autoencoder_descriptor import pick_device
 from harness.descriptors.config import DescriptorConfig
 from harness.descriptors.keys import model_options
-from harness.runtime.cache import code_text, write_json
+from harness.runtime.cache import write_json
+from harness.runtime.code import code_text
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +50,7 @@ def crops_digest(crops: np.ndarray, chunk: int = 256) -> str:
 def code_digest(paths: list[Path]) -> str:
     """SHA-256 of the modules' code without their docstrings and comments.
 
-    Each module is written back without its docstrings (:func:`harness.runtime.cache.code_text`), so
+    Each module is written back without its docstrings (:func:`harness.runtime.code.code_text`), so
     a change of words (a docstring, a comment, the layout) keeps the kept models; a change of code
     files them under another digest.
     """

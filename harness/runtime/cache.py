@@ -11,7 +11,6 @@ a stage runs (workers, shards, batches, the device): changing those reuses every
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import errno
 import hashlib
@@ -118,28 +117,6 @@ def stable_hash(*parts: Any, length: int = 16) -> str:
     """A short sha256 of JSON-serialisable parts (dataclasses, dicts, paths, scalars)."""
     text = json.dumps([_jsonable(p) for p in parts], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:length]
-
-
-def code_text(source: str) -> str:
-    """Python ``source`` as its code, without docstrings, comments or layout.
-
-    Parsed and written back by :func:`ast.unparse` with every docstring left out.
-
-    Raises:
-        SyntaxError: ``source`` is not Python.
-    """
-    tree = ast.parse(source)
-    for node in ast.walk(tree):
-        body = getattr(node, "body", None)
-        if (
-            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
-            and body
-            and isinstance(body[0], ast.Expr)
-            and isinstance(body[0].value, ast.Constant)
-            and isinstance(body[0].value.value, str)
-        ):
-            node.body = body[1:] or [ast.Pass()]
-    return ast.unparse(tree)
 
 
 def source_fingerprints(
