@@ -7,7 +7,7 @@ from pathlib import Path
 
 from harness.checks import check_value
 
-#: ``[descriptor] precision``: the encoder's arithmetic (``auto``: bf16 where native).
+#: ``[descriptor] precision``: the encoder's arithmetic (``auto``: fp32 on every device).
 PRECISIONS = ("auto", "fp32", "bf16")
 
 
@@ -43,7 +43,8 @@ class DescriptorConfig:
     # auto (a CUDA GPU where there is one), cpu or cuda
     device: str = "auto"
     # the encoder's arithmetic, training and inference: "fp32", "bf16" (torch.autocast) or "auto"
-    # (bf16 where the device multiplies bf16 natively: AVX512-BF16 or AMX, a CUDA GPU with bf16)
+    # (fp32 on every device, so a table does not depend on whether the machine multiplies bf16
+    # natively; bf16 only where asked for by name)
     precision: str = "auto"
     # the training's and the crops' draws
     seed: int = 0
