@@ -60,15 +60,29 @@ def cpu() -> str:
 
 
 def stamp(measures: tuple[str, ...]) -> dict[str, object]:
-    """The provenance fields of a row measured now of code under ``measures``."""
-    dirty = _git("status", "--porcelain", "--", *measures)
+    """The provenance fields of a row measured now of code under ``measures``.
+
+    ``dirty``: a file under ``measures`` differs from HEAD in its code (an uncommitted change to
+    comments or docstrings alone leaves it clean, as :func:`code_changed` does a commit's).
+    """
+    status = _git("status", "--porcelain", "--untracked-files=all", "--", *measures)
+    dirty = None if status is None else any(_uncommitted_code(line) for line in status.splitlines())
     return {
         "commit": _git("rev-parse", "HEAD"),
-        "dirty": bool(dirty) if dirty is not None else None,
+        "dirty": dirty,
         "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "cpu": cpu(),
         "cpu_flags": cpu_flags(),
     }
+
+
+def _uncommitted_code(status_line: str) -> bool:
+    """Whether the file of a ``git status --porcelain`` line differs from HEAD in its code."""
+    name = status_line.split(maxsplit=1)[-1].split(" -> ")[-1].strip('"')
+    path = ROOT / name
+    now = path.read_text(errors="replace") if path.is_file() else None
+    before = code_of(name, _git("show", f"HEAD:{name}"))
+    return now is None or before is None or code_of(name, now) != before
 
 
 def staleness(row: dict, measures: tuple[str, ...]) -> str:

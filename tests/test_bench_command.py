@@ -138,3 +138,31 @@ def test_the_full_nclt_workload_reads_each_sessions_length_from_the_ground_truth
     assert session_lengths() is None
     monkeypatch.delenv(ENV)
     assert session_lengths() is None
+
+
+def test_a_row_is_dirty_only_when_uncommitted_changes_alter_its_code(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """In a repository of its own: a new comment or docstring left uncommitted keeps a row's
+    stamp clean; a changed statement, a new file or a removed one makes it dirty."""
+    import bench.provenance as prov
+
+    def git(*args: str) -> None:
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "m.py").write_text('def f():\n    """Words."""\n    return 1\n')
+    git("add", "m.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "m")
+    monkeypatch.setattr(prov, "ROOT", tmp_path)
+    assert prov.stamp(("m.py",))["dirty"] is False
+    (tmp_path / "m.py").write_text('def f():  # a comment\n    """Other words."""\n    return 1\n')
+    assert prov.stamp(("m.py",))["dirty"] is False
+    (tmp_path / "m.py").write_text("def f():\n    return 2\n")
+    assert prov.stamp(("m.py",))["dirty"] is True
+    git("checkout", "-q", "m.py")
+    (tmp_path / "n.py").write_text("x = 1\n")
+    assert prov.stamp((".",))["dirty"] is True
+    (tmp_path / "n.py").unlink()
+    (tmp_path / "m.py").unlink()
+    assert prov.stamp(("m.py",))["dirty"] is True

@@ -56,7 +56,15 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
     ),
     "executor": ("executor", ("harness/runtime/executors.py", "harness/runtime/cache.py")),
     "e2e": ("e2e", ("harness", "bench/nclt_scale.toml")),
-    "full-nclt": ("full_nclt", ("harness", "bench/nclt_full.toml")),
+    "full-nclt": (
+        "full_nclt",
+        (
+            "harness",
+            "bench/nclt_full.toml",
+            "bench/cases/kernel_levels.py",
+            "bench/cases/nclt_sessions.py",
+        ),
+    ),
     "precision": ("precision", ("harness", "bench/nclt_scale.toml")),
     "fixture-figures": ("fixture_figures", ("harness", "datasets/fixture.toml", "annotations")),
 }
