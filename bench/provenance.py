@@ -85,6 +85,15 @@ def _uncommitted_code(status_line: str) -> bool:
     return now is None or before is None or code_of(name, now) != before
 
 
+def _last_code_change(since: str, measures: tuple[str, ...]) -> str | None:
+    """The newest commit after ``since`` that changed the code under ``measures`` (not only its
+    words), or None."""
+    for c in (_git("rev-list", f"{since}..HEAD", "--", *measures) or "").splitlines():
+        if code_changed(f"{c}^", measures, head=c):
+            return c
+    return None
+
+
 def staleness(row: dict, measures: tuple[str, ...]) -> str:
     """ "" for a row measured at the last change of its code, else what makes it stale, in words."""
     commit = row.get("commit")
@@ -96,6 +105,7 @@ def staleness(row: dict, measures: tuple[str, ...]) -> str:
     if last and _git("merge-base", "--is-ancestor", last, commit) is None:
         changed = code_changed(commit, measures)
         if changed:
+            last = _last_code_change(commit, measures) or last
             when = _git("log", "-1", "--format=%cs", last) or "?"
             return (
                 f"stale: {', '.join(measures)} changed in {last[:8]} ({when}) after this row "

@@ -70,7 +70,7 @@ def test_a_bench_row_is_stale_once_the_code_it_measures_changes_after_its_commit
     """Rows from the repository's own history: measured at HEAD (current unless the measured code
     is dirty), at the first commit (stale, naming the paths and the commit that changed them), and
     with no commit (said so)."""
-    from bench.provenance import _git, staleness
+    from bench.provenance import _git, code_changed, staleness
 
     head = _git("rev-parse", "HEAD")
     first = (_git("rev-list", "--max-parents=0", "HEAD") or "").splitlines()
@@ -82,7 +82,12 @@ def test_a_bench_row_is_stale_once_the_code_it_measures_changes_after_its_commit
     assert staleness({"commit": head, "dirty": False}, measures) == ""
     assert staleness({"commit": head, "dirty": True}, measures).startswith("dirty")
     old = staleness({"commit": first[0]}, measures)
-    assert old.startswith("stale: harness/evaluate/metrics.py changed in " + last[:8]), old
+    assert old.startswith("stale: harness/evaluate/metrics.py changed in "), old
+    # the commit named is the newest that changed the file's code; any later one changed words
+    named = _git("rev-parse", old.split(" changed in ")[1][:8]) or ""
+    assert code_changed(f"{named}^", measures, head=named)
+    later = (_git("rev-list", f"{named}..HEAD", "--", *measures) or "").splitlines()
+    assert not any(code_changed(f"{c}^", measures, head=c) for c in later)
     assert staleness({}, measures).startswith("stale? no commit recorded")
 
 
