@@ -20,6 +20,7 @@ from harness.descriptors.autoencoder import (
     to_tensor,
 )
 from harness.descriptors.config import DescriptorConfig
+from harness.descriptors.extract import training_threads
 from harness.runtime.hardware import resolve_precision
 
 
@@ -119,11 +120,12 @@ def test_held_out_reconstruction_one_at_a_time_is_the_batch_bit_for_bit() -> Non
     model(to_tensor(data[:8], torch.device("cpu"), True))  # batch-norm statistics to use
     model.eval()
     x = to_tensor(data[:5], torch.device("cpu"), True)
-    with torch.no_grad():
+    with torch.no_grad(), training_threads():
         assert torch.equal(reconstruct(model, x), model(x))
         batched = float(torch.nn.functional.mse_loss(model(x), x))
     hold = np.arange(5)
-    assert held_out_loss(model, data, hold, 8, torch.device("cpu"), True) == batched
+    with training_threads():  # as in training: the held-out loss runs on its two threads
+        assert held_out_loss(model, data, hold, 8, torch.device("cpu"), True) == batched
     assert model.training  # handed back in training mode, as the training loop expects
 
 
