@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import resource
 import statistics
 import tempfile
@@ -16,6 +17,48 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 DATA = ROOT / "bench" / ".data"
+
+
+def bf16_native() -> bool:
+    """Whether this process multiplies bf16 natively: the CPU has AVX512-BF16 or AMX, and no cap
+    holds torch's kernels at AVX2.
+
+    Every bench process imports ``harness``, which pins the libraries at AVX2 as every ``harness``
+    command does (``harness/kernels.py``); under those caps a bf16 product is emulated even on a
+    CPU that has the instructions, so the CPU's flags alone would call an emulated figure native.
+    """
+    from harness.kernels import AVX2_CAPS
+    from harness.runtime.hardware import has_bf16
+
+    # the caps a bf16 product and convolution go through: oneDNN's and MKL's
+    gates = ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS")
+    capped = any(os.environ.get(k) == AVX2_CAPS[k] for k in gates)
+    return has_bf16("cpu") and not capped
+
+
+def bf16_words(native: bool) -> str:
+    """Whether a bf16 figure of this process is one of bf16 speed, in words."""
+    from harness.runtime.hardware import has_bf16
+
+    if native:
+        return "yes"
+    if has_bf16("cpu"):
+        return "no: emulated under the default AVX2 caps (not a figure of bf16 speed)"
+    return "no: this CPU has none (emulated: not a figure of bf16 speed)"
+
+
+def kernel_env(level: str) -> dict[str, str]:
+    """The environment for a child process started at ``HARNESS_KERNELS=level``.
+
+    This process's environment without the caps its own ``import harness`` set: inherited, they
+    would hold a ``native`` child at AVX2 (its bf16 then emulated, 11x slower than its fp32 on an
+    AMX Xeon). A cap set to another value than the pinned one is the user's and is kept.
+    """
+    from harness.kernels import AVX2_CAPS, AVX512_CAPS, ENV
+
+    pinned = {**AVX2_CAPS, **AVX512_CAPS}
+    env = {k: v for k, v in os.environ.items() if pinned.get(k) != v and k != ENV}
+    return {**env, ENV: level}
 
 
 def peak_rss_mib() -> float:
@@ -123,15 +166,15 @@ def nclt_scale_workload(frames: int) -> Path:
 
 
 def reproduce_subprocess(
-    config: Path, root: Path, prefix: str
+    config: Path, root: Path, prefix: str, env: dict[str, str] | None = None
 ) -> tuple[Path, dict[str, Any], Any, float]:
-    """``harness reproduce`` of ``config`` on ``root`` in its own process, into a new directory.
+    """``harness reproduce`` of ``config`` on ``root`` in its own process, into a new directory,
+    with ``env`` (this process's environment where None; :func:`kernel_env` for another level).
 
     Returns:
         (run directory, its run.json, ``os.wait4`` resource usage (peak RSS of the run and the
         loader workers it waited for), wall seconds).
     """
-    import os
     import subprocess
     import sys
 
@@ -154,7 +197,7 @@ def reproduce_subprocess(
         cwd=ROOT,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
-        env={**os.environ, "TQDM_DISABLE": "1"},
+        env={**(os.environ if env is None else env), "TQDM_DISABLE": "1"},
     )
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     _, status, usage = os.wait4(proc.pid, 0)
@@ -220,8 +263,6 @@ def kernel_limits(out: Path) -> dict[str, float]:
     import cv2
     import torch
 
-    from harness.runtime.hardware import has_bf16
-
     store = out / "cache" / "ingest"  # the ingested frames, not the report's own images
     jpegs = sorted(p for p in store.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg"))[-32:]
     if not jpegs:
@@ -236,7 +277,7 @@ def kernel_limits(out: Path) -> dict[str, float]:
         )
 
     fp32 = matmul_gflops()
-    native = has_bf16("cpu")
+    native = bf16_native()
     rate = fp32
     if native:
         a, b = torch.randn(2048, 2048).bfloat16(), torch.randn(2048, 2048).bfloat16()
@@ -257,9 +298,9 @@ def kernel_limits(out: Path) -> dict[str, float]:
 
 def product_note(lim: dict[str, float]) -> str:
     """Which product rate a limit used, in words."""
-    return f"{lim['product_gflops']:.0f} GFLOP/s " + (
-        "(bf16, native)" if lim["native_bf16"] else "(fp32: this CPU has no native bf16)"
-    )
+    if lim["native_bf16"]:
+        return f"{lim['product_gflops']:.0f} GFLOP/s (bf16, native)"
+    return f"{lim['product_gflops']:.0f} GFLOP/s (fp32; bf16 native: {bf16_words(False)})"
 
 
 def pair_tables(rows: list[tuple], pairs: list[tuple], props: list[tuple]) -> tuple[Any, Any, Any]:

@@ -8,7 +8,7 @@ import statistics
 
 import numpy as np
 
-from .common import emit, matmul_gflops, peak_rss_mib, timed
+from .common import bf16_native, bf16_words, emit, matmul_gflops, peak_rss_mib, timed
 
 
 def case_descriptor(quick: bool) -> None:
@@ -83,15 +83,15 @@ def case_descriptor(quick: bool) -> None:
 
 def _bf16(peak: float, quick: bool) -> None:
     """The bf16 product rate (the encoder's limit under ``precision = "bf16"``) beside fp32's, and
-    the encoder at 256x256 in bf16: native only where the CPU has AVX512-BF16 or AMX."""
+    the encoder at 256x256 in bf16: native only where the CPU has AVX512-BF16 or AMX and no cap
+    holds the kernels at AVX2 (``HARNESS_KERNELS=native``; :func:`bf16_native`)."""
     import torch
 
     from harness.descriptors import AutoencoderDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder
     from harness.descriptors.config import DescriptorConfig
-    from harness.runtime.hardware import has_bf16
 
-    native = has_bf16("cpu")
+    native = bf16_native()
     n = 1024 if quick else 2048
     a, b = torch.randn(n, n).bfloat16(), torch.randn(n, n).bfloat16()
     a @ b
@@ -102,7 +102,7 @@ def _bf16(peak: float, quick: bool) -> None:
         "GFLOP/s",
         native_bf16=native,
         notes=f"{statistics.median(gf) / peak:.2f}x the fp32 peak measured above; native bf16 "
-        f"product on this CPU: {'yes' if native else 'no (emulated: not a figure of bf16 speed)'}",
+        f"product in this run: {bf16_words(native)}",
     )
     cfg = DescriptorConfig(input_size=256, batch_size=32, device="cpu")
     rates = {}
@@ -119,6 +119,5 @@ def _bf16(peak: float, quick: bool) -> None:
         "subimages/s",
         native_bf16=native,
         vs_fp32=round(ratio, 2),
-        notes=f"{ratio:.2f}x the fp32 encoder in the same run; native bf16: "
-        f"{'yes' if native else 'no (emulated: not a figure of bf16 speed)'}",
+        notes=f"{ratio:.2f}x the fp32 encoder in the same run; native bf16: {bf16_words(native)}",
     )

@@ -12,7 +12,6 @@ projected minutes are rescaled by the ratio.
 from __future__ import annotations
 
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -21,7 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from .common import ROOT, emit, matmul_gflops
+from harness.kernels import cpu_flags
+
+from .common import ROOT, bf16_native, emit, kernel_env, matmul_gflops
 
 
 def kernel_job() -> None:
@@ -35,10 +36,8 @@ def kernel_job() -> None:
     from harness.descriptors import AutoencoderDescriptor
     from harness.descriptors.autoencoder import ConvAutoencoder, autocast, to_tensor
     from harness.descriptors.config import DescriptorConfig
-    from harness.runtime.hardware import has_bf16
 
-    native = harness.kernels.level() == "native"
-    bf16 = native and has_bf16("cpu")
+    bf16 = harness.kernels.level() == "native" and bf16_native()
     rng = np.random.default_rng(0)
     crops = rng.integers(0, 256, (64, 256, 256, 3), dtype=np.uint8)
     cfg = DescriptorConfig(
@@ -82,19 +81,23 @@ def kernel_job() -> None:
 
 
 def _job(level: str) -> dict[str, Any]:
-    """:func:`kernel_job` in a fresh process started with ``HARNESS_KERNELS=level``."""
-    env = {k: v for k, v in os.environ.items() if k != "HARNESS_KERNELS"}
+    """:func:`kernel_job` in a fresh process started with ``HARNESS_KERNELS=level``, without the
+    caps this process inherited (:func:`kernel_env`)."""
     proc = subprocess.run(
         [sys.executable, "-m", "bench.cases", "kerneljob"],
         cwd=ROOT,
         capture_output=True,
         text=True,
         check=False,
-        env={**env, "HARNESS_KERNELS": level},
+        env=kernel_env(level),
     )
     if proc.returncode != 0:
         raise SystemExit(f"kernel job at {level} failed:\n{proc.stderr[-3000:]}")
-    return dict(json.loads(proc.stdout.strip().splitlines()[-1]))
+    got = dict(json.loads(proc.stdout.strip().splitlines()[-1]))
+    torch_level = str(got["kernels"].get("torch_cpu_capability", ""))
+    if level == "native" and torch_level == "AVX2" and "avx512f" in cpu_flags():
+        raise SystemExit("the kernel job at native ran torch at AVX2 on an AVX-512 CPU: a cap")
+    return got
 
 
 def _best(jobs: list[dict[str, Any]]) -> dict[str, Any]:

@@ -4,9 +4,13 @@
 frames, the paper's 256 x 256 autoencoder) twice, each in its own process and directory with
 nothing cached: ``[descriptor] precision = "fp32"``, then ``"bf16"`` (the encoder trained and run
 in bfloat16, ranking's candidates from a bfloat16 product). One row per run with its R@1 and
-Table I / Table S figures, then their differences (the goal: none beyond 0.01). Where the CPU has
-no native bf16 product the bf16 run is emulated: its figures say what bf16 costs in accuracy, its
-wall time nothing about speed.
+Table I / Table S figures, then their differences (the goal: none beyond 0.01).
+
+Both runs take the same kernel level, so their difference is the precision's alone: where the CPU
+has bf16 instructions (AVX512-BF16 or AMX), ``HARNESS_KERNELS=native`` (under the default AVX2
+caps a bf16 product is emulated even there), and the bf16 run's wall time is then a figure of
+bf16 speed; elsewhere the default caps, and the bf16 run is emulated: its figures say what bf16
+costs in accuracy, its wall time nothing about speed. Each row names the level.
 """
 
 from __future__ import annotations
@@ -16,7 +20,15 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from .common import DATA, ROOT, emit, nclt_scale_workload, reproduce_subprocess
+from .common import (
+    DATA,
+    ROOT,
+    bf16_words,
+    emit,
+    kernel_env,
+    nclt_scale_workload,
+    reproduce_subprocess,
+)
 from .fixture_figures import measured_share, run_tables
 
 PRECISIONS = ("fp32", "bf16")
@@ -59,12 +71,16 @@ def case_precision(quick: bool) -> None:
     n = 24 if quick else 125
     root = nclt_scale_workload(n)
     native = has_bf16("cpu")
+    level = "native" if native else "avx2"
     got: dict[str, dict[str, float]] = {}
     with tempfile.TemporaryDirectory(dir=DATA, prefix="precision-") as tmp:
         for precision in PRECISIONS:
             out, run, usage, wall = reproduce_subprocess(
-                _config(precision, Path(tmp)), root, f"precision-{precision}-"
+                _config(precision, Path(tmp)), root, f"precision-{precision}-", kernel_env(level)
             )
+            asked = run.get("kernels", {}).get("asked")
+            if asked != level:
+                raise SystemExit(f"the {precision} run took kernels {asked!r}, not {level!r}")
             got[precision] = fig = _figures(out, run)
             shutil.rmtree(out)
             emit(
@@ -75,13 +91,11 @@ def case_precision(quick: bool) -> None:
                 wall_s=round(wall, 1),
                 train_s=round(float(run["timings_s"].get("model", 0.0)), 1),
                 native_bf16=native,
+                kernels=level,
                 peak_rss_mib=usage.ru_maxrss / 1024,
-                notes=f"bench/nclt_scale.toml with [descriptor] precision = {precision!r}; "
-                + (
-                    "bf16 emulated (this CPU has no native bf16 product): accuracy, not speed"
-                    if precision == "bf16" and not native
-                    else "nothing cached"
-                ),
+                notes=f"bench/nclt_scale.toml with [descriptor] precision = {precision!r}, "
+                f"HARNESS_KERNELS={level}; nothing cached"
+                + ("" if precision == "fp32" else f"; bf16 native: {bf16_words(native)}"),
             )
     diff = {
         k: round(got["bf16"][k] - got["fp32"][k], 4)
@@ -99,7 +113,8 @@ def case_precision(quick: bool) -> None:
         [diff["recall_at_1"]],
         "R@1",
         vs_fp32=diff,
-        notes="bf16 minus fp32: "
+        kernels=level,
+        notes=f"both at HARNESS_KERNELS={level}; bf16 minus fp32: "
         + ", ".join(f"{k} {v:+.4f}" for k, v in diff.items())
         + f"; largest {worst:.4f} (goal: none beyond 0.01: {verdict}); Table S rank fusion "
         + "; ".join(

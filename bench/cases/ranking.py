@@ -8,7 +8,16 @@ import time
 
 import numpy as np
 
-from .common import emit, fit_exponent, matmul_gflops, peak_rss_mib, random_db, timed
+from .common import (
+    bf16_native,
+    bf16_words,
+    emit,
+    fit_exponent,
+    matmul_gflops,
+    peak_rss_mib,
+    random_db,
+    timed,
+)
 
 
 def case_ranking(quick: bool) -> None:
@@ -150,7 +159,7 @@ def case_ranking(quick: bool) -> None:
 
 
 #: The bf16 : fp32 product rate ratio measured on a CPU with AVX512-BF16 (2,048 square,
-#: 2 threads: 773-781 vs 186-190 GFLOP/s); used only where this CPU has no native bf16 product.
+#: 2 threads: 773-781 vs 186-190 GFLOP/s); used only where this run has no native bf16 product.
 ISSUE_BF16_RATIO = 4.0
 
 
@@ -161,7 +170,8 @@ def bf16_candidate_costs(rng: np.random.Generator) -> None:
     time to measure one (query, frame) exactly (every row of the frame, float64), as the bf16
     path does for the frames its bound leaves undecided. With a bf16 product ``r`` times the fp32
     rate, bf16 ranks faster only while the share measured stays below ``(1 - 1/r) / ratio``.
-    ``r`` is measured in the same run where the CPU multiplies bf16 natively; elsewhere it is
+    ``r`` is measured in the same run where it multiplies bf16 natively (:func:`bf16_native`: the
+    instructions, and no AVX2 cap on the kernels); elsewhere it is
     :data:`ISSUE_BF16_RATIO`, said so in the row. The share itself depends on the localizer: the
     fixture's is ``fixture-figures``'s ``precision=bf16`` row (``rank_measured_exactly_share``).
     """
@@ -170,9 +180,8 @@ def bf16_candidate_costs(rng: np.random.Generator) -> None:
     from harness.retrieval import image_ranks
     from harness.retrieval.exact import FrameMeasure
     from harness.retrieval.layout import frame_layout
-    from harness.runtime.hardware import has_bf16
 
-    native = has_bf16("cpu")
+    native = bf16_native()
     if native:
         a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
         fp = min(timed(lambda: a @ b, repeat=3))
@@ -182,8 +191,8 @@ def bf16_candidate_costs(rng: np.random.Generator) -> None:
     else:
         ratio_r = ISSUE_BF16_RATIO
         r_note = (
-            f"this CPU has no native bf16 product: r = {ratio_r:.0f}, the measured ratio "
-            "on an AVX512-BF16 machine, not this run's"
+            f"native bf16 product in this run: {bf16_words(False)}; r = {ratio_r:.0f}, the "
+            "measured ratio on an AVX512-BF16 machine, not this run's"
         )
     for dim, m in ((128, 16_000), (16384, 4_000)):
         db = rng.standard_normal((m, dim), dtype=np.float32)
