@@ -171,3 +171,36 @@ def test_a_row_is_dirty_only_when_uncommitted_changes_alter_its_code(
     (tmp_path / "n.py").unlink()
     (tmp_path / "m.py").unlink()
     assert prov.stamp(("m.py",))["dirty"] is True
+
+
+def test_a_native_kernels_child_sheds_the_caps_its_parent_pinned(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A child started for ``HARNESS_KERNELS=native`` from a pinned process (every bench process
+    is one) gets none of the pinned caps, keeps a cap the user set to another value, and on an
+    AVX-512 CPU runs torch above AVX2; in the pinned process no bf16 figure is called native."""
+    import harness.kernels as kernels
+    from bench.cases.common import bf16_native, kernel_env
+
+    pinned = kernels.caps(asked="avx2")
+    for k, v in pinned.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "SkylakeX")  # the user's own value: kept
+    env = kernel_env("native")
+    assert env[kernels.ENV] == "native"
+    assert env.get("OPENBLAS_CORETYPE") == "SkylakeX"
+    assert not [k for k, v in pinned.items() if env.get(k) == v]
+    if pinned:  # x86-64 with AVX2: the caps are in force here, so bf16 is emulated
+        assert bf16_native() is False
+    env.pop("OPENBLAS_CORETYPE")
+    code = "import harness, torch; print(torch.backends.cpu.get_cpu_capability())"
+    level = {}
+    for asked, child_env in (("native", env), ("avx2", kernel_env("avx2"))):
+        proc = subprocess.run(
+            [sys.executable, "-c", code], env=child_env, capture_output=True, text=True, check=True
+        )
+        level[asked] = proc.stdout.strip().splitlines()[-1]
+    if "avx512f" in kernels.cpu_flags() and pinned:
+        assert level == {"native": "AVX512", "avx2": "AVX2"}
+    else:
+        assert level["native"] == level["avx2"]
