@@ -278,6 +278,18 @@ def calls(rgb: np.ndarray, net: Path) -> dict[str, Callable[[], Any]]:
             cv2.Sobel(f32, cv2.CV_32F, 0, 1, ksize=3),
         ),
         "integral": lambda: cv2.integral(gray),
+        "copyMakeBorder(REPLICATE), subtract, multiply, add, min (float32 planes)": lambda: cv2.min(
+            cv2.add(
+                cv2.multiply(
+                    d := cv2.subtract(
+                        f32, cv2.copyMakeBorder(f32, 2, 2, 2, 2, cv2.BORDER_REPLICATE)[:-4, 4:]
+                    ),
+                    d,
+                ),
+                f32,
+            ),
+            f32,
+        ),
         "meanStdDev": lambda: cv2.meanStdDev(rgb),
         "calcHist": lambda: cv2.calcHist(
             [cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)], [0, 1], None, [8, 8], [0, 180, 0, 256]

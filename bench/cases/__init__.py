@@ -42,6 +42,7 @@ CASES: dict[str, tuple[str, tuple[str, ...]]] = {
         ),
     ),
     "folders": ("folders", ("harness",)),
+    "real-detect": ("real_detect", ("harness",)),
     "fusion": (
         "fusion",
         (

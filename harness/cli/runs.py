@@ -131,14 +131,14 @@ def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
     fr = fr.head(top)
     named = "name" in fr.columns
     print(
-        f"most changed frames ({'file name' if named else 'session camera utime'}: score, "
-        "calibrated, top box):"
+        f"most changed frames ({'file name' if named else 'session camera utime'}: how often a "
+        "frame with no change scores as high, the raw change score (no unit), the top box):"
     )
     for r in fr.itertuples():
         words = in_words(r.exceedance, "no-change null frames" if null else "frames of this run")
         label = r.name if named and r.name else f"{r.session} {r.camera} {r.utime}"
         print(
-            f"  {label}: {r.score:.4g} ({words}), "
+            f"  {label}: {words} (change score {r.score:.4g}), top box "
             f"[{r.top_x1:.0f}, {r.top_y1:.0f}, {r.top_x2:.0f}, {r.top_y2:.0f}]"
         )
 
@@ -169,9 +169,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
         rerun=Path(args.rerun) if args.rerun else None,
     )
     out = Path(args.out)
+    names = rec.get("folders") or [rec["map"], *rec["queries"]]  # a folder run: its folders
     print(
-        f"detect: {rec['query_frames']} query frames of {', '.join(rec['queries'])} against the "
-        f"map {rec['map']}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
+        f"detect: {rec['query_frames']} query frames of {', '.join(names[1:])} against the "
+        f"map {names[0]}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
         f"ms per query frame ({rec['total_s']:.1f} s)"
     )
     _print_most_changed(out, cfg.detect.top, rec.get("calibration", {}).get("method") == "null")

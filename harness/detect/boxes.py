@@ -15,26 +15,79 @@ from harness.methods import BOX_GENERATORS
 log = logging.getLogger(__name__)
 
 
+def suppression(boxes: np.ndarray, nms_iou: float) -> np.ndarray:
+    """(n, n) bool: which box suppresses which in greedy NMS at ``nms_iou`` (symmetric).
+
+    OpenCV's ``dnn.NMSBoxes`` overlap exactly: each (x1, y1, x2, y2) box as a ``Rect2d`` (x, y,
+    x2 - x1, y2 - y1), their intersection over union in doubles (0 where both areas are 0), taken
+    to float32 as OpenCV's ``1 - jaccardDistance``, and compared with the threshold as float32.
+    """
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    x, y = b[:, 0], b[:, 1]
+    w, h = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
+    xe, ye, area = x + w, y + h, w * h
+    iw = np.minimum(xe[:, None], xe[None, :]) - np.maximum(x[:, None], x[None, :])
+    ih = np.minimum(ye[:, None], ye[None, :]) - np.maximum(y[:, None], y[None, :])
+    inter = np.where((iw > 0) & (ih > 0), iw * ih, 0.0)
+    tot = area[:, None] + area[None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dist = np.where(tot <= np.finfo(np.float64).eps, 0.0, 1.0 - inter / (tot - inter))
+    overlap = np.float32(1.0) - dist.astype(np.float32)
+    return overlap > np.float32(nms_iou)
+
+
 def change_boxes_nms(
-    boxes: np.ndarray, loc: np.ndarray, nms_iou: float, max_boxes: int
+    boxes: np.ndarray,
+    loc: np.ndarray,
+    nms_iou: float,
+    max_boxes: int,
+    suppress: np.ndarray | None = None,
 ) -> np.ndarray:
     """Indices of the kept boxes: descending LoC, greedy NMS at ``nms_iou``, at most ``max_boxes``.
 
-    OpenCV's ``dnn.NMSBoxes`` on (x, y, w, h); boxes without a finite LoC never enter.
+    The boxes OpenCV's ``dnn.NMSBoxes`` keeps on (x, y, w, h), its first ``max_boxes``
+    (tests/detect/test_nms.py compares the two), found without testing the boxes after them;
+    boxes without a finite LoC never enter; ties: the earlier box first. ``suppress``:
+    :func:`suppression` of these boxes where it was made before (a frame scored many times).
     """
-    ok = np.flatnonzero(np.isfinite(loc))
-    if not len(ok):
+    ok = np.isfinite(loc)
+    if not ok.any():
         return np.zeros(0, np.int64)
-    b = boxes[ok]
-    xywh = np.column_stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]])
-    order = np.argsort(-loc[ok], kind="stable")  # ties: the earlier box first, every run
-    xywh, sc, ok = xywh[order], loc[ok][order], ok[order]
-    # scores are shifted to [0, 1] order-preservingly: NMSBoxes' threshold is on raw scores
-    rank_score = (np.arange(len(sc), 0, -1) / len(sc)).astype(np.float32)
-    keep = cv2.dnn.NMSBoxes([tuple(map(float, r)) for r in xywh], rank_score.tolist(), 0.0, nms_iou)
-    idx = np.asarray(keep, np.int64).reshape(-1)
-    idx = idx[np.argsort(-rank_score[idx], kind="stable")][:max_boxes]
-    return ok[idx].astype(np.int64)
+    sup = suppression(boxes, nms_iou) if suppress is None else suppress
+    idx = np.flatnonzero(ok)
+    order = idx[np.argsort(-loc[idx], kind="stable")]
+    alive = ok.copy()
+    kept: list[int] = []
+    pos = 0
+    while len(kept) < max_boxes and pos < len(order):
+        live = alive[order[pos:]]
+        j = int(np.argmax(live))
+        if not live[j]:
+            break
+        i = int(order[pos + j])
+        kept.append(i)
+        pos += j + 1
+        alive &= ~sup[i]
+    return np.asarray(kept, np.int64)
+
+
+class FrameNMS:
+    """``change_boxes_nms`` as a function of (boxes, scores), each box set's suppression made once.
+
+    Table D's chance draws score the same candidates of a frame hundreds of times.
+    """
+
+    def __init__(self, nms_iou: float, max_boxes: int) -> None:
+        self.nms_iou, self.max_boxes = nms_iou, max_boxes
+        self._made: dict[bytes, np.ndarray] = {}
+
+    def __call__(self, boxes: np.ndarray, scores: np.ndarray) -> np.ndarray:
+        """The kept indices of ``boxes`` under ``scores``."""
+        b = np.ascontiguousarray(boxes, np.float64).reshape(-1, 4)
+        key = b.tobytes()
+        if key not in self._made:
+            self._made[key] = suppression(b, self.nms_iou)
+        return change_boxes_nms(b, scores, self.nms_iou, self.max_boxes, self._made[key])
 
 
 def _pixels(m: np.ndarray, box: np.ndarray) -> tuple[int, int, int, int]:

@@ -15,9 +15,11 @@ in Table D.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 
 def exceedance(null: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -75,3 +77,43 @@ def alarm_words(al: dict[str, Any], cal: dict[str, Any]) -> str:
     if not al["frames"]:
         lines.append("no change detected at that rate" + (small if least > rate else ""))
     return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class Alarms:
+    """What the nominal false-alarm rate flags: the one count the files, console and page read.
+
+    ``frames``: the flagged frame rows; ``boxes``: the flagged change-box rows; ``of_frames``,
+    ``of_boxes``: how many there were to flag.
+    """
+
+    rate: float
+    frames: pd.DataFrame
+    boxes: pd.DataFrame
+    of_frames: int
+    of_boxes: int
+
+    def record(self) -> dict[str, Any]:
+        """``detect.json``'s ``alarm``: the rate, the frames and boxes flagged, of how many."""
+        return {
+            "rate": self.rate,
+            "frames": len(self.frames),
+            "boxes": len(self.boxes),
+            "of_frames": self.of_frames,
+            "of_boxes": self.of_boxes,
+        }
+
+
+def alarms_of(fr: pd.DataFrame, det: pd.DataFrame, rate: float) -> Alarms:
+    """The frames and change boxes flagged at the nominal false-alarm rate ``rate``.
+
+    A frame is flagged where its calibrated score is at most ``rate`` and its pair is comparable;
+    a box only where its own calibrated score is at most ``rate`` and its frame is flagged (the
+    frame is tested first: the boxes of a frame whose score the no-change null reaches are not
+    flagged). ``fr``: the frame rows; ``det``: the change boxes (``exceedance``, ``comparable``).
+    """
+    key = ["session", "camera", "utime"]
+    frames = fr[(fr["exceedance"] <= rate) & fr["comparable"].astype(bool)]
+    in_flagged = pd.MultiIndex.from_frame(det[key]).isin(pd.MultiIndex.from_frame(frames[key]))
+    boxes = det[(det["exceedance"] <= rate) & det["comparable"].astype(bool) & in_flagged]
+    return Alarms(rate, frames, boxes, len(fr), len(det))

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -14,7 +17,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.detect.boxes import candidate_boxes, change_boxes_nms, with_area_prior, with_prior
+from harness.detect.boxes import (
+    candidate_boxes,
+    change_boxes_nms,
+    suppression,
+    with_area_prior,
+    with_prior,
+)
 from harness.detect.config import DetectConfig
 from harness.detect.difference import (
     Registration,
@@ -91,8 +100,9 @@ def _frame_boxes_of(
         loc = with_prior(loc, diff)
     elif opt.box_prior == "difference_product":
         loc = np.maximum(diff, 0.0) * loc**opt.localization_weight
-    keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes)
-    rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes)
+    sup = suppression(boxes, opt.nms_iou)  # the same boxes for both
+    keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes, sup)
+    rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes, sup)
     return boxes, loc, keep, rand, rnd, int((~wide).sum()), diff
 
 
@@ -234,6 +244,59 @@ def _registration_row(pair: _PairDifference) -> tuple:
             res)  # fmt: skip
 
 
+@dataclass(frozen=True)
+class _Frame:
+    """What one query frame's result reads (:meth:`result`, one frame a thread).
+
+    The chunk's fused LoC column, images, pairs, original boxes and sizes, the options, the
+    random row's seed, ``[proposals]``, the frames whose plain difference Table D reads, and the
+    keypoints detected so far.
+    """
+
+    col: str
+    images: pd.Series
+    paired: dict[tuple[str, str, int], tuple[str, str, int]]
+    orig: dict[tuple[str, str, int], np.ndarray]
+    size: dict[Any, tuple[int, int]]
+    opt: DetectConfig
+    seed: int
+    proposals: ProposalsConfig
+    plain_for: frozenset[tuple[str, str, int]]
+    feats: MapFeatures
+
+    def result(
+        self, key: tuple, g: pd.DataFrame
+    ) -> tuple[list[tuple], tuple, pd.DataFrame, Any, int]:
+        """One query frame's change boxes, frame row, candidates and plain difference."""
+        opt, fk = self.opt, (str(key[0]), str(key[1]), int(key[2]))
+        floc = g[self.col].to_numpy(np.float64)
+        pair = _PairDifference(self.images, fk, self.paired[fk], opt, self.feats)
+        found = _frame_boxes_of(
+            g, floc, self.orig[fk], self.size[fk], fk, opt, self.seed, pair.contrast
+        )
+        boxes, loc, keep, rand, rnd, n_thin, diff = found
+        if not pair.reg.comparable and opt.not_comparable == "drop":
+            # nothing to compare: no box, no score, no candidate (docs/method.md)
+            boxes, loc, diff = boxes[:0], loc[:0], diff[:0]
+            keep, rand = keep[:0], rand[:0]
+            floc = floc[:0]
+        plain = None
+        if fk in self.plain_for:
+            # the detector's own proposals where they are Selective Search's (one search a frame)
+            known = self.orig[fk][:, :4] if opt.proposals == "selective" and opt.boxes in (
+                "subimages", "proposals") else None  # fmt: skip
+            plain = _plain_difference(pair, fk, opt, self.proposals.selective, known)
+        rows = [
+            (*key[:3], kind, j, *boxes[i], float(sc[i]))
+            for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd))
+            for j, i in enumerate(idx)
+        ]
+        top = boxes[keep[0]] if len(keep) else np.full(4, np.nan)
+        score = float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan
+        frow = (*key, score, len(keep), len(g), *top, *_registration_row(pair))
+        return rows, frow, _candidates(fk, boxes, loc, diff), plain, n_thin
+
+
 def detect_chunk(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
@@ -262,12 +325,14 @@ def detect_chunk(
     ``plain_difference.parquet``: the plain difference's candidates and their contrast; and, for
     the LoC maps drawn later, ``samples.parquet`` (every fused qBB with its LoC).
     """
+    threads = opt.threads if opt.threads > 0 else len(os.sched_getaffinity(0))
     samples, counts = fuse_samples(  # every frame, unlabelled: detect reads no annotation
         ranks,
         frames,
         None,
         dataclasses.replace(fusion, methods=(opt.fusion, "random")),
         progress=partial(progress, desc="detect", unit="frame"),
+        threads=threads,
     )
     samples = samples[samples["proposal_method"] == "all"].reset_index(drop=True)
     col = f"loc_{opt.fusion}"
@@ -278,32 +343,18 @@ def detect_chunk(
         (str(k[0]), str(k[1]), int(k[2])): (str(r.r_session), str(r.r_camera), int(r.r_utime))
         for k, r in ranks.groupby(QUERY_KEY, sort=False).first().iterrows()
     }
-    rows, frow, cand_parts, plain_parts, thin = [], [], [], [], 0
     feats = MapFeatures(opt.keypoints)  # a frame in several pairs (the null's): detected once
-    for key, g in samples.groupby([*QUERY_KEY, "r_session"], sort=True):
-        fk = (str(key[0]), str(key[1]), int(key[2]))
-        floc = g[col].to_numpy(np.float64)
-        pair = _PairDifference(images, fk, paired[fk], opt, feats)
-        found = _frame_boxes_of(g, floc, orig[fk], size[fk], fk, opt, fusion.seed, pair.contrast)
-        boxes, loc, keep, rand, rnd, n_thin, diff = found
-        thin += n_thin
-        dropped = not pair.reg.comparable and opt.not_comparable == "drop"
-        if dropped:  # nothing to compare: no box, no score, no candidate (docs/method.md)
-            boxes, loc, diff = boxes[:0], loc[:0], diff[:0]
-            keep, rand = keep[:0], rand[:0]
-            floc = floc[:0]
-        if fk in plain_for:
-            # the detector's own proposals where they are Selective Search's (one search a frame)
-            known = orig[fk][:, :4] if opt.proposals == "selective" and opt.boxes in (
-                "subimages", "proposals") else None  # fmt: skip
-            plain_parts.append(_plain_difference(pair, fk, opt, proposals.selective, known))
-        for kind, idx, sc in (("detection", keep, loc), ("random", rand, rnd)):
-            for j, i in enumerate(idx):
-                rows.append((*key[:3], kind, j, *boxes[i], float(sc[i])))
-        cand_parts.append(_candidates(fk, boxes, loc, diff))
-        top = boxes[keep[0]] if len(keep) else np.full(4, np.nan)
-        score = float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan
-        frow.append((*key, score, len(keep), len(g), *top, *_registration_row(pair)))
+    frame = _Frame(col, images, paired, orig, size, opt, fusion.seed, proposals, plain_for, feats)
+    rows, frow, cand_parts, plain_parts, thin = [], [], [], [], 0
+    groups = list(samples.groupby([*QUERY_KEY, "r_session"], sort=True))
+    with ThreadPoolExecutor(threads, thread_name_prefix="detect") as pool:  # in the frames' order
+        for f_rows, f_row, cands, plain, n_thin in pool.map(lambda kg: frame.result(*kg), groups):
+            rows += f_rows
+            frow.append(f_row)
+            cand_parts.append(cands)
+            if plain is not None:
+                plain_parts.append(plain)
+            thin += n_thin
     _write_chunk(tmp, cand_parts, rows, frow, samples, col)
     empty = pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "difference"])
     plain = pd.concat(plain_parts, ignore_index=True) if plain_parts else empty

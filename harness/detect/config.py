@@ -241,6 +241,9 @@ class DetectConfig:
     # frames.csv's comparable column and measured apart in Table D) or "keep" (the detector's
     # boxes stay, marked likewise, with no difference read)
     not_comparable: str = "fallback"
+    # the query frames registered, compared and fused side by side (0: one per core); the same
+    # bytes whatever the count, so in no cache key
+    threads: int = 0
     # Table D's intervals resample groups of annotated frames: "map_image" (frames whose map
     # images hold the same bytes, or the same map frame, are one group: pairs that share a view
     # are not independent) or "frame" (each annotated frame alone)
@@ -309,6 +312,7 @@ def check_detect(dt: DetectConfig, where: str, typed: Mapping[str, str] | None =
         (0 < dt.nms_iou <= 1, "nms_iou", "(0, 1]"),
         (dt.max_boxes >= 1, "max_boxes", ">= 1 per frame"),
         (dt.chunk_frames >= 1, "chunk_frames", ">= 1"),
+        (dt.threads >= 0, "threads", ">= 0 (0: one per core)"),
         (dt.top >= 0, "top", ">= 0 places"),
         (dt.boxes in BOX_GENERATORS, "boxes", f"one of {', '.join(BOX_GENERATORS)} (method §13.1)"),
         (dt.box_score in BOX_SCORES, "box_score", f"one of {', '.join(BOX_SCORES)}"),

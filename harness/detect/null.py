@@ -230,8 +230,8 @@ def null_scores(
         log.warning("the map %s has no frame to draw a null from: calibrated within the run",
                     map_session)  # fmt: skip
         return None
-    log.info("no-change null: %d %s pairs from the map %s", len(null.pairs.df), null.construction,
-             map_session)  # fmt: skip
+    log.info("no-change null: %d %s pairs from the map's frames (%s)", len(null.pairs.df),
+             null.construction, map_session)  # fmt: skip
     mine = {**props, map_session: null.proposals}
     ranks = localizer_ranks(p, measured[0].loc, null.frames, null.pairs, mine)
     entries = p.units("detect-null", chunks(ranks, null.frames.df))

@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -13,8 +12,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.detect.boxes import change_boxes_nms
-from harness.detect.calibrate import exceedance
+from harness.detect.boxes import FrameNMS
+from harness.detect.calibrate import Alarms, alarms_of, exceedance
 from harness.detect.chunk import FRAME_RESULT
 from harness.detect.figures import trajectory_figure
 from harness.detect.options import DetectRun
@@ -27,7 +26,7 @@ from harness.imagestore import read_image
 from harness.ingest.names import session_names, with_names
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.records import FRAME_KEY, QUERY_KEY
-from harness.reports.overlay import colour_bar
+from harness.reports.overlay import colour_bar, drawn_boxes
 from harness.reports.table_d import table_d_markdown
 from harness.runtime.cache import (
     read_cached_parquet,
@@ -150,36 +149,37 @@ def _coco_results(det: pd.DataFrame, ids: dict[tuple[str, str, int], int]) -> li
     ]
 
 
-def _write_alarms(
-    out: Path, fr: pd.DataFrame, det: pd.DataFrame, alarm: float
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """``alarms.csv``: the frames and boxes flagged at the nominal false-alarm rate ``alarm``.
+def _write_alarms(out: Path, al: Alarms) -> None:
+    """``alarms.csv``: the frames and boxes flagged at the nominal false-alarm rate.
 
-    A frame whose pair is not comparable (and its boxes) raises no alarm; a box raises one only
-    where its frame does (the frame is tested first, then its boxes: the boxes of a frame whose
-    score the no-change null reaches are not flagged, as the page shows none).
+    :func:`harness.detect.calibrate.alarms_of`'s: a frame whose pair is not comparable (and its
+    boxes) raises no alarm; a box raises one only where its frame does.
     """
-    flagged_f = fr[(fr["exceedance"] <= alarm) & fr["comparable"].astype(bool)]
-    in_flagged = pd.MultiIndex.from_frame(det[FRAME_KEY]).isin(
-        pd.MultiIndex.from_frame(flagged_f[FRAME_KEY])
-    )
-    flagged_b = det[(det["exceedance"] <= alarm) & det["comparable"].astype(bool) & in_flagged]
     alarms = pd.concat(
         [
-            flagged_f.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
-            flagged_b.assign(kind="box")[
+            al.frames.assign(kind="frame")[["kind", *FRAME_KEY, "score", "exceedance"]],
+            al.boxes.assign(kind="box")[
                 ["kind", *FRAME_KEY, "x1", "y1", "x2", "y2", "score", "exceedance"]
             ],
         ],
         ignore_index=True,
     ).sort_values(["kind", "exceedance", *FRAME_KEY, "x1", "y1"], kind="stable")
     write_text(out / "alarms.csv", alarms.to_csv(index=False, float_format="%.6g"))
-    return flagged_f, flagged_b
 
 
-def _nms(boxes: np.ndarray, scores: np.ndarray, nms_iou: float, max_boxes: int) -> np.ndarray:
-    """The detector's NMS as a function of (boxes, scores), for Table D's chance draws."""
-    return change_boxes_nms(boxes, scores, nms_iou, max_boxes)
+def _drawn(out: Path, dets: pd.DataFrame, fr: pd.DataFrame) -> pd.DataFrame:
+    """``dets`` with ``drawn`` (:func:`harness.reports.overlay.drawn_boxes`), to a CSV.
+
+    ``drawn_boxes.csv``: the list the page's thumbnails and the LoC overlays draw from.
+    """
+    det = dets[dets["kind"] == "detection"]
+    shown = [np.asarray(drawn_boxes(g).index) for _, g in det.groupby(FRAME_KEY, sort=True)]
+    dets = dets.assign(drawn=dets.index.isin(np.concatenate([[], *shown])))
+    rows = dets[dets["drawn"]].merge(fr[[*FRAME_KEY, *fr.columns.intersection(["name"])]])
+    cols = [c for c in (*FRAME_KEY, "name", "rank", "x1", "y1", "x2", "y2", "score", "alarmed")
+            if c in rows.columns]  # fmt: skip
+    write_text(out / "drawn_boxes.csv", rows[cols].to_csv(index=False, float_format="%.6g"))
+    return dets
 
 
 def _table_d(
@@ -195,7 +195,7 @@ def _table_d(
         if (e.path / "plain_difference.parquet").is_file():
             pd_ = read_cached_parquet(e.path / "plain_difference.parquet")
             plain.append(pd_[pd.MultiIndex.from_frame(pd_[QUERY_KEY]).isin(annotated)])
-    nms = partial(_nms, nms_iou=opt.nms_iou, max_boxes=opt.max_boxes)
+    nms = FrameNMS(opt.nms_iou, opt.max_boxes)  # each frame's overlaps made once for the draws
     groups = _groups(fr, run.frames) if opt.bootstrap_group == "map_image" else None
     inputs = TableDInputs(
         fr, ann, dets, ids, pd.concat(cands, ignore_index=True), nms,
@@ -229,10 +229,6 @@ def _groups(fr: pd.DataFrame, frames: pd.DataFrame) -> dict[tuple[str, str, int]
     return out
 
 
-#: ``detect.json``'s ``alarm``: the nominal rate, the frames and boxes it flags, of how many.
-ALARM_FIELDS = ("rate", "frames", "boxes", "of_frames", "of_boxes")
-
-
 def _frame_columns(fr: pd.DataFrame) -> list[str]:
     """The columns of ``frames.parquet`` / ``frames.csv``.
 
@@ -264,10 +260,11 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     table = fr[_frame_columns(fr)]
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
-    flagged_f, flagged_b = _write_alarms(out, fr, det, alarm)
-    fr["alarmed"] = (fr["exceedance"].to_numpy(np.float64) <= alarm) & fr["comparable"].astype(
-        bool
-    )  # the page's, method §13.1
+    al = alarms_of(fr, det, alarm)  # the one count of alarms (method §13.1)
+    _write_alarms(out, al)
+    fr["alarmed"] = fr.index.isin(al.frames.index)
+    dets = dets.assign(alarmed=dets.index.isin(al.boxes.index))
+    dets = _drawn(out, dets, fr)  # what the page and the overlays draw of them
     sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
     comparable = fr["comparable"].astype(bool).to_numpy()
     not_comparable = _not_comparable(fr, opt.not_comparable)
@@ -279,12 +276,14 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     table_d = _table_d(run, fr, dets, ids) if len(ann) else None
     pixel = write_pixel_table(out, cfg, names, map_session, entries, fr, frames, opt)
 
-    page = write_detect_page(run, (fr, top, dets), maps, (table_d, pixel))
+    page = write_detect_page(run, (fr, top, dets), maps, (table_d, pixel), al.record())
     return {
         "config": cfg.name,
         "map": map_session,
         "queries": queries,
         "localizers": run.localizers,
+        # the folders' names, the map's first, where the sessions are folders of images
+        "folders": run.folders or None,
         "fused_across": ALL_LOCALIZERS if len(run.localizers) > 1 else None,
         "options": opt.record(cfg.fusion.seed, cfg.proposals.segments),
         "query_frames": len(fr),
@@ -295,9 +294,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
         "not_comparable": not_comparable,
         "detections": len(results),
         # method §13.1: what the nominal false-alarm rate flags (alarms.csv)
-        "alarm": dict(
-            zip(ALARM_FIELDS, (alarm, *map(len, (flagged_f, flagged_b, fr, det))), strict=True)
-        ),
+        "alarm": al.record(),
         # what the calibrated scores are measured against: the no-change null or the run itself
         "calibration": run.null.record if run.null is not None else {"method": "within-run"},
         "outputs": {
@@ -384,6 +381,7 @@ def locmaps(
             over[~np.isfinite(m)] = img[~np.isfinite(m)]
             b = dets[
                 (dets["kind"] == "detection")
+                & dets["drawn"]
                 & (dets["session"] == k[0])
                 & (dets["camera"] == k[1])
                 & (dets["utime"] == k[2])

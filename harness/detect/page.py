@@ -87,9 +87,10 @@ def _truth_boxes(ann: pd.DataFrame | None) -> dict[tuple[str, str, int], list[tu
 
 
 def _frame_boxes(dets: pd.DataFrame, k: tuple[str, str, int]) -> np.ndarray:
-    """(n, 4) x1, y1, x2, y2 of the change boxes detected in frame ``k``."""
+    """(n, 4) x1, y1, x2, y2 of the change boxes drawn in frame ``k`` (``dets``' ``drawn``)."""
     b = dets[
         (dets["kind"] == "detection")
+        & dets["drawn"]
         & (dets["session"] == k[0])
         & (dets["camera"] == k[1])
         & (dets["utime"] == k[2])
@@ -175,7 +176,8 @@ def _place_html(out: Path, i: int, r: Any, c: Places) -> str:
         over = bgr[..., ::-1]
         cells.append(
             (
-                "LoC map (rank fusion) with its colour bar",
+                "change map: the likelihood of change (LoC) of each pixel, by rank fusion, with "
+                "its colour bar",
                 _thumb(over, out / "detect" / f"{name}_l.jpg"),
             )
         )
@@ -187,12 +189,16 @@ def _place_html(out: Path, i: int, r: Any, c: Places) -> str:
         else ""
     )
     found = f"{int(r.boxes)} change boxes" if alarmed else "no change detected at the alarm rate"
+    calibrated = (
+        f"{_e(in_words(r.exceedance, against[0]))} (raw change score {r.score:.3g}, no unit)"
+        if hasattr(r, "exceedance")
+        else f"raw change score {r.score:.3g} (no unit)"
+    )
     return (
-        f'<h3 id="place{i}" data-alarmed="{int(alarmed)}">{i}. {title}: change score '
-        f"{r.score:.3g}, {found}{where}{uncertain}</h3>"
+        f'<h3 id="place{i}" data-alarmed="{int(alarmed)}">{i}. {title}: {calibrated}, '
+        f"{found}{where}{uncertain}</h3>"
         + (
-            f'<p class="note" data-calibrated="{r.exceedance:.6g}">Calibrated: '
-            f"{_e(in_words(r.exceedance, against[0]))}; its top box: "
+            f'<p class="note" data-calibrated="{r.exceedance:.6g}">Its top box: '
             f"{_e(in_words(_top_box_exceedance(dets, k), against[1]))}.</p>"
             if hasattr(r, "exceedance")
             else ""
@@ -279,8 +285,12 @@ def write_detect_page(
     results: tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame],
     maps: dict[tuple[str, str, int], Path],
     tables: tuple[pd.DataFrame | None, pd.DataFrame | None],
+    alarms: dict[str, Any],
 ) -> Path:
     """Write ``out/detect.html`` and its thumbnails; return the page's path.
+
+    ``alarms``: ``detect.json``'s ``alarm`` (:class:`harness.detect.calibrate.Alarms`), the one
+    count of alarms, said on the page as it is in the files.
 
     ``results``: the frame rows, the most changed of them and the boxes; ``maps``: the LoC maps
     of those; ``tables``: Table D and its pixel AP against masks (either None where there is
@@ -314,9 +324,12 @@ def write_detect_page(
         f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
         f"<h1>What changed: {_e(what)}</h1>"
         f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
-        "each frame's change score is the largest LoC of its fused qBBs (method §13). Detections: "
-        "detections.json (COCO results) with images.json; one row per frame: frames.csv.</p>"
-        + _alarms_html(run, fr, dets)
+        "each frame's change score is the highest likelihood of change (LoC: how badly the "
+        "frame's boxes localize in its map frame, fused over its proposals) of the frame: raw, "
+        "with no unit; the calibrated score beside it says how often a pair with no change "
+        "scores as high (docs/detect.md). Detections: detections.json (COCO results) with "
+        "images.json; one row per frame: frames.csv.</p>"
+        + _alarms_html(run, alarms)
         + alignment_html(run.alignment)
         + _trajectory_html(frames, run.cfg.pairs.by)
         + table_d_html(tables[0])
@@ -332,17 +345,11 @@ def write_detect_page(
     return out / "detect.html"
 
 
-def _alarms_html(run: DetectRun, fr: pd.DataFrame, dets: pd.DataFrame) -> str:
-    """The alarms at the nominal rate, and the null they are measured against, in words."""
-    det = dets[dets["kind"] == "detection"] if "kind" in dets.columns else dets
-    flagged = int((det["exceedance"] <= run.alarm).sum()) if "exceedance" in det.columns else 0
-    al = {
-        "rate": run.alarm,
-        "frames": int(fr["alarmed"].sum()) if "alarmed" in fr.columns else 0,
-        "of_frames": len(fr),
-        "boxes": flagged,
-        "of_boxes": len(det),
-    }
+def _alarms_html(run: DetectRun, al: dict[str, Any]) -> str:
+    """The alarms at the nominal rate and the null they are measured against, in words.
+
+    ``al``: ``detect.json``'s ``alarm``, the count the files and the console hold.
+    """
     cal: dict[str, Any] = run.null.record if run.null is not None else {"method": "within-run"}
     lines = alarm_words(al, cal).splitlines()
     how = ""
@@ -362,7 +369,8 @@ def _alarms_html(run: DetectRun, fr: pd.DataFrame, dets: pd.DataFrame) -> str:
             "map's own sequence (a static scene seen twice a moment apart)."
         )
     return (
-        f"<p class='note' data-alarms='{al['frames']}' data-calibration='{_e(cal['method'])}'>"
+        f"<p class='note' data-alarms='{al['frames']}' data-calibration='{_e(cal['method'])}' "
+        f"data-alarm-boxes='{al['boxes']}'>"
         + " ".join(_e(x) for x in lines)
         + _e(how)
         + " See docs/method.md, <i>Calibrated alarms</i>.</p>"

@@ -48,16 +48,23 @@ NO_PIXEL = ("size_prior", "cover_count")
 
 
 def _frame_dets(
-    boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, nms: Any
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    gt: np.ndarray,
+    nms: Any,
+    iou: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(scores, true-positive flags) of one frame's detections: ``nms`` keeps, COCO matches."""
+    """(scores, true-positive flags) of one frame's detections: ``nms`` keeps, COCO matches.
+
+    ``iou``: ``iou_matrix(boxes, gt)`` where it was made before (its rows are the kept boxes').
+    """
     keep = np.asarray(nms(boxes, scores), np.int64)
     if not len(keep):
         return np.zeros(0), np.zeros(0, bool)
     sc = scores[keep]
     order = np.argsort(-sc, kind="stable")
     tp = np.zeros(len(keep), bool)
-    tp[order] = match50(iou_matrix(boxes[keep], gt), order)
+    tp[order] = match50(iou_matrix(boxes[keep], gt) if iou is None else iou[keep], order)
     return sc, tp
 
 
@@ -72,10 +79,11 @@ def _random_score_aps(
 ) -> np.ndarray:
     """AP50 of ``draws`` random scorings of the candidates, through the detector's NMS."""
     aps = np.empty(draws)
+    ious = {i: iou_matrix(cands[i], gts[i]) for i in ids}  # each frame's once, for every draw
     for b in range(draws):
         sc, tp = [], []
         for i in ids:
-            s_, t_ = _frame_dets(cands[i], rng.random(len(cands[i])), gts[i], nms)
+            s_, t_ = _frame_dets(cands[i], rng.random(len(cands[i])), gts[i], nms, ious[i])
             sc.append(s_)
             tp.append(t_)
         s_all, t_all = np.concatenate(sc), np.concatenate(tp)

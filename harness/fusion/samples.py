@@ -9,6 +9,7 @@ never imports the evaluation's labelling.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -120,12 +121,38 @@ def _fuse_image(
     return part
 
 
+def _fusion_jobs(
+    kcols: list[np.ndarray],
+    proposer: np.ndarray,
+    runs: tuple[np.ndarray, np.ndarray],
+    subsets: list[tuple[str, list[str]]],
+    cb: Any,
+    counts: dict[str, Any],
+) -> list[tuple[Any, ...]]:
+    """(image key, subset name, its rows, its first row) of each image and subset to fuse.
+
+    In the images' order; images without labels (``cb``) are left out; ``counts`` counts the rest.
+    """
+    jobs = []
+    for a, b in zip(*runs, strict=True):
+        key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
+        if cb is not None and key[:3] not in cb:
+            continue
+        counts["query_images"] += 1
+        for name, ms in subsets:
+            sel = np.isin(proposer[a:b], ms)
+            if sel.any():
+                jobs.append((key, name, np.flatnonzero(sel) + a, a))
+    return jobs
+
+
 def fuse_samples(
     ranks: pd.DataFrame,
     frames: pd.DataFrame,
     labels: Labels | None,
     fusion: FusionConfig,
     progress: Callable[[Iterable[Any]], Iterable[Any]] = lambda it: it,
+    threads: int = 1,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Samples of every labelled query image (one per pair) with the LoC of each method.
 
@@ -141,15 +168,12 @@ def fuse_samples(
     duplicate original gets a row of its own), the fused-set methods on fused boxes only.
 
     Numpy columns of ``ranks`` sorted once (stable) by query image; one table built at the end.
+    ``threads``: images fused side by side (numpy releases the GIL), gathered in their order: the
+    same table whatever the count.
     """
     cb = labels.changes if labels is not None else None
-    size = dict(
-        zip(
-            frames[FRAME_KEY].itertuples(index=False, name=None),
-            frames[["width", "height"]].to_numpy(),
-            strict=True,
-        )
-    )
+    wh = frames[["width", "height"]].to_numpy()
+    size = dict(zip(frames[FRAME_KEY].itertuples(index=False, name=None), wh, strict=True))
     counts = {"query_images": 0, "capped_closures": 0}
     seed, max_boxes = fusion.seed, fusion.max_fused_boxes
     methods = ordered_methods(fusion.methods)
@@ -159,36 +183,31 @@ def fuse_samples(
     subsets = [("all", props)] + ([(m, [m]) for m in props] if len(props) > 1 else [])
     srt = ranks.sort_values(list(IMAGE_KEY), kind="stable")
     kcols = [srt[k].to_numpy() for k in IMAGE_KEY]
-    method = srt["proposal_method"].to_numpy()
     season_pair = srt["season_pair"].to_numpy()
     box_all = srt[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
     r_all, d_all = srt["r"].to_numpy(np.float64), srt["d"].to_numpy(np.float64)
     L_all = srt["L"].to_numpy(np.float64)
     starts, ends = _runs(kcols, len(srt))
     cols: dict[str, list[Any]] = {c: [] for c in (*SAMPLE_COLUMNS, *(f"loc_{m}" for m in methods))}
-    for a, b in progress(list(zip(starts, ends, strict=True))):
-        key = (str(kcols[0][a]), str(kcols[1][a]), int(kcols[2][a]), str(kcols[3][a]))
-        qkey = key[:3]
-        if cb is not None and qkey not in cb:
-            continue
-        counts["query_images"] += 1
-        w, h = size[qkey]
-        for name, ms in subsets:
-            sel = np.isin(method[a:b], ms)
-            if not sel.any():
-                continue
-            part = _fuse_image(
-                box_all[a:b][sel],
-                (r_all[a:b][sel], d_all[a:b][sel], L_all[a:b][sel]),
-                (
-                    (w, h),
-                    cb[qkey] if cb is not None else None,
-                    int(stable_hash(seed, key, name, length=8), 16),
-                ),
-                rules_of,
-                counts,
-                labels,
-            )
+    jobs = _fusion_jobs(
+        kcols, srt["proposal_method"].to_numpy(), (starts, ends), subsets, cb, counts
+    )
+
+    def fuse(job: tuple[Any, ...]) -> tuple[dict[str, np.ndarray], int]:
+        key, name, rows, _ = job
+        mine = {"capped_closures": 0}
+        image = (tuple(size[key[:3]]), cb[key[:3]] if cb is not None else None,
+                 int(stable_hash(seed, key, name, length=8), 16))  # fmt: skip
+        rdl = (r_all[rows], d_all[rows], L_all[rows])
+        part = _fuse_image(box_all[rows], rdl, image, rules_of, mine, labels)
+        return part, mine["capped_closures"]
+
+    with ThreadPoolExecutor(max(1, threads), thread_name_prefix="fusion") as pool:
+        done = [pool.submit(fuse, job) for job in jobs]
+        for job, fut in zip(progress(jobs), done, strict=True):
+            key, name, _, a = job
+            part, capped = fut.result()
+            counts["capped_closures"] += capped
             n_rows = len(part["x1"])
             for c, v in zip(IMAGE_KEY, key, strict=True):
                 cols[c].append(np.full(n_rows, v, dtype=np.int64 if c == "q_utime" else object))

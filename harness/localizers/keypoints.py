@@ -14,7 +14,9 @@ inlier match, so that a removed object counts. Every size is a share of the fram
 
 from __future__ import annotations
 
+import hashlib
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,14 +61,52 @@ def union_matches(a: np.ndarray | None, b: np.ndarray | None, kc: KeypointConfig
     return features.match(a, b, kc.ratio, norm_of(kc.features), "union")
 
 
+#: The keypoints this process detected, by the work image's bytes and the detector's settings,
+#: newest last: a frame's keypoints serve every stage that works on the same pixels (the ranks,
+#: the registration, the no-change null's pairs). At most :data:`STORE_BYTES` of them are kept.
+_STORE: OrderedDict[tuple[Any, ...], tuple[np.ndarray, np.ndarray | None]] = OrderedDict()
+_STORE_LOCK = threading.Lock()
+STORE_BYTES = 256 * 2**20
+_stored = [0]
+
+
+def _size(found: tuple[np.ndarray, np.ndarray | None]) -> int:
+    return int(found[0].nbytes + (found[1].nbytes if found[1] is not None else 0))
+
+
+def stored_keypoints(gray: np.ndarray, kc: KeypointConfig) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`detect` on ``gray``, or the keypoints this process found on the same pixels before.
+
+    Keyed by a digest of the image's bytes and shape and the detector's settings, so nothing but
+    the same pixels under the same settings can hit (the same keypoints: detection is a function
+    of them).
+    """
+    g = np.ascontiguousarray(gray)
+    digest = hashlib.blake2b(g.data, digest_size=16).digest()
+    key = (digest, g.shape, str(g.dtype), kc.features, kc.max_keypoints)
+    with _STORE_LOCK:
+        if key in _STORE:
+            _STORE.move_to_end(key)
+            return _STORE[key]
+    got = detect(g, kc)
+    with _STORE_LOCK:
+        if key not in _STORE:
+            _STORE[key] = got
+            _stored[0] += _size(got)
+            while _stored[0] > STORE_BYTES and len(_STORE) > 1:
+                _stored[0] -= _size(_STORE.popitem(last=False)[1])
+        return _STORE[key]
+
+
 class MapFeatures:
     """A unit's frames' keypoints, detected once however many pairs hold one.
 
     Map frames shared by several query frames, and the no-change null's query frames (a map frame
-    against several perturbed copies of itself) are detected once: the same keypoints, once.
+    against several perturbed copies of itself) are detected once: the same keypoints, once; and
+    across units and stages of one process, once a work image (:func:`stored_keypoints`).
 
     Keyed by the map image and the work size; two threads asking for one frame at once may both
-    detect it (the same keypoints), never a wrong one. ``detected`` counts the detections.
+    detect it (the same keypoints), never a wrong one. ``detected`` counts the frames asked for.
     """
 
     def __init__(self, kc: KeypointConfig) -> None:
@@ -81,7 +121,7 @@ class MapFeatures:
         with self._lock:
             if key in self.found:
                 return self.found[key]
-        got = detect(m, self.kc)
+        got = stored_keypoints(m, self.kc)
         with self._lock:
             self.detected += 1
             return self.found.setdefault(key, got)

@@ -127,20 +127,37 @@ def no_place_report(summary: Path, names: pd.DataFrame) -> dict[str, Any] | None
     return dict(got)
 
 
+def unpaired_report(summary: Path, names: pd.DataFrame) -> list[dict[str, Any]]:
+    """The query frames a sequence's path left unpaired (its ``summary.json``), with file names.
+
+    A WARNING names them and says why (:mod:`harness.pairs.sequence`); none outside a sequence.
+    """
+    if not summary.is_file():
+        return []
+    got = json.loads(summary.read_text()).get("unpaired") or []
+    by_key = _names(names)
+    for f in got:
+        f["name"] = by_key.get((f["session"], f["camera"], int(f["utime"])), str(f["utime"]))
+    for why in sorted({f["why"] for f in got}):
+        mine = [f["name"] for f in got if f["why"] == why]
+        shown = ", ".join(mine[:10]) + (f" and {len(mine) - 10} more" if len(mine) > 10 else "")
+        log.warning("%d query frames are left unpaired (%s): %s", len(mine), why, shown)
+    return list(got)
+
+
 def hub_report(pairs: pd.DataFrame, frames: pd.DataFrame, names: pd.DataFrame) -> list[dict]:
     """Map frames that are the pair of far more query frames than a route allows: a WARNING each.
 
     At the slowest speed a sequence may run (half a map frame per query frame) a map frame is
     the pair of about two consecutive query frames; one that is the pair of more than four times
-    the query-to-map ratio (and at least 5 frames and 10% of them) is a hub, as a blank or dark
-    frame would be.
+    the query-to-map ratio (and more than 5 frames) is a hub, as a blank or dark frame would be.
     """
     hubs: list[dict] = []
     by_key = _names(names)
     for rs, g in pairs.groupby("r_session", sort=True) if len(pairs) else []:
         n_q = len(g)
         n_map = int((frames["session"] == rs).sum()) or 1
-        limit = max(5, int(np.ceil(4 * n_q / n_map)), int(np.ceil(0.1 * n_q)))
+        limit = max(5, int(np.ceil(4 * n_q / n_map)))
         counts = g.groupby(["r_camera", "r_utime"], sort=True).size()
         for (cam, ut), n in counts[counts > limit].items():
             key = (str(rs), str(cam), int(str(ut)))

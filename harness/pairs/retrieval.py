@@ -10,7 +10,6 @@ bounded by ``memory_mb`` whatever the sessions' sizes.
 
 from __future__ import annotations
 
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +20,7 @@ from harness.errors import RetrievalError
 from harness.pairs.frame_distances import frame_blocks, mean_blocks, sequence_scores
 from harness.pairs.modes import PairingMode
 from harness.pairs.place import no_place_summary, without_no_place
+from harness.pairs.sequence import path_pairs
 from harness.pairs.table import PAIR_COLUMNS, pose_columns, season_pairs
 from harness.records import FRAME_KEY, IMAGE_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
@@ -83,31 +83,39 @@ def sequence_frames(
     db_frame: np.ndarray,
     *,
     window: int,
-    chunk_rows: int = 8192,
+    usable: np.ndarray | None = None,
     memory_mb: float = 256.0,
     exclude: int = 0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`best_frames` by sequence: each query frame's map frame by :func:`sequence_scores`.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[int, str]]:
+    """Each query frame's map frame by one order-keeping alignment of the two runs.
 
-    The whole (query frames x map frames) distance matrix is held (8 bytes a cell); frame ids
-    are in time order (the sessions' frame order).
+    :func:`harness.pairs.sequence.path_pairs` over the (query frames x map frames) distances,
+    both in time order, and SeqSLAM's sequence scores of ``window`` frames
+    (:func:`harness.pairs.frame_distances.sequence_scores`); ``usable``: the map frames (by
+    position) that carry a place (None: all).
+
+    Returns (query frame ids, their map frame ids, the path's scores, the rivals', and the query
+    frames left unpaired, by position, with why). The distances are held (8 bytes a cell), the
+    path's back-pointers (1 byte).
 
     Raises:
         RetrievalError: the matrix is over ``memory_mb``.
     """
     qf_ids, _ = frame_blocks(np.asarray(q_frame))
     db_ids, _ = frame_blocks(np.asarray(db_frame))
-    need = 8 * len(qf_ids) * len(db_ids) / 2**20
+    need = 9 * len(qf_ids) * len(db_ids) / 2**20
     if need > memory_mb:
         raise RetrievalError(
-            f"[pairs] by = 'sequence': {len(qf_ids)} x {len(db_ids)} frames need a {need:.0f} "
-            f"MB distance matrix, over [retrieval] memory_mb = {memory_mb:g}; raise it"
+            f"[pairs] by = 'sequence': {len(qf_ids)} x {len(db_ids)} frames need {need:.0f} MB "
+            f"for their distances and path, over [retrieval] memory_mb = {memory_mb:g}; raise it"
         )
     mean = np.zeros((len(qf_ids), len(db_ids)))
-    for _, _, g0, g1, m in mean_blocks(q_desc, q_frame, db_desc, db_frame, chunk_rows, memory_mb):
+    for _, _, g0, g1, m in mean_blocks(q_desc, q_frame, db_desc, db_frame, 8192, memory_mb):
         mean[g0:g1] = m
-    arg, score, second = _best_and_rival(sequence_scores(mean, window), exclude)
-    return qf_ids, db_ids[arg], score, second
+    ok = np.ones(len(db_ids), bool) if usable is None else np.asarray(usable, bool)
+    seq = sequence_scores(np.where(ok[None, :], mean, np.inf), window)
+    col, score, second, unpaired = path_pairs(mean, seq, ok, exclude)
+    return qf_ids, db_ids[col], score, second, unpaired
 
 
 def pair_confidence(best: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -156,6 +164,7 @@ def retrieval_pairs(
     """
     out = []
     no_subimage = 0
+    unpaired: list[dict[str, Any]] = []  # sequence: query frames the path leaves unpaired
     candidates, blank, keys = without_no_place(candidates, frames, min_place_contrast)
     for (qs, rs), cand in candidates.groupby(["q_session", "r_session"], sort=True):
         qi = read_cached_parquet(descriptors[qs] / "index.parquet")
@@ -164,7 +173,8 @@ def retrieval_pairs(
         want = pd.MultiIndex.from_frame(cand[QUERY_KEY].set_axis(FRAME_KEY, axis=1))
         qsel = qsel[pd.MultiIndex.from_frame(qsel[FRAME_KEY]).isin(want)]
         rsel = ri[ri["proposal_method"] == proposer].reset_index()
-        if blank:  # a map frame that carries no place is nobody's pair
+        if blank and not window:  # a map frame that carries no place is nobody's pair; in a
+            # sequence it keeps its place in the map's order, and the path runs through it
             rsel = rsel[~pd.MultiIndex.from_frame(rsel[FRAME_KEY]).isin(keys)]
         if not len(qsel) or not len(rsel):
             no_subimage += len(cand)
@@ -175,16 +185,15 @@ def retrieval_pairs(
         r_ids = rsel.groupby(["camera", "utime"], sort=False).ngroup().to_numpy()
         qdesc = np.load(descriptors[qs] / "desc.npy", mmap_mode="r")
         rdesc = np.load(descriptors[rs] / "desc.npy", mmap_mode="r")
-        find = partial(sequence_frames, window=window) if window else best_frames
-        qf, bf, d2, d2_second = find(
-            qdesc[qsel["index"].to_numpy()],
-            q_ids,
-            rdesc[rsel["index"].to_numpy()],
-            r_ids,
-            memory_mb=memory_mb,
-            exclude=place_frames,
-        )
-        no_subimage += len(cand) - len(qf)
+        args = (qdesc[qsel["index"].to_numpy()], q_ids, rdesc[rsel["index"].to_numpy()], r_ids)
+        before = len(unpaired)
+        if window:
+            qf, bf, d2, d2_second = _by_sequence(
+                args, qsel, rsel, keys, (window, memory_mb, place_frames), unpaired
+            )
+        else:
+            qf, bf, d2, d2_second = best_frames(*args, memory_mb=memory_mb, exclude=place_frames)
+        no_subimage += len(cand) - len(qf) - (len(unpaired) - before)
         part = _pair_rows(qs, rs, qsel, rsel, qf, bf, d2, d2_second)
         part = part.merge(
             cand[[*QUERY_KEY, "r_session", "season_pair"]], on=[*QUERY_KEY, "r_session"]
@@ -194,7 +203,37 @@ def retrieval_pairs(
     pairs = pose_columns(pairs, frames).sort_values([*QUERY_KEY, "r_session"])
     pairs = pairs.reset_index(drop=True)
     summary = _summary(window, proposer, candidates, pairs, no_subimage, blank, min_place_contrast)
+    if window:
+        summary["unpaired"] = unpaired
     return pairs[[*PAIR_COLUMNS, "retrieval_d2", "pair_confidence"]], summary
+
+
+def _by_sequence(
+    args: tuple[np.ndarray, ...],
+    qsel: pd.DataFrame,
+    rsel: pd.DataFrame,
+    keys: pd.MultiIndex | None,
+    how: tuple[int, float, int],
+    unpaired: list[dict[str, Any]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`sequence_frames` of one pair of sessions.
+
+    The frames it leaves unpaired go to ``unpaired``, named by their keys; ``how``: the window,
+    the memory budget and the place's frames.
+    """
+    window, memory_mb, place_frames = how
+    none = pd.MultiIndex.from_tuples([], names=FRAME_KEY)
+    maps = rsel.drop_duplicates(["camera", "utime"])[FRAME_KEY]
+    usable = ~pd.MultiIndex.from_frame(maps).isin(keys if keys is not None else none)
+    qf, bf, d2, d2_second, left = sequence_frames(
+        *args, window=window, usable=usable, memory_mb=memory_mb, exclude=place_frames
+    )
+    qkeys = qsel.drop_duplicates(["camera", "utime"])[["session", "camera", "utime"]].to_numpy()
+    for i, why in sorted(left.items()):
+        unpaired.append({"session": str(qkeys[qf[i], 0]), "camera": str(qkeys[qf[i], 1]),
+                         "utime": int(qkeys[qf[i], 2]), "why": why})  # fmt: skip
+    keep = np.setdiff1d(np.arange(len(qf)), np.fromiter(left, np.int64, len(left)))
+    return qf[keep], bf[keep], d2[keep], d2_second[keep]
 
 
 def _summary(

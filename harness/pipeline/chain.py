@@ -29,7 +29,7 @@ from harness.methods import ordered_methods, rules_where
 from harness.pairs import keys as pair_keys
 from harness.pairs.agreement import pose_agreement
 from harness.pairs.modes import PAIRING_MODES, kind_of
-from harness.pairs.place import hub_report, no_place_report
+from harness.pairs.place import hub_report, no_place_report, unpaired_report
 from harness.pairs.pose import build_pairs
 from harness.pipeline.across import across_localizers, common_images, localizer_fusion
 from harness.pipeline.context import Context
@@ -180,6 +180,8 @@ def pairs_by_retrieval(
     summary = p.cache.path("pairs_retrieval", pairs.key) / "summary.json"
     if (blank := no_place_report(summary, names)) is not None:
         p.pairing["no_place"] = blank
+    if unpaired := unpaired_report(summary, names):
+        p.pairing["unpaired"] = unpaired
     p.pairing["hubs"] = hub_report(pairs.df, frames.df, names)
     _pose_agreement(p, frames, ann, pairs)
     fusion, notes = localizer_fusion(p, locs[0], ranks, len(pairs.df))

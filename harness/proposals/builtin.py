@@ -11,6 +11,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import threading
+from typing import Any
 
 import cv2
 import numpy as np
@@ -203,32 +204,45 @@ def _libc() -> ctypes.CDLL:
     return ctypes.CDLL(None)
 
 
-def selective_boxes(rgb: np.ndarray, cfg: SelectiveConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Selective Search's boxes in full-image pixels, scored by their order; (k, 4), (k,).
+def selective_rects(bgr: np.ndarray, mode: str, seed: int) -> np.ndarray:
+    """OpenCV's Selective Search on one BGR working copy: its (k, 4) x, y, w, h rects.
 
-    OpenCV's ``ximgproc.segmentation.createSelectiveSearchSegmentation`` on a copy
-    ``work_width`` wide (one thread, the C library's generator seeded with ``seed``), then the
-    area limits, near-duplicates merged by NMS in Selective Search's order, the first
-    ``max_boxes`` kept.
+    One thread, the C library's generator seeded with ``seed`` first (under a lock: that state is
+    the process's), so the same copy gives the same rects in the same order in any process.
     """
-    h, w = rgb.shape[:2]
-    small, scale = _working_copy(rgb, cfg.work_width)
     ss = cv2.ximgproc.segmentation.createSelectiveSearchSegmentation()
-    ss.setBaseImage(cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
-    if cfg.mode == "quality":
+    ss.setBaseImage(bgr)
+    if mode == "quality":
         ss.switchToSelectiveSearchQuality()
     else:
         ss.switchToSelectiveSearchFast()
-    # Selective Search ranks its regions with the C library's rand(): seeded before each frame
-    # (under a lock: that state is the process's), its boxes are the same on every run
     with _RAND_LOCK:
         threads = cv2.getNumThreads()
         cv2.setNumThreads(1)
         try:
-            _libc().srand(cfg.seed)
-            rects = np.asarray(ss.process(), np.float64).reshape(-1, 4)
+            _libc().srand(seed)
+            return np.asarray(ss.process(), np.float64).reshape(-1, 4)
         finally:
             cv2.setNumThreads(threads)
+
+
+def selective_boxes(
+    rgb: np.ndarray, cfg: SelectiveConfig, workers: Any = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Selective Search's boxes in full-image pixels, scored by their order; (k, 4), (k,).
+
+    OpenCV's ``ximgproc.segmentation.createSelectiveSearchSegmentation`` on a copy
+    ``work_width`` wide (:func:`selective_rects`; in one of ``workers``'
+    processes where given, :class:`harness.runtime.workers.Workers`), then the area limits,
+    near-duplicates merged by NMS in Selective Search's order, the first ``max_boxes`` kept.
+    """
+    h, w = rgb.shape[:2]
+    small, scale = _working_copy(rgb, cfg.work_width)
+    bgr = cv2.cvtColor(small, cv2.COLOR_RGB2BGR)
+    if workers is None:
+        rects = selective_rects(bgr, cfg.mode, cfg.seed)
+    else:
+        rects = workers.call(selective_rects, bgr, cfg.mode, cfg.seed)
     if not len(rects):
         return np.zeros((0, 4)), np.zeros(0)
     frac = rects[:, 2] * rects[:, 3] / float(small.shape[0] * small.shape[1])

@@ -14,6 +14,7 @@ Methods (each one modality with its own retrieval engine):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import os
@@ -40,6 +41,7 @@ from harness.proposals.config import ProposalsConfig
 from harness.records import FRAME_KEY
 from harness.runtime.cache import source_fingerprints, write_parquet
 from harness.runtime.progress import progress
+from harness.runtime.workers import Workers
 
 log = logging.getLogger(__name__)
 
@@ -179,7 +181,8 @@ def _image_proposals(
     batch = max(1, cfg.yolo.batch)
     items = list(frames.itertuples(index=False))
     threads = cfg.threads if cfg.threads > 0 else len(os.sched_getaffinity(0))
-    if not batched and threads > 1 and set(per_image) <= THREADED:
+    side_by_side = set(per_image) <= THREADED or len(items) >= 2 * threads  # workers start in ~1 s
+    if not batched and threads > 1 and set(per_image) <= THREADED | IN_WORKERS and side_by_side:
         return _threaded_proposals(items, cfg, per_image, threads, progress)
     for i in progress(range(0, len(items), batch)):
         chunk = items[i : i + batch]
@@ -199,6 +202,10 @@ def _image_proposals(
 #: Built-in methods that are functions of the image alone (no process-wide state such as the C
 #: library's generator Selective Search draws from), so frames can run side by side in threads.
 THREADED = frozenset({"edges", "mser"})
+#: Built-in methods whose library call holds process-wide state (Selective Search's ``rand()``):
+#: frames run side by side in worker processes (:mod:`harness.runtime.workers`), each seeded per
+#: frame, so a frame gives the same boxes whichever process ran it.
+IN_WORKERS = frozenset({"selective"})
 
 
 def _threaded_proposals(
@@ -208,24 +215,29 @@ def _threaded_proposals(
     threads: int,
     progress: Callable[[Iterable], Iterable],
 ) -> list[pd.DataFrame]:
-    """:func:`_image_proposals` of methods in :data:`THREADED`, ``threads`` frames at a time.
+    """:func:`_image_proposals` of methods in :data:`THREADED` and :data:`IN_WORKERS`.
 
-    Each frame is read and proposed by one thread (OpenCV and libjpeg release the GIL); the rows
-    come back in the frames' order, so they are the one-thread rows.
+    ``threads`` frames at a time: each frame is read and proposed by one thread (OpenCV and
+    libjpeg release the GIL), a method of :data:`IN_WORKERS` in one of ``threads`` worker
+    processes; the rows come back in the frames' order, so they are the one-thread rows.
     """
     scale = [decode_scale(f.width, cfg, methods, False) for f in items]
+    workers = Workers(threads) if set(methods) & IN_WORKERS else None
 
     def one(i: int) -> list[pd.DataFrame]:
         f, im = items[i], read_image(items[i].image, scale[i])
         rows = []
         for m in methods:
-            b, s = _one_image(m, f, im, cfg)
+            b, s = _one_image(m, f, im, cfg, workers if m in IN_WORKERS else None)
             rows.append(_rows(f, m, _full_size(b, f, im), s, [""] * len(b)))
         return rows
 
     out: list[pd.DataFrame] = []
     step = 8 * threads
-    with ThreadPoolExecutor(threads, thread_name_prefix="proposals") as pool:
+    with (
+        ThreadPoolExecutor(threads, thread_name_prefix="proposals") as pool,
+        workers or contextlib.nullcontext(),
+    ):
         for i in progress(range(0, len(items), step)):
             for rows in pool.map(one, range(i, min(i + step, len(items)))):
                 out += rows
@@ -233,9 +245,11 @@ def _threaded_proposals(
 
 
 def _one_image(
-    m: str, f: Any, im: np.ndarray, cfg: ProposalsConfig
+    m: str, f: Any, im: np.ndarray, cfg: ProposalsConfig, workers: Workers | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Method ``m``'s boxes and scores on frame ``f``'s image ``im``, checked.
+
+    ``workers``: where Selective Search runs (:data:`IN_WORKERS`; None: in this process).
 
     Raises:
         ConfigError: OpenCV refused the method's options, or its output is not boxes and scores.
@@ -244,7 +258,9 @@ def _one_image(
     if run is None:
         raise ConfigError(f"proposal method {m!r} has no function attached")
     try:
-        found = run(im, cfg)
+        found = (
+            run(im, cfg) if workers is None else builtin.selective_boxes(im, cfg.selective, workers)
+        )
     except cv2.error as err:
         raise ConfigError(
             f"proposal method {m!r} on frame {f.session}/{f.camera}/{f.utime}: "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pandas as pd
 
 
 def colour_bar(width: int, lo: float, hi: float, height: int = 30) -> np.ndarray:
@@ -22,3 +23,36 @@ def colour_bar(width: int, lo: float, hi: float, height: int = 30) -> np.ndarray
     (tw, _), _ = cv2.getTextSize(right, font, scale, 1)
     cv2.putText(out, right, (max(1, width - tw - 1), height - 4), font, scale, (40, 40, 40), 1)
     return out
+
+
+#: A drawn box is left out where more than this share of its area lies inside a higher-scored
+#: drawn box of its frame: a person reads one change there, not several nested ones.
+INSIDE_SHARE = 0.7
+
+
+def drawn_boxes(boxes: pd.DataFrame) -> pd.DataFrame:
+    """The change boxes of one frame that the page and the overlays draw (a person's view).
+
+    The alarmed boxes (column ``alarmed``) where the frame has any, else all of them; in
+    descending ``score``, each kept unless more than :data:`INSIDE_SHARE` of its area lies inside
+    a box kept before it. ``detections.json`` keeps every box: this is presentation.
+    """
+    b = boxes
+    if "alarmed" in b.columns and b["alarmed"].astype(bool).any():
+        b = b[b["alarmed"].astype(bool)]
+    b = b.sort_values("score", ascending=False, kind="stable")
+    xy = b[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    kept: list[int] = []
+    for i, (x1, y1, x2, y2) in enumerate(xy):
+        area = max(x2 - x1, 0.0) * max(y2 - y1, 0.0)
+        inside = False
+        for j in kept:
+            u1, v1, u2, v2 = xy[j]
+            iw = max(0.0, min(x2, u2) - max(x1, u1))
+            ih = max(0.0, min(y2, v2) - max(y1, v1))
+            if area > 0 and iw * ih > INSIDE_SHARE * area:
+                inside = True
+                break
+        if not inside:
+            kept.append(i)
+    return b.iloc[kept]

@@ -739,7 +739,7 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
         )
     top = fr[fr["comparable"].astype(bool)].sort_values("score", ascending=False).iloc[0]
     words = in_words(float(top["exceedance"]), "no-change null frames")
-    assert f"({words})" in printed
+    assert f": {words} (change score " in printed  # the calibrated score leads, in words
     readme = " ".join(manual_text().split())
     assert f'("{words}")' in readme
     assert words in (out / "detect.html").read_text()

@@ -12,6 +12,7 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -90,6 +91,74 @@ def test_the_page_and_alignment_name_the_users_files(real_run: tuple[Path, str])
     al = pd.read_csv(out / "alignment.csv")
     assert set(al["q_image"]) == {p.name for p in (REAL / "B").iterdir()}
     assert (al["q_image"] == al["r_image"]).all()
+
+
+def _page_text(page: Path) -> str:
+    """The page as a person reads it: its text, tags, styles and scripts left out."""
+    import html
+
+    raw = re.sub(r"<style.*?</style>|<script.*?</script>", "", page.read_text(), flags=re.S)
+    return " ".join(html.unescape(re.sub(r"<[^>]+>", " ", raw)).split())
+
+
+def test_the_page_and_the_console_say_what_the_files_hold(real_run: tuple[Path, str]) -> None:
+    """Every count a person reads on ``detect.html`` and in the console, parsed from their text,
+    is the count ``alarms.csv``, ``frames.csv`` and ``detect.json`` hold: the alarms (frames and
+    boxes), the frames that could not be registered, the uncertain pairs, Table D's detector
+    row; and no line says "map map", "qBB", or "LoC" without its plain words."""
+    out, printed = real_run
+    rec = json.loads((out / "detect.json").read_text())
+    alarms = pd.read_csv(out / "alarms.csv")
+    fr = pd.read_csv(out / "frames.csv")
+    text = _page_text(out / "detect.html")
+    said = r"alarms: (\d+) of (\d+) frames and (\d+) of (\d+) change boxes"
+    files = (
+        int((alarms["kind"] == "frame").sum()), len(fr), int((alarms["kind"] == "box").sum()),
+        rec["alarm"]["of_boxes"],
+    )  # fmt: skip
+    for where in (text, printed):
+        m = re.search(said, where)
+        assert m is not None, where[:400]
+        assert tuple(map(int, m.groups())) == files
+    assert (rec["alarm"]["frames"], rec["alarm"]["boxes"]) == (files[0], files[2])
+    bad = int((~fr["comparable"].astype(bool)).sum())
+    m = re.search(r"Not comparable: (\d+) of (\d+) query frames", text)
+    assert bad == rec["not_comparable"]["frames"]
+    assert (m is None and bad == 0) or (m is not None and int(m.group(1)) == bad)
+    m = re.search(r"Uncertain pairs: (\d+) of", text)
+    assert (m is None and rec["uncertain_pairs"] == 0) or int(m.group(1)) == rec["uncertain_pairs"]
+    det = pd.read_csv(out / "tableD.csv").set_index("row").loc["detector"]
+    assert f"{det['ap50_voc_all_point']:.3f}" in text
+    for line in [*re.split(r"(?<=[.!?])\s", text), *printed.splitlines()]:
+        assert "map map" not in line and "qBB" not in line, line
+        if "LoC" in line and "Table D" not in line:
+            assert "likelihood of change" in line, line
+
+
+def test_no_drawn_box_lies_mostly_inside_a_higher_scored_drawn_box(
+    real_run: tuple[Path, str],
+) -> None:
+    """``drawn_boxes.csv``, the list the page's thumbnails and the LoC overlays draw from: in
+    each frame no box has more than 70% of its area inside a higher-scored drawn box, and where a
+    frame has alarmed boxes only those are drawn; ``detections.json`` keeps every box."""
+    out, _ = real_run
+    drawn = pd.read_csv(out / "drawn_boxes.csv")
+    assert len(drawn)
+    for _, g in drawn.groupby(["session", "camera", "utime"]):
+        g = g.sort_values("score", ascending=False)
+        b = g[["x1", "y1", "x2", "y2"]].to_numpy()
+        for i in range(1, len(b)):
+            area = (b[i, 2] - b[i, 0]) * (b[i, 3] - b[i, 1])
+            iw = np.clip(np.minimum(b[:i, 2], b[i, 2]) - np.maximum(b[:i, 0], b[i, 0]), 0, None)
+            ih = np.clip(np.minimum(b[:i, 3], b[i, 3]) - np.maximum(b[:i, 1], b[i, 1]), 0, None)
+            assert (iw * ih <= 0.7 * area + 1e-9).all(), g
+    alarms = pd.read_csv(out / "alarms.csv")
+    boxes = alarms[alarms["kind"] == "box"]
+    for key, g in drawn.groupby(["session", "camera", "utime"]):
+        mine = boxes[(boxes["session"] == key[0]) & (boxes["utime"] == key[2])]
+        if len(mine):
+            assert g["alarmed"].all(), g
+    assert len(json.loads((out / "detections.json").read_text())) >= len(drawn)
 
 
 def test_the_null_flags_revisited_frames_and_the_map_against_itself_nothing(

@@ -234,3 +234,48 @@ def test_resampled_aps_all_rows_at_once_equal_the_weighted_ap_of_each_row() -> N
                 assert pos[b] == (w[b] * labels).sum()
             else:
                 assert np.isnan(got[b])
+
+
+def _closure_by_sorting(boxes: np.ndarray, max_boxes: int | None) -> tuple[np.ndarray, bool]:
+    """The closure as the harness computed it before hashing: duplicates found by sorting."""
+
+    def rows(a: np.ndarray) -> np.ndarray:
+        a = np.ascontiguousarray(a, np.float64)
+        return a.view(np.dtype((np.void, 8 * a.shape[1]))).ravel()
+
+    orig = np.unique(np.asarray(boxes, np.float64).reshape(-1, 4), axis=0)
+    orig = orig[(orig[:, 2] > orig[:, 0]) & (orig[:, 3] > orig[:, 1])]
+    seen, frontier, capped = orig, orig, False
+    while len(frontier):
+        x1 = np.maximum(frontier[:, None, 0], orig[None, :, 0])
+        y1 = np.maximum(frontier[:, None, 1], orig[None, :, 1])
+        x2 = np.minimum(frontier[:, None, 2], orig[None, :, 2])
+        y2 = np.minimum(frontier[:, None, 3], orig[None, :, 3])
+        cand = np.stack([x1, y1, x2, y2], -1).reshape(-1, 4)
+        cand = cand[(cand[:, 2] > cand[:, 0]) & (cand[:, 3] > cand[:, 1])]
+        _, first = np.unique(rows(cand), return_index=True)
+        new = cand[np.sort(first)]
+        new = new[~np.isin(rows(new), rows(seen))]
+        new = new[np.lexsort(new.T[::-1])]
+        if max_boxes is not None and len(seen) + len(new) > max_boxes:
+            new = new[: max(0, max_boxes - len(seen))]
+            capped = True
+        seen = np.concatenate([seen, new])
+        frontier = new
+        if capped:
+            break
+    return np.unique(seen, axis=0).reshape(-1, 4), capped
+
+
+def test_the_closure_by_hashing_is_the_closure_by_sorting() -> None:
+    """Random frames of up to 120 boxes on a coarse grid (many equal corners, so many duplicate
+    intersections), capped and not: the same boxes, in the same order, the same cap flag."""
+    rng = np.random.default_rng(0)
+    for t in range(60):
+        n = int(rng.integers(1, 120))
+        xy = rng.integers(0, 40, (n, 2)).astype(np.float64) * (0.5 if t % 2 else 1.0)
+        boxes = np.c_[xy, xy + rng.integers(1, 30, (n, 2))]
+        for cap in (None, 50, 4096):
+            got, capped = intersection_closure(boxes, cap)
+            want, want_capped = _closure_by_sorting(boxes, cap)
+            assert np.array_equal(got, want) and capped == want_capped, (t, cap)

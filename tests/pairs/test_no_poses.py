@@ -489,10 +489,14 @@ def test_each_pairing_mode_agrees_with_the_pose_pairs_as_the_readme_quotes(
     none = pd.DataFrame(columns=["session", "camera", "utime", "name"])
     got = {"order": pose_agreement(declared_pairs(frames, none, "order", seasons)[0], pose,
                                    frames, 10.0)}  # fmt: skip
+    left = {}
     for mode, window in (("retrieval", 0), ("sequence", PairsConfig().sequence_frames)):
-        pairs, _ = retrieval_pairs(cand, desc, frames, "grid5", 256.0, 2, window)
+        pairs, summary = retrieval_pairs(cand, desc, frames, "grid5", 256.0, 2, window)
         got[mode] = pose_agreement(pairs, pose, frames, 10.0)
-    assert {a["compared"] for a in got.values()} == {768}
+        left[mode] = len(summary.get("unpaired", []))
+    # every query frame paired, or (by sequence) left unpaired and named
+    assert {a["compared"] + left.get(m, 0) for m, a in got.items()} == {768}
+    assert left["retrieval"] == 0 and left["sequence"] <= 4
     assert got["sequence"]["share"] > got["retrieval"]["share"] > got["order"]["share"]
     from ..stage_digests import skip_unless_recorded_model
 
