@@ -10,17 +10,17 @@ bounded by ``memory_mb`` whatever the sessions' sizes.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from harness.errors import RetrievalError
-from harness.pairs.frame_distances import frame_blocks, mean_blocks, sequence_scores
+from harness.pairs.frame_distances import frame_blocks, mean_blocks
 from harness.pairs.modes import PairingMode
 from harness.pairs.place import no_place_summary, without_no_place
-from harness.pairs.sequence import path_pairs
+from harness.pairs.sequence import banded_pairs, path_pairs
 from harness.pairs.table import PAIR_COLUMNS, pose_columns, season_pairs
 from harness.records import FRAME_KEY, IMAGE_KEY, QUERY_KEY
 from harness.runtime.cache import read_cached_parquet, write_json, write_parquet
@@ -95,26 +95,31 @@ def sequence_frames(
     position) that carry a place (None: all).
 
     Returns (query frame ids, their map frame ids, the path's scores, the rivals', and the query
-    frames left unpaired, by position, with why). The distances are held (8 bytes a cell), the
-    path's back-pointers (1 byte).
-
-    Raises:
-        RetrievalError: the matrix is over ``memory_mb``.
+    frames left unpaired, by position, with why). The distances are held (8 bytes a cell) with
+    the path's back-pointers (1 byte) within ``memory_mb``; over it the path is found in a band
+    around a coarse one, the distances streamed
+    (:func:`harness.pairs.sequence.banded_pairs`).
     """
     qf_ids, _ = frame_blocks(np.asarray(q_frame))
     db_ids, _ = frame_blocks(np.asarray(db_frame))
-    need = 9 * len(qf_ids) * len(db_ids) / 2**20
-    if need > memory_mb:
-        raise RetrievalError(
-            f"[pairs] by = 'sequence': {len(qf_ids)} x {len(db_ids)} frames need {need:.0f} MB "
-            f"for their distances and path, over [retrieval] memory_mb = {memory_mb:g}; raise it"
-        )
-    mean = np.zeros((len(qf_ids), len(db_ids)))
-    for _, _, g0, g1, m in mean_blocks(q_desc, q_frame, db_desc, db_frame, 8192, memory_mb):
-        mean[g0:g1] = m
     ok = np.ones(len(db_ids), bool) if usable is None else np.asarray(usable, bool)
-    seq = sequence_scores(np.where(ok[None, :], mean, np.inf), window)
-    col, score, second, unpaired = path_pairs(mean, seq, ok, exclude)
+    if 9 * len(qf_ids) * len(db_ids) / 2**20 > memory_mb:  # a long ride: banded, streamed
+
+        def rows(pos: np.ndarray) -> Iterator[np.ndarray]:
+            want = np.isin(q_frame, qf_ids[pos])
+            for *_, m in mean_blocks(
+                q_desc[want], q_frame[want], db_desc, db_frame, 8192, memory_mb / 4
+            ):
+                yield m
+
+        budget = int(memory_mb * 2**20 / 4 / 8)  # a quarter of the budget for the coarse path
+        found = banded_pairs(rows, (len(qf_ids), len(db_ids)), ok, window, exclude, budget)
+    else:
+        mean = np.zeros((len(qf_ids), len(db_ids)))
+        for _, _, g0, g1, m in mean_blocks(q_desc, q_frame, db_desc, db_frame, 8192, memory_mb):
+            mean[g0:g1] = m
+        found = path_pairs(mean, ok, window, exclude)
+    col, score, second, unpaired = found
     return qf_ids, db_ids[col], score, second, unpaired
 
 

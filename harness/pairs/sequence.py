@@ -20,15 +20,20 @@ hub): the order of the ride forbids it.
   last frame onto its first at the cost of two frames of no evidence: a loop driven from
   another start.
 
-Memory: the path's back-pointers take one byte a cell (``n_query x n_map``), the distances are
-streamed a row at a time.
+Memory: the whole path takes the distances (8 bytes a cell) and its back-pointers (1 byte); a ride
+over ``[retrieval] memory_mb`` is aligned inside a band around a coarse path instead
+(:func:`banded_pairs`: 13 bytes a cell of the band, the distances streamed), the same path
+wherever the band holds it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
+
+from harness.pairs.frame_distances import SEQUENCE_SPEEDS, sequence_scores
 
 #: The cost of a cell that is no evidence either way (a cell's distance over its row's and
 #: column's typical one), and of a map frame that carries no place.
@@ -76,7 +81,8 @@ def cell_costs(dist: np.ndarray, usable: np.ndarray, cap: float) -> np.ndarray:
     row = np.median(d[:, ok], axis=1)
     col = np.median(d, axis=0)
     scale = np.sqrt(np.maximum(row[:, None], 1e-12) * np.maximum(col[None, :], 1e-12))
-    c = np.minimum(d / scale, cap)
+    with np.errstate(invalid="ignore"):  # a column of no place may hold no distance (inf)
+        c = np.minimum(d / scale, cap)
     c[:, ~ok] = cap
     return c
 
@@ -136,23 +142,200 @@ def align(
 
 
 def path_pairs(
-    dist: np.ndarray, seq: np.ndarray, usable: np.ndarray, exclude: int
+    dist: np.ndarray, usable: np.ndarray, window: int, exclude: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, str]]:
     """Each query frame's map frame on the path, its evidence and rival, and who stays unpaired.
 
-    ``dist``: the (n_q, n_m) frame distances; ``seq``: SeqSLAM's sequence scores of the same cells
-    (the evidence), the rival the best of them more than ``exclude`` frames from the path's map
-    frame. Returns the path's map frames (positions), the scores there, the rivals, and the query
-    frames (positions) left unpaired with why (:data:`UNPAIRED_DARK`, :data:`UNPAIRED_WEAK`).
+    ``dist``: the (n_q, n_m) frame distances. The evidence is SeqSLAM's sequence score of
+    ``window`` frames (:func:`harness.pairs.frame_distances.sequence_scores`) at the path's cell,
+    along the path's direction through the map; the rival the best score more than ``exclude``
+    frames from the path's map frame. Returns the path's map frames (positions), the scores there,
+    the rivals, and the query frames (positions) left unpaired with why (:data:`UNPAIRED_DARK`,
+    :data:`UNPAIRED_WEAK`).
     """
-    col = align(dist, usable).column
+    path = align(dist, usable)
+    col = path.column
+    masked = np.where(usable[None, :], dist, np.inf)
+    seq = (
+        sequence_scores(masked[:, ::-1], window)[:, ::-1]
+        if path.reversed
+        else sequence_scores(masked, window)
+    )
     rows = np.arange(len(col))
     pos = np.arange(dist.shape[1])
     rival = np.where(np.abs(pos[None, :] - col[:, None]) > exclude, seq, np.inf)
     second = rival.min(axis=1) if rival.shape[1] else np.full(len(col), np.inf)
-    unpaired = {int(i): UNPAIRED_DARK for i in np.flatnonzero(~usable[col])}
     cost = cell_costs(dist, usable, CAP)[rows, col]
-    held = np.bincount(col, minlength=dist.shape[1])[col]
+    return col, seq[rows, col], second, _unpaired(col, cost, usable)
+
+
+def _row_scores(rows: np.ndarray, at: int, window: int) -> np.ndarray:
+    """Row ``at`` of :func:`harness.pairs.frame_distances.sequence_scores` of ``rows``.
+
+    ``rows``: the query frames around it (the run's end where it ends), read alone.
+    """
+    n, nd = rows.shape
+    half = max(window, 1) // 2
+    best = np.full(nd, np.inf)
+    for v in SEQUENCE_SPEEDS:
+        acc, cnt = np.zeros(nd), np.zeros(nd)
+        for k in range(-half, half + 1):
+            off = round(v * k)
+            j0, j1 = max(0, -off), min(nd, nd - off)
+            if 0 <= at + k < n and j0 < j1:
+                acc[j0:j1] += rows[at + k, j0 + off : j1 + off]
+                cnt[j0:j1] += 1
+        best = np.minimum(best, np.divide(acc, cnt, out=np.full(nd, np.inf), where=cnt > 0))
+    return best
+
+
+@dataclass
+class _Band:
+    """The banded path's per-row records.
+
+    Back-pointers, costs and sequence scores on the band, and each row's least sequence scores
+    anywhere (the rival's candidates).
+    """
+
+    lo: np.ndarray
+    width: int
+    nm: int
+    keep: int
+
+    def __post_init__(self) -> None:
+        nq = len(self.lo)
+        self.back = np.zeros((nq, self.width), np.int8)
+        self.cost = np.zeros((nq, self.width), np.float32)
+        self.seq = np.zeros((nq, self.width), np.float64)
+        self.top_v = np.full((nq, self.keep), np.inf)
+        self.top_j = np.zeros((nq, self.keep), np.int64)
+
+    def cols(self, i: int) -> np.ndarray:
+        return (self.lo[i] + np.arange(self.width)) % self.nm
+
+    def shift(self, i: int) -> int:
+        """How far row ``i``'s band starts after row ``i - 1``'s (across a loop's wrap too)."""
+        return int((self.lo[i] - self.lo[i - 1] + self.nm // 2) % self.nm - self.nm // 2)
+
+    def scored(self, u: int, s: np.ndarray) -> None:
+        self.seq[u] = s[self.cols(u)]
+        k = min(self.keep, len(s))
+        j = np.argpartition(s, k - 1)[:k]
+        self.top_v[u, :k], self.top_j[u, :k] = s[j], j
+
+
+def _guide(
+    rows: Callable[[np.ndarray], Iterator[np.ndarray]],
+    shape: tuple[int, int],
+    usable: np.ndarray,
+    budget_cells: int,
+) -> tuple[np.ndarray, int, bool]:
+    """The band of :func:`banded_pairs` and the path's direction through the map.
+
+    Each query frame's first map frame of the band, its width, and whether the path runs through
+    the map backwards (the band then counts the map reversed). The coarse path is :func:`align`
+    of every ``s``-th query frame against blocks of ``s`` map frames (each block's least
+    distance), ``s`` as small as ``budget_cells`` allows.
+    """
+    nq, nm = shape
+    s = max(1, int(np.ceil(np.sqrt(nq * nm / max(budget_cells, 1)))))
+    qs, ms = np.arange(0, nq, s), np.arange(0, nm, s)
+    pooled = [np.minimum.reduceat(np.where(usable, b, np.inf), ms, axis=1) for b in rows(qs)]
+    coarse = align(np.concatenate(pooled), np.logical_or.reduceat(usable, ms))
+    flip = coarse.reversed
+    guide = (len(ms) - 1 - coarse.column) * s + (nm - 1 - (len(ms) - 1) * s) if flip else (
+        coarse.column * s)  # fmt: skip
+    guide = np.unwrap(guide.astype(np.float64), period=nm)  # across a loop's wrap
+    width = min(2 * (4 * s + 8) + 1, nm)
+    lo = np.round(np.interp(np.arange(nq), qs, guide)).astype(np.int64) - width // 2
+    return lo, width, flip
+
+
+def banded_pairs(
+    rows: Callable[[np.ndarray], Iterator[np.ndarray]],
+    shape: tuple[int, int],
+    usable: np.ndarray,
+    window: int,
+    exclude: int,
+    budget_cells: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[int, str]]:
+    """:func:`path_pairs` for a ride too long to hold its distance matrix: banded and streamed.
+
+    ``rows(query positions)`` yields those query frames' distance rows (to every map frame), in
+    order, a block at a time; ``shape``: (n_q, n_m); ``budget_cells``: the cells the coarse
+    matrix may hold. A coarse path (:func:`align` of every ``s``-th frame of both runs, ``s`` as
+    small as the budget allows) gives each query frame a guide and the direction; the path is
+    then :func:`align`'s inside a band of ``4 s + 8`` map frames either side of the guide, the
+    distances streamed. The cells' column medians are those of 64 query frames spread over the
+    run (the whole run's in :func:`align`). Memory: 13 bytes a cell of the band, ``window`` rows
+    of distances and the coarse matrix.
+    """
+    nq, nm = shape
+    lo, width, flip = _guide(rows, shape, np.asarray(usable, bool), budget_cells)
+    sample = np.unique(np.linspace(0, nq - 1, min(nq, 64)).round().astype(np.int64))
+    col_med = np.median(np.concatenate(list(rows(sample))), axis=0)
+    ok = usable[::-1] if flip else np.asarray(usable, bool)
+    col_med = col_med[::-1] if flip else col_med
+    band = _Band(lo, width, nm, 2 * exclude + 2)
+    pen = STEP_COST * np.abs(np.arange(MAX_STEP + 1) - 1.0)
+    half = max(window, 1) // 2
+    buf: list[np.ndarray] = []  # the rows the next sequence score reads
+    acc = np.zeros(width)
+    i = 0
+    for block in rows(np.arange(nq)):
+        for r in block[:, ::-1] if flip else block:
+            cols = band.cols(i)
+            scale = np.sqrt(max(float(np.median(r[ok])) if ok.any() else 1.0, 1e-12)
+                            * np.maximum(col_med[cols], 1e-12))  # fmt: skip
+            c = np.minimum(r[cols] / scale, CAP)
+            c[~ok[cols]] = CAP
+            band.cost[i] = c
+            if i:
+                k_prev = (
+                    np.arange(width)[None, :] - np.arange(MAX_STEP + 1)[:, None] + band.shift(i)
+                )
+                inside = (k_prev >= 0) & (k_prev < width)
+                cand = np.where(inside, acc[np.clip(k_prev, 0, width - 1)], np.inf) + pen[:, None]
+                crossing = (cols[None, :] - np.arange(MAX_STEP + 1)[:, None]) < 0
+                cand = cand + np.where(crossing, WRAP * CAP, 0.0)
+                band.back[i] = np.argmin(cand, axis=0)  # the first least: the smallest step
+                acc = cand.min(axis=0) + c
+            else:
+                acc = c.copy()
+            buf.append(np.where(ok, r, np.inf))  # along the path's direction, as path_pairs
+            if i >= half:  # row i - half has every neighbour it reads
+                u = i - half
+                first = max(0, u - half)
+                got = _row_scores(np.stack(buf[first - (i + 1 - len(buf)) :]), u - first, window)
+                band.scored(u, got)
+            if len(buf) > 2 * half + 1:
+                buf.pop(0)
+            i += 1
+    for u in range(max(0, nq - half), nq):  # the run's last rows: the end is their neighbour
+        first = max(0, u - half)
+        start = nq - len(buf)
+        got = _row_scores(np.stack(buf[first - start :]), u - first, window)
+        band.scored(u, got)
+    k = int(np.argmin(acc))
+    at = np.empty(nq, np.int64)
+    for i in range(nq - 1, -1, -1):
+        at[i] = k
+        if i:
+            k = k - int(band.back[i, k]) + band.shift(i)
+    col = (lo + at) % nm
+    idx = np.arange(nq)
+    top_j = nm - 1 - band.top_j if flip else band.top_j
+    cost = band.cost[idx, at]
+    score = band.seq[idx, at].astype(np.float64)
+    col = nm - 1 - col if flip else col
+    second = np.where(np.abs(top_j - col[:, None]) > exclude, band.top_v, np.inf).min(axis=1)
+    return col, score, second, _unpaired(col, cost, np.asarray(usable, bool))
+
+
+def _unpaired(col: np.ndarray, cost: np.ndarray, usable: np.ndarray) -> dict[int, str]:
+    """The query frames a path leaves unpaired, with why (:data:`UNPAIRED_DARK`, ``_WEAK``)."""
+    unpaired = {int(i): UNPAIRED_DARK for i in np.flatnonzero(~usable[col])}
+    held = np.bincount(col, minlength=len(usable))[col]
     for i in np.flatnonzero((held > STOP_FRAMES) & (cost >= WEAK * CAP) & usable[col]):
         unpaired[int(i)] = UNPAIRED_WEAK
-    return col, seq[rows, col], second, unpaired
+    return unpaired

@@ -8,9 +8,10 @@ not, a query run the other way round, a query that covers part of the map, a sto
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from harness.pairs.retrieval import sequence_frames
-from harness.pairs.sequence import UNPAIRED_DARK, align
+from harness.pairs.sequence import UNPAIRED_DARK, align, banded_pairs, path_pairs
 
 
 def _ride(nq: int = 200, nm: int = 200, seed: int = 0, offset: int = 0) -> np.ndarray:
@@ -106,3 +107,36 @@ def test_a_loop_driven_from_another_start_wraps_from_the_maps_end_to_its_start()
     d[np.arange(200), place] = 0.3
     col = align(d, np.ones(200, bool)).column
     assert (col == place).all()
+
+
+@pytest.mark.parametrize("case", ["forward", "backwards", "loop", "dark start", "fog", "part"])
+def test_a_long_ride_aligned_in_a_band_gets_the_whole_paths_pairs(case: str) -> None:
+    """Over ``[retrieval] memory_mb`` the path is found in a band around a coarse path, the
+    distances streamed (``banded_pairs``): on each kind of ride above, the same map frames, the
+    same scores and rivals and the same frames left unpaired as the whole path's."""
+    n = 600
+    place = {"backwards": np.arange(n)[::-1], "loop": (np.arange(n) + 200) % n}.get(
+        case, np.arange(n)
+    )
+    nq = 200 if case == "part" else n
+    d = _ride(nq, n) if case != "part" else _ride(nq, n, offset=150)
+    if case in ("backwards", "loop"):
+        rng = np.random.default_rng(0)
+        d = 1.0 + 0.2 * rng.random((n, n))
+        d[np.arange(n), place] = 0.3
+    usable = np.ones(n, bool)
+    if case == "dark start":
+        usable[:17] = False
+    if case == "fog":
+        d[300:340] = 0.95
+        d[300:340, 372:377] = 0.9
+
+    def rows(pos: np.ndarray):
+        for a in range(0, len(pos), 37):
+            yield d[pos[a : a + 37]]
+
+    whole = path_pairs(d, usable, 11, 2)
+    band = banded_pairs(rows, d.shape, usable, 11, 2, 2000)
+    assert np.array_equal(whole[0], band[0])
+    assert np.allclose(whole[1], band[1]) and np.allclose(whole[2], band[2])
+    assert whole[3] == band[3]
