@@ -27,6 +27,13 @@ cv2 = pytest.importorskip("cv2")
 NORDLAND = ROOT.parent / "shared" / "realdata" / "nordland-dev"
 
 
+#: The tests that read the real ride skip, saying why, where it is absent.
+needs_the_ride = pytest.mark.skipif(
+    not (NORDLAND / "winter").is_dir(),
+    reason=f"no real seasons here: {NORDLAND} is absent (shared/realdata is read, never committed)",
+)
+
+
 def test_the_default_threshold_parts_frames_with_no_place_from_real_frames() -> None:
     """The rule written before looking at the ride: half the lowest contrast of nordland-dev's 600
     real frames (22.3 grey levels), rounded down: 10. Black, grey and a frame at 5% of its
@@ -52,10 +59,7 @@ def test_the_default_threshold_parts_frames_with_no_place_from_real_frames() -> 
         assert len(real) == 600 and min(real) > 2 * t, min(real)
 
 
-@pytest.mark.skipif(
-    not (NORDLAND / "winter").is_dir(),
-    reason=f"no real seasons here: {NORDLAND} is absent (shared/realdata is read, never committed)",
-)
+@needs_the_ride
 def test_dark_blank_and_stopped_map_frames_pair_as_well_as_without_them(
     tmp_path: Path,
 ) -> None:
@@ -95,10 +99,7 @@ def test_dark_blank_and_stopped_map_frames_pair_as_well_as_without_them(
     assert share >= 0.78, share
 
 
-@pytest.mark.skipif(
-    not (NORDLAND / "winter").is_dir(),
-    reason=f"no real seasons here: {NORDLAND} is absent (shared/realdata is read, never committed)",
-)
+@needs_the_ride
 def test_a_query_run_backwards_over_part_of_a_map_dark_where_it_is_not_pairs_in_order(
     tmp_path: Path,
 ) -> None:
