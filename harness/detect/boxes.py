@@ -89,6 +89,37 @@ class FrameNMS:
             self._made[key] = suppression(b, self.nms_iou)
         return change_boxes_nms(b, scores, self.nms_iou, self.max_boxes, self._made[key])
 
+    def many(self, boxes: np.ndarray, scores: np.ndarray) -> np.ndarray:
+        """The kept indices of ``boxes`` under each row of ``scores`` (d, n), all finite.
+
+        (d, ``max_boxes``) int, -1 past a row's last kept box: row by row what :meth:`__call__`
+        keeps (the same stable order, the same suppression), the greedy steps taken for all rows
+        at once.
+        """
+        b = np.ascontiguousarray(boxes, np.float64).reshape(-1, 4)
+        d, n = scores.shape
+        kept = np.full((d, self.max_boxes), -1, np.int64)
+        if not n:
+            return kept
+        key = b.tobytes()
+        if key not in self._made:
+            self._made[key] = suppression(b, self.nms_iou)
+        sup = self._made[key]
+        order = np.argsort(-scores, axis=1, kind="stable")
+        alive = np.ones((d, n), bool)
+        rows = np.arange(d)
+        for t in range(self.max_boxes):
+            live = np.take_along_axis(alive, order, axis=1)
+            j = np.argmax(live, axis=1)
+            has = live[rows, j]
+            if not has.any():
+                break
+            i = order[rows, j]
+            kept[has, t] = i[has]
+            alive[has] &= ~sup[i[has]]
+            alive[rows[has], i[has]] = False
+        return kept
+
 
 def _pixels(m: np.ndarray, box: np.ndarray) -> tuple[int, int, int, int]:
     """The pixel rows and columns (v0, v1, u0, u1) whose centres lie in ``box``."""

@@ -191,6 +191,22 @@ class _PairDifference:
         return box_differences(self.made, self.novelty, boxes, self.dc)
 
 
+#: A frame row's registration columns where the detector reads no registration and Table D no
+#: plain difference of the frame (:func:`reads_registration`): compared by localization alone,
+#: so comparable, and nothing registered.
+UNREGISTERED_ROW = (True, 0, "", "not registered", *(float("nan"),) * 5)
+
+
+def reads_registration(opt: DetectConfig) -> bool:
+    """Whether the detector's own boxes read each pair's registration and plain difference.
+
+    A box prior of the difference does, and ``not_comparable = "drop"`` (a pair is dropped by
+    its registration). The paper's detector (``box_prior = "none"``) scores boxes by their LoC
+    alone: its pairs are registered only where Table D's plain difference reads them.
+    """
+    return opt.box_prior in ("difference", "difference_product") or opt.not_comparable == "drop"
+
+
 def _plain_difference(
     pair: _PairDifference,
     fk: tuple,
@@ -270,18 +286,19 @@ class _Frame:
         """One query frame's change boxes, frame row, candidates and plain difference."""
         opt, fk = self.opt, (str(key[0]), str(key[1]), int(key[2]))
         floc = g[self.col].to_numpy(np.float64)
-        pair = _PairDifference(self.images, fk, self.paired[fk], opt, self.feats)
-        found = _frame_boxes_of(
-            g, floc, self.orig[fk], self.size[fk], fk, opt, self.seed, pair.contrast
-        )
+        pair = None
+        if fk in self.plain_for or reads_registration(opt):
+            pair = _PairDifference(self.images, fk, self.paired[fk], opt, self.feats)
+        found = _frame_boxes_of(g, floc, self.orig[fk], self.size[fk], fk, opt, self.seed,
+                                None if pair is None else pair.contrast)  # fmt: skip
         boxes, loc, keep, rand, rnd, n_thin, diff = found
-        if not pair.reg.comparable and opt.not_comparable == "drop":
+        if pair is not None and not pair.reg.comparable and opt.not_comparable == "drop":
             # nothing to compare: no box, no score, no candidate (docs/method.md)
             boxes, loc, diff = boxes[:0], loc[:0], diff[:0]
             keep, rand = keep[:0], rand[:0]
             floc = floc[:0]
         plain = None
-        if fk in self.plain_for:
+        if pair is not None and fk in self.plain_for:
             # the detector's own proposals where they are Selective Search's (one search a frame)
             known = self.orig[fk][:, :4] if opt.proposals == "selective" and opt.boxes in (
                 "subimages", "proposals") else None  # fmt: skip
@@ -293,7 +310,8 @@ class _Frame:
         ]
         top = boxes[keep[0]] if len(keep) else np.full(4, np.nan)
         score = float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan
-        frow = (*key, score, len(keep), len(g), *top, *_registration_row(pair))
+        reg = UNREGISTERED_ROW if pair is None else _registration_row(pair)
+        frow = (*key, score, len(keep), len(g), *top, *reg)
         return rows, frow, _candidates(fk, boxes, loc, diff), plain, n_thin
 
 
@@ -317,7 +335,8 @@ def detect_chunk(
     ``proposals``: ``[proposals]``, whose ``segments`` are the colour regions of the ``segments``
     generator and whose ``selective`` boxes are the plain difference's own.
 
-    Every pair is registered first (:mod:`harness.detect.difference`); a pair that is not
+    Every pair whose registration the detector or Table D reads is registered first
+    (:mod:`harness.detect.difference`, :func:`reads_registration`); a pair that is not
     comparable keeps no change box and no score where ``[detect] not_comparable = "drop"``.
 
     ``boxes.parquet``: every change box (frame key, rank within the frame, box, LoC);

@@ -145,6 +145,30 @@ def match50(iou: np.ndarray, order: np.ndarray) -> np.ndarray:
     return tp
 
 
+def match50_rows(iou: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """:func:`match50` of many detection sets of one image at once.
+
+    ``iou``: (n, g) of the image's candidates with its ground truth; ``kept``: (d, k) each set's
+    detections in score order as candidate indices, -1 where a set has fewer. Returns (d, k)
+    true-positive flags: row by row what :func:`match50` gives (the last of equal IoUs).
+    """
+    d, k = kept.shape
+    g = iou.shape[1]
+    tp = np.zeros((d, k), bool)
+    if not g or not len(iou):
+        return tp
+    rows = np.arange(d)
+    taken = np.zeros((d, g), bool)
+    for j in range(k):
+        valid = kept[:, j] >= 0
+        vals = np.where(taken | ~valid[:, None], -np.inf, iou[np.maximum(kept[:, j], 0)])
+        last = g - 1 - np.argmax(vals[:, ::-1], axis=1)  # the last of the largest
+        hit = vals[rows, last] >= 0.5
+        taken[rows[hit], last[hit]] = True
+        tp[:, j] = hit
+    return tp
+
+
 def clopper_pearson(k: int, n: int, ci: float = 0.95) -> tuple[float, float]:
     """The exact (Clopper-Pearson) interval of a rate of ``k`` in ``n`` at level ``ci``."""
     from scipy.stats import beta

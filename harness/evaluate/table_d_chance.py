@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from harness.evaluate import chance
-from harness.evaluate.box_ap import iou_matrix, match50, weighted_voc
+from harness.evaluate.box_ap import iou_matrix, match50, match50_rows, weighted_voc
 from harness.evaluate.metrics import interval, resample_counts
 
 #: Table D's rows that read the pair's pixels but no localizer: the plain difference with its own
@@ -77,7 +77,43 @@ def _random_score_aps(
     draws: int,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """AP50 of ``draws`` random scorings of the candidates, through the detector's NMS."""
+    """AP50 of ``draws`` random scorings of the candidates, through the detector's NMS.
+
+    Draw by draw, frame by frame in ``ids`` order, each frame's scores ``rng.random(n)``. Where
+    ``nms`` keeps boxes for many score rows at once (:meth:`harness.detect.boxes.FrameNMS.many`),
+    each frame's draws go through it together: the same numbers, boxes and APs.
+    """
+    if not hasattr(nms, "many"):
+        return _random_score_aps_one(cands, gts, nms, ids, n_gt, draws, rng)
+    sizes = [len(cands[i]) for i in ids]
+    scores = rng.random(draws * sum(sizes)).reshape(draws, -1)  # the numbers drawn one by one
+    at = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    sc, tp, ok = [], [], []
+    for k, i in enumerate(ids):
+        s_ = scores[:, at[k] : at[k + 1]]
+        kept = nms.many(cands[i], s_)
+        sc.append(np.take_along_axis(s_, np.maximum(kept, 0), axis=1) if s_.shape[1] else
+                  np.zeros(kept.shape))  # fmt: skip
+        tp.append(match50_rows(iou_matrix(cands[i], gts[i]), kept))
+        ok.append(kept >= 0)
+    s_all, t_all, v_all = (np.concatenate(x, axis=1) for x in (sc, tp, ok))
+    aps = np.empty(draws)
+    for b in range(draws):
+        s, t = s_all[b][v_all[b]], t_all[b][v_all[b]]
+        aps[b] = weighted_voc(s, t, np.ones(len(s)), n_gt)
+    return aps
+
+
+def _random_score_aps_one(
+    cands: dict[int, np.ndarray],
+    gts: dict[int, np.ndarray],
+    nms: Any,
+    ids: list[int],
+    n_gt: int,
+    draws: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """:func:`_random_score_aps` through an ``nms`` of one score set at a time."""
     aps = np.empty(draws)
     ious = {i: iou_matrix(cands[i], gts[i]) for i in ids}  # each frame's once, for every draw
     for b in range(draws):

@@ -14,7 +14,6 @@ Methods (each one modality with its own retrieval engine):
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import os
@@ -41,7 +40,7 @@ from harness.proposals.config import ProposalsConfig
 from harness.records import FRAME_KEY
 from harness.runtime.cache import source_fingerprints, write_parquet
 from harness.runtime.progress import progress
-from harness.runtime.workers import Workers
+from harness.runtime.workers import Workers, shared_workers
 
 log = logging.getLogger(__name__)
 
@@ -222,7 +221,7 @@ def _threaded_proposals(
     processes; the rows come back in the frames' order, so they are the one-thread rows.
     """
     scale = [decode_scale(f.width, cfg, methods, False) for f in items]
-    workers = Workers(threads) if set(methods) & IN_WORKERS else None
+    workers = shared_workers(threads, (builtin.__name__,)) if set(methods) & IN_WORKERS else None
 
     def one(i: int) -> list[pd.DataFrame]:
         f, im = items[i], read_image(items[i].image, scale[i])
@@ -234,10 +233,7 @@ def _threaded_proposals(
 
     out: list[pd.DataFrame] = []
     step = 8 * threads
-    with (
-        ThreadPoolExecutor(threads, thread_name_prefix="proposals") as pool,
-        workers or contextlib.nullcontext(),
-    ):
+    with ThreadPoolExecutor(threads, thread_name_prefix="proposals") as pool:
         for i in progress(range(0, len(items), step)):
             for rows in pool.map(one, range(i, min(i + step, len(items)))):
                 out += rows

@@ -10,6 +10,7 @@ functions are module-level ones of the package, found by name.
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import os
 import pickle
@@ -26,9 +27,9 @@ from harness.errors import HarnessError
 class _Worker:
     """One worker process and its pipes."""
 
-    def __init__(self) -> None:
+    def __init__(self, preload: tuple[str, ...] = ()) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "harness.runtime.workers"],
+            [sys.executable, "-m", "harness.runtime.workers", *preload],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=os.environ.copy(),  # the parent's kernel pins with it
@@ -72,17 +73,27 @@ class Workers:
     ``n`` threads keep ``n`` processes busy.
     """
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, preload: tuple[str, ...] = ()) -> None:
         self.n = max(1, n)
+        self.preload = preload  # modules each worker imports as it starts, before its first job
         self._free: queue.Queue[_Worker] = queue.Queue()
         self._all: list[_Worker] = []
         self._lock = threading.Lock()
+
+    def start(self) -> Workers:
+        """Start every worker now (each imports :attr:`preload` while the caller goes on)."""
+        with self._lock:
+            while len(self._all) < self.n:
+                w = _Worker(self.preload)
+                self._all.append(w)
+                self._free.put(w)
+        return self
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)`` in a worker process (``fn``: a module-level function of the package)."""
         with self._lock:
             if self._free.empty() and len(self._all) < self.n:
-                w = _Worker()
+                w = _Worker(self.preload)
                 self._all.append(w)
                 self._free.put(w)
         w = self._free.get()
@@ -102,6 +113,30 @@ class Workers:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+_SHARED: dict[tuple[int, tuple[str, ...]], Workers] = {}
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_workers(n: int, preload: tuple[str, ...] = ()) -> Workers:
+    """This process's pool of ``n`` workers (started now), kept for every later stage that asks.
+
+    A run's stages (the map's proposals, then the new session's) reuse one pool rather than
+    start processes for each; the pool ends when this process exits.
+    """
+    key = (max(1, n), tuple(preload))
+    with _SHARED_LOCK:
+        if key not in _SHARED:
+            _SHARED[key] = Workers(*key).start()
+        return _SHARED[key]
+
+
+@atexit.register
+def _close_shared() -> None:
+    for w in _SHARED.values():
+        w.close()
+    _SHARED.clear()
 
 
 def _serve(inp: BinaryIO, out: BinaryIO) -> None:
@@ -130,4 +165,6 @@ if __name__ == "__main__":
     # the answers go on the real standard output; anything a library prints goes to stderr
     _out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
+    for _module in sys.argv[1:]:  # preloaded: imported while the caller prepares the first job
+        importlib.import_module(_module)
     _serve(sys.stdin.buffer, _out)

@@ -48,3 +48,24 @@ def test_the_kept_boxes_are_opencvs_on_random_sets_with_ties_and_empty_boxes(see
         sup = suppression(boxes, 0.5)
         assert change_boxes_nms(boxes, loc, 0.5, 10, sup).tolist() == nms(boxes, loc).tolist()
         assert nms(boxes, loc).tolist() == _opencv(boxes, loc, 0.5, 10).tolist()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_many_score_rows_keep_what_each_row_keeps_alone(seed: int) -> None:
+    """``FrameNMS.many`` (Table D's draws, all at once): row by row the indices, in the order, of
+    one call per row, on boxes with repeats, no area and rounded corners, at caps 1, 10, 100."""
+    rng = np.random.default_rng(seed)
+    for t in range(40):
+        n = int(rng.integers(0, 120))
+        xy, wh = np.round(rng.uniform(0, 300, (n, 2))), np.round(rng.uniform(0, 120, (n, 2)))
+        if t % 4 == 0 and n:
+            wh[rng.integers(0, n, max(1, n // 4))] = 0.0
+        boxes = np.c_[xy, xy + wh]
+        if n > 2:
+            boxes[1] = boxes[0]
+        nms = FrameNMS(float(rng.choice([0.3, 0.5, 1.0])), int(rng.choice([1, 10, 100])))
+        scores = np.round(rng.random((25, n)), 1 if t % 2 else 6)  # ties within a row
+        kept = nms.many(boxes, scores)
+        for row, k in zip(scores, kept, strict=True):
+            np.testing.assert_array_equal(k[k >= 0], nms(boxes, row))
+            assert (k[k < 0] == -1).all() and (np.diff(np.flatnonzero(k < 0)) == 1).all()
