@@ -118,9 +118,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("harness.evaluate",),
     ("harness.fusion",),
     ("harness.localizers",),
-    # the root config assembles every stage's section (``harness/<stage>/config.py``); detect's
-    # section and its presets are leaf modules, so they sit here, below the detector they configure
-    ("harness.config", "harness.detect.config", "harness.detect.presets"),
+    # the root config assembles every stage's section (``harness/<stage>/config.py``, detect's
+    # ``harness/config/detect.py`` with its presets): below the detector they configure
+    ("harness.config",),
     ("harness.reports",),
     ("harness.pipeline",),
     ("harness.detect",),

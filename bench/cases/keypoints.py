@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.detect.config import DifferenceConfig
+from harness.config.detect import DifferenceConfig
 from harness.detect.difference import difference_map, novelty_of, register
 from harness.localizers.config import KeypointConfig
 from harness.localizers.keypoints import detect, ratio_matches, work_gray, write_keypoint_ranks

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from harness.config.detect import DetectConfig
 from harness.detect.boxes import (
     candidate_boxes,
     change_boxes_nms,
@@ -24,7 +25,6 @@ from harness.detect.boxes import (
     with_area_prior,
     with_prior,
 )
-from harness.detect.config import DetectConfig
 from harness.detect.difference import (
     Registration,
     box_differences,

@@ -30,9 +30,9 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from harness.config.detect import DifferenceConfig
 from harness.detect.boxes import inside_score
 from harness.detect.colour import colour_novelty
-from harness.detect.config import DifferenceConfig
 from harness.imagestore import read_image
 from harness.localizers.align import align_ecc
 from harness.localizers.config import KeypointConfig, LocalConfig

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.detect.config import DetectConfig, NullConfig
+from harness.config.detect import DetectConfig, NullConfig
 from harness.localizers.kinds import paired_kinds
 from harness.pairs.modes import PAIRING_MODES, kind_of
 from harness.pairs.table import PAIR_COLUMNS

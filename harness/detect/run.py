@@ -32,11 +32,11 @@ import pandas as pd
 
 from harness import kernels
 from harness.config.assemble import detect_run_config
+from harness.config.detect import DetectConfig, check_detect
 from harness.config.plugins import plugin_record
 from harness.config.schema import Config
 from harness.detect import keys as detect_keys
 from harness.detect.chunk import detect_chunk
-from harness.detect.config import DetectConfig, check_detect
 from harness.detect.null import null_scores
 from harness.detect.options import DetectRun
 from harness.detect.outputs import write_outputs
