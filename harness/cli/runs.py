@@ -17,8 +17,8 @@ from harness.cli.common import (
 from harness.cli.console import print_block, print_localization, print_table_l
 from harness.config.assemble import Overrides, folders_config
 from harness.config.assemble import run_config as config_with
-from harness.detect.calibrate import alarm_words
 from harness.errors import HarnessError
+from harness.reports.alarm_words import alarm_words
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
@@ -121,7 +121,7 @@ def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
     ``null``: the scores are calibrated against the no-change null (else within the run), which
     the words name.
     """
-    from harness.detect.calibrate import in_words
+    from harness.reports.alarm_words import in_words
 
     fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False)
     if "uncertain_pair" in fr.columns:

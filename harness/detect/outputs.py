@@ -15,9 +15,6 @@ import pandas as pd
 from harness.detect.boxes import FrameNMS
 from harness.detect.calibrate import Alarms, alarms_of, exceedance
 from harness.detect.chunk import FRAME_RESULT
-from harness.detect.figures import trajectory_figure
-from harness.detect.options import DetectRun
-from harness.detect.page import write_detect_page
 from harness.detect.pixels import write_pixel_table
 from harness.evaluate.chance import ChanceSettings
 from harness.evaluate.table_d import TableDInputs, score_detections
@@ -26,6 +23,9 @@ from harness.imagestore import read_image
 from harness.ingest.names import session_names, with_names
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.records import FRAME_KEY, QUERY_KEY
+from harness.reports.detect_figures import trajectory_figure
+from harness.reports.detect_page import write_detect_page
+from harness.reports.detect_run import DetectRun
 from harness.reports.overlay import colour_bar, drawn_boxes
 from harness.reports.table_d import table_d_markdown
 from harness.runtime.cache import (

@@ -38,9 +38,7 @@ from harness.config.schema import Config
 from harness.detect import keys as detect_keys
 from harness.detect.chunk import detect_chunk
 from harness.detect.null import null_scores
-from harness.detect.options import DetectRun
 from harness.detect.outputs import write_outputs
-from harness.detect.rerun import check_rerun_target, write_rerun
 from harness.errors import ConfigError, HarnessError
 from harness.ingest.names import session_names
 from harness.localizers.config import LocalizerConfig
@@ -51,6 +49,8 @@ from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotatio
 from harness.pipeline.localizer_stages import Measured, localizer_ranks
 from harness.pipeline.stages import session_proposals
 from harness.records import FRAME_KEY, QUERY_KEY
+from harness.reports.detect_run import DetectRun
+from harness.reports.rerun import check_rerun_target, write_rerun
 from harness.runtime.cache import (
     read_cached_parquet,
     write_json,
@@ -169,7 +169,7 @@ def run_detect(
 ) -> dict[str, Any]:
     """The detector on ``query_sessions`` against ``map_session`` into ``out`` (method §13).
 
-    With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.detect.rerun`).
+    With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.reports.rerun`).
 
     Raises:
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.

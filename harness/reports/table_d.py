@@ -4,7 +4,7 @@
 detector and baseline with the candidates' floor, band, ceiling, recall and false-alarm rates);
 :func:`table_d` turns it into a :class:`TableD` (each row's cells as text, the candidates'
 figures, the false-alarm rates, the warnings) that the markdown file and the page
-(:mod:`harness.detect.page`) render.
+(:mod:`harness.reports.detect_page`) render.
 """
 
 from __future__ import annotations

@@ -674,7 +674,8 @@ def test_contrast_prefers_the_box_that_frames_the_hot_region() -> None:
 
 
 def test_exceedance_and_its_words_by_hand() -> None:
-    from harness.detect.calibrate import exceedance, in_words
+    from harness.detect.calibrate import exceedance
+    from harness.reports.alarm_words import in_words
 
     got = exceedance(np.array([1.0, 2.0, 3.0, 4.0, np.nan]), np.array([4.0, 2.5, 0.0, np.nan]))
     assert got[:3].tolist() == [2 / 5, 3 / 5, 5 / 5] and np.isnan(got[3])
@@ -695,7 +696,7 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
     alarms*), ``alarms.csv`` holds exactly what the default nominal rate flags, Table D measures
     the rate on the no-change frames and the changed ones, and the README's and the page's words
     are this run's."""
-    from harness.detect.calibrate import in_words
+    from harness.reports.alarm_words import in_words
 
     _, out, printed = detected
     rec = json.loads((out / "detect.json").read_text())
@@ -751,7 +752,7 @@ def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None
 def test_the_page_shows_annotated_changes_in_red_beside_the_detections(detected: tuple) -> None:
     """Issue 36's page: with annotations, the annotated change frames (most changed first) show
     their annotated boxes in red beside the detections in yellow; without, no such section."""
-    from harness.detect.page import ANNOTATED_SHOWN
+    from harness.reports.detect_page import ANNOTATED_SHOWN
 
     a, out, _ = detected
     page = (out / "detect.html").read_text()

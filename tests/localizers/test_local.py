@@ -207,7 +207,7 @@ def test_the_page_says_which_pairs_could_not_be_aligned() -> None:
     """method §13.3: a pair no link of the chain accepts is named on the page, never scored."""
     import pandas as pd
 
-    from harness.detect.page import alignment_html
+    from harness.reports.detect_page import alignment_html
 
     al = pd.DataFrame(
         {

@@ -17,14 +17,14 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.detect.calibrate import alarm_words, in_words
-from harness.detect.figures import has_poses
-from harness.detect.options import DetectRun
-from harness.detect.page_notes import not_comparable_html, uncertain_html
 from harness.errors import HarnessError
 from harness.imagestore import read_image
 from harness.pairs.modes import PAIRING_MODES
 from harness.records import FRAME_KEY
+from harness.reports.alarm_words import alarm_words, in_words
+from harness.reports.detect_figures import has_poses
+from harness.reports.detect_notes import not_comparable_html, uncertain_html
+from harness.reports.detect_run import DetectRun
 from harness.reports.html import SCRIPT  # the page reports its own loaded images (browser test)
 from harness.reports.table_d import table_d_html
 from harness.reports.table_dp import pixel_html
