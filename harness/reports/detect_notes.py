@@ -6,14 +6,9 @@ Uncertain pairs (another place matches almost as well) and pairs that could not 
 
 from __future__ import annotations
 
-import html
-from typing import Any
-
 import pandas as pd
 
-
-def _e(x: Any) -> str:
-    return html.escape(str(x))
+from harness.reports.html import esc
 
 
 def not_comparable_html(fr: pd.DataFrame) -> str:
@@ -41,7 +36,7 @@ def not_comparable_html(fr: pd.DataFrame) -> str:
     return (
         f'<p class="note uncertain" data-not-comparable="{len(bad)}">Not comparable: '
         f"{len(bad)} of {len(fr)} query frames could not be registered with their map frame, so "
-        f"they raise no alarm and are left out of this list ({what}): {_e(shown)}.</p>"
+        f"they raise no alarm and are left out of this list ({what}): {esc(shown)}.</p>"
     )
 
 
@@ -65,5 +60,5 @@ def uncertain_html(fr: pd.DataFrame) -> str:
         f'<p class="note uncertain" data-uncertain="{len(bad)}">Uncertain pairs: {len(bad)} of '
         f"{len(fr)} query frames were paired with a map frame that another place matches almost "
         "as well (pair_confidence under [pairs] min_pair_confidence), so their change scores may "
-        f"compare different places; they are left out of this list: {_e(shown)}.</p>"
+        f"compare different places; they are left out of this list: {esc(shown)}.</p>"
     )

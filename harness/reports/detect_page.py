@@ -8,7 +8,6 @@ page fetches nothing from the network.
 
 from __future__ import annotations
 
-import html
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,7 +24,10 @@ from harness.reports.alarm_words import alarm_words, in_words
 from harness.reports.detect_figures import has_poses
 from harness.reports.detect_notes import not_comparable_html, uncertain_html
 from harness.reports.detect_run import DetectRun
-from harness.reports.html import SCRIPT  # the page reports its own loaded images (browser test)
+from harness.reports.html import (  # the page reports its own loaded images (browser test)
+    SCRIPT,
+    esc,
+)
 from harness.reports.table_d import table_d_html
 from harness.reports.table_dp import pixel_html
 from harness.runtime.cache import write_text
@@ -39,10 +41,6 @@ CSS = (
     ".place figure{margin:0}.place img{max-width:360px;border:1px solid #bbb}"
     "figcaption{font-size:.8rem;color:#555}.note{color:#555;font-size:.9rem}"
 )
-
-
-def _e(x: Any) -> str:
-    return html.escape(str(x))
 
 
 def _thumb(img: np.ndarray, path: Path, width: int = 360) -> str:
@@ -127,7 +125,8 @@ def _query_thumb(
 
 def _figures(cells: list[tuple[str, str]]) -> str:
     return "".join(
-        f'<figure><img src="{_e(src)}" alt="{_e(cap)}"><figcaption>{_e(cap)}</figcaption></figure>'
+        f'<figure><img src="{esc(src)}" alt="{esc(cap)}">'
+        f"<figcaption>{esc(cap)}</figcaption></figure>"
         for cap, src in cells
     )
 
@@ -182,7 +181,7 @@ def _place_html(out: Path, i: int, r: Any, c: Places) -> str:
             )
         )
     where = f", at ({r.x:.1f}, {r.y:.1f}) m" if np.isfinite([r.x, r.y]).all() else ""
-    title = _e(q_name) if q_name else f"{_e(k[0])} {_e(k[1])} {k[2]}"
+    title = esc(q_name) if q_name else f"{esc(k[0])} {esc(k[1])} {k[2]}"
     uncertain = (
         f' <span class="uncertain">(uncertain pair: confidence {r.pair_confidence:.2f})</span>'
         if getattr(r, "uncertain_pair", False)
@@ -190,7 +189,7 @@ def _place_html(out: Path, i: int, r: Any, c: Places) -> str:
     )
     found = f"{int(r.boxes)} change boxes" if alarmed else "no change detected at the alarm rate"
     calibrated = (
-        f"{_e(in_words(r.exceedance, against[0]))} (raw change score {r.score:.3g}, no unit)"
+        f"{esc(in_words(r.exceedance, against[0]))} (raw change score {r.score:.3g}, no unit)"
         if hasattr(r, "exceedance")
         else f"raw change score {r.score:.3g} (no unit)"
     )
@@ -199,7 +198,7 @@ def _place_html(out: Path, i: int, r: Any, c: Places) -> str:
         f"{found}{where}{uncertain}</h3>"
         + (
             f'<p class="note" data-calibrated="{r.exceedance:.6g}">Its top box: '
-            f"{_e(in_words(_top_box_exceedance(dets, k), against[1]))}.</p>"
+            f"{esc(in_words(_top_box_exceedance(dets, k), against[1]))}.</p>"
             if hasattr(r, "exceedance")
             else ""
         )
@@ -223,7 +222,7 @@ def _annotated_html(
         return ""
     annotated = "".join(
         "<figure><img src='{1}' alt='{0}'><figcaption>{0}</figcaption></figure>".format(
-            *(_e(x) for x in _query_thumb(
+            *(esc(x) for x in _query_thumb(
                 out, dets, truth, (str(r.session), str(r.camera), int(r.utime)), str(r.image),
                 str(getattr(r, "name", "") or ""),
             ))
@@ -252,7 +251,7 @@ def _trajectory_html(frames: pd.DataFrame, by: str = "retrieval") -> str:
     says = mode.says if mode is not None and mode.says else f"its map frame by {by}"
     return (
         '<h2 id="trajectory">When</h2><p class="note">The sessions have no poses: each query '
-        f"frame was paired with {_e(says)}, and the figure shows the change score along the "
+        f"frame was paired with {esc(says)}, and the figure shows the change score along the "
         "query sequence.</p>"
         '<img id="trajectory-map" src="trajectory.png" alt="change score of each query frame '
         'in time order" style="max-width:760px">'
@@ -265,7 +264,7 @@ def alignment_html(al: pd.DataFrame | None, shown: int = 10) -> str:
         return ""
     counts = al["align"].value_counts().sort_index()
     how = ", ".join(f"{k} {int(v)}" for k, v in counts.items() if k != "none")
-    html = f"<p class='note' data-align='all'>Pairs aligned (method §13.3): {_e(how)}.</p>"
+    html = f"<p class='note' data-align='all'>Pairs aligned (method §13.3): {esc(how)}.</p>"
     bad = al[al["align"] == "none"]
     if len(bad):
         names = ", ".join(
@@ -275,7 +274,7 @@ def alignment_html(al: pd.DataFrame | None, shown: int = 10) -> str:
         html += (
             f"<p class='warn' data-align='none'>could not align {len(bad)} of {len(al)} pairs: "
             f"their frames carry no change score and no box, never a wrong one (alignment.csv): "
-            f"{_e(names)}{more}.</p>"
+            f"{esc(names)}{more}.</p>"
         )
     return html
 
@@ -320,10 +319,10 @@ def write_detect_page(
         what = f"{', '.join(folders[1:])} against the map {folders[0]}"
     page = (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
-        f"<title>dbl-harness detect: {_e(what)}</title>"
+        f"<title>dbl-harness detect: {esc(what)}</title>"
         f"<style>{CSS}</style><script>{SCRIPT}</script></head><body>"
-        f"<h1>What changed: {_e(what)}</h1>"
-        f"<p class='note'>{len(fr)} query frames; localizer(s): {_e(', '.join(localizers))}; "
+        f"<h1>What changed: {esc(what)}</h1>"
+        f"<p class='note'>{len(fr)} query frames; localizer(s): {esc(', '.join(localizers))}; "
         "each frame's change score is the highest likelihood of change (LoC: how badly the "
         "frame's boxes localize in its map frame, fused over its proposals) of the frame: raw, "
         "with no unit; the calibrated score beside it says how often a pair with no change "
@@ -369,9 +368,9 @@ def _alarms_html(run: DetectRun, al: dict[str, Any]) -> str:
             "map's own sequence (a static scene seen twice a moment apart)."
         )
     return (
-        f"<p class='note' data-alarms='{al['frames']}' data-calibration='{_e(cal['method'])}' "
+        f"<p class='note' data-alarms='{al['frames']}' data-calibration='{esc(cal['method'])}' "
         f"data-alarm-boxes='{al['boxes']}'>"
-        + " ".join(_e(x) for x in lines)
-        + _e(how)
+        + " ".join(esc(x) for x in lines)
+        + esc(how)
         + " See docs/method.md, <i>Calibrated alarms</i>.</p>"
     )
