@@ -183,7 +183,7 @@ class _PairDifference:
         # compared by: the registration, or the pair as it stands (not_comparable = "fallback")
         self.used = self.reg
         if not self.reg.comparable and opt.not_comparable == "fallback":
-            self.used = self.reg.fallback(self.q, m, opt.difference)
+            self.used = self.reg.fallback(self.q, m, opt.difference, opt.local)
         self.made = difference_map(self.q, m, self.used, opt.difference)
         self.novelty = novelty_of(self.q, m, opt.difference) if self.made is not None else None
 

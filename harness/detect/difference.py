@@ -31,13 +31,17 @@ import numpy as np
 import pandas as pd
 
 from harness.config.detect import DifferenceConfig
-from harness.detect.boxes import inside_score
 from harness.detect.colour import colour_novelty
 from harness.imagestore import read_image
 from harness.localizers.align import align_ecc
 from harness.localizers.config import KeypointConfig, LocalConfig
 from harness.localizers.keypoints import MapFeatures, stored_keypoints, union_matches
 from harness.records import FRAME_KEY
+
+
+#: What a pair that could not be registered is compared through (``not_comparable =
+#: "fallback"``): an affine fit of its intensities, or the frames as they stand.
+FALLBACKS = ("ecc", "identity")
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,11 @@ class Registration:
     def comparable(self) -> bool:
         """Whether the pair was registered (nothing to say why not)."""
         return not self.why
+
+    @property
+    def compares(self) -> bool:
+        """Whether a difference is read through it: a registration, or a fallback's warp."""
+        return self.H is not None and (self.comparable or self.method in FALLBACKS)
 
     def similarity(self, w: int, h: int) -> tuple[float, float, float, float]:
         """The warp as a perturbed copy of the map frame would draw it.
@@ -83,23 +92,27 @@ class Registration:
             float(np.hypot(a, b)),
         )
 
-    def fallback(self, q_rgb: np.ndarray, m_rgb: np.ndarray, dc: DifferenceConfig) -> Registration:
+    def fallback(
+        self, q_rgb: np.ndarray, m_rgb: np.ndarray, dc: DifferenceConfig, local: LocalConfig
+    ) -> Registration:
         """The pair compared without keypoints: an affine fit of its intensities, or as it stands.
 
         The fit: OpenCV's ``findTransformECC`` on copies ``fallback_side`` pixels on the longer
-        side, accepted with a correlation of at least 0.6 and a plausible warp.
+        side by the run's ``[detect.local]`` (``local``), accepted with a correlation of at least
+        0.6 and a plausible warp. It is no registration: it keeps this one's reason
+        (:attr:`comparable` stays False) and is read through :attr:`compares`.
 
         ``[detect] not_comparable = "fallback"``: its boxes are marked and measured apart.
         """
         q, fq = _scaled(_gray(q_rgb), dc.fallback_side)
         m = cv2.resize(_gray(m_rgb), (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
         to_small = np.diag([q.shape[1] / m_rgb.shape[1], q.shape[0] / m_rgb.shape[0], 1.0])
-        al = align_ecc(q, m, LocalConfig())
+        al = align_ecc(q, m, local)
         method, Hs = "identity", np.eye(3)
         if al is not None and al.H is not None:
             method, Hs = "ecc", np.linalg.inv(al.H)
         full = np.diag([1 / fq, 1 / fq, 1.0]) @ Hs @ to_small
-        return Registration(full, 0, self.matches, 1.0, "", method)
+        return Registration(full, 0, self.matches, 1.0, self.why or "not registered", method)
 
 
 def _scaled(rgb: np.ndarray, side: int) -> tuple[np.ndarray, float]:
@@ -254,9 +267,10 @@ def difference_map(
 ) -> tuple[np.ndarray, float] | None:
     """The registered pair's difference on the query's working copy, and that copy's scale.
 
-    NaN where the warped map does not reach; None where the pair is not comparable.
+    NaN where the warped map does not reach; None where nothing compares the pair (it was not
+    registered and no fallback warp was given, :attr:`Registration.compares`).
     """
-    if not reg.comparable or reg.H is None:
+    if not reg.compares or reg.H is None:
         return None
     q, f = _scaled(q_rgb, dc.side)
     h, w = q.shape[:2]
@@ -295,15 +309,13 @@ def difference_contrast(
     """
     dc = dc or DifferenceConfig()
     b = np.asarray(boxes, np.float64).reshape(-1, 4) * scale
-    if dc.box_score == "contrast" and dc.ring == 0.5:
-        return np.array([inside_score(dmap, x, "contrast") for x in b], np.float64)
     ok = np.isfinite(dmap)
     val = cv2.integral(np.where(ok, dmap, 0).astype(np.float64))
     cnt = cv2.integral(ok.astype(np.uint8)).astype(np.float64)
     h, w = dmap.shape
 
     def sums(x1: float, y1: float, x2: float, y2: float) -> tuple[float, float]:
-        # the pixels whose centres lie in the box, as inside_score reads them
+        # the pixels whose centres lie in the box, as boxes.inside_score reads them
         u0, u1 = max(int(np.ceil(x1 - 0.5)), 0), min(int(np.ceil(x2 - 0.5)), w)
         v0, v1 = max(int(np.ceil(y1 - 0.5)), 0), min(int(np.ceil(y2 - 0.5)), h)
         if u1 <= u0 or v1 <= v0:
@@ -373,6 +385,6 @@ def pair_difference(
     q, mm = read_image(str(images.loc[k])), read_image(str(images.loc[m]))
     reg = register(q, mm, opt.keypoints, opt.difference)
     if not reg.comparable and opt.not_comparable == "fallback":
-        reg = reg.fallback(q, mm, opt.difference)
+        reg = reg.fallback(q, mm, opt.difference, opt.local)
     made = difference_map(q, mm, reg, opt.difference)
     return box_differences(made, novelty_of(q, mm, opt.difference), boxes, opt.difference)

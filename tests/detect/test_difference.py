@@ -24,7 +24,7 @@ from harness.detect.difference import (
     register,
 )
 from harness.errors import ConfigError
-from harness.localizers.config import KeypointConfig
+from harness.localizers.config import KeypointConfig, LocalConfig
 
 from ..localizers.test_keypoints import OBJECT, _background_boxes, _pair, _texture
 
@@ -95,14 +95,35 @@ def test_two_unrelated_scenes_are_not_comparable_and_say_why() -> None:
     assert not reg.comparable
     assert reg.why.startswith(("too few matches", "too few inliers", "a degenerate warp"))
     assert difference_map(q, m, reg, dc) is None  # nothing compared, nothing scored
-    fb = reg.fallback(q, m, dc)
-    assert fb.comparable and fb.method in ("ecc", "identity")
+    fb = reg.fallback(q, m, dc, LocalConfig())
+    # a fallback compares the pair but is no registration: it keeps the reason, never comparable
+    assert not fb.comparable and fb.compares and fb.why == reg.why
+    assert fb.method in ("ecc", "identity")
     made = difference_map(q, m, fb, dc)
     assert made is not None and np.isfinite(made[0]).mean() > 0.5
+    # the fallback's fit reads the run's [detect.local]: no correlation passes a floor above 1
+    strict = reg.fallback(q, m, dc, dataclasses.replace(LocalConfig(), ecc_min_cc=1.01))
+    assert strict.method == "identity" and strict.compares and not strict.comparable
     # a blank map frame: no keypoint at all
     blank = np.full_like(m, 128)
     reg = register(q, blank, KeypointConfig(), dc)
     assert not reg.comparable and reg.why.startswith("too few matches")
+
+
+def test_the_contrast_at_every_ring_is_the_one_integral_sum() -> None:
+    """``box_score = "contrast"`` reads the same sums at every ring: at a ring of half the box it
+    equals the LoC map's own contrast (:func:`harness.detect.boxes.inside_score`), to float32."""
+    from harness.detect.boxes import inside_score
+
+    rng = np.random.default_rng(3)
+    d = rng.random((60, 80)).astype(np.float32)
+    d[:5] = np.nan  # pixels the map does not reach
+    a = rng.uniform(0, 70, (40, 2))
+    boxes = np.c_[a, a + rng.uniform(1, 30, (40, 2))]
+    dc = dataclasses.replace(DifferenceConfig(), box_score="contrast", ring=0.5)
+    got = difference_contrast(d, 1.0, boxes, dc)
+    want = [inside_score(d, b, "contrast") for b in boxes]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)  # inside_score sums in float32
 
 
 def test_bad_difference_settings_are_one_error_naming_the_key() -> None:
