@@ -38,7 +38,6 @@ from harness.localizers.config import KeypointConfig, LocalConfig
 from harness.localizers.keypoints import MapFeatures, stored_keypoints, union_matches
 from harness.records import FRAME_KEY
 
-
 #: What a pair that could not be registered is compared through (``not_comparable =
 #: "fallback"``): an affine fit of its intensities, or the frames as they stand.
 FALLBACKS = ("ecc", "identity")
