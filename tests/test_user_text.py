@@ -25,6 +25,10 @@ BANNED = [
     (re.compile(r"\b(was|were) lent\b|\blent to\b|device machine", re.I),
      "how a machine was come by"),
     (re.compile(r"\bturned out\b|\bwas replaced\b", re.I), "narrated history"),
+    (re.compile(r"\bearlier (?:version|default|code|release|behaviour)s?\b|\bthe (?:earlier|previous|"
+                r"old) (?:default|one|rule|behaviour)\b|\bdefaults? (?:of earlier|before)\b|\b(?:as|"
+                r"than|since) before\b|\bbefore the (?:change|fix)\b|\b(?:it|they|this|that) used "
+                r"to\b|\bused to be\b", re.I), "history told where the present belongs"),
 ]  # fmt: skip
 
 #: A commit as evidence: a bare short hash in parentheses or after a comma (not "on `abc1234`").
@@ -72,7 +76,16 @@ def test_no_internal_references_in_what_users_read() -> None:
         ("no device machine was lent in that session", True),
         ("found in the previous session", True),
         ("the GPU machine lent to one session", True),
+        ("the default of earlier versions", True),
+        ("keypoints on the colour regions (the earlier default)", True),
+        ("the autoencoder, the default before", True),
+        ("are cropped exactly as before", True),
+        ("Before the change, the ranks differed", True),
+        ("the pairing it used to do", True),
         ("the objects of this session's frames", False),
+        ("the earlier frame of the pair, and the frame before it", False),
+        ("the model is used to rank the boxes", False),
+        ("before any work: the config, then the flags", False),
         ("measured on 2026-11-25 on `8628b56`", False),
         ("the session's frames, one map session", False),
         ("R@1 0.25 (0.24, 0.26)", False),

@@ -254,8 +254,8 @@ class DetectConfig:
 
         ``seed`` (``[fusion] seed``) draws the random baseline; ``segments``
         (``[proposals.segments]``) is there where the boxes or the local localizer read the colour
-        regions; ``local`` and ``localizer`` only with the local localizer (the paper's detector:
-        its record as before); ``alarm`` is not (the alarms are drawn after the chunks).
+        regions; ``local`` and ``localizer`` only with the local localizer (the paper's detector's
+        record has neither); ``alarm`` is not (the alarms are drawn after the chunks).
         """
         mine = dataclasses.asdict(self)
         out: dict[str, Any] = {k: mine[k] for k in ("fusion", "nms_iou", "max_boxes")}
