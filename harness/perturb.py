@@ -48,7 +48,8 @@ _TAGS = ("g", "o", "x", "y", "r", "s", "b", "q", "w")
 def fragment(p: Perturbation) -> str:
     """The URI fragment naming ``p``: ``#perturb=g1.05,o-3,...`` (values at 6 digits)."""
     parts = [f"{t}{v:.6g}" for t, v in zip(_TAGS, astuple(p), strict=True)]
-    return PERTURB + ",".join(parts if p.wobble else parts[:-1])  # no wobble, no w tag: such a copy keeps its name
+    # no wobble, no w tag: such a copy keeps its name
+    return PERTURB + ",".join(parts if p.wobble else parts[:-1])
 
 
 def parse(spec: str) -> Perturbation:

@@ -25,10 +25,11 @@ BANNED = [
     (re.compile(r"\b(was|were) lent\b|\blent to\b|device machine", re.I),
      "how a machine was come by"),
     (re.compile(r"\bturned out\b|\bwas replaced\b", re.I), "narrated history"),
-    (re.compile(r"\bearlier (?:version|default|code|release|behaviour)s?\b|\bthe (?:earlier|previous|"
-                r"old) (?:default|one|rule|behaviour)\b|\bdefaults? (?:of earlier|before)\b|\b(?:as|"
-                r"than|since) before\b|\bbefore the (?:change|fix)\b|\b(?:it|they|this|that) used "
-                r"to\b|\bused to be\b", re.I), "history told where the present belongs"),
+    (re.compile(r"\bearlier (?:version|default|code|release|behaviour)s?\b"
+                r"|\bthe (?:earlier|previous|old) (?:default|one|rule|behaviour)\b"
+                r"|\bdefaults? (?:of earlier|before)\b|\b(?:as|than|since) before\b"
+                r"|\bbefore the (?:change|fix)\b|\b(?:it|they|this|that) used to\b|\bused to be\b",
+                re.I), "history told where the present belongs"),
 ]  # fmt: skip
 
 #: A commit as evidence: a bare short hash in parentheses or after a comma (not "on `abc1234`").
