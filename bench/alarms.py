@@ -1,6 +1,6 @@
 """``python -m bench.alarms [--sets fixture,world,obchange-dev,...] [--out DIR]``: what the alarms
 of ``harness detect`` flag where the truth is known, for the no-change null and the old
-calibration within the run (docs/method.md, *Calibrated alarms*).
+calibration within the run (docs/decisions.md, *Calibrated alarms*).
 
 Besides the sets of ``python -m bench.detect_choice``, two no-change revisits made from
 consecutive frames (``bench.no_change``: ``world-consecutive``, ``nordland-consecutive``): the

@@ -1,6 +1,6 @@
 """``python -m bench.detect_choice [--sets obchange-rooms,world,fixture] [--out DIR]``: the
 choice of ``harness detect``'s default, by the rule written down before the candidates were run
-(docs/method.md, *Choosing the default*):
+(docs/decisions.md, *Choosing the default*):
 
     among the candidates whose detector row is above chance on the generated world of 240 x 320
     frames, the one with the largest lower end of its grouped 95% interval of AP50 over every

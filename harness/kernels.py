@@ -14,7 +14,7 @@ by ``harness/__init__.py``, so ``import harness`` before numpy or torch is enoug
 (faster on AVX-512, tables of that machine only). :func:`report` says what took effect, for
 ``run.json``.
 
-Measured (``docs/method.md``, *One answer on every CPU*): on an AVX2-only EPYC the caps change
+Measured (``docs/decisions.md``, *One answer on every CPU*): on an AVX2-only EPYC the caps change
 no byte; on an AVX-512 + bf16 EPYC, fp32 training under ATen's and oneDNN's caps gives the AVX2
 machine's model bit for bit (31 s against 26 s uncapped on the fixture).
 """

@@ -1,6 +1,6 @@
 """Perturbed copies of a frame: the same scene, nothing changed, as a camera might see it again.
 
-``harness detect``'s no-change null (docs/method.md, *Calibrated alarms*) pairs a map frame with
+``harness detect``'s no-change null (docs/decisions.md, *Calibrated alarms*) pairs a map frame with
 a perturbed copy of itself where the map is no sequence. A copy is one draw of every
 perturbation within stated limits: photometric gain and offset, a shift, a rotation and a scale
 (one affine warp, borders reflected), a Gaussian blur and a JPEG re-encoding. Sizes are shares

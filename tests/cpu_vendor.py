@@ -18,7 +18,7 @@ on that Xeon ``MKL_CBWR`` changes the encoder's output, and none of the paths it
 not isolated to one library, and the records here promise on a CPU of another vendor: every
 stage before the descriptors the same bytes (ingest, frames, pairs, proposals, the kept model),
 the summary's floats within :data:`CROSS_VENDOR_ATOL`, one step of the tables' two decimals.
-``docs/method.md``, *One answer on every CPU*, says the same to users.
+``docs/decisions.md``, *One answer on every CPU*, says the same to users.
 """
 
 from __future__ import annotations

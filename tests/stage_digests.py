@@ -330,7 +330,7 @@ def first_stage_differing(
         f"{', '.join(files[:4])}{' ...' if len(files) > 4 else ''}); later stages that differ: "
         f"{', '.join(later) or 'none'}. This CPU: {here['model']}, {' '.join(here['flags'])}. "
         f"Recorded on: {rec.get('model', '?')}, {' '.join(rec.get('flags', []))}. "
-        "docs/method.md, One answer on every CPU, lists what is measured to hold across CPUs."
+        "docs/decisions.md, One answer on every CPU, lists what is measured to hold across CPUs."
     )
 
 

@@ -1,4 +1,4 @@
-"""Every figure the README and ``docs/method.md`` quote from the fixture is a command's output.
+"""Every figure the README and ``docs/decisions.md`` quote from the fixture is a command's output.
 
 The figures of fixture *variants* (a training budget, projection dims, a database stride) come from
 the bench case ``fixture-figures`` (``.venv/bin/python -m bench --only fixture-figures``), recorded
@@ -26,7 +26,7 @@ from .readme_text import manual_text
 
 BENCH = ROOT / "results" / "bench" / "bench.json"
 README = ROOT / "README.md"  # stands for the manual: the README and every page of docs/
-METHOD = ROOT / "docs" / "method.md"
+METHOD = ROOT / "docs" / "decisions.md"  # the choices measured on the fixture
 
 NAMES = {
     "d": "default",

@@ -157,5 +157,5 @@ def native_projection(stages: dict[str, float], encoder_subimages: float) -> Non
         "levels in this run (the descriptors' encoder time, the training step, the ranking's "
         "fp32 product); proposals (OpenCV) as at avx2; "
         + ", ".join(f"{k} {v / 60:.1f} min" for k, v in at_native.items())
-        + "; tables at native are this machine's only (docs/method.md, One answer on every CPU)",
+        + "; tables at native are this machine's only (docs/decisions.md, One answer on every CPU)",
     )

@@ -146,7 +146,7 @@ def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
 def _print_alarms(al: dict[str, Any], cal: dict[str, Any]) -> None:
     """What the nominal false-alarm rate flags, against what null, and where nothing is, in words.
 
-    ``cal``: ``detect.json``'s ``calibration`` (docs/method.md, *Calibrated alarms*).
+    ``cal``: ``detect.json``'s ``calibration`` (docs/decisions.md, *Calibrated alarms*).
     """
     print(alarm_words(al, cal))
 

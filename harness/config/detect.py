@@ -36,7 +36,7 @@ def detect_localizers() -> tuple[str, ...]:
 
 
 #: The proposal method ``harness detect``'s local localizer ranks: the frame's colour regions,
-#: which meet most change objects (docs/method.md, *Detect*).
+#: which meet most change objects (docs/decisions.md, *Detect*).
 LOCAL_PROPOSALS = "segments"
 
 
@@ -119,7 +119,7 @@ BOOTSTRAP_GROUPS = ("map_image", "frame")
 class NullConfig:
     """``[detect.null]``: the pairs that hold no change by construction, scored by the detector.
 
-    docs/method.md, *Calibrated alarms*. Every limit is the largest draw either way; sizes are
+    docs/decisions.md, *Calibrated alarms*. Every limit is the largest draw either way; sizes are
     shares of the frame.
     """
 
@@ -211,18 +211,18 @@ class DetectConfig:
     # the no-change null's construction and size
     null: NullConfig = field(default_factory=NullConfig)
     # what ranks the subimages: "keypoints" (each subimage's share of keypoints that do not
-    # localize in its paired map frame, with [detect.keypoints]: chosen by docs/method.md's rule,
+    # localize in its paired map frame, with [detect.keypoints]: chosen by docs/decisions.md's rule,
     # *Choosing the default*), "local" (each subimage ranked inside its paired map frame by NCC,
     # with [detect.local]) or "config" (the config's localizers: the paper's detector)
     localizer: str = "keypoints"
     # what a box's score is fused with: "difference_product" (the plain difference of the
     # registered pair, [detect.difference], floored at 0, times the score: the default, chosen by
-    # docs/method.md's rule), "difference" (the mean of the two within-frame percentiles), "area"
+    # docs/decisions.md's rule), "difference" (the mean of the two within-frame percentiles), "area"
     # (the mean of the box's percentiles by score and by area, method §13.3) or "none"
     box_prior: str = "difference_product"
     # difference_product: the power of the localizer's score in the product (difference x
     # score ^ weight): 1 weighs the two alike in log terms; 4, the default (chosen by
-    # docs/method.md's rule), lets localization reorder the boxes the difference scores alike
+    # docs/decisions.md's rule), lets localization reorder the boxes the difference scores alike
     localization_weight: float = 4.0
     # the local localizer's options (harness.localizers.local.LocalConfig)
     local: LocalConfig = field(default_factory=LocalConfig)

@@ -25,7 +25,7 @@ def folder_pairing(map_dir: Path, query_dirs: list[Path]) -> str:
     ``name`` where every query folder shares names with the map (:data:`SHARED_NAMES` of its
     images), else ``sequence``: on the fixture's twelve pairs of traverses, every frame a query,
     it pairs 95% of the frames within 10 m of the pose pair, retrieval 68% and order 0%
-    (docs/method.md, *Pairs without poses*).
+    (docs/decisions.md, *Pairs without poses*).
     """
 
     def stems(d: Path) -> set[str]:
@@ -40,7 +40,7 @@ def folder_pairing(map_dir: Path, query_dirs: list[Path]) -> str:
 
 
 #: The descriptor folders are paired with where no config names one: SeqSLAM's patch-normalised
-#: thumbnail of each grid5 box, which needs no training (docs/method.md, *Pairs without poses*:
+#: thumbnail of each grid5 box, which needs no training (docs/decisions.md, *Pairs without poses*:
 #: the largest worst share over the fixture's traverses and the real seasons of nordland-dev).
 PAIRING_DESCRIPTOR = DescriptorConfig(name="seqslam", input_size=64)
 PAIRING_PROPOSALS = ("grid5",)

@@ -122,7 +122,7 @@ def reference() -> str:
         "Generated from the config dataclasses by `python -m harness.config.reference --write`;",
         "a test fails when this page differs from the code. Every key is optional unless its",
         "default says *required*; an unknown key is one `ERROR:` line naming it. How the choices",
-        "were made and measured: [Method](method.md).",
+        "were made and measured: [Decisions](decisions.md).",
         "",
         *table("top level", Config, skip=tuple(SECTIONS) + ("import_",)),
         *table("[[sessions]]", SessionConfig),

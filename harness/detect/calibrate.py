@@ -1,6 +1,6 @@
 """Scores a robot can threshold: each raw LoC as an exceedance against a null.
 
-docs/method.md, *Calibrated alarms*. Raw LoC (``N * sum 1/r'``) has no unit. The calibrated
+docs/decisions.md, *Calibrated alarms*. Raw LoC (``N * sum 1/r'``) has no unit. The calibrated
 score of a frame is the share of the null's frames that score at least as high; of a change box,
 the share of the null's change boxes. By default the null is made of pairs that hold no change
 by construction, scored by the same detector (:mod:`harness.detect.null`); within the run

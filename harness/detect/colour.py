@@ -1,6 +1,6 @@
 """The colours' novelty: how much likelier a new pixel's colour is in the new frame than in the map.
 
-docs/method.md, *The colours' novelty*. A pair that cannot be registered still says which
+docs/decisions.md, *The colours' novelty*. A pair that cannot be registered still says which
 colours the new frame holds that its map frame does not: an object put on a desk brings colours
 the desk's first view lacks, wherever the robot stood. Each pixel of the new frame scores the log
 ratio of its colour's share of the new frame to that colour's share of the map frame (CIELAB

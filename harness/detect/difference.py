@@ -1,6 +1,6 @@
 """The plain difference of a registered pair: Table D's strongest row that localizes nothing.
 
-docs/method.md, *The plain difference*. Two steps, each a share of the frame so that one setting
+docs/decisions.md, *The plain difference*. Two steps, each a share of the frame so that one setting
 serves every frame size:
 
 1. **Register** (:func:`register`): SIFT (``[detect.keypoints]``' features and ratio test, both

@@ -1,6 +1,6 @@
 """The no-change null: pairs that hold no change by construction, scored by the same detector.
 
-docs/method.md, *Calibrated alarms*. A frame's calibrated score is the share of null frames that
+docs/decisions.md, *Calibrated alarms*. A frame's calibrated score is the share of null frames that
 score at least as high (:func:`harness.detect.calibrate.exceedance`); a box's, the share of the
 null frames' change boxes. The null is drawn from the map alone, never from the new session:
 

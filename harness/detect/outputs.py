@@ -110,7 +110,7 @@ def _frame_table(
 def _calibrated(
     fr: pd.DataFrame, dets: pd.DataFrame, entries: list[Any], null: Any
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Calibrated scores (docs/method.md, *Calibrated alarms*), in ``exceedance`` columns.
+    """Calibrated scores (docs/decisions.md, *Calibrated alarms*), in ``exceedance`` columns.
 
     Against the no-change null (``null``, :class:`harness.detect.null.NullScores`): each frame
     against the null frames, each change box against the null frames' change boxes. Within the
@@ -290,7 +290,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
         # method §13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
         "uncertain_pairs": int((~sure).sum()),
         "min_pair_confidence": cfg.pairs.min_pair_confidence,
-        # docs/method.md, *The plain difference*: pairs that could not be registered
+        # docs/decisions.md, *The plain difference*: pairs that could not be registered
         "not_comparable": not_comparable,
         "detections": len(results),
         # method §13.1: what the nominal false-alarm rate flags (alarms.csv)

@@ -70,7 +70,7 @@ class LocalConfig:
     frames_per_unit: int = 64
 
 
-#: Keypoint localization's features and geometry (docs/method.md, *Keypoint localization*).
+#: Keypoint localization's features and geometry (docs/decisions.md, *Keypoint localization*).
 KEYPOINT_FEATURES = ("sift", "orb", "akaze")
 GEOMETRIES = ("fundamental", "homography")
 

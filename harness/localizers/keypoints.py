@@ -1,6 +1,6 @@
 """Keypoint localization: which parts of the new view find a consistent match in the map frame.
 
-One level further down the paper's idea (docs/method.md, *Keypoint localization*): a keypoint of
+One level further down the paper's idea (docs/decisions.md, *Keypoint localization*): a keypoint of
 the query frame *localizes* when it has a ratio-test match in its paired map frame that agrees
 with the pair's epipolar geometry (a fundamental matrix by ``cv2.findFundamentalMat`` with
 ``USAC_MAGSAC``, which parallax does not break; a homography where the config declares the scene

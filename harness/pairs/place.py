@@ -1,4 +1,4 @@
-"""Frames that carry no place (docs/method.md, *Frames that carry no place*).
+"""Frames that carry no place (docs/decisions.md, *Frames that carry no place*).
 
 A camera starting up in the dark, a tunnel, a lens cap, an overexposed or blank frame: too little
 contrast to say where it is. Such a frame's patch-normalised thumbnail sits at a small distance

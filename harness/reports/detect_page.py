@@ -372,5 +372,5 @@ def _alarms_html(run: DetectRun, al: dict[str, Any]) -> str:
         f"data-alarm-boxes='{al['boxes']}'>"
         + " ".join(esc(x) for x in lines)
         + esc(how)
-        + " See docs/method.md, <i>Calibrated alarms</i>.</p>"
+        + " See docs/decisions.md, <i>Calibrated alarms</i>.</p>"
     )

@@ -20,7 +20,7 @@ def has_bf16(device: str) -> bool:
 def resolve_precision(precision: str, device: str) -> str:
     """``fp32`` or ``bf16``, what ``precision`` means (``device`` is kept for the callers).
 
-    ``auto`` is fp32 on every device (docs/method.md, *One answer on every CPU*): a table must not
+    ``auto`` is fp32 on every device (docs/decisions.md, *One answer on every CPU*): a table must not
     depend on whether the machine multiplies bf16 natively, so bf16 is used only where asked for
     by name (``python -m bench --only precision`` measures what it costs and gains).
     """
@@ -35,7 +35,7 @@ def rank_precision(precision: str) -> str:
     product's error bound leaves frames undecided, each measured exactly at 37 to 59 times the
     cost of its fp32 comparison (``python -m bench --only ranking``), so bf16 ranks faster only
     where few frames are undecided (under 1.3 to 2.0% with a 4x bf16 product; the fixture leaves
-    5.6%), which depends on the localizer, not the machine (``docs/method.md``, *bf16 candidate
+    5.6%), which depends on the localizer, not the machine (``docs/decisions.md``, *bf16 candidate
     product*).
     """
     return "bf16" if precision == "bf16" else "fp32"

@@ -1,7 +1,7 @@
 """Decoding no more than the crops need (issue 37): a frame at 1/2, 1/4 or 1/8 where boxes allow.
 
 The reduced path's crops and descriptors against the full frame's, on NCLT-sized frames written
-as JPEG and as PNG by the test; the tolerance is stated in ``docs/method.md`` (*Reduced decode*).
+as JPEG and as PNG by the test; the tolerance is stated in ``docs/decisions.md`` (*Reduced decode*).
 """
 
 from __future__ import annotations

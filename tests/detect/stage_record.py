@@ -3,7 +3,7 @@
 The default detector rests on SIFT, whose last bits differ between CPUs of this project's kind
 (OpenCV's own kernels, which the AVX2 cap does not reach everywhere): an inlier count that moves by
 one can cross the registration's threshold of 15, and a keypoint's match can pass or fail the ratio
-test. So the record holds each stage's values, frame by frame, and the rule of docs/method.md
+test. So the record holds each stage's values, frame by frame, and the rule of docs/decisions.md
 (*One answer on every CPU*, the detect stages) says how far each may move on another CPU:
 
 - **registration**: the same frames comparable (a frame whose inlier count lies within 3 of
@@ -161,7 +161,7 @@ def first_stage_outside(out: Path, rec: dict[str, Any]) -> str | None:
                 f"{'; '.join(bad[:4])}{' ...' if len(bad) > 4 else ''}). "
                 f"This CPU: {here['model']}, "
                 f"{' '.join(here['flags'])}. Recorded on: {rec['cpu']['model']}, "
-                f"{' '.join(rec['cpu']['flags'])}. docs/method.md, One answer on every CPU, says "
+                f"{' '.join(rec['cpu']['flags'])}. docs/decisions.md, One answer on every CPU, says "
                 "how far each detect stage may move across CPUs."
             )
     return None

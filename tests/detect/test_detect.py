@@ -71,7 +71,7 @@ def detected(local_run: tuple, tmp_path_factory: pytest.TempPathFactory) -> tupl
 def test_the_detect_stages_are_the_recorded_ones(detected: tuple) -> None:
     """The README's second command's keypoint stages (registration, keypoint localization, the
     plain difference, the change boxes, Table D) against ``tests/regression/detect_stages.json``:
-    byte for byte on the recording CPU, within docs/method.md's rule on another; where one is
+    byte for byte on the recording CPU, within docs/decisions.md's rule on another; where one is
     not, the failure names the first stage that is not and both CPUs (tests/detect/stage_record)."""
     _, b, _ = detected
     rec = json.loads(RECORD.read_text())
@@ -692,7 +692,7 @@ def test_exceedance_and_its_words_by_hand() -> None:
 
 def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None:
     """The README's second command: every frame's and box's exceedance recomputes from the
-    no-change null's frames and boxes (the map's neighbours, docs/method.md, *Calibrated
+    no-change null's frames and boxes (the map's neighbours, docs/decisions.md, *Calibrated
     alarms*), ``alarms.csv`` holds exactly what the default nominal rate flags, Table D measures
     the rate on the no-change frames and the changed ones, and the README's and the page's words
     are this run's."""
@@ -934,7 +934,7 @@ def test_the_default_detector_registers_localizes_and_differences(
 ) -> None:
     """The README's second command, no flag: keypoint localization of Selective Search's boxes
     times the registered pair's plain difference (``--localizer keypoints --proposals selective
-    --boxes subimages --box-prior difference_product``, docs/method.md's rule chose them); each
+    --boxes subimages --box-prior difference_product``, docs/decisions.md's rule chose them); each
     pair's geometry written; Table D with its baseline rows and, where views could not be
     registered, the detector measured apart on them; the verdict the rule's."""
     _, b, _ = detected

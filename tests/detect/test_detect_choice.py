@@ -1,9 +1,9 @@
-"""``python -m bench.detect_choice`` and ``python -m bench.alarms`` as docs/method.md types
+"""``python -m bench.detect_choice`` and ``python -m bench.alarms`` as docs/decisions.md types
 them, on the real pairs.
 
 The whole choice runs every candidate on three sets (about 25 minutes); here one candidate, not
 the default (``tests/detect/test_detect_real.py`` holds the default's row on the same pairs to
-``docs/method.md``), on ``../shared/realdata/obchange-dev`` (skipped where the folder is absent),
+``docs/decisions.md``), on ``../shared/realdata/obchange-dev`` (skipped where the folder is absent),
 through to its last output: the table of candidates, the rule's pick among them, and the run's
 ``detect.json`` with the flags as typed.
 """
@@ -47,7 +47,7 @@ def test_the_choice_runs_as_typed_on_the_real_pairs(
     md = (tmp_path / "detect_choice.md").read_text()
     assert "| keypoints | selective | difference_product | ratio-fallback-novelty-w4 | " in md
     assert "| none | selective | plain difference | ratio-fallback-novelty-w4 | " in md  # Table D's
-    # the development rooms decide (docs/method.md, *Choosing the default*): not run here
+    # the development rooms decide (docs/decisions.md, *Choosing the default*): not run here
     assert "Chosen by the rule: none (obchange-rooms was not run)" in md and md in proc.stdout
     rec = json.loads((tmp_path / "obchange-dev" / "keypoints-selective-difference_product-"
                       "ratio-fallback-novelty-w4" / "detect.json").read_text())  # fmt: skip
@@ -64,7 +64,7 @@ def test_the_choice_runs_as_typed_on_the_real_pairs(
 def test_the_alarms_measurement_runs_as_typed_on_the_real_pairs(
     tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
-    """``python -m bench.alarms --sets obchange-dev`` as docs/method.md types it (*Calibrated
+    """``python -m bench.alarms --sets obchange-dev`` as docs/decisions.md types it (*Calibrated
     alarms*): both calibrations, the null's flags of the revisited frames with their exact
     interval, the old calibration's beside them. The default detector's stages on these pairs
     are computed once a test session (the set's run directory seeded with them)."""

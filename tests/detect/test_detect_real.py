@@ -71,7 +71,7 @@ def test_the_default_detector_finds_real_changes_above_its_chance_band(
     m = re.search(r"the same default reaches AP50 (\d\.\d{3}) against a chance band up to "
                   r"(\d\.\d{3})", readme)  # fmt: skip
     assert m is not None, "the manual quotes the default on obchange-dev"
-    # SIFT's last bits differ across CPUs of this kind (docs/method.md, *One answer on every
+    # SIFT's last bits differ across CPUs of this kind (docs/decisions.md, *One answer on every
     # CPU*): a pair near the registration's 15 inliers may go either way there, so the quote
     # holds within 0.005, not to the last digit
     assert abs(det["ap50_voc_all_point"] - float(m.group(1))) <= 0.005, (det, m.group(1))
@@ -164,7 +164,7 @@ def test_no_drawn_box_lies_mostly_inside_a_higher_scored_drawn_box(
 def test_the_null_flags_revisited_frames_and_the_map_against_itself_nothing(
     real_run: tuple[Path, str],
 ) -> None:
-    """The alarms against the no-change null (docs/method.md, *Calibrated alarms*) as the manual
+    """The alarms against the no-change null (docs/decisions.md, *Calibrated alarms*) as the manual
     quotes them: the robot's revisits (every frame has a change) flag half their frames; the map
     folder against itself, into the same run directory, flags no frame and no box (its null is
     its own: the copies move as that run's pairs do)."""
@@ -179,7 +179,7 @@ def test_the_null_flags_revisited_frames_and_the_map_against_itself_nothing(
     k = int(m.group(1))
     lo, hi = clopper_pearson(k, 10)
     assert (m.group(2), m.group(3), m.group(4)) == (f"{k / 10:.3f}", f"{lo:.3f}", f"{hi:.3f}")
-    # SIFT's last bits differ across CPUs of this kind (docs/method.md, *One answer on every
+    # SIFT's last bits differ across CPUs of this kind (docs/decisions.md, *One answer on every
     # CPU*): a frame on the alarm's edge may go either way there, never more
     assert abs(rec["alarm"]["frames"] - k) <= 1, (rec["alarm"]["frames"], k)
     assert t["alarm_detected"] == pytest.approx(rec["alarm"]["frames"] / 10)

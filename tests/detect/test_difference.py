@@ -1,4 +1,4 @@
-"""The plain difference of a registered pair (docs/method.md, *The plain difference*).
+"""The plain difference of a registered pair (docs/decisions.md, *The plain difference*).
 
 The synthetic pair of tests/localizers/test_keypoints.py, whose truth is known: a textured scene
 seen twice with a shift of (7, 4) px and a new object pasted into the second view. Registration
@@ -137,7 +137,7 @@ def test_bad_difference_settings_are_one_error_naming_the_key() -> None:
 
 def test_a_registration_as_the_null_draws_its_moves() -> None:
     """The shifted pair's registration as a perturbed copy's shift, rotation and scale; a copy
-    drawn from it moves the map frame as the pair moved (docs/method.md, *Calibrated alarms*)."""
+    drawn from it moves the map frame as the pair moved (docs/decisions.md, *Calibrated alarms*)."""
     from harness.config.detect import NullConfig
     from harness.detect.null import draw
     from harness.perturb import apply
@@ -159,7 +159,7 @@ def test_a_registration_as_the_null_draws_its_moves() -> None:
 
 
 def test_a_wobbled_copy_moves_by_its_rms_and_is_named_by_its_values() -> None:
-    """A copy's ``wobble`` (the parallax a homography leaves, docs/method.md, *Calibrated alarms*):
+    """A copy's ``wobble`` (the parallax a homography leaves, docs/decisions.md, *Calibrated alarms*):
     a smooth displacement of that RMS share of the diagonal, the same bytes wherever the same
     fragment is read; a copy without one is named as before (no ``w`` part)."""
     from harness.perturb import Perturbation, apply, fragment, parse
@@ -182,7 +182,7 @@ def test_a_wobbled_copy_moves_by_its_rms_and_is_named_by_its_values() -> None:
 
 
 def test_a_new_colour_is_novel_from_any_view_and_a_frame_against_itself_is_not() -> None:
-    """The colours' novelty (docs/method.md, *The colours' novelty*) needs no registration: a red
+    """The colours' novelty (docs/decisions.md, *The colours' novelty*) needs no registration: a red
     square put into a grey textured scene is the novel place of the new frame, even against a
     map frame that shows the scene from elsewhere (flipped, so no warp could carry it), and a
     frame against itself holds no novel colour at all."""

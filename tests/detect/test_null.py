@@ -1,4 +1,4 @@
-"""The no-change null that calibrates ``harness detect``'s alarms (docs/method.md, *Calibrated
+"""The no-change null that calibrates ``harness detect``'s alarms (docs/decisions.md, *Calibrated
 alarms*): its perturbed copies, its pairs, and what it flags where nothing changed.
 
 The copies are checked against OpenCV's own operations by hand, the pairs' construction on a

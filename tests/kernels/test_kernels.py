@@ -210,7 +210,7 @@ def test_the_kept_fixture_model_is_the_recorded_one(local_run: tuple) -> None:
 
 
 def test_keeping_a_runs_trained_model_as_typed(local_run: tuple, tmp_path: Path) -> None:
-    """``python -m harness.descriptors.store save RUN_DIR FOLDER`` as docs/method.md types it:
+    """``python -m harness.descriptors.store save RUN_DIR FOLDER`` as docs/decisions.md types it:
     the run's model is kept under its digest, a second call keeps nothing new, and a folder that
     is no run is one ERROR line."""
     _, _, run = local_run

@@ -474,7 +474,7 @@ def test_the_readme_command_runs_as_typed_with_its_four_localizers(
 #: Table L's rows whose figures differ between the CPUs measured, and by how much at most (a
 #: cell's number, an interval's end): BoVW's ranks move by one subimage in 1,086 between the AVX2
 #: and the AVX-512 EPYC (R@5 0.25 against 0.26, its intervals' ends by up to 0.02;
-#: docs/method.md, *One answer on every CPU*). Every other row is compared as printed.
+#: docs/decisions.md, *One answer on every CPU*). Every other row is compared as printed.
 CPU_TOLERANCE = {"bovw-rootsift": 0.02}
 
 

@@ -1,4 +1,4 @@
-"""Frames that carry no place (docs/method.md, *Frames that carry no place*).
+"""Frames that carry no place (docs/decisions.md, *Frames that carry no place*).
 
 Measured on frames made here (black, grey, a frame at 5% of its brightness, a real frame) and on
 the real train ride of ``../shared/realdata/nordland-dev`` with dark, blank, stopped and tunnel
@@ -109,7 +109,7 @@ def test_a_query_run_backwards_over_part_of_a_map_dark_where_it_is_not_pairs_in_
     up where the query's frames show a lit station). The sequence's one path: the queries whose
     place is dark in the map are left unpaired and named; the others pair within 2 frames of
     their place, the fog from the path through it, and no map frame takes more than 5 of them
-    (docs/method.md, *Pairs without poses*)."""
+    (docs/decisions.md, *Pairs without poses*)."""
     import cv2
 
     rng = np.random.default_rng(3)

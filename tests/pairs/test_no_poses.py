@@ -267,7 +267,7 @@ def test_two_image_folders_from_nothing_as_the_readme_types_it(
     assert not (tmp_path / "out-local" / "cache" / "model").exists()
     assert sum(rec_l["local_counts"].values()) > 0
     # folders paired by name are no sequence: the no-change null is perturbed copies of the six
-    # map frames, and the alarms say against what (docs/method.md, *Calibrated alarms*)
+    # map frames, and the alarms say against what (docs/decisions.md, *Calibrated alarms*)
     said = [x for x in printed.splitlines() if x.startswith("alarms: ")]
     assert rec2["calibration"]["method"] == "null", rec2["calibration"]
     assert rec2["calibration"]["construction"] == "perturbed"
@@ -628,7 +628,7 @@ def test_two_folders_of_real_seasons_pair_without_training(tmp_path: Path) -> No
     """Issue 64: a train ride filmed in summer and winter, in step (frame i is frame i), the winter
     frames renamed so no name is shared. Paired by sequence with the training-free default
     (SeqSLAM's patch-normalised thumbnails, no model trained): at least 75% of the winter frames
-    within 2 frames of their own summer frame, as docs/method.md quotes it."""
+    within 2 frames of their own summer frame, as docs/decisions.md quotes it."""
     winter = tmp_path / "w"
     winter.mkdir()
     for i, f in enumerate(sorted((NORDLAND / "winter").iterdir())):
@@ -646,5 +646,5 @@ def test_two_folders_of_real_seasons_pair_without_training(tmp_path: Path) -> No
     m = (fr["r_name"].str.extract(r"images-(\d+)")[0].astype(int) - 3010) // 10
     share = float(np.mean(np.abs(m - q) <= 2))
     assert share >= 0.75, share
-    quoted = " ".join((ROOT / "docs" / "method.md").read_text().split())
+    quoted = " ".join((ROOT / "docs" / "decisions.md").read_text().split())
     assert f"{round(100 * share)}% of the 300 winter frames within 2 frames" in quoted

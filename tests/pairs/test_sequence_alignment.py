@@ -1,4 +1,4 @@
-"""Pairs by sequence as one order-keeping alignment (docs/method.md, *Pairs without poses*).
+"""Pairs by sequence as one order-keeping alignment (docs/decisions.md, *Pairs without poses*).
 
 Distance matrices built to hold each failure a per-frame match falls into: a hub (a foggy stretch
 whose rows are flat, beside a map frame near everything), a map that is dark where the query is

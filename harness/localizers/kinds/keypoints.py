@@ -1,6 +1,6 @@
 """Kind ``keypoints``: each subimage's share of keypoints that do not localize in its map frame.
 
-docs/method.md, *Keypoint localization*; :mod:`harness.localizers.keypoints`.
+docs/decisions.md, *Keypoint localization*; :mod:`harness.localizers.keypoints`.
 """
 
 from __future__ import annotations
