@@ -183,8 +183,8 @@ BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
 BOX_PRIORS = ("area", "difference", "difference_product", "none")
 #: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
 BOX_SCORES = ("max", "mean", "contrast")
-#: ``[detect] calibration``: the no-change null (docs/decisions.md, *Calibrated alarms*) or the run's
-#: own scores (the share of the run's frames and candidate boxes that score as high).
+#: ``[detect] calibration``: the no-change null (docs/decisions.md, *Calibrated alarms*) or the
+#: run's own scores (the share of the run's frames and candidate boxes that score as high).
 CALIBRATIONS = ("null", "within-run")
 
 

@@ -24,6 +24,23 @@ def no_figures(cfg: Any) -> Any:
     return dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, plots=False, html=False))
 
 
+#: The no-change null's pairs in a test that does not read the null's own figures: its documented
+#: 100 pairs are checked through to ``alarms.csv`` and the page by the end-to-end tests of
+#: ``tests/detect`` (the fixture's and the real revisits'); 20 pairs cost a fifth of the scoring.
+TEST_NULL_PAIRS = 20
+
+
+def small_null_config(config: Path, tmp: Path) -> Path:
+    """``config`` (a TOML file without a ``[detect.null]`` table) with :data:`TEST_NULL_PAIRS`
+    null pairs, written into ``tmp``; its relative paths read from the repository's root."""
+    text = config.read_text()
+    for rel in ('"datasets/', '"annotations/'):
+        text = text.replace(rel, f'"{ROOT}/{rel[1:]}')
+    out = tmp / f"{config.stem}-null{TEST_NULL_PAIRS}.toml"
+    out.write_text(f"{text.rstrip()}\n\n[detect.null]\npairs = {TEST_NULL_PAIRS}\n")
+    return out
+
+
 #: A small world written in every log format, for ingester comparisons.
 SMALL = FixtureSpec(frames=12, width=48, height=64, objects=2, loop_scale=1.0)
 

@@ -52,9 +52,9 @@ log = logging.getLogger(__name__)
 #: boxes and fused samples, the best box, and the pair's registration (docs/decisions.md, *The plain
 #: difference*): whether it is comparable, its homography's inliers, why not where it is not, and
 #: what its difference was read through (homography; a fallback's ecc or identity; none), and the
-#: registration as a similarity (the centre's shift as shares of the frame, rotation, scale): what
-#: the no-change null's copies are drawn from (docs/decisions.md, *Calibrated alarms*), with what the
-#: homography leaves (the matches' median residual, a share of the diagonal: parallax).
+#: registration as a similarity (the centre's shift as shares of the frame, rotation, scale):
+#: what the no-change null's copies are drawn from (docs/decisions.md, *Calibrated alarms*), with
+#: what the homography leaves (the matches' median residual, a share of the diagonal: parallax).
 FRAME_RESULT = [
     "score", "boxes", "samples", "top_x1", "top_y1", "top_x2", "top_y2",
     "comparable", "inliers", "not_comparable_why", "compared_by",

@@ -161,8 +161,8 @@ def first_stage_outside(out: Path, rec: dict[str, Any]) -> str | None:
                 f"{'; '.join(bad[:4])}{' ...' if len(bad) > 4 else ''}). "
                 f"This CPU: {here['model']}, "
                 f"{' '.join(here['flags'])}. Recorded on: {rec['cpu']['model']}, "
-                f"{' '.join(rec['cpu']['flags'])}. docs/decisions.md, One answer on every CPU, says "
-                "how far each detect stage may move across CPUs."
+                f"{' '.join(rec['cpu']['flags'])}. docs/decisions.md, One answer on every CPU, "
+                "says how far each detect stage may move across CPUs."
             )
     return None
 

@@ -31,7 +31,7 @@ from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
 from harness.evaluate.box_ap import _voc_all_point
 
-from ..conftest import shared_stages
+from ..conftest import TEST_NULL_PAIRS, shared_stages
 from ..readme_text import manual_text
 from .stage_record import RECORD, first_stage_outside
 
@@ -895,7 +895,8 @@ def test_detect_by_retrieval_says_how_often_it_agrees_with_the_pose_pairs(
     text = (ROOT / "datasets" / "fixture-detect.toml").read_text()
     cfg = tmp_path / "by-retrieval.toml"
     text = text.replace('"datasets/models"', f'"{ROOT}/datasets/models"')
-    cfg.write_text(text.replace('queries = "annotated"', 'queries = "annotated"\nby = "retrieval"'))
+    text = text.replace('queries = "annotated"', 'queries = "annotated"\nby = "retrieval"')
+    cfg.write_text(f"{text}\n[detect.null]\npairs = {TEST_NULL_PAIRS}\n")  # its null is not read
     printed = _run(["detect", "--config", str(cfg), "--map", MAP, "--query", QUERY, "--out",
                     str(out), "--data-root", str(local_run[0].cfg.data_root)])  # fmt: skip
     agree = json.loads((out / "detect.json").read_text())["pairing"]["agreement_with_pose_pairs"]

@@ -159,9 +159,9 @@ def test_a_registration_as_the_null_draws_its_moves() -> None:
 
 
 def test_a_wobbled_copy_moves_by_its_rms_and_is_named_by_its_values() -> None:
-    """A copy's ``wobble`` (the parallax a homography leaves, docs/decisions.md, *Calibrated alarms*):
-    a smooth displacement of that RMS share of the diagonal, the same bytes wherever the same
-    fragment is read; a copy without one is named as before (no ``w`` part)."""
+    """A copy's ``wobble`` (the parallax a homography leaves; docs/decisions.md, *Calibrated
+    alarms*): a smooth displacement of that RMS share of the diagonal, the same bytes wherever the
+    same fragment is read; a copy without one has no ``w`` part in its name."""
     from harness.perturb import Perturbation, apply, fragment, parse
 
     _, m = (_rgb(x) for x in _pair())

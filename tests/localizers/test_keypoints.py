@@ -170,11 +170,12 @@ def test_detect_with_keypoints_writes_each_pairs_geometry_and_the_difference_row
     the detector's verdict is measured against it too."""
     from harness.cli import main
 
-    from ..conftest import ROOT
+    from ..conftest import ROOT, small_null_config
 
     p, _, _ = local_run
     out = tmp_path / "d"
-    argv = ["detect", "--config", str(ROOT / "datasets" / "fixture.toml"), "--data-root",
+    cfg = small_null_config(ROOT / "datasets" / "fixture.toml", tmp_path)  # its null is not read
+    argv = ["detect", "--config", str(cfg), "--data-root",
             str(p.cfg.data_root), "--map", "2012-01-22", "--query", "2012-03-31",
             "--localizer", "keypoints", "--out", str(out)]  # fmt: skip
     assert main(argv) == 0

@@ -171,15 +171,16 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
 ) -> None:
     """``harness detect --executor ray``: the detect chunks (and the stages) run on Ray workers."""
 
-    from harness.config.detect import DetectConfig
+    from harness.config.detect import DetectConfig, NullConfig
     from harness.config.load import load_config
     from harness.detect.run import run_detect
 
-    from ..conftest import ROOT
+    from ..conftest import ROOT, TEST_NULL_PAIRS
 
     p, _, out = local_run
     cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
-    opt = DetectConfig(chunk_frames=16)  # four chunks: four units mapped over the workers
+    # four chunks: four units mapped over the workers; a small null (its figures are not read)
+    opt = DetectConfig(chunk_frames=16, null=NullConfig(pairs=TEST_NULL_PAIRS))
     runs = {}
     local, ray_out = tmp_path / "local", tmp_path / "ray"
     shutil.copytree(out / "cache" / "ingest", local / "cache" / "ingest")
