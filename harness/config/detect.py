@@ -274,7 +274,7 @@ class DetectConfig:
         if self.proposals != LOCAL_PROPOSALS:
             out["proposals"] = self.proposals
         out["difference"] = mine["difference"]
-        out["keypoints"] = mine["keypoints"]  # they register every pair
+        out["keypoints"] = mine["keypoints"]  # the pairs read are registered
         out["not_comparable"] = self.not_comparable
         if selective is not None:  # the plain difference's own boxes
             out["selective"] = dataclasses.asdict(selective)
