@@ -261,6 +261,23 @@ def _least_squared_distance(ql: np.ndarray, ml: np.ndarray, r: int) -> np.ndarra
     return best
 
 
+def _mean_std(lab: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``lab[sel].mean(0)`` and ``lab[sel].std(0)``, bit for bit, the pixels gathered once.
+
+    numpy's own steps (``numpy._core._methods``): the float32 sum over the pixels divided by
+    their count, then the mean of the squared deviations, its square root.
+    """
+    x = lab.reshape(-1, 3) if sel.all() else lab[sel]
+    n = np.intp(len(x))
+    mean = np.add.reduce(x, axis=0, keepdims=True)
+    np.true_divide(mean, n, out=mean, casting="unsafe")
+    dev = np.subtract(x, mean)
+    np.multiply(dev, dev, out=dev)
+    var = np.add.reduce(dev, axis=0)
+    np.true_divide(var, n, out=var, casting="unsafe")
+    return mean[0], np.sqrt(var, out=var)
+
+
 def difference_map(
     q_rgb: np.ndarray, m_rgb: np.ndarray, reg: Registration, dc: DifferenceConfig
 ) -> tuple[np.ndarray, float] | None:
@@ -281,8 +298,9 @@ def difference_map(
     foot = _footprint(H, m_rgb.shape[:2], (h, w))
     ql, ml = _lab(q), _lab(mw)
     sel = foot if foot.any() else np.ones_like(foot)
-    qm, qs = ql[sel].mean(0), ql[sel].std(0) + 1e-6
-    mm, ms = ml[sel].mean(0), ml[sel].std(0) + 1e-6
+    qm, qs = _mean_std(ql, sel)
+    mm, ms = _mean_std(ml, sel)
+    qs, ms = qs + 1e-6, ms + 1e-6
     ml = ((ml - mm) * (qs / ms) + qm).astype(np.float32)
     diag = float(np.hypot(h, w))
     best = _least_squared_distance(ql, ml, max(0, round(dc.shift * diag)))
