@@ -211,3 +211,22 @@ def test_a_new_colour_is_novel_from_any_view_and_a_frame_against_itself_is_not()
         box_differences(made, None, boxes, dc), difference_contrast(*made, boxes, dc)
     )
     assert np.isnan(box_differences(None, (nov, f), boxes, dc)).all()
+
+
+def test_the_colour_statistics_are_numpys_bit_for_bit() -> None:
+    """The pair's per-channel mean and spread over the pixels both frames see: the bits of
+    ``lab[sel].mean(0)`` and ``lab[sel].std(0)``, on any share of the frame, all of it included."""
+    from harness.detect.difference import _mean_std
+
+    rng = np.random.default_rng(0)
+    for t in range(60):
+        h, w = int(rng.integers(1, 200)), int(rng.integers(1, 200))
+        lab = (rng.random((h, w, 3)) * [100, 255, 255] - [0, 128, 128]).astype(np.float32)
+        sel = rng.random((h, w)) < rng.random()
+        sel[0, 0] |= t % 5 == 0 or not sel.any()
+        if t % 5 == 0:
+            sel[:] = True
+        mean, std = _mean_std(lab, sel)
+        assert mean.dtype == std.dtype == np.float32
+        assert mean.tobytes() == lab[sel].mean(0).tobytes()
+        assert std.tobytes() == lab[sel].std(0).tobytes()
