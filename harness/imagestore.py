@@ -13,6 +13,7 @@ import contextlib
 import io
 import warnings
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -20,29 +21,75 @@ import numpy as np
 from PIL import Image
 
 from harness.errors import IngestError
+from harness.perturb import PERTURB, Perturbation
 from harness.perturb import apply as apply_perturbation
-from harness.perturb import split_perturbed
+from harness.perturb import parse as parse_perturbation
 
 _ROT = {"cw": cv2.ROTATE_90_CLOCKWISE, "ccw": cv2.ROTATE_90_COUNTERCLOCKWISE, "180": cv2.ROTATE_180}
 
 
+ROTATIONS = ("cw", "ccw", "180")
+_ROT_MARK = "#rot="
+
+
+@dataclass(frozen=True)
+class ImageRef:
+    """A frame's image as a URI names it: ``PATH[#rot=R][#perturb=...]``, read and written here.
+
+    ``path``: the file (any characters, a ``#`` and spaces included); ``rotation``: how to turn
+    the stored image upright (``none``, ``cw``, ``ccw``, ``180``); ``perturbation``: a perturbed
+    copy's values as its fragment spells them (:func:`harness.perturb.fragment`; ``""``: the
+    image itself). Only those two trailing fragments are fragments: a ``#`` anywhere else
+    belongs to the path.
+    """
+
+    path: str
+    rotation: str = "none"
+    perturbation: str = ""
+
+    @classmethod
+    def parse(cls, uri: str | Path) -> ImageRef:
+        """The reference a URI names (its inverse: :attr:`uri`)."""
+        text = str(uri)
+        base, sep, spec = text.rpartition(PERTURB)
+        if not sep:
+            base, spec = text, ""
+        path, sep, rot = base.rpartition(_ROT_MARK)
+        if not (sep and rot in ROTATIONS):
+            path, rot = base, "none"
+        return cls(path, rot, spec)
+
+    @property
+    def fragment(self) -> str:
+        """What follows the path: the rotation's and the perturbation's fragments."""
+        rot = "" if self.rotation in ("none", "") else f"{_ROT_MARK}{self.rotation}"
+        return rot + (f"{PERTURB}{self.perturbation}" if self.perturbation else "")
+
+    @property
+    def uri(self) -> str:
+        """The URI, as frame tables hold it."""
+        return self.path + self.fragment
+
+    @property
+    def name(self) -> str:
+        """The file's name (what a folder's frame is named by)."""
+        return Path(self.path).name
+
+    @property
+    def perturbed(self) -> Perturbation | None:
+        """The perturbed copy's values (None: the image itself)."""
+        return parse_perturbation(self.perturbation) if self.perturbation else None
+
+
 def make_uri(path: str | Path, rotation: str = "none") -> str:
     """An image URI from a path and a turn-upright rotation (``none``, ``cw``, ``ccw``, ``180``)."""
-    return str(path) if rotation in ("none", "", None) else f"{path}#rot={rotation}"
-
-
-ROTATIONS = ("cw", "ccw", "180")
+    return ImageRef(str(path), rotation or "none").uri
 
 
 def split_uri(uri: str) -> tuple[str, str]:
-    """(path, rotation) of a URI.
-
-    Only a trailing ``#rot=<cw|ccw|180>`` is a fragment: a ``#`` anywhere else belongs to the path.
-    """
-    path, sep, rot = uri.rpartition("#rot=")
-    if sep and rot in ROTATIONS:
-        return path, rot
-    return uri, "none"
+    """(path, rotation) of a URI (:class:`ImageRef`); a perturbed copy's whole URI is its path."""
+    ref = ImageRef.parse(uri)
+    return (str(uri), "none") if ref.perturbation else (ref.path, ref.rotation)
 
 
 #: Prefixes of the image URIs that cached frame tables hold, so a run directory or a data root
@@ -179,13 +226,15 @@ def read_image(uri: str, reduce: int = 1) -> np.ndarray:
     Raises:
         IngestError: The file is missing or cannot be decoded.
     """
-    try:
-        base, perturbation = split_perturbed(uri)
-    except ValueError as err:  # a path whose name holds "#perturb=" and no drawn values
-        raise IngestError(f"{uri}: {err}") from None
-    if perturbation is not None:
-        return apply_perturbation(read_image(base, reduce), perturbation)
-    path, rot = split_uri(uri)
+    ref = ImageRef.parse(uri)
+    if ref.perturbation:
+        try:
+            perturbation = ref.perturbed
+        except ValueError as err:  # a path whose name holds "#perturb=" and no drawn values
+            raise IngestError(f"{uri}: {err}") from None
+        original = ImageRef(ref.path, ref.rotation).uri
+        return apply_perturbation(read_image(original, reduce), perturbation)
+    path, rot = ref.path, ref.rotation
     jpeg = reduce > 1 and path.lower().endswith((".jpg", ".jpeg"))
     img = cv2.imread(path, _REDUCED[reduce] if jpeg else cv2.IMREAD_UNCHANGED)
     if img is None:

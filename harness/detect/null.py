@@ -27,10 +27,11 @@ import numpy as np
 import pandas as pd
 
 from harness.config.detect import DetectConfig, NullConfig
+from harness.imagestore import ImageRef
 from harness.localizers.kinds import paired_kinds
 from harness.pairs.modes import PAIRING_MODES, kind_of
 from harness.pairs.table import PAIR_COLUMNS
-from harness.perturb import PERTURB, Perturbation, fragment
+from harness.perturb import Perturbation, fragment
 from harness.pipeline.localizer_stages import localizer_ranks
 from harness.records import FRAME_KEY
 from harness.runtime.cache import read_cached_parquet, stable_hash
@@ -168,7 +169,7 @@ def null_pairs(
     props = proposed.df.merge(named, on=FRAME_KEY, sort=False)
     props = props.assign(camera=props.pop("null_camera"))
     rows = pairs[PAIR_COLUMNS[:6]].itertuples(index=False, name=None)
-    marks = [str(u).rpartition(PERTURB)[2] for u in r["image"]] if how == "perturbed" else []
+    marks = [ImageRef.parse(u).perturbation for u in r["image"]] if how == "perturbed" else []
     # the map's (its proposals' key holds its ingest) and the drawn copies' values: a run whose
     # copies move as another's did scores no null pair again
     key = stable_hash("detect-null", proposed.key, how, dataclasses.asdict(nc), list(rows), marks)

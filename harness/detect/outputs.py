@@ -19,7 +19,7 @@ from harness.detect.pixels import write_pixel_table
 from harness.evaluate.chance import ChanceSettings
 from harness.evaluate.table_d import TableDInputs, score_detections
 from harness.fusion.fuse import loc_map
-from harness.imagestore import read_image
+from harness.imagestore import ImageRef, read_image
 from harness.ingest.names import session_names, with_names
 from harness.localizers.config import ALL_LOCALIZERS
 from harness.records import FRAME_KEY, QUERY_KEY
@@ -85,7 +85,7 @@ def _frame_table(
     images = [
         {
             "id": int(r.image_id),
-            "file_name": getattr(r, "name", "") or str(r.image).split("#")[0],
+            "file_name": getattr(r, "name", "") or ImageRef.parse(r.image).path,
             **(
                 {"path": str(Path(sources[str(r.session)]) / str(r.name))}
                 if getattr(r, "name", "")
@@ -96,7 +96,7 @@ def _frame_table(
             "session": str(r.session),
             "camera": str(r.camera),
             "utime": int(r.utime),
-            "rotation": str(r.image).split("#rot=")[1] if "#rot=" in str(r.image) else "none",
+            "rotation": ImageRef.parse(r.image).rotation,
         }
         for r in fr.itertuples()
     ]
@@ -220,9 +220,9 @@ def _groups(fr: pd.DataFrame, frames: pd.DataFrame) -> dict[tuple[str, str, int]
         mk = (str(r.r_session), str(r.r_camera), int(r.r_utime))
         uri = str(image.get(mk, "")) if mk in image.index else ""
         if uri not in digest:
-            path, _, frag = uri.partition("#")
+            ref = ImageRef.parse(uri)
             try:
-                digest[uri] = hashlib.sha1(Path(path).read_bytes()).hexdigest() + frag
+                digest[uri] = hashlib.sha1(Path(ref.path).read_bytes()).hexdigest() + ref.fragment
             except OSError:  # no file (a log's stored frame): the map frame itself
                 digest[uri] = "|".join(map(str, mk))
         out[(str(r.session), str(r.camera), int(r.utime))] = digest[uri] if uri else str(mk)

@@ -40,6 +40,7 @@ from harness.detect.chunk import detect_chunk
 from harness.detect.null import null_scores
 from harness.detect.outputs import write_outputs
 from harness.errors import ConfigError, HarnessError
+from harness.imagestore import ImageRef
 from harness.ingest.names import session_names
 from harness.localizers.config import LocalizerConfig
 from harness.pairs import keys as pair_keys
@@ -252,7 +253,7 @@ def _alignment(
         return None, {}
     if frames is not None and len(al):  # each pair's image files, by name, beside its keys
         name = {  # a folder's frame by its file name (method §13.2), a log's by its stored image
-            (str(r.session), str(r.camera), int(r.utime)): Path(str(r.image).split("#")[0]).name
+            (str(r.session), str(r.camera), int(r.utime)): ImageRef.parse(r.image).name
             for r in frames[[*FRAME_KEY, "image"]].itertuples(index=False)
         }
         folder_names = session_names(sessions) if sessions else None

@@ -35,10 +35,9 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.imagestore import read_image, split_uri
+from harness.imagestore import ImageRef, read_image
 from harness.localizers.align import Alignment, align_pair, feature_image
 from harness.localizers.config import LocalConfig
-from harness.perturb import PERTURB
 from harness.records import FRAME_KEY, IMAGE_KEY
 from harness.runtime.cache import write_parquet
 
@@ -126,8 +125,9 @@ def read_gray(uri: str, reduce: int) -> np.ndarray | None:
 
     None for any other file: the caller decodes it in colour.
     """
-    path, rot = split_uri(uri)
-    if PERTURB in uri or not path.lower().endswith((".jpg", ".jpeg")):
+    ref = ImageRef.parse(uri)
+    path, rot = ref.path, ref.rotation
+    if ref.perturbation or not path.lower().endswith((".jpg", ".jpeg")):
         return None  # a perturbed copy is made in colour, by read_image
     flag = {2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
             8: cv2.IMREAD_REDUCED_GRAYSCALE_8}[reduce]  # fmt: skip

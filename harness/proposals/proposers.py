@@ -234,9 +234,10 @@ def _threaded_proposals(
     out: list[pd.DataFrame] = []
     step = 8 * threads
     with ThreadPoolExecutor(threads, thread_name_prefix="proposals") as pool:
+        done = pool.map(one, range(len(items)))  # every frame queued: no pause between batches
         for i in progress(range(0, len(items), step)):
-            for rows in pool.map(one, range(i, min(i + step, len(items)))):
-                out += rows
+            for _ in range(i, min(i + step, len(items))):
+                out += next(done)
     return out
 
 

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from harness.imagestore import ImageRef
 from harness.localizers import stage as localizer_stage
 from harness.localizers.config import LocalConfig, LocalizerConfig, check_local
 from harness.localizers.kinds.base import LocalizerKind, LocalizerRun
@@ -43,7 +44,7 @@ def map_image_kib(frames: pd.DataFrame, pairs: pd.DataFrame) -> float:
         left_on=["session", "camera", "utime"],
         right_on=["r_session", "r_camera", "r_utime"],
     )
-    sizes = [Path(str(u).split("#rot=")[0]).stat().st_size for u in used["image"]]
+    sizes = [Path(ImageRef.parse(u).path).stat().st_size for u in used["image"]]
     return float(np.mean(sizes)) / 1024.0 if sizes else float("nan")
 
 
