@@ -38,14 +38,14 @@ class ImageRef:
 
     ``path``: the file (any characters, a ``#`` and spaces included); ``rotation``: how to turn
     the stored image upright (``none``, ``cw``, ``ccw``, ``180``); ``perturbation``: a perturbed
-    copy's values as its fragment spells them (:func:`harness.perturb.fragment`; ``""``: the
+    copy's values as its fragment spells them (:func:`harness.perturb.fragment`; None: the
     image itself). Only those two trailing fragments are fragments: a ``#`` anywhere else
     belongs to the path.
     """
 
     path: str
     rotation: str = "none"
-    perturbation: str = ""
+    perturbation: str | None = None
 
     @classmethod
     def parse(cls, uri: str | Path) -> ImageRef:
@@ -53,17 +53,17 @@ class ImageRef:
         text = str(uri)
         base, sep, spec = text.rpartition(PERTURB)
         if not sep:
-            base, spec = text, ""
-        path, sep, rot = base.rpartition(_ROT_MARK)
-        if not (sep and rot in ROTATIONS):
+            base = text
+        path, mark, rot = base.rpartition(_ROT_MARK)
+        if not (mark and rot in ROTATIONS):
             path, rot = base, "none"
-        return cls(path, rot, spec)
+        return cls(path, rot, spec if sep else None)
 
     @property
     def fragment(self) -> str:
         """What follows the path: the rotation's and the perturbation's fragments."""
         rot = "" if self.rotation in ("none", "") else f"{_ROT_MARK}{self.rotation}"
-        return rot + (f"{PERTURB}{self.perturbation}" if self.perturbation else "")
+        return rot + (f"{PERTURB}{self.perturbation}" if self.perturbation is not None else "")
 
     @property
     def uri(self) -> str:
@@ -77,8 +77,12 @@ class ImageRef:
 
     @property
     def perturbed(self) -> Perturbation | None:
-        """The perturbed copy's values (None: the image itself)."""
-        return parse_perturbation(self.perturbation) if self.perturbation else None
+        """The perturbed copy's values (None: the image itself).
+
+        Raises:
+            ValueError: the fragment names no values (an unknown part, no number, none at all).
+        """
+        return None if self.perturbation is None else parse_perturbation(self.perturbation)
 
 
 def make_uri(path: str | Path, rotation: str = "none") -> str:
@@ -89,7 +93,7 @@ def make_uri(path: str | Path, rotation: str = "none") -> str:
 def split_uri(uri: str) -> tuple[str, str]:
     """(path, rotation) of a URI (:class:`ImageRef`); a perturbed copy's whole URI is its path."""
     ref = ImageRef.parse(uri)
-    return (str(uri), "none") if ref.perturbation else (ref.path, ref.rotation)
+    return (str(uri), "none") if ref.perturbation is not None else (ref.path, ref.rotation)
 
 
 #: Prefixes of the image URIs that cached frame tables hold, so a run directory or a data root
@@ -227,7 +231,7 @@ def read_image(uri: str, reduce: int = 1) -> np.ndarray:
         IngestError: The file is missing or cannot be decoded.
     """
     ref = ImageRef.parse(uri)
-    if ref.perturbation:
+    if ref.perturbation is not None:
         try:
             perturbation = ref.perturbed
         except ValueError as err:  # a path whose name holds "#perturb=" and no drawn values

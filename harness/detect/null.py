@@ -169,7 +169,7 @@ def null_pairs(
     props = proposed.df.merge(named, on=FRAME_KEY, sort=False)
     props = props.assign(camera=props.pop("null_camera"))
     rows = pairs[PAIR_COLUMNS[:6]].itertuples(index=False, name=None)
-    marks = [ImageRef.parse(u).perturbation for u in r["image"]] if how == "perturbed" else []
+    marks = [ImageRef.parse(u).perturbation or "" for u in r["image"]] if how == "perturbed" else []
     # the map's (its proposals' key holds its ingest) and the drawn copies' values: a run whose
     # copies move as another's did scores no null pair again
     key = stable_hash("detect-null", proposed.key, how, dataclasses.asdict(nc), list(rows), marks)

@@ -127,7 +127,7 @@ def read_gray(uri: str, reduce: int) -> np.ndarray | None:
     """
     ref = ImageRef.parse(uri)
     path, rot = ref.path, ref.rotation
-    if ref.perturbation or not path.lower().endswith((".jpg", ".jpeg")):
+    if ref.perturbation is not None or not path.lower().endswith((".jpg", ".jpeg")):
         return None  # a perturbed copy is made in colour, by read_image
     flag = {2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
             8: cv2.IMREAD_REDUCED_GRAYSCALE_8}[reduce]  # fmt: skip

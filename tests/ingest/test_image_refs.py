@@ -31,7 +31,7 @@ PATHS = ["a/b c.png", "dir #1/x #2 é.png", "/abs/ü/#rot=cw.png", "a/x#rot=bad.
 def test_a_reference_is_written_and_read_back(
     path: str, rotation: str, copy: Perturbation | None
 ) -> None:
-    spec = fragment(copy).removeprefix("#perturb=") if copy is not None else ""
+    spec = fragment(copy).removeprefix("#perturb=") if copy is not None else None
     ref = ImageRef(path, rotation, spec)
     assert ImageRef.parse(ref.uri) == ref
     assert ref.name == Path(path).name and ref.uri.startswith(path)
@@ -40,6 +40,14 @@ def test_a_reference_is_written_and_read_back(
         assert split_uri(ref.uri) == (path, rotation) and make_uri(path, rotation) == ref.uri
     else:
         assert ref.perturbed == copy and ref.uri.endswith(fragment(copy))
+
+
+def test_a_copy_fragment_without_values_is_no_copy_of_anything() -> None:
+    ref = ImageRef.parse("a #1.png#rot=cw#perturb=")
+    assert (ref.path, ref.rotation, ref.perturbation) == ("a #1.png", "cw", "")
+    assert ref.uri == "a #1.png#rot=cw#perturb="
+    with pytest.raises(ValueError, match="unknown part"):
+        _ = ref.perturbed
 
 
 def test_a_file_named_with_a_hash_reads_turned_and_copied(tmp_path: Path) -> None:
