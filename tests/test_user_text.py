@@ -28,7 +28,8 @@ BANNED = [
     (re.compile(r"\bearlier (?:version|default|code|release|behaviour)s?\b"
                 r"|\bthe (?:earlier|previous|old) (?:default|one|rule|behaviour)\b"
                 r"|\bdefaults? (?:of earlier|before)\b|\b(?:as|than|since) before\b"
-                r"|\bbefore (?:the|these|this) (?:changes?|fix)\b|\b(?:it|they|this|that) used to\b|\bused to be\b",
+                r"|\bbefore (?:the|these|this) (?:changes?|fix)\b"
+                r"|\b(?:it|they|this|that) used to\b|\bused to be\b",
                 re.I), "history told where the present belongs"),
 ]  # fmt: skip
 
