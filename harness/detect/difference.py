@@ -28,15 +28,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-import pandas as pd
 
 from harness.config.detect import DifferenceConfig
 from harness.detect.colour import colour_novelty
-from harness.imagestore import read_image
 from harness.localizers.align import align_ecc
 from harness.localizers.config import KeypointConfig, LocalConfig
 from harness.localizers.keypoints import MapFeatures, stored_keypoints, union_matches
-from harness.records import FRAME_KEY
 
 #: What a pair that could not be registered is compared through (``not_comparable =
 #: "fallback"``): an affine fit of its intensities, or the frames as they stand.
@@ -377,31 +374,3 @@ def box_differences(
 def novelty_of(q_rgb: np.ndarray, m_rgb: np.ndarray, dc: DifferenceConfig) -> Any:
     """The pair's colour novelty where ``dc.colour`` asks for it, else None."""
     return colour_novelty(q_rgb, m_rgb, dc) if dc.colour == "novelty" else None
-
-
-def pair_difference(
-    run_frames: pd.DataFrame,
-    images: pd.Series,
-    k: tuple[str, str, int],
-    boxes: np.ndarray,
-    opt: Any,
-) -> np.ndarray | None:
-    """Each box's plain-difference contrast in query frame ``k`` against its map frame.
-
-    The pair registered as :mod:`harness.detect.difference` does, with ``opt`` (the run's
-    ``[detect]``); NaN where it is not comparable. None where the frame has no map frame (its
-    row has no ``r_utime``).
-    """
-    fk = run_frames.set_index(FRAME_KEY)
-    if k not in fk.index or fk.loc[k, "r_utime"] != fk.loc[k, "r_utime"]:
-        return None
-    r = fk.loc[k]
-    m = (str(r["r_session"]), str(r["r_camera"]), int(r["r_utime"]))
-    if m not in images.index:
-        return None
-    q, mm = read_image(str(images.loc[k])), read_image(str(images.loc[m]))
-    reg = register(q, mm, opt.keypoints, opt.difference)
-    if not reg.comparable and opt.not_comparable == "fallback":
-        reg = reg.fallback(q, mm, opt.difference, opt.local)
-    made = difference_map(q, mm, reg, opt.difference)
-    return box_differences(made, novelty_of(q, mm, opt.difference), boxes, opt.difference)

@@ -25,7 +25,12 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.detect.difference import pair_difference
+from harness.detect.difference import (
+    box_differences,
+    difference_map,
+    novelty_of,
+    register,
+)
 from harness.errors import AnnotationError
 from harness.evaluate import chance
 from harness.evaluate.metrics import (
@@ -37,6 +42,7 @@ from harness.evaluate.metrics import (
 from harness.evaluate.table_d import no_pixel_scores
 from harness.evaluate.table_d_chance import NO_PIXEL, PIXEL_BASELINES
 from harness.fusion.fuse import loc_map
+from harness.imagestore import read_image
 from harness.ingest.names import frames_by_image
 from harness.inputs import IMAGE_SUFFIXES
 from harness.records import FRAME_KEY, QUERY_KEY
@@ -298,3 +304,31 @@ def write_pixel_table(
     write_text(out / "tableD_pixel.csv", t.to_csv(index=False, float_format="%.4f"))
     write_text(out / "tableD_pixel.md", pixel_markdown(t))
     return t
+
+
+def pair_difference(
+    run_frames: pd.DataFrame,
+    images: pd.Series,
+    k: tuple[str, str, int],
+    boxes: np.ndarray,
+    opt: Any,
+) -> np.ndarray | None:
+    """Each box's plain-difference contrast in query frame ``k`` against its map frame.
+
+    The pair registered as :mod:`harness.detect.difference` does, with ``opt`` (the run's
+    ``[detect]``); NaN where it is not comparable. None where the frame has no map frame (its
+    row has no ``r_utime``).
+    """
+    fk = run_frames.set_index(FRAME_KEY)
+    if k not in fk.index or fk.loc[k, "r_utime"] != fk.loc[k, "r_utime"]:
+        return None
+    r = fk.loc[k]
+    m = (str(r["r_session"]), str(r["r_camera"]), int(r["r_utime"]))
+    if m not in images.index:
+        return None
+    q, mm = read_image(str(images.loc[k])), read_image(str(images.loc[m]))
+    reg = register(q, mm, opt.keypoints, opt.difference)
+    if not reg.comparable and opt.not_comparable == "fallback":
+        reg = reg.fallback(q, mm, opt.difference, opt.local)
+    made = difference_map(q, mm, reg, opt.difference)
+    return box_differences(made, novelty_of(q, mm, opt.difference), boxes, opt.difference)
