@@ -233,7 +233,7 @@ def read_image(uri: str, reduce: int = 1) -> np.ndarray:
     ref = ImageRef.parse(uri)
     if ref.perturbation is not None:
         try:
-            perturbation = ref.perturbed
+            perturbation = parse_perturbation(ref.perturbation)
         except ValueError as err:  # a path whose name holds "#perturb=" and no drawn values
             raise IngestError(f"{uri}: {err}") from None
         original = ImageRef(ref.path, ref.rotation).uri
