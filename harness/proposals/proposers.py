@@ -207,6 +207,18 @@ THREADED = frozenset({"edges", "mser"})
 IN_WORKERS = frozenset({"selective"})
 
 
+def start_workers(cfg: ProposalsConfig, methods: Iterable[str]) -> None:
+    """Start the worker processes ``methods`` of :data:`IN_WORKERS` run in, ahead of the frames.
+
+    A run that will propose frames calls it first: the workers load their modules while the
+    run's own modules load and its sessions are read. The pool is the one the proposals stage
+    then uses (:func:`harness.runtime.workers.shared_workers`); nothing starts on one core.
+    """
+    threads = cfg.threads if cfg.threads > 0 else len(os.sched_getaffinity(0))
+    if threads > 1 and set(methods) & IN_WORKERS:
+        shared_workers(threads, (builtin.__name__,))
+
+
 def _threaded_proposals(
     items: list[Any],
     cfg: ProposalsConfig,
