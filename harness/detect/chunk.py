@@ -39,10 +39,7 @@ from harness.localizers.keypoints import MapFeatures
 from harness.proposals.builtin import segment_boxes, selective_boxes
 from harness.proposals.config import ProposalsConfig, SegmentsConfig, SelectiveConfig
 from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
-from harness.runtime.cache import (
-    stable_hash,
-    write_parquet,
-)
+from harness.runtime.cache import stable_hash, write_parquet
 from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
@@ -62,8 +59,27 @@ FRAME_RESULT = [
 ]  # fmt: skip
 
 
+@dataclass(frozen=True)
+class _Fused:
+    """One frame's fused qBBs: their boxes (n, 4), LoC and random scores (the ``random`` rule)."""
+
+    boxes: np.ndarray
+    loc: np.ndarray
+    random: np.ndarray
+
+
+def _fused_by_frame(samples: pd.DataFrame, col: str) -> list[tuple[tuple, _Fused]]:
+    """Each (query frame, map session)'s fused qBBs as arrays, in ``groupby``'s sorted order."""
+    gb = samples.groupby([*QUERY_KEY, "r_session"], sort=True)
+    at = gb.indices
+    xy = samples[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    loc = samples[col].to_numpy(np.float64)
+    rnd = (samples["loc_random"] if "loc_random" in samples else samples[col]).to_numpy(np.float64)
+    return [(k, _Fused(xy[at[k]], loc[at[k]], rnd[at[k]])) for k in gb.size().index]
+
+
 def _frame_boxes_of(
-    g: pd.DataFrame,
+    g: _Fused,
     floc: np.ndarray,
     orig: np.ndarray,
     size: tuple[int, int],
@@ -79,9 +95,9 @@ def _frame_boxes_of(
     how many candidates were thinner than ``opt.min_box_side`` (dropped before all of it) and each
     candidate's aligned difference (``difference(boxes)``; NaN where none is given).
     """
-    fused = g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    fused = g.boxes
     if opt.boxes == "fused":
-        boxes, loc, rnd = fused, floc, g["loc_random"].to_numpy(np.float64)
+        boxes, loc, rnd = fused, floc, g.random
     else:
         if opt.boxes == "subimages":  # each ranked subimage scored by its own r (method §13.3)
             boxes, loc = orig[:, :4], orig[:, 4]
@@ -191,9 +207,8 @@ class _PairDifference:
         return box_differences(self.made, self.novelty, boxes, self.dc)
 
 
-#: A frame row's registration columns where the detector reads no registration and Table D no
-#: plain difference of the frame (:func:`reads_registration`): compared by localization alone,
-#: so comparable, and nothing registered.
+#: A frame row's registration columns where neither the detector nor Table D reads one
+#: (:func:`reads_registration`): compared by localization alone, so comparable; not registered.
 UNREGISTERED_ROW = (True, 0, "", "not registered", *(float("nan"),) * 5)
 
 
@@ -280,12 +295,10 @@ class _Frame:
     plain_for: frozenset[tuple[str, str, int]]
     feats: MapFeatures
 
-    def result(
-        self, key: tuple, g: pd.DataFrame
-    ) -> tuple[list[tuple], tuple, pd.DataFrame, Any, int]:
+    def result(self, key: tuple, g: _Fused) -> tuple[list[tuple], tuple, pd.DataFrame, Any, int]:
         """One query frame's change boxes, frame row, candidates and plain difference."""
         opt, fk = self.opt, (str(key[0]), str(key[1]), int(key[2]))
-        floc = g[self.col].to_numpy(np.float64)
+        floc = g.loc
         pair = None
         if fk in self.plain_for or reads_registration(opt):
             pair = _PairDifference(self.images, fk, self.paired[fk], opt, self.feats)
@@ -311,7 +324,7 @@ class _Frame:
         top = boxes[keep[0]] if len(keep) else np.full(4, np.nan)
         score = float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan
         reg = UNREGISTERED_ROW if pair is None else _registration_row(pair)
-        frow = (*key, score, len(keep), len(g), *top, *reg)
+        frow = (*key, score, len(keep), len(g.loc), *top, *reg)
         return rows, frow, _candidates(fk, boxes, loc, diff), plain, n_thin
 
 
@@ -365,7 +378,7 @@ def detect_chunk(
     feats = MapFeatures(opt.keypoints)  # a frame in several pairs (the null's): detected once
     frame = _Frame(col, images, paired, orig, size, opt, fusion.seed, proposals, plain_for, feats)
     rows, frow, cand_parts, plain_parts, thin = [], [], [], [], 0
-    groups = list(samples.groupby([*QUERY_KEY, "r_session"], sort=True))
+    groups = _fused_by_frame(samples, col)
     with ThreadPoolExecutor(threads, thread_name_prefix="detect") as pool:  # in the frames' order
         for f_rows, f_row, cands, plain, n_thin in pool.map(lambda kg: frame.result(*kg), groups):
             rows += f_rows
