@@ -124,19 +124,14 @@ def _frame_boxes_of(
 
 def _write_chunk(
     tmp: Path,
-    cand_parts: list[pd.DataFrame],
+    cand_parts: list[tuple[tuple, np.ndarray, np.ndarray, np.ndarray]],
     rows: list[tuple],
     frow: list[tuple],
     samples: pd.DataFrame,
     col: str,
 ) -> None:
     """A chunk's candidates, change boxes, frame rows and fused qBBs (LoC in ``col``)."""
-    cands = (
-        pd.concat(cand_parts, ignore_index=True)
-        if cand_parts
-        else pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "loc", "difference"])
-    )
-    write_parquet(tmp / "candidates.parquet", cands)
+    write_parquet(tmp / "candidates.parquet", _candidates(cand_parts))
     write_parquet(
         tmp / "boxes.parquet",
         pd.DataFrame(rows, columns=[*FRAME_KEY, "kind", "rank", "x1", "y1", "x2", "y2", "score"]),
@@ -252,16 +247,21 @@ def _plain_difference(
     )
 
 
-def _candidates(fk: tuple, boxes: np.ndarray, loc: np.ndarray, diff: np.ndarray) -> pd.DataFrame:
-    """One frame's candidate boxes with their scores and plain difference."""
+def _candidates(parts: list[tuple[tuple, np.ndarray, np.ndarray, np.ndarray]]) -> pd.DataFrame:
+    """The chunk's candidates, one table of each frame's (key, boxes, scores, difference)."""
+    if not parts:
+        return pd.DataFrame(columns=[*QUERY_KEY, "x1", "y1", "x2", "y2", "loc", "difference"])
+    n = [len(b) for _, b, _, _ in parts]
+    boxes = np.concatenate([b.reshape(-1, 4) for _, b, _, _ in parts])
+    key = [np.array([fk[i] for fk, *_ in parts], object) for i in (0, 1)]
     return pd.DataFrame(
         {
-            "q_session": fk[0],
-            "q_camera": fk[1],
-            "q_utime": np.full(len(boxes), fk[2], np.int64),
+            "q_session": np.repeat(key[0], n),
+            "q_camera": np.repeat(key[1], n),
+            "q_utime": np.repeat(np.array([fk[2] for fk, *_ in parts], np.int64), n),
             **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
-            "loc": loc,
-            "difference": diff,
+            "loc": np.concatenate([x for _, _, x, _ in parts]),
+            "difference": np.concatenate([x for *_, x in parts]),
         }
     )
 
@@ -295,7 +295,7 @@ class _Frame:
     plain_for: frozenset[tuple[str, str, int]]
     feats: MapFeatures
 
-    def result(self, key: tuple, g: _Fused) -> tuple[list[tuple], tuple, pd.DataFrame, Any, int]:
+    def result(self, key: tuple, g: _Fused) -> tuple[list[tuple], tuple, tuple, Any, int]:
         """One query frame's change boxes, frame row, candidates and plain difference."""
         opt, fk = self.opt, (str(key[0]), str(key[1]), int(key[2]))
         floc = g.loc
@@ -325,7 +325,7 @@ class _Frame:
         score = float(np.nanmax(floc)) if np.isfinite(floc).any() else np.nan
         reg = UNREGISTERED_ROW if pair is None else _registration_row(pair)
         frow = (*key, score, len(keep), len(g.loc), *top, *reg)
-        return rows, frow, _candidates(fk, boxes, loc, diff), plain, n_thin
+        return rows, frow, (fk, boxes, loc, diff), plain, n_thin
 
 
 def detect_chunk(
