@@ -209,7 +209,7 @@ def values_differ(
 
 #: The fixture's trained autoencoder: the file every other float figure of a run follows from.
 MODEL = "cache/model/*/autoencoder.pt"
-#: The fixture model the figures quoted in README.md and docs/method.md were measured with (its
+#: The fixture model the figures quoted in README.md and docs/decisions.md were measured with (its
 #: digest, and what trained it). Since issue 50 every AMD CPU of the kind measured trains it (the
 #: kernels are pinned at AVX2, ``precision = "auto"`` is fp32): ``stages.json`` records the same
 #: model, and ``tests/kernels`` fails where a CPU of that vendor trains another (an Intel Xeon

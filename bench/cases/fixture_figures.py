@@ -14,7 +14,7 @@ from the default run's cache (so only what the setting changes runs again):
 One row per variant: ``median`` is its R@1, ``figures`` every figure the text quotes (R@1 over all
 and clean subimages, median r, Table I at RoC-max 0.03 and 0.05, Table S at 0.05, query
 subimages, places lost, the wall time of the run). ``tests/test_doc_figures.py`` fails when the
-README or ``docs/method.md`` quotes a figure these rows do not hold; it also checks the default
+README or ``docs/decisions.md`` quotes a figure these rows do not hold; it also checks the default
 row against the suite's own fixture run, so the record cannot drift from the code unseen.
 """
 
