@@ -268,11 +268,11 @@ def _closure_by_sorting(boxes: np.ndarray, max_boxes: int | None) -> tuple[np.nd
 
 
 def test_the_closure_by_hashing_is_the_closure_by_sorting() -> None:
-    """Random frames of up to 120 boxes on a coarse grid (many equal corners, so many duplicate
+    """Random frames of up to 80 boxes on a coarse grid (many equal corners, so many duplicate
     intersections), capped and not: the same boxes, in the same order, the same cap flag."""
     rng = np.random.default_rng(0)
-    for t in range(60):
-        n = int(rng.integers(1, 120))
+    for t in range(40):
+        n = int(rng.integers(1, 80))
         xy = rng.integers(0, 40, (n, 2)).astype(np.float64) * (0.5 if t % 2 else 1.0)
         boxes = np.c_[xy, xy + rng.integers(1, 30, (n, 2))]
         for cap in (None, 50, 4096):
