@@ -17,6 +17,8 @@ import pandas as pd
 
 from harness.localizers.kinds import LOCALIZER_KINDS, paired_kinds
 
+from ..conftest import TEST_NULL_PAIRS
+
 ROOT = Path(__file__).resolve().parents[2]
 PLUGIN = ROOT / "examples" / "plugins" / "patch_ncc.py"
 
@@ -55,9 +57,11 @@ def test_a_paired_frame_kind_is_one_file_and_detect_ranks_and_calibrates_with_it
 ) -> None:
     pasted = _folders(tmp_path)
     out = tmp_path / "out"
+    small = tmp_path / "null.toml"  # a smaller null: its own figures are tests/detect's
+    small.write_text(f"[detect.null]\npairs = {TEST_NULL_PAIRS}\n")
     cmd = ["--plugin", str(PLUGIN), "detect", "--map-images", str(tmp_path / "A"),
            "--query-images", str(tmp_path / "B"), "--annotations", str(tmp_path / "ann.csv"),
-           "--localizer", "patch-ncc", "--out", str(out)]  # fmt: skip
+           "--config", str(small), "--localizer", "patch-ncc", "--out", str(out)]  # fmt: skip
     proc = subprocess.run([sys.executable, "-m", "harness.cli", *cmd], cwd=ROOT,
                           capture_output=True, text=True, check=False)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -65,7 +69,11 @@ def test_a_paired_frame_kind_is_one_file_and_detect_ranks_and_calibrates_with_it
     assert rec["localizers"] == ["patch-ncc"] and rec["options"]["localizer"] == "patch-ncc"
     assert rec["options"]["patch-ncc"] == {"frames_per_unit": 64, "min_side": 4}  # its defaults
     cal = rec["calibration"]  # the null scored by the same kind, not calibrated within the run
-    assert (cal["method"], cal["construction"], cal["frames_scored"]) == ("null", "perturbed", 100)
+    assert (cal["method"], cal["construction"], cal["frames_scored"]) == (
+        "null",
+        "perturbed",
+        TEST_NULL_PAIRS,
+    )
     # each pasted square: the top box of its frame lies on it
     fr = pd.read_csv(out / "frames.csv").set_index("name")
     for i, (x1, y1, x2, y2) in zip(range(0, 9, 3), pasted, strict=True):
