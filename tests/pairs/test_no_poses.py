@@ -634,8 +634,9 @@ def test_two_folders_of_real_seasons_pair_without_training(tmp_path: Path) -> No
     for i, f in enumerate(sorted((NORDLAND / "winter").iterdir())):
         shutil.copy(f, winter / f"w{i:04d}.png")
     out = tmp_path / "out"
+    # the pairing is what is read here: calibrated within the run, no null scored
     argv = ["detect", "--map-images", str(NORDLAND / "summer"), "--query-images", str(winter),
-            "--out", str(out)]  # fmt: skip
+            "--calibration", "within-run", "--out", str(out)]  # fmt: skip
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(argv) == 0
     rec = json.loads((out / "detect.json").read_text())
