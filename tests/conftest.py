@@ -11,6 +11,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 
 from harness.fixture import FixtureSpec, generate
@@ -39,6 +41,18 @@ def small_null_config(config: Path, tmp: Path) -> Path:
     out = tmp / f"{config.stem}-null{TEST_NULL_PAIRS}.toml"
     out.write_text(f"{text.rstrip()}\n\n[detect.null]\npairs = {TEST_NULL_PAIRS}\n")
     return out
+
+
+def blob_wall(seed: int, width: int, height: int) -> np.ndarray:
+    """A wall ``width`` x ``height`` of coloured blobs on grey, for a camera to slide along: a
+    folder test's frames are its windows (regions and keypoints everywhere)."""
+    rng = np.random.default_rng(seed)
+    wall = np.full((height, width, 3), 120, np.uint8)
+    for _ in range(width * height // 300):
+        c = tuple(int(v) for v in rng.integers(0, 256, 3))
+        cv2.circle(wall, (int(rng.integers(0, width)), int(rng.integers(0, height))),
+                   int(rng.integers(2, 12)), c, -1)  # fmt: skip
+    return wall
 
 
 #: A small world written in every log format, for ingester comparisons.

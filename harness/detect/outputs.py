@@ -26,7 +26,7 @@ from harness.records import FRAME_KEY, QUERY_KEY
 from harness.reports.detect_figures import trajectory_figure
 from harness.reports.detect_page import write_detect_page
 from harness.reports.detect_run import DetectRun
-from harness.reports.overlay import colour_bar, drawn_boxes
+from harness.reports.overlay import colour_bar, drawn_boxes, frame_drawn_boxes
 from harness.reports.table_d import table_d_markdown
 from harness.runtime.cache import (
     read_cached_parquet,
@@ -379,14 +379,7 @@ def locmaps(
             heat = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
             over = (0.45 * img + 0.55 * heat).astype(np.uint8)
             over[~np.isfinite(m)] = img[~np.isfinite(m)]
-            b = dets[
-                (dets["kind"] == "detection")
-                & dets["drawn"]
-                & (dets["session"] == k[0])
-                & (dets["camera"] == k[1])
-                & (dets["utime"] == k[2])
-            ]
-            for x1, y1, x2, y2 in b[["x1", "y1", "x2", "y2"]].to_numpy():
+            for x1, y1, x2, y2 in frame_drawn_boxes(dets, k):
                 cv2.rectangle(
                     over, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (0, 255, 255), 1
                 )

@@ -28,6 +28,7 @@ from harness.reports.html import (  # the page reports its own loaded images (br
     SCRIPT,
     esc,
 )
+from harness.reports.overlay import frame_drawn_boxes
 from harness.reports.table_d import table_d_html
 from harness.reports.table_dp import pixel_html
 from harness.runtime.cache import write_text
@@ -84,18 +85,6 @@ def _truth_boxes(ann: pd.DataFrame | None) -> dict[tuple[str, str, int], list[tu
     return out
 
 
-def _frame_boxes(dets: pd.DataFrame, k: tuple[str, str, int]) -> np.ndarray:
-    """(n, 4) x1, y1, x2, y2 of the change boxes drawn in frame ``k`` (``dets``' ``drawn``)."""
-    b = dets[
-        (dets["kind"] == "detection")
-        & dets["drawn"]
-        & (dets["session"] == k[0])
-        & (dets["camera"] == k[1])
-        & (dets["utime"] == k[2])
-    ]
-    return b[["x1", "y1", "x2", "y2"]].to_numpy()
-
-
 def _query_thumb(
     out: Path,
     dets: pd.DataFrame,
@@ -112,7 +101,7 @@ def _query_thumb(
     change box: "no change detected".
     """
     q = read_image(image).copy()
-    for x1, y1, x2, y2 in _frame_boxes(dets, k) if alarmed else []:
+    for x1, y1, x2, y2 in frame_drawn_boxes(dets, k) if alarmed else []:
         cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (255, 220, 0), 2)
     for x1, y1, x2, y2 in truth.get(k, []):
         cv2.rectangle(q, (int(x1), int(y1)), (int(x2) - 1, int(y2) - 1), (230, 30, 30), 1)

@@ -56,3 +56,18 @@ def drawn_boxes(boxes: pd.DataFrame) -> pd.DataFrame:
         if not inside:
             kept.append(i)
     return b.iloc[kept]
+
+
+def frame_drawn_boxes(dets: pd.DataFrame, k: tuple[str, str, int]) -> np.ndarray:
+    """(n, 4) x1, y1, x2, y2 of the change boxes drawn in frame ``k`` (``dets``' ``drawn``).
+
+    What the page's figures and the LoC overlays both draw.
+    """
+    b = dets[
+        (dets["kind"] == "detection")
+        & dets["drawn"]
+        & (dets["session"] == k[0])
+        & (dets["camera"] == k[1])
+        & (dets["utime"] == k[2])
+    ]
+    return b[["x1", "y1", "x2", "y2"]].to_numpy()

@@ -20,7 +20,7 @@ import pytest
 from harness.imagestore import ImageRef, make_uri, read_image, split_uri
 from harness.perturb import Perturbation, fragment
 
-from ..conftest import ROOT, TEST_NULL_PAIRS
+from ..conftest import ROOT, TEST_NULL_PAIRS, blob_wall
 
 PATHS = ["a/b c.png", "dir #1/x #2 é.png", "/abs/ü/#rot=cw.png", "a/x#rot=bad.png", "p.jpg"]
 
@@ -67,13 +67,8 @@ def test_a_file_named_with_a_hash_reads_turned_and_copied(tmp_path: Path) -> Non
 
 def _folders(root: Path, n: int = 6) -> tuple[Path, Path, list[str]]:
     """Two folders of a sliding wall, a square pasted into every other frame of the second."""
-    rng = np.random.default_rng(3)
     w, h = 160, 120
-    wall = np.full((h, w + 6 * n, 3), 120, np.uint8)
-    for _ in range(wall.shape[1] * h // 300):
-        c = tuple(int(v) for v in rng.integers(0, 256, 3))
-        cv2.circle(wall, (int(rng.integers(0, wall.shape[1])), int(rng.integers(0, h))),
-                   int(rng.integers(2, 12)), c, -1)  # fmt: skip
+    wall = blob_wall(3, w + 6 * n, h)
     a, b = root / "the map #1 é", root / "new visit ü #2"
     a.mkdir(parents=True)
     b.mkdir()

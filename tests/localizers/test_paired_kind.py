@@ -17,7 +17,7 @@ import pandas as pd
 
 from harness.localizers.kinds import LOCALIZER_KINDS, paired_kinds
 
-from ..conftest import TEST_NULL_PAIRS
+from ..conftest import TEST_NULL_PAIRS, blob_wall
 
 ROOT = Path(__file__).resolve().parents[2]
 PLUGIN = ROOT / "examples" / "plugins" / "patch_ncc.py"
@@ -26,13 +26,8 @@ PLUGIN = ROOT / "examples" / "plugins" / "patch_ncc.py"
 def _folders(d: Path, n: int = 9) -> list[tuple[int, int, int, int]]:
     """A camera sliding along a wall of blobs (``A``), the same frames with a magenta square
     pasted into every third (``B``), and the annotations; returns the pasted boxes."""
-    rng = np.random.default_rng(5)
     w, h = 160, 120
-    wall = np.full((h, w + 6 * n, 3), 120, np.uint8)
-    for _ in range(wall.shape[1] * h // 300):
-        c = tuple(int(v) for v in rng.integers(0, 256, 3))
-        cv2.circle(wall, (int(rng.integers(0, wall.shape[1])), int(rng.integers(0, h))),
-                   int(rng.integers(2, 12)), c, -1)  # fmt: skip
+    wall = blob_wall(5, w + 6 * n, h)
     (d / "A").mkdir(parents=True)
     (d / "B").mkdir()
     rows, boxes = ["image,status,x1,y1,x2,y2,label"], []
