@@ -11,8 +11,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
 import pytest
 
 from harness.fixture import FixtureSpec, generate
@@ -43,9 +41,12 @@ def small_null_config(config: Path, tmp: Path) -> Path:
     return out
 
 
-def blob_wall(seed: int, width: int, height: int) -> np.ndarray:
+def blob_wall(seed: int, width: int, height: int) -> Any:
     """A wall ``width`` x ``height`` of coloured blobs on grey, for a camera to slide along: a
     folder test's frames are its windows (regions and keypoints everywhere)."""
+    import cv2  # here, not at the top: numpy and OpenCV load after the harness pins their kernels
+    import numpy as np
+
     rng = np.random.default_rng(seed)
     wall = np.full((height, width, 3), 120, np.uint8)
     for _ in range(width * height // 300):
