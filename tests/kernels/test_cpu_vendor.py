@@ -34,3 +34,29 @@ def test_the_cross_vendor_rule_still_catches_a_real_change() -> None:
     assert differ_before_descriptors({**rec, "cache/descriptors/*/desc.npy": ["c"]}, rec) == []
     got = {**rec, "cache/proposals/*/proposals.parquet": ["z"]}
     assert differ_before_descriptors(got, rec) == ["cache/proposals/*/proposals.parquet"]
+
+
+def test_the_digests_table_text_is_what_pandas_writes() -> None:
+    """The digests write a table's text column by column: the bytes of ``to_csv(index=False,
+    float_format="%r")`` (which the recorded digests hold), for plain values and, through pandas,
+    for values that need quoting or are not plain (empty strings, commas, arrays, float32)."""
+    import numpy as np
+    import pandas as pd
+
+    from ..stage_digests import _column_text, _csv
+
+    nan = float("nan")
+    plain = pd.DataFrame({"s": pd.array(["a", "b", None], dtype="str"), "f": [0.1, nan, 1e-300],
+                          "i": np.array([1, -2, 3], np.int32), "b": [True, False, True],
+                          "o": ["x", nan, "y"]})  # fmt: skip
+    tricky = [
+        plain.assign(s=["a,b", "c", "d"]),
+        plain.assign(o=["", "e", "f"]),
+        plain.assign(o=[np.zeros(2), np.ones(1), np.zeros(0)]),
+        plain.assign(f=np.array([0.1, nan, 2.5], np.float32)),
+        plain[["f"]],
+        plain.head(0),
+    ]
+    assert all(_column_text(plain[c]) is not None for c in plain)  # written column by column
+    for df in (plain, *tricky):
+        assert _csv(df) == df.to_csv(index=False, float_format="%r"), df
