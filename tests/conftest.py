@@ -132,8 +132,10 @@ def shared_stages(factory: pytest.TempPathFactory, name: str, out: Path) -> Iter
 
     Under a lock named ``name``: where another worker already ran it, ``out`` is first seeded
     with that run's stage cache (:func:`seed_cache`), so the block recomputes only what is not
-    cached (its reports); else, after the block, the run's cache is published for the others.
-    Entries are content-keyed: a seeded entry is exactly what the block would have computed.
+    cached (its reports); after the block, every entry it computed that is not yet published is
+    published for the others (a block that runs more of the stages, such as the no-change null,
+    leaves them to the next). Entries are content-keyed: a seeded entry is exactly what the block
+    would have computed.
     """
     shared = _shared_dir(factory)
     done = shared / f"{name}.stages"
@@ -145,6 +147,14 @@ def shared_stages(factory: pytest.TempPathFactory, name: str, out: Path) -> Iter
             tmp = shared / f".{name}.{os.getpid()}.tmp"
             seed_cache(out, tmp)
             tmp.rename(done)
+            return
+        for entry in sorted((out / "cache").glob("*/*")):
+            dst = done / "cache" / entry.parent.name / entry.name
+            if entry.is_dir() and not entry.name.startswith(".") and not dst.exists():
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                tmp = dst.parent / f".{entry.name}.{os.getpid()}.tmp"
+                shutil.copytree(entry, tmp)
+                tmp.rename(dst)
 
 
 @contextlib.contextmanager
