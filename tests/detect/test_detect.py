@@ -31,7 +31,7 @@ from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
 from harness.evaluate.box_ap import _voc_all_point
 
-from ..conftest import TEST_NULL_PAIRS, shared_stages
+from ..conftest import TEST_NULL_PAIRS, shared_stages, small_null_config
 from ..readme_text import manual_text
 from .stage_record import RECORD, first_stage_outside
 
@@ -297,13 +297,15 @@ def test_voc_all_point_ap_by_hand() -> None:
 def test_the_detect_flags_are_honoured_as_typed(
     detected: tuple, local_run: tuple, tmp_path: Path
 ) -> None:
-    """``--fusion``, ``--nms-iou``, ``--max-boxes`` and ``--top`` as the README shows them."""
+    """``--fusion``, ``--nms-iou``, ``--max-boxes`` and ``--top`` as the README shows them (with
+    a 20-pair null: nothing here reads the null's figures)."""
     a, _, _ = detected
     out = tmp_path / "flags"
     shutil.copytree(a / "cache", out / "cache")  # the map, model and ranks are reused
     shutil.copy(a / ".dbl-harness.json", out / ".dbl-harness.json")
     flags = ["--fusion", "rank_fusion_le2", "--nms-iou", "0.2", "--max-boxes", "3", "--top", "4"]
-    _run(["detect", "--config", "datasets/fixture-detect.toml", "--map", MAP, "--query", QUERY,
+    cfg = small_null_config(ROOT / "datasets" / "fixture-detect.toml", tmp_path)
+    _run(["detect", "--config", str(cfg), "--map", MAP, "--query", QUERY,
           "--out", str(out), "--data-root", str(local_run[0].cfg.data_root), *flags])  # fmt: skip
     rec = json.loads((out / "detect.json").read_text())
     assert {k: rec["options"][k] for k in ("fusion", "nms_iou", "max_boxes", "top")} == {
