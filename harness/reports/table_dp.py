@@ -1,6 +1,6 @@
 """Table D's pixel part: ``tableD_pixel.md`` and the page's ``tableDP`` (method §9 and 13.2).
 
-Rendered from the table :func:`harness.detect.pixels.pixel_table` computes.
+Rendered from the table :func:`harness.evaluate.table_d_pixel.pixel_table` computes.
 """
 
 from __future__ import annotations

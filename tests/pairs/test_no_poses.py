@@ -543,7 +543,8 @@ def test_pixel_ap_of_a_loc_map_against_a_mask_by_hand() -> None:
     the 84 unchanged pixels come first and precision never exceeds 16/100: AP 0.16. The ceiling
     scores each box by its share of change pixels (1 and 0.16): AP 1.
     """
-    from harness.detect.pixels import box_change_fraction, masked_frame, pixel_table
+    from harness.detect.pixels import masked_frame
+    from harness.evaluate.table_d_pixel import box_change_fraction, pixel_table
 
     mask = np.zeros((10, 10), np.uint8)
     mask[:4, :4] = 255
