@@ -20,7 +20,6 @@ run resumes at the next chunk) and mapped through the run's executor (local or R
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
@@ -32,7 +31,7 @@ import pandas as pd
 
 from harness import kernels
 from harness.config.assemble import detect_run_config
-from harness.config.detect import DetectConfig, check_detect
+from harness.config.detect import DetectConfig
 from harness.config.plugins import plugin_record
 from harness.config.schema import Config
 from harness.detect import keys as detect_keys
@@ -64,21 +63,14 @@ log = logging.getLogger(__name__)
 
 
 def check_detect_args(
-    cfg: Config,
-    map_session: str,
-    query_sessions: list[str],
-    opt: DetectConfig,
-    rerun: Path | None,
-    alarm: float | None,
-) -> float:
-    """The nominal false-alarm rate, after checking every argument of :func:`run_detect`.
+    cfg: Config, map_session: str, query_sessions: list[str], rerun: Path | None
+) -> None:
+    """Check what :func:`run_detect` is handed beside its config: the sessions, the recording.
 
-    The sessions, the recording's path, and ``opt`` (with ``alarm`` where given) as ``[detect]``
-    is checked at load.
+    ``cfg.detect`` itself was checked at load.
 
     Raises:
-        ConfigError: an unknown or repeated session, the map among the queries, an option out of
-            range.
+        ConfigError: an unknown or repeated session, the map among the queries.
     """
     names = [s.name for s in cfg.sessions]
     for s in [map_session, *query_sessions]:
@@ -91,9 +83,6 @@ def check_detect_args(
         )
     if rerun is not None:
         check_rerun_target(Path(rerun))  # before any work: the SDK is there, the path is ours
-    alarm = opt.alarm if alarm is None else alarm
-    check_detect(dataclasses.replace(opt, alarm=alarm), "detect")
-    return alarm
 
 
 def _measure(
@@ -163,20 +152,21 @@ def run_detect(
     map_session: str,
     query_sessions: list[str],
     out: Path,
-    opt: DetectConfig | None = None,
     executor: Any = None,
     rerun: Path | None = None,
-    alarm: float | None = None,
 ) -> dict[str, Any]:
     """The detector on ``query_sessions`` against ``map_session`` into ``out`` (method §13).
 
+    The one way into the detector: ``cfg`` as :func:`harness.config.load.load_config` gives it
+    (``harness detect`` adds its flags there), checked at load; its ``[detect]`` is the detector.
     With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.reports.rerun`).
 
     Raises:
         ConfigError: an unknown or repeated session, the map among the queries, an unknown method.
     """
-    opt = opt or cfg.detect
-    alarm = check_detect_args(cfg, map_session, query_sessions, opt, rerun, alarm)
+    opt = cfg.detect
+    alarm = opt.alarm
+    check_detect_args(cfg, map_session, query_sessions, rerun)
     dcfg = detect_run_config(cfg, map_session, query_sessions, opt)
     t0 = time.perf_counter()
     p = Pipeline(

@@ -378,8 +378,11 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
     o = tmp_path / "o"
     shutil.copytree(a / "cache", o / "cache", ignore=shutil.ignore_patterns("detect"))
     shutil.copy(a / ".dbl-harness.json", o / ".dbl-harness.json")
-    cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
-    opt = detect.DetectConfig(chunk_frames=16)
+    toml = tmp_path / "fixture-detect-16.toml"  # chunks of 16 query frames, as a user sets them
+    text = (ROOT / "datasets" / "fixture-detect.toml").read_text()
+    text = text.replace('"datasets/', f'"{ROOT}/datasets/')
+    toml.write_text(f"{text}\n[detect]\nchunk_frames = 16\n")
+    cfg = load_config(toml, data_root=str(p.cfg.data_root))
     real, calls = detect.detect_chunk, {"n": 0}
 
     def dying(*args: object, **kw: object) -> dict[str, int]:
@@ -390,10 +393,10 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
 
     monkeypatch.setattr(detect, "detect_chunk", dying)
     with pytest.raises(KeyboardInterrupt):
-        detect.run_detect(cfg, MAP, [QUERY], o, opt, None)
+        detect.run_detect(cfg, MAP, [QUERY], o)
     assert not (o / "detections.json").exists()
     monkeypatch.setattr(detect, "detect_chunk", real)
-    rec = detect.run_detect(cfg, MAP, [QUERY], o, opt, None)
+    rec = detect.run_detect(cfg, MAP, [QUERY], o)
     assert rec["stage_units_run"]["detect"] == 4 - 2  # the two chunks finished before the kill
     assert (o / "detections.json").read_bytes() == (a / "detections.json").read_bytes()
     assert (o / "frames.csv").read_bytes() == (a / "frames.csv").read_bytes()

@@ -171,26 +171,26 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
 ) -> None:
     """``harness detect --executor ray``: the detect chunks (and the stages) run on Ray workers."""
 
-    from harness.config.detect import DetectConfig, NullConfig
     from harness.config.load import load_config
     from harness.detect.run import run_detect
 
-    from ..conftest import ROOT, TEST_NULL_PAIRS
+    from ..conftest import ROOT, small_null_config
 
     p, _, out = local_run
-    cfg = load_config(ROOT / "datasets" / "fixture-detect.toml", data_root=str(p.cfg.data_root))
     # four chunks: four units mapped over the workers; a small null (its figures are not read)
-    opt = DetectConfig(chunk_frames=16, null=NullConfig(pairs=TEST_NULL_PAIRS))
+    toml = small_null_config(ROOT / "datasets" / "fixture-detect.toml", tmp_path)
+    toml.write_text(f"{toml.read_text()}\n[detect]\nchunk_frames = 16\n")
+    cfg = load_config(toml, data_root=str(p.cfg.data_root))
     runs = {}
     local, ray_out = tmp_path / "local", tmp_path / "ray"
     shutil.copytree(out / "cache" / "ingest", local / "cache" / "ingest")
     shutil.copy(out / ".dbl-harness.json", local / ".dbl-harness.json")
     with shared_stages(tmp_path_factory, "detect-run", local):  # tests/detect's model and ranks
-        runs["local"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], local, opt, None)
+        runs["local"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], local)
     # the stages before detect's chunks from the local run (their Ray runs are test_ray_run_...)
     shutil.copytree(local / "cache", ray_out / "cache", ignore=shutil.ignore_patterns("detect"))
     shutil.copy(out / ".dbl-harness.json", ray_out / ".dbl-harness.json")
-    runs["ray"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], ray_out, opt, executor)
+    runs["ray"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], ray_out, executor)
     query_frames = len(pd.read_parquet(tmp_path / "local" / "frames.parquet"))
     chunks = -(-query_frames // 16)  # the query frames in chunks of chunk_frames = 16
     assert runs["ray"]["stage_units_run"]["detect"] == runs["local"]["stage_units_run"]["detect"]
