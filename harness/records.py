@@ -36,6 +36,11 @@ def frame_sizes(frames: Any) -> dict[tuple[str, str, int], tuple[int, int]]:
     }
 
 
+def frame_keys(rows: Any, columns: list[str] = FRAME_KEY) -> list[tuple[str, str, int]]:
+    """Each row's frame key (session, camera, utime) as plain values, from ``columns``."""
+    return [(str(s), str(c), int(u)) for s, c, u in rows[columns].itertuples(index=False)]
+
+
 FRAME_COLUMNS = [
     "session",
     "camera",

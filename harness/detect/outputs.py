@@ -16,13 +16,14 @@ from harness.detect.boxes import FrameNMS
 from harness.detect.calibrate import Alarms, alarms_of, exceedance
 from harness.detect.chunk import FRAME_RESULT
 from harness.detect.pixels import write_pixel_table
+from harness.evaluate.box_ap import coco_results
 from harness.evaluate.chance import ChanceSettings
 from harness.evaluate.table_d import TableDInputs, score_detections
 from harness.fusion.fuse import loc_map
 from harness.imagestore import ImageRef, read_image
 from harness.ingest.names import session_names, with_names
 from harness.localizers.config import ALL_LOCALIZERS
-from harness.records import FRAME_KEY, QUERY_KEY
+from harness.records import FRAME_KEY, QUERY_KEY, frame_keys
 from harness.reports.detect_figures import trajectory_figure
 from harness.reports.detect_page import write_detect_page
 from harness.reports.detect_run import DetectRun
@@ -134,21 +135,6 @@ def _calibrated(
     return fr, dets
 
 
-def _coco_results(det: pd.DataFrame, ids: dict[tuple[str, str, int], int]) -> list[dict]:
-    """The change boxes as COCO results (``detections.json``), with their calibrated scores."""
-    return [
-        {
-            "image_id": ids[(str(r.session), str(r.camera), int(r.utime))],
-            "category_id": 1,
-            "bbox": [float(r.x1), float(r.y1), float(r.x2 - r.x1), float(r.y2 - r.y1)],
-            "score": float(r.score),
-            "exceedance": float(r.exceedance),
-            "comparable": bool(r.comparable),
-        }
-        for r in det.itertuples()
-    ]
-
-
 def _write_alarms(out: Path, al: Alarms) -> None:
     """``alarms.csv``: the frames and boxes flagged at the nominal false-alarm rate.
 
@@ -255,7 +241,12 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     comparable = pd.MultiIndex.from_frame(fr.loc[fr["comparable"].astype(bool), FRAME_KEY])
     dets = dets.assign(comparable=pd.MultiIndex.from_frame(dets[FRAME_KEY]).isin(comparable))
     det = dets[dets["kind"] == "detection"]
-    results = _coco_results(det, ids)
+    keys = frame_keys(det)
+    results = coco_results(  # with their calibrated scores
+        [ids[k] for k in keys], det[["x1", "y1", "x2", "y2"]].to_numpy(), det["score"].tolist(),
+        exceedance=det["exceedance"].astype(float).tolist(),
+        comparable=det["comparable"].astype(bool).tolist(),
+    )  # fmt: skip
     write_text(out / "detections.json", json.dumps(results))
     table = fr[_frame_columns(fr)]
     write_parquet(out / "frames.parquet", table)

@@ -36,6 +36,30 @@ def weighted_voc(scores: np.ndarray, tp: np.ndarray, w: np.ndarray, n_gt: float)
     return float(np.sum((mrec[i + 1] - mrec[i]) * mpre[i + 1]))
 
 
+def coco_results(
+    image_ids: Any, boxes: np.ndarray, scores: Any, **extra: Any
+) -> list[dict[str, Any]]:
+    """Boxes as COCO results, the one builder of ``detections.json`` and of Table D's results.
+
+    Each result holds ``image_id``, ``category_id`` 1 (a change), ``bbox`` (x, y, w, h),
+    ``score``, then each of ``extra`` (a value per box), in that order. ``boxes``: (n, 4) x1, y1,
+    x2, y2 in pixels, beside ``image_ids`` and ``scores`` (n each).
+    """
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    names = list(extra)
+    cols = [list(extra[k]) for k in names]
+    return [
+        {
+            "image_id": int(i),
+            "category_id": 1,
+            "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)],
+            "score": float(s),
+            **{k: v[j] for k, v in zip(names, cols, strict=True)},
+        }
+        for j, (i, (x1, y1, x2, y2), s) in enumerate(zip(image_ids, b, scores, strict=True))
+    ]
+
+
 def coco_eval(gt: dict[str, Any], dets: list[dict[str, Any]]) -> tuple[float, float, float]:
     """(VOC all-point AP at IoU 0.5, COCO AP@[.5:.95], COCO AP@.5) by pycocotools' COCOeval.
 

@@ -28,10 +28,11 @@ from harness.evaluate.box_ap import (
     clopper_pearson,
     coco_eval,
     coco_ground_truth,
+    coco_results,
     iou_matrix,
 )
 from harness.evaluate.table_d_chance import NO_PIXEL, difference_dets, table_d_chance
-from harness.records import FRAME_KEY, QUERY_KEY
+from harness.records import FRAME_KEY, QUERY_KEY, frame_keys
 from harness.runtime.cache import write_json, write_text
 
 
@@ -57,16 +58,10 @@ def _no_pixel_dets(
 
 def _results_of(per: dict[int, tuple[np.ndarray, np.ndarray]]) -> list[dict[str, Any]]:
     """COCO results of per-image (boxes, scores)."""
-    return [
-        {
-            "image_id": int(i),
-            "category_id": 1,
-            "score": float(s),
-            "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])],
-        }
-        for i in sorted(per)
-        for b, s in zip(*per[i], strict=True)
-    ]
+    ids = [int(i) for i in sorted(per) for _ in per[i][1]]
+    boxes = [np.asarray(per[i][0], np.float64).reshape(-1, 4) for i in sorted(per)]
+    scores = [float(s) for i in sorted(per) for s in per[i][1]]
+    return coco_results(ids, np.concatenate(boxes) if boxes else np.zeros((0, 4)), scores)
 
 
 def _by_image(
@@ -186,24 +181,11 @@ def _coco_results(
     d: pd.DataFrame, ids: dict[tuple[str, str, int], int], on: set[int]
 ) -> list[dict[str, Any]]:
     """COCO results of the boxes ``d`` on the annotated image ids ``on``."""
-    return [
-        {
-            "image_id": ids[k],
-            "category_id": 1,
-            "score": float(s),
-            "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)],
-        }
-        for k, x1, y1, x2, y2, s in zip(
-            map(tuple, d[FRAME_KEY].to_numpy().tolist()),
-            d["x1"],
-            d["y1"],
-            d["x2"],
-            d["y2"],
-            d["score"],
-            strict=True,
-        )
-        if ids.get((str(k[0]), str(k[1]), int(k[2]))) in on
-    ]
+    keys = frame_keys(d)
+    image = np.array([ids.get(k, -1) for k in keys], np.int64)
+    keep = np.isin(image, sorted(on))
+    boxes = d[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)[keep]
+    return coco_results(image[keep], boxes, d["score"].to_numpy(np.float64)[keep])
 
 
 def _alarm_columns(
