@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from harness.config.detect import DetectConfig
 from harness.errors import HarnessError
 
 
@@ -74,3 +75,17 @@ def pd_read(path: Path):
     import pandas as pd
 
     return pd.read_parquet(path)
+
+
+#: ``harness detect``'s flags that set a ``[detect]`` value, by the key they set (their
+#: argparse destination): filled by :func:`detect_flag` as the parser is built, the one list.
+DETECT_FLAGS: list[str] = []
+
+
+def detect_flag(p: argparse.ArgumentParser, *names: str, help: str, **kw: Any) -> None:
+    """A flag that sets ``[detect] <key>``: its help ends with the default the config holds."""
+    action = p.add_argument(*names, **kw)
+    default = getattr(DetectConfig(), action.dest)
+    action.help = f"{help} (default: [detect] {action.dest}, {default})"
+    if action.dest not in DETECT_FLAGS:
+        DETECT_FLAGS.append(action.dest)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from harness.cli.common import detect_flag
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
 from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
@@ -187,19 +188,21 @@ def _add_folders(p: Any) -> None:
 
 def _add_alarms(p: argparse.ArgumentParser) -> None:
     """``harness detect``'s alarms: the nominal rate and what the scores are calibrated against."""
-    p.add_argument(
+    detect_flag(
+        p,
         "--alarm",
         type=float,
         metavar="RATE",
         help="the nominal false-alarm rate: boxes and frames whose calibrated score is at most "
-        "it go to alarms.csv (default: [detect] alarm, 0.01)",
+        "it go to alarms.csv",
     )
-    p.add_argument(
+    detect_flag(
+        p,
         "--calibration",
         choices=CALIBRATIONS,
         help="what the calibrated scores are measured against: null (pairs of map frames that "
         "hold no change by construction, [detect.null]) or within-run (the run's own frames "
-        "and boxes) (default: [detect] calibration, null)",
+        "and boxes)",
     )
 
 
@@ -217,7 +220,8 @@ def _add_detect(sub: Any) -> None:
     _add_folders(p)
     p.add_argument("--out", required=True)
     p.add_argument("--data-root", help="replaces {data_root} and data_root in the config")
-    p.add_argument(
+    detect_flag(
+        p,
         "--fusion",
         "--method",  # its name before the one vocabulary
         dest="fusion",
@@ -228,51 +232,47 @@ def _add_detect(sub: Any) -> None:
         "method "
         "registered with detect=True",
     )
-    p.add_argument(
-        "--boxes",
-        help=f"the box generator (method §13.1): {', '.join(BOX_GENERATORS)} "
-        "(default: [detect] boxes)",
-    )
+    detect_flag(p, "--boxes", help=f"the box generator (method §13.1): {', '.join(BOX_GENERATORS)}")
     p.add_argument(
         "--preset",
         choices=tuple(PRESETS),
         help="a whole detector by name (its flags below win over it): " + preset_help(),
     )
-    p.add_argument(
+    detect_flag(
+        p,
         "--localizer",
         metavar="KIND",
         help="what ranks the subimages: keypoints (each box's share of keypoints that do not "
         "localize in its paired map frame), local (each box ranked inside its paired map frame by "
         "NCC, method §13.3), another localizer kind that ranks inside the paired frame (a "
-        "plugin's), or config (the config's localizers) (default: [detect] localizer, keypoints)",
+        "plugin's), or config (the config's localizers)",
     )
-    p.add_argument(
+    detect_flag(
+        p,
         "--proposals",
         metavar="METHOD",
         help="the proposal method whose boxes the local or keypoints localizer ranks: selective "
-        "(Selective Search) or segments (the frame's colour regions) (default: [detect] "
-        "proposals, selective)",
+        "(Selective Search) or segments (the frame's colour regions)",
     )
-    p.add_argument(
+    detect_flag(
+        p,
         "--box-prior",
         choices=BOX_PRIORS,
         help="what a box's score is fused with: difference_product (the registered pair's plain "
         "difference times the score to the power [detect] localization_weight), difference "
         "(their within-frame percentiles), area (its percentile by area in its frame, method "
-        "§13.3) or none (the score alone, the paper's detector) (default: [detect] box_prior, "
-        "difference_product)",
+        "§13.3) or none (the score alone, the paper's detector)",
     )
-    p.add_argument(
+    detect_flag(
+        p,
         "--box-score",
         help=f"how a generator other than fused scores a box from the LoC map: "
-        f"{', '.join(BOX_SCORES)} (default: [detect] box_score)",
+        f"{', '.join(BOX_SCORES)}",
     )
     _add_alarms(p)
-    p.add_argument("--nms-iou", type=float, help="the boxes' NMS IoU ([detect] nms_iou: 0.5)")
-    p.add_argument(
-        "--max-boxes", type=int, help="change boxes per frame at most ([detect] max_boxes: 10)"
-    )
-    p.add_argument("--top", type=int, help="most changed places shown ([detect] top: 10)")
+    detect_flag(p, "--nms-iou", type=float, help="the boxes' NMS IoU")
+    detect_flag(p, "--max-boxes", type=int, help="change boxes per frame at most")
+    detect_flag(p, "--top", type=int, help="most changed places shown")
     p.add_argument(
         "--rerun",
         metavar="OUT.rrd",

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.cli.common import (
+    DETECT_FLAGS,
     check_executor_flags,
     check_plugins_local,
     overrides_of,
@@ -70,11 +71,6 @@ def cmd_report(args: argparse.Namespace) -> int:
         path = write_html_report(out, args.gallery)
     print(f"report: {path}")
     return 0
-
-
-#: ``harness detect``'s flags that set a ``[detect]`` value, as the parser names them
-DETECT_FLAGS = ("fusion", "nms_iou", "max_boxes", "top", "boxes", "box_score", "localizer",
-                "box_prior", "proposals", "calibration", "alarm")  # fmt: skip
 
 
 def detect_overrides(args: argparse.Namespace) -> Overrides:
