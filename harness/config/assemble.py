@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.config.check import validate
-from harness.config.detect import CONFIG_LOCALIZERS, DetectConfig, check_detect
+from harness.config.detect import CONFIG_LOCALIZERS, DetectConfig
 from harness.config.folders import image_folders_config
 from harness.config.load import load_config
 from harness.config.presets import PRESETS
@@ -59,14 +59,14 @@ def with_overrides(cfg: Config, ov: Overrides) -> Config:
         d = check_input(Path(ov.masks), "mask folder", AnnotationError, directory=True)
         masks = dataclasses.replace(out.masks, folder=str(Path(d).resolve()))
         out = dataclasses.replace(out, masks=masks)
+    where = "the command line"
     if ov.preset is not None or ov.detect:
         if ov.preset is not None and ov.preset not in PRESETS:
             raise ConfigError(f"--preset {ov.preset!r}: one of {', '.join(PRESETS)}")
         values = {**(PRESETS[ov.preset][1] if ov.preset else {}), **ov.detect}
-        detect = dataclasses.replace(out.detect, **values)
-        check_detect(detect, "harness detect", {k: flag_of(k) for k in ov.detect})
-        out = dataclasses.replace(out, detect=detect)
-    validate(out, "the command line")
+        out = dataclasses.replace(out, detect=dataclasses.replace(out.detect, **values))
+        where = "harness detect"
+    validate(out, where, {k: flag_of(k) for k in ov.detect})  # checked once, then frozen
     return out
 
 

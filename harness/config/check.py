@@ -8,6 +8,8 @@ allowed.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from harness.checks import MAX_SEED, check_device, check_value
 from harness.config.detect import check_detect
 from harness.config.schema import Config
@@ -22,10 +24,11 @@ from harness.proposals.config import check_proposals
 from harness.retrieval.config import check_import, check_retrieval
 
 
-def validate(cfg: Config, where: str) -> None:
+def validate(cfg: Config, where: str, typed: Mapping[str, str] | None = None) -> None:
     """Range checks that a dataclass cannot express, all at load time, before any work.
 
-    One function per section, in the order they always ran.
+    One function per section, in the order they always ran. ``typed``: each ``[detect]`` field
+    the command line set -> its flag, named in the error instead of the key.
 
     Raises:
         ConfigError: naming the key, the value and the allowed range.
@@ -44,7 +47,7 @@ def validate(cfg: Config, where: str) -> None:
     check_splits(cfg.splits, where)
     check_report(cfg.report, where)
     _check_second_radius(cfg, where)
-    check_detect(cfg.detect, where)
+    check_detect(cfg.detect, where, typed)
     check_recall_at(cfg.report, where)
     check_fixture_section(cfg.fixture, where, len(cfg.sessions))
     check_device(cfg.descriptor.device, where, "[descriptor] device")
