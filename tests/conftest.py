@@ -171,27 +171,27 @@ def _locked(path: Path) -> Iterator[None]:
 #: The file that computes the shared fixture run (:func:`local_run`) first: ``make test`` hands
 #: it to one worker while the other runs the files that need no fixture run (issue 50: that
 #: worker waited 48 s on the run's lock before). Then the rest, those measured longest first (the
-#: measured CPU seconds of ``pytest --durations=0`` on this project's machine, rounded), so that
+#: seconds ``pytest --durations=0`` measured under ``make test`` on this project's machine), so that
 #: the two workers end together; files not listed run last, in collection order.
 FIRST = "tests/detect/test_detect.py"
 LONGEST_FIRST = (
-    "tests/localizers/test_localizers.py",  # 100 s
-    "tests/localizers/test_byo_localizer.py",  # 61
-    "tests/pipeline/test_pipeline.py",  # 50
-    "tests/kernels/test_kernels.py",  # 45
-    "tests/runtime/test_ray.py",  # 43 (after test_detect: it shares the detect run)
-    "tests/pairs/test_no_poses.py",  # 28
-    "tests/test_recipes.py",  # 26
-    "tests/localizers/test_keypoints.py",  # 20
-    "tests/retrieval/test_db_stride.py",  # 19
-    "tests/pipeline/test_safety_outputs.py",  # 15
-    "tests/fixture/test_fixture.py",  # 12
-    "tests/runtime/test_safety_cache.py",  # 12
-    "tests/test_recipe_files.py",  # 10
-    "tests/runtime/test_gc.py",  # 10
-    "tests/descriptors/test_projection.py",  # 9
-    "tests/evaluate/test_evidence.py",  # 7
-    "tests/cli/test_readme_paths.py",  # 6
+    "tests/localizers/test_localizers.py",  # 120 s
+    "tests/pipeline/test_pipeline.py",  # 71
+    "tests/localizers/test_byo_localizer.py",  # 69
+    "tests/kernels/test_kernels.py",  # 65
+    "tests/runtime/test_ray.py",  # 60 (after test_detect: it shares the detect run)
+    "tests/test_recipes.py",  # 37
+    "tests/pairs/test_no_poses.py",  # 35
+    "tests/localizers/test_keypoints.py",  # 31
+    "tests/retrieval/test_db_stride.py",  # 28
+    "tests/pipeline/test_safety_outputs.py",  # 18
+    "tests/runtime/test_safety_cache.py",  # 16
+    "tests/fixture/test_fixture.py",  # 14
+    "tests/test_recipe_files.py",  # 12
+    "tests/descriptors/test_projection.py",  # 12
+    "tests/evaluate/test_evidence.py",  # 12
+    "tests/runtime/test_gc.py",  # 11
+    "tests/cli/test_readme_paths.py",  # 7
 )
 #: The fixtures that need the shared fixture run (or its world).
 SHARED_RUNS = {"local_run", "default_world"}
