@@ -235,12 +235,18 @@ def null_scores(
              null.construction, map_session)  # fmt: skip
     mine = {**props, map_session: null.proposals}
     ranks = localizer_ranks(p, measured[0].loc, null.frames, null.pairs, mine)
+    built = p.ran.get("detect-null", 0)
     entries = p.units("detect-null", chunks(ranks, null.frames.df))
+    built = p.ran.get("detect-null", 0) - built
+    if not built:
+        log.info("no-change null: its %d chunks reused from the cache (the same map, pairs and "
+                 "detector)", len(entries))  # fmt: skip
     fr = pd.concat([read_cached_parquet(e.path / "frames.parquet") for e in entries])
     bx = pd.concat([read_cached_parquet(e.path / "boxes.parquet") for e in entries])
     boxes = bx.loc[bx["kind"] == "detection", "score"].to_numpy(np.float64)
     scores = fr["score"].to_numpy(np.float64)
     rec = null_record(nc, null, scores, len(boxes), moves)
+    rec["chunks"] = {"scored_now": built, "reused": len(entries) - built}
     return NullScores(scores, boxes, rec, tuple(e.path.name for e in entries))
 
 

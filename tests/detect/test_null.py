@@ -167,6 +167,15 @@ def test_the_same_folder_as_map_and_query_flags_no_frame_and_no_box(tmp_path: Pa
     page = (tmp_path / "out" / "detect.html").read_text()
     assert "data-alarms='0' data-calibration='null'" in page and "perturbed copy" in page
     assert len(rec["cache_entries"]["detect-null"]) >= 1
+    assert cal["chunks"] == {"scored_now": len(rec["cache_entries"]["detect-null"]), "reused": 0}
+    # the same command again: the null is paid once, and detect.json says it was reused
+    _, again = _detect(["detect", "--map-images", str(d), "--query-images", str(d),
+                        "--out", str(tmp_path / "out")])  # fmt: skip
+    n = cal["chunks"]["scored_now"]
+    assert again["calibration"]["chunks"] == {"scored_now": 0, "reused": n}
+    assert {k: v for k, v in again["calibration"].items() if k != "chunks"} == {
+        k: v for k, v in cal.items() if k != "chunks"
+    }
     # by name, within the run: the old calibration, still there
     within = ["--calibration", "within-run", "--out", str(tmp_path / "w")]
     printed_w, rec_w = _detect(["detect", "--map-images", str(d), "--query-images", str(d),
