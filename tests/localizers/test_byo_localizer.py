@@ -33,11 +33,17 @@ _err = one_error
 
 
 def _seeded(local_run: tuple, out: Path) -> list[str]:
-    """A new run directory holding a copy of the fixture run's cache (nothing recomputed)."""
+    """A new run directory holding a copy of the fixture run's cache (nothing recomputed), and the
+    fixture's config without its figures beside it (no test here reads them; the page is still
+    written, and no cache key holds ``[report]``)."""
     p, _, run = local_run
     shutil.copytree(run / "cache", out / "cache")
     shutil.copy(run / ".dbl-harness.json", out / ".dbl-harness.json")
-    return ["--config", str(FIXTURE_TOML), "--data-root", str(p.cfg.data_root), "--out", str(out)]
+    text = FIXTURE_TOML.read_text().replace('"annotations/', f'"{ROOT}/annotations/')
+    text = text.replace('"datasets/models"', f'"{ROOT}/datasets/models"')
+    cfg = out.parent / "fixture-no-figures.toml"
+    cfg.write_text(text.replace("[report]\n", "[report]\nplots = false\n", 1))
+    return ["--config", str(cfg), "--data-root", str(p.cfg.data_root), "--out", str(out)]
 
 
 @pytest.fixture(scope="module")
@@ -277,7 +283,7 @@ def test_lists_cut_before_their_place_make_bounds_said_in_a_warning_and_table_l(
     multi = (ROOT / "datasets" / "fixture-localizers.toml").read_text()
     multi = (  # its localizers after the autoencoder left out, its [report] (200 resamples) kept
         multi[: multi.index('[[localizers]]\nname = "bovw')] + multi[multi.index("[report]") :]
-    )
+    ).replace("[report]\n", "[report]\nplots = false\n", 1)  # no test here reads the figures
     multi = multi.replace('"annotations/', f'"{ROOT}/annotations/').replace(
         '"datasets/models"', f'"{ROOT}/datasets/models"'
     )
