@@ -3,6 +3,8 @@ PYTHON ?= python3.11
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# the packages installed, before their byte-compilation (lint and docs need no more)
+PACKAGES := $(VENV)/.packages
 DATA   ?=
 CONFIG ?= datasets/fixture.toml
 OUT    ?= results/fixture
@@ -18,21 +20,29 @@ TORCH_WHEELS ?= $(shell pip config get global.find-links 2>/dev/null)
 help:  ## Show this help
 	@grep -E '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  %-18s %s\n", $$1, $$2}'
 
-# Every package comes from the lock, exact and hashed, with no dependency resolution (--no-deps);
-# torch by its exact version (its CPU wheel); the package itself in place, built with the locked
-# setuptools; pip check proves the set whole. Then everything is byte-compiled once, on both cores
-# (about 55 s): where PYTHONDONTWRITEBYTECODE is set, as on this project's machines, nothing else
-# ever writes a .pyc, and every process (each CLI run, Ray worker, test subprocess) would compile
-# torch and pandas again: 9.5 s to import the pipeline instead of 3.6 s (measured; a file that
-# does not compile, such as a package's Python-2 example, is skipped). The packages' own test
-# suites (their tests/ folders: a fifth of the files) are never imported, so never compiled.
-$(STAMP): pyproject.toml $(LOCK)
+# Every package comes from the lock, exact and hashed, with no dependency resolution (--no-deps),
+# installed by uv (its own version pinned here: 9 s where pip takes 71 s on this project's
+# machines, the same files; pip where uv cannot be had); torch by its exact version (its CPU
+# wheel, which only pip finds on this project's machines); the package itself in place, built with
+# the locked setuptools; pip check proves the set whole.
+$(PACKAGES): pyproject.toml $(LOCK)
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "ERROR: $(PYTHON) not found; set PYTHON=/path/to/python3.11"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --no-compile --require-hashes --no-deps -r $(LOCK)
+	( $(BIN)/python -m pip install -q --no-compile "uv==$(UV_VERSION)" \
+	  && $(BIN)/uv pip install -q --python $(BIN)/python --require-hashes --no-deps -r $(LOCK) ) \
+	  || $(BIN)/python -m pip install -q --no-compile --require-hashes --no-deps -r $(LOCK)
 	$(BIN)/python -m pip install -q --no-compile --no-deps "torch==$(TORCH_VERSION)"
 	$(BIN)/python -m pip install -q --no-compile --no-deps --no-build-isolation -e .
 	$(BIN)/python -m pip check
+	touch $(PACKAGES)
+
+# Then everything is byte-compiled once, on both cores (about 45 s): where PYTHONDONTWRITEBYTECODE
+# is set, as on this project's machines, nothing else ever writes a .pyc, and every process (each
+# CLI run, Ray worker, test subprocess) would compile torch and pandas again: 9.5 s to import the
+# pipeline instead of 3.6 s (measured; a file that does not compile, such as a package's Python-2
+# example, is skipped). The packages' own test suites (their tests/ folders: a fifth of the files)
+# are never imported, so never compiled. .ci/run compiles beside the lint and the site.
+$(STAMP): $(PACKAGES)
 	$(BIN)/python -m compileall -q -j 0 -x '/tests/' $(VENV)/lib harness > /dev/null 2>&1 || true
 	touch $(STAMP)
 
@@ -50,7 +60,7 @@ lock:  ## Upgrade requirements.lock deliberately (then make test, and commit it 
 	  --generate-hashes --python-version 3.11 --python-platform x86_64-manylinux_2_28 \
 	  --find-links $(TORCH_WHEELS) -c $(VENV)/lock-constraints.txt --no-emit-package torch \
 	  --custom-compile-command "make lock" -o $(LOCK)
-	rm -f $(STAMP)
+	rm -f $(STAMP) $(PACKAGES)
 	@echo "wrote $(LOCK); now: make test"
 
 # Two workers, each test file on one (its module fixtures computed once); the fixture runs every
@@ -61,7 +71,7 @@ TEST_WORKERS ?= 2
 test: $(STAMP)  ## Run the whole test suite (CI runs exactly this)
 	OMP_WAIT_POLICY=PASSIVE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
-lint: $(STAMP)  ## ruff (rules, line length 100, formatting) and mypy (strict on the numeric kernels)
+lint: $(PACKAGES)  ## ruff (rules, line length 100, formatting) and mypy (strict on the numeric kernels)
 	$(BIN)/ruff check harness tests bench examples
 	$(BIN)/ruff format --check harness tests bench examples
 	$(BIN)/mypy
@@ -69,7 +79,7 @@ lint: $(STAMP)  ## ruff (rules, line length 100, formatting) and mypy (strict on
 # The manual as a site (mkdocs.yml; the pages are docs/*.md), built with --strict: a broken link,
 # a missing page or a plugin API page that does not resolve fails. The configuration page must be
 # what the code says (python -m harness.config.reference --write regenerates it).
-docs: $(STAMP)  ## Build the documentation site into site/ (--strict), after checking docs/config.md
+docs: $(PACKAGES)  ## Build the documentation site into site/ (--strict), after checking docs/config.md
 	$(BIN)/python -m harness.config.reference --check
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
