@@ -45,6 +45,25 @@ COPY, QUERY = "~null", "~q"
 
 
 @dataclass(frozen=True)
+class NullChoice:
+    """The map frames the null pairs query, and each pair's reference, before any proposal.
+
+    One row per pair in both (rows of the frame table); a ``perturbed`` pair's reference is its
+    query frame, perturbed when the pairs are made (:func:`null_pairs`).
+    """
+
+    queries: pd.DataFrame
+    references: pd.DataFrame
+    construction: str
+    copies: int  # perturbed copies of each drawn map frame (0: neighbours)
+
+    def query_frames(self, frames: pd.DataFrame) -> pd.DataFrame:
+        """The rows of ``frames`` that the pairs query, in its order: the map frames proposed."""
+        asked = pd.MultiIndex.from_frame(self.queries[FRAME_KEY])
+        return frames[pd.MultiIndex.from_frame(frames[FRAME_KEY]).isin(asked)]
+
+
+@dataclass(frozen=True)
 class NullPairs:
     """The null's frames (the run's, with any perturbed copies), pairs and construction."""
 
@@ -53,6 +72,7 @@ class NullPairs:
     proposals: Table  # the null queries' proposals: their frames' own
     construction: str
     copies: int  # perturbed copies of each drawn map frame (0: neighbours)
+    no_proposals: int = 0  # pairs left out: their query frame has no proposal
 
 
 def construction_for(nc: NullConfig, by: str) -> str:
@@ -107,43 +127,54 @@ def _evenly(n: int, k: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
 
 
-def null_pairs(
-    frames: Table,
-    proposed: Table,
-    map_session: str,
-    nc: NullConfig,
-    by: str,
-    moves: np.ndarray | None = None,
-) -> NullPairs:
-    """The null pairs of ``map_session``'s frames that have proposals (``proposed``).
+def null_choice(frames: Table, map_session: str, nc: NullConfig, by: str) -> NullChoice:
+    """The null pairs' map frames, chosen from the map's frames alone (``[pairs] by``: ``by``).
 
-    The query side of null pair ``j`` is a map frame under a name of its own (camera
-    ``<camera>~q<j>``: a frame may be the query of several null pairs) with the frame's image and
-    proposals; the reference, its neighbour in the map's order or a perturbed copy of it (camera
-    ``<camera>~null<j>``, its image URI naming the copy's drawn values).
+    ``neighbours``: the pairs (i, i + 1), (i + 1, i) of consecutive frames of one camera, ``pairs``
+    of them spread evenly; ``perturbed``: each map frame in turn, as many times as ``pairs`` needs.
+    Only these frames of the map are then proposed: no localizer of such a run reads the others.
     """
     how = construction_for(nc, by)
     fr = frames.df
-    have = pd.MultiIndex.from_frame(proposed.df[FRAME_KEY].drop_duplicates())
     mine = fr[(fr["session"] == map_session)].sort_values(["camera", "utime"], kind="stable")
     mine = mine.reset_index(drop=True)
-    has = pd.MultiIndex.from_frame(mine[FRAME_KEY]).isin(have)
     copies = 0
     if how == "neighbours":
-        # each frame against the next and the next against it: (i, i + 1), (i + 1, i), ...
         cam = mine["camera"].to_numpy()
         i = np.flatnonzero(cam[:-1] == cam[1:])
         both = np.stack([np.c_[i, i + 1], np.c_[i + 1, i]], axis=1).reshape(-1, 2)
-        both = both[has[both[:, 0]]]
         both = both[_evenly(len(both), nc.pairs)]
         q = mine.iloc[both[:, 0]].reset_index(drop=True)
         r = mine.iloc[both[:, 1]].reset_index(drop=True)
     else:
-        base = mine[has].reset_index(drop=True)
-        copies = max(1, math.ceil(nc.pairs / max(len(base), 1)))
-        order = np.arange(min(nc.pairs, len(base) * copies))
-        q = base.iloc[order % max(len(base), 1)].reset_index(drop=True)
+        copies = max(1, math.ceil(nc.pairs / max(len(mine), 1)))
+        order = np.arange(min(nc.pairs, len(mine) * copies))
+        q = mine.iloc[order % max(len(mine), 1)].reset_index(drop=True)
         r = q.copy()
+    return NullChoice(q, r, how, copies)
+
+
+def null_pairs(
+    frames: Table,
+    choice: NullChoice,
+    proposed: Table,
+    nc: NullConfig,
+    moves: np.ndarray | None = None,
+) -> NullPairs:
+    """The null pairs of ``choice`` whose query frame has proposals (``proposed``: the map's).
+
+    The query side of null pair ``j`` is a map frame under a name of its own (camera
+    ``<camera>~q<j>``: a frame may be the query of several null pairs) with the frame's image and
+    proposals; the reference, its neighbour in the map's order or a perturbed copy of it (camera
+    ``<camera>~null<j>``, its image URI naming the copy's drawn values). A pair whose query frame
+    has no proposal is left out and counted (``no_proposals``).
+    """
+    how = choice.construction
+    have = pd.MultiIndex.from_frame(proposed.df[FRAME_KEY].drop_duplicates())
+    keep = pd.MultiIndex.from_frame(choice.queries[FRAME_KEY]).isin(have)
+    q = choice.queries[keep].reset_index(drop=True)
+    r = choice.references[keep].reset_index(drop=True)
+    if how == "perturbed":
         r["camera"] = [f"{c}{COPY}{j}" for j, c in enumerate(q["camera"])]
         r["image"] = [f"{img}{fragment(draw(nc, j, moves))}" for j, img in enumerate(q["image"])]
     own = q.copy()
@@ -175,11 +206,12 @@ def null_pairs(
     key = stable_hash("detect-null", proposed.key, how, dataclasses.asdict(nc), list(rows), marks)
     extra = [own, r] if how == "perturbed" else [own]
     return NullPairs(
-        Table(pd.concat([fr, *extra], ignore_index=True), stable_hash("null-frames", key)),
+        Table(pd.concat([frames.df, *extra], ignore_index=True), stable_hash("null-frames", key)),
         Table(pairs, key),
         Table(props, stable_hash("null-proposals", key)),
         how,
-        copies,
+        choice.copies,
+        int((~keep).sum()),
     )
 
 
@@ -198,7 +230,7 @@ def null_scores(
     opt: DetectConfig,
     measured: list[Any],
     frames: Table,
-    props: dict[str, Table] | None,
+    propose: Callable[[pd.DataFrame], Table] | None,
     map_session: str,
     chunks: Callable[[Any, pd.DataFrame], list[tuple[tuple[Any, ...], Any]]],
     run_entries: list[Any] | None = None,
@@ -208,6 +240,10 @@ def null_scores(
     ``run_entries``: the run's own detect chunks, whose registrations the perturbed copies'
     moves are drawn from (``[detect.null] moves = "run"``).
 
+    ``propose`` gives the proposals of the map frames it is handed (the null's query frames: the
+    run proposed no other map frame); None where the run has no proposals (pairs by retrieval
+    without a paired-frame localizer).
+
     ``chunks`` (ranks, frames) gives the detect chunks' units, as for the query frames. Where the
     config asks for the null but the run's localizer cannot score a pair alone (the paper's
     descriptor localizers rank among the whole map), a WARNING says so and the run is
@@ -216,7 +252,7 @@ def null_scores(
     if opt.calibration != "null":
         return None
     kinds = [m.loc.kind for m in measured]
-    if len(measured) != 1 or kinds[0] not in paired_kinds() or props is None:
+    if len(measured) != 1 or kinds[0] not in paired_kinds() or propose is None:
         log.warning(
             "the no-change null needs one localizer that ranks inside a paired frame (%s); this "
             "run's are %s: calibrated within the run instead ([detect] calibration)",
@@ -226,14 +262,15 @@ def null_scores(
         return None
     nc = opt.null
     moves = run_moves(run_entries or []) if nc.moves == "run" else None
-    null = null_pairs(frames, props[map_session], map_session, nc, p.cfg.pairs.by, moves)
+    choice = null_choice(frames, map_session, nc, p.cfg.pairs.by)
+    null = null_pairs(frames, choice, propose(choice.query_frames(frames.df)), nc, moves)
     if not len(null.pairs.df):
         log.warning("the map %s has no frame to draw a null from: calibrated within the run",
                     map_session)  # fmt: skip
         return None
     log.info("no-change null: %d %s pairs from the map's frames (%s)", len(null.pairs.df),
              null.construction, map_session)  # fmt: skip
-    mine = {**props, map_session: null.proposals}
+    mine = {map_session: null.proposals}
     ranks = localizer_ranks(p, measured[0].loc, null.frames, null.pairs, mine)
     built = p.ran.get("detect-null", 0)
     entries = p.units("detect-null", chunks(ranks, null.frames.df))
@@ -277,6 +314,7 @@ def null_record(
         "method": "null",
         "construction": null.construction,
         "pairs": len(null.pairs.df),
+        **({"left_out_no_proposals": null.no_proposals} if null.no_proposals else {}),
         "frames_scored": int(np.isfinite(scored).sum()),
         "boxes": int(boxes),
     }

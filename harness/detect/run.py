@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -42,12 +43,13 @@ from harness.errors import ConfigError, HarnessError
 from harness.imagestore import ImageRef
 from harness.ingest.names import session_names
 from harness.localizers.config import LocalizerConfig
+from harness.localizers.kinds import paired_kinds
 from harness.pairs import keys as pair_keys
 from harness.pairs.modes import kind_of
 from harness.pipeline.across import across_localizers, localizer_fusion
 from harness.pipeline.chain import Pipeline, pairs_by_retrieval, until_annotations, until_pairs
 from harness.pipeline.localizer_stages import Measured, localizer_ranks
-from harness.pipeline.stages import session_proposals
+from harness.pipeline.stages import frame_proposals, session_proposals
 from harness.records import FRAME_KEY, QUERY_KEY
 from harness.reports.detect_run import DetectRun
 from harness.reports.rerun import check_rerun_target, write_rerun
@@ -87,11 +89,14 @@ def check_detect_args(
 
 def _measure(
     p: Any, map_session: str, query_sessions: list[str], local: LocalizerConfig | None
-) -> tuple[Any, Any, Any, list, dict[str, Table] | None]:
-    """Frames, annotations, pairs, each localizer's ranks and fusion, and the proposals.
+) -> tuple[Any, Any, Any, list, Callable[[pd.DataFrame], Table] | None]:
+    """Frames, annotations, pairs, each localizer's ranks and fusion, and how to propose map frames.
 
     Pairs by pose, or by retrieval where the config says so (method §13.2). ``local``: the local
-    localizer that ranks every pair's subimages instead of the config's (method §13.3).
+    localizer that ranks every pair's subimages instead of the config's (method §13.3). Where
+    every localizer ranks inside the paired frame, no map frame is proposed here (none is read);
+    the last item proposes the map frames it is handed (the no-change null's queries); None where
+    pairs by retrieval leave no paired-frame localizer.
     """
     if kind_of(p.cfg.pairs.by) == "retrieval":  # sessions without poses (method §13.2)
         ingested, frames, ann = until_annotations(p)
@@ -102,13 +107,15 @@ def _measure(
             return frames, ann, pairs, [m], None
     else:
         ingested, frames, ann, pairs = detect_pairs(p, map_session, query_sessions)
-    props = session_proposals(p, frames, pairs, ingested)
+    locs = (local,) if local is not None else tuple(p.localizer_list)
+    paired = all(loc.kind in paired_kinds() for loc in locs)
+    props = session_proposals(p, frames, pairs, ingested, references=not paired)
     measured = []
-    for loc in (local,) if local is not None else p.localizer_list:
+    for loc in locs:
         ranks = localizer_ranks(p, loc, frames, pairs, props)
         fusion, notes = localizer_fusion(p, loc, ranks, len(pairs.df))
         measured.append(Measured(loc, ranks, fusion, notes))
-    return frames, ann, pairs, measured, props
+    return frames, ann, pairs, measured, partial(frame_proposals, p, map_session, ingested)
 
 
 def _keys_of(keys: pd.DataFrame) -> frozenset[tuple[str, str, int]]:
@@ -177,7 +184,7 @@ def run_detect(
         train_sessions=(map_session,),  # the model sees the map alone, never the new session
     )
     with p.locked():
-        frames, ann, pairs, measured, props = _measure(
+        frames, ann, pairs, measured, propose = _measure(
             p, map_session, query_sessions, opt.local_localizer()
         )
         ranks = measured[0].ranks if len(measured) == 1 else across_localizers(measured)
@@ -193,7 +200,7 @@ def run_detect(
         )
         al, aligned = _alignment(p.out, measured, frames.df, dcfg.sessions)
         chunks = partial(_chunk_units, opt=opt, dcfg=dcfg, null=True)
-        null = null_scores(p, opt, measured, frames, props, map_session, chunks, entries)
+        null = null_scores(p, opt, measured, frames, propose, map_session, chunks, entries)
         run = DetectRun(
             p, dcfg, opt, map_session, query_sessions, names_l, frames.df, pairs.df, ann.df,
             entries, alarm, al, null,

@@ -10,6 +10,8 @@ from __future__ import annotations
 import time
 from functools import partial
 
+import pandas as pd
+
 from harness.fusion import stage as fusion_stage
 from harness.fusion.config import FusionConfig
 from harness.ingest import stage as ingest_stage
@@ -66,20 +68,34 @@ def retrieval_pair_table(
 
 
 def session_proposals(
-    p: Context, frames: Table, pairs: Table, ingested: dict[str, Entry]
+    p: Context, frames: Table, pairs: Table, ingested: dict[str, Entry], references: bool = True
 ) -> dict[str, Table]:
     """Frames + pairs -> each session's proposal boxes (method §5).
 
     Only on the frames ranking reads: a session's query frames and, for a reference session, the
-    frames its database keeps (every frame unless ``[retrieval] db_stride_m``); the others are
+    frames its database keeps (every frame unless ``[retrieval] db_stride_m``; none where
+    ``references`` is False: every localizer ranks inside the paired frame); the others are
     counted in ``run.json`` (``counts.frames_not_described``), never proposed or encoded.
     """
-    described = described_frames(frames.df, pairs.df, p.cfg.retrieval.db_stride_m)
+    stride = p.cfg.retrieval.db_stride_m
+    described = described_frames(frames.df, pairs.df, stride, references)
     empty = frames.df.iloc[:0]
     mine = {sc.name: described.get(sc.name, empty) for sc in p.cfg.sessions}
     for name, fr in mine.items():
         p.not_described[name] = int((frames.df["session"] == name).sum()) - len(fr)
     return proposal_stage.session_proposals(p, p.cfg.proposals, list(mine), mine, ingested)
+
+
+def frame_proposals(
+    p: Context, session: str, ingested: dict[str, Entry], rows: pd.DataFrame
+) -> Table:
+    """The proposal boxes of ``rows`` alone (frames of ``session``; method §5).
+
+    For frames that a later step reads and the ranking did not: the no-change null's queries,
+    where every localizer ranks inside the paired frame (no map frame was proposed for them).
+    """
+    pc = p.cfg.proposals
+    return proposal_stage.session_proposals(p, pc, [session], {session: rows}, ingested)[session]
 
 
 def fused_samples(

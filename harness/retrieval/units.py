@@ -50,7 +50,7 @@ def kept_reference_frames(ref_frames: pd.DataFrame, stride_m: float) -> set[int]
 
 
 def described_frames(
-    frames: pd.DataFrame, pairs: pd.DataFrame, stride_m: float
+    frames: pd.DataFrame, pairs: pd.DataFrame, stride_m: float, references: bool = True
 ) -> dict[str, pd.DataFrame]:
     """Each session's frames that ranking reads, the only ones proposed and described.
 
@@ -63,12 +63,14 @@ def described_frames(
         frames: The frame table.
         pairs: The pairs.
         stride_m: ``[retrieval] db_stride_m`` (metres; 0: every frame).
+        references: False where every localizer ranks a box inside its paired map frame (the
+            paired kinds): no reference frame is read then, only the query frames are described.
 
     Returns:
         Session name -> its described frames (rows of ``frames`` in their order), every session of
         ``frames``, empty where no pair reads the session.
     """
-    refs = set(pairs["r_session"])
+    refs = set(pairs["r_session"]) if references else set()
     out = {}
     for name, fr in frames.groupby("session", sort=True):
         q = pairs[pairs["q_session"] == name]

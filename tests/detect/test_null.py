@@ -14,6 +14,7 @@ import io
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -22,7 +23,7 @@ import pytest
 
 from harness.cli import main
 from harness.config.detect import NullConfig
-from harness.detect.null import construction_for, draw, null_pairs
+from harness.detect.null import construction_for, draw, null_choice, null_pairs
 from harness.imagestore import read_image
 from harness.perturb import Perturbation, apply, fragment, parse, split_perturbed
 from harness.runtime.stage import Table
@@ -98,9 +99,13 @@ def _tables(n: int) -> tuple[Table, Table]:
     return Table(fr, "frames-key"), Table(props, "props-key")
 
 
+def _null(frames: Table, props: Table, nc: NullConfig, by: str) -> Any:
+    return null_pairs(frames, null_choice(frames, "map", nc, by), props, nc)
+
+
 def test_the_null_pairs_by_construction() -> None:
     frames, props = _tables(5)
-    nb = null_pairs(frames, props, "map", NullConfig(), "pose")
+    nb = _null(frames, props, NullConfig(), "pose")
     assert nb.construction == "neighbours" and nb.copies == 0
     p = nb.pairs.df
     # each frame against the next and back: (0, 1), (1, 0), (1, 2), (2, 1), ...
@@ -116,19 +121,39 @@ def test_the_null_pairs_by_construction() -> None:
     fq = nb.frames.df.set_index(["camera", "utime"])["image"]
     keys = zip(p["q_camera"], p["q_utime"], strict=True)
     assert all(fq[(c, u)] == f"/m/{(u - 1000) // 10}.png" for c, u in keys)
-    pt = null_pairs(frames, props, "map", NullConfig(pairs=12), "name")
+    pt = _null(frames, props, NullConfig(pairs=12), "name")
     assert pt.construction == "perturbed" and pt.copies == 3 and len(pt.pairs.df) == 12
     refs = pt.frames.df.set_index(["camera", "utime"])["image"]
     imgs = [refs[(c, u)] for c, u in zip(pt.pairs.df["r_camera"], pt.pairs.df["r_utime"],
                                           strict=True)]  # fmt: skip
     assert all(split_perturbed(i)[1] == draw(NullConfig(pairs=12), j) for j, i in enumerate(imgs))
     assert [split_perturbed(i)[0] for i in imgs] == [f"/m/{j % 5}.png" for j in range(12)]
-    assert pt.pairs.key != null_pairs(frames, props, "map", NullConfig(pairs=12, seed=1),
-                                      "name").pairs.key  # fmt: skip
+    assert pt.pairs.key != _null(frames, props, NullConfig(pairs=12, seed=1), "name").pairs.key
     # the map is a sequence where the pairs follow its order or poses; by name or retrieval not
     assert [construction_for(NullConfig(), by) for by in ("pose", "order", "sequence", "name",
             "retrieval")] == ["neighbours"] * 3 + ["perturbed"] * 2  # fmt: skip
     assert construction_for(NullConfig(construction="perturbed"), "pose") == "perturbed"
+
+
+def test_the_null_is_chosen_before_proposals_and_proposes_only_its_queries() -> None:
+    """The null's map frames are chosen from the frames alone; only they are proposed, and a pair
+    whose query frame has no proposal is left out and counted."""
+    frames, props = _tables(40)
+    nc = NullConfig(pairs=10)
+    choice = null_choice(frames, "map", nc, "pose")
+    asked = choice.query_frames(frames.df)
+    # ten pairs of consecutive frames, spread over the map: at most ten map frames proposed
+    assert len(choice.queries) == 10 and 0 < len(asked) <= 10 and (asked["session"] == "map").all()
+    assert list(asked.index) == sorted(asked.index)  # the frame table's order
+    full = _null(frames, props, nc, "pose")
+    assert full.no_proposals == 0 and len(full.pairs.df) == 10
+    # the first query frame has no proposal: its pair (only) is left out
+    first = int(choice.queries["utime"].iloc[0])
+    some = Table(props.df[props.df["utime"] != first], "props-without-one")
+    cut = null_pairs(frames, choice, some, nc)
+    lost = int((choice.queries["utime"] == first).sum())
+    assert cut.no_proposals == lost and len(cut.pairs.df) == 10 - lost
+    assert first not in set(cut.pairs.df["q_utime"])
 
 
 def _detect(argv: list[str]) -> tuple[str, dict]:
