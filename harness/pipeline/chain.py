@@ -170,7 +170,10 @@ def pairs_by_retrieval(
         )
     if check:
         check_inputs(p, ann, cand)
-    props = session_proposals(p, frames, cand, ingested)
+    # a detector pairs with its localizer's proposal methods alone (its own, such as Selective
+    # Search, are proposed later, on the frames it reads: not on every candidate map frame)
+    only = tuple(locs[0].proposals) if detect is not None else None
+    props = session_proposals(p, frames, cand, ingested, methods=only)
     start = len(p.trail)
     pairs, ranks = retrieval_ranks(p, locs[0], frames, cand, props)
     if not len(ranks.df):

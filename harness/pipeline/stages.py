@@ -7,6 +7,7 @@ say (method §3-10), and what a run records of it (frames not described, timings
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from functools import partial
 
@@ -68,7 +69,12 @@ def retrieval_pair_table(
 
 
 def session_proposals(
-    p: Context, frames: Table, pairs: Table, ingested: dict[str, Entry], references: bool = True
+    p: Context,
+    frames: Table,
+    pairs: Table,
+    ingested: dict[str, Entry],
+    references: bool = True,
+    methods: tuple[str, ...] | None = None,
 ) -> dict[str, Table]:
     """Frames + pairs -> each session's proposal boxes (method §5).
 
@@ -76,6 +82,7 @@ def session_proposals(
     frames its database keeps (every frame unless ``[retrieval] db_stride_m``; none where
     ``references`` is False: every localizer ranks inside the paired frame); the others are
     counted in ``run.json`` (``counts.frames_not_described``), never proposed or encoded.
+    ``methods``: only these of ``[proposals] methods`` (None: all).
     """
     stride = p.cfg.retrieval.db_stride_m
     described = described_frames(frames.df, pairs.df, stride, references)
@@ -83,7 +90,10 @@ def session_proposals(
     mine = {sc.name: described.get(sc.name, empty) for sc in p.cfg.sessions}
     for name, fr in mine.items():
         p.not_described[name] = int((frames.df["session"] == name).sum()) - len(fr)
-    return proposal_stage.session_proposals(p, p.cfg.proposals, list(mine), mine, ingested)
+    pc = p.cfg.proposals
+    if methods is not None:
+        pc = dataclasses.replace(pc, methods=tuple(m for m in pc.methods if m in methods))
+    return proposal_stage.session_proposals(p, pc, list(mine), mine, ingested)
 
 
 def frame_proposals(
