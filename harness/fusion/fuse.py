@@ -10,7 +10,6 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from harness.errors import ConfigError
 from harness.fusion import rules  # noqa: F401  (attaches the built-in rules' functions)
@@ -95,9 +94,12 @@ def intersection_closure(
 
     Semi-naive fixed point: each round intersects only the boxes found in the previous round
     with the originals, since every intersection of a subset is reachable one original at a
-    time. Cost is O(|closure| x n) instead of re-scanning all pairs every round. Duplicates are
-    found by hashing the boxes' bit patterns (pandas), not by sorting them: the same boxes, the
-    first of each kept, in a third of the time on 300 boxes.
+    time. Cost is O(|closure| x n) instead of re-scanning all pairs every round. Each coordinate
+    of an intersection is one of the originals' (a max of their x1s, a min of their x2s), so the
+    rounds work on the ranks of the coordinates among the originals' values (the max of values
+    is the value of the max rank), and a box is one integer key whose order is the boxes'
+    lexicographic order: duplicates and boxes already found are dropped by sorting keys, a
+    third of the time of hashing four float columns on 300 boxes, with the same boxes out.
 
     Returns:
         (unique boxes sorted lexicographically (m, 4), capped) where ``capped`` says the closure
@@ -105,32 +107,38 @@ def intersection_closure(
     """
     orig = np.unique(np.asarray(boxes, np.float64).reshape(-1, 4), axis=0)
     orig = orig[(orig[:, 2] > orig[:, 0]) & (orig[:, 3] > orig[:, 1])]
-    seen, frontier = orig, orig
-    capped = False
+    vals = [np.unique(orig[:, k]) for k in range(4)]
+    ranks = np.stack([np.searchsorted(vals[k], orig[:, k]) for k in range(4)], 1).astype(np.int64)
+    r1, r2, r3 = (len(v) for v in vals[1:])
+    o = [ranks[None, :, k] for k in range(4)]
+
+    def key(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+        out: np.ndarray = ((a * r1 + b) * r2 + c) * r3 + d
+        return out
+
+    seen = key(*ranks.T)
+    parts, frontier, capped = [ranks], ranks, False
     while len(frontier):
-        x1 = np.maximum(frontier[:, None, 0], orig[None, :, 0])
-        y1 = np.maximum(frontier[:, None, 1], orig[None, :, 1])
-        x2 = np.minimum(frontier[:, None, 2], orig[None, :, 2])
-        y2 = np.minimum(frontier[:, None, 3], orig[None, :, 3])
-        ok = (x2 > x1) & (y2 > y1)
+        x1 = np.maximum(frontier[:, None, 0], o[0])
+        y1 = np.maximum(frontier[:, None, 1], o[1])
+        x2 = np.minimum(frontier[:, None, 2], o[2])
+        y2 = np.minimum(frontier[:, None, 3], o[3])
+        ok = (vals[2][x2] > vals[0][x1]) & (vals[3][y2] > vals[1][y1])
         cand = np.stack([x1[ok], y1[ok], x2[ok], y2[ok]], -1)
-        new = cand[~_bits(cand).duplicated(keep="first")]  # each box once, first kept
-        new = new[~_bits(new).isin(_bits(seen))]
-        new = new[np.lexsort(new.T[::-1])]  # in the order the boxes' coordinates sort
+        keys, first = np.unique(key(*cand.T), return_index=True)  # sorted: each box once
+        fresh = ~np.isin(keys, seen, assume_unique=True)
+        new, keys = cand[first[fresh]], keys[fresh]
         if max_boxes is not None and len(seen) + len(new) > max_boxes:
-            new = new[: max(0, max_boxes - len(seen))]
-            capped = True
-        seen = np.concatenate([seen, new])
+            keep = max(0, max_boxes - len(seen))  # the first in the boxes' order
+            new, keys, capped = new[:keep], keys[:keep], True
+        seen = np.concatenate([seen, keys])
+        parts.append(new)
         frontier = new
         if capped:
             break
-    return np.unique(seen, axis=0).reshape(-1, 4), capped
-
-
-def _bits(a: np.ndarray) -> pd.MultiIndex:
-    """The (n, 4) float64 boxes ``a`` as their bit patterns (equal boxes, equal entries)."""
-    u = np.ascontiguousarray(a, np.float64).view(np.uint64).reshape(-1, 4)
-    return pd.MultiIndex.from_arrays([u[:, k] for k in range(4)])
+    found = np.concatenate(parts)
+    found = found[np.argsort(key(*found.T), kind="stable")]
+    return np.stack([vals[k][found[:, k]] for k in range(4)], 1).reshape(-1, 4), capped
 
 
 def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
