@@ -37,6 +37,11 @@ from harness.runtime.progress import progress
 
 log = logging.getLogger(__name__)
 
+#: A subimage's box: its frame, proposal and coordinates (the crop that gives its features).
+BOX_KEY = [*FRAME_KEY, "proposal_method", "box_id", "x1", "y1", "x2", "y2"]
+#: The vocabulary's file of its sampled subimages' words.
+TRAIN_WORDS = "train_words.parquet"
+
 
 def _extractor(bc: BovwConfig) -> Any:
     if bc.features == "orb":
@@ -116,7 +121,9 @@ def train_vocabulary(
     At most ``max_train_subimages`` subimages (seeded sample) give features; at most
     ``max_train_features`` of those (seeded) enter k-means. IDF of word w is
     ``log(N / n_w)`` over the N sampled subimages with a feature (``n_w``: those holding w; a
-    word no sampled subimage holds gets ``log N``). Writes ``vocab.npy`` (k, D) and ``idf.npy``.
+    word no sampled subimage holds gets ``log N``). Writes ``vocab.npy`` (k, D) and ``idf.npy``,
+    and ``train_words.parquet``: each sampled subimage's box and words (none where it has no
+    feature), which :func:`encode_words` reads rather than extracting them again.
 
     Raises:
         RetrievalError: fewer features than words (``k`` too large for the data).
@@ -149,13 +156,17 @@ def train_vocabulary(
     index = faiss.IndexFlatL2(vocab.shape[1])
     index.add(vocab)
     holds = np.zeros(bc.k, np.int64)
-    for f in have:
-        _, w = index.search(np.ascontiguousarray(f, np.float32), 1)
-        holds[np.unique(w[:, 0])] += 1
+    words = [np.zeros(0, np.int64)] * len(sample)
+    for i, f in enumerate(feats):
+        if len(f):
+            _, w = index.search(np.ascontiguousarray(f, np.float32), 1)
+            words[i] = w[:, 0].astype(np.int64)
+            holds[np.unique(words[i])] += 1
     idf = np.log(len(have) / np.maximum(holds, 1)).astype(np.float64)
     idf[holds == 0] = np.log(len(have))
     np.save(tmp / "vocab.npy", vocab)
     np.save(tmp / "idf.npy", idf)
+    write_parquet(tmp / TRAIN_WORDS, sample[BOX_KEY].assign(words=words))
     return {
         "train_subimages": len(sample),
         "train_subimages_with_features": len(have),
@@ -203,6 +214,9 @@ def encode_words(
 
     ``words.npz`` (CSR, one row per subimage with a feature) aligned with ``index.parquet`` (the
     proposal rows of those subimages); subimages without a feature are counted, not written.
+    The words of a subimage the vocabulary was trained on are read from its entry (the same
+    words, extracted once): a map session's encoding then extracts features only of the
+    subimages the vocabulary's sample left out.
     """
     import faiss
 
@@ -210,10 +224,12 @@ def encode_words(
     idf = np.load(vocab_dir / "idf.npy")
     index = faiss.IndexFlatL2(vocab.shape[1])
     index.add(vocab)
-    words: list[np.ndarray] = [np.zeros(0, np.int64)] * len(rows)
-    nfeat = 0
-    for idx, fs in iter_features(bc, rows, frames, f"bovw words {name}"):
-        for i, f in zip(idx, fs, strict=True):
+    words, known = _trained_words(vocab_dir, rows)
+    nfeat = sum(len(words[i]) for i in known)
+    rest = np.setdiff1d(np.arange(len(rows)), known)
+    todo = rows.iloc[rest].reset_index(drop=True)
+    for idx, fs in iter_features(bc, todo, frames, f"bovw words {name}") if len(todo) else ():
+        for i, f in zip(rest[idx], fs, strict=True):
             if len(f):
                 _, w = index.search(np.ascontiguousarray(f, np.float32), 1)
                 words[int(i)] = w[:, 0].astype(np.int64)
@@ -225,7 +241,28 @@ def encode_words(
         "subimages": len(rows),
         "no_feature_subimages": int(len(rows) - len(keep)),
         "features": int(nfeat),
+        "words_from_vocabulary": len(known),
     }
+
+
+def _trained_words(vocab_dir: Path, rows: pd.DataFrame) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each row's words where the vocabulary's sample holds its box, else none; and those rows.
+
+    The sample's words are the ones :func:`encode_words` would compute: the same crop, features
+    and nearest word of each, computed once in the vocabulary's entry.
+    """
+    words: list[np.ndarray] = [np.zeros(0, np.int64)] * len(rows)
+    path = vocab_dir / TRAIN_WORDS
+    if not len(rows) or not path.is_file():
+        return words, np.zeros(0, np.int64)
+    trained = read_cached_parquet(path)
+    at = pd.MultiIndex.from_frame(trained[BOX_KEY]).get_indexer(
+        pd.MultiIndex.from_frame(rows[BOX_KEY])
+    )
+    known = np.nonzero(at >= 0)[0]
+    for i in known:
+        words[int(i)] = np.asarray(trained["words"].iloc[at[i]], np.int64)
+    return words, known
 
 
 def combine_word_shards(parts: list[Path], tmp: Path) -> dict[str, Any]:

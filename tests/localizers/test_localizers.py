@@ -28,7 +28,14 @@ from harness.evaluate.chance import stratified_chance
 from harness.evaluate.metrics import average_precision, stratified_ap
 from harness.evaluate.splits import roc_sob
 from harness.ingest.annotations import change_boxes, load_annotations
-from harness.retrieval.bovw import bovw_ranks, bow_vectors, features, frame_similarity
+from harness.retrieval.bovw import (
+    bovw_ranks,
+    bow_vectors,
+    encode_words,
+    features,
+    frame_similarity,
+    train_vocabulary,
+)
 from harness.retrieval.config import BovwConfig
 from harness.retrieval.import_file import parse_import_arg
 
@@ -169,6 +176,50 @@ def test_features_rootsift_orb_and_a_featureless_crop() -> None:
     assert features(BovwConfig(features="sift", dense=False, input_size=64), flat)[0].shape[0] == 0
     assert bow_vectors([np.zeros(0, np.int64)], np.ones(4))[0].shape == (0, 4)
     assert sp.issparse(bow_vectors([np.array([1])], np.ones(4))[0])
+
+
+def test_a_map_sessions_words_are_read_from_the_vocabularys_sample_not_extracted_again(
+    tmp_path: Path,
+) -> None:
+    """The vocabulary keeps the words of the subimages it was trained on; the encoding of the same
+    subimages reads them and extracts only the others, and writes the same bytes as an encoding
+    that extracts every one (a featureless box included)."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    frames, rows = [], []
+    for t in range(6):
+        img = cv2.GaussianBlur(rng.integers(0, 255, (96, 128, 3), dtype=np.uint8), (5, 5), 1.5)
+        img[:32, :32] = 90  # one flat box: no feature at all
+        path = tmp_path / f"{t}.png"
+        cv2.imwrite(str(path), img)
+        frames.append({"session": "m", "camera": "c", "utime": t, "image": str(path)})
+        for b, (x, y, s) in enumerate([(0, 0, 32), (16, 8, 64), (60, 30, 60), (40, 0, 88)]):
+            rows.append({"session": "m", "camera": "c", "utime": t, "proposal_method": "grid5",
+                         "box_id": b, "x1": float(x), "y1": float(y), "x2": float(x + s),
+                         "y2": float(min(y + s, 96))})  # fmt: skip
+    fr, props = pd.DataFrame(frames), pd.DataFrame(rows)
+    bc = BovwConfig(features="rootsift", dense=False, k=8, input_size=64,
+                    max_train_subimages=14)  # fmt: skip
+    vocab = tmp_path / "vocab"
+    vocab.mkdir()
+    trained = train_vocabulary(bc, fr, props, vocab)
+    assert trained["train_subimages"] == 14
+    runs = {}
+    for kept in (True, False):
+        if not kept:
+            (vocab / "train_words.parquet").unlink()
+        out = tmp_path / f"words-{kept}"
+        out.mkdir()
+        runs[kept] = (encode_words(bc, vocab, fr, props, "m", out), out)
+    (read, a), (extracted, b) = runs[True], runs[False]
+    assert (read["words_from_vocabulary"], extracted["words_from_vocabulary"]) == (14, 0)
+    assert {k: v for k, v in read.items() if k != "words_from_vocabulary"} == {
+        k: v for k, v in extracted.items() if k != "words_from_vocabulary"
+    }
+    assert read["no_feature_subimages"] == 6  # the flat box of each frame
+    for name in ("words.npz", "index.parquet"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
 
 
 # ---------------------------------------------------------------- four localizers, one run
