@@ -96,10 +96,12 @@ def intersection_closure(
     with the originals, since every intersection of a subset is reachable one original at a
     time. Cost is O(|closure| x n) instead of re-scanning all pairs every round. Each coordinate
     of an intersection is one of the originals' (a max of their x1s, a min of their x2s), so the
-    rounds work on the ranks of the coordinates among the originals' values (the max of values
-    is the value of the max rank), and a box is one integer key whose order is the boxes'
-    lexicographic order: duplicates and boxes already found are dropped by sorting keys, a
-    third of the time of hashing four float columns on 300 boxes, with the same boxes out.
+    rounds work on ranks: of the x coordinates (x1 and x2 together) and of the y coordinates.
+    Which originals overlap a box, and which contain it (their intersection is the box itself),
+    are read from bit tables of the originals by rank, so only the new intersections are made;
+    a box is one integer key whose order is the boxes' lexicographic order, so duplicates and
+    boxes already found are dropped by sorting keys. About 35 ms for the 305 Selective Search
+    boxes of a 320 x 240 frame (about 14,000 boxes out).
 
     Returns:
         (unique boxes sorted lexicographically (m, 4), capped) where ``capped`` says the closure
@@ -107,38 +109,52 @@ def intersection_closure(
     """
     orig = np.unique(np.asarray(boxes, np.float64).reshape(-1, 4), axis=0)
     orig = orig[(orig[:, 2] > orig[:, 0]) & (orig[:, 3] > orig[:, 1])]
-    vals = [np.unique(orig[:, k]) for k in range(4)]
-    ranks = np.stack([np.searchsorted(vals[k], orig[:, k]) for k in range(4)], 1).astype(np.int64)
-    r1, r2, r3 = (len(v) for v in vals[1:])
-    o = [ranks[None, :, k] for k in range(4)]
+    xs, ys = np.unique(orig[:, [0, 2]]), np.unique(orig[:, [1, 3]])
+    rx, ry = len(xs), len(ys)
+    axes = (xs, ys, xs, ys)
+    ranks = np.stack([np.searchsorted(axes[k], orig[:, k]) for k in range(4)], 1)
+    n = len(ranks)
 
-    def key(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
-        out: np.ndarray = ((a * r1 + b) * r2 + c) * r3 + d
+    def table(col: np.ndarray, size: int, below: bool) -> np.ndarray:
+        """Row v: the originals whose rank ``col`` is below v (``below``), else above v."""
+        v = np.arange(size + 1)[:, None]
+        out: np.ndarray = np.packbits(col[None, :] < v if below else col[None, :] > v, axis=1)
         return out
 
-    seen = key(*ranks.T)
-    parts, frontier, capped = [ranks], ranks, False
+    lx1, gx2 = table(ranks[:, 0], rx, True), table(ranks[:, 2], rx, False)
+    ly1, gy2 = table(ranks[:, 1], ry, True), table(ranks[:, 3], ry, False)
+
+    def key(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+        out: np.ndarray = ((a.astype(np.int64) * ry + b) * rx + c) * ry + d
+        return out
+
+    def unkey(k: np.ndarray) -> np.ndarray:
+        k, d = np.divmod(k, ry)
+        k, c = np.divmod(k, rx)
+        a, b = np.divmod(k, ry)
+        return np.stack([a, b, c, d], 1)
+
+    seen = key(*ranks.T)  # sorted: the originals are
+    parts, frontier, capped = [seen], ranks, False
     while len(frontier):
-        x1 = np.maximum(frontier[:, None, 0], o[0])
-        y1 = np.maximum(frontier[:, None, 1], o[1])
-        x2 = np.minimum(frontier[:, None, 2], o[2])
-        y2 = np.minimum(frontier[:, None, 3], o[3])
-        ok = (vals[2][x2] > vals[0][x1]) & (vals[3][y2] > vals[1][y1])
-        cand = np.stack([x1[ok], y1[ok], x2[ok], y2[ok]], -1)
-        keys, first = np.unique(key(*cand.T), return_index=True)  # sorted: each box once
-        fresh = ~np.isin(keys, seen, assume_unique=True)
-        new, keys = cand[first[fresh]], keys[fresh]
-        if max_boxes is not None and len(seen) + len(new) > max_boxes:
-            keep = max(0, max_boxes - len(seen))  # the first in the boxes' order
-            new, keys, capped = new[:keep], keys[:keep], True
+        a, b, c, d = frontier.T
+        bits = lx1[c] & gx2[a] & ly1[d] & gy2[b]  # the originals it overlaps
+        bits &= ~(lx1[a + 1] & gx2[c - 1] & ly1[b + 1] & gy2[d - 1])  # less those holding it
+        i, j = np.nonzero(np.unpackbits(bits, axis=1, count=n))
+        o = ranks[j]
+        x1, y1 = np.maximum(a[i], o[:, 0]), np.maximum(b[i], o[:, 1])
+        x2, y2 = np.minimum(c[i], o[:, 2]), np.minimum(d[i], o[:, 3])
+        keys = np.unique(key(x1, y1, x2, y2))  # each box once
+        keys = keys[~np.isin(keys, seen, assume_unique=True)]
+        if max_boxes is not None and len(seen) + len(keys) > max_boxes:
+            keys, capped = keys[: max(0, max_boxes - len(seen))], True  # the first in order
         seen = np.concatenate([seen, keys])
-        parts.append(new)
-        frontier = new
+        parts.append(keys)
+        frontier = unkey(keys)
         if capped:
             break
-    found = np.concatenate(parts)
-    found = found[np.argsort(key(*found.T), kind="stable")]
-    return np.stack([vals[k][found[:, k]] for k in range(4)], 1).reshape(-1, 4), capped
+    found = unkey(np.sort(np.concatenate(parts)))
+    return np.stack([axes[k][found[:, k]] for k in range(4)], 1).reshape(-1, 4), capped
 
 
 def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
