@@ -9,7 +9,7 @@ is preserved, so results depend on neither.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -122,6 +122,41 @@ def _threaded(
             yield _collate(list(pool.map(frames.__getitem__, items)))
 
 
+def _groups(boxes: pd.DataFrame, images: pd.Series) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Each frame's (image URI, row positions, boxes (k, 4)), in the rows' order."""
+    uris = images.to_numpy()
+    b = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    starts = (
+        np.concatenate([[0], np.nonzero(uris[1:] != uris[:-1])[0] + 1, [len(uris)]])
+        if len(uris)
+        else np.zeros(1, int)
+    )
+    return [(str(uris[s]), np.arange(s, e), b[s:e]) for s, e in itertools.pairwise(starts)]
+
+
+def crop_jobs(
+    boxes: pd.DataFrame,
+    images: pd.Series,
+    size: int,
+    frames_per_batch: int = 8,
+    reduced: bool = False,
+) -> list[Callable[[], tuple[np.ndarray, np.ndarray]]]:
+    """:func:`iter_crops`' batches as functions, in order.
+
+    Each decodes and crops its frames when it is called, in whichever thread calls it, and
+    returns the batch's ``(row positions, crops)``.
+    """
+    frames = _FrameCrops(_groups(boxes, images), size, reduced)
+
+    def job(items: range) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        return lambda: _collate([frames[i] for i in items])
+
+    return [
+        job(range(s, min(s + frames_per_batch, len(frames))))
+        for s in range(0, len(frames), frames_per_batch)
+    ]
+
+
 def iter_crops(
     boxes: pd.DataFrame,
     images: pd.Series,
@@ -150,14 +185,7 @@ def iter_crops(
             intra-op thread count); ignored with ``num_workers`` > 0. The same batches, in the
             same order, whatever the number.
     """
-    uris = images.to_numpy()
-    b = boxes[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-    starts = (
-        np.concatenate([[0], np.nonzero(uris[1:] != uris[:-1])[0] + 1, [len(uris)]])
-        if len(uris)
-        else np.zeros(1, int)
-    )
-    groups = [(str(uris[s]), np.arange(s, e), b[s:e]) for s, e in itertools.pairwise(starts)]
+    groups = _groups(boxes, images)
     threads = threads if threads > 0 else torch.get_num_threads()
     if num_workers == 0 and threads > 1:
         batches = _threaded(_FrameCrops(groups, size, reduced), frames_per_batch, threads)

@@ -7,9 +7,12 @@ beyond ``[descriptor]``.
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import itertools
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +23,7 @@ import torch
 from harness.descriptors import store
 from harness.descriptors.base import Descriptor, make_descriptor, normalize
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
-from harness.descriptors.crops import iter_crops
+from harness.descriptors.crops import crop_jobs, iter_crops
 from harness.descriptors.projection import fit_projection, load_projection, project
 from harness.errors import HarnessError, RetrievalError
 from harness.records import FRAME_KEY
@@ -37,7 +40,7 @@ TRAIN_THREADS = 2
 
 
 @contextlib.contextmanager
-def training_threads(n: int = TRAIN_THREADS) -> Iterator[None]:
+def torch_threads(n: int = TRAIN_THREADS) -> Iterator[None]:
     """Set torch's intra-op threads to ``n`` for the block; restore them after it."""
     before = torch.get_num_threads()
     torch.set_num_threads(n)
@@ -111,7 +114,7 @@ def train_model(
         else dc.epochs * steps_per_epoch
     )
     bar = progress_bar(total, "autoencoder training", "step")
-    with training_threads():
+    with torch_threads():
         info = desc.fit(data, tmp, progress=bar.update)
     bar.close()
     del data
@@ -130,26 +133,85 @@ def _loaded(dc: DescriptorConfig, model_dir: Path) -> Descriptor:
 def _encoded(
     desc: Descriptor, dc: DescriptorConfig, frames: pd.DataFrame, rows: pd.DataFrame, name: str
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """(row positions in ``rows``, L2-normalised float32 descriptors), batch by batch."""
+    """(row positions in ``rows``, L2-normalised float32 descriptors), batch by batch.
+
+    Where the descriptor encodes in lanes (:func:`_lanes`), each lane decodes, crops and encodes
+    whole batches with one torch thread; otherwise the batch's frames are decoded side by side,
+    then encoded with all of torch's threads. The same descriptors in the same order either way.
+    """
     img = _images(rows, frames)
     # frames must be contiguous for the loader: order by frame, remember the original row
     order = np.lexsort(
         (rows["box_id"].to_numpy(), rows["proposal_method"].to_numpy(), rows["utime"].to_numpy())
     )
-    for idx, crops in progress(
-        iter_crops(  # with prefetch: the next batches decoded while this one is encoded
-            rows.iloc[order],
-            img.iloc[order],
-            dc.input_size,
-            num_workers=dc.num_workers,
-            reduced=dc.decode == "reduced",
-            prefetch=dc.prefetch,
-            threads=dc.crop_threads,
-        ),
-        f"descriptors {name}",
-        "batch",
-    ):
-        yield order[idx], normalize(desc.encode(crops))
+    rows_o, img_o, reduced = rows.iloc[order], img.iloc[order], dc.decode == "reduced"
+    lanes = _lanes(desc, dc)
+    if lanes > 1:
+        jobs = crop_jobs(rows_o, img_o, dc.input_size, reduced=reduced)
+        batches: Iterable[tuple[np.ndarray, np.ndarray]] = _in_lanes(desc, jobs, lanes)
+    else:
+        batches = (
+            (idx, normalize(desc.encode(crops)))
+            for idx, crops in iter_crops(  # with prefetch: the next batches decoded meanwhile
+                rows_o,
+                img_o,
+                dc.input_size,
+                num_workers=dc.num_workers,
+                reduced=reduced,
+                prefetch=dc.prefetch,
+                threads=dc.crop_threads,
+            )
+        )
+    for idx, v in progress(batches, f"descriptors {name}", "batch"):
+        yield order[idx], v
+
+
+#: Descriptors encoded in lanes on CPU (:func:`_in_lanes`): a convolution in one thread computes
+#: every output as all of torch's threads do, so the descriptors are the same bytes (the fixture's
+#: stage records, tested), and the lanes keep the decoding and the encoder on every core.
+LANE_DESCRIPTORS = ("autoencoder",)
+
+
+def _lanes(desc: Descriptor, dc: DescriptorConfig) -> int:
+    """How many lanes encode ``desc`` (1: one batch at a time).
+
+    Torch's intra-op threads for a descriptor of :data:`LANE_DESCRIPTORS` on CPU with no loader
+    processes.
+    """
+    device = getattr(desc, "device", None)
+    on_cpu = device is not None and getattr(device, "type", "") == "cpu"
+    if dc.num_workers > 0 or desc.name not in LANE_DESCRIPTORS or not on_cpu:
+        return 1
+    return torch.get_num_threads()
+
+
+def _in_lanes(
+    desc: Descriptor, jobs: list[Callable[[], tuple[np.ndarray, np.ndarray]]], lanes: int
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Each batch of ``jobs`` decoded, cropped and encoded in one of ``lanes`` threads.
+
+    Torch's intra-op threads are one meanwhile; the batches come in order, at most two a lane
+    ahead.
+
+    On CPU one thread a batch keeps both the decoding and the encoder's layers on every core,
+    where all the threads on one batch wait for each other between its steps.
+    """
+
+    def one(job: Callable[[], tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+        idx, crops = job()
+        return idx, normalize(desc.encode(crops))
+
+    size = desc.input_size
+    desc.encode(np.zeros((0, size, size, 3), np.uint8))  # builds its encoder here, once
+    todo = iter(jobs)
+    with torch_threads(1), ThreadPoolExecutor(lanes, thread_name_prefix="encode") as pool:
+        ahead = collections.deque(pool.submit(one, j) for j in itertools.islice(todo, 2 * lanes))
+        while ahead:
+            done = ahead.popleft().result()
+            nxt = next(todo, None)
+            if nxt is not None:
+                ahead.append(pool.submit(one, nxt))
+            yield done
 
 
 def fit_projection_unit(

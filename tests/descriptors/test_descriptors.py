@@ -20,7 +20,7 @@ from harness.descriptors.autoencoder import (
     to_tensor,
 )
 from harness.descriptors.config import DescriptorConfig
-from harness.descriptors.extract import training_threads
+from harness.descriptors.extract import torch_threads
 from harness.runtime.hardware import resolve_precision
 
 
@@ -120,11 +120,11 @@ def test_held_out_reconstruction_one_at_a_time_is_the_batch_bit_for_bit() -> Non
     model(to_tensor(data[:8], torch.device("cpu"), True))  # batch-norm statistics to use
     model.eval()
     x = to_tensor(data[:5], torch.device("cpu"), True)
-    with torch.no_grad(), training_threads():
+    with torch.no_grad(), torch_threads():
         assert torch.equal(reconstruct(model, x), model(x))
         batched = float(torch.nn.functional.mse_loss(model(x), x))
     hold = np.arange(5)
-    with training_threads():  # as in training: the held-out loss runs on its two threads
+    with torch_threads():  # as in training: the held-out loss runs on its two threads
         assert held_out_loss(model, data, hold, 8, torch.device("cpu"), True) == batched
     assert model.training  # handed back in training mode, as the training loop expects
 
@@ -245,3 +245,43 @@ def test_training_on_a_sample_budget_with_early_stopping(tmp_path: Path) -> None
         stop=EarlyStop(holdout=0.25, eval_every=2, patience=1),
     )
     assert info["stopped_early"] and info["steps"] < 200
+
+
+def test_lanes_encode_the_descriptors_of_one_batch_at_a_time(tmp_path: Path, monkeypatch) -> None:
+    """Two lanes (each frame batch decoded, cropped and encoded in its own thread, torch at one
+    thread) give the bytes of one batch at a time with all of torch's threads, in order."""
+    import cv2
+    import pandas as pd
+
+    from harness.descriptors import extract
+
+    rng = np.random.default_rng(3)
+    frames, rows = [], []
+    for t in range(20):  # 20 frames: three batches of 8, two lanes, more batches than lanes ahead
+        path = tmp_path / f"f{t}.jpg"
+        cv2.imwrite(str(path), rng.integers(0, 256, (96, 128, 3), dtype=np.uint8))
+        frames.append({"session": "s", "camera": "c", "utime": t, "image": str(path)})
+        for k in range(3):
+            x, y = int(rng.integers(0, 60)), int(rng.integers(0, 40))
+            rows.append({"session": "s", "camera": "c", "utime": t, "proposal_method": "m",
+                         "box_id": k, "x1": x, "y1": y, "x2": x + 60, "y2": y + 50})  # fmt: skip
+    fr, props = pd.DataFrame(frames), pd.DataFrame(rows).sample(frac=1.0, random_state=0)
+    dc = DescriptorConfig(input_size=32, device="cpu")
+    desc = AutoencoderDescriptor(dc)
+    torch.manual_seed(0)
+    desc.model = ConvAutoencoder().eval()
+
+    def encoded() -> np.ndarray:
+        out = np.full((len(props), 16 * 4 * 4), np.nan, np.float32)
+        for pos, v in extract._encoded(desc, dc, fr, props, "test"):
+            out[pos] = v
+        return out
+
+    with torch_threads(2):
+        assert extract._lanes(desc, dc) == 2
+        assert extract._lanes(desc, dataclasses.replace(dc, num_workers=1)) == 1
+        in_lanes = encoded()
+        monkeypatch.setattr(extract, "_lanes", lambda d, c: 1)
+        one_at_a_time = encoded()
+    assert np.isfinite(in_lanes).all()
+    assert in_lanes.tobytes() == one_at_a_time.tobytes()
