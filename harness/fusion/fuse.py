@@ -157,6 +157,26 @@ def intersection_closure(
     return np.stack([axes[k][found[:, k]] for k in range(4)], 1).reshape(-1, 4), capped
 
 
+def rows_of(fused: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """The row of ``fused`` that each of ``boxes`` is.
+
+    ``fused`` is an :func:`intersection_closure` (unique rows, sorted): a binary search on the
+    rows as records, whose order is the lexicographic one.
+
+    Raises:
+        ValueError: A box is not one of ``fused``'s rows (one of no area is not in a closure).
+    """
+    row = np.dtype([(c, np.float64) for c in ("x1", "y1", "x2", "y2")])
+    f = np.ascontiguousarray(fused, np.float64).reshape(-1, 4)
+    b = np.ascontiguousarray(boxes, np.float64).reshape(-1, 4)
+    at = np.searchsorted(f.view(row).ravel(), b.view(row).ravel())
+    found = at < len(f)
+    found[found] = (f[at[found]] == b[found]).all(1)
+    if not found.all():
+        raise ValueError(f"box {b[~found][0].tolist()} is not in the closure")
+    return at
+
+
 def cover_matrix(fused: np.ndarray, originals: np.ndarray) -> np.ndarray:
     """(m, n) bool: original k contains fused box i."""
     f, o = fused[:, None, :], originals[None, :, :]

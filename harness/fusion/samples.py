@@ -23,6 +23,7 @@ from harness.fusion.fuse import (
     image_loc,
     intersection_closure,
     loc_from_cover,
+    rows_of,
 )
 from harness.methods import (
     is_unfused,
@@ -92,15 +93,13 @@ def _fuse_image(
                 cover, m, r=r, d=d, L=L, seed=img_seed, rrf_c=rrf_c, options=options[m]
             )
     # rank_no_fusion: one sample per original box; merged into the fused row of the same box
-    fidx = {tuple(bx): i for i, bx in enumerate(fused)}
     nof = np.full(len(fused), np.nan)
     extra = []
-    for k, bx in enumerate(map(tuple, boxes)):
-        i = fidx[bx]
+    for k, i in enumerate(rows_of(fused, boxes).tolist()):
         if np.isnan(nof[i]):
             nof[i] = r[k]
         else:
-            extra.append((bx, r[k]))
+            extra.append((tuple(boxes[k]), r[k]))
     all_boxes = np.vstack([fused, np.array([bx for bx, _ in extra]).reshape(-1, 4)])
     if change is None or labels is None:  # unlabelled: no RoC; SoB is the box's share of the frame
         area = (all_boxes[:, 2] - all_boxes[:, 0]) * (all_boxes[:, 3] - all_boxes[:, 1])

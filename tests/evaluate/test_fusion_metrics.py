@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from harness.evaluate.metrics import average_precision, bootstrap_ap
-from harness.fusion.fuse import fuse, intersection_closure, loc_map
+from harness.fusion.fuse import fuse, intersection_closure, loc_map, rows_of
 
 # Three boxes: A=[0,10]x[0,10], B=[5,15]x[5,15], C=[8,20]x[0,8]
 BOXES = np.array([[0, 0, 10, 10], [5, 5, 15, 15], [8, 0, 20, 8]], float)
@@ -33,6 +33,18 @@ def _by_cover(boxes: np.ndarray, loc: np.ndarray) -> dict[str, float]:
 def test_closure_of_three_boxes() -> None:
     fused, capped = intersection_closure(BOXES)
     assert {tuple(b) for b in fused.astype(int).tolist()} == set(CLOSURE) and not capped
+    # each original (and a repeated one) found at its row, a box of no area named as missing
+    boxes = np.vstack([BOXES, BOXES[:1]])
+    assert [CLOSURE[tuple(b)] for b in fused[rows_of(fused, boxes)].astype(int).tolist()] == [
+        "A",
+        "B",
+        "C",
+        "A",
+    ]
+    with pytest.raises(ValueError, match=r"box \[3.0, 3.0, 3.0, 9.0\] is not in the closure"):
+        rows_of(fused, np.array([[3.0, 3.0, 3.0, 9.0]]))
+    with pytest.raises(ValueError, match="is not in the closure"):
+        rows_of(fused, np.array([[30.0, 30.0, 40.0, 40.0]]))  # past the last row
 
 
 # Rank lists of length L = 10: ranks 1, 5, 10 (r = rank / L); r' = (L + 1 - rank) / L = 1.0, 0.6,
