@@ -69,7 +69,9 @@ class DescriptorConfig:
     prefetch: int = 0
     # threads that decode and crop the frames of a batch side by side, while the encoder waits
     # (OpenCV and libjpeg release the GIL); 0: as many as torch's intra-op threads, 1: none.
-    # The crops are the same bytes whatever the number; ignored with num_workers > 0
+    # The crops are the same bytes whatever the number; ignored with num_workers > 0, and by the
+    # autoencoder on CPU, which encodes in lanes (each batch decoded, cropped and encoded by one
+    # of torch's threads: the same descriptors) with prefetch ignored as well
     crop_threads: int = 0
     # a folder of models trained before, each under the digest of what trains it (options, crops,
     # training code, torch, kernels): a run whose digest is there copies that model instead of

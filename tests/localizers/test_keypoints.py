@@ -224,3 +224,20 @@ def test_a_map_frames_keypoints_are_detected_once_for_every_query_that_pairs_wit
     np.testing.assert_array_equal(got, pair_keypoint_ranks(paths["q0"], paths["q1"], (W, H),
                                                            boxes, kc)[1])  # fmt: skip
     assert maps.detected == 4  # q0 and q1 were detected before
+
+
+def test_the_keypoint_store_keeps_sifts_descriptors_as_bytes_and_gives_the_same_floats() -> None:
+    """SIFT's float descriptors are whole numbers 0-255: the process's store keeps them as bytes
+    (a quarter of the memory) and gives back the floats ``detect`` found, every time."""
+    from harness.localizers import keypoints as kp
+
+    gray = _texture(np.random.default_rng(5), 240, 320)
+    kc = KeypointConfig()
+    xy, d = kp.detect(gray, kc)
+    assert d is not None and d.dtype == np.float32 and len(d) > 50
+    before = kp._stored[0]
+    first, again = kp.stored_keypoints(gray, kc), kp.stored_keypoints(gray.copy(), kc)
+    for got in (first, again):
+        assert got[1] is not None and got[1].dtype == np.float32
+        assert got[0].tobytes() == xy.tobytes() and got[1].tobytes() == d.tobytes()
+    assert kp._stored[0] - before == xy.nbytes + d.nbytes // 4  # one entry, its descriptors bytes
