@@ -140,16 +140,17 @@ def crop_jobs(
     size: int,
     frames_per_batch: int = 8,
     reduced: bool = False,
-) -> list[Callable[[], tuple[np.ndarray, np.ndarray]]]:
-    """:func:`iter_crops`' batches as functions, in order.
+) -> list[tuple[int, Callable[[], tuple[np.ndarray, np.ndarray]]]]:
+    """:func:`iter_crops`' batches as functions, in order, each with its number of rows.
 
     Each decodes and crops its frames when it is called, in whichever thread calls it, and
     returns the batch's ``(row positions, crops)``.
     """
     frames = _FrameCrops(_groups(boxes, images), size, reduced)
 
-    def job(items: range) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
-        return lambda: _collate([frames[i] for i in items])
+    def job(items: range) -> tuple[int, Callable[[], tuple[np.ndarray, np.ndarray]]]:
+        rows = sum(len(frames.groups[i][1]) for i in items)
+        return rows, lambda: _collate([frames[i] for i in items])
 
     return [
         job(range(s, min(s + frames_per_batch, len(frames))))

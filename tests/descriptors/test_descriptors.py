@@ -249,7 +249,8 @@ def test_training_on_a_sample_budget_with_early_stopping(tmp_path: Path) -> None
 
 def test_lanes_encode_the_descriptors_of_one_batch_at_a_time(tmp_path: Path, monkeypatch) -> None:
     """Two lanes (each frame batch decoded, cropped and encoded in its own thread, torch at one
-    thread) give the bytes of one batch at a time with all of torch's threads, in order."""
+    thread, the batches handed on in groups) give the bytes of one batch at a time with all of
+    torch's threads, in order."""
     import cv2
     import pandas as pd
 
@@ -277,6 +278,7 @@ def test_lanes_encode_the_descriptors_of_one_batch_at_a_time(tmp_path: Path, mon
             out[pos] = v
         return out
 
+    monkeypatch.setattr(extract, "LANE_GROUP_ROWS", 50)  # groups of two batches of 8 frames
     with torch_threads(2):
         assert extract._lanes(desc, dc) == 2
         assert extract._lanes(desc, dataclasses.replace(dc, num_workers=1)) == 1
