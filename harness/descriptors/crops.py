@@ -122,6 +122,14 @@ def _threaded(
             yield _collate(list(pool.map(frames.__getitem__, items)))
 
 
+#: Frames a batch holds, by default: :func:`iter_crops`' and :func:`crop_jobs`' alike, so both give
+#: their caller the same batches (numpy's product in a projection gives other last bits for a
+#: batch of other rows).
+FRAMES_PER_BATCH = 8
+#: A batch of crops and the job that makes it: (its rows, the function).
+CropJob = tuple[int, Callable[[], tuple[np.ndarray, np.ndarray]]]
+
+
 def _groups(boxes: pd.DataFrame, images: pd.Series) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """Each frame's (image URI, row positions, boxes (k, 4)), in the rows' order."""
     uris = images.to_numpy()
@@ -138,9 +146,9 @@ def crop_jobs(
     boxes: pd.DataFrame,
     images: pd.Series,
     size: int,
-    frames_per_batch: int = 8,
+    frames_per_batch: int = FRAMES_PER_BATCH,
     reduced: bool = False,
-) -> list[tuple[int, Callable[[], tuple[np.ndarray, np.ndarray]]]]:
+) -> list[CropJob]:
     """:func:`iter_crops`' batches as functions, in order, each with its number of rows.
 
     Each decodes and crops its frames when it is called, in whichever thread calls it, and
@@ -148,7 +156,7 @@ def crop_jobs(
     """
     frames = _FrameCrops(_groups(boxes, images), size, reduced)
 
-    def job(items: range) -> tuple[int, Callable[[], tuple[np.ndarray, np.ndarray]]]:
+    def job(items: range) -> CropJob:
         rows = sum(len(frames.groups[i][1]) for i in items)
         return rows, lambda: _collate([frames[i] for i in items])
 
@@ -162,7 +170,7 @@ def iter_crops(
     boxes: pd.DataFrame,
     images: pd.Series,
     size: int,
-    frames_per_batch: int = 8,
+    frames_per_batch: int = FRAMES_PER_BATCH,
     num_workers: int = 0,
     reduced: bool = False,
     prefetch: int = 0,

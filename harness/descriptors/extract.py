@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -21,7 +21,7 @@ import torch
 from harness.descriptors import store
 from harness.descriptors.base import Descriptor, make_descriptor, normalize
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
-from harness.descriptors.crops import crop_jobs, iter_crops
+from harness.descriptors.crops import CropJob, crop_jobs, iter_crops
 from harness.descriptors.projection import fit_projection, load_projection, project
 from harness.errors import HarnessError, RetrievalError
 from harness.records import FRAME_KEY
@@ -145,7 +145,7 @@ def _encoded(
     rows_o, img_o, reduced = rows.iloc[order], img.iloc[order], dc.decode == "reduced"
     lanes = _lanes(desc, dc)
     if lanes > 1:
-        jobs = crop_jobs(rows_o, img_o, dc.input_size, LANE_FRAMES, reduced)
+        jobs = crop_jobs(rows_o, img_o, dc.input_size, reduced=reduced)
         batches: Iterable[tuple[np.ndarray, np.ndarray]] = _in_lanes(desc, jobs, lanes)
     else:
         batches = (
@@ -183,11 +183,6 @@ def _lanes(desc: Descriptor, dc: DescriptorConfig) -> int:
     return torch.get_num_threads()
 
 
-#: A lane's batch of crops and the job that makes it: (its rows, the function).
-CropJob = tuple[int, Callable[[], tuple[np.ndarray, np.ndarray]]]
-#: Frames a lane's batch holds: :func:`iter_crops`' batches, so the caller sees the same batches
-#: (numpy's product in the projection gives other last bits for a batch of other rows).
-LANE_FRAMES = 8
 #: Subimages a group of batches holds at most (the paper's 16,384 float32 values each: 128 MiB).
 LANE_GROUP_ROWS = 2048
 
