@@ -5,7 +5,8 @@ objects pasted in), 80 boxes a frame (the order of ``segments``' colour regions)
 :func:`harness.localizers.keypoints.write_keypoint_ranks` with the default options (decode, SIFT
 keypoints of both frames, ratio-test matches both ways, the MAGSAC fundamental matrix, the share
 map, the rank rows written), beside the plain difference of the same pairs (registration,
-difference map and the colours' novelty, Table D's row) and Selective Search on the query frame.
+difference map and the colours' novelty, Table D's row) and Selective Search on the query frame
+(at the default's working width and the two narrower candidates of `docs/decisions.md`).
 Next to them, in the same run, the limits of the stage's kernels at the sizes it works on:
 decoding both frames, SIFT on both and their brute-force matching, split over the 2 threads the
 stage runs pairs on. The lines: at most 100 ms a 640 x 480 pair, and at most 2x its kernels'
@@ -14,6 +15,7 @@ limit. The NCLT frame size (1,232 x 1,616, worked on at 512 px) is measured too.
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 import time
 from pathlib import Path
@@ -32,6 +34,8 @@ from harness.proposals.config import SelectiveConfig
 from .common import emit, pair_tables
 
 BOXES = 80
+#: Selective Search's narrower working widths, timed beside the default's (``work_width``).
+NARROWER = (192, 128)
 
 
 def _frames(root: Path, n: int, w: int, h: int) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
@@ -85,6 +89,7 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
         root = Path(d)
         frames, pairs, props = _frames(root, n, w, h)
         runs, limits, diffs, ss = [], [], [], []
+        narrower: dict[int, list[float]] = {w: [] for w in NARROWER}
         for rep in range(3):
             t0 = time.perf_counter()
             counts = write_keypoint_ranks(kc, pairs, frames, props, root / f"out{rep}")
@@ -102,6 +107,12 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
             for i in range(1, len(imgs), 2):
                 selective_boxes(imgs[i], SelectiveConfig())
             ss.append(1000 * (time.perf_counter() - t0) / n)
+            for width, got in narrower.items():  # the candidates of docs/decisions.md
+                cfg = dataclasses.replace(SelectiveConfig(), work_width=width)
+                t0 = time.perf_counter()
+                for i in range(1, len(imgs), 2):
+                    selective_boxes(imgs[i], cfg)
+                got.append(1000 * (time.perf_counter() - t0) / n)
     med, lim = float(np.median(runs)), float(np.median(limits))
     _default_row(label, n, runs, limits, diffs, ss)
     emit(
@@ -112,6 +123,10 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
         ratio_to_kernels=round(med / lim, 2),
         plain_difference_ms=round(float(np.median(diffs)), 2),
         selective_search_ms=round(float(np.median(ss)), 2),
+        selective_search_ms_by_width={
+            SelectiveConfig().work_width: round(float(np.median(ss)), 2),
+            **{w: round(float(np.median(v)), 2) for w, v in narrower.items()},
+        },
         ranked=counts["ranked"],
         notes=(
             f"decode + SIFT both frames + ratio matches both ways + MAGSAC fundamental matrix + "
@@ -119,7 +134,9 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
             f"measured here ({lim:.1f} ms: decode, SIFT on both frames and the matching, split "
             f"over 2 threads); the plain difference (registration, map, colour novelty) "
             f"{np.median(diffs):.1f} ms and Selective Search {np.median(ss):.1f} ms a frame on "
-            "one thread"
+            "one thread ("
+            + ", ".join(f"{np.median(v):.1f} ms {w} px wide" for w, v in narrower.items())
+            + ")"
         ),
     )
 
