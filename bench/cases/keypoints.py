@@ -5,19 +5,26 @@ objects pasted in), 80 boxes a frame (the order of ``segments``' colour regions)
 :func:`harness.localizers.keypoints.write_keypoint_ranks` with the default options (decode, SIFT
 keypoints of both frames, ratio-test matches both ways, the MAGSAC fundamental matrix, the share
 map, the rank rows written), beside the plain difference of the same pairs (registration,
-difference map and the colours' novelty, Table D's row) and Selective Search on the query frame
-(at the default's working width and the two narrower candidates of `docs/decisions.md`).
-Next to them, in the same run, the limits of the stage's kernels at the sizes it works on:
+difference map and the colours' novelty, Table D's row; a pair a thread, a thread per core, as
+``harness detect`` makes them) and the proposals stage on the query frames
+(:func:`harness.proposals.proposers.compute_proposals` with Selective Search, each frame in one of
+the worker processes, at the default's working width and the two narrower candidates of
+`docs/decisions.md`). The three together are the default detector's row.
+Next to them, in the same run, the limits of the stages' kernels at the sizes they work on:
 decoding both frames, SIFT on both and their brute-force matching, split over the 2 threads the
-stage runs pairs on. The lines: at most 100 ms a 640 x 480 pair, and at most 2x its kernels'
-limit. The NCLT frame size (1,232 x 1,616, worked on at 512 px) is measured too.
+stage runs pairs on, and Selective Search's one OpenCV call a frame, split over 2 processes.
+The lines: at most 100 ms a 640 x 480 pair for keypoint localization, at most 2x its kernels'
+limit; the default detector at most 200 ms a pair and 1.5x its kernels. The NCLT frame size
+(1,232 x 1,616, worked on at 512 px) is measured too.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -26,10 +33,12 @@ import pandas as pd
 
 from harness.config.detect import DifferenceConfig
 from harness.detect.difference import difference_map, novelty_of, register
+from harness.imagestore import read_image
 from harness.localizers.config import KeypointConfig
 from harness.localizers.keypoints import detect, ratio_matches, work_gray, write_keypoint_ranks
-from harness.proposals.builtin import selective_boxes
-from harness.proposals.config import SelectiveConfig
+from harness.proposals.builtin import selective_rects
+from harness.proposals.config import ProposalsConfig, SelectiveConfig
+from harness.proposals.proposers import compute_proposals, decode_scale, start_workers
 
 from .common import emit, pair_tables
 
@@ -83,38 +92,89 @@ def _kernels(frames: pd.DataFrame, kc: KeypointConfig) -> float:
     return 1000 * (time.perf_counter() - t0) / n / 2
 
 
+def _sides(frames: pd.DataFrame) -> tuple[list[str], list[str]]:
+    """The query and map images of the pairs, in the pairs' order."""
+    by = {
+        s: g.sort_values("utime")["image"].astype(str).tolist()
+        for s, g in frames.groupby("session")
+    }
+    return by["query"], by["map"]
+
+
+def _difference_ms(frames: pd.DataFrame, kc: KeypointConfig) -> float:
+    """ms a pair of the registration, plain difference and colours' novelty as ``harness detect``
+    makes them: both images read, one pair a thread, a thread per core."""
+    dc = DifferenceConfig()
+    queries, maps = _sides(frames)
+
+    def one(i: int) -> None:
+        q, m = read_image(queries[i]), read_image(maps[i])
+        reg = register(q, m, kc, dc)
+        difference_map(q, m, reg, dc)
+        novelty_of(q, m, dc)
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(len(os.sched_getaffinity(0))) as pool:
+        list(pool.map(one, range(len(queries))))
+    return 1000 * (time.perf_counter() - t0) / len(queries)
+
+
+def _search_config(width: int) -> ProposalsConfig:
+    return ProposalsConfig(
+        methods=("selective",), selective=dataclasses.replace(SelectiveConfig(), work_width=width)
+    )
+
+
+def _proposals_ms(queries: pd.DataFrame, width: int) -> float:
+    """ms a frame of ``harness detect``'s proposals stage with Selective Search ``width`` wide:
+    :func:`compute_proposals`, each frame read at its reduced scale and searched in one of the
+    worker processes (one per core, started ahead, as a run starts them)."""
+    t0 = time.perf_counter()
+    compute_proposals(queries, _search_config(width))
+    return 1000 * (time.perf_counter() - t0) / len(queries)
+
+
+def _search_kernel_ms(queries: pd.DataFrame) -> float:
+    """ms a frame of Selective Search's one OpenCV call alone, one thread, on the default's working
+    copy (the frame read and shrunk outside the clock)."""
+    cfg = _search_config(SelectiveConfig().work_width)
+    copies = []
+    for f in queries.itertuples():
+        im = read_image(f.image, decode_scale(int(f.width), cfg, ["selective"], False))
+        h, w = im.shape[:2]
+        scale = min(1.0, cfg.selective.work_width / w)  # the proposer's working copy
+        small = cv2.resize(im, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+        copies.append(cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+    t0 = time.perf_counter()
+    for bgr in copies:
+        selective_rects(bgr, cfg.selective.mode, cfg.selective.seed)
+    return 1000 * (time.perf_counter() - t0) / len(copies)
+
+
 def _one_size(n: int, w: int, h: int, label: str) -> None:
     kc = KeypointConfig()
+    widths = (SelectiveConfig().work_width, *NARROWER)
     with tempfile.TemporaryDirectory() as d:
         root = Path(d)
         frames, pairs, props = _frames(root, n, w, h)
-        runs, limits, diffs, ss = [], [], [], []
-        narrower: dict[int, list[float]] = {w: [] for w in NARROWER}
+        queries = frames[frames["session"] == "query"].reset_index(drop=True)
+        start_workers(_search_config(widths[0]), ["selective"])  # as a run does, ahead
+        compute_proposals(queries, _search_config(widths[0]))  # the workers warm, not timed
+        runs, limits, diffs, kernel = [], [], [], []
+        search: dict[int, list[float]] = {width: [] for width in widths}
         for rep in range(3):
             t0 = time.perf_counter()
             counts = write_keypoint_ranks(kc, pairs, frames, props, root / f"out{rep}")
             runs.append(1000 * (time.perf_counter() - t0) / n)
             limits.append(_kernels(frames, kc))
-            imgs = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in frames["image"]]
-            t0 = time.perf_counter()
-            dc = DifferenceConfig()
-            for i in range(0, len(imgs), 2):
-                reg = register(imgs[i + 1], imgs[i], kc, dc)
-                difference_map(imgs[i + 1], imgs[i], reg, dc)
-                novelty_of(imgs[i + 1], imgs[i], dc)
-            diffs.append(1000 * (time.perf_counter() - t0) / n)
-            t0 = time.perf_counter()
-            for i in range(1, len(imgs), 2):
-                selective_boxes(imgs[i], SelectiveConfig())
-            ss.append(1000 * (time.perf_counter() - t0) / n)
-            for width, got in narrower.items():  # the candidates of docs/decisions.md
-                cfg = dataclasses.replace(SelectiveConfig(), work_width=width)
-                t0 = time.perf_counter()
-                for i in range(1, len(imgs), 2):
-                    selective_boxes(imgs[i], cfg)
-                got.append(1000 * (time.perf_counter() - t0) / n)
+            diffs.append(_difference_ms(frames, kc))
+            for width, got in search.items():  # the default's, then docs/decisions.md's candidates
+                got.append(_proposals_ms(queries, width))
+            kernel.append(_search_kernel_ms(queries))
     med, lim = float(np.median(runs)), float(np.median(limits))
-    _default_row(label, n, runs, limits, diffs, ss)
+    _default_row(label, n, runs, limits, diffs, search[widths[0]], kernel)
+    by_width = {width: round(float(np.median(v)), 2) for width, v in search.items()}
+    rest = med + float(np.median(diffs))
     emit(
         f"keypoint localization per {label} pair [{n} pairs x {BOXES} boxes, 2 threads]",
         runs,
@@ -122,30 +182,34 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
         kernel_limit_ms=round(lim, 2),
         ratio_to_kernels=round(med / lim, 2),
         plain_difference_ms=round(float(np.median(diffs)), 2),
-        selective_search_ms=round(float(np.median(ss)), 2),
-        selective_search_ms_by_width={
-            SelectiveConfig().work_width: round(float(np.median(ss)), 2),
-            **{w: round(float(np.median(v)), 2) for w, v in narrower.items()},
-        },
+        selective_search_ms=by_width[widths[0]],
+        selective_search_ms_by_width=by_width,
+        selective_search_kernel_ms=round(float(np.median(kernel)), 2),
+        pair_ms_by_width={width: round(rest + v, 1) for width, v in by_width.items()},
         ranked=counts["ranked"],
         notes=(
             f"decode + SIFT both frames + ratio matches both ways + MAGSAC fundamental matrix + "
             f"share map + rank rows {med:.1f} ms a pair = {med / lim:.2f}x its kernels' limit "
             f"measured here ({lim:.1f} ms: decode, SIFT on both frames and the matching, split "
-            f"over 2 threads); the plain difference (registration, map, colour novelty) "
-            f"{np.median(diffs):.1f} ms and Selective Search {np.median(ss):.1f} ms a frame on "
-            "one thread ("
-            + ", ".join(f"{np.median(v):.1f} ms {w} px wide" for w, v in narrower.items())
-            + ")"
+            f"over 2 threads); the plain difference (registration, map, colour novelty, a pair a "
+            f"thread) {np.median(diffs):.1f} ms and the proposals stage (Selective Search in a "
+            f"worker process per core) {by_width[widths[0]]:.1f} ms a frame; its one OpenCV call "
+            f"{np.median(kernel):.1f} ms a frame on one thread; at the narrower widths the stage "
+            + ", ".join(f"{by_width[x]:.1f} ms {x} px wide" for x in NARROWER)
+            + ", a pair then "
+            + ", ".join(f"{rest + by_width[x]:.1f} ms" for x in NARROWER)
         ),
     )
 
 
-def _default_row(label: str, n: int, runs: list, limits: list, diffs: list, ss: list) -> None:
-    """``harness detect``'s default per pair: the three stages above together, beside their
-    kernels (the keypoint stage's, and Selective Search, itself one OpenCV call)."""
-    total = [a + b + c for a, b, c in zip(runs, diffs, ss, strict=True)]
-    lim = [a + c for a, c in zip(limits, ss, strict=True)]
+def _default_row(
+    label: str, n: int, runs: list, limits: list, diffs: list, search: list, kernel: list
+) -> None:
+    """``harness detect``'s default per pair: the three stages above, each as a run makes it on
+    this machine's cores, together; beside their kernels (the keypoint stage's over 2 threads,
+    and Selective Search's one OpenCV call a frame, split over the 2 worker processes)."""
+    total = [a + b + c for a, b, c in zip(runs, diffs, search, strict=True)]
+    lim = [a + c / 2 for a, c in zip(limits, kernel, strict=True)]
     med, lm = float(np.median(total)), float(np.median(lim))
     emit(
         f"harness detect's default per {label} pair [{n} pairs]",
@@ -155,10 +219,11 @@ def _default_row(label: str, n: int, runs: list, limits: list, diffs: list, ss: 
         ratio_to_kernels=round(med / lm, 2),
         line_ms=200,
         notes=(
-            f"keypoint localization + registration and plain difference + Selective Search "
-            f"{med:.1f} ms a pair against the line of 200 ms, {med / lm:.2f}x its kernels "
-            f"({lm:.1f} ms: the keypoint stage's decode, SIFT and matching over 2 threads, and "
-            "Selective Search); registration runs SIFT on both frames again"
+            f"keypoint localization + registration and plain difference + the proposals stage "
+            f"(Selective Search) {med:.1f} ms a pair against the line of 200 ms, {med / lm:.2f}x "
+            f"its kernels ({lm:.1f} ms: the keypoint stage's decode, SIFT and matching over 2 "
+            "threads, and Selective Search's call over 2 processes); registration runs SIFT on "
+            "both frames again"
         ),
     )
 

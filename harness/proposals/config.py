@@ -142,9 +142,10 @@ class ProposalsConfig:
     # decode a JPEG at 1/2, 1/4 or 1/8 of its size where every listed OpenCV method's work_width
     # still fits (libjpeg's DCT scaling: less work than the full frame); false: the full frame
     reduced_decode: bool = True
-    # threads that read frames and run edges and mser on them side by side (OpenCV releases the
-    # GIL; both are functions of the image alone); 0: one per core this process may use, 1: one
-    # frame at a time. The same boxes whatever the number; other methods run one frame at a time
+    # frames read and proposed side by side: edges and mser in threads (OpenCV releases the GIL;
+    # both are functions of the image alone), selective in as many worker processes (each seeded
+    # per frame); 0: one per core this process may use, 1: one frame at a time. The same boxes
+    # whatever the number; other methods run one frame at a time
     threads: int = 0
     # a registered method's [proposals.<name>] table, built as its options dataclass
     options: dict[str, Any] = field(default_factory=dict)
