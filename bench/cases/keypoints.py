@@ -12,7 +12,7 @@ the worker processes, at the default's working width and the two narrower candid
 `docs/decisions.md`). The three together are the default detector's row.
 Next to them, in the same run, the limits of the stages' kernels at the sizes they work on:
 decoding both frames, SIFT on both and their brute-force matching, split over the 2 threads the
-stage runs pairs on, and Selective Search's one OpenCV call a frame, split over 2 processes.
+stage runs pairs on, and Selective Search on one thread, split over 2 processes.
 The lines: at most 100 ms a 640 x 480 pair for keypoint localization, at most 2x its kernels'
 limit; the default detector at most 200 ms a pair and 1.5x its kernels. The NCLT frame size
 (1,232 x 1,616, worked on at 512 px) is measured too.
@@ -36,7 +36,7 @@ from harness.detect.difference import difference_map, novelty_of, register
 from harness.imagestore import read_image
 from harness.localizers.config import KeypointConfig
 from harness.localizers.keypoints import detect, ratio_matches, work_gray, write_keypoint_ranks
-from harness.proposals.builtin import selective_rects
+from harness.proposals.builtin import selective_boxes
 from harness.proposals.config import ProposalsConfig, SelectiveConfig
 from harness.proposals.proposers import compute_proposals, decode_scale, start_workers
 
@@ -135,20 +135,16 @@ def _proposals_ms(queries: pd.DataFrame, width: int) -> float:
 
 
 def _search_kernel_ms(queries: pd.DataFrame) -> float:
-    """ms a frame of Selective Search's one OpenCV call alone, one thread, on the default's working
-    copy (the frame read and shrunk outside the clock)."""
+    """ms a frame of Selective Search on one thread in this process, at the default's width
+    (:func:`selective_boxes`: its OpenCV call on the working copy, the area limits and NMS; the
+    frame read at its reduced scale outside the clock)."""
     cfg = _search_config(SelectiveConfig().work_width)
-    copies = []
-    for f in queries.itertuples():
-        im = read_image(f.image, decode_scale(int(f.width), cfg, ["selective"], False))
-        h, w = im.shape[:2]
-        scale = min(1.0, cfg.selective.work_width / w)  # the proposer's working copy
-        small = cv2.resize(im, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
-        copies.append(cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+    images = [read_image(f.image, decode_scale(int(f.width), cfg, ["selective"], False))
+              for f in queries.itertuples()]  # fmt: skip
     t0 = time.perf_counter()
-    for bgr in copies:
-        selective_rects(bgr, cfg.selective.mode, cfg.selective.seed)
-    return 1000 * (time.perf_counter() - t0) / len(copies)
+    for im in images:
+        selective_boxes(im, cfg.selective)
+    return 1000 * (time.perf_counter() - t0) / len(images)
 
 
 def _one_size(n: int, w: int, h: int, label: str) -> None:
@@ -193,8 +189,8 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
             f"measured here ({lim:.1f} ms: decode, SIFT on both frames and the matching, split "
             f"over 2 threads); the plain difference (registration, map, colour novelty, a pair a "
             f"thread) {np.median(diffs):.1f} ms and the proposals stage (Selective Search in a "
-            f"worker process per core) {by_width[widths[0]]:.1f} ms a frame; its one OpenCV call "
-            f"{np.median(kernel):.1f} ms a frame on one thread; at the narrower widths the stage "
+            f"worker process per core) {by_width[widths[0]]:.1f} ms a frame, on one thread in "
+            f"this process {np.median(kernel):.1f} ms; at the narrower widths the stage "
             + ", ".join(f"{by_width[x]:.1f} ms {x} px wide" for x in NARROWER)
             + ", a pair then "
             + ", ".join(f"{rest + by_width[x]:.1f} ms" for x in NARROWER)
@@ -207,7 +203,7 @@ def _default_row(
 ) -> None:
     """``harness detect``'s default per pair: the three stages above, each as a run makes it on
     this machine's cores, together; beside their kernels (the keypoint stage's over 2 threads,
-    and Selective Search's one OpenCV call a frame, split over the 2 worker processes)."""
+    and Selective Search on one thread, split over the 2 worker processes)."""
     total = [a + b + c for a, b, c in zip(runs, diffs, search, strict=True)]
     lim = [a + c / 2 for a, c in zip(limits, kernel, strict=True)]
     med, lm = float(np.median(total)), float(np.median(lim))
@@ -222,7 +218,7 @@ def _default_row(
             f"keypoint localization + registration and plain difference + the proposals stage "
             f"(Selective Search) {med:.1f} ms a pair against the line of 200 ms, {med / lm:.2f}x "
             f"its kernels ({lm:.1f} ms: the keypoint stage's decode, SIFT and matching over 2 "
-            "threads, and Selective Search's call over 2 processes); registration runs SIFT on "
+            "threads, and Selective Search on one thread, halved); registration runs SIFT on "
             "both frames again"
         ),
     )
