@@ -38,7 +38,7 @@ from harness.imagestore import read_image
 from harness.localizers.keypoints import MapFeatures
 from harness.proposals.builtin import segment_boxes, selective_boxes
 from harness.proposals.config import ProposalsConfig, SegmentsConfig, SelectiveConfig
-from harness.records import FRAME_KEY, QUERY_KEY, frame_sizes
+from harness.records import FRAME_KEY, QUERY_KEY, frame_groups, frame_sizes
 from harness.runtime.cache import stable_hash, write_parquet
 from harness.runtime.progress import progress
 
@@ -165,10 +165,8 @@ def _frame_boxes(
             .to_numpy(np.float64)
             for k, g in ranks.groupby(QUERY_KEY, sort=False)
         }
-    out = {
-        (str(k[0]), str(k[1]), int(k[2])): g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
-        for k, g in ranks.groupby(QUERY_KEY, sort=False)
-    }
+    xy = ranks[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)
+    out = {k: xy[rows] for k, rows in frame_groups(ranks)}
     if opt.boxes == "segments":
         images = frames.set_index(FRAME_KEY)["image"]
         for k in out:
@@ -371,9 +369,10 @@ def detect_chunk(
     size = frame_sizes(frames)
     orig = _frame_boxes(ranks, frames, opt, proposals.segments)
     images = frames.set_index(FRAME_KEY)["image"]
-    paired = {  # each query frame's map frame
-        (str(k[0]), str(k[1]), int(k[2])): (str(r.r_session), str(r.r_camera), int(r.r_utime))
-        for k, r in ranks.groupby(QUERY_KEY, sort=False).first().iterrows()
+    ref = ranks[["r_session", "r_camera", "r_utime"]].to_numpy(object)
+    paired = {  # each query frame's map frame: its first row's
+        k: (str(ref[rows[0], 0]), str(ref[rows[0], 1]), int(ref[rows[0], 2]))
+        for k, rows in frame_groups(ranks)
     }
     feats = MapFeatures(opt.keypoints)  # a frame in several pairs (the null's): detected once
     frame = _Frame(col, images, paired, orig, size, opt, fusion.seed, proposals, plain_for, feats)

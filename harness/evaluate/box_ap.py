@@ -194,12 +194,17 @@ def match50_rows(iou: np.ndarray, kept: np.ndarray) -> np.ndarray:
 
 
 def clopper_pearson(k: int, n: int, ci: float = 0.95) -> tuple[float, float]:
-    """The exact (Clopper-Pearson) interval of a rate of ``k`` in ``n`` at level ``ci``."""
-    from scipy.stats import beta
+    """The exact (Clopper-Pearson) interval of a rate of ``k`` in ``n`` at level ``ci``.
+
+    The beta quantiles by ``scipy.special.betaincinv``: ``scipy.stats.beta.ppf``'s values (the
+    same bits on every count up to 5,000, tested) without importing ``scipy.stats``, which costs
+    a run 0.6 s.
+    """
+    from scipy.special import betaincinv
 
     if n == 0:
         return float("nan"), float("nan")
     a = (1.0 - ci) / 2.0
-    lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
-    hi = 1.0 if k == n else float(beta.ppf(1.0 - a, k + 1, n - k))
+    lo = 0.0 if k == 0 else float(betaincinv(k, n - k + 1, a))
+    hi = 1.0 if k == n else float(betaincinv(k + 1, n - k, 1.0 - a))
     return lo, hi

@@ -87,6 +87,38 @@ def rule_fingerprints(methods: Iterable[str]) -> dict[str, str]:
     return source_fingerprints(registry, methods)
 
 
+#: Originals up to which :func:`intersection_closure` intersects them one pair at a time in
+#: Python: the paper's five fixed boxes close in 0.23 ms this way, 0.43 ms by the bit tables
+#: (measured; fusing a frame of them took 1.4 ms in all, 0.85 ms with this).
+SMALL_CLOSURE = 8
+
+
+def _small_closure(ranks: np.ndarray, max_boxes: int | None) -> tuple[np.ndarray, bool]:
+    """:func:`intersection_closure`'s rounds on a few originals' ranks (n, 4), box by box.
+
+    The same rounds: each new box of the last round intersected with every original it overlaps
+    with positive area, the boxes not seen before kept in order (a cap keeps the first), until a
+    round finds none. Returns the ranks of every box found, sorted, and whether it was capped.
+    """
+    orig = [(int(a), int(b), int(c), int(d)) for a, b, c, d in ranks]
+    seen, frontier, capped = set(orig), orig, False
+    while frontier:
+        new = {
+            (max(a, p), max(b, q), min(c, u), min(d, v))
+            for a, b, c, d in frontier
+            for p, q, u, v in orig
+            if max(a, p) < min(c, u) and max(b, q) < min(d, v)
+        }
+        fresh = sorted(new - seen)
+        if max_boxes is not None and len(seen) + len(fresh) > max_boxes:
+            fresh, capped = fresh[: max(0, max_boxes - len(seen))], True
+        seen.update(fresh)
+        frontier = fresh
+        if capped:
+            break
+    return np.array(sorted(seen), np.int64).reshape(-1, 4), capped
+
+
 def intersection_closure(
     boxes: np.ndarray, max_boxes: int | None = None
 ) -> tuple[np.ndarray, bool]:
@@ -114,6 +146,9 @@ def intersection_closure(
     axes = (xs, ys, xs, ys)
     ranks = np.stack([np.searchsorted(axes[k], orig[:, k]) for k in range(4)], 1)
     n = len(ranks)
+    if n <= SMALL_CLOSURE:
+        found, capped = _small_closure(ranks, max_boxes)
+        return np.stack([axes[k][found[:, k]] for k in range(4)], 1).reshape(-1, 4), capped
 
     def table(col: np.ndarray, size: int, below: bool) -> np.ndarray:
         """Row v: the originals whose rank ``col`` is below v (``below``), else above v."""

@@ -26,7 +26,7 @@ def pose_agreement(
         session's frames within ``within_m`` of the pose pair's frame), ``median_m`` (the median
         distance between the two reference frames), ``within_m``.
     """
-    from scipy.stats import beta
+    from scipy.special import betaincinv  # scipy.stats.beta.ppf's values, without scipy.stats
 
     keys = [*QUERY_KEY, "r_session"]
     m = by_retrieval[[*keys, "r_camera", "r_utime"]].merge(
@@ -46,8 +46,8 @@ def pose_agreement(
     for s, pxy in zip(m["r_session"].to_numpy()[ok], pose_xy, strict=True):
         ref = frames.loc[frames["session"] == s, ["x", "y"]].to_numpy(np.float64)
         chance.append(float((np.linalg.norm(ref - pxy, axis=1) <= within_m).mean()))
-    lo = float(beta.ppf(0.025, agree, n - agree + 1)) if agree > 0 else 0.0
-    hi = float(beta.ppf(0.975, agree + 1, n - agree)) if agree < n else 1.0
+    lo = float(betaincinv(agree, n - agree + 1, 0.025)) if agree > 0 else 0.0
+    hi = float(betaincinv(agree + 1, n - agree, 0.975)) if agree < n else 1.0
     return {
         "compared": n,
         "agree": agree,

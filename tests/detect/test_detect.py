@@ -695,6 +695,23 @@ def test_exceedance_and_its_words_by_hand() -> None:
     assert clopper_pearson(0, 4)[1] == pytest.approx(1 - 0.025**0.25)
 
 
+def test_clopper_pearson_is_scipy_stats_beta_bit_for_bit() -> None:
+    """The interval's quantiles come from ``scipy.special.betaincinv`` (no ``scipy.stats``
+    import in a run): the values ``scipy.stats.beta.ppf`` gives, bit for bit, on every count up
+    to 200 and a spread of larger ones, at two levels."""
+    from scipy.stats import beta
+
+    from harness.evaluate.box_ap import clopper_pearson
+
+    for n in [*range(1, 201), 500, 1000, 5000]:
+        for k in range(0, n + 1, max(1, n // 40)):
+            for ci in (0.95, 0.9):
+                a = (1.0 - ci) / 2.0
+                lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
+                hi = 1.0 if k == n else float(beta.ppf(1.0 - a, k + 1, n - k))
+                assert clopper_pearson(k, n, ci) == (lo, hi), (k, n, ci)
+
+
 def test_calibrated_scores_and_alarms_of_the_scored_run(detected: tuple) -> None:
     """The README's second command: every frame's and box's exceedance recomputes from the
     no-change null's frames and boxes (the map's neighbours, docs/decisions.md, *Calibrated

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from harness.evaluate.metrics import average_precision, bootstrap_ap
-from harness.fusion.fuse import fuse, intersection_closure, loc_map, rows_of
+from harness.fusion.fuse import SMALL_CLOSURE, fuse, intersection_closure, loc_map, rows_of
 
 # Three boxes: A=[0,10]x[0,10], B=[5,15]x[5,15], C=[8,20]x[0,8]
 BOXES = np.array([[0, 0, 10, 10], [5, 5, 15, 15], [8, 0, 20, 8]], float)
@@ -281,13 +281,14 @@ def _closure_by_sorting(boxes: np.ndarray, max_boxes: int | None) -> tuple[np.nd
 
 def test_the_closure_by_hashing_is_the_closure_by_sorting() -> None:
     """Random frames of up to 80 boxes on a coarse grid (many equal corners, so many duplicate
-    intersections), capped and not: the same boxes, in the same order, the same cap flag."""
+    intersections), capped and not: the same boxes, in the same order, the same cap flag. Half of
+    them hold at most ``SMALL_CLOSURE`` boxes, which the closure intersects a pair at a time."""
     rng = np.random.default_rng(0)
-    for t in range(40):
-        n = int(rng.integers(1, 80))
+    for t in range(80):
+        n = int(rng.integers(1, 80 if t < 40 else SMALL_CLOSURE + 1))
         xy = rng.integers(0, 40, (n, 2)).astype(np.float64) * (0.5 if t % 2 else 1.0)
         boxes = np.c_[xy, xy + rng.integers(1, 30, (n, 2))]
-        for cap in (None, 50, 4096):
+        for cap in (None, 3, 12, 50, 4096):
             got, capped = intersection_closure(boxes, cap)
             want, want_capped = _closure_by_sorting(boxes, cap)
             assert np.array_equal(got, want) and capped == want_capped, (t, cap)

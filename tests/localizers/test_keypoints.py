@@ -241,3 +241,25 @@ def test_the_keypoint_store_keeps_sifts_descriptors_as_bytes_and_gives_the_same_
         assert got[1] is not None and got[1].dtype == np.float32
         assert got[0].tobytes() == xy.tobytes() and got[1].tobytes() == d.tobytes()
     assert kp._stored[0] - before == xy.nbytes + d.nbytes // 4  # one entry, its descriptors bytes
+
+
+def test_every_box_at_once_shares_as_one_box_at_a_time_bit_for_bit() -> None:
+    """Each box's mean share, taken for a frame's boxes together, is the one taken a box at a
+    time (the integral sums in the same order, over the box's covering pixels): boxes inside,
+    across and outside the frame, and empty ones (NaN)."""
+    from harness.localizers.keypoints import box_shares
+
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        h, w = int(rng.integers(3, 90)), int(rng.integers(3, 120))
+        smap = rng.random((h, w)).astype(np.float32)
+        a = rng.uniform(-15, max(h, w) + 5, (50, 2))
+        boxes = np.c_[a, a + rng.uniform(0, 50, (50, 2)) * (rng.random((50, 1)) < 0.9)]
+        ii = cv2.integral(smap.astype(np.float64))
+        want = np.full(len(boxes), np.nan)
+        for i, (x1, y1, x2, y2) in enumerate(boxes):
+            p, q = int(np.clip(np.floor(x1), 0, w)), int(np.clip(np.floor(y1), 0, h))
+            u, v = int(np.clip(np.ceil(x2), 0, w)), int(np.clip(np.ceil(y2), 0, h))
+            if u > p and v > q:
+                want[i] = (ii[v, u] - ii[q, u] - ii[v, p] + ii[q, p]) / float((u - p) * (v - q))
+        assert box_shares(smap, boxes).tobytes() == want.tobytes()
