@@ -59,6 +59,7 @@ def case_detect(quick: bool) -> None:
         frames = rec["query_frames"]
         t = rec["timings_s"]
         stage_limits(out, t, frames, fp32_before)
+        lane_work(out, 1000 * (t["descriptor_shards"] + t.get("descriptors", 0.0)) / frames)
     finally:
         shutil.rmtree(out, ignore_errors=True)
     stage_ms = 1000 * sum(float(t.get(s, 0.0)) for s in PER_FRAME_STAGES) / frames
@@ -157,4 +158,49 @@ def stage_limits(
         f"within 1.5x: {'met' if total / bound <= 1.5 else 'NOT met'}); the goal of 12 ms per "
         f"frame needs the kernels themselves faster on this CPU: their sum alone is "
         f"{bound:.1f} ms; {frames} query frames",
+    )
+
+
+def lane_work(out: Path, stage_ms: float) -> None:
+    """The descriptor stage beside its own work done on one thread and split over the cores.
+
+    Each of 40 of the run's frames decoded and its grid5 boxes cropped (``crop_pyramid``), then
+    encoded by the autoencoder's inference encoder in batches of two (random weights: the same
+    convolutions, the same time), all with torch on one thread; their sum over the frames divided
+    by the cores is what lanes that waste nothing would take. Where the stage is near it, its
+    distance from the limit above is the convolutions' own rate against the product rate.
+    """
+    import glob
+
+    import torch
+
+    from harness.descriptors.autoencoder import ConvAutoencoder, inference_encoder, to_tensor
+    from harness.descriptors.crops import crop_pyramid
+    from harness.descriptors.extract import torch_threads
+    from harness.proposals.builtin import grid5
+
+    jpegs = sorted(glob.glob(str(out / "cache" / "ingest" / "*" / "images" / "*" / "*.jpg")))[-40:]
+    model = ConvAutoencoder((32, 32, 16)).eval()
+    model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    enc, cpu, boxes = inference_encoder(model), torch.device("cpu"), grid5(WIDTH, HEIGHT)
+    with torch_threads(1), torch.inference_mode():
+        crops = [crop_pyramid(f, boxes, 256) for f in jpegs[:2]]  # warm
+        t0 = time.perf_counter()
+        crops = [crop_pyramid(f, boxes, 256) for f in jpegs]
+        t1 = time.perf_counter()
+        for c in crops:
+            [enc(to_tensor(c[i : i + 2], cpu, True)).numpy() for i in range(0, len(c), 2)]
+        t2 = time.perf_counter()
+    cores = len(os.sched_getaffinity(0))
+    crop_ms, enc_ms = 1000 * (t1 - t0) / len(jpegs), 1000 * (t2 - t1) / len(jpegs)
+    ideal = (crop_ms + enc_ms) / cores
+    emit(
+        "detect descriptors vs their own work on one thread, over the cores",
+        [stage_ms],
+        "ms/frame",
+        limit_ms=round(ideal, 2),
+        vs_limit=round(stage_ms / ideal, 2),
+        notes=f"the stage {stage_ms:.1f} ms a frame; one thread: decode and crop {crop_ms:.1f} ms, "
+        f"the encoder on 5 subimages {enc_ms:.1f} ms, over {cores} cores {ideal:.1f} ms "
+        f"({len(jpegs)} of the run's frames, measured after it)",
     )
