@@ -51,6 +51,8 @@ def frame_groups(
     The groups of ``rows.groupby(columns, sort=False)``, found by numpy: 4.8 ms against 70 ms for
     the 625 rank rows of an NCLT-sized session's 125 frames (measured).
     """
+    if not len(rows):
+        return []
     codes, uniques = pd.MultiIndex.from_frame(rows[columns]).factorize()
     order = np.argsort(codes, kind="stable")
     bounds = np.cumsum(np.bincount(codes, minlength=len(uniques)))[:-1]

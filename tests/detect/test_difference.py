@@ -281,3 +281,24 @@ def test_every_box_at_once_scores_as_one_box_at_a_time_bit_for_bit() -> None:
             got = difference_contrast(d, scale, boxes, dc)
             want = _contrast_box_by_box(d, scale, boxes, dc)
             assert got.tobytes() == want.tobytes(), (t, score, ring)
+
+
+def test_frame_groups_are_pandas_groups_in_order_of_first_appearance() -> None:
+    """The detect stage's frames by numpy: the keys and rows of ``groupby(sort=False)``, in the
+    order the frames first appear, and none for no rows."""
+    import pandas as pd
+
+    from harness.records import QUERY_KEY, frame_groups
+
+    rng = np.random.default_rng(4)
+    df = pd.DataFrame({
+        "q_session": rng.choice(["2012-01-22", "2012-03-31", "b"], 200),
+        "q_camera": rng.choice(["Cam5", "Cam1"], 200),
+        "q_utime": rng.integers(0, 9, 200),
+    })  # fmt: skip
+    want = [((str(a), str(b), int(c)), g.index.to_numpy()) for (a, b, c), g in
+            df.groupby(QUERY_KEY, sort=False)]  # fmt: skip
+    got = frame_groups(df)
+    assert [k for k, _ in got] == [k for k, _ in want]
+    assert all(np.array_equal(r, w) for (_, r), (_, w) in zip(got, want, strict=True))
+    assert frame_groups(df.iloc[:0]) == []
