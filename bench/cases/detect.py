@@ -139,22 +139,19 @@ def stage_limits(
         f"{lim['bandwidth_gbs']:.1f} GB/s",
     }
     for stage, ms in measured.items():
-        emit(
+        _rated(
             f"detect stage vs its limit: {stage}",
-            [ms],
-            "ms/frame",
-            limit_ms=round(limits[stage], 3),
-            vs_limit=round(ms / limits[stage], 2) if limits[stage] > 0 else None,
-            notes=f"limit {limits[stage]:.2f} ms: {what[stage]}; measured in the same run",
+            ms,
+            limits[stage],
+            f"limit {limits[stage]:.2f} ms: {what[stage]}; measured in the same run",
+            digits=3,
         )
     total, bound = sum(measured.values()), sum(limits.values())
-    emit(
+    _rated(
         "detect stages vs the sum of their limits",
-        [total],
-        "ms/frame",
-        limit_ms=round(bound, 2),
-        vs_limit=round(total / bound, 2),
-        notes=f"{total:.1f} ms against {bound:.1f} ms of kernels = {total / bound:.2f}x (goal "
+        total,
+        bound,
+        f"{total:.1f} ms against {bound:.1f} ms of kernels = {total / bound:.2f}x (goal "
         f"within 1.5x: {'met' if total / bound <= 1.5 else 'NOT met'}); the goal of 12 ms per "
         f"frame needs the kernels themselves faster on this CPU: their sum alone is "
         f"{bound:.1f} ms; {frames} query frames",
@@ -194,13 +191,23 @@ def lane_work(out: Path, stage_ms: float) -> None:
     cores = len(os.sched_getaffinity(0))
     crop_ms, enc_ms = 1000 * (t1 - t0) / len(jpegs), 1000 * (t2 - t1) / len(jpegs)
     ideal = (crop_ms + enc_ms) / cores
-    emit(
+    _rated(
         "detect descriptors vs their own work on one thread, over the cores",
-        [stage_ms],
-        "ms/frame",
-        limit_ms=round(ideal, 2),
-        vs_limit=round(stage_ms / ideal, 2),
-        notes=f"the stage {stage_ms:.1f} ms a frame; one thread: decode and crop {crop_ms:.1f} ms, "
+        stage_ms,
+        ideal,
+        f"the stage {stage_ms:.1f} ms a frame; one thread: decode and crop {crop_ms:.1f} ms, "
         f"the encoder on 5 subimages {enc_ms:.1f} ms, over {cores} cores {ideal:.1f} ms "
         f"({len(jpegs)} of the run's frames, measured after it)",
+    )
+
+
+def _rated(case: str, ms: float, limit: float, notes: str, digits: int = 2) -> None:
+    """One row of ms a frame beside its limit: ``limit_ms`` and ``vs_limit`` (None: no limit)."""
+    emit(
+        case,
+        [ms],
+        "ms/frame",
+        limit_ms=round(limit, digits),
+        vs_limit=round(ms / limit, 2) if limit > 0 else None,
+        notes=notes,
     )
