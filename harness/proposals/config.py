@@ -97,7 +97,7 @@ class SelectiveConfig:
     # the NMS IoU among the boxes
     nms_iou: float = 0.9
     # the working copy's width, pixels
-    work_width: int = 256
+    work_width: int = 192
     # the clustering's (or ranking's) draws
     seed: int = 0
 
