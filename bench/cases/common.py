@@ -263,7 +263,10 @@ def kernel_limits(out: Path, fp32_before: float = 0.0) -> dict[str, float]:
     JPEG decode ms per frame (32 of the run's ingested JPEG frames, libjpeg-turbo through
     ``cv2.imread``: full size and at 1/2; ``decode_pixels`` their size), the product rate the
     encoder can reach (bf16 where the CPU multiplies it natively, else fp32; GFLOP/s), the fp32
-    rate and the memory bandwidth (GB/s, a 256 MiB copy: read + write).
+    rate and the memory bandwidth (GB/s, a 256 MiB copy: read + write), and ``cores``, the
+    cores this process may run on: a decode runs on one core, so a stage that decodes a frame on
+    each core at once is bounded by ``decode_ms / cores`` a frame, as the products' rates are
+    already the cores' together.
     """
     import cv2
     import torch
@@ -298,6 +301,7 @@ def kernel_limits(out: Path, fp32_before: float = 0.0) -> dict[str, float]:
         "fp32_gflops": fp32,
         "native_bf16": float(native),
         "bandwidth_gbs": 2 * src.nbytes / copy / 1e9,
+        "cores": float(len(os.sched_getaffinity(0))),
     }
 
 

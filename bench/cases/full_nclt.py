@@ -365,11 +365,12 @@ def _limits(
     batch = int(run["config"]["descriptor"]["batch_size"])
     steps = int(model_info.get("steps", 0))
     enc_s = enc / (lim["product_gflops"] * 1e9)
-    per_sub = lim["decode_ms"] / 1000 / sub_per_frame + enc_s  # one decode per frame, shared
+    # one decode per frame, shared by its subimages, the cores decoding side by side
+    per_sub = lim["decode_ms"] / lim["cores"] / 1000 / sub_per_frame + enc_s
     return [
         (0.0, "reading the bags and storing the JPEG bytes: I/O"),
         (
-            lim["decode_half_ms"] / 1000 * d_full,
+            lim["decode_half_ms"] / lim["cores"] / 1000 * d_full,
             f"a JPEG decode at 1/2 per frame, {lim['decode_half_ms']:.1f} ms (edges' working "
             "copy; grid5 needs none)",
         ),
@@ -381,7 +382,8 @@ def _limits(
         (0.0, "the projection's fit is not rated"),
         (
             per_sub * d_full * sub_per_frame,
-            f"a full JPEG decode per frame ({lim['decode_ms']:.1f} ms) shared by its "
+            f"a full JPEG decode per frame ({lim['decode_ms']:.1f} ms on one core, the "
+            f"{lim['cores']:.0f} cores side by side) shared by its "
             f"{sub_per_frame:.0f} subimages + the encoder's {enc / 1e6:.0f} MFLOP per subimage at "
             f"{product_note(lim)}",
         ),
