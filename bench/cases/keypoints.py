@@ -8,7 +8,7 @@ map, the rank rows written), beside the plain difference of the same pairs (regi
 difference map and the colours' novelty, Table D's row; a pair a thread, a thread per core, as
 ``harness detect`` makes them) and the proposals stage on the query frames
 (:func:`harness.proposals.proposers.compute_proposals` with Selective Search, each frame in one of
-the worker processes, at the default's working width and the two narrower candidates of
+the worker processes, at the default's working width and the other candidates of
 `docs/decisions.md`). The three together are the default detector's row.
 Next to them, in the same run, the limits of the stages' kernels at the sizes they work on:
 decoding both frames, SIFT on both and their brute-force matching, split over the 2 threads the
@@ -43,8 +43,8 @@ from harness.proposals.proposers import compute_proposals, decode_scale, start_w
 from .common import emit, pair_tables
 
 BOXES = 80
-#: Selective Search's narrower working widths, timed beside the default's (``work_width``).
-NARROWER = (192, 128)
+#: Selective Search's candidate working widths, each timed beside the default's (``work_width``).
+WIDTHS = (256, 192, 128)
 
 
 def _frames(root: Path, n: int, w: int, h: int) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
@@ -149,7 +149,8 @@ def _search_kernel_ms(queries: pd.DataFrame) -> float:
 
 def _one_size(n: int, w: int, h: int, label: str) -> None:
     kc = KeypointConfig()
-    widths = (SelectiveConfig().work_width, *NARROWER)
+    default = SelectiveConfig().work_width
+    widths = (default, *(x for x in WIDTHS if x != default))
     with tempfile.TemporaryDirectory() as d:
         root = Path(d)
         frames, pairs, props = _frames(root, n, w, h)
@@ -190,10 +191,10 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
             f"over 2 threads); the plain difference (registration, map, colour novelty, a pair a "
             f"thread) {np.median(diffs):.1f} ms and the proposals stage (Selective Search in a "
             f"worker process per core) {by_width[widths[0]]:.1f} ms a frame, on one thread in "
-            f"this process {np.median(kernel):.1f} ms; at the narrower widths the stage "
-            + ", ".join(f"{by_width[x]:.1f} ms {x} px wide" for x in NARROWER)
+            f"this process {np.median(kernel):.1f} ms; at the other widths the stage "
+            + ", ".join(f"{by_width[x]:.1f} ms {x} px wide" for x in widths[1:])
             + ", a pair then "
-            + ", ".join(f"{rest + by_width[x]:.1f} ms" for x in NARROWER)
+            + ", ".join(f"{rest + by_width[x]:.1f} ms" for x in widths[1:])
         ),
     )
 
