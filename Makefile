@@ -1,6 +1,11 @@
 # dbl-harness: every target that needs Python depends on the venv, so each works from a fresh clone.
-PYTHON ?= python3.11
-VENV   := .venv
+# The Pythons the harness supports (pyproject.toml); make uses the first that runs here, unless
+# PYTHON names one (a version manager's shim may exist for a version it cannot run).
+PYTHON_VERSIONS := 3.11 3.12 3.13
+ifeq ($(origin PYTHON),undefined)
+PYTHON := $(or $(firstword $(foreach v,$(PYTHON_VERSIONS),$(shell python$(v) -c 'print("python$(v)")' 2>/dev/null))),python3.11)
+endif
+VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 # the packages installed, before their byte-compilation (lint and docs need no more)
@@ -9,10 +14,16 @@ DATA   ?=
 CONFIG ?= datasets/fixture.toml
 OUT    ?= results/fixture
 TORCH_VERSION := 2.13.0
+# torch's build: cpu (the default) from TORCH_INDEX, PyTorch's own CPU wheel index unless set (a
+# URL or a folder in PEP 503 layout), or from a folder of wheels that pip's configuration names;
+# TORCH=cuda: the GPU build with its CUDA libraries, from TORCH_INDEX or else pip's own index.
+TORCH ?= cpu
+TORCH_INDEX ?= $(if $(filter cuda,$(TORCH)),,https://download.pytorch.org/whl/cpu)
+TORCH_STAMP := $(VENV)/.torch-$(TORCH)
 # requirements.lock: every package but torch, exact and hashed (make lock writes it)
 LOCK := requirements.lock
 UV_VERSION := 0.13.8
-# where pip finds the CPU wheel of torch on this project's machines (make lock reads its metadata)
+# a folder holding torch's CPU wheel, whose metadata make lock reads (pip's find-links, where set)
 TORCH_WHEELS ?= $(shell pip config get global.find-links 2>/dev/null)
 
 .PHONY: help setup test lint docs bench real reproduce-table fixture clean lock
@@ -20,18 +31,29 @@ TORCH_WHEELS ?= $(shell pip config get global.find-links 2>/dev/null)
 help:  ## Show this help
 	@grep -E '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  %-18s %s\n", $$1, $$2}'
 
-# Every package comes from the lock, exact and hashed, with no dependency resolution (--no-deps),
-# installed by uv (its own version pinned here: 9 s where pip takes 71 s on this project's
-# machines, the same files; pip where uv cannot be had); torch by its exact version (its CPU
-# wheel, which only pip finds on this project's machines); the package itself in place, built with
-# the locked setuptools; pip check proves the set whole.
-$(PACKAGES): pyproject.toml $(LOCK)
-	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "ERROR: $(PYTHON) not found; set PYTHON=/path/to/python3.11"; exit 1; }
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+# The environment itself, repaired where an interrupted make left it half made.
+$(BIN)/python:
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "ERROR: $(PYTHON) not found; set PYTHON=/path/to/python3.11 (3.11 to 3.13 work)"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+
+# torch first, before any large download: tools/install_torch.py reads the index's page for torch
+# and stops with one ERROR: line where the build cannot be had (a stamp per build, so that
+# TORCH=cuda after a CPU set-up replaces it).
+$(TORCH_STAMP): | $(BIN)/python
+	@$(BIN)/python -m pip --version >/dev/null 2>&1 || $(PYTHON) -m venv $(VENV)
+	@rm -f $(PACKAGES) $(STAMP) $(VENV)/.torch-cpu $(VENV)/.torch-cuda
+	$(BIN)/python tools/install_torch.py --version $(TORCH_VERSION) --build $(TORCH) --index "$(TORCH_INDEX)"
+	@touch $@
+
+# Every other package comes from the lock, exact and hashed, with no dependency resolution
+# (--no-deps), installed by uv (its own version pinned here: 9 s where pip takes 71 s on this
+# project's machines, the same files; pip where uv cannot be had); the package itself in place,
+# built with the locked setuptools; pip check proves the set whole. The stamp is touched last, so
+# a make that failed or was interrupted is taken up again by the next.
+$(PACKAGES): pyproject.toml $(LOCK) $(TORCH_STAMP)
 	( $(BIN)/python -m pip install -q --no-compile "uv==$(UV_VERSION)" \
 	  && $(BIN)/uv pip install -q --python $(BIN)/python --require-hashes --no-deps -r $(LOCK) ) \
 	  || $(BIN)/python -m pip install -q --no-compile --require-hashes --no-deps -r $(LOCK)
-	$(BIN)/python -m pip install -q --no-compile --no-deps "torch==$(TORCH_VERSION)"
 	$(BIN)/python -m pip install -q --no-compile --no-deps --no-build-isolation -e .
 	$(BIN)/python -m pip check
 	touch $(PACKAGES)
@@ -46,7 +68,7 @@ $(STAMP): $(PACKAGES)
 	$(BIN)/python -m compileall -q -j 0 -x '/tests/' $(VENV)/lib harness > /dev/null 2>&1 || true
 	touch $(STAMP)
 
-setup: $(STAMP)  ## Create .venv and install the locked packages, torch, the package and its dev tools
+setup: $(STAMP)  ## Create .venv and install the locked packages, torch (TORCH=cuda: GPU build), the package
 
 # The newest versions pyproject.toml's ranges allow, for Python 3.11 on x86-64 Linux, with the
 # hashes of every file of each; torch's own dependencies from its CPU wheel's metadata (found in
@@ -72,8 +94,8 @@ test: $(STAMP)  ## Run the whole test suite (CI runs exactly this)
 	OMP_WAIT_POLICY=PASSIVE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 lint: $(PACKAGES)  ## ruff (rules, line length 100, formatting) and mypy (strict on the numeric kernels)
-	$(BIN)/ruff check harness tests bench examples
-	$(BIN)/ruff format --check harness tests bench examples
+	$(BIN)/ruff check harness tests bench examples tools
+	$(BIN)/ruff format --check harness tests bench examples tools
 	$(BIN)/mypy
 
 # The manual as a site (mkdocs.yml; the pages are docs/*.md), built with --strict: a broken link,

@@ -32,7 +32,14 @@ def check_input(
         HarnessError: (of class ``error``) what is wrong with that path.
     """
     p = Path(path)
-    if not p.exists():
+    try:
+        found = p.exists()
+    except PermissionError:  # a folder on its path is closed: the file cannot even be looked at
+        raise error(
+            f"{p}: {what} is not readable: a folder on its path is closed to this user "
+            "(permission denied); fix that folder's permissions"
+        ) from None
+    if not found:
         raise error(f"{p}: {what} not found")
     if directory and not p.is_dir():
         raise error(f"{p}: {what} must be a directory, and this is a file")

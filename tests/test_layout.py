@@ -257,6 +257,7 @@ PROJECT_TESTS = frozenset(
         "test_gpu",
         "test_safety_third_pass",
         "test_lock",
+        "test_install",
         "test_doc_commands",
         "test_user_text",
     }

@@ -43,8 +43,10 @@ _FS_ERRORS = {
     "to resume",
     errno.EDQUOT: "free disk space within the quota and rerun the same command to resume",
     errno.EROFS: "the file system is read-only: choose a writable --out",
-    errno.EACCES: "no permission: choose a writable --out or fix the permissions",
-    errno.EPERM: "operation not permitted: choose another --out or fix the permissions",
+    errno.EACCES: "no permission: this path, or a folder on it, is closed to this user; fix "
+    "its permissions (for an output: or choose a writable --out)",
+    errno.EPERM: "operation not permitted: fix the permissions of this path or its folder (for "
+    "an output: or choose another --out)",
     errno.ENOTDIR: "a part of this path is a regular file, not a directory: choose another path",
     errno.EEXIST: "exists and is not a directory: choose another path",
     errno.EISDIR: "is a directory where a file is expected: choose another path",

@@ -113,6 +113,18 @@ def ingest_summary(path: Path) -> dict[str, Any]:
     }
 
 
+def _torch_source() -> str:
+    """Where torch came from: the file ``make setup``'s torch step recorded, else "?".
+
+    The step (tools/install_torch.py) writes ``torch-source.json`` into the environment it
+    installs into; an environment set up by hand has none.
+    """
+    try:
+        return str(json.loads((Path(sys.prefix) / "torch-source.json").read_text())["from"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return "?"
+
+
 def _versions() -> dict[str, str]:
     import torch  # heavy: only where a run records its versions
 
@@ -128,6 +140,7 @@ def _versions() -> dict[str, str]:
         "numpy": np.__version__,
         "pandas": pd.__version__,
         "torch": torch.__version__,
+        "torch_from": _torch_source(),
         "opencv": cv2.__version__,
         "rosbags": ver("rosbags"),
         "mcap": ver("mcap"),

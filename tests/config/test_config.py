@@ -105,6 +105,28 @@ def test_config_files_that_are_not_config_files(
     os.chmod(locked, 0o644)
 
 
+def test_a_config_in_a_closed_folder_is_named_not_readable(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A folder closed to the user: the file is not readable, and --out is not the advice."""
+    closed = tmp_path / "closed"
+    closed.mkdir()
+    cfg = closed / "run.toml"
+    cfg.write_text(FIXTURE_TOML.read_text())
+    real_stat = Path.stat
+
+    def denied(self: Path, *a: object, **k: object) -> os.stat_result:
+        if self == cfg:  # root looks into a chmod-000 folder; a user does not
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_stat(self, *a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Path, "stat", denied)
+    assert main(["pairs", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 1
+    err = _err(capsys)
+    assert "run.toml: config file is not readable: a folder on its path is closed" in err
+    assert "--out" not in err
+
+
 def test_inputs_named_in_the_config_are_checked_before_ingest(
     tmp_path: Path, capsys: pytest.CaptureFixture, default_world: Path
 ) -> None:
