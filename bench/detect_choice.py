@@ -58,6 +58,17 @@ SETTINGS |= {
         for w in (2, 4)
     },
 }
+#: The earlier recipe's settings above name it; the reference recipe (harness.detect.plain: its
+#: own registration, change map, boxes and ring; the pair dropped or read by its colours), its
+#: difference alone or times the localizer's score to the first or fourth power.
+SETTINGS = {k: {**v, "recipe": "novelty-product"} for k, v in SETTINGS.items()}
+SETTINGS |= {
+    f"reference-w{w}": {
+        "recipe": "reference", "not_comparable": "fallback", "box_score": "contrast",
+        "ring": 0.25, "colour": "none", "weight": w,
+    }
+    for w in (1, 4)
+}  # fmt: skip
 #: The candidates: (--localizer, --proposals, --box-prior, settings); each run also gives the
 #: plain difference alone under its settings, its Table D row.
 CANDIDATES = [
@@ -66,6 +77,7 @@ CANDIDATES = [
     ("local", "selective", "difference_product", "ratio-fallback"),
     ("local", "selective", "difference_product", "ratio-fallback-novelty"),
     ("keypoints", "segments", "area", "contrast-drop"),
+    ("local", "selective", "difference_product", "reference-w4"),
 ]
 PLAIN = ("none", "selective", "plain difference")
 #: Where the real sets lie, and the set that decides.
@@ -124,7 +136,7 @@ def settings_toml(name: str) -> str:
     return (
         f'\n[detect]\nnot_comparable = "{st["not_comparable"]}"\n'
         f"nms_iou = {st.get('nms_iou', 0.5)}\nlocalization_weight = {st.get('weight', 1)}\n"
-        f"\n[detect.difference]\n"
+        f'\n[detect.difference]\nrecipe = "{st["recipe"]}"\n'
         f'box_score = "{st["box_score"]}"\nring = {st["ring"]}\ncolour = "{st["colour"]}"\n'
     )
 

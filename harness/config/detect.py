@@ -52,6 +52,14 @@ class DifferenceConfig:
     Every length is a share of the frame's diagonal.
     """
 
+    # the recipe: "reference" (RootSIFT and MAGSAC registration, a colour distance in CIELAB
+    # with a shift tolerance, the colours' novelty where a pair cannot be registered, every box of
+    # Selective Search scored by its contrast with a ring, registered pairs ranked first: the
+    # method's words, checked pair by pair against a reference run; harness.detect.plain) or
+    # "novelty-product" (the registration of [detect.keypoints],
+    # the difference times the colours' novelty, the settings below). The reference recipe reads
+    # min_inliers alone of the settings below
+    recipe: str = "reference"
     # a pair is comparable with at least this many homography inliers ...
     min_inliers: int = 15
     # ... a warped map that covers at least this share of the query frame ...
@@ -87,6 +95,7 @@ class DifferenceConfig:
 def check_difference(dc: DifferenceConfig, where: str) -> None:
     """``[detect.difference]``'s values (one ``ERROR:`` line naming the key)."""
     c = check_value
+    c(dc.recipe in DIFFERENCE_RECIPES, where, "recipe", dc.recipe, " or ".join(DIFFERENCE_RECIPES))
     c(dc.min_inliers >= 4, where, "min_inliers", dc.min_inliers, ">= 4 (a homography's four)")
     c(0 <= dc.min_footprint <= 1, where, "min_footprint", dc.min_footprint, "[0, 1]")
     c(dc.max_scale > 1, where, "max_scale", dc.max_scale, "> 1")
@@ -104,6 +113,8 @@ def check_difference(dc: DifferenceConfig, where: str) -> None:
     c(dc.colour_side >= 16, where, "colour_side", dc.colour_side, ">= 16 pixels")
 
 
+#: ``[detect.difference] recipe``'s values.
+DIFFERENCE_RECIPES = ("reference", "novelty-product")
 #: ``[detect.difference] box_score``'s values.
 DIFFERENCE_SCORES = ("contrast", "ratio")
 #: ``[detect.difference] colour``'s values.

@@ -25,17 +25,10 @@ from harness.detect.boxes import (
     with_area_prior,
     with_prior,
 )
-from harness.detect.difference import (
-    Registration,
-    box_differences,
-    difference_map,
-    novelty_of,
-    register,
-)
+from harness.detect.plain import PairDifference, PairFeatures, reference_boxes
 from harness.fusion.config import FusionConfig
 from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image
-from harness.localizers.keypoints import MapFeatures
 from harness.proposals.builtin import segment_boxes, selective_boxes
 from harness.proposals.config import ProposalsConfig, SegmentsConfig, SelectiveConfig
 from harness.records import FRAME_KEY, QUERY_KEY, frame_groups, frame_sizes
@@ -86,14 +79,15 @@ def _frame_boxes_of(
     fk: tuple[str, str, int],
     opt: DetectConfig,
     seed: int,
-    difference: Any = None,
+    pair: PairDifference | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, np.ndarray]:
     """One frame's candidate boxes and scores by ``opt.boxes``, kept by NMS, and the random row.
 
     ``g``: the frame's fused qBBs, ``floc`` their LoC; ``orig``: its original proposals. Returns
     candidates, their scores, the indices kept, the indices kept for random scores, those scores,
     how many candidates were thinner than ``opt.min_box_side`` (dropped before all of it) and each
-    candidate's aligned difference (``difference(boxes)``; NaN where none is given).
+    candidate's plain difference (``pair.contrast(boxes)``; NaN where no pair is given); a
+    difference prior's scores are lifted by the pair's tier (:class:`PairDifference`).
     """
     fused = g.boxes
     if opt.boxes == "fused":
@@ -109,13 +103,14 @@ def _frame_boxes_of(
         rnd = np.random.default_rng(int(stable_hash(seed, fk, length=8), 16)).random(len(boxes))
     wide = np.minimum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) >= opt.min_box_side
     boxes, loc, rnd = boxes[wide], loc[wide], rnd[wide]
-    diff = difference(boxes) if difference is not None else np.full(len(boxes), np.nan)
+    diff = pair.contrast(boxes) if pair is not None else np.full(len(boxes), np.nan)
+    tier = pair.tier if pair is not None else 0.0
     if opt.box_prior == "area":
         loc = with_area_prior(boxes, loc)
     elif opt.box_prior == "difference":
-        loc = with_prior(loc, diff)
+        loc = with_prior(loc, diff) + tier
     elif opt.box_prior == "difference_product":
-        loc = np.maximum(diff, 0.0) * loc**opt.localization_weight
+        loc = np.maximum(diff, 0.0) * loc**opt.localization_weight + tier
     sup = suppression(boxes, opt.nms_iou)  # the same boxes for both
     keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes, sup)
     rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes, sup)
@@ -174,30 +169,12 @@ def _frame_boxes(
     return out
 
 
-class _PairDifference:
-    """Query frame ``fk`` and its map frame: their registration and plain difference, made once.
-
-    :mod:`harness.detect.difference`; ``contrast(boxes)`` scores boxes of the query frame (NaN
-    where the pair is not comparable).
-    """
-
-    def __init__(
-        self, images: pd.Series, fk: tuple, mk: tuple, opt: DetectConfig, feats: MapFeatures
-    ) -> None:
-        self.q = read_image(images.loc[fk])
-        m = read_image(images.loc[mk])
-        self.dc = opt.difference
-        uris = (feats, str(images.loc[fk]), str(images.loc[mk]))
-        self.reg: Registration = register(self.q, m, opt.keypoints, opt.difference, uris)
-        # compared by: the registration, or the pair as it stands (not_comparable = "fallback")
-        self.used = self.reg
-        if not self.reg.comparable and opt.not_comparable == "fallback":
-            self.used = self.reg.fallback(self.q, m, opt.difference, opt.local)
-        self.made = difference_map(self.q, m, self.used, opt.difference)
-        self.novelty = novelty_of(self.q, m, opt.difference) if self.made is not None else None
-
-    def contrast(self, boxes: np.ndarray) -> np.ndarray:
-        return box_differences(self.made, self.novelty, boxes, self.dc)
+def _pair(
+    images: pd.Series, fk: tuple, mk: tuple, opt: DetectConfig, feats: PairFeatures
+) -> PairDifference:
+    """Query frame ``fk`` and its map frame ``mk`` compared once (:class:`PairDifference`)."""
+    q, m = read_image(images.loc[fk]), read_image(images.loc[mk])
+    return PairDifference(q, m, opt, feats, (str(images.loc[fk]), str(images.loc[mk])))
 
 
 #: A frame row's registration columns where neither the detector nor Table D reads one
@@ -216,7 +193,7 @@ def reads_registration(opt: DetectConfig) -> bool:
 
 
 def _plain_difference(
-    pair: _PairDifference,
+    pair: PairDifference,
     fk: tuple,
     opt: DetectConfig,
     selective: SelectiveConfig,
@@ -229,11 +206,13 @@ def _plain_difference(
     """
     if pair.made is None:
         boxes = np.zeros((0, 4))
+    elif opt.difference.recipe == "reference":  # every box of Selective Search (its step 4)
+        boxes = reference_boxes(pair.q, selective.work_width, selective.mode, selective.seed)
     elif known is not None:
         boxes = np.unique(np.asarray(known, np.float64).reshape(-1, 4), axis=0)
     else:
         boxes = selective_boxes(pair.q, selective)[0]
-    sc = pair.contrast(boxes)
+    sc = pair.score(boxes)
     return pd.DataFrame(
         {
             "q_session": fk[0],
@@ -264,7 +243,7 @@ def _candidates(parts: list[tuple[tuple, np.ndarray, np.ndarray, np.ndarray]]) -
     )
 
 
-def _registration_row(pair: _PairDifference) -> tuple:
+def _registration_row(pair: PairDifference) -> tuple:
     """A frame row's registration columns (:data:`FRAME_RESULT`'s last nine)."""
     r = pair.reg
     used = pair.used.method if pair.made is not None else "none"
@@ -291,7 +270,7 @@ class _Frame:
     seed: int
     proposals: ProposalsConfig
     plain_for: frozenset[tuple[str, str, int]]
-    feats: MapFeatures
+    feats: PairFeatures
 
     def result(self, key: tuple, g: _Fused) -> tuple[list[tuple], tuple, tuple, Any, int]:
         """One query frame's change boxes, frame row, candidates and plain difference."""
@@ -299,9 +278,8 @@ class _Frame:
         floc = g.loc
         pair = None
         if fk in self.plain_for or reads_registration(opt):
-            pair = _PairDifference(self.images, fk, self.paired[fk], opt, self.feats)
-        found = _frame_boxes_of(g, floc, self.orig[fk], self.size[fk], fk, opt, self.seed,
-                                None if pair is None else pair.contrast)  # fmt: skip
+            pair = _pair(self.images, fk, self.paired[fk], opt, self.feats)
+        found = _frame_boxes_of(g, floc, self.orig[fk], self.size[fk], fk, opt, self.seed, pair)
         boxes, loc, keep, rand, rnd, n_thin, diff = found
         if pair is not None and not pair.reg.comparable and opt.not_comparable == "drop":
             # nothing to compare: no box, no score, no candidate (docs/method.md)
@@ -374,7 +352,7 @@ def detect_chunk(
         k: (str(ref[rows[0], 0]), str(ref[rows[0], 1]), int(ref[rows[0], 2]))
         for k, rows in frame_groups(ranks)
     }
-    feats = MapFeatures(opt.keypoints)  # a frame in several pairs (the null's): detected once
+    feats = PairFeatures(opt.keypoints)  # a frame in several pairs (the null's): detected once
     frame = _Frame(col, images, paired, orig, size, opt, fusion.seed, proposals, plain_for, feats)
     rows, frow, cand_parts, plain_parts, thin = [], [], [], [], 0
     groups = _fused_by_frame(samples, col)

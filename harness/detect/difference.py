@@ -100,8 +100,8 @@ class Registration:
 
         ``[detect] not_comparable = "fallback"``: its boxes are marked and measured apart.
         """
-        q, fq = _scaled(_gray(q_rgb), dc.fallback_side)
-        m = cv2.resize(_gray(m_rgb), (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
+        q, fq = _scaled(to_gray(q_rgb), dc.fallback_side)
+        m = cv2.resize(to_gray(m_rgb), (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
         to_small = np.diag([q.shape[1] / m_rgb.shape[1], q.shape[0] / m_rgb.shape[0], 1.0])
         al = align_ecc(q, m, local)
         method, Hs = "identity", np.eye(3)
@@ -120,11 +120,14 @@ def _scaled(rgb: np.ndarray, side: int) -> tuple[np.ndarray, float]:
     return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), f
 
 
-def _gray(rgb: np.ndarray) -> np.ndarray:
+def to_gray(rgb: np.ndarray) -> np.ndarray:
+    """``rgb`` in grey (a grey frame as it is)."""
     return rgb if rgb.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
 
 
-def _footprint(H: np.ndarray, m_shape: tuple[int, int], q_shape: tuple[int, int]) -> np.ndarray:
+def warped_footprint(
+    H: np.ndarray, m_shape: tuple[int, int], q_shape: tuple[int, int]
+) -> np.ndarray:
     """Which query pixels the warped map frame covers (bool, the query's shape)."""
     ones = np.full(m_shape, 255, np.uint8)
     got = cv2.warpPerspective(ones, H, (q_shape[1], q_shape[0]), flags=cv2.INTER_NEAREST)
@@ -153,7 +156,7 @@ def _scale_ok(H: np.ndarray, w: int, h: int, max_scale: float) -> bool:
     return True
 
 
-def _parallax(
+def parallax_residual(
     src: np.ndarray, dst: np.ndarray, H: np.ndarray, mask: np.ndarray, thr: float
 ) -> float:
     """What the homography ``H`` leaves of the pair's motion (parallax), in working pixels.
@@ -187,8 +190,8 @@ def register(
     shared map frame or the null's query, is detected once); without it, this process's store
     (:func:`harness.localizers.keypoints.stored_keypoints`).
     """
-    q, fq = _scaled(_gray(q_rgb), dc.register_side)
-    m, fm = _scaled(_gray(m_rgb), dc.register_side)
+    q, fq = _scaled(to_gray(q_rgb), dc.register_side)
+    m, fm = _scaled(to_gray(m_rgb), dc.register_side)
     if features is not None:
         cache, q_uri, m_uri = features
         (xq, dq), (xm, dm) = cache.of(q_uri, q), cache.of(m_uri, m)
@@ -209,11 +212,11 @@ def register(
     if H is None or mask is None:
         return Registration(None, 0, len(both), 0.0, "no homography found", "none")
     n = int(mask.sum())
-    residual = _parallax(src, dst, H, mask, thr) / float(np.hypot(*q.shape[:2]))
+    residual = parallax_residual(src, dst, H, mask, thr) / float(np.hypot(*q.shape[:2]))
     # back to full-size pixels: map pixels -> work map -> work query -> query pixels
     full = np.diag([1 / fq, 1 / fq, 1.0]) @ H @ np.diag([fm, fm, 1.0])
     hq, wq = q_rgb.shape[:2]
-    foot = float(_footprint(full, m_rgb.shape[:2], (hq, wq)).mean())
+    foot = float(warped_footprint(full, m_rgb.shape[:2], (hq, wq)).mean())
     if n < dc.min_inliers:
         why = f"too few inliers ({n} < {dc.min_inliers})"
     elif not _scale_ok(full, wq, hq, dc.max_scale):
@@ -303,7 +306,7 @@ def difference_map(
         np.ascontiguousarray(m_rgb, np.uint8), H, (w, h), flags=cv2.INTER_AREA
         if f < 1 else cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
     )  # fmt: skip
-    foot = _footprint(H, m_rgb.shape[:2], (h, w))
+    foot = warped_footprint(H, m_rgb.shape[:2], (h, w))
     ql, ml = _lab(q), _lab(mw)
     sel = foot if foot.any() else np.ones_like(foot)
     qm, qs = _mean_std(ql, sel)

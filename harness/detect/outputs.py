@@ -186,6 +186,7 @@ def _table_d(
     inputs = TableDInputs(
         fr, ann, dets, ids, pd.concat(cands, ignore_index=True), nms,
         pd.concat(plain, ignore_index=True) if plain else None, groups, opt.bootstrap_group,
+        opt.difference.recipe,
     )  # fmt: skip
     t = score_detections(out, inputs, ChanceSettings.of(cfg), opt.boxes, run.alarm)
     if t is not None:

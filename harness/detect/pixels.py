@@ -15,12 +15,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.detect.difference import (
-    box_differences,
-    difference_map,
-    novelty_of,
-    register,
-)
+from harness.detect.plain import PairDifference
 from harness.errors import AnnotationError
 from harness.evaluate.table_d_pixel import MaskedFrame, box_change_fraction, pixel_table
 from harness.fusion.fuse import loc_map
@@ -158,8 +153,4 @@ def pair_difference(
     if m not in images.index:
         return None
     q, mm = read_image(str(images.loc[k])), read_image(str(images.loc[m]))
-    reg = register(q, mm, opt.keypoints, opt.difference)
-    if not reg.comparable and opt.not_comparable == "fallback":
-        reg = reg.fallback(q, mm, opt.difference, opt.local)
-    made = difference_map(q, mm, reg, opt.difference)
-    return box_differences(made, novelty_of(q, mm, opt.difference), boxes, opt.difference)
+    return PairDifference(q, mm, opt).contrast(boxes)

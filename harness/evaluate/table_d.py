@@ -30,6 +30,7 @@ from harness.evaluate.box_ap import (
     coco_ground_truth,
     coco_results,
     iou_matrix,
+    voc_at,
 )
 from harness.evaluate.table_d_chance import NO_PIXEL, difference_dets, table_d_chance
 from harness.records import FRAME_KEY, QUERY_KEY, frame_keys
@@ -227,7 +228,8 @@ class TableDInputs:
     candidate of the annotated frames, keyed by ``q_session, q_camera, q_utime``); ``nms`` the
     detector's NMS (see :func:`table_d_chance`); ``plain`` the plain difference's own candidates
     and their contrast (same keys); ``groups`` each frame key's bootstrap group and
-    ``grouping`` its name (``[detect] bootstrap_group``; None: each frame alone).
+    ``grouping`` its name (``[detect] bootstrap_group``; None: each frame alone); ``recipe`` the
+    plain difference's recipe, named in its row.
     """
 
     fr: pd.DataFrame
@@ -239,6 +241,8 @@ class TableDInputs:
     plain: pd.DataFrame | None = None
     groups: dict[tuple[str, str, int], str] | None = None
     grouping: str = "frame"
+    # the plain difference's recipe (``[detect.difference] recipe``), named in its row
+    recipe: str = ""
 
 
 def _difference_rows(
@@ -264,9 +268,13 @@ def _difference_rows(
     return rows, own
 
 
+#: The loose IoU Table D gives beside 0.5 (docs/method.md, *Loose labels*).
+LOOSE_IOU = 0.3
+
+
 def _table_row(
     label: str,
-    aps: tuple[float, float, float],
+    aps: tuple[float, float, float, float, float],
     c: dict[str, Any],
     ch: dict[str, Any],
     gt: dict[str, Any],
@@ -275,12 +283,14 @@ def _table_row(
     needed: int,
 ) -> dict[str, Any]:
     """One row of Table D: COCOeval's APs (VOC AP50, AP@[.5:.95], AP@.5) and method §9's."""
-    voc, coco, coco50 = aps
+    voc, coco, coco50, voc30, offset = aps
     own = c.get("chance", ch["chance"])  # a row on candidates of its own has its own chance
     on = {i["id"] for i in gt["images"]}
     return {
         "row": label,
         "ap50_voc_all_point": voc,
+        "ap30_voc_all_point": voc30,
+        "centre_offset_px": offset,
         "ci_low": c["ci_low"],
         "ci_high": c["ci_high"],
         **{k: v for k, v in own.items() if k != "groups"},
@@ -361,8 +371,13 @@ def score_detections(
             else _results_of(nopix[kind])
         )
         voc, coco, coco50 = coco_eval(gt, res)
+        voc30, offsets = voc_at(gt, res, LOOSE_IOU)
+        offset = float(np.median(offsets)) if len(offsets) else np.nan
         c = ch[{"detection": "detector"}.get(kind, kind)]
-        rows.append(_table_row(label, (voc, coco, coco50), c, ch, gt, len(res), inputs, needed))
+        aps = (voc, coco, coco50, voc30, offset)
+        if kind == "plain_difference" and inputs.recipe:
+            label = f"{label.removesuffix(')')}; {inputs.recipe} recipe)"
+        rows.append(_table_row(label, aps, c, ch, gt, len(res), inputs, needed))
     rows += _apart(inputs, cand, gts, per_row, nms, settings, groups, rows[0])
     t = pd.DataFrame(rows)
     t.insert(1, "boxes", boxes)

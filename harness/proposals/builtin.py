@@ -66,7 +66,7 @@ def nms(
     return keep[order]
 
 
-def _working_copy(rgb: np.ndarray, work_width: int) -> tuple[np.ndarray, float]:
+def working_copy(rgb: np.ndarray, work_width: int) -> tuple[np.ndarray, float]:
     """``rgb`` shrunk to at most ``work_width`` pixels wide (area interpolation), and the scale."""
     h, w = rgb.shape[:2]
     scale = min(1.0, work_width / w)
@@ -79,7 +79,7 @@ def _working_copy(rgb: np.ndarray, work_width: int) -> tuple[np.ndarray, float]:
 def mser_boxes(rgb: np.ndarray, cfg: MserConfig) -> tuple[np.ndarray, np.ndarray]:
     """MSER region boxes in full-image pixels, scored by their area fraction; (k, 4), (k,)."""
     h, w = rgb.shape[:2]
-    small, scale = _working_copy(rgb, cfg.work_width)
+    small, scale = working_copy(rgb, cfg.work_width)
     gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
     sa = gray.shape[0] * gray.shape[1]
     mser = cv2.MSER_create(  # type: ignore[attr-defined]  # not in OpenCV's stubs
@@ -112,7 +112,7 @@ def segment_boxes(rgb: np.ndarray, cfg: SegmentsConfig) -> tuple[np.ndarray, np.
     import faiss
 
     h, w = rgb.shape[:2]
-    small, scale = _working_copy(rgb, cfg.work_width)
+    small, scale = working_copy(rgb, cfg.work_width)
     lab = cv2.cvtColor(cv2.GaussianBlur(small, (0, 0), 0.8), cv2.COLOR_RGB2Lab)
     px = np.ascontiguousarray(lab.reshape(-1, 3), np.float32)
     k = max(1, min(cfg.k, len(px) // 39))  # faiss wants 39 points per centroid
@@ -152,7 +152,7 @@ def edge_boxes(rgb: np.ndarray, cfg: EdgesConfig) -> tuple[np.ndarray, np.ndarra
     edges into larger contours, so one image gives parts and whole objects alike.
     """
     h, w = rgb.shape[:2]
-    small, scale = _working_copy(rgb, cfg.work_width)
+    small, scale = working_copy(rgb, cfg.work_width)
     gray = cv2.GaussianBlur(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
     med = float(np.median(gray))
     edges = cv2.Canny(gray, int(0.33 * med), int(0.66 * med) + 1)
@@ -237,7 +237,7 @@ def selective_boxes(
     near-duplicates merged by NMS in Selective Search's order, the first ``max_boxes`` kept.
     """
     h, w = rgb.shape[:2]
-    small, scale = _working_copy(rgb, cfg.work_width)
+    small, scale = working_copy(rgb, cfg.work_width)
     bgr = cv2.cvtColor(small, cv2.COLOR_RGB2BGR)
     if workers is None:
         rects = selective_rects(bgr, cfg.mode, cfg.seed)

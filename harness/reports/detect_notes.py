@@ -25,10 +25,12 @@ def not_comparable_html(fr: pd.DataFrame) -> str:
     ]  # fmt: skip
     shown = "; ".join(label[:20]) + (f" and {len(label) - 20} more" if len(label) > 20 else "")
     fallback = (
-        (bad["compared_by"].isin(["ecc", "identity"])).any() if "compared_by" in bad else False
+        (bad["compared_by"].isin(["ecc", "identity", "colour"])).any()
+        if "compared_by" in bad
+        else False
     )
     what = (
-        "compared without keypoints (an affine fit of the intensities, or as they stand): "
+        "compared without a registration (by the colours' novelty, or a fallback warp): "
         "their boxes are marked and measured apart in Table D"
         if fallback
         else "no change box and no score"

@@ -127,7 +127,7 @@ def test_detect_without_annotations_writes_every_output(detected: tuple) -> None
     comparable = int(fr["comparable"].sum())
     assert rec["not_comparable"]["frames"] == 64 - comparable > 0
     assert fr.loc[~fr["comparable"], "not_comparable_why"].str.startswith("too few").all()
-    assert set(fr.loc[~fr["comparable"], "compared_by"]) <= {"ecc", "identity"}
+    assert set(fr.loc[~fr["comparable"], "compared_by"]) <= {"colour"}
     maps = sorted((out / "locmaps").glob("*.npy"))
     assert len(maps) == min(10, comparable) and np.load(maps[0]).dtype == np.float16
     assert len(list((out / "locmaps").glob("*.png"))) == len(maps)
@@ -164,7 +164,7 @@ def test_with_annotations_table_d_is_what_pycocotools_gives_from_the_files(
         "cover count alone (no pixel)",
         # and the two that read pixels but no localizer: the plain difference of the registered
         # pair on boxes of its own, and on the detector's candidates
-        "plain difference, registered, its own boxes (pixels, no localizer)",
+        "plain difference, registered, its own boxes (pixels, no localizer; reference recipe)",
         "plain difference on the detector's boxes (pixels, no localizer)",
     ]
     # the fixture's views that cannot be registered carry fallback boxes: measured apart (the
@@ -980,13 +980,13 @@ def test_the_default_detector_registers_localizes_and_differences(
         "random scores, same boxes (one draw)",
         "box area alone (no pixel)",
         "cover count alone (no pixel)",
-        "plain difference, registered, its own boxes (pixels, no localizer)",
+        "plain difference, registered, its own boxes (pixels, no localizer; reference recipe)",
         "plain difference on the detector's boxes (pixels, no localizer)",
     ]
     apart = t[t["row"].str.startswith("detector, ")]
     fr = pd.read_parquet(b / "frames.parquet")
     assert int(t.iloc[0]["not_comparable_frames"]) == int(apart["not_comparable_frames"].max())
-    assert set(fr.loc[~fr["comparable"].astype(bool), "compared_by"]) <= {"ecc", "identity"}
+    assert set(fr.loc[~fr["comparable"].astype(bool), "compared_by"]) <= {"colour"}
     d = t.iloc[0]
     assert d.best_no_pixel in ("size_prior", "cover_count", "plain_difference",
                                "difference_same_boxes")  # fmt: skip
