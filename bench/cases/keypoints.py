@@ -31,8 +31,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.detect import DifferenceConfig
-from harness.detect.difference import difference_map, novelty_of, register
+from harness.config.detect import DetectConfig
+from harness.detect.plain import PairDifference
 from harness.imagestore import read_image
 from harness.localizers.config import KeypointConfig
 from harness.localizers.keypoints import detect, ratio_matches, work_gray, write_keypoint_ranks
@@ -102,16 +102,15 @@ def _sides(frames: pd.DataFrame) -> tuple[list[str], list[str]]:
 
 
 def _difference_ms(frames: pd.DataFrame, kc: KeypointConfig) -> float:
-    """ms a pair of the registration, plain difference and colours' novelty as ``harness detect``
-    makes them: both images read, one pair a thread, a thread per core."""
-    dc = DifferenceConfig()
+    """ms a pair of the registration and plain difference (the default recipe's change map, or its
+    colours' novelty where a pair is not registered) as ``harness detect`` makes them: both images
+    read, one pair a thread, a thread per core."""
+    opt = DetectConfig(keypoints=kc)
     queries, maps = _sides(frames)
 
     def one(i: int) -> None:
         q, m = read_image(queries[i]), read_image(maps[i])
-        reg = register(q, m, kc, dc)
-        difference_map(q, m, reg, dc)
-        novelty_of(q, m, dc)
+        PairDifference(q, m, opt)
 
     t0 = time.perf_counter()
     with ThreadPoolExecutor(len(os.sched_getaffinity(0))) as pool:
@@ -188,7 +187,7 @@ def _one_size(n: int, w: int, h: int, label: str) -> None:
             f"decode + SIFT both frames + ratio matches both ways + MAGSAC fundamental matrix + "
             f"share map + rank rows {med:.1f} ms a pair = {med / lim:.2f}x its kernels' limit "
             f"measured here ({lim:.1f} ms: decode, SIFT on both frames and the matching, split "
-            f"over 2 threads); the plain difference (registration, map, colour novelty, a pair a "
+            f"over 2 threads); the plain difference (registration, change map or colours, a pair a "
             f"thread) {np.median(diffs):.1f} ms and the proposals stage (Selective Search in a "
             f"worker process per core) {by_width[widths[0]]:.1f} ms a frame, on one thread in "
             f"this process {np.median(kernel):.1f} ms; at the other widths the stage "

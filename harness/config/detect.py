@@ -56,9 +56,9 @@ class DifferenceConfig:
     # with a shift tolerance, the colours' novelty where a pair cannot be registered, every box of
     # Selective Search scored by its contrast with a ring, registered pairs ranked first: the
     # method's words, checked pair by pair against a reference run; harness.detect.plain) or
-    # "novelty-product" (the registration of [detect.keypoints],
-    # the difference times the colours' novelty, the settings below). The reference recipe reads
-    # min_inliers alone of the settings below
+    # "novelty-product" (the registration of [detect.keypoints], the difference times the
+    # colours' novelty, the settings below). The reference recipe reads min_inliers,
+    # register_side and side alone of the settings below
     recipe: str = "reference"
     # a pair is comparable with at least this many homography inliers ...
     min_inliers: int = 15

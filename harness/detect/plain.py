@@ -115,17 +115,32 @@ def root_sift(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     return np.array([k.pt for k in kp], np.float32), np.sqrt(d).astype(np.float32)
 
 
+def working_copy_of(rgb: np.ndarray, side: int) -> tuple[np.ndarray, float]:
+    """``rgb`` with its longer side at most ``side`` pixels (area interpolation), and the scale."""
+    h, w = rgb.shape[:2]
+    f = min(1.0, side / float(max(h, w)))
+    if f >= 1:
+        return rgb, 1.0
+    size = (max(1, round(w * f)), max(1, round(h * f)))
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), f
+
+
 def register_reference(
     q_rgb: np.ndarray,
     m_rgb: np.ndarray,
     min_inliers: int,
+    side: int = 640,
     features: tuple[RootSift, str, str] | None = None,
 ) -> Registration:
-    """The recipe's registration (step 1): ``H`` maps map pixels to query pixels."""
-    q, m = to_gray(q_rgb), to_gray(m_rgb)
+    """The recipe's registration (step 1): ``H`` maps map pixels to query pixels (full size).
+
+    Both frames are registered on copies whose longer side is at most ``side`` pixels
+    (``[detect.difference] register_side``: 640, the recipe's own 640 x 480 frames as they are).
+    """
+    (q, fq), (m, fm) = working_copy_of(to_gray(q_rgb), side), working_copy_of(to_gray(m_rgb), side)
     if features is not None:
         cache, q_uri, m_uri = features
-        (xq, dq), (xm, dm) = cache.of(q_uri, q), cache.of(m_uri, m)
+        (xq, dq), (xm, dm) = cache.of(f"{q_uri}@{side}", q), cache.of(f"{m_uri}@{side}", m)
     else:
         (xq, dq), (xm, dm) = root_sift(q), root_sift(m)
     if dq is None or dm is None or len(dm) < 2:
@@ -152,8 +167,10 @@ def register_reference(
     # what the homography leaves (parallax), a share of the diagonal, as the null draws it
     residual = parallax_residual(src, dst, H_qm, mask, _px(thr, q.shape))
     residual /= float(np.hypot(*q.shape[:2]))
+    foot = float(warped_footprint(np.linalg.inv(H_qm), m.shape[:2], q.shape[:2]).mean())
+    # back to full-size pixels: query pixels -> work query -> work map -> map pixels
+    H_qm = np.diag([1 / fm, 1 / fm, 1.0]) @ H_qm @ np.diag([fq, fq, 1.0])
     H = np.linalg.inv(H_qm)
-    foot = float(warped_footprint(H, m.shape[:2], q.shape[:2]).mean())
     det = float(np.linalg.det(H_qm[:2, :2] / H_qm[2, 2]))
     if inliers < min_inliers:
         why = f"too few inliers ({inliers} < {min_inliers})"
@@ -319,14 +336,16 @@ class PairDifference:
         self.tier = 0.0
         if dc.recipe == "reference":
             rs = None if feats is None or uris is None else (feats.root_sift, *uris)
-            self.reg = register_reference(q, m, dc.min_inliers, rs)
+            self.reg = register_reference(q, m, dc.min_inliers, dc.register_side, rs)
             self.used = self.reg
             self.made: tuple[np.ndarray, float] | None = None
+            work, f = working_copy_of(q, dc.side)  # the change map's frame, and its scale
             if self.reg.comparable and self.reg.H is not None:
-                self.made, self.tier = (registered_map(q, m, self.reg.H), 1.0), REGISTERED_TIER
+                to_work = np.diag([f, f, 1.0]) @ self.reg.H
+                self.made, self.tier = (registered_map(work, m, to_work), f), REGISTERED_TIER
             elif opt.not_comparable == "fallback":
                 self.used = dataclasses.replace(self.reg, method="colour")
-                self.made = (colour_map(q, m), 1.0)
+                self.made = (colour_map(work, working_copy_of(m, dc.side)[0]), f)
             return
         kp = None if feats is None or uris is None else (feats.keypoints, *uris)
         self.reg = register(q, m, opt.keypoints, dc, kp)
@@ -343,7 +362,8 @@ class PairDifference:
             return box_differences(self.made, self.novelty, boxes, self.dc)
         if self.made is None:
             return np.full(len(boxes), np.nan)
-        return ring_contrast(self.made[0], boxes)
+        dmap, f = self.made
+        return ring_contrast(dmap, np.asarray(boxes, np.float64).reshape(-1, 4) * f)
 
     def score(self, boxes: np.ndarray) -> np.ndarray:
         """Each box's score in the pooled ranking: its contrast plus the pair's tier."""
