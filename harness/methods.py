@@ -161,11 +161,6 @@ def unfused(methods: Iterable[str]) -> str | None:
     return next((m for m in methods if is_unfused(m)), None)
 
 
-def detect_methods() -> tuple[str, ...]:
-    """The methods whose LoC ``harness detect`` can threshold into boxes (registered ones too)."""
-    return rules_where(detect=True)
-
-
 def add_rule(rule: FusionRule) -> None:
     """Put ``rule`` in the catalogue (its label too).
 

@@ -44,10 +44,6 @@ __all__ = ["load_config", "parse_config", "parse_localizers", "project_root"]
 T = TypeVar("T")
 
 
-def _type_name(hint: Any) -> str:
-    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
-
-
 def _coerce(value: Any, hint: Any, where: str) -> Any:
     """Check ``value`` (from TOML) against the field's type hint; lists become tuples, ints floats.
 

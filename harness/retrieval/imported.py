@@ -39,7 +39,6 @@ file, the count and one example row.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -360,8 +359,3 @@ def write_imported_ranks(
     )
     write_parquet(tmp / "ranks.parquet", ranks)
     return {**counts, "has_scores": int("scores" in df.columns)}
-
-
-def describe_rows(items: Iterable[tuple[str, str, int, str]]) -> str:
-    """``session/camera/utime -> reference`` of query images, for messages."""
-    return ", ".join(f"{s}/{c}/{u} -> {r}" for s, c, u, r in items)

@@ -102,19 +102,6 @@ LEGEND = (
 )
 
 
-def heat_style(v: float, floor: float = 0.0) -> str:
-    """A background colour for AP: pale red at the floor (random orders) to green at 1."""
-    if v != v:
-        return "#f0f0f0"
-    v = float(np.clip((v - floor) / (1 - floor) if floor == floor and floor < 1 else v, 0, 1))
-    r, g, b = (
-        (int(255 - 90 * v), int(215 + 25 * v), int(215 - 60 * v))
-        if v >= 0.5
-        else (250, int(205 + 40 * v), int(200 + 20 * v))
-    )
-    return f"rgb({r},{g},{b})"
-
-
 def change_html(t: ChangeTable, who: str = "") -> str:
     """One change table (I, S or P), its cells coloured by method §9's verdict against the floor."""
     spec, cols = t.spec, t.columns
