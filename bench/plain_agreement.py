@@ -22,7 +22,8 @@ import cv2  # isort: skip
 import numpy as np  # isort: skip
 import pandas as pd  # isort: skip
 
-from harness.detect.plain import PairDifference, reference_boxes  # isort: skip
+from harness.detect.pair import PairDifference  # isort: skip
+from harness.detect.plain import reference_boxes  # isort: skip
 from harness.evaluate.box_ap import iou_matrix  # isort: skip
 from harness.proposals.builtin import nms  # isort: skip
 from harness.proposals.config import SelectiveConfig  # isort: skip

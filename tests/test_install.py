@@ -58,11 +58,11 @@ def _cpu_wheel() -> Path:
 
 def _index(tmp: Path, wheel: Path | None) -> Path:
     """A PEP 503 index in ``tmp`` whose project ``torch`` lists ``wheel`` (or nothing)."""
-    page = tmp / "index" / "torch"
+    page = tmp / "torch"
     page.mkdir(parents=True)
     links = f'<a href="{wheel.as_uri()}">{wheel.name}</a>' if wheel else ""
     (page / "index.html").write_text(f"<!DOCTYPE html><html><body>{links}</body></html>\n")
-    return tmp / "index"
+    return tmp
 
 
 def _make(
@@ -92,28 +92,14 @@ def _packages(venv: Path) -> list[str]:
     return [p["name"].lower() for p in json.loads(listed.stdout)]
 
 
-def test_the_torch_step_takes_the_cpu_build_from_a_pep503_index(tmp_path: Path) -> None:
+def test_the_torch_step_stops_on_an_index_that_cannot_serve_then_takes_the_cpu_build(
+    tmp_path: Path,
+) -> None:
+    """An index that cannot serve: one ERROR: line before the lock's packages are downloaded, no
+    stamp, and the same again (CPU, or ``TORCH=cuda`` where the index has no GPU build); then, in
+    the same half-made environment, the CPU build from a PEP 503 index and nothing of CUDA."""
     wheel = _cpu_wheel()
-    index = _index(tmp_path, wheel)
-    venv = tmp_path / "venv"
-    proc, _ = _make(f"{venv}/.torch-cpu", venv, str(index))
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert f"torch {TORCH_VERSION}+cpu (cpu build) from {wheel.as_uri()[:20]}" in proc.stdout
-    source = json.loads((venv / "torch-source.json").read_text())
-    assert source["torch"] == f"{TORCH_VERSION}+cpu" and source["build"] == "cpu"
-    assert Path(re.sub("%2B", "+", source["from"]).removeprefix("file://")) == wheel
-    names = _packages(venv)
-    assert "torch" in names
-    assert not [n for n in names if n.startswith(("nvidia-", "cuda-"))], names
-    # a second make finds it in place and asks nothing
-    again, _ = _make(f"{venv}/.torch-cpu", venv, str(tmp_path / "not-there"))
-    assert again.returncode == 0 and "is up to date" in again.stdout + again.stderr
-
-
-def test_a_torch_index_that_cannot_serve_stops_setup_with_one_error(tmp_path: Path) -> None:
-    """Before the lock's packages are downloaded: one ERROR: line, no stamp, and again the same;
-    an index without the build, CPU or (``TORCH=cuda``) GPU, likewise."""
-    empty = str(_index(tmp_path, None))
+    empty = str(_index(tmp_path / "empty", None))
     venv = tmp_path / "venv"
     # port 9 (discard) on loopback refuses the connection: an index that is not there; twice, as
     # the second make must not take the half-made environment for finished
@@ -134,5 +120,19 @@ def test_a_torch_index_that_cannot_serve_stops_setup_with_one_error(tmp_path: Pa
         assert took < 60
         assert not (venv / ".packages").exists() and not (venv / ".installed").exists()
         assert not (venv / f".torch-{build}").exists()
-        names = _packages(venv)  # nothing downloaded: not even the lock
-        assert "torch" not in names and "numpy" not in names
+    names = _packages(venv)  # nothing downloaded: not even the lock
+    assert "torch" not in names and "numpy" not in names
+
+    index = _index(tmp_path / "cpu", wheel)
+    proc, _ = _make(f"{venv}/.torch-cpu", venv, str(index))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert f"torch {TORCH_VERSION}+cpu (cpu build) from {wheel.as_uri()[:20]}" in proc.stdout
+    source = json.loads((venv / "torch-source.json").read_text())
+    assert source["torch"] == f"{TORCH_VERSION}+cpu" and source["build"] == "cpu"
+    assert Path(re.sub("%2B", "+", source["from"]).removeprefix("file://")) == wheel
+    names = _packages(venv)
+    assert "torch" in names
+    assert not [n for n in names if n.startswith(("nvidia-", "cuda-"))], names
+    # a second make finds it in place and asks nothing
+    again, _ = _make(f"{venv}/.torch-cpu", venv, str(tmp_path / "not-there"))
+    assert again.returncode == 0 and "is up to date" in again.stdout + again.stderr

@@ -32,7 +32,8 @@ import numpy as np
 import pandas as pd
 
 from harness.config.detect import DetectConfig
-from harness.detect.plain import PairDifference
+from harness.detect.pair import PairDifference
+from harness.detect.plain import forget_root_sift
 from harness.imagestore import read_image
 from harness.localizers.config import KeypointConfig
 from harness.localizers.keypoints import detect, ratio_matches, work_gray, write_keypoint_ranks
@@ -107,6 +108,7 @@ def _difference_ms(frames: pd.DataFrame, kc: KeypointConfig) -> float:
     read, one pair a thread, a thread per core."""
     opt = DetectConfig(keypoints=kc)
     queries, maps = _sides(frames)
+    forget_root_sift()  # every frame detected anew, as a new pair's are
 
     def one(i: int) -> None:
         q, m = read_image(queries[i]), read_image(maps[i])

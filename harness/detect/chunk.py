@@ -25,7 +25,8 @@ from harness.detect.boxes import (
     with_area_prior,
     with_prior,
 )
-from harness.detect.plain import PairDifference, PairFeatures, reference_boxes
+from harness.detect.pair import PairDifference, PairFeatures
+from harness.detect.plain import reference_boxes
 from harness.fusion.config import FusionConfig
 from harness.fusion.samples import fuse_samples
 from harness.imagestore import read_image

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from harness.config.schema import Config
-from harness.detect.plain import PairDifference
+from harness.detect.pair import PairDifference
 from harness.errors import AnnotationError
 from harness.evaluate.table_d_pixel import MaskedFrame, box_change_fraction, pixel_table
 from harness.fusion.fuse import loc_map

@@ -36,24 +36,19 @@ of 800) and scales with the frame's diagonal.
 
 from __future__ import annotations
 
-import dataclasses
+import hashlib
 import threading
-from typing import Any
+from collections import OrderedDict
 
 import cv2
 import numpy as np
 
 from harness.detect.difference import (
     Registration,
-    box_differences,
-    difference_map,
-    novelty_of,
     parallax_residual,
-    register,
     to_gray,
     warped_footprint,
 )
-from harness.localizers.keypoints import MapFeatures
 from harness.proposals.builtin import selective_rects, working_copy
 
 #: The frame the recipe's lengths are given for: 640 x 480, a diagonal of 800 pixels.
@@ -83,8 +78,43 @@ def _px(length: float, shape: tuple[int, ...]) -> float:
     return length * float(np.hypot(shape[0], shape[1])) / REFERENCE_DIAGONAL
 
 
+#: Frames whose RootSIFT this process keeps (about 0.5 MB each at 640 x 480), the least recently
+#: used dropped first: a frame registered in several runs of one process (a map's frames against
+#: a new session and against themselves) is detected once.
+STORE_FRAMES = 256
+_STORE: OrderedDict[bytes, tuple[np.ndarray, np.ndarray | None]] = OrderedDict()
+_STORE_LOCK = threading.Lock()
+
+
+def stored_root_sift(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`root_sift` of ``gray``, or what this process found on the same pixels before.
+
+    Keyed by a digest of the pixels and the shape, so the same frame under two names (or read
+    twice) is detected once; the values are :func:`root_sift`'s own, so the store changes no
+    output.
+    """
+    g = np.ascontiguousarray(gray)
+    key = hashlib.blake2b(g.data, digest_size=20, salt=str(g.shape).encode()[:16]).digest()
+    with _STORE_LOCK:
+        if key in _STORE:
+            _STORE.move_to_end(key)
+            return _STORE[key]
+    got = root_sift(g)
+    with _STORE_LOCK:
+        _STORE[key] = got
+        while len(_STORE) > STORE_FRAMES:
+            _STORE.popitem(last=False)
+    return got
+
+
+def forget_root_sift() -> None:
+    """Empty this process's store (:func:`stored_root_sift`): the next frames are detected anew."""
+    with _STORE_LOCK:
+        _STORE.clear()
+
+
 class RootSift:
-    """RootSIFT keypoints of grey frames, each frame's detected once (keyed by its URI).
+    """RootSIFT keypoints of a run's grey frames by their URIs (:func:`stored_root_sift` below).
 
     One instance serves a run's pairs side by side (a map frame shared by several pairs, the
     null's frames): the lock guards the dictionary, never the detection.
@@ -99,7 +129,7 @@ class RootSift:
         with self._lock:
             if uri in self._got:
                 return self._got[uri]
-        got = root_sift(gray)
+        got = stored_root_sift(gray)
         with self._lock:
             return self._got.setdefault(uri, got)
 
@@ -142,7 +172,7 @@ def register_reference(
         cache, q_uri, m_uri = features
         (xq, dq), (xm, dm) = cache.of(f"{q_uri}@{side}", q), cache.of(f"{m_uri}@{side}", m)
     else:
-        (xq, dq), (xm, dm) = root_sift(q), root_sift(m)
+        (xq, dq), (xm, dm) = stored_root_sift(q), stored_root_sift(m)
     if dq is None or dm is None or len(dm) < 2:
         return Registration(None, 0, 0, 0.0, "too few matches (0)", "none")
     pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(dq, dm, k=2)
@@ -310,72 +340,3 @@ def ring_contrast(dmap: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     inner = si / np.maximum(ni, 1.0)
     ring = (so - si) / np.maximum(no - ni, 1.0)
     return inner - ring
-
-
-class PairDifference:
-    """A query frame and its map frame compared once, by ``[detect.difference] recipe``.
-
-    ``reg``: the registration (the one verdict every part of a run reads: the detector, Table D,
-    the null and the page's counts); ``made``: the change map and the query's scale on it (None
-    where nothing compares the pair); ``tier``: what a registered pair's scores are lifted by
-    (the reference recipe's :data:`REGISTERED_TIER`, else 0). :meth:`contrast` scores boxes of
-    the query frame (NaN where nothing compares the pair); :meth:`score` adds the tier.
-    """
-
-    def __init__(
-        self,
-        q: np.ndarray,
-        m: np.ndarray,
-        opt: Any,
-        feats: Any = None,
-        uris: tuple[str, str] | None = None,
-    ) -> None:
-        self.q = q
-        dc = self.dc = opt.difference
-        self.novelty: Any = None
-        self.tier = 0.0
-        if dc.recipe == "reference":
-            rs = None if feats is None or uris is None else (feats.root_sift, *uris)
-            self.reg = register_reference(q, m, dc.min_inliers, dc.register_side, rs)
-            self.used = self.reg
-            self.made: tuple[np.ndarray, float] | None = None
-            work, f = working_copy_of(q, dc.side)  # the change map's frame, and its scale
-            if self.reg.comparable and self.reg.H is not None:
-                to_work = np.diag([f, f, 1.0]) @ self.reg.H
-                self.made, self.tier = (registered_map(work, m, to_work), f), REGISTERED_TIER
-            elif opt.not_comparable == "fallback":
-                self.used = dataclasses.replace(self.reg, method="colour")
-                self.made = (colour_map(work, working_copy_of(m, dc.side)[0]), f)
-            return
-        kp = None if feats is None or uris is None else (feats.keypoints, *uris)
-        self.reg = register(q, m, opt.keypoints, dc, kp)
-        # compared by: the registration, or the pair as it stands (not_comparable = "fallback")
-        self.used = self.reg
-        if not self.reg.comparable and opt.not_comparable == "fallback":
-            self.used = self.reg.fallback(q, m, dc, opt.local)
-        self.made = difference_map(q, m, self.used, dc)
-        self.novelty = novelty_of(q, m, dc) if self.made is not None else None
-
-    def contrast(self, boxes: np.ndarray) -> np.ndarray:
-        """Each box's plain difference, without the tier (NaN where nothing compares the pair)."""
-        if self.dc.recipe != "reference":
-            return box_differences(self.made, self.novelty, boxes, self.dc)
-        if self.made is None:
-            return np.full(len(boxes), np.nan)
-        dmap, f = self.made
-        return ring_contrast(dmap, np.asarray(boxes, np.float64).reshape(-1, 4) * f)
-
-    def score(self, boxes: np.ndarray) -> np.ndarray:
-        """Each box's score in the pooled ranking: its contrast plus the pair's tier."""
-        return self.contrast(boxes) + self.tier
-
-
-class PairFeatures:
-    """The keypoints a run's pairs share, each frame's found once.
-
-    The earlier recipe's (``[detect.keypoints]``) and the reference recipe's RootSIFT.
-    """
-
-    def __init__(self, kc: Any) -> None:
-        self.keypoints = MapFeatures(kc)
-        self.root_sift = RootSift()

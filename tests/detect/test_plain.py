@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from harness.config.detect import DetectConfig
+from harness.detect.pair import PairDifference
 from harness.detect.plain import (
     REGISTERED_TIER,
-    PairDifference,
     colour_map,
     register_reference,
     registered_map,
