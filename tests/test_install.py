@@ -120,6 +120,11 @@ def test_the_torch_step_stops_on_an_index_that_cannot_serve_then_takes_the_cpu_b
         assert took < 60
         assert not (venv / ".packages").exists() and not (venv / ".installed").exists()
         assert not (venv / f".torch-{build}").exists()
+    proc, _ = _make("setup", venv, empty, "TORCH=rocm")  # a build the step does not know
+    assert proc.returncode != 0
+    assert [ln for ln in proc.stderr.splitlines() if ln.startswith("ERROR:")] == [
+        "ERROR: TORCH=rocm: not a torch build; cpu or cuda"
+    ]
     names = _packages(venv)  # nothing downloaded: not even the lock
     assert "torch" not in names and "numpy" not in names
 

@@ -35,6 +35,8 @@ from importlib import metadata
 from pathlib import Path
 
 SOURCE_FILE = "torch-source.json"
+#: The builds the step installs (the Makefile's ``TORCH``).
+BUILDS = ("cpu", "cuda")
 PROBE_TIMEOUT_S = 20.0
 
 
@@ -196,9 +198,14 @@ def main(argv: list[str] | None = None) -> int:
     """The step: install, record, and one ``ERROR:`` line where torch cannot be had."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--version", required=True, help="torch's version, e.g. 2.13.0")
-    ap.add_argument("--build", choices=("cpu", "cuda"), default="cpu")
+    ap.add_argument("--build", default="cpu", help="cpu or cuda (the Makefile's TORCH)")
     ap.add_argument("--index", default="", help="a PEP 503 index (URL or folder); '' for pip's")
     args = ap.parse_args(argv)
+    if args.build not in BUILDS:
+        print(
+            f"ERROR: TORCH={args.build}: not a torch build; {' or '.join(BUILDS)}", file=sys.stderr
+        )
+        return 1
     try:
         if args.build == "cpu" and not args.index.strip():
             raise StepError("TORCH_INDEX is empty; the CPU build needs an index to come from")
