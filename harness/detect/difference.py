@@ -100,7 +100,7 @@ class Registration:
 
         ``[detect] not_comparable = "fallback"``: its boxes are marked and measured apart.
         """
-        q, fq = _scaled(to_gray(q_rgb), dc.fallback_side)
+        q, fq = scaled_copy(to_gray(q_rgb), dc.fallback_side)
         m = cv2.resize(to_gray(m_rgb), (q.shape[1], q.shape[0]), interpolation=cv2.INTER_AREA)
         to_small = np.diag([q.shape[1] / m_rgb.shape[1], q.shape[0] / m_rgb.shape[0], 1.0])
         al = align_ecc(q, m, local)
@@ -111,7 +111,8 @@ class Registration:
         return Registration(full, 0, self.matches, 1.0, self.why or "not registered", method)
 
 
-def _scaled(rgb: np.ndarray, side: int) -> tuple[np.ndarray, float]:
+def scaled_copy(rgb: np.ndarray, side: int) -> tuple[np.ndarray, float]:
+    """``rgb`` with its longer side at most ``side`` pixels (area interpolation), and the scale."""
     h, w = rgb.shape[:2]
     f = min(1.0, side / float(max(h, w)))
     if f >= 1:
@@ -190,8 +191,8 @@ def register(
     shared map frame or the null's query, is detected once); without it, this process's store
     (:func:`harness.localizers.keypoints.stored_keypoints`).
     """
-    q, fq = _scaled(to_gray(q_rgb), dc.register_side)
-    m, fm = _scaled(to_gray(m_rgb), dc.register_side)
+    q, fq = scaled_copy(to_gray(q_rgb), dc.register_side)
+    m, fm = scaled_copy(to_gray(m_rgb), dc.register_side)
     if features is not None:
         cache, q_uri, m_uri = features
         (xq, dq), (xm, dm) = cache.of(q_uri, q), cache.of(m_uri, m)
@@ -299,7 +300,7 @@ def difference_map(
     """
     if not reg.compares or reg.H is None:
         return None
-    q, f = _scaled(q_rgb, dc.side)
+    q, f = scaled_copy(q_rgb, dc.side)
     h, w = q.shape[:2]
     H = np.diag([f, f, 1.0]) @ reg.H  # map pixels -> the query's working copy
     mw = cv2.warpPerspective(

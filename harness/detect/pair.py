@@ -13,7 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from harness.detect.difference import box_differences, difference_map, novelty_of, register
+from harness.detect.difference import (
+    box_differences,
+    difference_map,
+    novelty_of,
+    register,
+    scaled_copy,
+)
 from harness.detect.plain import (
     REGISTERED_TIER,
     RootSift,
@@ -21,7 +27,6 @@ from harness.detect.plain import (
     register_reference,
     registered_map,
     ring_contrast,
-    working_copy_of,
 )
 from harness.localizers.keypoints import MapFeatures
 
@@ -53,13 +58,13 @@ class PairDifference:
             self.reg = register_reference(q, m, dc.min_inliers, dc.register_side, rs)
             self.used = self.reg
             self.made: tuple[np.ndarray, float] | None = None
-            work, f = working_copy_of(q, dc.side)  # the change map's frame, and its scale
+            work, f = scaled_copy(q, dc.side)  # the change map's frame, and its scale
             if self.reg.comparable and self.reg.H is not None:
                 to_work = np.diag([f, f, 1.0]) @ self.reg.H
                 self.made, self.tier = (registered_map(work, m, to_work), f), REGISTERED_TIER
             elif opt.not_comparable == "fallback":
                 self.used = dataclasses.replace(self.reg, method="colour")
-                self.made = (colour_map(work, working_copy_of(m, dc.side)[0]), f)
+                self.made = (colour_map(work, scaled_copy(m, dc.side)[0]), f)
             return
         kp = None if feats is None or uris is None else (feats.keypoints, *uris)
         self.reg = register(q, m, opt.keypoints, dc, kp)

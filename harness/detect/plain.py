@@ -46,6 +46,7 @@ import numpy as np
 from harness.detect.difference import (
     Registration,
     parallax_residual,
+    scaled_copy,
     to_gray,
     warped_footprint,
 )
@@ -145,16 +146,6 @@ def root_sift(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     return np.array([k.pt for k in kp], np.float32), np.sqrt(d).astype(np.float32)
 
 
-def working_copy_of(rgb: np.ndarray, side: int) -> tuple[np.ndarray, float]:
-    """``rgb`` with its longer side at most ``side`` pixels (area interpolation), and the scale."""
-    h, w = rgb.shape[:2]
-    f = min(1.0, side / float(max(h, w)))
-    if f >= 1:
-        return rgb, 1.0
-    size = (max(1, round(w * f)), max(1, round(h * f)))
-    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), f
-
-
 def register_reference(
     q_rgb: np.ndarray,
     m_rgb: np.ndarray,
@@ -167,7 +158,7 @@ def register_reference(
     Both frames are registered on copies whose longer side is at most ``side`` pixels
     (``[detect.difference] register_side``: 640, the recipe's own 640 x 480 frames as they are).
     """
-    (q, fq), (m, fm) = working_copy_of(to_gray(q_rgb), side), working_copy_of(to_gray(m_rgb), side)
+    (q, fq), (m, fm) = scaled_copy(to_gray(q_rgb), side), scaled_copy(to_gray(m_rgb), side)
     if features is not None:
         cache, q_uri, m_uri = features
         (xq, dq), (xm, dm) = cache.of(f"{q_uri}@{side}", q), cache.of(f"{m_uri}@{side}", m)
