@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import harness  # noqa: F401  (first: it pins the kernels numpy and OpenCV load)
-from harness.config.detect import DetectConfig
+from harness.detect.config import DetectConfig
 
 import cv2  # isort: skip
 import numpy as np  # isort: skip

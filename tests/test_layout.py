@@ -118,12 +118,15 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("harness.evaluate",),
     ("harness.fusion",),
     ("harness.localizers",),
-    # the root config assembles every stage's section (``harness/<stage>/config.py``, detect's
-    # ``harness/config/detect.py`` with its presets): below the detector they configure
+    # the change detector's stage: registration, the plain difference, boxes, the no-change
+    # null, calibration, with its config section and presets
+    ("harness.detect",),
+    # the root config assembles every stage's section (``harness/<stage>/config.py``)
     ("harness.config",),
     ("harness.reports",),
     ("harness.pipeline",),
-    ("harness.detect",),
+    # the applications: ``reproduce`` and ``detect`` run the chain and hand on a typed result
+    ("harness.apps",),
     ("harness.cli",),
 )
 
@@ -339,11 +342,12 @@ def test_function_level_imports_are_the_justified_ones() -> None:
     assert found == []
 
 
-#: The longest a module may be : a longer one is a grab-bag to cut by job.
-MAX_MODULE_LINES = 400
+#: The longest a module may be: one idea may take up to 500 lines; a module cut where two ideas
+#: meet, never to meet a count.
+MAX_MODULE_LINES = 500
 
 
-def test_no_module_over_400_lines() -> None:
+def test_no_module_over_500_lines() -> None:
     over = sorted(
         f"{name} ({n} lines)"
         for name, path in _modules().items()

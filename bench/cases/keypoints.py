@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.config.detect import DetectConfig
+from harness.detect.config import DetectConfig
 from harness.detect.pair import PairDifference
 from harness.detect.plain import forget_root_sift
 from harness.imagestore import read_image

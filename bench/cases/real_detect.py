@@ -30,7 +30,7 @@ LINE_S = 45.0
 
 def _kernels() -> float:
     """Seconds of the detector's kernels over the set on 2 cores: decode, SIFT, Selective Search."""
-    from harness.config.detect import DetectConfig
+    from harness.detect.config import DetectConfig
     from harness.localizers.keypoints import detect
     from harness.proposals.builtin import selective_boxes
     from harness.proposals.config import SelectiveConfig

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from harness.config.detect import DetectConfig
+from harness.detect.config import DetectConfig
 from harness.errors import HarnessError
 
 

@@ -9,7 +9,7 @@ from harness.cli.common import detect_flag
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
 from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
-from harness.config.presets import PRESETS, preset_help
+from harness.detect.presets import PRESETS, preset_help
 from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, CALIBRATIONS
 
 

@@ -18,7 +18,7 @@ from harness.cli.common import (
 from harness.cli.console import print_block, print_localization, print_table_l
 from harness.config.assemble import Overrides, folders_config
 from harness.config.assemble import run_config as config_with
-from harness.config.detect import CONFIG_LOCALIZERS
+from harness.detect.config import CONFIG_LOCALIZERS
 from harness.errors import HarnessError
 from harness.reports.alarm_words import alarm_words
 
@@ -158,7 +158,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     # Selective Search's workers start while the detector's modules load (a second or so)
     paired = () if cfg.detect.localizer == CONFIG_LOCALIZERS else (cfg.detect.proposals,)
     start_workers(cfg.proposals, (*cfg.proposals.methods, *paired))
-    from harness.detect.run import run_detect
+    from harness.apps.detect import run_detect
     from harness.pairs.modes import PAIRING_MODES
     from harness.runtime.executors import make_executor
 

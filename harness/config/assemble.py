@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 from harness.config.check import validate
-from harness.config.detect import CONFIG_LOCALIZERS, DetectConfig
 from harness.config.folders import image_folders_config
 from harness.config.load import load_config
-from harness.config.presets import PRESETS
 from harness.config.schema import Config
+from harness.detect.config import CONFIG_LOCALIZERS, DetectConfig
+from harness.detect.presets import PRESETS
 from harness.errors import AnnotationError, ConfigError
 from harness.inputs import check_input
 

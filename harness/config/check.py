@@ -11,9 +11,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from harness.checks import MAX_SEED, check_device, check_value
-from harness.config.detect import check_detect
 from harness.config.schema import Config
 from harness.descriptors.config import check_descriptor, check_projection
+from harness.detect.config import check_detect
 from harness.evaluate.config import check_recall_at, check_report, check_splits
 from harness.fixture.config import check_fixture_section
 from harness.fusion.config import check_fusion

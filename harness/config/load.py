@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from harness.config.check import validate
-from harness.config.detect import DetectConfig
 from harness.config.plugins import load_plugins
 from harness.config.schema import Config
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
+from harness.detect.config import DetectConfig
 from harness.errors import ConfigError
 from harness.evaluate.config import ReportConfig, SplitsConfig
 from harness.fixture.config import FixtureConfig

@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from harness.config.detect import DetectConfig
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
+from harness.detect.config import DetectConfig
 from harness.evaluate.config import ReportConfig, SplitsConfig
 from harness.fixture.config import FixtureConfig
 from harness.fusion.config import FusionConfig

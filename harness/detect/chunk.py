@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.config.detect import DetectConfig
 from harness.detect.boxes import (
     candidate_boxes,
     change_boxes_nms,
@@ -25,6 +24,7 @@ from harness.detect.boxes import (
     with_area_prior,
     with_prior,
 )
+from harness.detect.config import DetectConfig
 from harness.detect.pair import PairDifference, PairFeatures
 from harness.detect.plain import reference_boxes
 from harness.fusion.config import FusionConfig

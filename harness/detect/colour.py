@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from harness.config.detect import DifferenceConfig
+from harness.detect.config import DifferenceConfig
 
 #: a colour no pixel holds has this share (keeps the log ratio finite)
 _EPS = 1e-4

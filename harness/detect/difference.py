@@ -29,8 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from harness.config.detect import DifferenceConfig
 from harness.detect.colour import colour_novelty
+from harness.detect.config import DifferenceConfig
 from harness.localizers.align import align_ecc
 from harness.localizers.config import KeypointConfig, LocalConfig
 from harness.localizers.keypoints import MapFeatures, stored_keypoints, union_matches

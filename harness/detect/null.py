@@ -19,20 +19,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from harness.config.detect import DetectConfig, NullConfig
+from harness.detect.config import NullConfig
 from harness.imagestore import ImageRef
-from harness.localizers.kinds import paired_kinds
 from harness.pairs.modes import PAIRING_MODES, kind_of
 from harness.pairs.table import PAIR_COLUMNS
 from harness.perturb import Perturbation, fragment
-from harness.pipeline.localizer_stages import localizer_ranks
 from harness.records import FRAME_KEY
 from harness.runtime.cache import read_cached_parquet, stable_hash
 from harness.runtime.stage import Table
@@ -223,68 +220,6 @@ class NullScores:
     boxes: np.ndarray
     record: dict[str, Any]
     entries: tuple[str, ...] = ()  # the null's detect chunks (cache/detect-null/<key>)
-
-
-def null_scores(
-    p: Any,
-    opt: DetectConfig,
-    measured: list[Any],
-    frames: Table,
-    propose: Callable[[pd.DataFrame], Table] | None,
-    map_session: str,
-    chunks: Callable[[Any, pd.DataFrame], list[tuple[tuple[Any, ...], Any]]],
-    run_entries: list[Any] | None = None,
-) -> NullScores | None:
-    """The null pairs scored by the run's detector (None: calibrated within the run).
-
-    ``run_entries``: the run's own detect chunks, whose registrations the perturbed copies'
-    moves are drawn from (``[detect.null] moves = "run"``).
-
-    ``propose`` gives the proposals of the map frames it is handed (the null's query frames: the
-    run proposed no other map frame); None where the run has no proposals (pairs by retrieval
-    without a paired-frame localizer).
-
-    ``chunks`` (ranks, frames) gives the detect chunks' units, as for the query frames. Where the
-    config asks for the null but the run's localizer cannot score a pair alone (the paper's
-    descriptor localizers rank among the whole map), a WARNING says so and the run is
-    calibrated within itself.
-    """
-    if opt.calibration != "null":
-        return None
-    kinds = [m.loc.kind for m in measured]
-    if len(measured) != 1 or kinds[0] not in paired_kinds() or propose is None:
-        log.warning(
-            "the no-change null needs one localizer that ranks inside a paired frame (%s); this "
-            "run's are %s: calibrated within the run instead ([detect] calibration)",
-            " or ".join(paired_kinds()),
-            ", ".join(kinds),
-        )
-        return None
-    nc = opt.null
-    moves = run_moves(run_entries or []) if nc.moves == "run" else None
-    choice = null_choice(frames, map_session, nc, p.cfg.pairs.by)
-    null = null_pairs(frames, choice, propose(choice.query_frames(frames.df)), nc, moves)
-    if not len(null.pairs.df):
-        log.warning("the map %s has no frame to draw a null from: calibrated within the run",
-                    map_session)  # fmt: skip
-        return None
-    log.info("no-change null: %d %s pairs from the map's frames (%s)", len(null.pairs.df),
-             null.construction, map_session)  # fmt: skip
-    mine = {map_session: null.proposals}
-    ranks = localizer_ranks(p, measured[0].loc, null.frames, null.pairs, mine)
-    built = p.ran.get("detect-null", 0)
-    entries = p.units("detect-null", chunks(ranks, null.frames.df))
-    built = p.ran.get("detect-null", 0) - built
-    if not built:
-        log.info("no-change null: its %d chunks reused from the cache (the same map, pairs and "
-                 "detector)", len(entries))  # fmt: skip
-    fr = pd.concat([read_cached_parquet(e.path / "frames.parquet") for e in entries])
-    bx = pd.concat([read_cached_parquet(e.path / "boxes.parquet") for e in entries])
-    boxes = bx.loc[bx["kind"] == "detection", "score"].to_numpy(np.float64)
-    scores = fr["score"].to_numpy(np.float64)
-    rec = null_record(nc, null, scores, len(boxes), moves)
-    rec["chunks"] = {"scored_now": built, "reused": len(entries) - built}
-    return NullScores(scores, boxes, rec, tuple(e.path.name for e in entries))
 
 
 def run_moves(entries: list[Any]) -> np.ndarray | None:

@@ -9,8 +9,8 @@ from typing import Any
 
 import pandas as pd
 
-from harness.config.detect import DetectConfig
 from harness.config.schema import Config
+from harness.detect.config import DetectConfig
 
 log = logging.getLogger(__name__)
 

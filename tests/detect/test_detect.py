@@ -370,8 +370,8 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
 ) -> None:
     """Killed in its third chunk of 16 query frames, a rerun builds only the chunks not finished
     and writes the boxes the uninterrupted run wrote (one chunk of 64), byte for byte."""
+    from harness.apps import detect
     from harness.config.load import load_config
-    from harness.detect import run as detect
 
     a, _, _ = detected
     p, _, _ = local_run

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from harness.config.detect import DifferenceConfig, check_difference
 from harness.detect.colour import colour_novelty
+from harness.detect.config import DifferenceConfig, check_difference
 from harness.detect.difference import (
     box_differences,
     difference_contrast,
@@ -139,7 +139,7 @@ def test_bad_difference_settings_are_one_error_naming_the_key() -> None:
 def test_a_registration_as_the_null_draws_its_moves() -> None:
     """The shifted pair's registration as a perturbed copy's shift, rotation and scale; a copy
     drawn from it moves the map frame as the pair moved (docs/decisions.md, *Calibrated alarms*)."""
-    from harness.config.detect import NullConfig
+    from harness.detect.config import NullConfig
     from harness.detect.null import draw
     from harness.perturb import apply
 

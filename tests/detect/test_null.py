@@ -22,7 +22,7 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
-from harness.config.detect import NullConfig
+from harness.detect.config import NullConfig
 from harness.detect.null import construction_for, draw, null_choice, null_pairs
 from harness.imagestore import read_image
 from harness.perturb import Perturbation, apply, fragment, parse, split_perturbed

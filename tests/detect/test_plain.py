@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.config.detect import DetectConfig
+from harness.detect.config import DetectConfig
 from harness.detect.pair import PairDifference
 from harness.detect.plain import (
     REGISTERED_TIER,

@@ -1,0 +1,1 @@
+"""The applications on top of the stages: ``harness reproduce`` and ``harness detect``."""
