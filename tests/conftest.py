@@ -83,7 +83,7 @@ def local_run(tmp_path_factory: pytest.TempPathFactory, default_world: Path) -> 
 
     (pipeline, record, out).
     """
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
     from harness.pipeline.chain import Pipeline
 
     out = tmp_path_factory.mktemp("run")

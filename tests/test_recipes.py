@@ -93,8 +93,8 @@ def _rerun(local_run: tuple, tmp_path: Path, cfg) -> tuple[Pipeline, dict]:
 
 def test_recipe_a_toy_proposal_method(local_run: tuple, tmp_path: Path, registries) -> None:
     from harness import methods
+    from harness.config.assemble import load_config
     from harness.config.check import validate
-    from harness.config.load import load_config
     from harness.errors import ConfigError
     from harness.proposals import proposers as proposals
 

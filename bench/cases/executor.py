@@ -20,7 +20,7 @@ def case_executor(quick: bool) -> None:
     """
     import dataclasses
 
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
     from harness.fixture import FixtureSpec, generate
     from harness.pipeline.chain import Pipeline
     from harness.runtime.executors import LocalExecutor, RayExecutor

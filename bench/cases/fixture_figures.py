@@ -142,7 +142,7 @@ def _lost(counts: Any) -> int:
 
 def run_variant(base: Path, default_out: Path | None, name: str) -> tuple[Path, float]:
     """Run one variant into ``base/<name>`` (from the default run's cache); (out, wall s)."""
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
     from harness.pipeline.chain import Pipeline
 
     cfg = load_config(ROOT / "datasets" / "fixture.toml")

@@ -14,7 +14,7 @@ def case_fusion(quick: bool) -> None:
 
     import pandas as pd
 
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
     from harness.evaluate.aps import sample_groups
     from harness.evaluate.config import SplitsConfig
     from harness.evaluate.metrics import average_precision

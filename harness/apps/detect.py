@@ -165,7 +165,7 @@ def run_detect(
 ) -> dict[str, Any]:
     """The detector on ``query_sessions`` against ``map_session`` into ``out`` (method §13).
 
-    The one way into the detector: ``cfg`` as :func:`harness.config.load.load_config` gives it
+    The one way into the detector: ``cfg`` as :func:`harness.config.assemble.load_config` gives it
     (``harness detect`` adds its flags there), checked at load; its ``[detect]`` is the detector.
     With ``rerun``, also a recording for the Rerun viewer there (:mod:`harness.reports.rerun`).
 

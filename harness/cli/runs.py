@@ -102,13 +102,15 @@ def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
         if args.map is not None or args.query:
             raise HarnessError("--map/--query name config sessions; with image folders, omit them")
         settings = Path(args.config) if args.config else None
-        return folders_config(Path(args.map_images), list(args.query_images), settings, ov)
+        return folders_config(
+            Path(args.map_images), list(args.query_images), settings, ov, "harness detect"
+        )
     if args.config is None or args.map is None or not args.query:
         raise HarnessError(
             "detect needs --config with --map and --query, or --map-images DIR and "
             "--query-images DIR"
         )
-    return config_with(Path(args.config), ov), args.map, list(args.query)
+    return config_with(Path(args.config), ov, command="harness detect"), args.map, list(args.query)
 
 
 def _print_most_changed(out: Path, top: int, null: bool = False) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 
 from harness.config.check import validate
 from harness.config.folders import image_folders_config
-from harness.config.load import load_config
+from harness.config.load import read_config
 from harness.config.schema import Config
 from harness.detect.config import CONFIG_LOCALIZERS, DetectConfig
 from harness.detect.presets import PRESETS
@@ -44,11 +44,15 @@ def flag_of(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def with_overrides(cfg: Config, ov: Overrides) -> Config:
-    """``cfg`` with ``ov`` in place of its own values, validated.
+def with_overrides(cfg: Config, ov: Overrides, where: str, command: str = "") -> Config:
+    """``cfg`` with ``ov`` in place of its own values, validated: the one place a config is.
+
+    ``where``: the file (or folders) ``cfg`` came from, named in an error about its values;
+    ``command``: the command whose typed flags ``ov`` holds, named in an error about one of them.
 
     Raises:
-        ConfigError: a typed value out of range (one line naming its flag), or an unknown preset.
+        ConfigError: a value out of range (naming its key and ``where``, or its flag and
+            ``command``), or an unknown preset.
         AnnotationError: ``--annotations`` or ``--masks`` is not there.
     """
     out = cfg if ov.seed is None else dataclasses.replace(cfg, seed=ov.seed)
@@ -59,35 +63,50 @@ def with_overrides(cfg: Config, ov: Overrides) -> Config:
         d = check_input(Path(ov.masks), "mask folder", AnnotationError, directory=True)
         masks = dataclasses.replace(out.masks, folder=str(Path(d).resolve()))
         out = dataclasses.replace(out, masks=masks)
-    where = "the command line"
     if ov.preset is not None or ov.detect:
         if ov.preset is not None and ov.preset not in PRESETS:
             raise ConfigError(f"--preset {ov.preset!r}: one of {', '.join(PRESETS)}")
         values = {**(PRESETS[ov.preset][1] if ov.preset else {}), **ov.detect}
         out = dataclasses.replace(out, detect=dataclasses.replace(out.detect, **values))
-        where = "harness detect"
-    validate(out, where, {k: flag_of(k) for k in ov.detect})  # checked once, then frozen
+    typed = {k: flag_of(k) for k in ov.detect}
+    if ov.seed is not None:
+        typed["seed"] = "--seed"
+    validate(out, where, typed, command or "the command line")  # checked once, then frozen
     return out
 
 
-def run_config(path: Path, ov: Overrides, settings_only: bool = False) -> Config:
+def load_config(path: Path, data_root: str | None = None, settings_only: bool = False) -> Config:
+    """Read and validate a TOML config file, nothing set over it.
+
+    ``data_root``: in place of the file's; ``settings_only``: the sessions come from elsewhere,
+    so the file may name none (:func:`harness.config.load.parse_config`).
+
+    Raises:
+        ConfigError: The file is missing, is not TOML, or has unknown or invalid keys.
+    """
+    return with_overrides(read_config(Path(path), data_root, settings_only), Overrides(), str(path))
+
+
+def run_config(path: Path, ov: Overrides, settings_only: bool = False, command: str = "") -> Config:
     """The config of ``--config PATH`` with ``ov`` applied.
 
     ``settings_only``: the sessions come from elsewhere, so the file may name none.
     """
-    return with_overrides(load_config(Path(path), ov.data_root, settings_only), ov)
+    cfg = read_config(Path(path), ov.data_root, settings_only)
+    return with_overrides(cfg, ov, str(path), command)
 
 
 def folders_config(
-    map_dir: Path, query_dirs: list[Path], settings: Path | None, ov: Overrides
+    map_dir: Path, query_dirs: list[Path], settings: Path | None, ov: Overrides, command: str = ""
 ) -> tuple[Config, str, list[str]]:
     """The config of two (or more) folders of images, and the map and query sessions' names.
 
     The settings are those of ``settings`` (a ``--config``) where given; ``ov`` applied.
     """
-    base = load_config(Path(settings), ov.data_root, True) if settings is not None else None
+    base = read_config(Path(settings), ov.data_root, True) if settings is not None else None
     cfg, m, q = image_folders_config(Path(map_dir), list(query_dirs), base)
-    return with_overrides(cfg, ov), m, q
+    where = str(settings) if settings is not None else "--map-images/--query-images"
+    return with_overrides(cfg, ov, where, command), m, q
 
 
 def detect_run_config(

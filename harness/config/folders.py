@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from harness.config.check import validate
 from harness.config.load import parse_config
 from harness.config.schema import Config
 from harness.descriptors.config import DescriptorConfig
@@ -108,5 +107,4 @@ def image_folders_config(
         # never lost; alignment.csv and detect.json's alignment count how many did
         local = dataclasses.replace(out.detect.local, identity_min_ncc=-1.0)
         out = dataclasses.replace(out, detect=dataclasses.replace(out.detect, local=local))
-    validate(out, where)
     return out, names[0], names[1:]

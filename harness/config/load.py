@@ -1,6 +1,6 @@
 """Configuration: one frozen dataclass per stage, loaded from TOML with unknown keys rejected.
 
-A config file is a TOML document; ``load_config`` resolves relative paths against the file's
+A config file is a TOML document; ``read_config`` resolves relative paths against the file's
 directory's project root (the directory holding ``pyproject.toml`` above it, else the file's
 directory) and substitutes ``{data_root}`` in session sources.
 """
@@ -15,7 +15,6 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from harness.config.check import validate
 from harness.config.plugins import load_plugins
 from harness.config.schema import Config
 from harness.descriptors.config import DescriptorConfig, ProjectionConfig
@@ -39,7 +38,7 @@ from harness.proposals.config import (
 )
 from harness.retrieval.config import ImportConfig, RetrievalConfig
 
-__all__ = ["load_config", "parse_config", "parse_localizers", "project_root"]
+__all__ = ["parse_config", "parse_localizers", "project_root", "read_config"]
 
 T = TypeVar("T")
 
@@ -268,15 +267,6 @@ def parse_config(
         cfg = dataclasses.replace(
             cfg, localizers=parse_localizers(doc["localizers"], cfg, base, root, where)
         )
-    validate(cfg, where)
-    for i, loc in enumerate(cfg.localizers):
-        if loc.descriptor is not None:  # the [descriptor] checks, on the localizer's table
-            try:
-                validate(dataclasses.replace(cfg, descriptor=loc.descriptor, localizers=()), where)
-            except ConfigError as err:
-                raise ConfigError(
-                    str(err).replace("[descriptor]", f"localizers[{i}] ({loc.name}) descriptor")
-                ) from None
     return cfg
 
 
@@ -336,8 +326,11 @@ def parse_localizers(
     return tuple(out)
 
 
-def load_config(path: Path, data_root: str | None = None, settings_only: bool = False) -> Config:
-    """Read and validate a TOML config file (``settings_only``: see :func:`parse_config`).
+def read_config(path: Path, data_root: str | None = None, settings_only: bool = False) -> Config:
+    """Read a TOML config file into a :class:`Config` (``settings_only``: see :func:`parse_config`).
+
+    Its types and keys are checked here; its ranges where the run's config is assembled, once
+    (:func:`harness.config.assemble.load_config`).
 
     Raises:
         ConfigError: The file is missing, is not TOML, or has unknown or invalid keys.

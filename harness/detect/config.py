@@ -304,13 +304,19 @@ class DetectConfig:
         return LocalizerConfig(name, name, (self.proposals,), self.paired_options())
 
 
-def check_detect(dt: DetectConfig, where: str, typed: Mapping[str, str] | None = None) -> None:
+def check_detect(
+    dt: DetectConfig, where: str, typed: Mapping[str, str] | None = None, command: str = ""
+) -> None:
     """``[detect]`` (method §13.1).
 
-    ``typed``: field -> the flag its value came from, named in the error instead of the key.
+    ``typed``: field -> the flag its value came from, named with ``command`` in the error
+    instead of ``where`` and the key.
     """
-    c = check_value
     flags = typed or {}
+
+    def c(holds: bool, at: str, key: str, value: Any, allowed: str) -> None:
+        typed_here = key in flags.values()
+        check_value(holds, command if typed_here and command else at, key, value, allowed)
 
     def k(name: str) -> str:
         return flags.get(name, f"[detect] {name}")

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from harness.cli import main
-from harness.config.load import load_config
+from harness.config.assemble import load_config
 from harness.errors import ConfigError
 
 from ..conftest import ROOT
@@ -136,7 +136,7 @@ def test_fixture_section_chooses_formats_and_render_scale(tmp_path: Path) -> Non
     """A config with [fixture] render_scale and one format generates and ingests."""
     import dataclasses
 
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
     from harness.fixture.config import FixtureConfig
     from harness.pipeline.chain import Pipeline
     from harness.pipeline.preflight import generate_fixture

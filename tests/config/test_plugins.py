@@ -13,7 +13,7 @@ import pytest
 from harness import methods
 from harness.cli import main
 from harness.config import plugins
-from harness.config.load import load_config
+from harness.config.assemble import load_config
 from harness.errors import ConfigError
 from harness.fusion import keys as fusion_keys
 from harness.fusion.config import FusionConfig

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from harness.cli import main
-from harness.config.load import load_config
+from harness.config.assemble import load_config
 from harness.errors import ConfigError, HarnessError
 from harness.pipeline.chain import Pipeline
 

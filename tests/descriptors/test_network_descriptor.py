@@ -103,7 +103,7 @@ def test_a_missing_or_foreign_network_file_is_one_error(tmp_path: Path) -> None:
             np.zeros((1, 32, 32, 3), np.uint8)
         )
     (tmp_path / "c.toml").write_text(descriptor_config('name = "onnx"\npath = "missing.onnx"'))
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     with pytest.raises(ConfigError, match=r"\[descriptor\] path = .*missing.onnx.*existing file"):
         load_config(tmp_path / "c.toml")

@@ -66,7 +66,7 @@ def test_dim_larger_than_the_sample_is_a_config_error(tmp_path: Path) -> None:
 
 
 def test_the_config_section_as_a_user_types_it(tmp_path: Path) -> None:
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     from ..conftest import ROOT
 
@@ -110,7 +110,7 @@ def test_a_projected_run_stores_dim_float16_values_and_keeps_the_model(
 
 def test_memory_mb_as_a_user_types_it(tmp_path: Path) -> None:
     """``[retrieval] memory_mb`` is read from the TOML; a non-positive budget is refused."""
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     from ..conftest import ROOT
 

@@ -25,8 +25,7 @@ import pytest
 from harness.cli import main
 from harness.cli.parser import build_parser
 from harness.cli.runs import detect_overrides
-from harness.config.assemble import with_overrides
-from harness.config.load import load_config
+from harness.config.assemble import load_config, with_overrides
 from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
 from harness.evaluate.box_ap import _voc_all_point
@@ -371,7 +370,7 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
     """Killed in its third chunk of 16 query frames, a rerun builds only the chunks not finished
     and writes the boxes the uninterrupted run wrote (one chunk of 64), byte for byte."""
     from harness.apps import detect
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     a, _, _ = detected
     p, _, _ = local_run
@@ -495,7 +494,7 @@ PAPER = ("--preset", "paper")
 
 def _options(args: Any, cfg: Any) -> Any:
     """The ``[detect]`` a command line assembles over ``cfg``."""
-    return with_overrides(cfg, detect_overrides(args)).detect
+    return with_overrides(cfg, detect_overrides(args), "test", "harness detect").detect
 
 
 def test_a_preset_is_its_flags_and_a_typed_flag_wins() -> None:
@@ -820,7 +819,7 @@ def test_bad_detect_flags_are_one_error_line_before_any_work(
 def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) -> None:
     """``[detect]`` is passed through: a flag as typed wins, the table fills what is not typed."""
     from harness.cli.parser import build_parser
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     text = (ROOT / "datasets" / "fixture.toml").read_text()
     (tmp_path / "c.toml").write_text(
@@ -855,7 +854,7 @@ def test_detect_reads_the_detect_table_where_no_flag_is_typed(tmp_path: Path) ->
     ],
 )
 def test_a_bad_detect_key_is_one_error_at_load(tmp_path: Path, key: str, says: str) -> None:
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
     from harness.errors import ConfigError
 
     text = (ROOT / "datasets" / "fixture.toml").read_text()

@@ -97,7 +97,7 @@ def _samples(seed: int, n_images: int = 40, per: int = 30) -> pd.DataFrame:
 
 
 def _cfg() -> object:
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     cfg = load_config(ROOT / "datasets" / "fixture.toml")
     return dataclasses.replace(cfg, report=dataclasses.replace(cfg.report, bootstrap=300))

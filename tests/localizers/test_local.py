@@ -120,7 +120,7 @@ def test_bad_options_are_one_config_error() -> None:
 
 
 def test_the_config_reads_detect_local_and_a_local_localizer(tmp_path) -> None:
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     cfg = load_config(
         _config(

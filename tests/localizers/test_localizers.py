@@ -22,7 +22,7 @@ import pytest
 import scipy.sparse as sp
 
 from harness.cli import main
-from harness.config.load import load_config
+from harness.config.assemble import load_config
 from harness.errors import ConfigError, RetrievalError
 from harness.evaluate.chance import stratified_chance
 from harness.evaluate.metrics import average_precision, stratified_ap

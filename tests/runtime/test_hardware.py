@@ -50,6 +50,7 @@ def test_fp32_keeps_the_keys_of_before_and_bf16_changes_them(monkeypatch) -> Non
 
 @pytest.mark.parametrize("value", ["fp16", "BF16", ""])
 def test_a_bad_precision_is_a_config_error_naming_the_key(value: str) -> None:
+    from harness.config.assemble import Overrides, with_overrides
     from harness.config.load import parse_config
     from harness.errors import ConfigError
 
@@ -60,7 +61,7 @@ def test_a_bad_precision_is_a_config_error_naming_the_key(value: str) -> None:
         "descriptor": {"precision": value},
     }
     with pytest.raises(ConfigError, match=r"\[descriptor\] precision"):
-        parse_config(doc, Path("."), "t.toml")
+        with_overrides(parse_config(doc, Path("."), "t.toml"), Overrides(), "t.toml")
 
 
 def test_ranking_is_bf16_only_by_name_and_its_keys_say_so(monkeypatch) -> None:

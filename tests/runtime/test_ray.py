@@ -172,7 +172,7 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
     """``harness detect --executor ray``: the detect chunks (and the stages) run on Ray workers."""
 
     from harness.apps.detect import run_detect
-    from harness.config.load import load_config
+    from harness.config.assemble import load_config
 
     from ..conftest import ROOT, small_null_config
 
