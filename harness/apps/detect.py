@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from harness import kernels
-from harness.apps.detect_outputs import write_outputs
+from harness.apps.detect_outputs import DetectResult, write_outputs
 from harness.config.assemble import detect_run_config
 from harness.config.plugins import plugin_record
 from harness.config.schema import Config
@@ -162,7 +162,7 @@ def run_detect(
     out: Path,
     executor: Any = None,
     rerun: Path | None = None,
-) -> dict[str, Any]:
+) -> DetectResult:
     """The detector on ``query_sessions`` against ``map_session`` into ``out`` (method §13).
 
     The one way into the detector: ``cfg`` as :func:`harness.config.assemble.load_config` gives it
@@ -206,7 +206,8 @@ def run_detect(
             p, dcfg, opt, map_session, query_sessions, names_l, frames.df, pairs.df, ann.df,
             entries, alarm, al, null,
         )  # fmt: skip
-        record = write_outputs(run, dets, fr)
+        result = write_outputs(run, dets, fr)
+        record = result.record
         record["cache_entries"] = {"detect": [e.path.name for e in entries]}
         if null is not None:
             record["cache_entries"]["detect-null"] = list(null.entries)
@@ -224,7 +225,7 @@ def run_detect(
         record["total_s"] = round(time.perf_counter() - t0, 3)
         record["ms_per_query_frame"] = round(1000 * record["total_s"] / max(len(fr), 1), 2)
         write_json(p.out / "detect.json", record)
-    return record
+    return result
 
 
 def null_scores(

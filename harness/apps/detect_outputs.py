@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -174,8 +175,8 @@ def _drawn(out: Path, dets: pd.DataFrame, fr: pd.DataFrame) -> pd.DataFrame:
 
 def _table_d(
     run: DetectRun, fr: pd.DataFrame, dets: pd.DataFrame, ids: dict[tuple[str, str, int], int]
-) -> pd.DataFrame:
-    """Table D on the annotated frames, from the candidates of those frames only."""
+) -> tuple[pd.DataFrame, str] | None:
+    """Table D on the annotated frames, from the candidates of those frames only, and its text."""
     out, cfg, ann, entries, opt = run.p.out, run.cfg, run.ann, run.entries, run.opt
     annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
     cands, plain = [], []
@@ -193,9 +194,11 @@ def _table_d(
         opt.difference.recipe,
     )  # fmt: skip
     t = score_detections(out, inputs, ChanceSettings.of(cfg), opt.boxes, run.alarm)
-    if t is not None:
-        write_text(out / "tableD.md", table_d_markdown(t))
-    return t
+    if t is None:
+        return None
+    md = table_d_markdown(t)
+    write_text(out / "tableD.md", md)
+    return t, md
 
 
 def _groups(fr: pd.DataFrame, frames: pd.DataFrame) -> dict[tuple[str, str, int], str]:
@@ -230,7 +233,21 @@ def _frame_columns(fr: pd.DataFrame) -> list[str]:
     return ["image_id", *FRAME_KEY, *where, *named, *FRAME_RESULT, "exceedance"]
 
 
-def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[str, Any]:
+@dataclass(frozen=True)
+class DetectResult:
+    """One ``harness detect`` run as its outputs hold it, for what prints it.
+
+    ``record``: ``detect.json``; ``frames``: ``frames.parquet``'s rows; the tables' Markdown
+    (``tableD.md``, ``tableD_pixel.md``), None where the run has no annotations or masks.
+    """
+
+    record: dict[str, Any]
+    frames: pd.DataFrame
+    table_d_markdown: str | None = None
+    pixel_markdown: str | None = None
+
+
+def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> DetectResult:
     """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
 
     ``dets`` and ``fr`` are the chunks' boxes and frame rows. Also the alarms at the nominal
@@ -269,11 +286,11 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
     maps = locmaps(out, top, entries, dets)
 
     traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
-    table_d = _table_d(run, fr, dets, ids) if len(ann) else None
-    pixel = write_pixel_table(out, cfg, names, map_session, entries, fr, frames, opt)
+    table_d, table_d_md = (_table_d(run, fr, dets, ids) if len(ann) else None) or (None, None)
+    pixel, pixel_md = write_pixel_table(out, cfg, names, map_session, entries, fr, frames, opt)
 
     page = write_detect_page(run, (fr, top, dets), maps, (table_d, pixel), al.record())
-    return {
+    record = {
         "config": cfg.name,
         "map": map_session,
         "queries": queries,
@@ -307,6 +324,7 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> dict[
         "stage_units_run": p.ran,
         "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
     }
+    return DetectResult(record, table, table_d_md, pixel_md)
 
 
 def _not_comparable(fr: pd.DataFrame, policy: str) -> dict[str, Any]:
@@ -396,7 +414,7 @@ def write_pixel_table(
     run_frames: pd.DataFrame,
     frames_table: pd.DataFrame,
     opt: Any = None,
-) -> pd.DataFrame | None:
+) -> tuple[pd.DataFrame | None, str | None]:
     """``tableD_pixel.csv`` / ``.md`` from ``[masks] folder``'s masks of this run's query frames.
 
     ``run_frames``: the run's frame rows (each query frame's map frame, ``r_*``);
@@ -405,7 +423,7 @@ def write_pixel_table(
 
     ``entries`` are the detect chunks (their ``samples.parquet``: boxes and ``loc``), read one at
     a time for the masked frames only; a masked frame without a sample box counts all its pixels
-    uncovered. None where no mask names a frame of the run (and an earlier run's table in
+    uncovered. (None, None) where no mask names a frame of the run (and an earlier run's table in
     ``out`` is removed).
     """
     files: dict[tuple[str, str, int], Path] = {}
@@ -422,7 +440,7 @@ def write_pixel_table(
     if not files:  # an earlier run's table into this run directory is not this run's
         for stale in ("tableD_pixel.csv", "tableD_pixel.md"):
             (out / stale).unlink(missing_ok=True)
-        return None
+        return None, None
     boxes: dict[tuple[str, str, int], tuple[np.ndarray, np.ndarray]] = {}
     images = frames_table.set_index(FRAME_KEY)["image"]
     want = pd.MultiIndex.from_tuples(sorted(files))
@@ -446,5 +464,6 @@ def write_pixel_table(
     r = cfg.report
     t = pixel_table(frames, r.chance_draws, r.bootstrap, r.ci, cfg.seed, r.min_positive_images)
     write_text(out / "tableD_pixel.csv", t.to_csv(index=False, float_format="%.4f"))
-    write_text(out / "tableD_pixel.md", pixel_markdown(t))
-    return t
+    md = pixel_markdown(t)
+    write_text(out / "tableD_pixel.md", md)
+    return t, md

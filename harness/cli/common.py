@@ -1,4 +1,4 @@
-"""What the command handlers share: the run's config, its pipeline, a parquet reader."""
+"""What the command handlers share: the run's config, its pipeline, the detector's flags."""
 
 from __future__ import annotations
 
@@ -68,13 +68,6 @@ def pipeline_of(args: argparse.Namespace):
         force=bool(getattr(args, "force", False)),
         executor=make_executor(args.executor, args.address, args.ray_cpus),
     )
-
-
-def pd_read(path: Path):
-    """A parquet table (pandas imported only when a command needs it)."""
-    import pandas as pd
-
-    return pd.read_parquet(path)
 
 
 #: ``harness detect``'s flags that set a ``[detect]`` value, by the key they set (their

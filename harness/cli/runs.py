@@ -12,13 +12,11 @@ from harness.cli.common import (
     check_executor_flags,
     check_plugins_local,
     overrides_of,
-    pd_read,
     pipeline_of,
 )
 from harness.cli.console import print_block, print_localization, print_table_l
 from harness.config.assemble import Overrides, folders_config
 from harness.config.assemble import run_config as config_with
-from harness.detect.config import CONFIG_LOCALIZERS
 from harness.errors import HarnessError
 from harness.reports.alarm_words import alarm_words
 
@@ -113,8 +111,8 @@ def detect_sessions(args: argparse.Namespace) -> tuple[Any, str, list[str]]:
     return config_with(Path(args.config), ov, command="harness detect"), args.map, list(args.query)
 
 
-def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
-    """The ``top`` most changed frames of a detect run, by file name where there are names.
+def _print_most_changed(frames: Any, top: int, null: bool = False) -> None:
+    """The ``top`` most changed of a detect run's ``frames``, by file name where there are names.
 
     Uncertain pairs and pairs that are not comparable are left out (method §13.2, 13.5).
     ``null``: the scores are calibrated against the no-change null (else within the run), which
@@ -122,7 +120,7 @@ def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
     """
     from harness.reports.alarm_words import in_words
 
-    fr = pd_read(out / "frames.parquet").sort_values("score", ascending=False)
+    fr = frames.sort_values("score", ascending=False)
     if "uncertain_pair" in fr.columns:
         fr = fr[~fr["uncertain_pair"]]
     if "comparable" in fr.columns:  # a pair that could not be registered is never listed
@@ -142,29 +140,19 @@ def _print_most_changed(out: Path, top: int, null: bool = False) -> None:
         )
 
 
-def _print_alarms(al: dict[str, Any], cal: dict[str, Any]) -> None:
-    """What the nominal false-alarm rate flags, against what null, and where nothing is, in words.
-
-    ``cal``: ``detect.json``'s ``calibration`` (docs/decisions.md, *Calibrated alarms*).
-    """
-    print(alarm_words(al, cal))
-
-
 def cmd_detect(args: argparse.Namespace) -> int:
     """``harness detect``: change boxes, scores and maps of new sessions (method §13)."""
-    from harness.proposals.proposers import start_workers
+    from harness.apps.warm import start_detect_workers
 
     check_executor_flags(args)
     cfg, map_session, queries = detect_sessions(args)
     check_plugins_local(args)
-    # Selective Search's workers start while the detector's modules load (a second or so)
-    paired = () if cfg.detect.localizer == CONFIG_LOCALIZERS else (cfg.detect.proposals,)
-    start_workers(cfg.proposals, (*cfg.proposals.methods, *paired))
+    start_detect_workers(cfg)  # they load their modules while the detector's load
     from harness.apps.detect import run_detect
     from harness.pairs.modes import PAIRING_MODES
     from harness.runtime.executors import make_executor
 
-    rec = run_detect(
+    result = run_detect(
         cfg,
         map_session,
         queries,
@@ -172,15 +160,18 @@ def cmd_detect(args: argparse.Namespace) -> int:
         executor=make_executor(args.executor, args.address, args.ray_cpus),
         rerun=Path(args.rerun) if args.rerun else None,
     )
-    out = Path(args.out)
+    out, rec = Path(args.out), result.record
     names = rec.get("folders") or [rec["map"], *rec["queries"]]  # a folder run: its folders
     print(
         f"detect: {rec['query_frames']} query frames of {', '.join(names[1:])} against the "
         f"map {names[0]}, {rec['detections']} change boxes, {rec['ms_per_query_frame']:.1f} "
         f"ms per query frame ({rec['total_s']:.1f} s)"
     )
-    _print_most_changed(out, cfg.detect.top, rec.get("calibration", {}).get("method") == "null")
-    _print_alarms(rec["alarm"], rec.get("calibration", {}))
+    null = rec.get("calibration", {}).get("method") == "null"
+    _print_most_changed(result.frames, cfg.detect.top, null)
+    print(
+        alarm_words(rec["alarm"], rec.get("calibration", {}))
+    )  # docs/decisions.md, *Calibrated alarms*
     agree = rec.get("pairing", {}).get("agreement_with_pose_pairs")
     if rec.get("pairing"):
         by = rec["pairing"]["by"]
@@ -208,10 +199,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
             f"dropped {rec['thin_boxes_dropped']} candidate boxes under "
             f"{rec['options']['min_box_side']:g} px a side ([detect] min_box_side)"
         )
-    if rec.get("table_d"):
-        print((out / "tableD.md").read_text())
-    if rec.get("table_d_pixel"):
-        print((out / "tableD_pixel.md").read_text())
+    if result.table_d_markdown:
+        print(result.table_d_markdown)
+    if result.pixel_markdown:
+        print(result.pixel_markdown)
     print(
         f"outputs in {out}: detections.json + images.json (COCO), frames.parquet/.csv, "
         f"locmaps/, trajectory.png, detect.html"

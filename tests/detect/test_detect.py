@@ -395,7 +395,7 @@ def test_detect_resumes_after_a_kill_at_the_next_chunk(
         detect.run_detect(cfg, MAP, [QUERY], o)
     assert not (o / "detections.json").exists()
     monkeypatch.setattr(detect, "detect_chunk", real)
-    rec = detect.run_detect(cfg, MAP, [QUERY], o)
+    rec = detect.run_detect(cfg, MAP, [QUERY], o).record
     assert rec["stage_units_run"]["detect"] == 4 - 2  # the two chunks finished before the kill
     assert (o / "detections.json").read_bytes() == (a / "detections.json").read_bytes()
     assert (o / "frames.csv").read_bytes() == (a / "frames.csv").read_bytes()

@@ -186,11 +186,11 @@ def test_detect_runs_its_chunks_on_ray_and_writes_what_the_local_run_writes(
     shutil.copytree(out / "cache" / "ingest", local / "cache" / "ingest")
     shutil.copy(out / ".dbl-harness.json", local / ".dbl-harness.json")
     with shared_stages(tmp_path_factory, "detect-run", local):  # tests/detect's model and ranks
-        runs["local"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], local)
+        runs["local"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], local).record
     # the stages before detect's chunks from the local run (their Ray runs are test_ray_run_...)
     shutil.copytree(local / "cache", ray_out / "cache", ignore=shutil.ignore_patterns("detect"))
     shutil.copy(out / ".dbl-harness.json", ray_out / ".dbl-harness.json")
-    runs["ray"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], ray_out, executor)
+    runs["ray"] = run_detect(cfg, "2012-01-22", ["2012-03-31"], ray_out, executor).record
     query_frames = len(pd.read_parquet(tmp_path / "local" / "frames.parquet"))
     chunks = -(-query_frames // 16)  # the query frames in chunks of chunk_frames = 16
     assert runs["ray"]["stage_units_run"]["detect"] == runs["local"]["stage_units_run"]["detect"]
