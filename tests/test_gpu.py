@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.retrieval import image_ranks
+from harness.retrieval import Engine, image_ranks
 
 pytestmark = [
     pytest.mark.gpu,
@@ -27,8 +27,8 @@ def test_cuda_ranks_equal_cpu_ranks_up_to_float_ties() -> None:
     ).astype(np.float32)
     gt = frame[rng.choice(len(db), 3000)]
     place = [np.array([g, min(g + 1, 1249)]) for g in gt]
-    cpu = image_ranks(q, db, frame, gt, place, device="cpu")
-    gpu = image_ranks(q, db, frame, gt, place, device="cuda")
+    cpu = image_ranks(q, db, frame, gt, place, engine=Engine(device="cpu"))
+    gpu = image_ranks(q, db, frame, gt, place, engine=Engine(device="cuda"))
     np.testing.assert_array_equal(cpu[1], gpu[1])  # L
     np.testing.assert_allclose(cpu[2], gpu[2], rtol=1e-6)  # d is recomputed exactly on the host
     differ = np.nonzero(cpu[0] != gpu[0])[0]

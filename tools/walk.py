@@ -2,14 +2,13 @@
 
 Runs a command line under a profiler and follows, from the command's handler (``cmd_detect``),
 each call that hands on what the command line said: the parsed arguments, the overrides, the
-assembled config or its detector (``[detect]``; ``--sections``: every config section too).
-Each such call is kept once, at its first time, in the order they happen (code a reader can open:
-not a dataclass's generated ``__init__``). The walk is the files of those calls in that order; a *stay* is a run of calls in one file; a *climb* is a stay in a higher layer of the
-house than the one before (``tests/test_layout.py``'s layers); a *return* is a stay in a file
-already left.
+assembled config or its detector (``[detect]``; ``--sections``: every config section too). Each
+such call is kept once, at its first time, in the order they happen (code a reader can open: not
+a dataclass's generated ``__init__``). The walk is the files of those calls in that order; a
+*stay* is a run of calls in one file; a *climb* is a stay in a higher layer of the house than the
+one before (``tests/test_layout.py``'s layers); a *return* is a stay in a file already left.
 
-    python tools/walk.py -- detect --config datasets/fixture-detect.toml --map 2012-01-22 \
-        --query 2012-03-31 --out /tmp/walk
+    python tools/walk.py -- detect --map-images A --query-images B --out /tmp/walk
 """
 
 from __future__ import annotations

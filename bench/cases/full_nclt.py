@@ -57,7 +57,7 @@ def rank_job(m: int, nq: int, dim: int, sessions: int, memory_mb: float) -> None
     Queries are noisy copies of database rows (so ground-truth ranks spread like a working
     localizer's); 16 rows per frame; the place is G alone. Prints seconds, peaks and disk.
     """
-    from harness.retrieval import image_ranks
+    from harness.retrieval import Engine, image_ranks
 
     stop, peak = anon_peak_poller()
     secs, disk, r1 = [], 0, []
@@ -74,7 +74,11 @@ def rank_job(m: int, nq: int, dim: int, sessions: int, memory_mb: float) -> None
         q += 0.35 * rng.standard_normal(q.shape, dtype=np.float32) / np.sqrt(dim)
         t0 = time.perf_counter()
         rank, _, _ = image_ranks(
-            q, db, frame, frame[pick], chunk_rows=8192, query_batch=1024, memory_mb=memory_mb
+            q,
+            db,
+            frame,
+            frame[pick],
+            engine=Engine(chunk_rows=8192, query_batch=1024, memory_mb=memory_mb),
         )
         secs.append(time.perf_counter() - t0)
         r1.append(float((rank == 1).mean()))

@@ -31,7 +31,7 @@ def case_ranking(quick: bool) -> None:
     """
     import torch
 
-    from harness.retrieval import image_ranks, image_ranks_faiss
+    from harness.retrieval import Engine, FaissSearch, image_ranks, image_ranks_faiss
 
     peak = matmul_gflops()
     dim = 16384
@@ -48,7 +48,7 @@ def case_ranking(quick: bool) -> None:
         gt = rng.choice(np.unique(frame), nq)
         full = np.asarray(db, np.float32) if m <= 10_000 else None
         flops = 2 * nq * m * dim
-        image_ranks(q, db, frame, gt, chunk_rows=8192, query_batch=1024)  # warm
+        image_ranks(q, db, frame, gt, engine=Engine(chunk_rows=8192, query_batch=1024))  # warm
         # Interleaved rounds: this machine's rate drifts by tens of percent within a minute, so
         # each round measures the sgemm rate, the engine and the numpy baseline back to back and
         # the ratios are taken within a round; the order of engine and baseline alternates
@@ -61,7 +61,9 @@ def case_ranking(quick: bool) -> None:
         def run_engine(db=db, frame=frame, gt=gt) -> float:
             time.sleep(0.5)
             (t,) = timed(
-                lambda: image_ranks(q, db, frame, gt, chunk_rows=8192, query_batch=1024),
+                lambda: image_ranks(
+                    q, db, frame, gt, engine=Engine(chunk_rows=8192, query_batch=1024)
+                ),
                 repeat=1,
             )
             return t
@@ -112,7 +114,7 @@ def case_ranking(quick: bool) -> None:
         if m == max(sizes):
             small = timed(
                 lambda db=db, frame=frame, gt=gt: image_ranks(
-                    q[:256], db, frame, gt[:256], chunk_rows=8192, query_batch=256
+                    q[:256], db, frame, gt[:256], engine=Engine(chunk_rows=8192, query_batch=256)
                 ),
                 repeat=1,
             )
@@ -133,7 +135,9 @@ def case_ranking(quick: bool) -> None:
                 "timed), no per-frame minimum, no exact d; interleaved with the engine's rounds",
             )
             fr = timed(
-                lambda full=full, frame=frame, gt=gt: image_ranks_faiss(q, full, frame, gt, k=256),
+                lambda full=full, frame=frame, gt=gt: image_ranks_faiss(
+                    q, full, frame, gt, search=FaissSearch(k=256)
+                ),
                 repeat=1,
             )
             emit(f"rank faiss flat k=256 db={m}", [nq / t for t in fr], "query subimages/s")

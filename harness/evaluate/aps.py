@@ -226,7 +226,7 @@ def pooled_rows(
         else:
             ap = stratified_ap(y, sc, sb, edges)[0]
             floor = chance.stratified_chance(y, sb, edges, draws, cfg.seed)
-            boot = partial(bootstrap_aps, y, sc, g, stat="stratified", sob=sb, edges=edges)
+            boot = partial(bootstrap_aps, y, sc, g, strata=(sb, edges))
 
         pooled.add(
             m,

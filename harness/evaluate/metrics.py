@@ -224,9 +224,7 @@ def bootstrap_aps(
     group_index: np.ndarray,
     counts: np.ndarray,
     weights: np.ndarray | None = None,
-    stat: str = "ap",
-    sob: np.ndarray | None = None,
-    edges: np.ndarray | None = None,
+    strata: tuple[np.ndarray, np.ndarray] | None = None,
     block_bytes: int = 64 << 20,
 ) -> np.ndarray:
     """AP (or stratified AP) of every resample; ``counts`` from :func:`resample_counts`.
@@ -240,10 +238,9 @@ def bootstrap_aps(
         scores: (n,) LoC, higher = more likely changed.
         group_index: (n,) the query image (0..n_groups-1) of each sample.
         weights: optional per-sample weights (pixel areas), multiplied by the group's multiplicity.
-        stat: ``ap`` or ``stratified`` (needs ``sob`` and ``edges``).
         counts: (n_boot, n_groups) multiplicity of each query image in each resample.
-        sob: (n,) SoB of each sample (``stratified``).
-        edges: the SoB strata edges (``stratified``).
+        strata: (sob, edges): the stratified AP (:func:`stratified_ap`) of the samples' SoB
+            ``sob`` (n,) in the strata of ``edges``; None: the plain AP.
         block_bytes: the largest weight matrix evaluated at once, bytes.
 
     Returns:
@@ -253,9 +250,8 @@ def bootstrap_aps(
     scores = np.asarray(scores, np.float64)
     n = len(labels)
     base = np.ones(n) if weights is None else np.asarray(weights, np.float64)
-    if stat == "stratified":
-        e = np.asarray(edges, np.float64)
-        sb = np.asarray(sob, np.float64)
+    if strata is not None:
+        sb, e = np.asarray(strata[0], np.float64), np.asarray(strata[1], np.float64)
         k = np.clip(np.searchsorted(e, sb, side="right") - 1, 0, len(e) - 2)
         inside = (sb >= e[0]) & (sb <= e[-1])
         parts = [
@@ -267,7 +263,7 @@ def bootstrap_aps(
     step = max(1, int(block_bytes // max(8 * n, 1)))
     for b0 in range(0, len(counts), step):
         w = base[None, :] * counts[b0 : b0 + step][:, group_index]
-        if stat != "stratified":
+        if strata is None:
             out[b0 : b0 + step] = parts[0].aps(w)[0]
             continue
         num = np.zeros(len(w))

@@ -9,8 +9,8 @@ rows.
 from __future__ import annotations
 
 from harness.retrieval.distances import frame_min_sqdist_chunk
-from harness.retrieval.engines import image_ranks
-from harness.retrieval.faiss_search import image_ranks_faiss
+from harness.retrieval.engines import Engine, image_ranks
+from harness.retrieval.faiss_search import FaissSearch, image_ranks_faiss
 from harness.retrieval.layout import Ranks
 from harness.retrieval.units import (
     RANK_COUNTS,
@@ -21,6 +21,8 @@ from harness.retrieval.units import (
 
 __all__ = [
     "RANK_COUNTS",
+    "Engine",
+    "FaissSearch",
     "Ranks",
     "described_frames",
     "frame_min_sqdist_chunk",

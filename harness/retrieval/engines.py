@@ -17,9 +17,11 @@ whose ground-truth frame is found among the top k; otherwise a lower bound, flag
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -67,18 +69,32 @@ def _chunks(starts: np.ndarray, m: int, chunk_rows: int) -> list[tuple[int, int]
     return out
 
 
+@dataclass(frozen=True)
+class Engine:
+    """How :func:`image_ranks` streams the database and multiplies.
+
+    ``chunk_rows``: database rows per streamed chunk; ``query_batch``: queries per matrix
+    product; ``device``: ``"cpu"`` or ``"cuda"`` (float32 products; float16 rows converted on the
+    device); ``memory_mb``: the budget (MiB) of the per-group (queries x frames) matrices,
+    :data:`CELL_BYTES` per cell; ``precision``: the candidate product, ``fp32``, or ``bf16``
+    (centred vectors, a bfloat16 product: its bound, :func:`bf16_error_factor`, leaves frames to
+    measure exactly).
+    """
+
+    chunk_rows: int = 8192
+    query_batch: int = 1024
+    device: str | torch.device = "cpu"
+    memory_mb: float = 1024.0
+    precision: str = "fp32"
+
+
 def image_ranks(
     query_desc: np.ndarray,
     db_desc: np.ndarray,
     db_frame: np.ndarray,
     gt_frame: np.ndarray,
     place: Sequence[np.ndarray] | None = None,
-    *,
-    chunk_rows: int = 8192,
-    query_batch: int = 1024,
-    device: str | torch.device = "cpu",
-    memory_mb: float = 1024.0,
-    precision: str = "fp32",
+    engine: Engine = Engine(),
     stats: dict[str, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact image-level ranks of the ground-truth places.
@@ -104,13 +120,7 @@ def image_ranks(
         gt_frame: (n,) ground-truth frame id of each query (must occur in ``db_frame``).
         place: per query, the frame ids of its ground-truth place P(G) (G is always added; ids
             with no database row are ignored). None: P(G) = {G}, the literal single-frame rank.
-        chunk_rows: Database rows per streamed chunk.
-        query_batch: Queries per matrix product.
-        device: ``"cpu"`` or ``"cuda"`` (float32 products; float16 rows converted on the device).
-        memory_mb: Budget (MiB) of the per-group (queries x frames) matrices, :data:`CELL_BYTES` per
-            cell.
-        precision: The candidate product: ``fp32``, or ``bf16`` (centred vectors, a bfloat16
-            product: its bound, :func:`bf16_error_factor`, leaves frames to measure exactly).
+        engine: how the database is streamed and multiplied (:class:`Engine`).
         stats: Where given, counts are added to it: ``compared`` (query x frame comparisons) and
             ``measured_exactly`` (those the bound left to the exact measurement).
 
@@ -123,26 +133,23 @@ def image_ranks(
     """
     db_frame = np.asarray(db_frame)
     gt_frame = np.asarray(gt_frame)
-    _check_inputs(query_desc, db_desc, db_frame, gt_frame, precision)
+    _check_inputs(query_desc, db_desc, db_frame, gt_frame, engine.precision)
     order, frame_ids, starts = frame_layout(db_frame)
     L = len(frame_ids)
     pcols = place_columns(frame_ids, gt_frame, place)
     n = len(query_desc)
-    group = max(1, int(memory_mb * 2**20 // (CELL_BYTES * max(L, 1))))
-    chunk_rows = _chunk_rows(chunk_rows, torch.device(device), db_desc.shape[1])
+    group = max(1, int(engine.memory_mb * 2**20 // (CELL_BYTES * max(L, 1))))
+    rows = _chunk_rows(engine.chunk_rows, torch.device(engine.device), db_desc.shape[1])
+    run = dataclasses.replace(engine, chunk_rows=rows)
     rank, Lq, dist = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.float64))
     for g0 in range(0, n, group):
         g = slice(g0, min(n, g0 + group))
         rank[g], Lq[g], dist[g] = _rank_group(
             query_desc[g],
             db_desc,
-            order,
-            starts,
+            (order, starts),
             pcols[g],
-            chunk_rows,
-            query_batch,
-            torch.device(device),
-            precision == "bf16",
+            run,
             stats if stats is not None else {},
         )
     return rank, Lq, dist
@@ -213,13 +220,9 @@ def _place_ranks(fm: torch.Tensor, qi: np.ndarray, pc: np.ndarray) -> tuple[np.n
 def _rank_group(
     query_desc: np.ndarray,
     db_desc: np.ndarray,
-    order: np.ndarray,
-    starts: np.ndarray,
+    layout: tuple[np.ndarray, np.ndarray],
     pcols: list[np.ndarray],
-    chunk_rows: int,
-    query_batch: int,
-    dev: torch.device,
-    bf16: bool,
+    engine: Engine,
     stats: dict[str, int],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`image_ranks` for one group of queries: one pass over the database.
@@ -228,9 +231,13 @@ def _rank_group(
     a fresh multi-megabyte tensor per chunk costs its page faults, as much as the float16
     conversion itself. While a chunk's rows and distances are at hand, the rows of each query's
     place that may hold its exact ``d`` are measured (:class:`ExactPlace`): no second pass.
-    ``bf16``: the products in bfloat16 of vectors centred on the group's mean query (smaller
-    norms, a tighter bound), each frame's largest centred row norm kept for the bound.
+    ``layout``: the database rows in frame order and each frame's first (:func:`frame_layout`);
+    ``engine``: its chunk rows fitted to the device (:func:`_chunk_rows`). In ``bf16`` the
+    products are in bfloat16 of vectors centred on the group's mean query (smaller norms, a
+    tighter bound), each frame's largest centred row norm kept for the bound.
     """
+    (order, starts), dev, bf16 = layout, torch.device(engine.device), engine.precision == "bf16"
+    chunk_rows, query_batch = engine.chunk_rows, engine.query_batch
     L, n = len(starts), len(query_desc)
     contiguous = bool(np.all(order == np.arange(len(order))))
     bounds = np.concatenate([starts, [len(order)]])

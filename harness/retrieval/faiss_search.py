@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -18,25 +19,36 @@ from harness.retrieval.layout import Ranks, frame_layout, place_columns
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class FaissSearch:
+    """The top-k search of :func:`image_ranks_faiss`.
+
+    ``k`` neighbours per query subimage; ``nlist`` > 0: an IVF index of that many lists (trained
+    on a sample drawn with ``seed``), ``nprobe`` of them searched; 0: a flat index.
+    """
+
+    k: int = 256
+    nlist: int = 0
+    nprobe: int = 8
+    seed: int = 0
+
+
 def image_ranks_faiss(
     query_desc: np.ndarray,
     db_desc: np.ndarray,
     db_frame: np.ndarray,
     gt_frame: np.ndarray,
     place: Sequence[np.ndarray] | None = None,
-    *,
-    k: int = 256,
-    nlist: int = 0,
-    nprobe: int = 8,
-    seed: int = 0,
+    search: FaissSearch = FaissSearch(),
 ) -> Ranks:
     """Approximate ranks from a faiss top-k subimage search.
 
     ``d`` is computed exactly from the place's own rows. Frames outside the place among the top k
     with a smaller distance are counted; when the k-th distance is still below ``d`` frames
     beyond the top k may be better too, so the rank is a lower bound and ``exact`` is False.
-    ``place`` as in :func:`image_ranks`.
+    ``place`` as in :func:`image_ranks`; ``search``: the top k and the index.
     """
+    k, nlist, nprobe, seed = search.k, search.nlist, search.nprobe, search.seed
     try:
         import faiss
     except ImportError as err:  # pragma: no cover - faiss is in the dev extra

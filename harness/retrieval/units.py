@@ -21,8 +21,8 @@ from harness.pairs.pose import thin_by_stride
 from harness.records import FRAME_KEY, SUBIMAGE_KEY
 from harness.retrieval.bovw import bovw_ranks, load_words
 from harness.retrieval.config import RetrievalConfig
-from harness.retrieval.engines import image_ranks
-from harness.retrieval.faiss_search import image_ranks_faiss
+from harness.retrieval.engines import Engine, image_ranks
+from harness.retrieval.faiss_search import FaissSearch, image_ranks_faiss
 from harness.retrieval.places import ground_truth_places, places_by_order
 from harness.runtime.cache import read_cached_parquet
 
@@ -268,8 +268,7 @@ def _ranks_by_engine(
             db_frame,
             gt,
             place,
-            nlist=rc.faiss_nlist,
-            nprobe=rc.faiss_nprobe,
+            search=FaissSearch(nlist=rc.faiss_nlist, nprobe=rc.faiss_nprobe),
         )
         rank, L, dist, exact = res.rank, res.L, res.dist, res.exact
         # recall against the exact engine on a deterministic sample of the queries
@@ -280,9 +279,7 @@ def _ranks_by_engine(
             db_frame,
             gt[:k],
             place[:k],
-            chunk_rows=rc.chunk_rows,
-            device=device,
-            memory_mb=rc.memory_mb,
+            engine=Engine(chunk_rows=rc.chunk_rows, device=device, memory_mb=rc.memory_mb),
         )
         counts["faiss_checked"] = counts.get("faiss_checked", 0) + k
         counts["faiss_rank_equal_exact"] = counts.get("faiss_rank_equal_exact", 0) + int(
@@ -296,12 +293,14 @@ def _ranks_by_engine(
             db_frame,
             gt,
             place,
-            chunk_rows=rc.chunk_rows,
-            query_batch=rc.query_batch,
-            device=device,
-            memory_mb=rc.memory_mb,
-            precision=precision,
             stats=counts if precision == "bf16" else None,
+            engine=Engine(
+                chunk_rows=rc.chunk_rows,
+                query_batch=rc.query_batch,
+                device=device,
+                memory_mb=rc.memory_mb,
+                precision=precision,
+            ),
         )
         exact = np.ones(len(rank), bool)
     return rank, L, dist, exact

@@ -269,7 +269,7 @@ def test_bootstrap_sorted_once_equals_each_resample_computed_alone() -> None:
         atol=1e-12,
     )
     np.testing.assert_allclose(
-        bootstrap_aps(y, s, g, c, stat="stratified", sob=sob, edges=edges),
+        bootstrap_aps(y, s, g, c, strata=(sob, edges)),
         [stratified_ap(y, s, sob, edges, cc[g].astype(float))[0] for cc in c],
         rtol=0,
         atol=1e-12,

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from harness.errors import RetrievalError
-from harness.retrieval import image_ranks, image_ranks_faiss
+from harness.retrieval import Engine, FaissSearch, image_ranks, image_ranks_faiss
 
 
 def brute(
@@ -43,7 +43,7 @@ def test_matches_brute_force_with_several_subimages_per_frame(chunk: int, batch:
     frame = rng.integers(100, 140, 300)
     q = rng.normal(size=(25, 6)).astype(np.float32)
     gt = rng.choice(np.unique(frame), 25)
-    r, L, d = image_ranks(q, db, frame, gt, chunk_rows=chunk, query_batch=batch)
+    r, L, d = image_ranks(q, db, frame, gt, engine=Engine(chunk_rows=chunk, query_batch=batch))
     br, bl, bd = brute(q, db, frame, gt)
     assert np.array_equal(bl, L) and np.array_equal(r, br)
     np.testing.assert_allclose(d, bd, rtol=1e-4, atol=1e-4)
@@ -60,7 +60,9 @@ def test_place_matches_brute_force(chunk: int, batch: int) -> None:
     place = [
         np.array(sorted({int(g), *rng.integers(95, 145, rng.integers(0, 4)).tolist()})) for g in gt
     ]
-    r, L, d = image_ranks(q, db, frame, gt, place, chunk_rows=chunk, query_batch=batch)
+    r, L, d = image_ranks(
+        q, db, frame, gt, place, engine=Engine(chunk_rows=chunk, query_batch=batch)
+    )
     br, bl, bd = brute(q, db, frame, gt, place)
     assert np.array_equal(r, br) and np.array_equal(L, bl)
     np.testing.assert_allclose(d, bd, rtol=1e-6, atol=1e-6)
@@ -167,12 +169,12 @@ def test_faiss_is_exact_where_it_says_so() -> None:
     q = rng.normal(size=(40, 8)).astype(np.float32)
     gt = rng.choice(np.unique(frame), 40)
     exact, _, dist = image_ranks(q, db, frame, gt)
-    res = image_ranks_faiss(q, db, frame, gt, k=64)
+    res = image_ranks_faiss(q, db, frame, gt, search=FaissSearch(k=64))
     assert res.exact.any()
     assert np.array_equal(res.rank[res.exact], exact[res.exact])
     assert (res.rank[~res.exact] <= exact[~res.exact]).all()  # a lower bound otherwise
     np.testing.assert_allclose(res.dist, dist, rtol=1e-4)
-    full = image_ranks_faiss(q, db, frame, gt, k=500)
+    full = image_ranks_faiss(q, db, frame, gt, search=FaissSearch(k=500))
     assert full.exact.all() and np.array_equal(full.rank, exact)
 
 
@@ -187,9 +189,9 @@ def test_a_memory_budget_ranks_in_groups_with_the_same_result() -> None:
     q = rng.standard_normal((37, 8)).astype(np.float32)
     gt = rng.choice(150, 37)
     place = [np.array([g, (g + 1) % 150]) for g in gt]
-    whole = image_ranks(q, db, frame, gt, place, chunk_rows=64)
+    whole = image_ranks(q, db, frame, gt, place, engine=Engine(chunk_rows=64))
     for mb in (1e-6, 150 * 16 * 5 / 2**20):  # one query per group; five per group
-        got = image_ranks(q, db, frame, gt, place, chunk_rows=64, memory_mb=mb)
+        got = image_ranks(q, db, frame, gt, place, engine=Engine(chunk_rows=64, memory_mb=mb))
         for a, b in zip(whole, got, strict=True):
             np.testing.assert_array_equal(a, b)
 
@@ -237,7 +239,9 @@ def test_d_is_bit_for_bit_the_float64_difference_with_near_ties(dtype: type) -> 
     place = [np.array([3 * (g // 3), 3 * (g // 3) + 1, 3 * (g // 3) + 2]) for g in gt]
     want = _exact_d(q, db, frame, place)
     for chunk, batch in ((8192, 1024), (20, 7)):
-        _, _, d = image_ranks(q, db, frame, gt, place, chunk_rows=chunk, query_batch=batch)
+        _, _, d = image_ranks(
+            q, db, frame, gt, place, engine=Engine(chunk_rows=chunk, query_batch=batch)
+        )
         np.testing.assert_array_equal(d, want)
 
 
@@ -360,14 +364,14 @@ def test_bf16_candidates_give_exact_ranks_and_d(dim: int, scale: float, offset: 
             frame,
             gt,
             place,
-            chunk_rows=chunk,
-            query_batch=batch,
-            precision="bf16",
             stats=stats,
+            engine=Engine(chunk_rows=chunk, query_batch=batch, precision="bf16"),
         )
         for a, b in zip(want, bf, strict=True):
             np.testing.assert_array_equal(a, b)
-        fp = image_ranks(q, db, frame, gt, place, chunk_rows=chunk, query_batch=batch)
+        fp = image_ranks(
+            q, db, frame, gt, place, engine=Engine(chunk_rows=chunk, query_batch=batch)
+        )
         np.testing.assert_array_equal(fp[1], bf[1])
         np.testing.assert_array_equal(fp[2], bf[2])
         assert np.array_equal(fp[0], bf[0]) == (offset == 0)
@@ -413,7 +417,7 @@ def test_bf16_ties_count_in_the_querys_favour() -> None:
     frame = np.repeat(np.arange(12), 4)
     q = rows[:1] + np.float32(0.01)
     stats: dict[str, int] = {}
-    r, L, _ = image_ranks(q, db, frame, np.array([0]), precision="bf16", stats=stats)
+    r, L, _ = image_ranks(q, db, frame, np.array([0]), stats=stats, engine=Engine(precision="bf16"))
     br, bl, _ = brute(q, db, frame, np.array([0]))
     assert r.tolist() == br.tolist() == [1] and L.tolist() == bl.tolist() == [12]
     assert stats["measured_exactly"] >= 1  # frame 1 could not be decided by the bound
@@ -422,5 +426,9 @@ def test_bf16_ties_count_in_the_querys_favour() -> None:
 def test_an_unknown_rank_precision_is_an_error() -> None:
     with pytest.raises(RetrievalError, match="precision"):
         image_ranks(
-            np.zeros((1, 2)), np.zeros((2, 2)), np.array([1, 2]), np.array([1]), precision="fp16"
+            np.zeros((1, 2)),
+            np.zeros((2, 2)),
+            np.array([1, 2]),
+            np.array([1]),
+            engine=Engine(precision="fp16"),
         )
