@@ -258,7 +258,7 @@ PROJECT_TESTS = frozenset(
         "test_doc_figures",
         "test_bench_command",
         "test_gpu",
-        "test_safety_third_pass",
+        "test_bad_input",
         "test_lock",
         "test_install",
         "test_doc_commands",

@@ -1,8 +1,8 @@
-"""The third hostile pass (issue: nothing silently wrong, no traceback).
+"""Bad input across the commands, as a user types it: nothing silently wrong, no traceback.
 
-Each case as a user types it: one ``ERROR:`` line naming the value and what is wrong, exit 1, or
-for a bug the last resort's one line and exit 2. Every case here failed before this pass (a
-traceback, a silent acceptance, or a message naming the wrong line or no flag).
+Each case: one ``ERROR:`` line naming the value and what is wrong, exit 1, or for a bug the last
+resort's one line and exit 2 (flags and config values that once failed deep in a stage, an output
+below a file, annotation and ground-truth files with bad lines, a broken tf tree).
 """
 
 from __future__ import annotations
