@@ -73,12 +73,6 @@ def parse(spec: str) -> Perturbation:
     return Perturbation(**values)
 
 
-def split_perturbed(uri: str) -> tuple[str, Perturbation | None]:
-    """(the original's URI, the perturbation) of a URI; None where it names no copy."""
-    base, sep, spec = uri.rpartition(PERTURB)
-    return (base, parse(spec)) if sep else (uri, None)
-
-
 def _wobbled(img: np.ndarray, p: Perturbation) -> np.ndarray:
     """``img`` displaced by a smooth random field of RMS ``p.wobble`` x the diagonal.
 

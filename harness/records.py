@@ -144,3 +144,7 @@ def season_of(session: str, seasons: dict[str, str] | None = None) -> str:
     if seasons and session in seasons:
         return seasons[session]
     return NCLT_SEASONS.get(session, session)
+
+
+#: The one category of every COCO file the harness reads and writes: a change.
+CHANGE_CATEGORY = {"id": 1, "name": "change"}

@@ -108,6 +108,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "harness.methods",
         "harness.inputs",
         "harness.checks",
+        "harness.boxes",
     ),
     ("harness.runtime", "harness.imagestore", "harness.perturb", "harness.features"),
     ("harness.ingest",),

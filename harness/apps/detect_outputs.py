@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from harness.boxes import FrameNMS
 from harness.config.schema import Config
-from harness.detect.boxes import FrameNMS
 from harness.detect.calibrate import Alarms, alarms_of, exceedance
 from harness.detect.chunk import FRAME_RESULT
 from harness.detect.pixels import mask_frames, masked_frame, pair_difference
@@ -27,7 +27,7 @@ from harness.fusion.fuse import loc_map
 from harness.imagestore import ImageRef, read_image
 from harness.ingest.names import session_names, with_names
 from harness.localizers.config import ALL_LOCALIZERS
-from harness.records import FRAME_KEY, QUERY_KEY, frame_keys
+from harness.records import CHANGE_CATEGORY, FRAME_KEY, QUERY_KEY, frame_keys
 from harness.reports.detect_figures import trajectory_figure
 from harness.reports.detect_page import write_detect_page
 from harness.reports.detect_run import DetectRun
@@ -108,7 +108,7 @@ def _frame_table(
     ]
     write_json(
         out / "images.json",
-        {"images": images, "categories": [{"id": 1, "name": "change", "supercategory": "change"}]},
+        {"images": images, "categories": [{**CHANGE_CATEGORY, "supercategory": "change"}]},
     )
     return fr, ids
 

@@ -17,13 +17,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.detect.boxes import (
-    candidate_boxes,
-    change_boxes_nms,
-    suppression,
-    with_area_prior,
-    with_prior,
-)
+from harness.boxes import greedy_nms, suppression
+from harness.detect.boxes import candidate_boxes, with_area_prior, with_prior
 from harness.detect.config import DetectConfig
 from harness.detect.pair import PairDifference, PairFeatures
 from harness.detect.plain import reference_boxes
@@ -113,8 +108,8 @@ def _frame_boxes_of(
     elif opt.box_prior == "difference_product":
         loc = np.maximum(diff, 0.0) * loc**opt.localization_weight + tier
     sup = suppression(boxes, opt.nms_iou)  # the same boxes for both
-    keep = change_boxes_nms(boxes, loc, opt.nms_iou, opt.max_boxes, sup)
-    rand = change_boxes_nms(boxes, rnd, opt.nms_iou, opt.max_boxes, sup)
+    keep = greedy_nms(boxes, loc, opt.nms_iou, opt.max_boxes, sup)
+    rand = greedy_nms(boxes, rnd, opt.nms_iou, opt.max_boxes, sup)
     return boxes, loc, keep, rand, rnd, int((~wide).sum()), diff
 
 

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from harness.records import FRAME_KEY
+from harness.records import CHANGE_CATEGORY, FRAME_KEY
 
 
 def _voc_all_point(tp: np.ndarray, scores: np.ndarray, n_gt: int) -> float:
@@ -51,7 +51,7 @@ def coco_results(
     return [
         {
             "image_id": int(i),
-            "category_id": 1,
+            "category_id": CHANGE_CATEGORY["id"],
             "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)],
             "score": float(s),
             **{k: v[j] for k, v in zip(names, cols, strict=True)},
@@ -165,30 +165,13 @@ def coco_ground_truth(
             {
                 "id": len(anns) + 1,
                 "image_id": ids[k],
-                "category_id": 1,
+                "category_id": CHANGE_CATEGORY["id"],
                 "bbox": [float(r.x1), float(r.y1), w, h],
                 "area": w * h,
                 "iscrowd": 0,
             }
         )
-    return {"images": imgs, "annotations": anns, "categories": [{"id": 1, "name": "change"}]}
-
-
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of every box of ``a`` (n, 4: x1 y1 x2 y2) with every box of ``b`` (m, 4), as COCO's."""
-    if not len(a) or not len(b):
-        return np.zeros((len(a), len(b)))
-    iw = np.clip(
-        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
-    )
-    ih = np.clip(
-        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
-    )
-    inter = iw * ih
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    union = area_a[:, None] + area_b[None, :] - inter
-    return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
+    return {"images": imgs, "annotations": anns, "categories": [dict(CHANGE_CATEGORY)]}
 
 
 def match50(iou: np.ndarray, order: np.ndarray) -> np.ndarray:

@@ -156,24 +156,6 @@ def average_precision(labels: np.ndarray, scores: np.ndarray) -> float:
     return _interp_ap(p, rec)
 
 
-def bootstrap_ap(
-    labels: np.ndarray, scores: np.ndarray, groups: np.ndarray, n_boot: int, ci: float, seed: int
-) -> tuple[float, float]:
-    """Percentile interval of AP when whole groups (query images) are resampled with replacement.
-
-    Returns (low, high); NaN when no resample has a positive or ``n_boot`` is 0.
-    """
-    if n_boot <= 0 or len(labels) == 0:
-        return float("nan"), float("nan")
-    uniq, inv = np.unique(groups, return_inverse=True)
-    return interval(
-        bootstrap_aps(
-            labels, np.asarray(scores, np.float64), inv, resample_counts(len(uniq), n_boot, seed)
-        ),
-        ci,
-    )
-
-
 def resample_counts(n_groups: int, n_boot: int, seed: int) -> np.ndarray:
     """(n_boot, n_groups) multiplicities of each group in ``n_boot`` resamples with replacement.
 

@@ -57,6 +57,29 @@ def pixel_regions(
     return area.ravel(), positive.ravel(), owner.ravel()
 
 
+def region_scores(
+    box_scores: np.ndarray, owner: np.ndarray, low: float | None = None
+) -> np.ndarray:
+    """(b, regions) scores of the regions of :func:`pixel_regions` from (b, boxes) box scores.
+
+    Each region takes its owner box's score; a region no box holds (``owner`` -1), and one whose
+    box has no finite score (a box that could not be scored is no box), takes ``low``: the
+    lowest finite score of its row where None (0 where the row has none), as the run's lowest LoC
+    for a method's own map.
+    """
+    s = np.atleast_2d(np.asarray(box_scores, np.float64))
+    ok = np.isfinite(s)
+    if low is None:
+        row_low = np.where(ok, s, np.inf).min(axis=1, keepdims=True, initial=np.inf)
+        floor: np.ndarray | float = np.where(np.isfinite(row_low), row_low, 0.0)
+    else:
+        floor = low
+    s = np.where(ok, s, floor)
+    if not s.shape[1]:
+        return np.broadcast_to(np.asarray(floor, np.float64), (len(s), len(owner))).copy()
+    return np.where(owner[None, :] >= 0, s[:, np.maximum(owner, 0)], floor)
+
+
 def pixel_image_rows(
     cfg: EvalSettings,
     samples: pd.DataFrame,
@@ -190,9 +213,7 @@ def _pixel_image_scores(
             key = "orig" if is_unfused(m) else "fused"
             area, pos, owner = regions[key]
             vals = locs[m][sets[key]]
-            px[m]["s"].append(
-                np.where(owner >= 0, vals[np.maximum(owner, 0)] if len(vals) else low[m], low[m])
-            )
+            px[m]["s"].append(region_scores(vals, owner, low[m])[0])
             px[m]["y"].append(pos)
             px[m]["w"].append(area)
             px[m]["g"].append(np.full(len(area), gid))
@@ -269,12 +290,10 @@ def _map_chance(
         starts = np.cumsum([0] + [len(u) for u in mp["units"][:-1]])
         img_y = np.asarray(mp["img_y"], bool)
 
-        def pixel_scores(s: np.ndarray, ru: np.ndarray = ru) -> np.ndarray:
-            low = s.min(axis=1, keepdims=True)
-            return np.where(ru[None, :] >= 0, s[:, np.maximum(ru, 0)], low)
-
-        def pixel(s: np.ndarray, y: np.ndarray = y, w: np.ndarray = w) -> np.ndarray:
-            return chance.aps_of_rows(y, pixel_scores(s), w)
+        def pixel(
+            s: np.ndarray, y: np.ndarray = y, w: np.ndarray = w, ru: np.ndarray = ru
+        ) -> np.ndarray:
+            return chance.aps_of_rows(y, region_scores(s, ru), w)
 
         def image(s: np.ndarray, starts: np.ndarray = starts, img_y: np.ndarray = img_y):
             return chance.aps_of_rows(img_y, np.maximum.reduceat(s, starts, axis=1))

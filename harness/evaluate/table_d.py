@@ -23,13 +23,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from harness.boxes import iou_matrix
 from harness.evaluate import chance
 from harness.evaluate.box_ap import (
     clopper_pearson,
     coco_eval,
     coco_ground_truth,
     coco_results,
-    iou_matrix,
     voc_at,
 )
 from harness.evaluate.table_d_chance import NO_PIXEL, difference_dets, table_d_chance

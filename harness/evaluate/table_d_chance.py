@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from harness.boxes import iou_matrix
 from harness.evaluate import chance
-from harness.evaluate.box_ap import iou_matrix, match50, match50_rows, weighted_voc
+from harness.evaluate.box_ap import match50, match50_rows, weighted_voc
 from harness.evaluate.metrics import interval, resample_counts
 
 #: Table D's rows that read the pair's pixels but no localizer: the plain difference with its own
@@ -80,7 +81,7 @@ def _random_score_aps(
     """AP50 of ``draws`` random scorings of the candidates, through the detector's NMS.
 
     Draw by draw, frame by frame in ``ids`` order, each frame's scores ``rng.random(n)``. Where
-    ``nms`` keeps boxes for many score rows at once (:meth:`harness.detect.boxes.FrameNMS.many`),
+    ``nms`` keeps boxes for many score rows at once (:meth:`harness.boxes.FrameNMS.many`),
     each frame's draws go through it together: the same numbers, boxes and APs.
     """
     if not hasattr(nms, "many"):

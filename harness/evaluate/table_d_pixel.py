@@ -29,6 +29,7 @@ from harness.evaluate.metrics import (
     resample_counts,
     weighted_average_precision,
 )
+from harness.evaluate.pixel_aps import region_scores
 from harness.evaluate.table_d import no_pixel_scores
 from harness.evaluate.table_d_chance import NO_PIXEL, PIXEL_BASELINES
 
@@ -105,12 +106,7 @@ class _Regions:
 
     def region_scores(self, s: np.ndarray) -> np.ndarray:
         """(b, regions) scores of (b, units) box scores; uncovered regions the row's lowest."""
-        s = np.atleast_2d(np.asarray(s, np.float64))
-        ok = np.isfinite(s)
-        low = np.where(ok, s, np.inf).min(axis=1, keepdims=True, initial=np.inf)
-        low = np.where(np.isfinite(low), low, 0.0)
-        s = np.where(ok, s, low)  # a box without a LoC (unaligned) scores as no box
-        return np.where(self.unit[None, :] >= 0, s[:, np.maximum(self.unit, 0)], low)
+        return region_scores(s, self.unit)  # a box without a LoC (unaligned) scores as no box
 
     def aps(self, s: np.ndarray) -> np.ndarray:
         """Pixel AP of each row of (b, units) box scores."""

@@ -24,7 +24,7 @@ from harness.ingest.annotations import (
     validate_annotations,
 )
 from harness.inputs import check_input, read_text
-from harness.records import FRAME_KEY, QUERY_KEY
+from harness.records import CHANGE_CATEGORY, FRAME_KEY, QUERY_KEY
 from harness.runtime.cache import atomic_dir, atomic_path, write_json
 from harness.runtime.outdirs import check_file_replaceable, check_replaceable, write_marker
 
@@ -203,7 +203,7 @@ def export_for_labelling(
             )
         write_json(
             tmp / "task.json",
-            {"images": images, "annotations": [], "categories": [{"id": 1, "name": "change"}]},
+            {"images": images, "annotations": [], "categories": [dict(CHANGE_CATEGORY)]},
         )
         write_marker(tmp, "labelling-task", record_entries=True)
     return Path(out)

@@ -16,6 +16,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from harness.boxes import nms
 from harness.methods import proposer
 from harness.proposals.config import (
     EdgesConfig,
@@ -46,24 +47,6 @@ def grid5(width: float, height: float) -> np.ndarray:
         ],
         dtype=np.float64,
     )
-
-
-def nms(
-    boxes: np.ndarray, scores: np.ndarray, iou: float, classes: np.ndarray | None = None
-) -> np.ndarray:
-    """Indices kept by (class-aware) non-maximum suppression, highest score first; ties by index."""
-    if len(boxes) == 0:
-        return np.zeros(0, np.int64)
-    xywh = np.column_stack(
-        [boxes[:, 0], boxes[:, 1], boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]]
-    )
-    cls = np.zeros(len(boxes), np.int32) if classes is None else classes.astype(np.int32)
-    kept = cv2.dnn.NMSBoxesBatched(
-        xywh.tolist(), scores.astype(float).tolist(), cls.tolist(), -1e9, float(iou)
-    )
-    keep = np.asarray(kept, np.int64).ravel()
-    order = np.lexsort((keep, -scores[keep]))
-    return keep[order]
 
 
 def working_copy(rgb: np.ndarray, work_width: int) -> tuple[np.ndarray, float]:

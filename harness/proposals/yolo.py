@@ -8,9 +8,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from harness.boxes import nms
 from harness.errors import ConfigError
 from harness.methods import proposer
-from harness.proposals.builtin import nms
 from harness.proposals.config import ProposalsConfig, YoloConfig
 
 

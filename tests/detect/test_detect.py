@@ -22,11 +22,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from harness.boxes import greedy_nms
 from harness.cli import main
 from harness.cli.parser import build_parser
 from harness.cli.runs import detect_overrides
 from harness.config.assemble import load_config, with_overrides
-from harness.detect.boxes import change_boxes_nms
 from harness.evaluate import chance
 from harness.evaluate.box_ap import _voc_all_point
 
@@ -254,9 +254,9 @@ def test_nms_keeps_the_highest_loc_and_drops_its_overlaps() -> None:
     boxes = np.array([[0, 0, 10, 10], [1, 1, 10, 10], [20, 20, 30, 30], [0, 0, 9, 10]], float)
     loc = np.array([0.5, 0.9, 0.1, np.nan])
     # box 1 (0.9) first; box 0 overlaps it at IoU 81/100 > 0.5: dropped; box 2 kept; NaN never
-    assert change_boxes_nms(boxes, loc, 0.5, 10).tolist() == [1, 2]
-    assert change_boxes_nms(boxes, loc, 0.9, 10).tolist() == [1, 0, 2]
-    assert change_boxes_nms(boxes, loc, 0.9, 2).tolist() == [1, 0]
+    assert greedy_nms(boxes, loc, 0.5, 10).tolist() == [1, 2]
+    assert greedy_nms(boxes, loc, 0.9, 10).tolist() == [1, 0, 2]
+    assert greedy_nms(boxes, loc, 0.9, 2).tolist() == [1, 0]
 
 
 def test_table_d_evaluator_on_boxes_whose_ap_is_known_by_hand() -> None:
@@ -640,7 +640,7 @@ def test_boxes_segments_with_contrast_as_typed(
 def test_segment_boxes_frame_coloured_objects_on_a_textured_scene() -> None:
     """A flat object and a checkered one on a noisy two-tone scene: each gets a box that fits it,
     the checkered one whole (its cells merged by the closings); the same image, the same boxes."""
-    from harness.evaluate.box_ap import iou_matrix
+    from harness.boxes import iou_matrix
     from harness.proposals.builtin import segment_boxes
     from harness.proposals.config import SegmentsConfig
 

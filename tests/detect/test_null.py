@@ -24,8 +24,8 @@ import pytest
 from harness.cli import main
 from harness.detect.config import NullConfig
 from harness.detect.null import construction_for, draw, null_choice, null_pairs
-from harness.imagestore import read_image
-from harness.perturb import Perturbation, apply, fragment, parse, split_perturbed
+from harness.imagestore import ImageRef, read_image
+from harness.perturb import Perturbation, apply, fragment, parse
 from harness.runtime.stage import Table
 
 
@@ -45,7 +45,8 @@ def test_a_copy_is_named_by_its_drawn_values_and_made_as_it_is_read(tmp_path: Pa
     cv2.imwrite(str(tmp_path / "a.png"), img[..., ::-1])
     p = Perturbation(1.08, -5.0, 0.01, -0.02, 1.5, 0.98, 0.004, 80)
     uri = str(tmp_path / "a.png") + fragment(p)
-    assert split_perturbed(uri) == (str(tmp_path / "a.png"), p)
+    ref = ImageRef.parse(uri)
+    assert (ref.path, ref.perturbed) == (str(tmp_path / "a.png"), p)
     assert parse(fragment(p).split("=", 1)[1]) == p
     got = read_image(uri)
     # by hand: gain and offset, the affine warp about the centre plus the shift, the blur, JPEG
@@ -126,8 +127,9 @@ def test_the_null_pairs_by_construction() -> None:
     refs = pt.frames.df.set_index(["camera", "utime"])["image"]
     imgs = [refs[(c, u)] for c, u in zip(pt.pairs.df["r_camera"], pt.pairs.df["r_utime"],
                                           strict=True)]  # fmt: skip
-    assert all(split_perturbed(i)[1] == draw(NullConfig(pairs=12), j) for j, i in enumerate(imgs))
-    assert [split_perturbed(i)[0] for i in imgs] == [f"/m/{j % 5}.png" for j in range(12)]
+    refs_ = [ImageRef.parse(i) for i in imgs]
+    assert all(r.perturbed == draw(NullConfig(pairs=12), j) for j, r in enumerate(refs_))
+    assert [r.path for r in refs_] == [f"/m/{j % 5}.png" for j in range(12)]
     assert pt.pairs.key != _null(frames, props, NullConfig(pairs=12, seed=1), "name").pairs.key
     # the map is a sequence where the pairs follow its order or poses; by name or retrieval not
     assert [construction_for(NullConfig(), by) for by in ("pose", "order", "sequence", "name",

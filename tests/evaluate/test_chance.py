@@ -141,7 +141,8 @@ def test_random_is_never_above_chance_and_other_noise_rarely_is() -> None:
 
 def test_match50_is_cocoeval_s_matching() -> None:
     """Table D's fast matcher gives pycocotools' VOC all-point AP50 exactly on random boxes."""
-    from harness.evaluate.box_ap import coco_eval, iou_matrix, match50, weighted_voc
+    from harness.boxes import iou_matrix
+    from harness.evaluate.box_ap import coco_eval, match50, weighted_voc
 
     rng = np.random.default_rng(5)
     for _ in range(15):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.detect.boxes import FrameNMS
-from harness.evaluate.box_ap import iou_matrix, match50, match50_rows
+from harness.boxes import FrameNMS, iou_matrix
+from harness.evaluate.box_ap import match50, match50_rows
 from harness.evaluate.table_d_chance import _random_score_aps
 
 

@@ -7,7 +7,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from harness.evaluate.metrics import average_precision, bootstrap_ap
+from harness.evaluate.metrics import (
+    average_precision,
+    bootstrap_aps,
+    interval,
+    resample_counts,
+)
 from harness.fusion.fuse import SMALL_CLOSURE, fuse, intersection_closure, loc_map, rows_of
 
 # Three boxes: A=[0,10]x[0,10], B=[5,15]x[5,15], C=[8,20]x[0,8]
@@ -217,11 +222,12 @@ def test_bootstrap_interval_brackets_ap() -> None:
     rng = np.random.default_rng(0)
     y = rng.random(400) < 0.3
     s = y + rng.normal(0, 0.8, 400)
-    groups = np.repeat(np.arange(40), 10)
-    lo, hi = bootstrap_ap(y, s, groups, 200, 0.95, 0)
+    groups = np.repeat(np.arange(40), 10)  # 40 query images of 10 samples: whole ones resampled
+    counts = resample_counts(40, 200, 0)
+    lo, hi = interval(bootstrap_aps(y, s, groups, counts), 0.95)
     ap = average_precision(y, s)
     assert lo < ap < hi and hi - lo < 0.4
-    assert bootstrap_ap(y, s, groups, 200, 0.95, 0) == (lo, hi)
+    assert interval(bootstrap_aps(y, s, groups, resample_counts(40, 200, 0)), 0.95) == (lo, hi)
 
 
 def test_resampled_aps_all_rows_at_once_equal_the_weighted_ap_of_each_row() -> None:

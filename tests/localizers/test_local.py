@@ -147,7 +147,7 @@ def test_the_config_reads_detect_local_and_a_local_localizer(tmp_path) -> None:
 def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
     """Table D's rows that read no pixel (method §13.3): a box's area, and how many of the frame's
     candidates overlap it (itself included); the detector is above only when clear of the best."""
-    from harness.detect.boxes import change_boxes_nms
+    from harness.boxes import greedy_nms
     from harness.evaluate.chance import ChanceSettings
     from harness.evaluate.table_d import no_pixel_scores
     from harness.evaluate.table_d_chance import table_d_chance
@@ -161,7 +161,7 @@ def test_the_no_pixel_baselines_of_table_d_by_hand() -> None:
     gts = {i: boxes[1:2] + 3 * i for i in range(8)}
 
     def nms(b: np.ndarray, sc: np.ndarray) -> np.ndarray:
-        return change_boxes_nms(b, sc, 0.5, 10)
+        return greedy_nms(b, sc, 0.5, 10)
 
     area = {i: (cands[i], no_pixel_scores(cands[i])["size_prior"]) for i in cands}
     rnd = np.random.default_rng(0)

@@ -12,8 +12,9 @@ import pandas as pd
 import pytest
 import torch
 
+from harness.boxes import nms
 from harness.errors import AnnotationError, ConfigError
-from harness.proposals.builtin import edge_boxes, grid5, nms
+from harness.proposals.builtin import edge_boxes, grid5
 from harness.proposals.config import EdgesConfig, ProposalsConfig, YoloConfig
 from harness.proposals.file import load_file_proposals
 from harness.proposals.proposers import compute_proposals
@@ -169,7 +170,7 @@ def test_edges_on_a_reduced_decode_find_the_boxes_of_the_full_frame(tmp_path: Pa
     frame's own pixels): at least 90% of them within IoU 0.9 of one, the same count within 10%."""
     import cv2
 
-    from harness.evaluate.box_ap import iou_matrix
+    from harness.boxes import iou_matrix
     from harness.proposals.proposers import _image_proposals
 
     rng = np.random.default_rng(0)
