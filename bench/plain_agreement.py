@@ -24,8 +24,7 @@ import pandas as pd  # isort: skip
 
 from harness.detect.pair import PairDifference  # isort: skip
 from harness.detect.plain import reference_boxes  # isort: skip
-from harness.evaluate.box_ap import iou_matrix  # isort: skip
-from harness.proposals.builtin import nms  # isort: skip
+from harness.boxes import iou_matrix, nms  # isort: skip
 from harness.proposals.config import SelectiveConfig  # isort: skip
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "realdata"

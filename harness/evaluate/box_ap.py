@@ -1,6 +1,7 @@
 """Table D's box AP (method §13.1): pycocotools' evaluation beside the VOC all-point AP.
 
-Box IoU, matching at IoU 0.5, and the exact (Clopper-Pearson) interval of a rate.
+Matching at IoU 0.5 (the boxes' IoU is :func:`harness.boxes.iou_matrix`'s) and the exact
+(Clopper-Pearson) interval of a rate.
 """
 
 from __future__ import annotations
