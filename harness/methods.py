@@ -171,18 +171,6 @@ def add_rule(rule: FusionRule) -> None:
     METHOD_LABELS[rule.name] = rule.label
 
 
-#: ``harness detect``'s box generators (method §13.1, ``[detect] boxes``), the default first.
-BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
-#: What a candidate box's score is fused with (``[detect] box_prior``, method §13.3): its area, or
-#: nothing (the score alone, as the paper's detector).
-BOX_PRIORS = ("area", "difference", "difference_product", "none")
-#: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
-BOX_SCORES = ("max", "mean", "contrast")
-#: ``[detect] calibration``: the no-change null (docs/decisions.md, *Calibrated alarms*) or the
-#: run's own scores (the share of the run's frames and candidate boxes that score as high).
-CALIBRATIONS = ("null", "within-run")
-
-
 @dataclass(frozen=True)
 class Proposer:
     """One proposal method of the catalogue (method §5): what it reads, and its function.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from dataclasses import dataclass
@@ -13,16 +12,10 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from harness.boxes import FrameNMS
-from harness.config.schema import Config
+from harness.apps.detect_tables import write_pixel_table, write_table_d
 from harness.detect.calibrate import Alarms, alarms_of, exceedance
 from harness.detect.chunk import FRAME_RESULT
-from harness.detect.pixels import mask_frames, masked_frame, pair_difference
-from harness.errors import AnnotationError
 from harness.evaluate.box_ap import coco_results
-from harness.evaluate.chance import ChanceSettings
-from harness.evaluate.table_d import TableDInputs, score_detections
-from harness.evaluate.table_d_pixel import pixel_table
 from harness.fusion.fuse import loc_map
 from harness.imagestore import ImageRef, read_image
 from harness.ingest.names import session_names, with_names
@@ -32,8 +25,6 @@ from harness.reports.detect_figures import trajectory_figure
 from harness.reports.detect_page import write_detect_page
 from harness.reports.detect_run import DetectRun
 from harness.reports.overlay import colour_bar, drawn_boxes, frame_drawn_boxes
-from harness.reports.table_d import table_d_markdown
-from harness.reports.table_dp import pixel_markdown
 from harness.runtime.cache import (
     read_cached_parquet,
     write_json,
@@ -173,56 +164,6 @@ def _drawn(out: Path, dets: pd.DataFrame, fr: pd.DataFrame) -> pd.DataFrame:
     return dets
 
 
-def _table_d(
-    run: DetectRun, fr: pd.DataFrame, dets: pd.DataFrame, ids: dict[tuple[str, str, int], int]
-) -> tuple[pd.DataFrame, str] | None:
-    """Table D on the annotated frames, from the candidates of those frames only, and its text."""
-    out, cfg, ann, entries, opt = run.p.out, run.cfg, run.ann, run.entries, run.opt
-    annotated = pd.MultiIndex.from_frame(ann[FRAME_KEY].drop_duplicates())
-    cands, plain = [], []
-    for e in entries:  # candidates of the annotated frames only, one chunk at a time
-        sm = read_cached_parquet(e.path / "candidates.parquet")  # the generator's boxes
-        cands.append(sm[pd.MultiIndex.from_frame(sm[QUERY_KEY]).isin(annotated)])
-        if (e.path / "plain_difference.parquet").is_file():
-            pd_ = read_cached_parquet(e.path / "plain_difference.parquet")
-            plain.append(pd_[pd.MultiIndex.from_frame(pd_[QUERY_KEY]).isin(annotated)])
-    nms = FrameNMS(opt.nms_iou, opt.max_boxes)  # each frame's overlaps made once for the draws
-    groups = _groups(fr, run.frames) if opt.bootstrap_group == "map_image" else None
-    inputs = TableDInputs(
-        fr, ann, dets, ids, pd.concat(cands, ignore_index=True), nms,
-        pd.concat(plain, ignore_index=True) if plain else None, groups, opt.bootstrap_group,
-        opt.difference.recipe,
-    )  # fmt: skip
-    t = score_detections(out, inputs, ChanceSettings.of(cfg), opt.boxes, run.alarm)
-    if t is None:
-        return None
-    md = table_d_markdown(t)
-    write_text(out / "tableD.md", md)
-    return t, md
-
-
-def _groups(fr: pd.DataFrame, frames: pd.DataFrame) -> dict[tuple[str, str, int], str]:
-    """Each query frame's bootstrap group: its map image (``[detect] bootstrap_group``).
-
-    Map frames whose image files hold the same bytes are one group (a folder may hold one view
-    under several names), so are query frames paired with one map frame.
-    """
-    image = frames.set_index(FRAME_KEY)["image"]
-    digest: dict[str, str] = {}
-    out = {}
-    for r in fr[[*FRAME_KEY, "r_session", "r_camera", "r_utime"]].itertuples(index=False):
-        mk = (str(r.r_session), str(r.r_camera), int(r.r_utime))
-        uri = str(image.get(mk, "")) if mk in image.index else ""
-        if uri not in digest:
-            ref = ImageRef.parse(uri)
-            try:
-                digest[uri] = hashlib.sha1(Path(ref.path).read_bytes()).hexdigest() + ref.fragment
-            except OSError:  # no file (a log's stored frame): the map frame itself
-                digest[uri] = "|".join(map(str, mk))
-        out[(str(r.session), str(r.camera), int(r.utime))] = digest[uri] if uri else str(mk)
-    return out
-
-
 def _frame_columns(fr: pd.DataFrame) -> list[str]:
     """The columns of ``frames.parquet`` / ``frames.csv``.
 
@@ -247,19 +188,73 @@ class DetectResult:
     pixel_markdown: str | None = None
 
 
-def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> DetectResult:
-    """COCO files, the frame table, LoC maps of the most changed frames, the map, Table D, page.
+@dataclass(frozen=True)
+class Scored:
+    """A run's frames and boxes once calibrated, counted and written (:func:`scored`).
 
-    ``dets`` and ``fr`` are the chunks' boxes and frame rows. Also the alarms at the nominal
-    false-alarm rate ``run.alarm`` (``alarms.csv``, method §13.1).
+    ``fr``: the frame rows, numbered and calibrated, with ``alarmed``; ``dets``: every box of the
+    chunks, calibrated, with ``comparable``, ``alarmed`` and ``drawn``; ``ids``: each frame key's
+    COCO image id; ``table``: ``frames.parquet``'s rows; ``not_comparable``: ``detect.json``'s.
     """
-    p, cfg, opt, map_session, queries = run.p, run.cfg, run.opt, run.map_session, run.queries
-    frames, pairs, ann, entries, alarm = run.frames, run.pairs, run.ann, run.entries, run.alarm
-    out = p.out
+
+    fr: pd.DataFrame
+    dets: pd.DataFrame
+    ids: dict[tuple[str, str, int], int]
+    table: pd.DataFrame
+    detections: int
+    alarms: Alarms
+    not_comparable: dict[str, Any]
+
+
+def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> DetectResult:
+    """Everything a detect run writes, step by step, and what the command prints of it.
+
+    ``dets`` and ``fr`` are the chunks' boxes and frame rows: calibrated and written with their
+    alarms at the nominal false-alarm rate ``run.alarm`` (:func:`scored`), then the most changed
+    frames' LoC maps and the map (:func:`figures`), Table D and its pixel part where there are
+    annotations or masks, the page, and ``detect.json``'s record (:func:`run_record`).
+    """
+    cfg, out = run.cfg, run.p.out
+    s = scored(run, dets, fr)
+    top, maps, traj = figures(run, s)
+    scored_d = write_table_d(run, s.fr, s.dets, s.ids) if len(run.ann) else None
+    table_d, table_d_md = scored_d or (None, None)
+    names = session_names(cfg.sessions)
+    pixel, pixel_md = write_pixel_table(
+        out, cfg, names, run.map_session, run.entries, s.fr, run.frames, run.opt
+    )
+    page = write_detect_page(run, (s.fr, top, s.dets), maps, (table_d, pixel), s.alarms.record())
+    written = {
+        "detections": str(out / "detections.json"),
+        "images": str(out / "images.json"),
+        "frames": str(out / "frames.parquet"),
+        "trajectory": str(traj),
+        "page": str(page),
+        "locmaps": [str(m) for m in maps.values()],
+    }
+    record = run_record(run, s, written, (table_d, pixel))
+    return DetectResult(record, s.table, table_d_md, pixel_md)
+
+
+def _sure(fr: pd.DataFrame) -> np.ndarray:
+    """The frames whose pair is not uncertain (method §13.2; all where pairs are by pose)."""
+    if "uncertain_pair" in fr.columns:
+        return ~fr["uncertain_pair"].to_numpy(bool)
+    return np.ones(len(fr), bool)
+
+
+def scored(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> Scored:
+    """The frames and boxes calibrated, counted and written.
+
+    ``images.json``, ``detections.json``, ``frames.*``, ``alarms.csv``, ``drawn_boxes.csv``.
+    """
+    cfg, out = run.cfg, run.p.out
     names = session_names(cfg.sessions)
     sources = {sc.name: sc.source for sc in cfg.sessions}
-    fr, ids = _frame_table(out, fr, frames, pairs, names, sources, cfg.pairs.min_pair_confidence)
-    fr, dets = _calibrated(fr, dets, entries, run.null)
+    fr, ids = _frame_table(
+        out, fr, run.frames, run.pairs, names, sources, cfg.pairs.min_pair_confidence
+    )
+    fr, dets = _calibrated(fr, dets, run.entries, run.null)
     comparable = pd.MultiIndex.from_frame(fr.loc[fr["comparable"].astype(bool), FRAME_KEY])
     dets = dets.assign(comparable=pd.MultiIndex.from_frame(dets[FRAME_KEY]).isin(comparable))
     det = dets[dets["kind"] == "detection"]
@@ -273,58 +268,65 @@ def write_outputs(run: DetectRun, dets: pd.DataFrame, fr: pd.DataFrame) -> Detec
     table = fr[_frame_columns(fr)]
     write_parquet(out / "frames.parquet", table)
     write_text(out / "frames.csv", table.to_csv(index=False, float_format="%.6g"))
-    al = alarms_of(fr, det, alarm)  # the one count of alarms (method §13.1)
+    al = alarms_of(fr, det, run.alarm)  # the one count of alarms (method §13.1)
     _write_alarms(out, al)
     fr["alarmed"] = fr.index.isin(al.frames.index)
     dets = dets.assign(alarmed=dets.index.isin(al.boxes.index))
     dets = _drawn(out, dets, fr)  # what the page and the overlays draw of them
-    sure = ~fr["uncertain_pair"] if "uncertain_pair" in fr.columns else np.ones(len(fr), bool)
+    not_comparable = _not_comparable(fr, run.opt.not_comparable)
+    return Scored(fr, dets, ids, table, len(results), al, not_comparable)
+
+
+def figures(run: DetectRun, s: Scored) -> tuple[pd.DataFrame, dict[Any, Path], Path]:
+    """The ``[detect] top`` most changed frames, their LoC maps and the trajectory figure.
+
+    The most changed are of the frames whose pair is sure and comparable and that have a score.
+    """
+    fr, out = s.fr, run.p.out
     comparable = fr["comparable"].astype(bool).to_numpy()
-    not_comparable = _not_comparable(fr, opt.not_comparable)
-    top = fr[sure & comparable & np.isfinite(fr["score"].to_numpy(np.float64))]
-    top = top.sort_values(["score", "image_id"], ascending=[False, True]).head(opt.top)
-    maps = locmaps(out, top, entries, dets)
+    top = fr[_sure(fr) & comparable & np.isfinite(fr["score"].to_numpy(np.float64))]
+    top = top.sort_values(["score", "image_id"], ascending=[False, True]).head(run.opt.top)
+    maps = locmaps(out, top, run.entries, s.dets)
+    traj = trajectory_figure(out / "trajectory.png", run.frames, run.map_session, fr, top)
+    return top, maps, traj
 
-    traj = trajectory_figure(out / "trajectory.png", frames, map_session, fr, top)
-    table_d, table_d_md = (_table_d(run, fr, dets, ids) if len(ann) else None) or (None, None)
-    pixel, pixel_md = write_pixel_table(out, cfg, names, map_session, entries, fr, frames, opt)
 
-    page = write_detect_page(run, (fr, top, dets), maps, (table_d, pixel), al.record())
-    record = {
+def run_record(
+    run: DetectRun, s: Scored, written: dict[str, Any], tables: tuple[Any, Any]
+) -> dict[str, Any]:
+    """``detect.json``'s record: options, counts, alarms, calibration, outputs and tables.
+
+    ``tables``: Table D and its pixel part, None where not computed.
+    """
+    cfg, opt, p = run.cfg, run.opt, run.p
+    table_d, pixel = tables
+    return {
         "config": cfg.name,
-        "map": map_session,
-        "queries": queries,
+        "map": run.map_session,
+        "queries": run.queries,
         "localizers": run.localizers,
         # the folders' names, the map's first, where the sessions are folders of images
         "folders": run.folders or None,
         "fused_across": ALL_LOCALIZERS if len(run.localizers) > 1 else None,
         "options": opt.record(cfg.fusion.seed, cfg.proposals.segments),
-        "query_frames": len(fr),
+        "query_frames": len(s.fr),
         # method §13.2: pairs under [pairs] min_pair_confidence, left out of the most-changed list
-        "uncertain_pairs": int((~sure).sum()),
+        "uncertain_pairs": int((~_sure(s.fr)).sum()),
         "min_pair_confidence": cfg.pairs.min_pair_confidence,
         # docs/decisions.md, *The plain difference*: pairs that could not be registered
-        "not_comparable": not_comparable,
-        "detections": len(results),
+        "not_comparable": s.not_comparable,
+        "detections": s.detections,
         # method §13.1: what the nominal false-alarm rate flags (alarms.csv)
-        "alarm": al.record(),
+        "alarm": s.alarms.record(),
         # what the calibrated scores are measured against: the no-change null or the run itself
         "calibration": run.null.record if run.null is not None else {"method": "within-run"},
-        "outputs": {
-            "detections": str(out / "detections.json"),
-            "images": str(out / "images.json"),
-            "frames": str(out / "frames.parquet"),
-            "trajectory": str(traj),
-            "page": str(page),
-            "locmaps": [str(m) for m in maps.values()],
-        },
+        "outputs": written,
         "table_d": table_d.to_dict(orient="records") if table_d is not None else None,
         # method §13.2: the LoC maps' pixel AP against the masks (tableD_pixel.csv)
         "table_d_pixel": pixel.to_dict(orient="records") if pixel is not None else None,
         "stage_units_run": p.ran,
         "timings_s": {k: round(v, 3) for k, v in p.timings.items()},
     }
-    return DetectResult(record, table, table_d_md, pixel_md)
 
 
 def _not_comparable(fr: pd.DataFrame, policy: str) -> dict[str, Any]:
@@ -403,67 +405,3 @@ def locmaps(
             cv2.imwrite(str(d / f"{name}.png"), panel[..., ::-1])
             written[k] = d / f"{name}.png"
     return written
-
-
-def write_pixel_table(
-    out: Path,
-    cfg: Config,
-    names: pd.DataFrame,
-    map_session: str,
-    entries: list[Any],
-    run_frames: pd.DataFrame,
-    frames_table: pd.DataFrame,
-    opt: Any = None,
-) -> tuple[pd.DataFrame | None, str | None]:
-    """``tableD_pixel.csv`` / ``.md`` from ``[masks] folder``'s masks of this run's query frames.
-
-    ``run_frames``: the run's frame rows (each query frame's map frame, ``r_*``);
-    ``frames_table``: every frame's image, for the plain-difference row; ``opt``: the run's
-    ``[detect]`` (the config's where None), whose registration that row uses.
-
-    ``entries`` are the detect chunks (their ``samples.parquet``: boxes and ``loc``), read one at
-    a time for the masked frames only; a masked frame without a sample box counts all its pixels
-    uncovered. (None, None) where no mask names a frame of the run (and an earlier run's table in
-    ``out`` is removed).
-    """
-    files: dict[tuple[str, str, int], Path] = {}
-    if cfg.masks.folder is not None:
-        ran = set(map(tuple, run_frames[FRAME_KEY].to_numpy().tolist()))
-        every = mask_frames(Path(cfg.masks.folder), names, [map_session])
-        files = {k: f for k, f in every.items() if k in ran}
-        if len(files) < len(every):  # e.g. frames thinned out by [pairs] stride_m
-            log.info(
-                "pixel AP: %d of %d masks name a frame this run did not detect on, left out",
-                len(every) - len(files),
-                len(every),
-            )
-    if not files:  # an earlier run's table into this run directory is not this run's
-        for stale in ("tableD_pixel.csv", "tableD_pixel.md"):
-            (out / stale).unlink(missing_ok=True)
-        return None, None
-    boxes: dict[tuple[str, str, int], tuple[np.ndarray, np.ndarray]] = {}
-    images = frames_table.set_index(FRAME_KEY)["image"]
-    want = pd.MultiIndex.from_tuples(sorted(files))
-    for e in entries:
-        s = read_cached_parquet(e.path / "samples.parquet")
-        s = s[pd.MultiIndex.from_frame(s[QUERY_KEY]).isin(want)]
-        for key, g in s.groupby(QUERY_KEY, sort=True):
-            k = (str(key[0]), str(key[1]), int(key[2]))
-            boxes[k] = (
-                g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64),
-                g["loc"].to_numpy(np.float64),
-            )
-    frames = []
-    for k in sorted(files):
-        b, loc = boxes.get(k, (np.zeros((0, 4)), np.zeros(0)))
-        mask = cv2.imread(str(files[k]), cv2.IMREAD_UNCHANGED)
-        if mask is None:  # read as annotations a moment ago: changed on disk since
-            raise AnnotationError(f"{files[k]}: not a readable mask image")
-        diff = pair_difference(run_frames, images, k, b, opt or cfg.detect)
-        frames.append(masked_frame(b, loc, mask, diff))
-    r = cfg.report
-    t = pixel_table(frames, r.chance_draws, r.bootstrap, r.ci, cfg.seed, r.min_positive_images)
-    write_text(out / "tableD_pixel.csv", t.to_csv(index=False, float_format="%.4f"))
-    md = pixel_markdown(t)
-    write_text(out / "tableD_pixel.md", md)
-    return t, md

@@ -9,8 +9,9 @@ from harness.cli.common import detect_flag
 from harness.cli.runs import cmd_detect, cmd_report, cmd_reproduce
 from harness.cli.stages import cmd_fixture, cmd_ingest, cmd_pairs, cmd_proposals, cmd_rank, cmd_task
 from harness.cli.tools import cmd_annotations, cmd_gc, cmd_inspect
+from harness.detect.config import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, CALIBRATIONS
 from harness.detect.presets import PRESETS, preset_help
-from harness.methods import BOX_GENERATORS, BOX_PRIORS, BOX_SCORES, CALIBRATIONS
+from harness.methods import rules_where
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -226,10 +227,8 @@ def _add_detect(sub: Any) -> None:
         "--method",  # its name before the one vocabulary
         dest="fusion",
         default=None,
-        help="the fusion rule whose LoC finds the boxes (--method: its old name): rank_fusion, "
-        "rank_fusion_le2, "
-        "rank_fusion_le3, one of the field's rules rrf, combmnz, borda, isr (method §14), or a "
-        "method "
+        help="the fusion rule whose LoC finds the boxes (--method: its old name): "
+        f"{', '.join(rules_where(detect=True))} (the field's rules: method §14), or a method "
         "registered with detect=True",
     )
     detect_flag(p, "--boxes", help=f"the box generator (method §13.1): {', '.join(BOX_GENERATORS)}")

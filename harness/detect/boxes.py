@@ -7,9 +7,9 @@ import logging
 import cv2
 import numpy as np
 
+from harness.detect.config import BOX_GENERATORS
 from harness.errors import ConfigError
 from harness.fusion.fuse import loc_map
-from harness.methods import BOX_GENERATORS
 
 log = logging.getLogger(__name__)
 

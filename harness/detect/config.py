@@ -16,14 +16,18 @@ from harness.localizers.config import (
     check_local,
 )
 from harness.localizers.kinds import LOCALIZER_KINDS, paired_kinds
-from harness.methods import (
-    BOX_GENERATORS,
-    BOX_PRIORS,
-    BOX_SCORES,
-    CALIBRATIONS,
-    known_proposal_methods,
-    rules_where,
-)
+from harness.methods import known_proposal_methods, rules_where
+
+#: ``harness detect``'s box generators (method §13.1, ``[detect] boxes``), the default first.
+BOX_GENERATORS = ("fused", "locmap", "proposals", "segments", "subimages")
+#: What a candidate box's score is fused with (``[detect] box_prior``, method §13.3): its area, or
+#: nothing (the score alone, as the paper's detector).
+BOX_PRIORS = ("area", "difference", "difference_product", "none")
+#: How a generator scores a candidate box from the LoC map (``[detect] box_score``).
+BOX_SCORES = ("max", "mean", "contrast")
+#: ``[detect] calibration``: the no-change null (docs/decisions.md, *Calibrated alarms*) or the
+#: run's own scores (the share of the run's frames and candidate boxes that score as high).
+CALIBRATIONS = ("null", "within-run")
 
 #: ``[detect] localizer``'s value for the config's own localizers (the paper's detector); every
 #: other value is a localizer kind that ranks inside the paired map frame.
