@@ -29,7 +29,7 @@ def iou_matrix(a: np.ndarray, b: np.ndarray, opencv: bool = False) -> np.ndarray
     if not len(a) or not len(b):
         return np.zeros((len(a), len(b)))
     if opencv:
-        return _rect2d_overlap(a, b)
+        return 1.0 - _jaccard_distance(a, b)
     iw = np.clip(
         np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
     )
@@ -43,8 +43,8 @@ def iou_matrix(a: np.ndarray, b: np.ndarray, opencv: bool = False) -> np.ndarray
     return np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
 
 
-def _rect2d_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """OpenCV's ``1 - jaccardDistance`` of ``Rect2d`` boxes, in doubles (see :func:`iou_matrix`)."""
+def _jaccard_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """OpenCV's ``jaccardDistance`` of ``Rect2d`` boxes, in doubles (see :func:`iou_matrix`)."""
     wa, ha, wb, hb = a[:, 2] - a[:, 0], a[:, 3] - a[:, 1], b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
     iw = np.minimum((a[:, 0] + wa)[:, None], (b[:, 0] + wb)[None, :]) - np.maximum(
         a[:, 0][:, None], b[:, 0][None, :]
@@ -55,7 +55,7 @@ def _rect2d_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     inter = np.where((iw > 0) & (ih > 0), iw * ih, 0.0)
     tot = (wa * ha)[:, None] + (wb * hb)[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
-        return 1.0 - np.where(tot <= np.finfo(np.float64).eps, 0.0, 1.0 - inter / (tot - inter))
+        return np.where(tot <= np.finfo(np.float64).eps, 0.0, 1.0 - inter / (tot - inter))
 
 
 def suppression(boxes: np.ndarray, nms_iou: float) -> np.ndarray:
@@ -68,7 +68,7 @@ def suppression(boxes: np.ndarray, nms_iou: float) -> np.ndarray:
     b = np.asarray(boxes, np.float64).reshape(-1, 4)
     if not len(b):
         return np.zeros((0, 0), bool)
-    dist = 1.0 - iou_matrix(b, b, opencv=True)  # OpenCV's jaccardDistance, in doubles
+    dist = _jaccard_distance(b, b)  # iou_matrix's OpenCV arithmetic, as a distance
     overlap = np.float32(1.0) - dist.astype(np.float32)
     return overlap > np.float32(nms_iou)
 
