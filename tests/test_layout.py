@@ -262,6 +262,7 @@ PROJECT_TESTS = frozenset(
         "test_bad_input",
         "test_lock",
         "test_install",
+        "test_tools",
         "test_doc_commands",
         "test_user_text",
     }

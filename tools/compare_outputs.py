@@ -24,6 +24,8 @@ from typing import Any
 #: JSON fields that are measurements of time, not outputs.
 TIMES = frozenset({"timings_s", "total_s", "ms_per_query_frame", "build_s", "costs", "argv"})
 KEY = re.compile(r"\b[0-9a-f]{16}\b")
+#: A report page's row of the run's measured times.
+TIME_ROW = re.compile(r"<tr><td>time</td><td>[^<]*</td></tr>")
 
 
 def _text(t: str, roots: tuple[str, ...]) -> str:
@@ -77,10 +79,8 @@ def compare_file(
         ja = _json(json.loads(ta), roots_a)
         jb = _json(json.loads(tb), roots_b)
         return _first_difference(ja, jb)
-    la = [ln for ln in _text(ta, roots_a).splitlines() if not ln.startswith("<tr><td>time")]
-    lb = [ln for ln in _text(tb, roots_b).splitlines() if not ln.startswith("<tr><td>time")]
-    la = [re.sub(r"<tr><td>time</td><td>[^<]*</td></tr>", "", ln) for ln in la]
-    lb = [re.sub(r"<tr><td>time</td><td>[^<]*</td></tr>", "", ln) for ln in lb]
+    la = TIME_ROW.sub("", _text(ta, roots_a)).splitlines()
+    lb = TIME_ROW.sub("", _text(tb, roots_b)).splitlines()
     for i, (u, v) in enumerate(zip(la, lb, strict=False)):
         if u != v:
             return f"line {i + 1}"
@@ -95,6 +95,10 @@ def main() -> int:
     ap.add_argument("--source", nargs=2, metavar=("BEFORE_TREE", "AFTER_TREE"), default=None,
                     help="the checkouts the two were run from, where they differ")  # fmt: skip
     a = ap.parse_args()
+    for d in (a.before, a.after):
+        if not d.is_dir() or not any(d.iterdir()):
+            print(f"ERROR: {d}: not a folder of runs (absent or empty)", file=sys.stderr)
+            return 1
     same, differ = 0, []
     for fa in sorted(p for p in a.before.rglob("*") if p.is_file()):
         rel = fa.relative_to(a.before)
