@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -164,6 +165,31 @@ def test_per_crop_normalisation_matches_its_definition() -> None:
     assert torch.allclose(
         to_tensor(flat, torch.device("cpu"), per_crop=True), torch.full((1, 3, 8, 8), 0.5)
     )
+
+
+def test_per_crop_lookup_gives_the_whole_tensors_bits() -> None:
+    """On the CPU ``to_tensor`` maps the 256 uint8 values and looks the pixels up: the same bits
+    as the affine map and logistic applied to the whole uint8 tensor, at 1 and 2 threads, for
+    crops of any size, range and batch (a flat channel included)."""
+    rng = np.random.default_rng(3)
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            for size, batch, lo, hi in ((256, 2, 0, 255), (64, 5, 40, 90), (96, 16, 0, 255),
+                                        (32, 3, 200, 200)):  # fmt: skip
+                c = rng.integers(lo, hi + 1, (batch, size, size, 3), dtype=np.uint8)
+                c[0, ..., 1] = 17
+                st = np.array([cv2.meanStdDev(x) for x in c]).reshape(batch, 2, 3)
+                sd = np.maximum(st[:, 1] / 255 * np.sqrt(size**2 / (size**2 - 1)), 1e-3)
+                a = torch.from_numpy((1 / (255 * sd)).astype(np.float32))[:, :, None, None]
+                b = torch.from_numpy((-st[:, 0] / 255 / sd).astype(np.float32))[:, :, None, None]
+                whole = torch.addcmul(b, torch.from_numpy(c).permute(0, 3, 1, 2), a).sigmoid_()
+                got = to_tensor(c, torch.device("cpu"), per_crop=True)
+                assert got.is_contiguous(memory_format=torch.channels_last)
+                assert torch.equal(got, whole), (n, size, batch)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_training_free_descriptors() -> None:
