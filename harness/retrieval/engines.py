@@ -205,15 +205,20 @@ def _place_rows(
 def _place_ranks(fm: torch.Tensor, qi: np.ndarray, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rank of each query's place and its L from the (queries x frames) per-frame minima ``fm``.
 
-    ``qi``, ``pc``: the (query, place frame) pairs. Frames of the place never count.
+    ``qi``, ``pc``: the (query, place frame) pairs. Frames of the place never count: ``d`` is
+    their smallest minimum, so none of them lies below it, and one comparison of the whole matrix
+    counts the frames outside it that do. The place's columns are read through the pairs, not
+    through a (queries x frames) mask: two passes over the matrix instead of seven (4x faster at
+    4,096 x 12,500, the same integers).
     """
     n, L = fm.shape
     dev = fm.device
-    in_place = torch.zeros((n, L), dtype=torch.bool, device=dev)
-    in_place[torch.from_numpy(qi).to(dev), torch.from_numpy(pc).to(dev)] = True
-    dg = fm.masked_fill(~in_place, float("inf")).amin(1, keepdim=True)
-    rank = (((fm < dg) & ~in_place).sum(1) + 1).cpu().numpy().astype(np.int64)
-    Lq = (L - in_place.sum(1) + 1).cpu().numpy().astype(np.int64)
+    q = torch.from_numpy(qi).to(dev)
+    dg = torch.full((n,), float("inf"), dtype=fm.dtype, device=dev)
+    dg.scatter_reduce_(0, q, fm[q, torch.from_numpy(pc).to(dev)], "amin")
+    rank = (fm < dg[:, None]).sum(1, dtype=torch.int32).cpu().numpy().astype(np.int64) + 1
+    cells = np.unique(qi.astype(np.int64) * L + pc)  # a place frame named twice counts once
+    Lq = L + 1 - np.bincount(cells // max(L, 1), minlength=n).astype(np.int64)
     return rank, Lq
 
 
@@ -273,15 +278,16 @@ def _rank_group(
         vals = np.empty(len(cqr), np.float32)  # fast values of those rows, batch by batch
         for bi, (q, qn) in enumerate(zip(lhs, qnorms, strict=True)):
             q0 = bi * query_batch
-            d2 = sqdist(q, qn, rhs, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1))
-            fm[q0 : q0 + len(q), f0:f1] = frame_min(d2, lens, idx)
+            # unclamped: the minima and the place's values are clamped at 0 instead
+            d2 = sqdist(q, qn, rhs, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1), False)
+            fm[q0 : q0 + len(q), f0:f1] = frame_min(d2, lens, idx).clamp_min_(0)
             mine = np.nonzero((cqr >= q0) & (cqr < q0 + len(q)))[0]
             if len(mine):
                 sel = (
                     torch.from_numpy(cqr[mine] - q0).to(dev),
                     torch.from_numpy(crow[mine]).to(dev),
                 )
-                vals[mine] = d2[sel].cpu().numpy()
+                vals[mine] = d2[sel].clamp_min_(0).cpu().numpy()
         # Once per chunk, not per batch: the exact step's threads run while torch's OpenMP threads
         # spin after their last product (measured: a few milliseconds each time).
         if dev.type == "cpu":  # the chunk's rows, in memory and float32 already
