@@ -324,3 +324,28 @@ def pair_tables(rows: list[tuple], pairs: list[tuple], props: list[tuple]) -> tu
     prop_df = pd.DataFrame(props, columns=["session", "camera", "utime", "proposal_method",
                                            "box_id", "x1", "y1", "x2", "y2"])  # fmt: skip
     return frames, pair_df, prop_df
+
+
+def one_thread_descriptor_work(frames: list[tuple[str, np.ndarray]]) -> tuple[float, float]:
+    """Seconds on one thread for ``frames`` (image path, its boxes (k, 4)): decoding each and
+    cropping its boxes at 256 (``crop_pyramid``), then the autoencoder's inference encoder on the
+    crops in batches of two (random weights: the same convolutions, the same time), with torch on
+    one thread. Their sum divided by the cores is what lanes that waste nothing would take."""
+    import torch
+
+    from harness.descriptors.autoencoder import ConvAutoencoder, inference_encoder, to_tensor
+    from harness.descriptors.crops import crop_pyramid
+    from harness.descriptors.extract import torch_threads
+
+    model = ConvAutoencoder((32, 32, 16)).eval()
+    model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    enc, cpu = inference_encoder(model), torch.device("cpu")
+    with torch_threads(1), torch.inference_mode():
+        crops = [crop_pyramid(f, b, 256) for f, b in frames[:2]]  # warm
+        t0 = time.perf_counter()
+        crops = [crop_pyramid(f, b, 256) for f, b in frames]
+        t1 = time.perf_counter()
+        for c in crops:
+            [enc(to_tensor(c[i : i + 2], cpu, True)).numpy() for i in range(0, len(c), 2)]
+        t2 = time.perf_counter()
+    return t1 - t0, t2 - t1

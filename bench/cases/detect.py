@@ -26,6 +26,7 @@ from .common import (
     kernel_limits,
     matmul_gflops,
     nclt_scale_workload,
+    one_thread_descriptor_work,
     product_note,
 )
 
@@ -171,27 +172,13 @@ def lane_work(out: Path, stage_ms: float) -> None:
     """
     import glob
 
-    import torch
-
-    from harness.descriptors.autoencoder import ConvAutoencoder, inference_encoder, to_tensor
-    from harness.descriptors.crops import crop_pyramid
-    from harness.descriptors.extract import torch_threads
     from harness.proposals.builtin import grid5
 
     jpegs = sorted(glob.glob(str(out / "cache" / "ingest" / "*" / "images" / "*" / "*.jpg")))[-40:]
-    model = ConvAutoencoder((32, 32, 16)).eval()
-    model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-    enc, cpu, boxes = inference_encoder(model), torch.device("cpu"), grid5(WIDTH, HEIGHT)
-    with torch_threads(1), torch.inference_mode():
-        crops = [crop_pyramid(f, boxes, 256) for f in jpegs[:2]]  # warm
-        t0 = time.perf_counter()
-        crops = [crop_pyramid(f, boxes, 256) for f in jpegs]
-        t1 = time.perf_counter()
-        for c in crops:
-            [enc(to_tensor(c[i : i + 2], cpu, True)).numpy() for i in range(0, len(c), 2)]
-        t2 = time.perf_counter()
+    boxes = grid5(WIDTH, HEIGHT)
+    crop_s, enc_s = one_thread_descriptor_work([(f, boxes) for f in jpegs])
     cores = len(os.sched_getaffinity(0))
-    crop_ms, enc_ms = 1000 * (t1 - t0) / len(jpegs), 1000 * (t2 - t1) / len(jpegs)
+    crop_ms, enc_ms = 1000 * crop_s / len(jpegs), 1000 * enc_s / len(jpegs)
     ideal = (crop_ms + enc_ms) / cores
     _rated(
         "detect descriptors vs their own work on one thread, over the cores",

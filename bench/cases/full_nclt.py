@@ -17,6 +17,7 @@ from .common import (
     emit,
     kernel_limits,
     nclt_scale_workload,
+    one_thread_descriptor_work,
     product_note,
     random_db,
     reproduce_subprocess,
@@ -193,6 +194,9 @@ def case_full_nclt(quick: bool) -> None:
     per_frame_bytes += sum(size_of(f) for f in out.glob("*.parquet")) + size_of(out / "splits")
     fixed_bytes = size_of(out) - images_bytes - per_frame_bytes
     lim = kernel_limits(out)
+    edges_kernels = proposal_kernels(out, run["config"]["proposals"]["edges"])
+    sample = described_sample(out)
+    own_work = one_thread_descriptor_work(sample)
     (model_dir,) = (out / "cache" / "model").iterdir()
     model_info = json.loads((model_dir / "manifest.json").read_text())["info"]
     shutil.rmtree(out)
@@ -296,6 +300,34 @@ def case_full_nclt(quick: bool) -> None:
             ),
             flush=True,
         )
+    decode_ms, edges_ms = edges_kernels
+    own = (decode_ms + edges_ms) / lim["cores"]
+    emit(
+        "full-nclt proposals vs their own kernels",
+        [prop_s * 1000],
+        "ms/frame",
+        limit_ms=round(own, 2),
+        vs_limit=round(prop_s * 1000 / own, 2),
+        notes=f"the stage {prop_s * 1000:.2f} ms a frame against the kernels it runs, timed alone "
+        f"on one core and split over {lim['cores']:.0f}: the decode at 1/2 {decode_ms:.1f} ms and "
+        f"the edges proposer's own OpenCV calls on it (working copy, blur, Canny, dilations, "
+        f"contours) {edges_ms:.1f} ms, {own:.2f} ms a frame; the row above rates the stage "
+        "against the decode alone",
+    )
+    crop_s, enc_s = own_work
+    n_sub = sum(len(b) for _, b in sample)
+    ideal = 1000 * (crop_s + enc_s) / n_sub / lim["cores"]
+    emit(
+        "full-nclt descriptors vs their own work on one thread, over the cores",
+        [desc_s * 1000],
+        "ms/subimage",
+        limit_ms=round(ideal, 3),
+        vs_limit=round(desc_s * 1000 / ideal, 2),
+        notes=f"the stage {desc_s * 1000:.2f} ms a subimage; one thread, {len(sample)} of the "
+        f"run's frames ({n_sub} subimages, grid5 and edges): decode and crops "
+        f"{1000 * crop_s / n_sub:.2f} ms, the encoder {1000 * enc_s / n_sub:.2f} ms a subimage, "
+        f"over {lim['cores']:.0f} cores {ideal:.2f} ms (measured after the run)",
+    )
     rated_rows = [(r[3], lt) for r, (lt, _) in zip(rows, limits, strict=True) if lt]
     native_projection(
         {k: rows[i][3] for k, i in (("proposals", 1), ("training", 2), ("descriptors", 4))}
@@ -350,6 +382,54 @@ def case_full_nclt(quick: bool) -> None:
         ),
         flush=True,
     )
+
+
+def described_sample(out: Path, n: int = 24) -> list[tuple[str, np.ndarray]]:
+    """The run's last ``n`` frames with proposals: (image path, all their boxes (k, 4))."""
+    import pandas as pd
+
+    def table(stage: str, name: str) -> pd.DataFrame:
+        files = sorted((out / "cache" / stage).glob(f"*/{name}"))
+        return pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+
+    props, frames = table("proposals", "proposals.parquet"), table("frames", "frames.parquet")
+    key = ["session", "camera", "utime"]
+    image = dict(
+        zip(
+            map(tuple, frames[key].to_numpy()),
+            frames["image"].str.replace("{out}", str(out), regex=False),
+            strict=True,
+        )
+    )
+    groups = list(props.groupby(key, sort=True))[-n:]
+    return [(image[k], g[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)) for k, g in groups]
+
+
+def proposal_kernels(out: Path, edges: dict[str, Any]) -> tuple[float, float]:
+    """ms a frame on one core, 32 of the run's frames: their decode at 1/2 (as the proposals stage
+    reads them) and the ``edges`` proposer on those decodes with the run's ``[proposals.edges]``."""
+    import cv2
+
+    from harness.imagestore import read_image
+    from harness.proposals.builtin import edge_boxes
+    from harness.proposals.config import EdgesConfig
+
+    cfg = EdgesConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in edges.items()})
+    jpegs = sorted(p for p in (out / "cache" / "ingest").rglob("*.jpg"))[-32:]
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        for p in jpegs[:4]:
+            edge_boxes(read_image(str(p), 2), cfg)  # the page cache and the library warm
+        t0 = time.perf_counter()
+        images = [read_image(str(p), 2) for p in jpegs]
+        t1 = time.perf_counter()
+        for im in images:
+            edge_boxes(im, cfg)
+        t2 = time.perf_counter()
+    finally:
+        cv2.setNumThreads(threads)
+    return 1000 * (t1 - t0) / len(jpegs), 1000 * (t2 - t1) / len(jpegs)
 
 
 def _limits(
