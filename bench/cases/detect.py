@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .common import (
     DATA,
     ROOT,
@@ -59,8 +61,9 @@ def case_detect(quick: bool) -> None:
         rec, wall2, rss2 = _detect(root, out, "2012-08-04")
         frames = rec["query_frames"]
         t = rec["timings_s"]
-        stage_limits(out, t, frames, fp32_before)
-        lane_work(out, 1000 * (t["descriptor_shards"] + t.get("descriptors", 0.0)) / frames)
+        total, bound = stage_limits(out, t, frames, fp32_before)
+        stage_ms = 1000 * (t["descriptor_shards"] + t.get("descriptors", 0.0)) / frames
+        lane_work(out, stage_ms, (total, bound))
     finally:
         shutil.rmtree(out, ignore_errors=True)
     stage_ms = 1000 * sum(float(t.get(s, 0.0)) for s in PER_FRAME_STAGES) / frames
@@ -99,7 +102,7 @@ BOXES, WIDTH, HEIGHT = 5, 1232, 1616
 
 def stage_limits(
     out: Path, timings: dict[str, float], frames: int, fp32_before: float = 0.0
-) -> None:
+) -> tuple[float, float]:
     """Each per-frame stage of run 2 next to the limit of its kernels, measured in this run.
 
     - proposals: grid5's boxes need the frame's size only: no kernel (limit 0).
@@ -159,9 +162,10 @@ def stage_limits(
         f"frame needs the kernels themselves faster on this CPU: their sum alone is "
         f"{bound:.1f} ms; {frames} query frames",
     )
+    return total, bound
 
 
-def lane_work(out: Path, stage_ms: float) -> None:
+def lane_work(out: Path, stage_ms: float, total_bound: tuple[float, float]) -> None:
     """The descriptor stage beside its own work done on one thread and split over the cores.
 
     Each of 40 of the run's frames decoded and its grid5 boxes cropped (``crop_pyramid``), then
@@ -188,6 +192,69 @@ def lane_work(out: Path, stage_ms: float) -> None:
         f"the encoder on 5 subimages {enc_ms:.1f} ms, over {cores} cores {ideal:.1f} ms "
         f"({len(jpegs)} of the run's frames, measured after it)",
     )
+    alt_crop, alt_enc = other_ways([(f, boxes) for f in jpegs])
+    now, alt = crop_s + enc_s, alt_crop + alt_enc
+    projected = stage_ms * alt / now
+    total, bound = total_bound
+    other = total - stage_ms + projected
+    _rated(
+        "detect descriptors, two ways that change their bits (measured, not used)",
+        projected,
+        stage_ms,
+        f"on one thread beside the row above: grid5's four large boxes cut from one area resize "
+        f"of the half frame {1000 * alt_crop / len(jpegs):.1f} ms a frame for decode and crops "
+        f"(against {crop_ms:.1f}), the encoder in oneDNN's blocked layout "
+        f"{1000 * alt_enc / len(jpegs):.1f} ms (against {enc_ms:.1f}); the stage scaled by "
+        f"their sum {projected:.1f} ms a frame, the stages then {other:.1f} ms, "
+        f"{other / bound:.2f}x their kernels (the limit column here is the stage as it is)",
+    )
+
+
+def other_ways(frames: list[tuple[str, np.ndarray]]) -> tuple[float, float]:
+    """Seconds on one thread for :func:`one_thread_descriptor_work`'s work done two other ways,
+    both of which change the descriptors' last bits: grid5's four large boxes (two thirds of the
+    frame a side) cut from one area resize of the half frame to 1.5 x 256 a side, the centre box
+    as now; and the inference encoder in oneDNN's blocked layout (``torch.utils.mkldnn``), its
+    input converted to it and its output back."""
+    import cv2
+    import torch
+    from torch.utils import mkldnn
+
+    from harness.descriptors.autoencoder import ConvAutoencoder, inference_encoder, to_tensor
+    from harness.descriptors.crops import crop_resize
+    from harness.descriptors.extract import torch_threads
+    from harness.imagestore import read_image
+
+    def crops(path: str, boxes: np.ndarray) -> np.ndarray:
+        img = read_image(path)
+        h, w = img.shape[:2]
+        out = np.empty((5, 256, 256, 3), np.uint8)
+        out[0] = crop_resize(img, boxes[:1], 256)[0]
+        half = cv2.resize(img, (-(-w // 2), -(-h // 2)), interpolation=cv2.INTER_AREA)
+        big = cv2.resize(half, (384, 384), interpolation=cv2.INTER_AREA)
+        for i, (y, x) in enumerate(((0, 0), (0, 128), (128, 0), (128, 128))):
+            out[1 + i] = big[y : y + 256, x : x + 256]
+        return out
+
+    model = ConvAutoencoder((32, 32, 16)).eval()
+    layers: list[torch.nn.Module] = []
+    for m in inference_encoder(model):
+        if isinstance(m, torch.nn.Conv2d | torch.nn.ReLU):
+            layers.append(m)
+        elif not isinstance(m, torch.nn.Flatten):
+            layers.append(torch.nn.MaxPool2d(2))
+    blocked, cpu = mkldnn.to_mkldnn(torch.nn.Sequential(*layers)), torch.device("cpu")
+    with torch_threads(1), torch.inference_mode():
+        cut = [crops(f, b) for f, b in frames[:2]]  # warm
+        t0 = time.perf_counter()
+        cut = [crops(f, b) for f, b in frames]
+        t1 = time.perf_counter()
+        for c in cut:
+            for i in range(0, len(c), 2):
+                x = to_tensor(c[i : i + 2], cpu, True).contiguous().to_mkldnn()
+                blocked(x).to_dense().flatten(1).numpy()
+        t2 = time.perf_counter()
+    return t1 - t0, t2 - t1
 
 
 def _rated(case: str, ms: float, limit: float, notes: str, digits: int = 2) -> None:
