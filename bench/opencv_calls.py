@@ -291,6 +291,10 @@ def calls(rgb: np.ndarray, net: Path) -> dict[str, Callable[[], Any]]:
             f32,
         ),
         "meanStdDev": lambda: cv2.meanStdDev(rgb),
+        # the per-crop normalisation's lookup: a float32 table per channel
+        "LUT (float32 table, 3 channels)": lambda: cv2.LUT(
+            rgb, np.linspace(0, 1, 768, dtype=np.float32).reshape(1, 256, 3)
+        ),
         "calcHist": lambda: cv2.calcHist(
             [cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)], [0, 1], None, [8, 8], [0, 180, 0, 256]
         ),
