@@ -106,38 +106,24 @@ def sqdist_into(
 ) -> torch.Tensor:
     """Squared L2 distances by the expansion, written into ``out`` (no allocation), clamped at 0.
 
-    ``clamp=False`` leaves the clamp to the caller: a minimum clamped is the clamped values'
-    minimum, so a caller that keeps only minima clamps 16x fewer values.
+    float32 operands: the product is added into ``out`` in place. bfloat16 operands (the bf16
+    candidate product): the norms stay float32, the product accumulates in float32 (CUDA's
+    reduced-precision reduction is turned off for the call) and its bfloat16 result is widened
+    into ``out``. ``clamp=False`` leaves the clamp to the caller: a minimum clamped is the clamped
+    values' minimum, so a caller that keeps only minima clamps 16x fewer values.
     """
     torch.add(qn, bn[None, :], out=out)
-    out.addmm_(query, block.T, alpha=-2.0)
-    return out.clamp_min_(0) if clamp else out
-
-
-def sqdist_bf16_into(
-    query: torch.Tensor,
-    qn: torch.Tensor,
-    block: torch.Tensor,
-    bn: torch.Tensor,
-    out: torch.Tensor,
-    clamp: bool = True,
-) -> torch.Tensor:
-    """:func:`sqdist_into` with the product in bfloat16 (``query`` and ``block`` bfloat16).
-
-    The norms stay float32; the product accumulates in float32 (CUDA's reduced-precision
-    reduction is turned off for the call) and its bfloat16 result is widened into ``out``.
-    """
-    torch.add(qn, bn[None, :], out=out)
-    if query.device.type == "cuda":
+    if query.dtype != torch.bfloat16:
+        out.addmm_(query, block.T, alpha=-2.0)
+    elif query.device.type == "cuda":
         flag = torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction
         torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = False
         try:
-            dot = query @ block.T
+            out.add_(query @ block.T, alpha=-2.0)
         finally:
             torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = flag
     else:
-        dot = query @ block.T
-    out.add_(dot, alpha=-2.0)
+        out.add_(query @ block.T, alpha=-2.0)
     return out.clamp_min_(0) if clamp else out
 
 

@@ -32,7 +32,6 @@ from harness.retrieval.distances import (
     expansion_error_factor,
     frame_min,
     pad_index,
-    sqdist_bf16_into,
     sqdist_into,
     workspace,
 )
@@ -247,7 +246,6 @@ def _rank_group(
     contiguous = bool(np.all(order == np.arange(len(order))))
     bounds = np.concatenate([starts, [len(order)]])
     lhs, qnorms, center = _query_batches(query_desc, query_batch, dev, bf16)
-    sqdist = sqdist_bf16_into if bf16 else sqdist_into
     qi = np.repeat(np.arange(n), [len(c) for c in pcols])
     pc = np.concatenate(pcols) if n else np.zeros(0, np.int64)
     by_col = np.argsort(pc, kind="stable")
@@ -279,7 +277,7 @@ def _rank_group(
         for bi, (q, qn) in enumerate(zip(lhs, qnorms, strict=True)):
             q0 = bi * query_batch
             # unclamped: the minima and the place's values are clamped at 0 instead
-            d2 = sqdist(q, qn, rhs, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1), False)
+            d2 = sqdist_into(q, qn, rhs, bn, d2_buf[: len(q) * (r1 - r0)].view(len(q), -1), False)
             fm[q0 : q0 + len(q), f0:f1] = frame_min(d2, lens, idx).clamp_min_(0)
             mine = np.nonzero((cqr >= q0) & (cqr < q0 + len(q)))[0]
             if len(mine):

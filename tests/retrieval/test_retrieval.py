@@ -382,7 +382,7 @@ def test_bf16_candidates_give_exact_ranks_and_d(dim: int, scale: float, offset: 
 def test_the_bf16_bound_holds_for_the_product_torch_computes() -> None:
     """:func:`bf16_error_factor` against the values the engine's bf16 path computes (centred,
     bfloat16 product, float32 norms), measured pair by pair: never beyond the bound."""
-    from harness.retrieval.distances import bf16_error_factor, sqdist_bf16_into
+    from harness.retrieval.distances import bf16_error_factor, sqdist_into
 
     rng = np.random.default_rng(5)
     for dim, scale in [(16, 1.0), (512, 100.0), (2048, 1e-2)]:
@@ -398,7 +398,7 @@ def test_the_bf16_bound_holds_for_the_product_torch_computes() -> None:
         qn = torch.linalg.vector_norm(qc, dim=1, keepdim=True).square_()
         bn = torch.linalg.vector_norm(bc, dim=1).square_()
         out = torch.empty((40, 300))
-        v = sqdist_bf16_into(qc.bfloat16(), qn, bc.bfloat16(), bn, out).double().numpy()
+        v = sqdist_into(qc.bfloat16(), qn, bc.bfloat16(), bn, out).double().numpy()
         true = ((q[:, None, :].astype(np.float64) - b[None].astype(np.float64)) ** 2).sum(2)
         bound = (
             bf16_error_factor(dim)
