@@ -82,6 +82,20 @@ def emit(case: str, runs: list[float], unit: str, **extra: object) -> None:
     )
 
 
+def rated(
+    case: str, ms: float, limit: float, notes: str, digits: int = 2, unit: str = "ms/frame"
+) -> None:
+    """One row of a time beside its limit: ``limit_ms`` and ``vs_limit`` (None: no limit)."""
+    emit(
+        case,
+        [ms],
+        unit,
+        limit_ms=round(limit, digits),
+        vs_limit=round(ms / limit, 2) if limit > 0 else None,
+        notes=notes,
+    )
+
+
 def timed(fn, repeat: int = 3) -> list[float]:
     out = []
     for _ in range(repeat):

@@ -24,12 +24,12 @@ from .common import (
     DATA,
     ROOT,
     autoencoder_flops,
-    emit,
     kernel_limits,
     matmul_gflops,
     nclt_scale_workload,
     one_thread_descriptor_work,
     product_note,
+    rated,
 )
 
 PAPER_MS = 25.41
@@ -145,7 +145,7 @@ def stage_limits(
         f"{lim['bandwidth_gbs']:.1f} GB/s",
     }
     for stage, ms in measured.items():
-        _rated(
+        rated(
             f"detect stage vs its limit: {stage}",
             ms,
             limits[stage],
@@ -153,7 +153,7 @@ def stage_limits(
             digits=3,
         )
     total, bound = sum(measured.values()), sum(limits.values())
-    _rated(
+    rated(
         "detect stages vs the sum of their limits",
         total,
         bound,
@@ -184,7 +184,7 @@ def lane_work(out: Path, stage_ms: float, total_bound: tuple[float, float]) -> N
     cores = len(os.sched_getaffinity(0))
     crop_ms, enc_ms = 1000 * crop_s / len(jpegs), 1000 * enc_s / len(jpegs)
     ideal = (crop_ms + enc_ms) / cores
-    _rated(
+    rated(
         "detect descriptors vs their own work on one thread, over the cores",
         stage_ms,
         ideal,
@@ -197,7 +197,7 @@ def lane_work(out: Path, stage_ms: float, total_bound: tuple[float, float]) -> N
     projected = stage_ms * alt / now
     total, bound = total_bound
     other = total - stage_ms + projected
-    _rated(
+    rated(
         "detect descriptors, two ways that change their bits (measured, not used)",
         projected,
         stage_ms,
@@ -255,15 +255,3 @@ def other_ways(frames: list[tuple[str, np.ndarray]]) -> tuple[float, float]:
                 blocked(x).to_dense().flatten(1).numpy()
         t2 = time.perf_counter()
     return t1 - t0, t2 - t1
-
-
-def _rated(case: str, ms: float, limit: float, notes: str, digits: int = 2) -> None:
-    """One row of ms a frame beside its limit: ``limit_ms`` and ``vs_limit`` (None: no limit)."""
-    emit(
-        case,
-        [ms],
-        "ms/frame",
-        limit_ms=round(limit, digits),
-        vs_limit=round(ms / limit, 2) if limit > 0 else None,
-        notes=notes,
-    )

@@ -20,6 +20,7 @@ from .common import (
     one_thread_descriptor_work,
     product_note,
     random_db,
+    rated,
     reproduce_subprocess,
     size_of,
 )
@@ -278,7 +279,7 @@ def case_full_nclt(quick: bool) -> None:
     budget_frames = (GOAL_S - fixed_s) / per_described - NCLT_QUERY_IMAGES
     break_even_m = budget_frames * stride / 4 if stride > 0 else float("nan")
     for (name, rate, unit, proj), (limit_s, what) in zip(rows, limits, strict=True):
-        rated = (
+        against = (
             f"; limit {limit_s / 60:.1f} min ({what}), {proj / limit_s:.2f}x it"
             if limit_s
             else f"; no kernel limit: {what}"
@@ -295,20 +296,18 @@ def case_full_nclt(quick: bool) -> None:
                     "limit_min_cpu": round(limit_s / 60, 1) if limit_s else None,
                     "vs_limit": round(proj / limit_s, 2) if limit_s else None,
                     "notes": f"projected {proj / 60:.1f} min for the whole NCLT on this CPU"
-                    + rated,
+                    + against,
                 }
             ),
             flush=True,
         )
     decode_ms, edges_ms = edges_kernels
     own = (decode_ms + edges_ms) / lim["cores"]
-    emit(
+    rated(
         "full-nclt proposals vs their own kernels",
-        [prop_s * 1000],
-        "ms/frame",
-        limit_ms=round(own, 2),
-        vs_limit=round(prop_s * 1000 / own, 2),
-        notes=f"the stage {prop_s * 1000:.2f} ms a frame against the kernels it runs, timed alone "
+        prop_s * 1000,
+        own,
+        f"the stage {prop_s * 1000:.2f} ms a frame against the kernels it runs, timed alone "
         f"on one core and split over {lim['cores']:.0f}: the decode at 1/2 {decode_ms:.1f} ms and "
         f"the edges proposer's own OpenCV calls on it (working copy, blur, Canny, dilations, "
         f"contours) {edges_ms:.1f} ms, {own:.2f} ms a frame; the row above rates the stage "
@@ -317,16 +316,16 @@ def case_full_nclt(quick: bool) -> None:
     crop_s, enc_s = own_work
     n_sub = sum(len(b) for _, b in sample)
     ideal = 1000 * (crop_s + enc_s) / n_sub / lim["cores"]
-    emit(
+    rated(
         "full-nclt descriptors vs their own work on one thread, over the cores",
-        [desc_s * 1000],
-        "ms/subimage",
-        limit_ms=round(ideal, 3),
-        vs_limit=round(desc_s * 1000 / ideal, 2),
-        notes=f"the stage {desc_s * 1000:.2f} ms a subimage; one thread, {len(sample)} of the "
+        desc_s * 1000,
+        ideal,
+        f"the stage {desc_s * 1000:.2f} ms a subimage; one thread, {len(sample)} of the "
         f"run's frames ({n_sub} subimages, grid5 and edges): decode and crops "
         f"{1000 * crop_s / n_sub:.2f} ms, the encoder {1000 * enc_s / n_sub:.2f} ms a subimage, "
         f"over {lim['cores']:.0f} cores {ideal:.2f} ms (measured after the run)",
+        digits=3,
+        unit="ms/subimage",
     )
     rated_rows = [(r[3], lt) for r, (lt, _) in zip(rows, limits, strict=True) if lt]
     native_projection(
